@@ -1,0 +1,38 @@
+"""lrf_jax: learned (LRF-Net) and hand-crafted local reference frames in JAX.
+
+    import lrf_jax
+    frames, valid = lrf_jax.compute_frames(points, keypoints, radius, method="lrf_net")
+
+Conventions: frames are (..., 3, 3) with rows x, y, z (they map world vectors into the LRF),
+right-handed, det +1; invalid frames are the identity with `valid == False`.
+"""
+
+from lrf_jax.api import compute_frames, frames_from_patches
+from lrf_jax.frames import METHODS, MethodSpec, register
+from lrf_jax.frames.lrf_net import lrf_net_frames
+from lrf_jax.losses import batched_chamfer, chamfer, siamese_loss
+from lrf_jax.metrics import meancos, repeatability_summary
+from lrf_jax.model import default_params, init_params, load_params, save_params
+from lrf_jax.neighborhoods import Patches, build_patches
+
+__version__ = "0.1.0"
+
+__all__ = [
+    "METHODS",
+    "MethodSpec",
+    "Patches",
+    "batched_chamfer",
+    "build_patches",
+    "chamfer",
+    "compute_frames",
+    "default_params",
+    "frames_from_patches",
+    "init_params",
+    "load_params",
+    "lrf_net_frames",
+    "meancos",
+    "register",
+    "repeatability_summary",
+    "save_params",
+    "siamese_loss",
+]

@@ -1,0 +1,81 @@
+"""LRF methods behind one registry: `METHODS[name]` describes how to compute and what is needed.
+
+Every method is a pure function of a `Patches` batch (plus, for some, extra per-keypoint arrays
+gathered on the host by the method's `prepare` hook: neighbour normals, mesh triangles, ...) that
+returns `(frames (N, 3, 3), valid (N,))` with rows x, y, z, det +1, identity where invalid.
+`lrf_jax.compute_frames` is the one public entry that does the search, the preparation and the
+jitted, chunked evaluation for any of them.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import Any, Callable
+
+from lrf_jax.frames.lrf_net import lrf_net_frames, uniform_frames
+from lrf_jax.frames.toldi import toldi_frames
+
+
+@dataclasses.dataclass(frozen=True)
+class MethodSpec:
+  """How to compute one LRF method.
+
+  Attributes:
+    name: registry key.
+    fn: `fn(patches, extra, **options) -> (frames, valid)`, pure and jittable; `extra` is what
+      `prepare` returned (None when there is no `prepare`). For learned methods `options` holds
+      `params`.
+    default_k: patch size K used when the caller gives none; None = every neighbour in the ball.
+    z_ratio: radius of the normal support as a fraction of r (stored in `Patches.z_*`).
+    needs_params: the method takes learned parameters.
+    needs_mesh: the method needs triangle faces (`faces=` in `compute_frames`).
+    prepare: optional host-side hook `prepare(points, keypoints, patches, faces=..., normals=...)`
+      returning a pytree of per-keypoint arrays (leading axis N) fed to `fn` as `extra`.
+    description: one line for `lrf_jax.METHODS` listings.
+  """
+
+  name: str
+  fn: Callable[..., Any]
+  default_k: int | None = 256
+  z_ratio: float = 1.0 / 3.0
+  needs_params: bool = False
+  needs_mesh: bool = False
+  prepare: Callable[..., Any] | None = None
+  description: str = ""
+
+
+def _lrf_net(patches, extra, *, params, x_mode: str = "sum"):
+  del extra
+  return lrf_net_frames(params, patches, x_mode=x_mode)
+
+
+def _uniform(patches, extra):
+  del extra
+  return uniform_frames(patches)
+
+
+def _toldi(patches, extra, *, signed: bool = True):
+  del extra
+  return toldi_frames(patches, signed=signed)
+
+
+METHODS: dict[str, MethodSpec] = {}
+
+
+def register(spec: MethodSpec) -> MethodSpec:
+  """Add a method to `METHODS` (also for users' own methods)."""
+  METHODS[spec.name] = spec
+  return spec
+
+
+register(MethodSpec(
+    "lrf_net", _lrf_net, default_k=256, needs_params=True,
+    description="LRF-Net (Zhu et al.): TOLDI z over r/3, learned per-point weights for x"))
+register(MethodSpec(
+    "uniform", _uniform, default_k=256,
+    description="LRF-Net's construction with uniform weights (w = 1): the learned weights' baseline"))
+register(MethodSpec(
+    "toldi", _toldi, default_k=None,
+    description="TOLDI (Yang et al. 2017): z over r/3, x weights (r-d)^2 sign(h) h^2 (original C++)"))
+
+__all__ = ["METHODS", "MethodSpec", "register", "lrf_net_frames", "toldi_frames", "uniform_frames"]

@@ -1,0 +1,174 @@
+"""LRF-Net frames (Zhu et al., section 3.1): TOLDI z-axis, learned weights, weighted x-axis.
+
+For one keypoint p with radius neighbours q_i (offsets pq_i = q_i - p):
+
+* z: `geometry.toldi_normal` over all neighbours within r/3 (its sign makes Σ (p - q_i)·z >= 0);
+* attributes (eq. `eq_attrib`): a_dist = |pq_i| / r, a_angle = cos(z, pq_i) (0 for the keypoint
+  itself, whose direction is undefined);
+* weights w_i = WeightNet(a_i) (model.py);
+* x (eqs. `eq_vector_x`, `eq_axis_x`): normalised Σ w_i v_i with v_i = pq_i - (pq_i·z) z;
+* y = z × x (eq. `eq_lrf`), rows (x, y, z).
+
+Minimum neighbours: 3 within r/3 (a plane needs 3 points) with a non-degenerate covariance, and a
+weighted x-sum that does not vanish (|Σ w_i v_i| > 1e-5 Σ |w_i| |v_i|); otherwise the frame is
+returned as the identity with `valid = False`.
+
+The gradient of the loss flows through the weights only: z comes from an eigen-decomposition of
+statistics that do not depend on the parameters.
+"""
+
+from __future__ import annotations
+
+from typing import Callable
+
+import jax
+import jax.numpy as jnp
+
+from lrf_jax import geometry
+from lrf_jax.model import Params, apply_weights
+from lrf_jax.neighborhoods import Patches
+
+# |Σ w v| must exceed this fraction of Σ |w| |v| for x to be defined (symmetric patches fail).
+X_EPS = 1e-5
+MIN_Z_NEIGHBOURS = 3
+
+
+def attributes(offsets: jax.Array, z: jax.Array, radius: jax.Array) -> jax.Array:
+  """The two invariant attributes of eq. `eq_attrib` for every neighbour.
+
+  Args:
+    offsets: (K, 3) pq_i (cloud units; padding may hold anything finite).
+    z: (3,) unit z-axis.
+    radius: () support radius r.
+
+  Returns:
+    (K, 2) [|pq_i| / r, cos(z, pq_i)]; the cosine is 0 where pq_i = 0.
+  """
+  dist = geometry.safe_norm(offsets)
+  ok = dist > 0
+  cos = jnp.where(ok, (offsets @ z) / jnp.where(ok, dist, 1.0), 0.0)
+  return jnp.stack([dist / radius, cos], axis=-1)
+
+
+def x_axis_from_weights(offsets: jax.Array, mask: jax.Array, z: jax.Array,
+                        weights: jax.Array) -> tuple[jax.Array, jax.Array]:
+  """Weighted vector sum of tangent projections (eqs. `eq_vector_x`, `eq_axis_x`), unnormalised.
+
+  Args:
+    offsets: (K, 3) pq_i.
+    mask: (K,) bool, False for padding.
+    z: (3,) unit z-axis.
+    weights: (K,) per-neighbour weights (any sign).
+
+  Returns:
+    (s, ok): s (3,) = Σ_i w_i v_i over real neighbours; ok False when it vanishes relative to
+    Σ |w_i| |v_i| (e.g. a symmetric planar patch with uniform weights, or all weights zero).
+  """
+  w = jnp.where(mask, weights, 0.0)
+  v = geometry.tangent_projection(offsets, z)
+  s = jnp.sum(w[:, None] * v, axis=0)
+  scale = jnp.sum(jnp.abs(w) * geometry.safe_norm(v))
+  return s, geometry.safe_norm(s) > X_EPS * scale
+
+
+def frame_from_weights(offsets: jax.Array, mask: jax.Array, z: jax.Array, z_ok: jax.Array,
+                       weights: jax.Array) -> tuple[jax.Array, jax.Array]:
+  """A frame (rows x, y, z) from a z-axis and per-neighbour x weights; identity when invalid."""
+  s, x_ok = x_axis_from_weights(offsets, mask, z, weights)
+  frame, n_ok = geometry.frame_from_zx(z, s)
+  valid = z_ok & x_ok & n_ok
+  return geometry.identity_where_invalid(frame, valid), valid
+
+
+def sanitize(patches: Patches) -> tuple[Patches, jax.Array]:
+  """Zero out non-finite inputs so nothing downstream sees NaN; report which keypoints had any.
+
+  Returns:
+    (patches, finite): finite (N,) is False where a keypoint's offsets or statistics were not finite.
+  """
+  off_ok = jnp.all(jnp.isfinite(patches.offsets), axis=-1)  # (N, K)
+  finite = (jnp.all(off_ok | ~patches.mask, axis=-1)
+            & jnp.all(jnp.isfinite(patches.z_cov), axis=(-1, -2))
+            & jnp.all(jnp.isfinite(patches.z_mean), axis=-1)
+            & jnp.isfinite(patches.radius) & (patches.radius > 0))
+  patches = patches._replace(
+      offsets=jnp.where(off_ok[..., None], patches.offsets, 0.0),
+      mask=patches.mask & off_ok,
+      z_cov=jnp.where(jnp.isfinite(patches.z_cov), patches.z_cov, 0.0),
+      z_mean=jnp.where(jnp.isfinite(patches.z_mean), patches.z_mean, 0.0),
+      radius=jnp.where(jnp.isfinite(patches.radius) & (patches.radius > 0), patches.radius, 1.0),
+  )
+  return patches, finite
+
+
+def z_axes(patches: Patches) -> tuple[jax.Array, jax.Array]:
+  """TOLDI/LRF-Net z-axes of every keypoint: (N, 3) unit vectors and (N,) validity."""
+  z, ok = jax.vmap(lambda c, m, n: geometry.toldi_normal(c, m, n, MIN_Z_NEIGHBOURS))(
+      patches.z_cov, patches.z_mean, patches.z_count)
+  return jax.lax.stop_gradient(z), ok
+
+
+WeightFn = Callable[[jax.Array, jax.Array, jax.Array], jax.Array]
+
+
+def frames_with_weight_fn(patches: Patches, weight_fn: WeightFn,
+                          x_mode: str = "sum") -> tuple[jax.Array, jax.Array, jax.Array]:
+  """Frames for all keypoints given a per-neighbour weight function.
+
+  Args:
+    patches: `Patches` with leading axis N.
+    weight_fn: (offsets (N, K, 3), z (N, 3), radius (N,)) -> weights (N, K).
+    x_mode: "sum" (eq. `eq_axis_x`) or "max" (the tangent projection of the neighbour with the
+      largest weight, the paper's ablation "Max"; it has no gradient through the argmax).
+
+  Returns:
+    (frames (N, 3, 3), valid (N,), weights (N, K)).
+  """
+  patches, finite = sanitize(patches)
+  z, z_ok = z_axes(patches)
+  w = weight_fn(patches.offsets, z, patches.radius)
+  if x_mode == "max":
+    idx = jnp.argmax(jnp.where(patches.mask, w, -jnp.inf), axis=-1)
+    w = jax.nn.one_hot(idx, w.shape[-1], dtype=w.dtype)
+  elif x_mode != "sum":
+    raise ValueError(f"x_mode: expected 'sum' or 'max', got {x_mode!r}")
+  frames, valid = jax.vmap(frame_from_weights)(patches.offsets, patches.mask, z, z_ok & finite, w)
+  return frames, valid, w
+
+
+def lrf_net_weights(params: Params) -> WeightFn:
+  """The learned weight function of LRF-Net for `params`."""
+
+  def fn(offsets, z, radius):
+    attrs = jax.vmap(attributes)(offsets, z, radius)
+    return apply_weights(params, attrs)
+
+  return fn
+
+
+def uniform_weights(offsets, z, radius):
+  """w_i = 1 for every neighbour: the "uniform weights, same z" baseline."""
+  del z, radius
+  return jnp.ones(offsets.shape[:-1], offsets.dtype)
+
+
+def lrf_net_frames(params: Params, patches: Patches, *,
+                   x_mode: str = "sum") -> tuple[jax.Array, jax.Array]:
+  """LRF-Net frames for a batch of patches (pure; jit it or call through `compute_frames`).
+
+  Args:
+    params: WeightNet parameters (`model.default_params()` for the shipped ones).
+    patches: `Patches` (N keypoints, K neighbours).
+    x_mode: "sum" (the paper) or "max" (ablation).
+
+  Returns:
+    (frames (N, 3, 3) rows x, y, z; valid (N,) bool).
+  """
+  frames, valid, _ = frames_with_weight_fn(patches, lrf_net_weights(params), x_mode)
+  return frames, valid
+
+
+def uniform_frames(patches: Patches) -> tuple[jax.Array, jax.Array]:
+  """LRF-Net's construction with w_i = 1 (the normalised sum of tangent projections)."""
+  frames, valid, _ = frames_with_weight_fn(patches, uniform_weights)
+  return frames, valid

@@ -1,0 +1,35 @@
+"""Shared test setup: NaN debugging on, float64 available, the real data root resolved once."""
+
+import os
+from pathlib import Path
+
+import jax
+import numpy as np
+import pytest
+
+jax.config.update("jax_debug_nans", True)  # any NaN produced inside a jitted function fails a test
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+def _data_root() -> Path | None:
+  for cand in (os.environ.get("LRF_DATA"), REPO / "data", REPO.parent / "shared" / "data"):
+    if cand and (Path(cand) / "bologna_retrieval").is_dir():
+      return Path(cand)
+  return None
+
+
+@pytest.fixture(scope="session")
+def data_root() -> Path:
+  root = _data_root()
+  if root is None:
+    pytest.skip("real data not found: set LRF_DATA to the folder holding bologna_retrieval/ "
+                "(see data/README.md)")
+  return root
+
+
+@pytest.fixture(scope="session")
+def br_bunny(data_root):
+  """The BR bunny model (points float64, faces), its mr (mean edge length) and Scene0's .xf."""
+  from tests.lrf_testing import load_br_model
+  return load_br_model(data_root, "bunny", scene=0)

@@ -1,0 +1,254 @@
+"""LRF-Net frames: conventions, equivariance, invariances, formulas, degenerate cases, bad input."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import lrf_jax
+from lrf_jax import geometry
+from lrf_jax.frames.lrf_net import attributes, lrf_net_frames, uniform_frames
+from lrf_jax.neighborhoods import Patches, build_patches
+from lrf_jax.reference_numpy import reference_frames
+from tests.lrf_testing import (assert_frames_orthonormal, equivariance_deficit,
+                               random_rotation)
+
+PARAMS = lrf_jax.init_params(3)
+
+
+@pytest.fixture(scope="module")
+def bunny(br_bunny):
+  pts, faces, mr, xf = br_bunny
+  kp = np.random.default_rng(0).choice(len(pts), 300, replace=False)
+  return pts, kp, 15 * mr, xf
+
+
+def _frames(pts, kp, r, method="lrf_net", **kw):
+  f, v = lrf_jax.compute_frames(pts, kp, r, method, **({"params": PARAMS} | kw)
+                                if method == "lrf_net" else kw)
+  return np.asarray(f), np.asarray(v)
+
+
+@pytest.mark.parametrize("method", ["lrf_net", "uniform", "toldi"])
+def test_frames_orthonormal_right_handed(bunny, method):
+  pts, kp, r, _ = bunny
+  f, v = _frames(pts, kp, r, method)
+  assert v.mean() > 0.99
+  assert_frames_orthonormal(f, v)
+  np.testing.assert_allclose(np.cross(f[:, 2], f[:, 0]), f[:, 1], atol=1e-5)  # y = z × x
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_rotation_translation_equivariance_on_real_patches(bunny, seed):
+  pts, kp, r, _ = bunny
+  rot = random_rotation(seed)
+  t = np.random.default_rng(seed).normal(size=3)
+  f, v = _frames(pts, kp, r)
+  g, w = _frames(pts @ rot.T + t, kp, r)
+  deficit = equivariance_deficit(f, g, rot, v, w)
+  assert deficit.mean() < 1e-4, deficit.max()
+  np.testing.assert_array_equal(v, w)
+
+
+def test_meancos_under_ground_truth_is_one(bunny):
+  """Noise-free model vs the model under its .xf: catches direction and transpose errors."""
+  pts, kp, r, xf = bunny
+  scene = pts @ xf[:3, :3].T + xf[:3, 3]
+  f, v = _frames(pts, kp, r)
+  g, w = _frames(scene, kp, r)
+  mc = np.asarray(lrf_jax.meancos(f, g, xf, v, w))
+  assert mc.mean() > 0.9999
+  # ... and the transposed rotation must NOT give 1: the check has teeth.
+  assert np.asarray(lrf_jax.meancos(f, g, xf[:3, :3].T, v, w)).mean() < 0.9
+
+
+@pytest.mark.parametrize("weights,method", [("lrf_net", "lrf_net"), ("uniform", "uniform"),
+                                            ("toldi", "toldi")])
+def test_matches_numpy_reference(bunny, weights, method):
+  pts, kp, r, _ = bunny
+  kp = kp[:60]
+  k = None if method == "toldi" else 256
+  f, v = _frames(pts, kp, r, method)
+  fr, vr = reference_frames(pts, kp, r, weights=weights, params=PARAMS, k=k)
+  np.testing.assert_array_equal(v, vr)
+  np.testing.assert_allclose(f[v], fr[v], atol=2e-4)
+
+
+def test_z_sign_rule(bunny):
+  """Σ (p - q_i)·z >= 0 over the neighbours within r/3."""
+  pts, kp, r, _ = bunny
+  f, v = _frames(pts, kp, r)
+  for i, frame in zip(kp[v], f[v]):
+    d = pts - pts[i]
+    inner = d[np.linalg.norm(d, axis=1) <= r / 3]
+    assert np.sum(-inner @ frame[2]) >= 0
+
+
+def test_uniform_weights_give_normalised_sum_of_tangent_projections(bunny):
+  pts, kp, r, _ = bunny
+  patches = build_patches(pts, kp[:20], r, 256)
+  f, v = uniform_frames(jax.tree.map(jnp.asarray, patches))
+  for n in range(20):
+    z = np.asarray(f[n, 2], np.float64)
+    off = patches.offsets[n][patches.mask[n]].astype(np.float64)
+    s = (off - np.outer(off @ z, z)).sum(0)
+    np.testing.assert_allclose(np.asarray(f[n, 0]), s / np.linalg.norm(s), atol=1e-5)
+
+
+def test_attributes_formula():
+  off = jnp.array([[1.0, 0, 0], [0, 0, 2.0], [0, 0, 0], [1.0, 0, 1.0]])
+  a = attributes(off, jnp.array([0, 0, 1.0]), jnp.asarray(2.0))
+  np.testing.assert_allclose(a, [[0.5, 0], [1.0, 1.0], [0, 0], [np.sqrt(2) / 2, np.sqrt(0.5)]],
+                             atol=1e-6)
+
+
+def _jnp(p: Patches) -> Patches:
+  return jax.tree.map(jnp.asarray, p)
+
+
+def test_neighbour_order_and_padding_invariance(bunny):
+  pts, kp, r, _ = bunny
+  p = build_patches(pts, kp[:50], r, 256)
+  f, v = lrf_net_frames(PARAMS, _jnp(p))
+  perm = np.random.default_rng(0).permutation(p.k)
+  shuffled = p._replace(offsets=p.offsets[:, perm], mask=p.mask[:, perm],
+                        indices=p.indices[:, perm])
+  f2, v2 = lrf_net_frames(PARAMS, _jnp(shuffled))
+  np.testing.assert_allclose(f, f2, atol=2e-6)
+  pad = 77
+  padded = p._replace(
+      offsets=np.concatenate([p.offsets, np.full((50, pad, 3), 123.0, np.float32)], 1),
+      mask=np.concatenate([p.mask, np.zeros((50, pad), bool)], 1),
+      indices=np.concatenate([p.indices, -np.ones((50, pad), np.int32)], 1))
+  f3, v3 = lrf_net_frames(PARAMS, _jnp(padded))
+  np.testing.assert_allclose(f, f3, atol=2e-6)
+  np.testing.assert_array_equal(v, v3)
+  np.testing.assert_array_equal(v, v2)
+
+
+def test_subsample_independent_of_coordinates_and_search_order(bunny):
+  pts, kp, r, _ = bunny
+  rot = random_rotation(5)
+  a = build_patches(pts, kp[:40], r, 64, seed=7)
+  b = build_patches(pts @ rot.T + 3.0, kp[:40], r, 64, seed=7)
+  assert (a.count > 64).all()
+  for i in range(40):
+    assert set(a.indices[i]) == set(b.indices[i])
+  c = build_patches(pts, kp[:40], r, 64, seed=8)
+  assert any(set(a.indices[i]) != set(c.indices[i]) for i in range(40))
+  # permuting the order of the cloud (and the keypoint ids with it) permutes nothing else
+  perm = np.random.default_rng(1).permutation(len(pts))
+  inv = np.argsort(perm)
+  d = build_patches(pts[perm], inv[kp[:40]], r, None)
+  e = build_patches(pts, kp[:40], r, None)
+  for i in range(40):
+    assert set(perm[d.indices[i][d.mask[i]]]) == set(e.indices[i][e.mask[i]])
+
+
+def test_patches_match_brute_force_ball(bunny):
+  pts, kp, r, _ = bunny
+  p = build_patches(pts, kp[:30], r, None)
+  for i, c in enumerate(kp[:30]):
+    ball = np.flatnonzero(np.linalg.norm(pts - pts[c], axis=1) <= r)
+    assert set(p.indices[i][p.mask[i]]) == set(ball)
+    assert p.count[i] == len(ball)
+    inner = pts[np.linalg.norm(pts - pts[c], axis=1) <= r / 3] - pts[c]
+    assert p.z_count[i] == len(inner)
+    np.testing.assert_allclose(p.z_mean[i], inner.mean(0), rtol=1e-5, atol=1e-9)
+    np.testing.assert_allclose(p.z_cov[i], np.cov(inner.T, bias=True), rtol=1e-4, atol=1e-11)
+
+
+# ----------------------------------------------------------------------------- degenerate cases
+
+
+def _single(points, r=1.0, k=64, method="lrf_net"):
+  f, v = lrf_jax.compute_frames(points, np.array([0]), r, method,
+                                **({"params": PARAMS} if method == "lrf_net" else {}), k=k)
+  f = np.asarray(f)
+  assert np.isfinite(f).all()
+  return f[0], bool(v[0])
+
+
+@pytest.mark.parametrize("method", ["lrf_net", "uniform", "toldi"])
+def test_too_few_neighbours_is_invalid(method):
+  pts = np.array([[0, 0, 0], [0.1, 0, 0], [5, 5, 5.0]])
+  f, v = _single(pts, method=method)
+  assert not v and np.array_equal(f, np.eye(3))
+
+
+@pytest.mark.parametrize("method", ["lrf_net", "uniform", "toldi"])
+def test_duplicates_are_invalid(method):
+  f, v = _single(np.zeros((20, 3)), method=method)
+  assert not v and np.array_equal(f, np.eye(3))
+
+
+@pytest.mark.parametrize("method", ["lrf_net", "uniform", "toldi"])
+def test_collinear_is_invalid(method):
+  t = np.linspace(-0.2, 0.2, 41)
+  f, v = _single(np.stack([t, 2 * t, -t], 1)[np.argsort(np.abs(t))], method=method)
+  assert not v and np.array_equal(f, np.eye(3))
+
+
+def test_symmetric_planar_patch_with_uniform_weights_is_invalid():
+  g = np.linspace(-0.3, 0.3, 13)
+  xx, yy = np.meshgrid(g, g)
+  grid = np.stack([xx.ravel(), yy.ravel(), np.zeros(xx.size)], 1)
+  grid = grid[np.argsort(np.linalg.norm(grid, axis=1), kind="stable")]  # keypoint first
+  f, v = _single(grid, r=0.9, k=None, method="uniform")
+  assert not v
+
+
+def test_nan_in_patch_is_invalid_not_nan():
+  pts = np.random.default_rng(0).normal(size=(200, 3)) * [1, 1, 0.05]
+  p = build_patches(pts, np.arange(5), 1.5, 64)
+  off = p.offsets.copy()
+  off[2, 0] = np.nan
+  cov = p.z_cov.copy()
+  cov[3, 0, 0] = np.inf
+  with jax.debug_nans(False):  # the NaN is in the input on purpose; none may come out
+    f, v = jax.jit(lrf_net_frames)(PARAMS, _jnp(p._replace(offsets=off, z_cov=cov)))
+  assert np.isfinite(np.asarray(f)).all()
+  assert not v[2] and not v[3] and v[0]
+
+
+# ----------------------------------------------------------------------------- bad input
+
+
+@pytest.mark.parametrize("points,match", [
+    (np.zeros((0, 3)), "empty"),
+    (np.zeros((10, 2)), r"shape \(n, 3\)"),
+    (np.array([[0, 0, np.nan]] * 5), "non-finite"),
+    (np.array([["a", "b", "c"]]), "dtype"),
+])
+def test_bad_cloud_raises(points, match):
+  with pytest.raises(ValueError, match=match):
+    lrf_jax.compute_frames(points, np.array([0]), 1.0)
+
+
+def test_bad_keypoints_and_radius_raise():
+  pts = np.random.default_rng(0).normal(size=(50, 3))
+  with pytest.raises(ValueError, match=r"out of range.*\[0, 50\)"):
+    lrf_jax.compute_frames(pts, np.array([3, 50]), 1.0)
+  with pytest.raises(ValueError, match="integer"):
+    lrf_jax.compute_frames(pts, np.array([0.5]), 1.0)
+  for r in (0.0, -1.0, float("nan")):
+    with pytest.raises(ValueError, match="radius"):
+      lrf_jax.compute_frames(pts, np.array([0]), r)
+  with pytest.raises(ValueError, match="unknown LRF method"):
+    lrf_jax.compute_frames(pts, np.array([0]), 1.0, method="nope")
+
+
+def test_chunked_equals_single_call(bunny):
+  pts, kp, r, _ = bunny
+  f1, v1 = _frames(pts, kp[:100], r)
+  f2, v2 = _frames(pts, kp[:100], r, chunk_size=32)
+  np.testing.assert_allclose(f1, f2, atol=1e-6)
+  np.testing.assert_array_equal(v1, v2)
+
+
+def test_methods_registry_lists_lrf_net():
+  assert "lrf_net" in lrf_jax.METHODS and lrf_jax.METHODS["lrf_net"].needs_params
+  assert "toldi" in lrf_jax.METHODS
+  f = lrf_jax.geometry.frame_from_zx(jnp.array([0, 0, 1.0]), jnp.array([1.0, 1.0, 5.0]))[0]
+  np.testing.assert_allclose(f, [[np.sqrt(.5), np.sqrt(.5), 0], [-np.sqrt(.5), np.sqrt(.5), 0],
+                                 [0, 0, 1]], atol=1e-6)

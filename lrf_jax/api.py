@@ -8,12 +8,10 @@ from typing import Any
 import jax
 import jax.numpy as jnp
 import numpy as np
-from scipy.spatial import cKDTree
-
 from lrf_jax.frames import METHODS, MethodSpec
 from lrf_jax.model import default_params
-from lrf_jax.neighborhoods import (Patches, build_patches, validate_cloud, validate_keypoints,
-                                   validate_radius)
+from lrf_jax.neighborhoods import (Patches, SearchIndex, build_patches, validate_cloud,
+                                   validate_keypoints, validate_radius)
 
 
 @functools.lru_cache(maxsize=64)
@@ -115,7 +113,7 @@ def compute_frames(
   if m == 0:
     return jnp.zeros((0, 3, 3), jnp.float32), jnp.zeros((0,), bool)
 
-  tree = cKDTree(points)
+  index = SearchIndex(points, seed)
   chunk = min(int(chunk_size), m)
   frames_out, valid_out = [], []
   for start in range(0, m, chunk):
@@ -123,7 +121,7 @@ def compute_frames(
     n_real = kp.shape[0]
     if n_real < chunk:  # pad to the compiled shape with a repeat of the first keypoint
       kp = np.concatenate([kp, np.full(chunk - n_real, kp[0])])
-    patches = build_patches(points, kp, radius, k, seed=seed, z_ratio=spec.z_ratio, tree=tree,
+    patches = build_patches(points, kp, radius, k, seed=seed, z_ratio=spec.z_ratio, index=index,
                             validate=False)
     extra = None
     if spec.prepare is not None:

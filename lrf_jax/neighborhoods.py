@@ -7,8 +7,8 @@ Two neighbourhoods are gathered per keypoint p with one search of radius r:
 
 * the *patch*: up to K neighbours q with |q - p| <= r, as offsets q - p, padded to K with a mask.
   When the ball holds more than K points a seeded subsample is kept. The subsample depends only on
-  (seed, keypoint index, point index) through an integer hash, never on coordinates or on the
-  order the search returns points: rotating or translating the cloud selects the same neighbours.
+  (seed, point index) through an integer hash, never on coordinates or on the order the search
+  returns points: rotating or translating the cloud selects the same neighbours.
 * the *normal support*: *all* neighbours within `z_ratio * r` (r/3 for TOLDI and LRF-Net), reduced
   on the host, in float64, to their count, centroid offset and covariance about the centroid. The
   z-axis therefore never depends on the K-point subsample (on BR a 15 mr ball holds 380-2800
@@ -17,6 +17,7 @@ Two neighbourhoods are gathered per keypoint p with one search of radius r:
 
 from __future__ import annotations
 
+import itertools
 from typing import NamedTuple
 
 import numpy as np
@@ -110,24 +111,41 @@ def validate_radius(radius: float, name: str = "radius") -> float:
   return r
 
 
-def hash_priority(seed: int, keypoint: np.ndarray, point: np.ndarray) -> np.ndarray:
-  """A pseudo-random uint64 per (seed, keypoint index, point index): splitmix64 of a mixed key.
+def hash_priority(seed: int, point: np.ndarray) -> np.ndarray:
+  """A pseudo-random uint64 per (seed, point index): splitmix64 of a mixed key.
 
   Args:
     seed: integer seed.
-    keypoint: (M,) keypoint indices.
-    point: (M,) neighbour point indices.
+    point: (M,) point indices.
 
   Returns:
-    (M,) uint64 priorities; the subsample keeps the K smallest.
+    (M,) uint64 priorities; a subsampled ball keeps its K points of smallest priority.
   """
   with np.errstate(over="ignore"):
-    x = (np.uint64(seed & 0xFFFFFFFFFFFFFFFF) * _GOLDEN
-         + keypoint.astype(np.uint64) * np.uint64(0xD1B54A32D192ED03)
-         + point.astype(np.uint64))
+    x = np.uint64(seed & 0xFFFFFFFFFFFFFFFF) * _GOLDEN + point.astype(np.uint64)
     x = (x ^ (x >> np.uint64(30))) * _MIX1
     x = (x ^ (x >> np.uint64(27))) * _MIX2
     return x ^ (x >> np.uint64(31))
+
+
+class SearchIndex:
+  """A cKDTree over the cloud stored in seeded priority order, reusable across calls.
+
+  Storing the points sorted by `hash_priority(seed, index)` makes the sorted ball lists that
+  cKDTree returns come out in priority order, so "the K points of smallest priority" is simply
+  the first K of each list: no per-ball sort on the host.
+  """
+
+  def __init__(self, points: np.ndarray, seed: int = 0):
+    self.points = np.asarray(points, np.float64)
+    self.seed = int(seed)
+    self.order = np.argsort(hash_priority(self.seed, np.arange(len(self.points))), kind="stable")
+    self.tree = cKDTree(self.points[self.order])
+
+
+def _flatten(lists, counts: np.ndarray) -> np.ndarray:
+  return np.fromiter(itertools.chain.from_iterable(lists), dtype=np.int64,
+                     count=int(counts.sum()))
 
 
 def _round_up(k: int, multiple: int = 32) -> int:
@@ -142,7 +160,7 @@ def build_patches(
     *,
     seed: int = 0,
     z_ratio: float = 1.0 / 3.0,
-    tree: cKDTree | None = None,
+    index: SearchIndex | None = None,
     validate: bool = True,
 ) -> Patches:
   """Radius search around keypoints into fixed-size padded patches.
@@ -151,16 +169,17 @@ def build_patches(
     points: (n, 3) cloud (any float dtype; computed in float64 on the host).
     keypoints: (m,) integer indices into `points`.
     radius: support radius r, in the cloud's units (> 0).
-    k: patch size K. Balls with more than K points are subsampled (seeded, see module doc). `None`
-      keeps every neighbour: K becomes the largest ball size rounded up to a multiple of 32 (so
-      that similar clouds share a compiled shape).
+    k: patch size K. Balls with more than K points keep the K points of smallest
+      `hash_priority(seed, point index)`: a subsample that depends only on point indices and the
+      seed. `None` keeps every neighbour: K becomes the largest ball size rounded up to a multiple
+      of 32 (so that similar clouds share a compiled shape).
     seed: seed of the subsample.
     z_ratio: the normal support radius as a fraction of r (1/3: TOLDI, LRF-Net).
-    tree: an optional prebuilt `cKDTree(points)` to reuse across calls.
+    index: an optional prebuilt `SearchIndex(points, seed)` to reuse across calls.
     validate: check the inputs (disable only for already validated arrays).
 
   Returns:
-    `Patches` with N = m.
+    `Patches` with N = m; within a patch, neighbours are stored in priority order.
 
   Raises:
     ValueError: bad cloud, keypoints, radius or K.
@@ -174,49 +193,41 @@ def build_patches(
   else:
     points = np.asarray(points, np.float64)
     keypoints = np.asarray(keypoints, np.int64)
+  if index is None or index.seed != seed or index.points.shape != points.shape:
+    index = SearchIndex(points, seed)
   m = keypoints.shape[0]
-  if tree is None:
-    tree = cKDTree(points)
   centers = points[keypoints]
-  lists = tree.query_ball_point(centers, radius, workers=-1, return_sorted=False)
-  counts = np.fromiter((len(l) for l in lists), dtype=np.int64, count=m)
-  total = int(counts.sum())
-  cols = np.fromiter((j for l in lists for j in l), dtype=np.int64, count=total)
-  rows = np.repeat(np.arange(m, dtype=np.int64), counts)
 
-  off = points[cols] - centers[rows]  # float64 offsets
-  d2 = np.einsum("ij,ij->i", off, off)
-
-  # Normal support statistics over all neighbours within z_ratio * r (float64, exact).
-  inner = d2 <= (z_ratio * radius) ** 2
-  r_in, o_in = rows[inner], off[inner]
-  z_count = np.bincount(r_in, minlength=m).astype(np.float64)
+  # Normal support: every neighbour within z_ratio * r, reduced to float64 statistics.
+  inner = index.tree.query_ball_point(centers, z_ratio * radius, workers=-1, return_sorted=False)
+  z_count = np.fromiter(map(len, inner), dtype=np.int64, count=m)
+  r_in = np.repeat(np.arange(m), z_count)
+  o_in = index.tree.data[_flatten(inner, z_count)] - centers[r_in]
   s1 = np.stack([np.bincount(r_in, o_in[:, a], minlength=m) for a in range(3)], axis=1)
   s2 = np.empty((m, 3, 3))
   for a in range(3):
     for b in range(a, 3):
       s2[:, a, b] = s2[:, b, a] = np.bincount(r_in, o_in[:, a] * o_in[:, b], minlength=m)
-  denom = np.maximum(z_count, 1.0)
+  denom = np.maximum(z_count, 1).astype(np.float64)
   z_mean = s1 / denom[:, None]
   z_cov = s2 / denom[:, None, None] - z_mean[:, :, None] * z_mean[:, None, :]
 
-  # Seeded subsample: order every ball by hash priority, keep the first K.
+  # Patch: the ball in priority order (sorted tree indices), truncated to K.
+  balls = index.tree.query_ball_point(centers, radius, workers=-1, return_sorted=True)
+  counts = np.fromiter(map(len, balls), dtype=np.int64, count=m)
   if k is None:
     k = _round_up(int(counts.max()) if m else 1)
-  prio = hash_priority(seed, keypoints[rows], cols)
-  order = np.lexsort((prio, rows))
-  starts = np.concatenate([[0], np.cumsum(counts)[:-1]]) if m else np.zeros(0, np.int64)
-  rank = np.arange(total, dtype=np.int64) - starts[rows[order]]
-  keep = rank < k
-  sel = order[keep]
-  r_sel, slot = rows[sel], rank[keep]
+  kept = np.minimum(counts, k)
+  cols = _flatten((b[:k] for b in balls), kept)
+  rows = np.repeat(np.arange(m), kept)
+  slot = np.arange(cols.size) - np.repeat(np.cumsum(kept) - kept, kept)
 
   offsets = np.zeros((m, k, 3), np.float32)
   mask = np.zeros((m, k), bool)
   indices = np.full((m, k), -1, np.int32)
-  offsets[r_sel, slot] = off[sel]
-  mask[r_sel, slot] = True
-  indices[r_sel, slot] = cols[sel]
+  offsets[rows, slot] = index.tree.data[cols] - centers[rows]
+  mask[rows, slot] = True
+  indices[rows, slot] = index.order[cols]
   return Patches(
       offsets=offsets,
       mask=mask,

@@ -67,7 +67,7 @@ def reference_frame(points: np.ndarray, center_index: int, radius: float, *, wei
   if -np.sum(inner, axis=0) @ z < 0:  # orient so that Σ (p - q_i)·z >= 0
     z = -z
   if k is not None and len(idx) > k:
-    prio = hash_priority(seed, np.full(len(idx), center_index), idx)
+    prio = hash_priority(seed, idx)
     keep = np.argsort(prio, kind="stable")[:k]
     idx, off, d = idx[keep], off[keep], d[keep]
 

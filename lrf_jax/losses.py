@@ -56,8 +56,10 @@ def chamfer(a: jax.Array, mask_a: jax.Array, b: jax.Array, mask_b: jax.Array,
   return ab + ba
 
 
-batched_chamfer = jax.vmap(chamfer, in_axes=(0, 0, 0, 0, None))
-batched_chamfer.__doc__ = "`chamfer` vmapped over a leading batch axis of a, mask_a, b, mask_b."
+def batched_chamfer(a: jax.Array, mask_a: jax.Array, b: jax.Array, mask_b: jax.Array,
+                    reduction: str = "min") -> jax.Array:
+  """`chamfer` vmapped over a leading batch axis: (N, Ka, 3), (N, Ka), (N, Kb, 3), (N, Kb) -> (N,)."""
+  return jax.vmap(lambda *x: chamfer(*x, reduction))(a, mask_a, b, mask_b)
 
 
 def to_frame(offsets: jax.Array, frames: jax.Array) -> jax.Array:

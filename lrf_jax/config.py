@@ -1,0 +1,163 @@
+"""Training configuration: one frozen dataclass, presets in `lrf_jax/configs/`, CLI overrides."""
+
+from __future__ import annotations
+
+import dataclasses
+import importlib
+import importlib.util
+import json
+from pathlib import Path
+from typing import Any
+
+
+@dataclasses.dataclass(frozen=True)
+class TrainConfig:
+  """Everything a training run depends on. The defaults are the paper's (section 3.1).
+
+  Attributes:
+    name: preset name, recorded with checkpoints.
+    seed: the one seed of the run (keypoints, subsamples, shuffling, initialisation).
+    data: "br" (noise-free BR: each model vs itself under each scene's ground truth) or "demo"
+      (the procedural set that ships as code; no download).
+    data_root: where the data lives (None: LRF_DATA, then data/ in the repo).
+    num_train_keypoints: size of the fixed, seeded set of training keypoints; one epoch is one
+      pass over it.
+    patch_k: points sampled per patch (256 in the paper), independently on each side.
+    radius_mr: support radius in mesh resolutions (15).
+    batch_size: pairs per step (512).
+    epochs: number of epochs (20).
+    learning_rate: Adam's initial learning rate (1e-4).
+    lr_decay: multiplicative decay applied once per epoch (0.95 = "5% every epoch").
+    loss_reduction: Chamfer form, "min" (eq. eq_cham, the paper), "max" or "sum".
+    widths: encoder widths of the weight network.
+    x_mode: "sum" (paper) or "max" (ablation; reuses Sum1-trained weights, see evaluate.py).
+    noise_mr: augmentation beyond the paper: Gaussian noise (in mr) added to the scene side, as
+      a list to draw from per batch; () = none (the paper).
+    val_pairs: number of Stanford bunny scan pairs used for validation (0 disables).
+    val_keypoints: keypoints per validation pair.
+    log_every: steps between logged metrics.
+    checkpoint_every: steps between checkpoints (the end of every epoch is always saved).
+  """
+
+  name: str = "default"
+  seed: int = 0
+  data: str = "br"
+  data_root: str | None = None
+  num_train_keypoints: int = 20_000
+  patch_k: int = 256
+  radius_mr: float = 15.0
+  batch_size: int = 512
+  epochs: int = 20
+  learning_rate: float = 1e-4
+  lr_decay: float = 0.95
+  loss_reduction: str = "min"
+  widths: tuple[int, ...] = (16, 32, 64)
+  x_mode: str = "sum"
+  noise_mr: tuple[float, ...] = ()
+  val_pairs: int = 9
+  val_keypoints: int = 500
+  log_every: int = 10
+  checkpoint_every: int = 200
+
+  # Fields that change the shape or meaning of the parameters: a checkpoint written under other
+  # values cannot be resumed.
+  MODEL_FIELDS = ("widths", "x_mode")
+
+  def __post_init__(self):
+    if self.data not in ("br", "demo"):
+      raise ValueError(f"config.data: expected 'br' or 'demo', got {self.data!r}")
+    if self.loss_reduction not in ("min", "max", "sum"):
+      raise ValueError(f"config.loss_reduction: expected 'min', 'max' or 'sum', got "
+                       f"{self.loss_reduction!r}")
+    if self.x_mode not in ("sum", "max"):
+      raise ValueError(f"config.x_mode: expected 'sum' or 'max', got {self.x_mode!r}")
+    for f in ("num_train_keypoints", "patch_k", "batch_size", "epochs"):
+      if getattr(self, f) < 1:
+        raise ValueError(f"config.{f}: expected a positive integer, got {getattr(self, f)!r}")
+
+  @property
+  def steps_per_epoch(self) -> int:
+    """Whole batches per pass over the training keypoints (the remainder is dropped)."""
+    return max(1, self.num_train_keypoints // self.batch_size)
+
+  @property
+  def total_steps(self) -> int:
+    return self.steps_per_epoch * self.epochs
+
+  def to_json(self) -> str:
+    return json.dumps(dataclasses.asdict(self), indent=2, sort_keys=True)
+
+  @classmethod
+  def from_dict(cls, d: dict[str, Any]) -> TrainConfig:
+    return replace(cls(), **d)
+
+
+def _coerce(field: dataclasses.Field, value: Any) -> Any:
+  """Parse a CLI string into the type of `field`'s default."""
+  if not isinstance(value, str):
+    if isinstance(field.default, tuple) and isinstance(value, list):
+      return tuple(value)
+    return value
+  default = field.default
+  if value.lower() in ("none", "null") and field.name == "data_root":
+    return None
+  if isinstance(default, bool):
+    return value.lower() in ("1", "true", "yes")
+  if isinstance(default, int):
+    return int(value)
+  if isinstance(default, float):
+    return float(value)
+  if isinstance(default, tuple):
+    items = [v for v in value.strip("()[]").split(",") if v.strip()]
+    cast = float if field.name == "noise_mr" else int
+    return tuple(cast(v) for v in items)
+  return value
+
+
+def replace(config: TrainConfig, **overrides: Any) -> TrainConfig:
+  """`dataclasses.replace` with a clear error for unknown keys and string values parsed.
+
+  Raises:
+    ValueError: an override names no field of `TrainConfig` (the message lists the valid ones).
+  """
+  fields = {f.name: f for f in dataclasses.fields(TrainConfig)}
+  unknown = sorted(set(overrides) - set(fields))
+  if unknown:
+    raise ValueError(f"config: unknown key(s) {unknown}; valid keys are {sorted(fields)}")
+  return dataclasses.replace(config, **{k: _coerce(fields[k], v) for k, v in overrides.items()})
+
+
+def parse_overrides(tokens: list[str]) -> dict[str, str]:
+  """["epochs=2", "batch_size=64"] -> {"epochs": "2", "batch_size": "64"}."""
+  out = {}
+  for tok in tokens:
+    key, sep, value = tok.partition("=")
+    if not sep:
+      raise ValueError(f"override {tok!r}: expected key=value (e.g. epochs=2)")
+    out[key.strip().lstrip("-").replace("-", "_")] = value
+  return out
+
+
+def load_config(name_or_path: str) -> TrainConfig:
+  """A preset by name (`lrf_jax/configs/NAME.py`) or a config file (.py with `get_config()`,
+  or .json).
+
+  Raises:
+    ValueError: no such preset or file.
+  """
+  path = Path(name_or_path)
+  if path.suffix == ".json" and path.exists():
+    return TrainConfig.from_dict(json.loads(path.read_text()))
+  if path.suffix == ".py" and path.exists():
+    spec = importlib.util.spec_from_file_location(path.stem, path)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module.get_config()
+  try:
+    module = importlib.import_module(f"lrf_jax.configs.{name_or_path}")
+  except ModuleNotFoundError:
+    presets = sorted(p.stem for p in (Path(__file__).parent / "configs").glob("*.py")
+                     if not p.stem.startswith("_"))
+    raise ValueError(f"--config {name_or_path!r}: no such preset or file; presets are "
+                     f"{presets}, or give a path to a .py (with get_config()) or .json") from None
+  return module.get_config()

@@ -1,0 +1,37 @@
+"""Readers and writers for point clouds, meshes and rigid poses.
+
+    from lrf_jax import io
+    cloud = io.read_cloud("scan.ply")             # Cloud(points (n, 3) float64, faces, normals)
+    T = io.read_xf("Scene0-rs0.xf")               # (4, 4), model -> scene
+    poses = io.read_stanford_conf("bun.conf")     # {scan: world-from-scan (4, 4)}
+
+Every bad input raises ValueError (FileNotFoundError for a missing file) naming the file, the
+field and what was expected versus found.
+"""
+
+from lrf_jax.io.cloud import Cloud, read_cloud, read_npy
+from lrf_jax.io.pcd import read_pcd
+from lrf_jax.io.ply import PlyMesh, read_ply, write_ply
+from lrf_jax.io.poses import (LogEntry, quaternion_to_matrix, read_3dmatch_log,
+                              read_stanford_conf, read_xf, write_xf)
+from lrf_jax.io.text import read_xyz
+from lrf_jax.io.validation import check_points, check_rigid
+
+__all__ = [
+    "Cloud",
+    "LogEntry",
+    "PlyMesh",
+    "check_points",
+    "check_rigid",
+    "quaternion_to_matrix",
+    "read_3dmatch_log",
+    "read_cloud",
+    "read_npy",
+    "read_pcd",
+    "read_ply",
+    "read_stanford_conf",
+    "read_xf",
+    "read_xyz",
+    "write_ply",
+    "write_xf",
+]

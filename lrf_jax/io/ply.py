@@ -1,0 +1,331 @@
+"""PLY meshes and clouds (ascii and binary) on top of `plyfile`.
+
+`plyfile` parses the header and binary bodies. Its ascii body reader converts row by row in
+Python (about 2 s for one Stanford bunny scan, whose `range_grid` element has 204,800 rows), so
+ascii bodies are parsed here with numpy, element by element, under the same rule as plyfile's
+(one element per line); any layout this fast path does not handle goes back to plyfile.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+import warnings
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import plyfile
+
+from lrf_jax.io.cloud import Cloud
+from lrf_jax.io.validation import bad_input, check_points, require_file
+
+# Names of the face element's list property used by common writers.
+_FACE_LISTS = ("vertex_indices", "vertex_index")
+_NORMALS = ("nx", "ny", "nz")
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class PlyMesh:
+  """The contents of a PLY file.
+
+  Attributes:
+    points: (n, 3) float64 vertex coordinates (units as stored).
+    faces: (f, 3) int64 triangles, or None when the file has no (or an empty) face element.
+      Polygons with more than 3 vertices are fan-triangulated.
+    normals: (n, 3) float64 vertex normals (nx ny nz) as stored (not renormalised), or None.
+    vertex_attributes: other vertex properties by name, each (n,) (e.g. colours, confidence).
+    elements: every element other than vertex and face, as {element: {property: array}}.
+      Scalar properties are (count,) arrays; a list property is a (count, k) array when all
+      its lists have length k, else an object array of 1-D arrays (e.g. the Stanford bunny
+      scans' `range_grid`, whose rows hold zero or one vertex index).
+    comments: the header's comment lines.
+    obj_info: the header's obj_info lines.
+    text: True for an ascii file.
+    path: the file, or None.
+  """
+
+  points: np.ndarray
+  faces: np.ndarray | None
+  normals: np.ndarray | None
+  vertex_attributes: dict[str, np.ndarray]
+  elements: dict[str, dict[str, np.ndarray]]
+  comments: tuple[str, ...] = ()
+  obj_info: tuple[str, ...] = ()
+  text: bool = False
+  path: Path | None = None
+
+  def to_cloud(self) -> Cloud:
+    """The geometry as a `Cloud` (points, faces, normals, path)."""
+    return Cloud(self.points, self.faces, self.normals, self.path)
+
+
+def read_ply(path: str | os.PathLike) -> PlyMesh:
+  """Reads an ascii or binary PLY file.
+
+  Args:
+    path: the `.ply` file.
+
+  Returns:
+    A PlyMesh: points (n, 3) float64, faces (f, 3) int64 or None, normals or None, the other
+    vertex properties and every other element (kept, not interpreted).
+
+  Raises:
+    FileNotFoundError: missing file.
+    ValueError: a corrupt header, a truncated body, rows that do not match the header
+      (wrong element counts, wrong number of values), data after the last element, no
+      `vertex` element or no x/y/z property, an empty cloud, NaN/inf coordinates, or face
+      indices outside [0, n). The message names the file, the element/property and the
+      expected versus found value.
+  """
+  p = require_file(path)
+  with open(p, "rb") as stream:
+    try:
+      header = plyfile.PlyData._parse_header(stream)  # header only (the body is not read)
+    except plyfile.PlyHeaderParseError as e:
+      raise bad_input(p, f"header line {e.line}", "a valid PLY header", e.message) from e
+    except UnicodeDecodeError as e:
+      raise bad_input(p, "header", "an ascii PLY header", f"undecodable bytes ({e})") from e
+    if header.text:
+      body = stream.read()
+      data = _read_ascii_body(header, body, p)
+    else:
+      data = _read_binary(stream, header, p)
+  return _assemble(header, data, p)
+
+
+def write_ply(path: str | os.PathLike, points: np.ndarray, faces: np.ndarray | None = None,
+              normals: np.ndarray | None = None, binary: bool = True, *,
+              dtype: str = "float32", comments: tuple[str, ...] = ()) -> Path:
+  """Writes points (and optionally triangles and normals) as a PLY file.
+
+  Args:
+    path: destination file (parent folders must exist).
+    points: (n, 3) coordinates.
+    faces: (f, 3) vertex indices, or None for a cloud.
+    normals: (n, 3) normals, or None.
+    binary: binary little-endian if True, else ascii.
+    dtype: "float32" (PLY `float`, the usual choice) or "float64" (`double`) for coordinates.
+    comments: header comment lines.
+
+  Returns:
+    The path written.
+
+  Raises:
+    ValueError: wrong shapes, non-finite coordinates or face indices outside [0, n).
+  """
+  pts = check_points(points, "write_ply", "points")
+  if dtype not in ("float32", "float64"):
+    raise bad_input("write_ply", "dtype", "'float32' or 'float64'", repr(dtype))
+  fields = [(a, dtype) for a in "xyz"]
+  cols = [pts]
+  if normals is not None:
+    nrm = check_points(normals, "write_ply", "normals")
+    if nrm.shape != pts.shape:
+      raise bad_input("write_ply", "normals", f"shape {pts.shape}", f"shape {nrm.shape}")
+    fields += [(a, dtype) for a in _NORMALS]
+    cols.append(nrm)
+  vertex = np.empty(len(pts), dtype=fields)
+  stacked = np.concatenate(cols, axis=1)
+  for i, (name, _) in enumerate(fields):
+    vertex[name] = stacked[:, i]
+  elements = [plyfile.PlyElement.describe(vertex, "vertex")]
+  if faces is not None:
+    f = _check_faces(np.asarray(faces), len(pts), "write_ply")
+    face = np.empty(len(f), dtype=[("vertex_indices", "i4", (3,))])
+    face["vertex_indices"] = f
+    elements.append(plyfile.PlyElement.describe(face, "face",
+                                                len_types={"vertex_indices": "u1"},
+                                                val_types={"vertex_indices": "i4"}))
+  out = Path(path)
+  plyfile.PlyData(elements, text=not binary, byte_order="<",
+                  comments=list(comments)).write(str(out))
+  return out
+
+
+# ----------------------------------------------------------------------------------------------
+# Bodies -> {element: {property: array}}
+
+
+def _read_binary(stream, header: plyfile.PlyData, p: Path) -> dict[str, dict[str, np.ndarray]]:
+  """Binary body via plyfile; triangles are memory-mapped when every face has 3 vertices."""
+  known = {e.name: {e.properties[0].name: 3} for e in header.elements
+           if e.name == "face" and len(e.properties) == 1
+           and isinstance(e.properties[0], plyfile.PlyListProperty)}
+  size = p.stat().st_size
+  ply = None
+  for known_len in (known, {}) if known else ({},):
+    stream.seek(0)
+    try:
+      # Scalar-only elements and fixed-length lists are memory-mapped; others read row by row.
+      ply = plyfile.PlyData.read(stream, mmap="c", known_list_len=known_len)
+      break
+    except plyfile.PlyElementParseError as e:
+      if e.message == "unexpected list length" and known_len:
+        continue  # not all triangles: read the variable-length lists instead
+      raise _element_error(p, e) from e
+    except (ValueError, OverflowError, MemoryError) as e:
+      # plyfile raises these when a corrupt body yields impossible list lengths.
+      raise bad_input(p, "body", "data matching the header", f"unreadable ({e})") from e
+  trailing = size - stream.tell()
+  if trailing > 0:
+    raise bad_input(p, "body", f"{stream.tell()} bytes for the elements in the header",
+                    f"{trailing} more bytes after the last element (wrong element count?)")
+  return {e.name: {q.name: np.array(e.data[q.name]) for q in e.properties} for e in ply.elements}
+
+
+def _read_ascii_body(header: plyfile.PlyData, body: bytes,
+                     p: Path) -> dict[str, dict[str, np.ndarray]]:
+  """Ascii body, one element per line, parsed per element with numpy."""
+  lines = body.split(b"\n")
+  if lines and not lines[-1].strip():
+    lines.pop()  # the final newline
+  out: dict[str, dict[str, np.ndarray]] = {}
+  pos = 0
+  for elt in header.elements:
+    rows = lines[pos:pos + elt.count]
+    if len(rows) < elt.count:
+      raise bad_input(p, f"element '{elt.name}'", f"{elt.count} rows (header count)",
+                      f"{len(rows)} rows before the end of the file (truncated?)")
+    pos += elt.count
+    parsed = _parse_ascii_element(elt, rows, p)
+    if parsed is None:  # a layout the fast path does not handle: plyfile, row by row
+      return _read_ascii_with_plyfile(p)
+    out[elt.name] = parsed
+  extra = [i for i, line in enumerate(lines[pos:]) if line.strip()]
+  if extra:
+    raise bad_input(p, "body", f"{pos} data rows (sum of the header's element counts)",
+                    f"{len(extra)} more non-empty rows after the last element "
+                    "(wrong element count in the header?)")
+  return out
+
+
+def _parse_ascii_element(elt: plyfile.PlyElement, rows: list[bytes],
+                         p: Path) -> dict[str, np.ndarray] | None:
+  props = list(elt.properties)
+  lists = [q for q in props if isinstance(q, plyfile.PlyListProperty)]
+  if not rows:
+    return {q.name: np.empty((0,) if q not in lists else (0, 0)) for q in props}
+  text = [r.decode("ascii", "replace") for r in rows]
+  if not lists:
+    try:
+      with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        table = np.loadtxt(text, dtype=np.float64, ndmin=2)
+    except ValueError as e:
+      raise bad_input(p, f"element '{elt.name}'", f"{len(props)} numeric values per row "
+                      f"({', '.join(q.name for q in props)})", str(e)) from e
+    if table.shape != (len(rows), len(props)):
+      raise bad_input(p, f"element '{elt.name}'", f"{len(props)} values per row",
+                      f"{table.shape[1]} values per row")
+    return {q.name: table[:, i].astype(q.val_dtype) for i, q in enumerate(props)}
+  if len(props) != 1:
+    return None
+  (prop,) = lists
+  try:
+    counts = np.array([len(t.split()) for t in text]) - 1
+    flat = np.array(" ".join(text).split(), dtype=np.float64)
+  except ValueError as e:
+    raise bad_input(p, f"element '{elt.name}' property '{prop.name}'", "numeric lists",
+                    str(e)) from e
+  starts = np.concatenate([[0], np.cumsum(counts + 1)[:-1]])
+  declared = flat[starts]
+  if (counts < 0).any() or not np.array_equal(declared, counts):
+    row = int(np.flatnonzero((counts < 0) | (declared != counts))[0])
+    raise bad_input(p, f"element '{elt.name}' row {row} property '{prop.name}'",
+                    f"a length followed by that many values ({int(declared[row])})",
+                    f"{max(int(counts[row]), 0)} values")
+  values = np.delete(flat, starts).astype(prop.val_dtype)
+  if counts.min() == counts.max():
+    return {prop.name: values.reshape(len(rows), int(counts[0]))}
+  pieces = np.empty(len(rows), dtype=object)
+  ends = np.cumsum(counts)
+  for i, (a, b) in enumerate(zip((ends - counts).tolist(), ends.tolist())):
+    pieces[i] = values[a:b]
+  return {prop.name: pieces}
+
+
+def _read_ascii_with_plyfile(p: Path) -> dict[str, dict[str, np.ndarray]]:
+  try:
+    ply = plyfile.PlyData.read(str(p))
+  except plyfile.PlyElementParseError as e:
+    raise _element_error(p, e) from e
+  return {e.name: {q.name: np.array(e.data[q.name]) for q in e.properties} for e in ply.elements}
+
+
+def _element_error(p: Path, e: plyfile.PlyElementParseError) -> ValueError:
+  where = f"element '{e.element.name}'" if e.element is not None else "body"
+  if e.row is not None:
+    where += f" row {e.row}"
+  if e.prop is not None:
+    where += f" property '{e.prop.name}'"
+  count = e.element.count if e.element is not None else "?"
+  return bad_input(p, where, f"{count} well-formed rows (header count)", e.message)
+
+
+# ----------------------------------------------------------------------------------------------
+# Interpretation: points, faces, normals
+
+
+def _assemble(header: plyfile.PlyData, data: dict[str, dict[str, np.ndarray]],
+              p: Path) -> PlyMesh:
+  if "vertex" not in data:
+    raise bad_input(p, "elements", "a 'vertex' element", f"elements {list(data)}")
+  vertex = data["vertex"]
+  missing = [a for a in "xyz" if a not in vertex]
+  if missing:
+    raise bad_input(p, "element 'vertex'", "properties x, y, z",
+                    f"properties {list(vertex)} (missing {', '.join(missing)})")
+  n = header["vertex"].count
+  if n == 0:
+    raise bad_input(p, "element 'vertex'", "at least one vertex", "an empty cloud (0 vertices)")
+  points = check_points(np.stack([vertex[a] for a in "xyz"], axis=1), p,
+                        "element 'vertex' x/y/z")
+  normals = None
+  if all(a in vertex for a in _NORMALS):
+    normals = check_points(np.stack([vertex[a] for a in _NORMALS], axis=1), p,
+                           "element 'vertex' nx/ny/nz")
+  skip = set("xyz") | (set(_NORMALS) if normals is not None else set())
+  attributes = {k: v for k, v in vertex.items() if k not in skip}
+  faces = None
+  if "face" in data:
+    face = data["face"]
+    key = next((k for k in _FACE_LISTS if k in face), None)
+    if key is None:
+      raise bad_input(p, "element 'face'", "a list property " + " or ".join(_FACE_LISTS),
+                      f"properties {list(face)}")
+    if len(face[key]):
+      faces = _check_faces(_triangulate(face[key], p), n, p)
+  elements = {k: v for k, v in data.items() if k not in ("vertex", "face")}
+  return PlyMesh(points, faces, normals, attributes, elements, tuple(header.comments),
+                 tuple(header.obj_info), bool(header.text), p)
+
+
+def _triangulate(lists: np.ndarray, source: Any) -> np.ndarray:
+  """(f, k) or ragged polygon lists -> (t, 3) triangles (fan from each polygon's first vertex)."""
+  if lists.dtype != object:
+    polys = [np.asarray(lists)]
+  else:
+    lengths = np.array([len(x) for x in lists])
+    polys = [np.stack(lists[lengths == k]) for k in np.unique(lengths)]
+  tris = []
+  for poly in polys:
+    k = poly.shape[1]
+    if k < 3:
+      raise bad_input(source, "element 'face'", "polygons with at least 3 vertices",
+                      f"{len(poly)} faces with {k} vertices")
+    for j in range(1, k - 1):
+      tris.append(poly[:, [0, j, j + 1]])
+  return np.concatenate(tris).astype(np.int64)
+
+
+def _check_faces(faces: np.ndarray, n: int, source: Any) -> np.ndarray:
+  if faces.ndim != 2 or faces.shape[1] != 3:
+    raise bad_input(source, "element 'face'", "an (f, 3) array of triangles",
+                    f"shape {faces.shape}")
+  faces = faces.astype(np.int64, copy=False)
+  if faces.size and (faces.min() < 0 or faces.max() >= n):
+    bad = int(faces.min() if faces.min() < 0 else faces.max())
+    raise bad_input(source, "element 'face' vertex_indices", f"indices in [0, {n})",
+                    f"index {bad}")
+  return faces

@@ -1,0 +1,118 @@
+"""Checks shared by the readers: every bad input becomes a ValueError that names the file,
+the field and what was expected versus found.
+
+Message format (one line): ``"<file>: <field>: expected <expected>, found <found>"``.
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import numpy as np
+
+# A pose's rotation block must satisfy |RᵀR - I| <= atol and |det R - 1| <= atol. The real
+# ground-truth files are written with 6 decimals (worst case in the shipped data: 6.4e-6).
+RIGID_ATOL = 1e-4
+
+
+def bad_input(source: object, field: str, expected: str, found: str) -> ValueError:
+  """Builds the ValueError every reader raises: file, field, expected and found.
+
+  Args:
+    source: the file (path) or a description of the in-memory input.
+    field: the element / property / line that is wrong, e.g. ``"element 'vertex'"``.
+    expected: what a valid file holds there.
+    found: what this file holds there.
+
+  Returns:
+    A ValueError (to be raised by the caller).
+  """
+  return ValueError(f"{source}: {field}: expected {expected}, found {found}")
+
+
+def require_file(path: str | os.PathLike) -> Path:
+  """Returns `path` as a Path, or raises FileNotFoundError naming it.
+
+  Args:
+    path: a file path.
+
+  Returns:
+    The path.
+
+  Raises:
+    FileNotFoundError: `path` does not exist or is not a regular file.
+  """
+  p = Path(path)
+  if not p.is_file():
+    what = "is a directory, not a file" if p.is_dir() else "no such file"
+    raise FileNotFoundError(f"{p}: {what}")
+  return p
+
+
+def check_points(points: np.ndarray, source: object, field: str = "points",
+                 columns: int = 3) -> np.ndarray:
+  """Validates an (n, columns) coordinate array: non-empty, 2-D, finite.
+
+  Args:
+    points: array-like, expected shape (n, columns), n >= 1.
+    source: the file or input the array came from (used in messages).
+    field: what the array is, e.g. ``"element 'vertex' x/y/z"``.
+    columns: the expected number of columns (3 for points and normals).
+
+  Returns:
+    The array as a C-contiguous (n, columns) float64 copy or view.
+
+  Raises:
+    ValueError: wrong shape, zero rows, or non-finite values (the message gives their count
+      and the first offending row).
+  """
+  arr = np.asarray(points)
+  if arr.ndim != 2 or arr.shape[1] != columns:
+    raise bad_input(source, field, f"an (n, {columns}) array", f"shape {arr.shape}")
+  if arr.shape[0] == 0:
+    raise bad_input(source, field, "at least one point", "an empty cloud (0 points)")
+  arr = np.ascontiguousarray(arr, dtype=np.float64)
+  finite = np.isfinite(arr).all(axis=1)
+  if not finite.all():
+    bad = np.flatnonzero(~finite)
+    raise bad_input(source, field, "finite coordinates",
+                    f"{bad.size} rows with NaN/inf (first: row {bad[0]} = {arr[bad[0]].tolist()})")
+  return arr
+
+
+def check_rigid(transform: np.ndarray, source: object, field: str = "transform",
+                atol: float = RIGID_ATOL) -> np.ndarray:
+  """Validates a (4, 4) rigid transform [R t; 0 0 0 1] with R a proper rotation.
+
+  Args:
+    transform: array-like, expected shape (4, 4).
+    source: the file or input the matrix came from (used in messages).
+    field: what the matrix is, e.g. ``"pose of bun045.ply"``.
+    atol: tolerance on |RᵀR - I| (max entry), |det R - 1| and the last row.
+
+  Returns:
+    The matrix as a (4, 4) float64 array (unchanged values).
+
+  Raises:
+    ValueError: wrong shape, non-finite entries, last row not (0, 0, 0, 1), R not orthonormal,
+      or det R != +1 (a reflection).
+  """
+  t = np.asarray(transform, dtype=np.float64)
+  if t.shape != (4, 4):
+    found = "x".join(map(str, t.shape)) if t.ndim == 2 else f"shape {t.shape}"
+    raise bad_input(source, field, "a 4x4 matrix", f"a {found} matrix")
+  if not np.isfinite(t).all():
+    raise bad_input(source, field, "finite entries", "NaN/inf")
+  if np.abs(t[3] - np.array([0.0, 0.0, 0.0, 1.0])).max() > atol:
+    raise bad_input(source, field, "last row 0 0 0 1", f"last row {t[3].tolist()}")
+  r = t[:3, :3]
+  ortho = float(np.abs(r.T @ r - np.eye(3)).max())
+  if ortho > atol:
+    raise bad_input(source, field, f"an orthonormal rotation block (|RᵀR - I| <= {atol:g})",
+                    f"|RᵀR - I| = {ortho:.3g} (not a rigid transform)")
+  det = float(np.linalg.det(r))
+  if abs(det - 1.0) > atol:
+    raise bad_input(source, field, f"det R = +1 (within {atol:g})",
+                    f"det R = {det:.6g}" + (" (a reflection)" if det < 0 else ""))
+  return t

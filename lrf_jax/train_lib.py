@@ -1,0 +1,422 @@
+"""Weakly supervised training of LRF-Net (paper section 3.2): data, step, checkpoints, loop.
+
+`train_and_evaluate(config, workdir)` is the whole job; `train.py` only parses arguments.
+
+* Data: a fixed, seeded set of training keypoints over corresponding clouds (noise-free BR: each
+  model and the same model under a scene's ground truth). An epoch is one pass in a seeded
+  shuffled order; every batch is rebuilt from (seed, epoch, batch index) alone, with 256 points
+  sampled independently on each side, so a resumed run sees exactly the batches it would have.
+* Step: `train_step(state, batch) -> (state, metrics)`, jitted with the state donated; Adam with
+  a learning rate decaying 5% per epoch (a staircase exponential decay).
+* Data parallelism: a `jax.sharding.Mesh` over all devices with one "data" axis; batches are
+  sharded along it and parameters replicated. The same code runs multi-host once
+  `jax.distributed.initialize` has been called (train.py's --coordinator flags).
+* Checkpoints: orbax `CheckpointManager` keeps the latest and the best (by validation MeanCos on
+  the Stanford bunny scans) checkpoints with the config beside them; a restarted run resumes from
+  the latest.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+import time
+from pathlib import Path
+from typing import Any, Iterator, NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optax
+import orbax.checkpoint as ocp
+from flax.training import train_state
+from jax.sharding import Mesh, NamedSharding, PartitionSpec as P
+
+from lrf_jax import metrics as metrics_lib
+from lrf_jax.config import TrainConfig
+from lrf_jax.frames.lrf_net import lrf_net_frames
+from lrf_jax.losses import siamese_loss
+from lrf_jax.model import init_params, save_params
+from lrf_jax.neighborhoods import Patches, SearchIndex, build_patches
+
+
+# ----------------------------------------------------------------------------- data
+
+
+@dataclasses.dataclass(frozen=True)
+class TrainingClouds:
+  """Corresponding clouds and the fixed training keypoints over them.
+
+  Attributes:
+    models: list of (n_c, 3) model clouds.
+    scenes: list of (n_c, 3) scene clouds; scene point i corresponds to model point i.
+    radii: (C,) support radius of each cloud in its units (radius_mr x the model's mr).
+    mr: (C,) mesh resolution of each model.
+    keypoints: (P, 2) int64 rows (cloud id, point index): the training set of one epoch.
+    names: cloud names, for logs.
+  """
+
+  models: list[np.ndarray]
+  scenes: list[np.ndarray]
+  radii: np.ndarray
+  mr: np.ndarray
+  keypoints: np.ndarray
+  names: list[str]
+
+
+def _mix(*ints: int) -> int:
+  """A deterministic 63-bit seed from integers (so batch seeds depend only on their position)."""
+  return int(np.random.SeedSequence(list(ints)).generate_state(1, np.uint64)[0] >> np.uint64(1))
+
+
+def sample_training_keypoints(sizes: list[int], count: int, seed: int,
+                              exclude: list[np.ndarray] | None = None) -> np.ndarray:
+  """A seeded set of (cloud id, point index) drawn uniformly over all points of all clouds.
+
+  Args:
+    sizes: points per cloud.
+    count: keypoints wanted.
+    seed: seed.
+    exclude: per cloud, point indices that may not be drawn (the evaluation keypoints).
+
+  Returns:
+    (count, 2) int64.
+  """
+  pool = []
+  for c, n in enumerate(sizes):
+    ok = np.ones(n, bool)
+    if exclude is not None and len(exclude[c]):
+      ok[exclude[c]] = False
+    idx = np.flatnonzero(ok)
+    pool.append(np.stack([np.full(idx.size, c), idx], axis=1))
+  pool = np.concatenate(pool)
+  rng = np.random.default_rng(_mix(seed, 1))
+  return pool[np.sort(rng.choice(len(pool), size=min(count, len(pool)), replace=False))]
+
+
+class Batch(NamedTuple):
+  """Corresponding patches: `model[i]` and `scene[i]` are one training pair."""
+
+  model: Patches
+  scene: Patches
+
+
+class BatchMaker:
+  """Builds the batch of any (epoch, step) from the seed alone, reusing one search index per
+  (cloud, side, epoch)."""
+
+  def __init__(self, clouds: TrainingClouds, config: TrainConfig):
+    self.clouds = clouds
+    self.config = config
+    self._index: dict[tuple[int, int, int], SearchIndex] = {}
+
+  def epoch_order(self, epoch: int) -> np.ndarray:
+    rng = np.random.default_rng(_mix(self.config.seed, 2, epoch))
+    return rng.permutation(len(self.clouds.keypoints))
+
+  def _search_index(self, cloud: int, side: int, epoch: int) -> SearchIndex:
+    key = (cloud, side, epoch)
+    if key not in self._index:
+      if len(self._index) > 4 * len(self.clouds.models):  # keep at most ~2 epochs of indices
+        self._index.clear()
+      pts = self.clouds.models[cloud] if side == 0 else self.clouds.scenes[cloud]
+      self._index[key] = SearchIndex(pts, _mix(self.config.seed, 3, epoch, side))
+    return self._index[key]
+
+  def batch(self, epoch: int, step_in_epoch: int) -> Batch:
+    cfg = self.config
+    order = self.epoch_order(epoch)
+    rows = self.clouds.keypoints[order[step_in_epoch * cfg.batch_size:
+                                       (step_in_epoch + 1) * cfg.batch_size]]
+    sides = []
+    for side in (0, 1):
+      parts = []
+      for c in np.unique(rows[:, 0]):
+        sel = rows[rows[:, 0] == c, 1]
+        index = self._search_index(int(c), side, epoch)
+        pts = index.points
+        if side == 1 and cfg.noise_mr:
+          rng = np.random.default_rng(_mix(cfg.seed, 4, epoch, step_in_epoch, int(c)))
+          sigma = rng.choice(np.asarray(cfg.noise_mr)) * self.clouds.mr[c]
+          pts = pts + rng.normal(scale=sigma, size=pts.shape)
+          index = None  # the noisy copy needs its own search structure
+        parts.append(build_patches(pts, sel, float(self.clouds.radii[c]), cfg.patch_k,
+                                   seed=_mix(cfg.seed, 3, epoch, side), index=index,
+                                   validate=False))
+      sides.append(Patches(*[np.concatenate(f) for f in zip(*parts)]))
+    # restore the shuffled row order (parts were grouped by cloud)
+    perm = np.concatenate([np.flatnonzero(rows[:, 0] == c) for c in np.unique(rows[:, 0])])
+    inv = np.argsort(perm)
+    return Batch(*(jax.tree.map(lambda a: a[inv], s) for s in sides))
+
+
+# ----------------------------------------------------------------------------- state and step
+
+
+class TrainState(train_state.TrainState):
+  """flax TrainState (params, opt_state, step, tx); apply_fn is unused (frames are a pure fn)."""
+
+
+def make_optimizer(config: TrainConfig) -> optax.GradientTransformation:
+  """Adam with the paper's schedule: lr decays by `lr_decay` once per epoch (staircase)."""
+  schedule = optax.exponential_decay(config.learning_rate, config.steps_per_epoch,
+                                     config.lr_decay, staircase=True)
+  return optax.adam(schedule)
+
+
+def create_state(config: TrainConfig) -> TrainState:
+  params = init_params(config.seed, widths=config.widths)
+  return TrainState.create(apply_fn=None, params=params, tx=make_optimizer(config))
+
+
+def make_train_step(config: TrainConfig):
+  """The pure step `(state, batch) -> (state, metrics)`; jit it with `donate_argnums=0`."""
+  schedule = optax.exponential_decay(config.learning_rate, config.steps_per_epoch,
+                                     config.lr_decay, staircase=True)
+
+  def loss_fn(params, batch: Batch):
+    return siamese_loss(params, batch.model, batch.scene, reduction=config.loss_reduction,
+                        x_mode=config.x_mode)
+
+  def train_step(state: TrainState, batch: Batch):
+    (loss, aux), grads = jax.value_and_grad(loss_fn, has_aux=True)(state.params, batch)
+    state = state.apply_gradients(grads=grads)
+    metrics = {"loss": loss, "grad_norm": optax.tree.norm(grads),
+               "valid_fraction": aux["valid_fraction"], "lr": schedule(state.step - 1)}
+    return state, metrics
+
+  return train_step
+
+
+# ----------------------------------------------------------------------------- validation
+
+
+@dataclasses.dataclass(frozen=True)
+class ValidationSet:
+  """Fixed patches of corresponding keypoints on validation pairs, built once."""
+
+  names: list[str]
+  model: list[Patches]
+  scene: list[Patches]
+  rotations: list[np.ndarray]
+
+
+def build_validation(pairs: list[Any], config: TrainConfig) -> ValidationSet:
+  """Patches for `config.val_keypoints` protocol keypoints per pair (`lrf_jax.datasets.Pair`)."""
+  from lrf_jax.datasets import repeatability_keypoints
+
+  names, pm, ps, rots = [], [], [], []
+  for pair in pairs:
+    mi, si = repeatability_keypoints(pair, config.val_keypoints, seed=config.seed)
+    r = config.radius_mr * pair.mr
+    pm.append(build_patches(pair.model_points, mi, r, config.patch_k, seed=config.seed))
+    ps.append(build_patches(pair.scene_points, si, r, config.patch_k, seed=config.seed))
+    names.append(pair.name)
+    rots.append(np.asarray(pair.transform)[:3, :3])
+  return ValidationSet(names, pm, ps, rots)
+
+
+def validate(params, val: ValidationSet, x_mode: str = "sum") -> dict[str, float]:
+  """Mean MeanCos over validation pairs (per pair first), and per pair."""
+  fn = jax.jit(lambda p, patches: lrf_net_frames(p, patches, x_mode=x_mode))
+  per_pair = {}
+  for name, pm, ps, rot in zip(val.names, val.model, val.scene, val.rotations):
+    fm, vm = fn(params, jax.tree.map(jnp.asarray, pm))
+    fs, vs = fn(params, jax.tree.map(jnp.asarray, ps))
+    per_pair[name] = float(jnp.mean(metrics_lib.meancos(fm, fs, rot, vm, vs)))
+  return {"val_meancos": float(np.mean(list(per_pair.values()))) if per_pair else float("nan"),
+          "val_per_pair": per_pair}
+
+
+# ----------------------------------------------------------------------------- checkpoints
+
+
+def checkpoint_manager(workdir: Path, create: bool = True) -> ocp.CheckpointManager:
+  """Keeps the latest checkpoint and the best one by validation MeanCos."""
+  policy = ocp.checkpoint_managers.AnyPreservationPolicy([
+      ocp.checkpoint_managers.LatestN(n=1),
+      ocp.checkpoint_managers.BestN(get_metric_fn=lambda m: m["val_meancos"], reverse=False, n=1,
+                                    keep_checkpoints_without_metrics=False),
+  ])
+  options = ocp.CheckpointManagerOptions(
+      preservation_policy=policy, best_fn=lambda m: m["val_meancos"], best_mode="max",
+      create=create)
+  return ocp.CheckpointManager((Path(workdir) / "checkpoints").absolute(), options=options,
+                               item_names=("state", "config"))
+
+
+def check_compatible(saved: dict[str, Any], config: TrainConfig, where: Path) -> None:
+  """Raise if a checkpoint was written under a config whose parameters differ in shape/meaning."""
+  diffs = [f for f in TrainConfig.MODEL_FIELDS
+           if json.dumps(saved.get(f)) != json.dumps(getattr(config, f), default=list)]
+  if diffs:
+    detail = ", ".join(f"{f}: checkpoint {saved.get(f)!r} vs config {getattr(config, f)!r}"
+                       for f in diffs)
+    raise ValueError(f"{where}: checkpoint is incompatible with this config ({detail}); use "
+                     "another --workdir or the checkpoint's own config")
+
+
+def restore_params(workdir: str | Path, which: str = "best") -> tuple[Any, TrainConfig]:
+  """Parameters and config of a training run's best (or latest) checkpoint (for evaluate.py)."""
+  mngr = checkpoint_manager(Path(workdir), create=False)
+  step = mngr.best_step() if which == "best" else mngr.latest_step()
+  if step is None:
+    raise FileNotFoundError(f"{Path(workdir) / 'checkpoints'}: no checkpoint found")
+  cfg_dict = mngr.restore(step, args=ocp.args.Composite(config=ocp.args.JsonRestore()))["config"]
+  config = TrainConfig.from_dict({k: tuple(v) if isinstance(v, list) else v
+                                  for k, v in cfg_dict.items()})
+  restored = mngr.restore(step, args=ocp.args.Composite(
+      state=ocp.args.StandardRestore(_state_target(create_state(config)))))
+  return restored["state"]["params"], config
+
+
+def _state_target(state: TrainState) -> dict[str, Any]:
+  """The checkpointed part of a TrainState, as host arrays (the restore target)."""
+  return jax.tree.map(np.asarray, {"params": state.params, "opt_state": state.opt_state,
+                                   "step": state.step})
+
+
+# ----------------------------------------------------------------------------- the loop
+
+
+def _mesh() -> Mesh:
+  return jax.make_mesh((jax.device_count(),), ("data",))
+
+
+def train_and_evaluate(config: TrainConfig, workdir: str | Path, *,
+                       clouds: TrainingClouds | None = None, val_pairs: list[Any] | None = None,
+                       stop_after_steps: int | None = None, progress: bool = True) -> dict:
+  """Train (or resume) a run in `workdir`; returns the final metrics.
+
+  Args:
+    config: the run's configuration.
+    workdir: output folder: checkpoints/, metrics.jsonl, config.json, curves.png, final params.
+    clouds: training data; built from `config` when None.
+    val_pairs: validation pairs; the first `config.val_pairs` bunny scan pairs when None.
+    stop_after_steps: stop (as if killed) after this global step; for tests of resumption.
+    progress: show a progress bar.
+
+  Returns:
+    {"step", "loss", "val_meancos", ...} of the last step.
+  """
+  from lrf_jax import data_sources
+
+  workdir = Path(workdir)
+  workdir.mkdir(parents=True, exist_ok=True)
+  if clouds is None:
+    clouds = data_sources.training_clouds(config)
+  if val_pairs is None:
+    val_pairs = data_sources.validation_pairs(config)
+  val = build_validation(val_pairs, config) if val_pairs else None
+  maker = BatchMaker(clouds, config)
+
+  mesh = _mesh()
+  if config.batch_size % mesh.size:
+    raise ValueError(f"config.batch_size: {config.batch_size} is not divisible by the "
+                     f"{mesh.size} devices of the data mesh")
+  replicated = NamedSharding(mesh, P())
+  data_sharding = NamedSharding(mesh, P("data"))
+
+  state = create_state(config)
+  mngr = checkpoint_manager(workdir)
+  start = mngr.latest_step()
+  if start is not None:
+    saved = mngr.restore(start, args=ocp.args.Composite(config=ocp.args.JsonRestore()))
+    check_compatible(saved["config"], config, workdir)
+    restored = mngr.restore(start, args=ocp.args.Composite(
+        state=ocp.args.StandardRestore(_state_target(state))))["state"]
+    state = state.replace(params=restored["params"], opt_state=restored["opt_state"],
+                          step=restored["step"])
+  start = int(state.step)
+  state = jax.device_put(state, replicated)
+  step_fn = jax.jit(make_train_step(config), donate_argnums=0,
+                    out_shardings=(replicated, replicated))
+  (workdir / "config.json").write_text(config.to_json())
+
+  total = config.total_steps if stop_after_steps is None else min(config.total_steps,
+                                                                   stop_after_steps)
+  log_path = workdir / "metrics.jsonl"
+  last: dict[str, Any] = {"step": start}
+  bar = _progress(total, start, progress)
+  t_last, pairs_since = time.perf_counter(), 0
+  for step in range(start, total):
+    epoch, in_epoch = divmod(step, config.steps_per_epoch)
+    batch = jax.device_put(maker.batch(epoch, in_epoch), data_sharding)
+    state, m = step_fn(state, batch)
+    pairs_since += config.batch_size
+    done = step + 1
+    end_of_epoch = done % config.steps_per_epoch == 0
+    if done % config.log_every == 0 or end_of_epoch or done == total:
+      m = {k: float(v) for k, v in jax.device_get(m).items()}
+      if not math.isfinite(m["loss"]):
+        raise FloatingPointError(
+            f"non-finite loss {m['loss']} at step {done} (epoch {epoch}); metrics {m}. "
+            "Lower the learning rate or check the data for degenerate patches.")
+      now = time.perf_counter()
+      m.update(step=done, epoch=epoch + in_epoch / config.steps_per_epoch,
+               pairs_per_s=pairs_since / max(now - t_last, 1e-9))
+      t_last, pairs_since = now, 0
+      if end_of_epoch and val is not None:
+        m.update(validate(state.params, val, config.x_mode))
+      _append_jsonl(log_path, m)
+      last = m
+      bar.set_postfix(loss=f"{m['loss']:.4g}", val=f"{m.get('val_meancos', float('nan')):.3f}")
+    if end_of_epoch or done % config.checkpoint_every == 0 or done == total:
+      val_m = ({"val_meancos": last["val_meancos"]}
+               if end_of_epoch and "val_meancos" in last and last["step"] == done else None)
+      _save(mngr, done, state, config, val_m)
+    bar.update(1)
+  bar.close()
+  mngr.wait_until_finished()
+  if int(jax.device_get(state.step)) >= config.total_steps:
+    save_params(state.params, workdir / "final_params.msgpack")
+    best = mngr.best_step()
+    if best is not None:
+      params, _ = restore_params(workdir, "best")
+      save_params(params, workdir / "best_params.msgpack")
+    plot_curves(log_path, workdir / "curves.png")
+  mngr.close()
+  return last
+
+
+def _save(mngr, step, state, config, val_metrics):
+  mngr.save(step, args=ocp.args.Composite(
+      state=ocp.args.StandardSave(_state_target(state)),
+      config=ocp.args.JsonSave(json.loads(config.to_json()))), metrics=val_metrics)
+
+
+def _append_jsonl(path: Path, record: dict) -> None:
+  with path.open("a") as f:
+    f.write(json.dumps(record) + "\n")
+
+
+class _NoBar:
+  def update(self, n): ...
+  def set_postfix(self, **kw): ...
+  def close(self): ...
+
+
+def _progress(total: int, start: int, enabled: bool):
+  if not enabled:
+    return _NoBar()
+  from tqdm.auto import tqdm
+  return tqdm(total=total, initial=start, unit="step", desc="train", dynamic_ncols=True)
+
+
+def plot_curves(log_path: Path, out: Path) -> None:
+  """Loss and validation MeanCos against the step, as a PNG."""
+  import matplotlib
+  matplotlib.use("Agg")
+  import matplotlib.pyplot as plt
+
+  rows = [json.loads(l) for l in log_path.read_text().splitlines() if l.strip()]
+  fig, ax = plt.subplots(1, 2, figsize=(10, 3.5))
+  ax[0].plot([r["step"] for r in rows], [r["loss"] for r in rows])
+  ax[0].set(xlabel="step", ylabel="Chamfer loss", title="training loss")
+  val = [r for r in rows if "val_meancos" in r]
+  ax[1].plot([r["epoch"] for r in val], [r["val_meancos"] for r in val], marker="o")
+  ax[1].set(xlabel="epoch", ylabel="MeanCos", title="validation (bunny scans)")
+  fig.tight_layout()
+  fig.savefig(out, dpi=120)
+  plt.close(fig)

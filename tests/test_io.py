@@ -1,0 +1,432 @@
+"""Readers and writers: round trips against independent references, and every bad input."""
+
+from __future__ import annotations
+
+import gzip
+from pathlib import Path
+
+import numpy as np
+import plyfile
+import pytest
+from pypcd4 import Encoding, PointCloud
+from scipy.spatial.transform import Rotation
+
+from lrf_jax import io
+
+
+def _rng(seed=0):
+  return np.random.default_rng(seed)
+
+
+def _cloud(n=50, seed=0):
+  return _rng(seed).normal(size=(n, 3))
+
+
+def _tetra():
+  pts = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1]], dtype=np.float64)
+  faces = np.array([[0, 2, 1], [0, 1, 3], [0, 3, 2], [1, 2, 3]])
+  return pts, faces
+
+
+def _raises(exc, path, *fragments):
+  """pytest.raises that also checks the message names the file and the given fragments."""
+
+  class _Ctx:
+
+    def __enter__(self):
+      self._ctx = pytest.raises(exc)
+      self.info = self._ctx.__enter__()
+      return self.info
+
+    def __exit__(self, *a):
+      out = self._ctx.__exit__(*a)
+      msg = str(self.info.value)
+      assert str(path) in msg, msg
+      for f in fragments:
+        assert f in msg, f"{f!r} not in {msg!r}"
+      return out
+
+  return _Ctx()
+
+
+# ---------------------------------------------------------------------------------------------
+# PLY
+
+
+@pytest.mark.parametrize("binary", [True, False])
+def test_ply_round_trip(tmp_path, binary):
+  pts, faces = _tetra()
+  normals = pts - pts.mean(0)
+  path = io.write_ply(tmp_path / "t.ply", pts, faces, normals, binary=binary, dtype="float64")
+  m = io.read_ply(path)
+  np.testing.assert_array_equal(m.points, pts)
+  np.testing.assert_array_equal(m.faces, faces)
+  np.testing.assert_array_equal(m.normals, normals)
+  assert m.points.dtype == np.float64 and m.faces.dtype == np.int64
+  assert m.text is (not binary)
+
+
+def test_ply_float32_cloud_without_faces(tmp_path):
+  pts = _cloud()
+  m = io.read_ply(io.write_ply(tmp_path / "c.ply", pts))
+  assert m.faces is None and m.normals is None
+  np.testing.assert_allclose(m.points, pts, rtol=1e-6, atol=1e-6)
+
+
+def _write_with_plyfile(path, text, n=20, ragged=True):
+  """A PLY with colours, triangles and an extra ragged list element, written by plyfile."""
+  rng = _rng(1)
+  v = np.empty(n, dtype=[("x", "f4"), ("y", "f4"), ("z", "f4"), ("red", "u1"),
+                         ("confidence", "f8")])
+  for a in "xyz":
+    v[a] = rng.normal(size=n)
+  v["red"] = rng.integers(0, 255, n)
+  v["confidence"] = rng.uniform(size=n)
+  f = np.empty(n - 2, dtype=[("vertex_indices", "O")])
+  f["vertex_indices"] = [np.array([i, i + 1, i + 2], dtype=np.int32) for i in range(n - 2)]
+  grid = np.empty(3 * n, dtype=[("vertex_indices", "O")])
+  grid["vertex_indices"] = [np.array([i // 3] if (i % 3 or not ragged) else [], dtype=np.int32)
+                            for i in range(3 * n)]
+  plyfile.PlyData([plyfile.PlyElement.describe(v, "vertex"),
+                   plyfile.PlyElement.describe(f, "face"),
+                   plyfile.PlyElement.describe(grid, "range_grid")],
+                  text=text, comments=["made by test"], obj_info=["num_cols 3"]).write(str(path))
+  return v, f, grid
+
+
+@pytest.mark.parametrize("text", [True, False])
+@pytest.mark.parametrize("ragged", [True, False])
+def test_ply_matches_plyfile_and_keeps_extra_elements(tmp_path, text, ragged):
+  path = tmp_path / "x.ply"
+  v, f, grid = _write_with_plyfile(path, text, ragged=ragged)
+  m = io.read_ply(path)
+  np.testing.assert_array_equal(m.points, np.stack([v[a] for a in "xyz"], 1).astype(np.float64))
+  np.testing.assert_array_equal(m.faces, np.stack(f["vertex_indices"]))
+  np.testing.assert_array_equal(m.vertex_attributes["red"], v["red"])
+  np.testing.assert_array_equal(m.vertex_attributes["confidence"], v["confidence"])
+  assert m.vertex_attributes["red"].dtype == np.uint8
+  kept = m.elements["range_grid"]["vertex_indices"]
+  assert len(kept) == len(grid)
+  for got, want in zip(kept, grid["vertex_indices"]):
+    np.testing.assert_array_equal(got, want)
+  assert m.comments == ("made by test",) and m.obj_info == ("num_cols 3",)
+
+
+def test_ply_polygons_are_fan_triangulated(tmp_path):
+  path = tmp_path / "quad.ply"
+  path.write_text("ply\nformat ascii 1.0\nelement vertex 5\nproperty float x\nproperty float y\n"
+                  "property float z\nelement face 2\nproperty list uchar int vertex_indices\n"
+                  "end_header\n0 0 0\n1 0 0\n1 1 0\n0 1 0\n2 0 0\n4 0 1 2 3\n3 1 4 2\n")
+  m = io.read_ply(path)
+  np.testing.assert_array_equal(m.faces, [[1, 4, 2], [0, 1, 2], [0, 2, 3]])
+
+
+_HEADER = ("ply\nformat ascii 1.0\nelement vertex {n}\nproperty float x\nproperty float y\n"
+           "property float z\nelement face {f}\nproperty list uchar int vertex_indices\n"
+           "end_header\n")
+
+
+def _ascii_ply(path, rows, faces=(), n=None, f=None):
+  body = "".join(r + "\n" for r in rows) + "".join(r + "\n" for r in faces)
+  path.write_text(_HEADER.format(n=len(rows) if n is None else n,
+                                 f=len(faces) if f is None else f) + body)
+  return path
+
+
+def test_ply_errors(tmp_path):
+  good = ["0 0 0", "1 0 0", "0 1 0"]
+  with _raises(FileNotFoundError, tmp_path / "missing.ply"):
+    io.read_ply(tmp_path / "missing.ply")
+  p = tmp_path / "garbage.ply"
+  p.write_bytes(b"hello world\n")
+  with _raises(ValueError, p, "header"):
+    io.read_ply(p)
+  p = tmp_path / "badformat.ply"
+  p.write_text("ply\nformat foo 1.0\nend_header\n")
+  with _raises(ValueError, p, "header"):
+    io.read_ply(p)
+  p = _ascii_ply(tmp_path / "short.ply", good[:2], n=3)
+  with _raises(ValueError, p, "element 'vertex'", "3 rows", "2 rows"):
+    io.read_ply(p)
+  p = _ascii_ply(tmp_path / "long.ply", good, ["3 0 1 2"], n=2, f=1)
+  with _raises(ValueError, p, "element 'face'"):  # the third vertex row is read as a face
+    io.read_ply(p)
+  p = _ascii_ply(tmp_path / "extra.ply", good + ["3 0 1 2"], n=3, f=0)
+  with _raises(ValueError, p, "body", "more non-empty rows"):
+    io.read_ply(p)
+  p = _ascii_ply(tmp_path / "cols.ply", ["0 0 0", "1 0", "0 1 0"])
+  with _raises(ValueError, p, "element 'vertex'"):
+    io.read_ply(p)
+  p = _ascii_ply(tmp_path / "nan.ply", ["0 0 0", "nan 0 0", "0 1 0"])
+  with _raises(ValueError, p, "finite", "row 1"):
+    io.read_ply(p)
+  p = _ascii_ply(tmp_path / "inf.ply", ["0 0 0", "1 0 0", "0 inf 0"])
+  with _raises(ValueError, p, "finite", "row 2"):
+    io.read_ply(p)
+  p = _ascii_ply(tmp_path / "empty.ply", [])
+  with _raises(ValueError, p, "empty cloud"):
+    io.read_ply(p)
+  p = _ascii_ply(tmp_path / "index.ply", good, ["3 0 1 7"])
+  with _raises(ValueError, p, "element 'face'", "[0, 3)", "index 7"):
+    io.read_ply(p)
+  p = _ascii_ply(tmp_path / "listlen.ply", good, ["3 0 1"])
+  with _raises(ValueError, p, "element 'face' row 0"):
+    io.read_ply(p)
+  p = tmp_path / "noxyz.ply"
+  p.write_text("ply\nformat ascii 1.0\nelement vertex 1\nproperty float x\nproperty float y\n"
+               "property float w\nend_header\n0 0 0\n")
+  with _raises(ValueError, p, "element 'vertex'", "x, y, z", "missing z"):
+    io.read_ply(p)
+  p = tmp_path / "novertex.ply"
+  p.write_text("ply\nformat ascii 1.0\nelement point 1\nproperty float x\nend_header\n0\n")
+  with _raises(ValueError, p, "'vertex' element", "point"):
+    io.read_ply(p)
+
+
+def test_ply_binary_corrupt_and_truncated(tmp_path):
+  pts, faces = _tetra()
+  path = io.write_ply(tmp_path / "b.ply", pts, faces)
+  data = path.read_bytes()
+  for cut in (10, 60):  # inside the vertex block, inside the face block
+    p = tmp_path / f"cut{cut}.ply"
+    p.write_bytes(data[:len(data) - cut])
+    with _raises(ValueError, p, "element"):
+      io.read_ply(p)
+  p = tmp_path / "trailing.ply"
+  p.write_bytes(data + b"\x00" * 8)
+  with _raises(ValueError, p, "8 more bytes"):
+    io.read_ply(p)
+  p = tmp_path / "badcount.ply"  # header claims 5 vertices: faces are read from the wrong place
+  p.write_bytes(data.replace(b"element vertex 4", b"element vertex 5"))
+  with pytest.raises(ValueError, match=str(p.name)):
+    io.read_ply(p)
+
+
+def test_write_ply_rejects_bad_input(tmp_path):
+  pts, faces = _tetra()
+  with pytest.raises(ValueError, match="finite"):
+    io.write_ply(tmp_path / "a.ply", np.where(pts == 1, np.nan, pts))
+  with pytest.raises(ValueError, match=r"\[0, 4\)"):
+    io.write_ply(tmp_path / "a.ply", pts, faces + 1)
+  with pytest.raises(ValueError, match=r"\(n, 3\)"):
+    io.write_ply(tmp_path / "a.ply", pts[:, :2])
+
+
+# ---------------------------------------------------------------------------------------------
+# PCD, XYZ, NPY, dispatch
+
+
+@pytest.mark.parametrize("encoding", [Encoding.ASCII, Encoding.BINARY, Encoding.BINARY_COMPRESSED])
+def test_pcd_encodings(tmp_path, encoding):
+  pts = _compressible()
+  nrm = pts[::-1] * 0.5
+  path = tmp_path / "c.pcd"
+  PointCloud.from_points(np.concatenate([pts, nrm], 1),
+                         ("x", "y", "z", "normal_x", "normal_y", "normal_z"),
+                         (np.float32,) * 6).save(path, encoding=encoding)
+  assert f"DATA {encoding.value}".encode() in path.read_bytes()[:300]
+  c = io.read_pcd(path)
+  np.testing.assert_allclose(c.points, pts, rtol=1e-6)
+  np.testing.assert_allclose(c.normals, nrm, rtol=1e-6)
+  assert c.faces is None and c.points.dtype == np.float64
+
+
+def _compressible(n=50):
+  """Points with repeated values (pypcd4 silently falls back to binary when LZF cannot shrink
+  the data, so random points would not exercise binary_compressed)."""
+  i = np.arange(n)
+  return np.stack([i % 5, i % 3, np.zeros(n)], axis=1).astype(np.float32)
+
+
+def test_pcd_errors(tmp_path):
+  pts = _compressible()
+  p = tmp_path / "xy.pcd"
+  PointCloud.from_points(pts[:, :2], ("x", "y"), (np.float32,) * 2).save(p)
+  with _raises(ValueError, p, "FIELDS", "missing z"):
+    io.read_pcd(p)
+  p = tmp_path / "cut.pcd"
+  PointCloud.from_xyz_points(pts).save(p, encoding=Encoding.BINARY)
+  p.write_bytes(p.read_bytes()[:-30])
+  with _raises(ValueError, p, "DATA binary", "50 points"):
+    io.read_pcd(p)
+  p = tmp_path / "lzf.pcd"
+  PointCloud.from_xyz_points(pts).save(p, encoding=Encoding.BINARY_COMPRESSED)
+  p.write_bytes(p.read_bytes()[:-40])  # truncated LZF stream
+  with _raises(ValueError, p, "DATA binary_compressed", "50 points"):
+    io.read_pcd(p)
+  nan = pts.copy()
+  nan[3] = np.nan
+  p = tmp_path / "nan.pcd"
+  PointCloud.from_xyz_points(nan).save(p)
+  with _raises(ValueError, p, "finite", "row 3"):
+    io.read_pcd(p)
+  assert len(io.read_pcd(p, drop_nonfinite=True)) == len(pts) - 1
+  p = tmp_path / "empty.pcd"
+  PointCloud.from_xyz_points(np.zeros((0, 3), np.float32)).save(p)
+  with _raises(ValueError, p, "empty cloud"):
+    io.read_pcd(p)
+
+
+def test_xyz_plain_and_gz(tmp_path):
+  pts = _cloud()
+  text = "# comment\n" + "".join(f"{a:.17g} {b:.17g} {c:.17g} 7 8\n" for a, b, c in pts)
+  (tmp_path / "c.xyz").write_text(text)
+  with gzip.open(tmp_path / "c.txt.gz", "wt") as f:
+    f.write(text)
+  for name in ("c.xyz", "c.txt.gz"):
+    np.testing.assert_array_equal(io.read_xyz(tmp_path / name).points, pts)
+    np.testing.assert_array_equal(io.read_cloud(tmp_path / name).points, pts)
+
+
+def test_xyz_errors(tmp_path):
+  cases = {"two.xyz": ("1 2\n3 4\n", "3 columns"), "word.xyz": ("1 2 3\n1 x 3\n", "rows"),
+           "ragged.xyz": ("1 2 3\n1 2 3 4\n", "rows"), "empty.xyz": ("# nothing\n", "empty"),
+           "nan.xyz": ("1 2 3\nnan 1 1\n", "finite")}
+  for name, (text, fragment) in cases.items():
+    p = tmp_path / name
+    p.write_text(text)
+    with _raises(ValueError, p, fragment):
+      io.read_xyz(p)
+  p = tmp_path / "broken.xyz.gz"
+  p.write_bytes(gzip.compress(b"1 2 3\n" * 100)[:-20])
+  with _raises(ValueError, p):
+    io.read_xyz(p)
+
+
+def test_npy(tmp_path):
+  pts = _cloud()
+  np.save(tmp_path / "a.npy", pts)
+  np.save(tmp_path / "b.npy", np.concatenate([pts, pts], 1))
+  np.testing.assert_array_equal(io.read_npy(tmp_path / "a.npy").points, pts)
+  c = io.read_cloud(tmp_path / "b.npy")
+  np.testing.assert_array_equal(c.normals, pts)
+  np.save(tmp_path / "bad.npy", pts[:, :2])
+  with _raises(ValueError, tmp_path / "bad.npy", "(n, 3)", "(50, 2)"):
+    io.read_npy(tmp_path / "bad.npy")
+  np.save(tmp_path / "empty.npy", np.zeros((0, 3)))
+  with _raises(ValueError, tmp_path / "empty.npy", "empty cloud"):
+    io.read_npy(tmp_path / "empty.npy")
+
+
+def test_read_cloud_dispatch(tmp_path):
+  pts, faces = _tetra()
+  c = io.read_cloud(io.write_ply(tmp_path / "m.ply", pts, faces))
+  np.testing.assert_array_equal(c.faces, faces)
+  PointCloud.from_xyz_points(pts.astype(np.float32)).save(tmp_path / "m.pcd")
+  np.testing.assert_array_equal(io.read_cloud(tmp_path / "m.pcd").points, pts)
+  for bad in ("m.obj", "m.ply.gz"):
+    (tmp_path / bad).write_bytes(b"x")
+    with _raises(ValueError, tmp_path / bad, "suffix"):
+      io.read_cloud(tmp_path / bad)
+  with _raises(FileNotFoundError, tmp_path / "none.ply"):
+    io.read_cloud(tmp_path / "none.ply")
+
+
+# ---------------------------------------------------------------------------------------------
+# Poses
+
+
+def _rigid(seed=0):
+  t = np.eye(4)
+  t[:3, :3] = Rotation.random(random_state=seed).as_matrix()
+  t[:3, 3] = _rng(seed).normal(size=3)
+  return t
+
+
+def test_xf_round_trip(tmp_path):
+  t = _rigid()
+  np.testing.assert_array_equal(io.read_xf(io.write_xf(tmp_path / "a.xf", t)), t)
+
+
+def test_xf_errors(tmp_path):
+  t = _rigid()
+
+  def write(name, m):
+    p = tmp_path / name
+    p.write_text("\n".join(" ".join(str(v) for v in row) for row in m) + "\n")
+    return p
+
+  with _raises(ValueError, write("a.xf", t[:3]), "4x4", "3x4"):
+    io.read_xf(tmp_path / "a.xf")
+  with _raises(ValueError, write("b.xf", t[:, :3]), "4x4", "4x3"):
+    io.read_xf(tmp_path / "b.xf")
+  scaled = t.copy()
+  scaled[:3, :3] *= 1.01
+  with _raises(ValueError, write("c.xf", scaled), "orthonormal", "not a rigid"):
+    io.read_xf(tmp_path / "c.xf")
+  mirror = t.copy()
+  mirror[:3, 0] *= -1
+  with _raises(ValueError, write("d.xf", mirror), "det R = +1", "reflection"):
+    io.read_xf(tmp_path / "d.xf")
+  row = t.copy()
+  row[3, 0] = 0.5
+  with _raises(ValueError, write("e.xf", row), "last row"):
+    io.read_xf(tmp_path / "e.xf")
+  (tmp_path / "f.xf").write_text("1 0 0 0\n0 1 0 0\n0 0 one 0\n0 0 0 1\n")
+  with _raises(ValueError, tmp_path / "f.xf", "numbers"):
+    io.read_xf(tmp_path / "f.xf")
+  nan = t.copy()
+  nan[0, 3] = np.nan
+  with _raises(ValueError, write("g.xf", nan), "finite"):
+    io.read_xf(tmp_path / "g.xf")
+  with _raises(FileNotFoundError, tmp_path / "h.xf"):
+    io.read_xf(tmp_path / "h.xf")
+
+
+def test_quaternion_to_matrix_matches_scipy():
+  for seed in range(5):
+    q = Rotation.random(random_state=seed).as_quat()  # scalar last
+    np.testing.assert_allclose(io.quaternion_to_matrix(q),
+                               Rotation.from_quat(q).as_matrix(), atol=1e-12)
+
+
+def test_stanford_conf_uses_conjugate_rotation(tmp_path):
+  q = Rotation.random(random_state=3).as_quat()
+  p = tmp_path / "s.conf"
+  p.write_text("camera 0 0 0 0 0 0 1\n\nbmesh a.ply 0 0 0 0 0 0 1\n"
+               f"bmesh b.ply 1 2 3 {q[0]} {q[1]} {q[2]} {q[3]}\n")
+  poses = io.read_stanford_conf(p)
+  assert list(poses) == ["a.ply", "b.ply"]
+  np.testing.assert_array_equal(poses["a.ply"], np.eye(4))
+  np.testing.assert_allclose(poses["b.ply"][:3, :3], Rotation.from_quat(q).as_matrix().T,
+                             atol=1e-12)
+  np.testing.assert_array_equal(poses["b.ply"][:3, 3], [1, 2, 3])
+
+
+def test_stanford_conf_errors(tmp_path):
+  cases = {"norm": ("bmesh a.ply 0 0 0 0 0 0 2\n", "unit norm", "norm 2"),
+           "zero": ("bmesh a.ply 0 0 0 0 0 0 0\n", "unit norm", "norm 0"),
+           "nan": ("bmesh a.ply 0 0 0 0 nan 0 1\n", "quaternion"),
+           "short": ("bmesh a.ply 0 0 0 0 0 1\n", "line 1", "9 tokens", "8 tokens"),
+           "word": ("frobnicate a.ply 0 0 0 0 0 0 1\n", "line 1", "bmesh"),
+           "dup": ("bmesh a.ply 0 0 0 0 0 0 1\nbmesh a.ply 0 0 0 0 0 0 1\n", "line 2", "once"),
+           "empty": ("camera 0 0 0 0 0 0 1\n", "bmesh", "none")}
+  for name, (text, *fragments) in cases.items():
+    p = tmp_path / f"{name}.conf"
+    p.write_text(text)
+    with _raises(ValueError, p, *fragments):
+      io.read_stanford_conf(p)
+
+
+def test_3dmatch_log(tmp_path):
+  ts = [_rigid(s) for s in range(3)]
+  text = "".join(f"{i}\t{i + 1}\t60\n" + "\n".join(" ".join(f"{v:.17g}" for v in row)
+                                                  for row in t) + "\n"
+                 for i, t in enumerate(ts))
+  p = tmp_path / "gt.log"
+  p.write_text(text)
+  entries = io.read_3dmatch_log(p)
+  assert [(e.i, e.j, e.n) for e in entries] == [(0, 1, 60), (1, 2, 60), (2, 3, 60)]
+  for e, t in zip(entries, ts):
+    np.testing.assert_array_equal(e.transform, t)
+  lines = text.splitlines()
+  bad = {"trunc": ("\n".join(lines[:-1]), "multiple of 5"),
+         "head": ("\n".join(["0 1"] + lines[1:]), "record 0", "three integers"),
+         "wide": ("\n".join(lines[:1] + [r + " 0" for r in lines[1:5]] + lines[5:]),
+                  "record 0", "4x4", "4x5"),
+         "rigid": ("\n".join(lines[:1] + ["2 0 0 0"] + lines[2:]), "record 0", "orthonormal")}
+  for name, (content, *fragments) in bad.items():
+    q = tmp_path / f"{name}.log"
+    q.write_text(content + "\n")
+    with _raises(ValueError, q, *fragments):
+      io.read_3dmatch_log(q)

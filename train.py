@@ -1,0 +1,40 @@
+"""Train LRF-Net.
+
+    python train.py --config default --workdir runs/default            # the paper (needs LRF_DATA)
+    python train.py --config smoke --workdir /tmp/smoke epochs=2       # CPU, about a minute
+    python train.py --config default --workdir runs/x batch_size=256 noise_mr=0.1,0.3
+
+Overrides are `key=value` fields of `lrf_jax.config.TrainConfig`. A run restarted with the same
+--workdir resumes from its latest checkpoint. This file is intentionally kept short; the logic
+lives in lrf_jax/train_lib.py.
+"""
+
+import argparse
+
+from lrf_jax import config as config_lib
+from lrf_jax import train_lib
+
+
+def main(argv=None) -> None:
+  ap = argparse.ArgumentParser(description="Train LRF-Net (weakly supervised, Chamfer loss).")
+  ap.add_argument("--config", default="default", help="preset name or path (.py / .json)")
+  ap.add_argument("--workdir", default=None, help="output folder (default: runs/<config name>)")
+  ap.add_argument("--no-progress", action="store_true", help="no progress bar")
+  ap.add_argument("--coordinator", default=None,
+                  help="multi-host: coordinator address host:port (jax.distributed)")
+  ap.add_argument("--num-processes", type=int, default=None)
+  ap.add_argument("--process-id", type=int, default=None)
+  ap.add_argument("overrides", nargs="*", help="key=value config overrides")
+  args = ap.parse_args(argv)
+  if args.coordinator:
+    import jax
+    jax.distributed.initialize(args.coordinator, args.num_processes, args.process_id)
+  config = config_lib.replace(config_lib.load_config(args.config),
+                              **config_lib.parse_overrides(args.overrides))
+  workdir = args.workdir or f"runs/{config.name}"
+  final = train_lib.train_and_evaluate(config, workdir, progress=not args.no_progress)
+  print({k: v for k, v in final.items() if k != "val_per_pair"})
+
+
+if __name__ == "__main__":
+  main()

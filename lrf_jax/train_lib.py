@@ -354,7 +354,7 @@ def train_and_evaluate(config: TrainConfig, workdir: str | Path, *,
             f"non-finite loss {m['loss']} at step {done} (epoch {epoch}); metrics {m}. "
             "Lower the learning rate or check the data for degenerate patches.")
       now = time.perf_counter()
-      m.update(step=done, epoch=epoch + in_epoch / config.steps_per_epoch,
+      m.update(step=done, epoch=done / config.steps_per_epoch,
                pairs_per_s=pairs_since / max(now - t_last, 1e-9))
       t_last, pairs_since = now, 0
       if end_of_epoch and val is not None:

@@ -1,0 +1,13 @@
+"""The paper's evaluation protocols: repeatability experiments, reports and figures."""
+
+from lrf_jax.evaluation.experiments import (DATASETS, EXPERIMENTS, EvalOptions, available,
+                                            run_experiment)
+from lrf_jax.evaluation.report import markdown_report, plot_figures, summarise, write_results
+from lrf_jax.evaluation.repeatability import (MethodRun, PatchCache, correspondences,
+                                              evaluate_pair)
+
+__all__ = [
+    "DATASETS", "EXPERIMENTS", "EvalOptions", "MethodRun", "PatchCache", "available",
+    "correspondences", "evaluate_pair", "markdown_report", "plot_figures", "run_experiment",
+    "summarise", "write_results",
+]

@@ -1,0 +1,147 @@
+"""The paper's repeatability experiments (sections 3.2.1 and 3.3) over datasets and nuisances.
+
+Each experiment yields records (see `repeatability.evaluate_pair`); `report.py` turns them into
+tables and figures. Datasets are looked up by name in `DATASETS`; a dataset whose files are
+absent is skipped with a message, never silently.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import Any, Callable, Iterable, Iterator
+
+from lrf_jax import datasets
+from lrf_jax.datasets import Pair
+from lrf_jax.evaluation.repeatability import MethodRun, PatchCache, evaluate_pair
+
+NOISE_LEVELS = (0.1, 0.2, 0.3, 0.4, 0.5)
+DECIMATIONS = (1 / 2, 1 / 4, 1 / 8, 1 / 16)
+RADII_MR = (5.0, 7.5, 10.0, 12.5, 15.0, 20.0, 25.0)
+ROTATIONS_DEG = (30.0, 60.0, 90.0, 120.0)
+EXPERIMENTS = ("repeatability", "noise", "decimation", "radius", "rotation")
+
+
+@dataclasses.dataclass(frozen=True)
+class EvalOptions:
+  """Knobs shared by every experiment.
+
+  Attributes:
+    data_root: where the data lives (None: LRF_DATA, then data/).
+    n_keypoints: keypoints per pair (1000 in the paper).
+    seed: keypoint, subsample and nuisance seed.
+    radius_mr: support radius in mr (15).
+    max_pairs: at most this many pairs per dataset and setting (None: all), for quick runs.
+  """
+
+  data_root: str | None = None
+  n_keypoints: int = 1000
+  seed: int = 0
+  radius_mr: float = 15.0
+  max_pairs: int | None = None
+
+
+def _br(root, noise=0.3, seed=0):
+  return datasets.load_br(root, noise, seed=seed)
+
+
+# name -> (loader(root, seed) for the "repeatability" experiment, the setting it stands for)
+DATASETS: dict[str, tuple[Callable[..., list[Pair]], dict[str, Any]]] = {
+    "BR@0.1": (lambda root, seed: datasets.load_br(root, 0.1), {"noise_mr": 0.1}),
+    "BR@0.3": (lambda root, seed: datasets.load_br(root, 0.3), {"noise_mr": 0.3}),
+    "BR@0.5": (lambda root, seed: datasets.load_br(root, 0.5), {"noise_mr": 0.5}),
+    "UWA3M": (lambda root, seed: datasets.load_uwa3m(root, kind="consecutive"), {}),
+    "UWA3M-model": (lambda root, seed: datasets.load_uwa3m(root, kind="view_to_model"),
+                    {"model_stand_in": "UWAOR model"}),
+    "UWAOR": (lambda root, seed: datasets.load_uwaor(root, scene="rs1"), {"scene": "rs1"}),
+    "bunny": (lambda root, seed: datasets.load_bunny_pairs(root), {}),
+    "demo": (lambda root, seed: datasets.load_demo(4, seed=seed, noise_mr=0.3, partial=True),
+             {"noise_mr": 0.3, "synthetic": True}),
+}
+# Noise-free versions for the nuisance sweeps (noise, decimation, radius, rotation).
+CLEAN = {
+    "BR": lambda root, seed: datasets.load_br(root, 0.0),
+    "UWA3M": lambda root, seed: datasets.load_uwa3m(root, kind="consecutive"),
+    "UWAOR": lambda root, seed: datasets.load_uwaor(root, scene="rs1"),
+    "demo": lambda root, seed: datasets.load_demo(4, seed=seed, noise_mr=0.0, partial=True),
+}
+
+
+FOLDERS = {"BR": "bologna_retrieval", "UWA3M": "uwa_3d_modeling_views",
+           "UWAOR": "uwa_object_recognition", "bunny": "stanford_bunny_scans"}
+
+
+def available(names: Iterable[str], root: str | None, table: dict) -> tuple[list[str], list[str]]:
+  """Split dataset names into those whose data folder is found and messages for the others."""
+  ok, missing = [], []
+  for name in names:
+    if name not in table:
+      raise ValueError(f"--datasets: unknown dataset {name!r}; expected some of {sorted(table)}")
+    base = name.split("@")[0].split("-")[0]
+    if base == "demo":
+      ok.append(name)
+      continue
+    try:
+      datasets.find_data_root(root, FOLDERS[base])
+      ok.append(name)
+    except datasets.DataNotFoundError as e:
+      missing.append(f"{name}: skipped, data not found ({str(e).splitlines()[0]})")
+  return ok, missing
+
+
+def _limit(pairs: list[Pair], opts: EvalOptions) -> list[Pair]:
+  return pairs if opts.max_pairs is None else pairs[:opts.max_pairs]
+
+
+def run_experiment(name: str, dataset_names: list[str], methods: list[MethodRun],
+                   opts: EvalOptions, cache: PatchCache) -> Iterator[dict[str, Any]]:
+  """Yield the records of one experiment over the given datasets (see module doc)."""
+  common = dict(n_keypoints=opts.n_keypoints, seed=opts.seed, cache=cache)
+  if name == "repeatability":
+    for ds in dataset_names:
+      loader, setting = DATASETS[ds]
+      for pair in _limit(loader(opts.data_root, opts.seed), opts):
+        yield from _tagged(evaluate_pair(pair, methods, experiment=name, setting=setting,
+                                         radius_mr=opts.radius_mr, **common), ds)
+    return
+  clean = sorted({_clean_name(ds) for ds in dataset_names} - {None})
+  for ds in clean:
+    pairs = _limit(CLEAN[ds](opts.data_root, opts.seed), opts)
+    for pair in pairs:
+      if name == "noise":
+        for level in NOISE_LEVELS:
+          noisy = (datasets.load_br_pair(pair.meta["scene"], level, opts.data_root,
+                                         seed=opts.seed)
+                   if ds == "BR" else datasets.with_noise(pair, level, opts.seed))
+          yield from _tagged(evaluate_pair(noisy, methods, experiment=name,
+                                           setting={"noise_mr": level},
+                                           radius_mr=opts.radius_mr, **common), ds)
+      elif name == "decimation":
+        for frac in DECIMATIONS:
+          dec = datasets.with_decimation(pair, frac, opts.seed)
+          yield from _tagged(evaluate_pair(dec, methods, experiment=name,
+                                           setting={"decimation": frac}, scene_first=True,
+                                           radius_mr=opts.radius_mr, **common), ds)
+      elif name == "radius":
+        for r in RADII_MR:
+          yield from _tagged(evaluate_pair(pair, methods, experiment=name,
+                                           setting={"radius_mr": r}, radius_mr=r, **common), ds)
+      elif name == "rotation":
+        for angle in ROTATIONS_DEG:
+          rot = datasets.with_rotation(pair, angle, "z")
+          yield from _tagged(evaluate_pair(rot, methods, experiment=name,
+                                           setting={"rotation_deg": angle},
+                                           radius_mr=opts.radius_mr, **common), ds)
+      else:
+        raise ValueError(f"--experiments: unknown experiment {name!r}; expected some of "
+                         f"{EXPERIMENTS}")
+
+
+def _clean_name(ds: str) -> str | None:
+  base = ds.split("@")[0].split("-")[0]
+  return base if base in CLEAN else None
+
+
+def _tagged(records: list[dict], ds: str) -> list[dict]:
+  for r in records:
+    r["dataset"] = ds if r["experiment"] == "repeatability" else _clean_name(ds) or ds
+  return records

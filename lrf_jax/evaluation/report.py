@@ -1,0 +1,194 @@
+"""Tables (Markdown, JSON) and figures (PNG) from repeatability records."""
+
+from __future__ import annotations
+
+import json
+from collections import defaultdict
+from pathlib import Path
+from typing import Any, Iterable
+
+import numpy as np
+
+# What the paper states in its text and tables (its figures are missing from our copy).
+PAPER_STATED = {
+    "repeatability": "LRF-Net: best on UWA3M (MeanCos 0.686, stated in the text) and UWAOR; "
+                     "decent on BR together with Tombari (SHOT), Petrelli and Yang (TOLDI).",
+    "noise": "LRF-Net and Tombari (SHOT) comparably stable on BR; LRF-Net best at every level on "
+             "UWA3M and UWAOR (figure only).",
+    "decimation": "LRF-Net best at 1/2, 1/4 and 1/8 on all datasets (figure only).",
+    "radius": "LRF-Net stable on BR; best on UWA3M/UWAOR above 7.5 mr (figure only).",
+    "rotation": "LRF-Net, Normal+Max and Normal+Sum2 stable under 30-120 deg about z (figure).",
+}
+PAPER_ABLATION = {  # MeanCos, z-axis x x-axis (tables analyse_BR / _UWA3M / _UWAOR)
+    "BR": {"Normal": {"Sum1": 0.999, "Sum2": 0.999, "DR": 0.775, "Max": 0.720},
+           "DR": {"Sum1": 0.737, "Sum2": 0.778, "DR": 0.582, "Max": 0.471}},
+    "UWA3M": {"Normal": {"Sum1": 0.690, "Sum2": 0.429, "DR": 0.574, "Max": 0.412},
+              "DR": {"Sum1": 0.390, "Sum2": 0.495, "DR": 0.323, "Max": 0.287}},
+    "UWAOR": {"Normal": {"Sum1": 0.624, "Sum2": 0.432, "DR": 0.528, "Max": 0.380},
+              "DR": {"Sum1": 0.408, "Sum2": 0.490, "DR": 0.467, "Max": 0.366}},
+}
+
+
+def _setting_key(setting: dict[str, Any]) -> str:
+  keys = [k for k in setting if k not in ("synthetic", "model_stand_in", "scene")]
+  return ", ".join(f"{k}={setting[k]:g}" if isinstance(setting[k], float) else
+                   f"{k}={setting[k]}" for k in keys) or "-"
+
+
+def summarise(records: Iterable[dict[str, Any]]) -> dict[tuple, dict[str, dict[str, float]]]:
+  """{(experiment, dataset, setting): {method: {"meancos", "frac_above_0.97", "n_pairs",
+  "n_valid_frac"}}}: per-pair values averaged per dataset (the paper's averaging)."""
+  groups: dict[tuple, dict[str, list[dict]]] = defaultdict(lambda: defaultdict(list))
+  for r in records:
+    groups[(r["experiment"], r["dataset"], _setting_key(r["setting"]))][r["method"]].append(r)
+  out: dict[tuple, dict[str, dict[str, float]]] = {}
+  for key, by_method in groups.items():
+    out[key] = {}
+    for method, rs in by_method.items():
+      vals = [r["meancos"] for r in rs if r["meancos"] is not None]
+      if not vals:
+        out[key][method] = {"meancos": None, "n_pairs": len(rs)}
+        continue
+      ok = [r for r in rs if r["meancos"] is not None]
+      out[key][method] = {
+          "meancos": float(np.mean(vals)),
+          "frac_above_0.97": float(np.mean([r["frac_above_0.97"] for r in ok])),
+          "n_pairs": len(ok),
+          "n_valid_frac": float(np.sum([r["n_valid"] for r in ok]) /
+                                max(1, np.sum([r["n_keypoints"] for r in ok]))),
+      }
+  return out
+
+
+def markdown_report(records: list[dict[str, Any]], *, title: str = "lrf_jax evaluation",
+                    notes: list[str] | None = None) -> str:
+  """A Markdown report: one table per experiment (rows dataset x setting, columns methods,
+  MeanCos with the fraction above 0.97 in parentheses), the paper's stated results beside it."""
+  summary = summarise(records)
+  methods = list(dict.fromkeys(r["method"] for r in records))
+  lines = [f"# {title}", ""]
+  for n in notes or []:
+    lines.append(f"- {n}")
+  if notes:
+    lines.append("")
+  for exp in dict.fromkeys(k[0] for k in summary):
+    lines += [f"## {exp}", ""]
+    if exp in PAPER_STATED:
+      lines += [f"Paper (stated): {PAPER_STATED[exp]}", ""]
+    lines.append("| dataset | setting | pairs | " + " | ".join(methods) + " |")
+    lines.append("|---|---|---:|" + "---:|" * len(methods))
+    for (e, ds, setting), by_method in summary.items():
+      if e != exp:
+        continue
+      best = max((v["meancos"] for v in by_method.values() if v.get("meancos") is not None),
+                 default=None)
+      cells = []
+      for m in methods:
+        v = by_method.get(m)
+        if v is None:
+          cells.append("")
+        elif v["meancos"] is None:
+          cells.append("n/a")
+        else:
+          txt = f"{v['meancos']:.3f} ({v['frac_above_0.97']:.2f})"
+          cells.append(f"**{txt}**" if v["meancos"] == best else txt)
+      n_pairs = max(v["n_pairs"] for v in by_method.values())
+      lines.append(f"| {ds} | {setting} | {n_pairs} | " + " | ".join(cells) + " |")
+    lines.append("")
+  lines += ["MeanCos = (cos x + cos z) / 2 averaged over keypoints per pair, then over pairs; "
+            "invalid frames count as 0; in parentheses the fraction of keypoints above 0.97. "
+            "Bold: best in the row.", ""]
+  return "\n".join(lines)
+
+
+def write_results(records: list[dict[str, Any]], out: Path, *, notes: list[str] | None = None,
+                  meta: dict[str, Any] | None = None) -> None:
+  """results.json ({"records": [...], "meta": ...}), report.md and the PNG figures."""
+  out.mkdir(parents=True, exist_ok=True)
+  clean = [{k: v for k, v in r.items() if not k.startswith("_")} for r in records]
+  (out / "results.json").write_text(json.dumps({"records": clean, "meta": meta or {}},
+                                               indent=1))
+  (out / "report.md").write_text(markdown_report(clean, notes=notes))
+  plot_figures(clean, out)
+
+
+def plot_figures(records: list[dict[str, Any]], out: Path) -> list[Path]:
+  """Bars per dataset (repeatability) and curves per dataset for the nuisance sweeps."""
+  import matplotlib
+  matplotlib.use("Agg")
+  import matplotlib.pyplot as plt
+
+  summary = summarise(records)
+  methods = list(dict.fromkeys(r["method"] for r in records))
+  written = []
+  rep = {k: v for k, v in summary.items() if k[0] == "repeatability"}
+  if rep:
+    keys = list(rep)
+    fig, ax = plt.subplots(figsize=(max(6, 1.4 * len(keys)), 4))
+    width = 0.8 / max(1, len(methods))
+    for i, m in enumerate(methods):
+      vals = [rep[k].get(m, {}).get("meancos") or 0.0 for k in keys]
+      ax.bar(np.arange(len(keys)) + i * width, vals, width, label=m)
+    ax.set_xticks(np.arange(len(keys)) + 0.4 - width / 2, [k[1] for k in keys], rotation=20)
+    ax.set(ylabel="MeanCos", ylim=(0, 1), title="Repeatability (r = 15 mr)")
+    ax.legend(fontsize=7, ncol=2)
+    fig.tight_layout()
+    path = out / "repeatability.png"
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+    written.append(path)
+  for exp, key in (("noise", "noise_mr"), ("decimation", "decimation"), ("radius", "radius_mr"),
+                   ("rotation", "rotation_deg")):
+    rows = [r for r in records if r["experiment"] == exp and r["meancos"] is not None]
+    if not rows:
+      continue
+    dsets = list(dict.fromkeys(r["dataset"] for r in rows))
+    fig, axes = plt.subplots(1, len(dsets), figsize=(4.2 * len(dsets), 3.6), squeeze=False)
+    for ax, ds in zip(axes[0], dsets):
+      for m in methods:
+        pts = defaultdict(list)
+        for r in rows:
+          if r["dataset"] == ds and r["method"] == m:
+            pts[r["setting"][key]].append(r["meancos"])
+        if pts:
+          xs = sorted(pts)
+          ax.plot(xs, [np.mean(pts[x]) for x in xs], marker="o", label=m)
+      if exp == "decimation":
+        ax.set_xscale("log", base=2)
+      ax.set(title=f"{ds}", xlabel=key, ylabel="MeanCos", ylim=(0, 1))
+    axes[0][0].legend(fontsize=7)
+    fig.suptitle(f"Robustness: {exp}")
+    fig.tight_layout()
+    path = out / f"{exp}.png"
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+    written.append(path)
+  return written
+
+
+def plot_weights(patches_xyz: list[np.ndarray], weights: list[np.ndarray], frames: list[np.ndarray],
+                 out: Path) -> Path:
+  """Sample patches (in their LRF) with points coloured by learned weight and the x axis drawn."""
+  import matplotlib
+  matplotlib.use("Agg")
+  import matplotlib.pyplot as plt
+
+  n = len(patches_xyz)
+  fig, axes = plt.subplots(1, n, figsize=(3.4 * n, 3.4), squeeze=False)
+  for ax, xyz, w, f in zip(axes[0], patches_xyz, weights, frames):
+    local = xyz @ f.T  # coordinates in the LRF: x right, y up (seen from +z)
+    lim = np.abs(w).max() or 1.0
+    sc = ax.scatter(local[:, 0], local[:, 1], c=w, cmap="coolwarm", vmin=-lim, vmax=lim, s=6)
+    r = np.linalg.norm(xyz, axis=1).max()
+    ax.arrow(0, 0, 0.6 * r, 0, width=0.01 * r, color="k")
+    ax.text(0.65 * r, 0, "x", fontsize=9)
+    ax.set_aspect("equal")
+    ax.set_xticks([])
+    ax.set_yticks([])
+    fig.colorbar(sc, ax=ax, shrink=0.7)
+  fig.suptitle("LRF-Net weights per neighbour (seen from +z, x axis drawn)")
+  fig.tight_layout()
+  path = out / "weights.png"
+  fig.savefig(path, dpi=120)
+  plt.close(fig)
+  return path

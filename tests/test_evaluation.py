@@ -1,0 +1,90 @@
+"""The repeatability protocol, MeanCos, and the report/figures."""
+
+import json
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+import lrf_jax
+from lrf_jax import datasets, evaluation
+from lrf_jax.evaluation import MethodRun, PatchCache, evaluate_pair
+from tests.lrf_testing import random_rotation
+
+
+def test_meancos_identical_frames_is_one_and_known_angle_gives_its_cosine():
+  frames = np.stack([random_rotation(i) for i in range(5)])
+  np.testing.assert_allclose(lrf_jax.meancos(frames, frames, np.eye(3)), 1.0, atol=1e-6)
+  theta = 0.7
+  rz = Rotation.from_rotvec([0, 0, theta]).as_matrix()  # rotate each frame about its own z
+  turned = np.einsum("ij,njk->nik", rz, frames)
+  np.testing.assert_allclose(lrf_jax.meancos(frames, turned, np.eye(3)),
+                             (np.cos(theta) + 1) / 2, atol=1e-6)
+  rot = random_rotation(9)  # a scene frame under the ground truth maps back exactly
+  np.testing.assert_allclose(lrf_jax.meancos(frames, frames @ rot.T, rot), 1.0, atol=1e-6)
+  valid = np.array([True, False, True, True, True])
+  assert float(lrf_jax.meancos(frames, frames, np.eye(3), valid)[1]) == 0.0
+  with pytest.raises(ValueError, match="rotation"):
+    lrf_jax.meancos(frames, frames, np.eye(2))
+
+
+@pytest.fixture(scope="module")
+def demo_pair():
+  return datasets.make_demo_pair(0, seed=0, partial=False)
+
+
+def test_protocol_recovers_a_known_transform(demo_pair):
+  """A full, noise-free rigid copy: every neighbourhood is the same set, so MeanCos is 1; the
+  transposed (wrong-direction) ground truth is caught."""
+  runs = [MethodRun("toldi", "toldi"), MethodRun("uniform", "uniform", k=None)]
+  recs = evaluate_pair(demo_pair, runs, experiment="t", n_keypoints=200)
+  for r in recs:
+    assert r["meancos"] > 0.999 and r["n_valid"] >= 199 and r["n_keypoints"] == 200
+  wrong = demo_pair.replace(transform=np.linalg.inv(demo_pair.transform))
+  recs = evaluate_pair(wrong, runs[:1], experiment="t", n_keypoints=200)
+  assert recs[0]["meancos"] < 0.6
+
+
+def test_partial_scan_keypoints_have_counterparts_within_half_mr():
+  pair = datasets.make_demo_pair(1, seed=0, partial=True)
+  mi, si = evaluation.correspondences(pair, 300, 0)
+  mapped = datasets.transform_points(pair.transform, pair.model_points[mi])
+  assert np.linalg.norm(mapped - pair.scene_points[si], axis=1).max() <= 0.5 * pair.mr
+  dec = datasets.with_decimation(datasets.make_demo_pair(0, seed=0, partial=False), 1 / 8)
+  mi, si = evaluation.correspondences(dec, 300, 0, scene_first=True)
+  assert len(si) == len(np.unique(si)) == 300
+
+
+def test_patch_cache_shares_searches(demo_pair):
+  cache = PatchCache()
+  runs = [MethodRun("lrf_net", "lrf_net"), MethodRun("uniform", "uniform")]  # both K = 256
+  evaluate_pair(demo_pair, runs, experiment="t", n_keypoints=50, cache=cache)
+  assert cache.misses == 2 and cache.hits == 2
+
+
+def test_report_and_figures_render(tmp_path, demo_pair):
+  runs = [MethodRun("toldi", "toldi"), MethodRun("uniform", "uniform")]
+  records = evaluate_pair(demo_pair, runs, experiment="repeatability", n_keypoints=50)
+  for level in (0.1, 0.3):
+    noisy = datasets.with_noise(demo_pair, level, 0)
+    records += evaluate_pair(noisy, runs, experiment="noise", setting={"noise_mr": level},
+                             n_keypoints=50)
+  evaluation.write_results(records, tmp_path, notes=["test run"])
+  data = json.loads((tmp_path / "results.json").read_text())
+  keys = {"experiment", "dataset", "pair", "method", "setting", "meancos", "frac_above_0.97",
+          "n_keypoints", "n_valid"}
+  assert all(keys <= set(r) for r in data["records"]) and len(data["records"]) == 6
+  md = (tmp_path / "report.md").read_text()
+  assert "| demo |" in md and "## noise" in md and "toldi" in md
+  for png in ("repeatability.png", "noise.png"):
+    assert (tmp_path / png).stat().st_size > 5000
+
+
+def test_mesh_method_on_cloud_is_reported_na(demo_pair):
+  needs_mesh = [n for n, s in lrf_jax.METHODS.items() if s.needs_mesh]
+  if not needs_mesh:
+    pytest.skip("no mesh-only method registered")
+  cloud = demo_pair.replace(scene_faces=None)
+  rec = evaluate_pair(cloud, [MethodRun(needs_mesh[0], needs_mesh[0])], experiment="t",
+                      n_keypoints=20)[0]
+  assert rec["meancos"] is None and rec["note"].startswith("n/a")

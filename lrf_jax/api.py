@@ -62,6 +62,7 @@ def compute_frames(
     faces: np.ndarray | None = None,
     normals: np.ndarray | None = None,
     chunk_size: int = 4096,
+    progress: bool | None = None,
     **options: Any,
 ) -> tuple[jax.Array, jax.Array]:
   """Local reference frames of `keypoints` of a cloud, by any registered method.
@@ -82,7 +83,9 @@ def compute_frames(
     seed: seed of the neighbour subsample when a ball holds more than K points.
     faces: (f, 3) triangle indices, for mesh methods.
     normals: (n, 3) per-point normals, for methods that use them.
-    chunk_size: keypoints per jitted call.
+    chunk_size: keypoints per jitted call (bounds memory: about chunk_size x K x 16 bytes of
+      patches at a time).
+    progress: show a progress bar over chunks (default: when there are more than 4 chunks).
     **options: method options (e.g. `x_mode`, `signed`).
 
   Returns:
@@ -116,7 +119,11 @@ def compute_frames(
   index = SearchIndex(points, seed)
   chunk = min(int(chunk_size), m)
   frames_out, valid_out = [], []
-  for start in range(0, m, chunk):
+  starts = range(0, m, chunk)
+  if progress or (progress is None and len(starts) > 4):
+    from tqdm.auto import tqdm
+    starts = tqdm(starts, desc=f"{method} frames", unit="chunk", dynamic_ncols=True)
+  for start in starts:
     kp = keypoints[start:start + chunk]
     n_real = kp.shape[0]
     if n_real < chunk:  # pad to the compiled shape with a repeat of the first keypoint

@@ -38,7 +38,7 @@ from lrf_jax.config import TrainConfig
 from lrf_jax.frames.lrf_net import lrf_net_frames
 from lrf_jax.losses import siamese_loss
 from lrf_jax.model import init_params, save_params
-from lrf_jax.neighborhoods import Patches, SearchIndex, build_patches
+from lrf_jax.neighborhoods import Patches, build_patches
 
 
 # ----------------------------------------------------------------------------- data
@@ -103,52 +103,62 @@ class Batch(NamedTuple):
 
 
 class BatchMaker:
-  """Builds the batch of any (epoch, step) from the seed alone, reusing one search index per
-  (cloud, side, epoch)."""
+  """Builds the batch of any (epoch, step) from the seed alone.
+
+  The patches of a whole epoch are built at once, cloud by cloud and side by side (one radius
+  search per cloud and side instead of one per batch), and batches gather rows from them.
+  Subsample seeds depend on (seed, epoch, side), so both sides of a pair sample their 256 points
+  independently and every epoch sees new subsamples. With `config.noise_mr`, each cloud's scene
+  side gets, per epoch, Gaussian noise of a level drawn from the list (seeded by (seed, epoch,
+  cloud)).
+  """
 
   def __init__(self, clouds: TrainingClouds, config: TrainConfig):
     self.clouds = clouds
     self.config = config
-    self._index: dict[tuple[int, int, int], SearchIndex] = {}
+    self._epoch: int | None = None
+    self._patches: tuple[Patches, Patches] | None = None
 
   def epoch_order(self, epoch: int) -> np.ndarray:
     rng = np.random.default_rng(_mix(self.config.seed, 2, epoch))
     return rng.permutation(len(self.clouds.keypoints))
 
-  def _search_index(self, cloud: int, side: int, epoch: int) -> SearchIndex:
-    key = (cloud, side, epoch)
-    if key not in self._index:
-      if len(self._index) > 4 * len(self.clouds.models):  # keep at most ~2 epochs of indices
-        self._index.clear()
-      pts = self.clouds.models[cloud] if side == 0 else self.clouds.scenes[cloud]
-      self._index[key] = SearchIndex(pts, _mix(self.config.seed, 3, epoch, side))
-    return self._index[key]
+  def noise_level(self, epoch: int, cloud: int) -> float:
+    """The noise (in mr) added to `cloud`'s scene side during `epoch` (0 without augmentation)."""
+    if not self.config.noise_mr:
+      return 0.0
+    rng = np.random.default_rng(_mix(self.config.seed, 4, epoch, cloud))
+    return float(rng.choice(np.asarray(self.config.noise_mr)))
 
-  def batch(self, epoch: int, step_in_epoch: int) -> Batch:
-    cfg = self.config
-    order = self.epoch_order(epoch)
-    rows = self.clouds.keypoints[order[step_in_epoch * cfg.batch_size:
-                                       (step_in_epoch + 1) * cfg.batch_size]]
+  def epoch_patches(self, epoch: int) -> tuple[Patches, Patches]:
+    """(model, scene) patches of every training keypoint for `epoch`, rows as `keypoints`."""
+    if self._epoch == epoch:
+      return self._patches
+    cfg, kp = self.config, self.clouds.keypoints
     sides = []
     for side in (0, 1):
-      parts = []
-      for c in np.unique(rows[:, 0]):
-        sel = rows[rows[:, 0] == c, 1]
-        index = self._search_index(int(c), side, epoch)
-        pts = index.points
-        if side == 1 and cfg.noise_mr:
-          rng = np.random.default_rng(_mix(cfg.seed, 4, epoch, step_in_epoch, int(c)))
-          sigma = rng.choice(np.asarray(cfg.noise_mr)) * self.clouds.mr[c]
-          pts = pts + rng.normal(scale=sigma, size=pts.shape)
-          index = None  # the noisy copy needs its own search structure
-        parts.append(build_patches(pts, sel, float(self.clouds.radii[c]), cfg.patch_k,
-                                   seed=_mix(cfg.seed, 3, epoch, side), index=index,
-                                   validate=False))
-      sides.append(Patches(*[np.concatenate(f) for f in zip(*parts)]))
-    # restore the shuffled row order (parts were grouped by cloud)
-    perm = np.concatenate([np.flatnonzero(rows[:, 0] == c) for c in np.unique(rows[:, 0])])
-    inv = np.argsort(perm)
-    return Batch(*(jax.tree.map(lambda a: a[inv], s) for s in sides))
+      seed = _mix(cfg.seed, 3, epoch, side)
+      parts, rows = [], []
+      for c in np.unique(kp[:, 0]):
+        sel = np.flatnonzero(kp[:, 0] == c)
+        pts = self.clouds.models[c] if side == 0 else self.clouds.scenes[c]
+        level = self.noise_level(epoch, int(c)) if side == 1 else 0.0
+        if level > 0:
+          rng = np.random.default_rng(_mix(cfg.seed, 5, epoch, int(c)))
+          pts = pts + rng.normal(scale=level * self.clouds.mr[c], size=pts.shape)
+        parts.append(build_patches(pts, kp[sel, 1], float(self.clouds.radii[c]), cfg.patch_k,
+                                   seed=seed, validate=False))
+        rows.append(sel)
+      inv = np.argsort(np.concatenate(rows))
+      sides.append(Patches(*[np.concatenate(f)[inv] for f in zip(*parts)]))
+    self._epoch, self._patches = epoch, (sides[0], sides[1])
+    return self._patches
+
+  def batch(self, epoch: int, step_in_epoch: int) -> Batch:
+    bs = self.config.batch_size
+    rows = self.epoch_order(epoch)[step_in_epoch * bs:(step_in_epoch + 1) * bs]
+    model, scene = self.epoch_patches(epoch)
+    return Batch(*(jax.tree.map(lambda a: a[rows], p) for p in (model, scene)))
 
 
 # ----------------------------------------------------------------------------- state and step

@@ -216,3 +216,118 @@ def identity_where_invalid(frames: Array, valid: Array) -> Array:
   """
   eye = jnp.eye(3, dtype=frames.dtype)
   return jnp.where(valid[..., None, None], frames, eye)
+
+
+# ------------------------------------------------------------------------------------------------
+# Helpers shared by the hand-crafted LRFs (frames/mian.py, shot.py, rops.py, board.py, flare.py,
+# ps.py, gframes.py). All are for one keypoint; vmap them over keypoints.
+# ------------------------------------------------------------------------------------------------
+
+
+def finite_or_zero(x: Array) -> Array:
+  """`x` with non-finite entries replaced by 0 (safe to feed to arithmetic under jax_debug_nans).
+
+  Args:
+    x: any array.
+
+  Returns:
+    Same shape and dtype; 0 where `x` was NaN or ±inf.
+  """
+  return jnp.where(jnp.isfinite(x), x, jnp.zeros((), x.dtype))
+
+
+def all_finite_rows(v: Array) -> Array:
+  """Whether every component of each row is finite: (..., 3) -> (...) bool."""
+  return jnp.all(jnp.isfinite(v), axis=-1)
+
+
+def centered_covariance(offsets: Array, weights: Array) -> tuple[Array, Array]:
+  """Weighted covariance of points about their weighted centroid (a least-squares plane fit).
+
+  Args:
+    offsets: (K, 3) points (usually relative to the keypoint).
+    weights: (K,) non-negative weights; 0 for padding (use the mask as 0/1 weights).
+
+  Returns:
+    (cov, mean): cov (3, 3) = Σ w_i (q_i - m)(q_i - m)ᵀ / Σ w_i; mean (3,) = m (zeros when all
+    weights are 0).
+  """
+  wsum = jnp.sum(weights)
+  mean = (weights @ offsets) / jnp.where(wsum > 0, wsum, 1.0)
+  return weighted_covariance(offsets, weights, center=mean), mean
+
+
+def orient_like(axis: Array, reference: Array) -> Array:
+  """Flip `axis` so that `axis · reference >= 0` (ties and a zero reference keep the sign).
+
+  The rule of Mian et al. (2010) for the z-axis, and of PCL's `flipNormalTowardsNormalsMean`
+  (FLARE) and BOARD's `normalDisambiguation` with `reference` = the mean of the neighbours' normals.
+
+  Args:
+    axis: (3,) unit vector.
+    reference: (3,) vector (need not be unit).
+
+  Returns:
+    (3,) ±axis.
+  """
+  return jnp.where(jnp.dot(axis, reference) >= 0, axis, -axis)
+
+
+def majority_balance(axis: Array, offsets: Array, mask: Array) -> Array:
+  """The count-based sign vote of Bro et al. (2008) as used by SHOT: #{dp >= 0} - #{dp < 0}.
+
+  Args:
+    axis: (3,) unit vector.
+    offsets: (K, 3) neighbour offsets pq_i.
+    mask: (K,) bool, the neighbours that vote.
+
+  Returns:
+    () int32 balance 2·#{i: pq_i·axis >= 0} - n; the axis is kept for a positive balance and
+    flipped for a negative one (SHOT's tie rule for 0 lives in frames/shot.py).
+  """
+  dp = offsets @ axis
+  plus = jnp.sum(mask & (dp >= 0), dtype=jnp.int32)
+  return 2 * plus - jnp.sum(mask, dtype=jnp.int32)
+
+
+def lexicographic_argmax(score: Array, candidates: Array, dist2: Array,
+                         index: Array) -> tuple[Array, Array]:
+  """Slot of the candidate with the largest score; ties go to the nearer, then lower-index point.
+
+  PCL's BOARD and FLARE scan the radius-search result (sorted by distance) and keep the first
+  strict improvement, so a tie goes to the nearer point; breaking the remaining ties by the cloud
+  index makes the choice independent of slot order and padding.
+
+  Args:
+    score: (K,) scores (finite where `candidates`).
+    candidates: (K,) bool, the slots that may be chosen.
+    dist2: (K,) squared distances to the keypoint.
+    index: (K,) integer cloud indices of the slots.
+
+  Returns:
+    (slot, found): slot () int32; found () bool, False when there is no candidate.
+  """
+  s = jnp.where(candidates, score, -jnp.inf)
+  best = jnp.max(s)
+  c1 = candidates & (s == best)
+  d = jnp.where(c1, dist2, jnp.inf)
+  c2 = c1 & (d == jnp.min(d))
+  big = jnp.iinfo(jnp.int32).max
+  idx = jnp.where(c2, index.astype(jnp.int32), big)
+  c3 = c2 & (idx == jnp.min(idx))
+  slot = jnp.argmax(c3).astype(jnp.int32)
+  return slot, jnp.any(candidates)
+
+
+def directed_tangent_axis(z: Array, offset: Array, eps: float = 0.0) -> tuple[Array, Array]:
+  """Unit projection of one offset on the tangent plane of `z` (PCL's `directedOrthogonalAxis`).
+
+  Args:
+    z: (3,) unit normal.
+    offset: (3,) q - p.
+    eps: a projection of norm `<= eps` is degenerate.
+
+  Returns:
+    (x, ok): x (3,) unit vector orthogonal to z; ok False when the projection vanishes.
+  """
+  return safe_normalize(offset - jnp.dot(offset, z) * z, eps)

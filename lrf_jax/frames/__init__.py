@@ -79,3 +79,81 @@ register(MethodSpec(
     description="TOLDI (Yang et al. 2017): z over r/3, x weights (r-d)^2 sign(h) h^2 (original C++)"))
 
 __all__ = ["METHODS", "MethodSpec", "register", "lrf_net_frames", "toldi_frames", "uniform_frames"]
+
+# ------------------------------------------------------------------------------------------------
+# Hand-crafted LRFs (PCL-equivalent where PCL has them). Imported here, after `register`, so that
+# each method module stays a plain library of pure functions.
+# ------------------------------------------------------------------------------------------------
+from lrf_jax.frames import board as _board_mod  # noqa: E402
+from lrf_jax.frames import flare as _flare_mod  # noqa: E402
+from lrf_jax.frames.board import board_frames  # noqa: E402
+from lrf_jax.frames.flare import flare_frames  # noqa: E402
+from lrf_jax.frames.gframes import gframes_frames, prepare_gframes  # noqa: E402
+from lrf_jax.frames.mian import mian_frames  # noqa: E402
+from lrf_jax.frames.ps import ps_frames  # noqa: E402
+from lrf_jax.frames.rops import prepare_triangles, rops_frames  # noqa: E402
+from lrf_jax.frames.shot import shot_frames  # noqa: E402
+from lrf_jax.normals import prepare_normals  # noqa: E402
+
+
+def _mian(patches, extra, *, center: str = "centroid"):
+  return mian_frames(patches, extra["kp_normal"], center=center)
+
+
+def _shot(patches, extra):
+  del extra
+  return shot_frames(patches)
+
+
+def _rops(patches, extra):
+  return rops_frames(patches, extra["tri"], extra["tri_mask"])
+
+
+def _board(patches, extra):
+  return board_frames(patches, extra["normals"])
+
+
+def _flare(patches, extra):
+  return flare_frames(patches, extra["normals"], extra["kp_normal"])
+
+
+def _ps(patches, extra):
+  return ps_frames(patches, extra["kp_normal"])
+
+
+def _gframes(patches, extra):
+  return gframes_frames(patches, extra["tri"], extra["tri_mask"], extra["tri_f"],
+                        extra["kp_normal"])
+
+
+register(MethodSpec(
+    "mian", _mian, default_k=None, prepare=prepare_normals,
+    description="Mian et al. 2010: covariance eigenvectors, z signed by the normal (x/y sign "
+                "ambiguous)"))
+register(MethodSpec(
+    "shot", _shot, default_k=None,
+    description="SHOT (Tombari et al. 2010): (r-d)-weighted covariance about p, majority-vote "
+                "signs (PCL)"))
+register(MethodSpec(
+    "rops", _rops, default_k=None, needs_mesh=True, prepare=prepare_triangles,
+    description="RoPS (Guo et al. 2013): area- and distance-weighted triangle scatter (PCL); "
+                "needs a mesh"))
+register(MethodSpec(
+    "board", _board, default_k=None, z_ratio=_board_mod.Z_RATIO, prepare=prepare_normals,
+    description="BOARD (Petrelli & Di Stefano 2011): plane-fit z over r/3, x to the most "
+                "inclined margin normal (PCL)"))
+register(MethodSpec(
+    "flare", _flare, default_k=None, z_ratio=_flare_mod.Z_RATIO, prepare=prepare_normals,
+    description="FLARE / SD (Petrelli & Di Stefano 2012): plane-fit z over r/3, x to the "
+                "highest margin point (PCL)"))
+register(MethodSpec(
+    "ps", _ps, default_k=None, prepare=prepare_normals,
+    description="Point signature (Chua & Jarvis 1997): contour-plane z, x to the highest "
+                "contour point"))
+register(MethodSpec(
+    "gframes", _gframes, default_k=None, needs_mesh=True, prepare=prepare_gframes,
+    description="GFrames (Melzi et al. 2019): normal z, x = area-weighted mean-curvature "
+                "gradient; needs a mesh"))
+
+__all__ += ["board_frames", "flare_frames", "gframes_frames", "mian_frames", "ps_frames",
+            "rops_frames", "shot_frames"]

@@ -1,0 +1,104 @@
+"""BOARD local reference frames (Petrelli & Di Stefano 2011), as PCL 1.13 computes them.
+
+PCL's `BOARDLocalReferenceFrameEstimation` with `setRadiusSearch(r_z)`, `setTangentRadius(r)`,
+`setFindHoles(false)` (the default) and margin threshold 0.85 (the default). For a keypoint p:
+
+* z: the least-squares plane normal of all points within r_z = `Z_RATIO` · r (the smallest
+  eigenvector of their covariance about their centroid, `Patches.z_cov`), flipped to agree with the
+  mean of those points' normals (`normalDisambiguation`);
+* x: among the points in the margin ring 0.85 r < |pq_i| <= r, the one whose normal is the most
+  inclined to z (smallest n_i · z); if the ring is empty, among all the other points; x is the
+  unit projection of its offset on the tangent plane, y = z × x.
+
+Minimum neighbours: 6 within r_z (PCL's rule). Invalid also when the plane fit is degenerate
+(collinear points), no candidate has a finite normal, the chosen point projects onto p, or an
+input is not finite. Normals come from the `prepare` hook (`normals.prepare_normals`): the
+caller's, else `normals.estimate_normals`.
+
+Deviations from PCL: the hole-finding variant (`find_holes`, which starts from a random axis) is
+not implemented; non-finite normals are skipped in the mean (PCL would propagate NaN); ties of
+n_i · z go to the nearer point (PCL: the first in its distance-sorted search) and then to the lower
+cloud index; the keypoint itself is never chosen in the fallback (PCL would return a zero x).
+r_z = r / 3 is our choice (PCL takes any radius; the LRF-Net paper: "a small subset").
+
+References:
+  Petrelli, Di Stefano, "On the repeatability of the local reference frame for partial shape
+  matching", ICCV 2011. PCL 1.13 `features/impl/board.hpp`.
+"""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+
+from lrf_jax import geometry
+from lrf_jax.frames.lrf_net import sanitize
+from lrf_jax.neighborhoods import Patches
+
+Z_RATIO = 1.0 / 3.0
+MARGIN = 0.85
+MIN_Z_NEIGHBOURS = 6
+
+
+def normals_mean(normals: jax.Array, use: jax.Array) -> tuple[jax.Array, jax.Array]:
+  """Sum of the finite normals of the `use` slots and whether it is non-zero.
+
+  Args:
+    normals: (K, 3) normals (may hold NaN).
+    use: (K,) bool.
+
+  Returns:
+    (s (3,), ok ()); only the direction of s matters (PCL normalises it).
+  """
+  good = use & geometry.all_finite_rows(normals)
+  s = jnp.sum(jnp.where(good[:, None], geometry.finite_or_zero(normals), 0.0), axis=0)
+  return s, geometry.safe_norm(s) > 0
+
+
+def board_frame(offsets, mask, index, radius, z_cov, z_count, normals):
+  """BOARD frame of one keypoint.
+
+  Args:
+    offsets: (K, 3) pq_i (cloud units), finite.
+    mask: (K,) bool.
+    index: (K,) int cloud indices (tie-breaking only).
+    radius: () support radius r (= PCL's tangent radius).
+    z_cov: (3, 3) covariance of the points within Z_RATIO · r about their centroid.
+    z_count: () number of those points.
+    normals: (K, 3) the slots' normals (NaN allowed).
+
+  Returns:
+    (frame (3, 3) rows x, y, z; valid () bool).
+  """
+  dist2 = jnp.sum(offsets * offsets, axis=-1)
+  z, z_ok = geometry.smallest_eigvec(z_cov)
+  in_z = mask & (dist2 <= (Z_RATIO * radius) ** 2)
+  ref, _ = normals_mean(normals, in_z)
+  z = geometry.orient_like(z, ref)
+
+  n_ok = geometry.all_finite_rows(normals)
+  cos = geometry.finite_or_zero(normals) @ z
+  margin = mask & (dist2 > (MARGIN * radius) ** 2)
+  cand = jnp.where(jnp.any(margin), margin, mask & (dist2 > 0)) & n_ok
+  slot, found = geometry.lexicographic_argmax(-cos, cand, dist2, index)
+  x, x_ok = geometry.directed_tangent_axis(z, offsets[slot])
+  frame, f_ok = geometry.frame_from_zx(z, x)
+  valid = z_ok & (z_count >= MIN_Z_NEIGHBOURS) & found & x_ok & f_ok
+  return geometry.identity_where_invalid(frame, valid), valid
+
+
+def board_frames(patches: Patches, normals: jax.Array) -> tuple[jax.Array, jax.Array]:
+  """BOARD frames for a batch (pure, jittable).
+
+  Args:
+    patches: `Patches` built with `z_ratio=Z_RATIO`; `k=None` (every neighbour) reproduces PCL.
+    normals: (N, K, 3) normals of the patch slots.
+
+  Returns:
+    (frames (N, 3, 3) rows x, y, z; valid (N,) bool).
+  """
+  patches, finite = sanitize(patches)
+  frames, valid = jax.vmap(board_frame)(patches.offsets, patches.mask, patches.indices,
+                                        patches.radius, patches.z_cov, patches.z_count, normals)
+  valid = valid & finite
+  return geometry.identity_where_invalid(frames, valid), valid

@@ -1,0 +1,124 @@
+"""GFrames (Melzi, Spezialetti, Tombari, Bronstein, Di Stefano, Rodolà 2019) on triangle meshes.
+
+z = the keypoint's normal; x = the area-weighted mean of the gradient of a scalar function f over
+the triangles within r of the keypoint, projected on the tangent plane and normalised (paper eq.
+`eq_GFrame`); y = z × x. Our choices:
+
+* f = the signed mean curvature H of the mesh (`normals.mean_curvature`: cotangent Laplacian,
+  positive on convex parts), one of the functions Melzi et al. evaluate, computed once per mesh
+  on the host and gathered per triangle vertex by `prepare_gframes`;
+* the triangles "within distance r" are those with at least one vertex within r (as RoPS,
+  `rops.gather_triangles`, same cap);
+* on a triangle with vertices q_1, q_2, q_3, unit normal n and area A, f is linear and
+  A ∇f = ½ Σ_i f_i n × (q_{i+2} - q_{i+1}) (indices mod 3): no division by the area, so slivers
+  contribute ~0 and never NaN; the result does not depend on the vertex order or winding;
+* z = the keypoint normal from the `prepare` hook (the caller's `normals=`, else
+  `normals.estimate_normals`: PCA over 0.2 r oriented by the faces' winding).
+
+Invalid (identity, `valid = False`) when the keypoint normal is not finite, the projected sum
+vanishes (|Σ A ∇f| <= 1e-5 Σ |A ∇f|: e.g. a plane or a sphere, where H is constant), or an input
+is not finite.
+
+References:
+  Melzi et al., "GFrames: Gradient-based local reference frame for 3D shape matching", CVPR 2019,
+  section 4 (eq. 3).
+"""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from lrf_jax import geometry
+from lrf_jax.frames.lrf_net import sanitize
+from lrf_jax.frames.rops import gather_triangles
+from lrf_jax.neighborhoods import Patches
+from lrf_jax.normals import default_normals, mean_curvature
+
+X_EPS = 1e-5
+
+
+def prepare_gframes(points, keypoints, patches, *, faces=None, normals=None,
+                    radius: float) -> dict[str, np.ndarray]:
+  """`MethodSpec.prepare` hook of GFrames.
+
+  Returns:
+    {"tri": (N, T, 3, 3) float32 vertex offsets, "tri_mask": (N, T) bool,
+     "tri_f": (N, T, 3) float32 mean curvature at the vertices, "kp_normal": (N, 3) float32}.
+  """
+  if faces is None:
+    raise ValueError("gframes needs a triangle mesh: pass faces=(f, 3) indices")
+  tri, mask, ids = gather_triangles(points, keypoints, faces, radius, patches=patches)
+  h = mean_curvature(points, faces)
+  f = np.asarray(faces, np.int64)
+  tri_f = np.where(mask[..., None], h[f[np.maximum(ids, 0)]], 0.0).astype(np.float32)
+  nrm = default_normals(points, radius, faces, normals)
+  return {"tri": tri, "tri_mask": mask, "tri_f": tri_f,
+          "kp_normal": np.asarray(nrm, np.float32)[np.asarray(keypoints)]}
+
+
+def area_gradient(tri: jax.Array, f: jax.Array) -> jax.Array:
+  """A ∇f of the linear interpolant of f on each triangle.
+
+  Args:
+    tri: (T, 3, 3) vertices (any origin).
+    f: (T, 3) values at the vertices.
+
+  Returns:
+    (T, 3) area times gradient (0 for degenerate triangles).
+  """
+  n, _ = geometry.safe_normalize(jnp.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]))
+  f = f - jnp.mean(f, axis=-1, keepdims=True)  # constants have no gradient; better rounding
+  out = jnp.zeros_like(tri[:, 0])
+  for i in range(3):
+    edge = tri[:, (i + 2) % 3] - tri[:, (i + 1) % 3]
+    out = out + f[:, i:i + 1] * jnp.cross(n, edge)
+  return 0.5 * out
+
+
+def gframes_frame(tri, tri_mask, tri_f, kp_normal):
+  """GFrames frame of one keypoint.
+
+  Args:
+    tri: (T, 3, 3) triangle vertex offsets (finite).
+    tri_mask: (T,) bool.
+    tri_f: (T, 3) f at the vertices (finite).
+    kp_normal: (3,) keypoint normal (NaN allowed: invalid).
+
+  Returns:
+    (frame (3, 3) rows x, y, z; valid () bool).
+  """
+  z, z_ok = geometry.safe_normalize(geometry.finite_or_zero(kp_normal))
+  z_ok = z_ok & jnp.all(jnp.isfinite(kp_normal))
+  g = jnp.where(tri_mask[:, None], area_gradient(tri, tri_f), 0.0)
+  s = jnp.sum(g, axis=0)
+  s_t = s - jnp.dot(s, z) * z
+  scale = jnp.sum(geometry.safe_norm(g))
+  frame, f_ok = geometry.frame_from_zx(z, s_t)
+  valid = z_ok & f_ok & (geometry.safe_norm(s_t) > X_EPS * scale)
+  return geometry.identity_where_invalid(frame, valid), valid
+
+
+def gframes_frames(patches: Patches, tri: jax.Array, tri_mask: jax.Array, tri_f: jax.Array,
+                   kp_normal: jax.Array) -> tuple[jax.Array, jax.Array]:
+  """GFrames for a batch (pure, jittable).
+
+  Args:
+    patches: `Patches` (used for input checks only).
+    tri: (N, T, 3, 3) triangle vertex offsets (`rops.gather_triangles`).
+    tri_mask: (N, T) bool.
+    tri_f: (N, T, 3) scalar function at the vertices.
+    kp_normal: (N, 3) keypoint normals.
+
+  Returns:
+    (frames (N, 3, 3) rows x, y, z; valid (N,) bool).
+  """
+  _, finite = sanitize(patches)
+  ok = jnp.all(jnp.isfinite(tri), axis=(-1, -2)) & jnp.all(jnp.isfinite(tri_f), axis=-1)
+  finite = finite & jnp.all(ok | ~tri_mask, axis=-1)
+  tri = jnp.where(ok[..., None, None], tri, 0.0)
+  tri_f = jnp.where(ok[..., None], tri_f, 0.0)
+  frames, valid = jax.vmap(gframes_frame)(tri, tri_mask & ok, tri_f, kp_normal)
+  valid = valid & finite
+  return geometry.identity_where_invalid(frames, valid), valid

@@ -1,0 +1,82 @@
+"""Mian et al. (2010) local reference frames: the principal axes of the support.
+
+For a keypoint p with neighbours q_i within r:
+
+* C = the covariance of the q_i about their centroid (`center="centroid"`, Mian et al.'s mean
+  vector m) or about p (`center="keypoint"`);
+* x, y, z = the eigenvectors of the largest, middle and smallest eigenvalue; z is flipped to agree
+  with the keypoint's normal n(p) (z · n >= 0); y = z × x.
+
+**Sign ambiguity, by construction**: nothing in the method fixes the sign of x (hence of y). The
+sign returned here is whatever the eigen-solver gives, which is a function of C but *not*
+equivariant: under a rotation of the cloud, x may come back as -x (on the BR bunny at 15 mr,
+about half of the x-axes flip under a random rotation). Mian's frames are therefore
+equivariant only up to the sign of x and y (z is fixed by the normal); tests check them so, and
+MeanCos penalises the flips, which is precisely the weakness the LRF-Net paper points out.
+
+Minimum neighbours: 5 points within r. Invalid also when two eigenvalues coincide (relative gap
+<= `geometry.DEGENERATE_EPS`: collinear or isotropic supports), the keypoint normal is not finite,
+or an input is not finite. Normals come from the `prepare` hook (`normals.prepare_normals`).
+
+References:
+  Mian, Bennamoun, Owens, "On the repeatability and quality of keypoints for local feature-based
+  3D object retrieval from cluttered scenes", IJCV 89(2), 2010, section 3.
+"""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+
+from lrf_jax import geometry
+from lrf_jax.frames.lrf_net import sanitize
+from lrf_jax.neighborhoods import Patches
+
+MIN_NEIGHBOURS = 5
+
+
+def mian_frame(offsets, mask, kp_normal, center: str = "centroid"):
+  """Mian frame of one keypoint.
+
+  Args:
+    offsets: (K, 3) pq_i (cloud units), finite.
+    mask: (K,) bool.
+    kp_normal: (3,) the keypoint's normal (NaN allowed: invalid).
+    center: "centroid" (Mian et al.) or "keypoint".
+
+  Returns:
+    (frame (3, 3) rows x, y, z; valid () bool); x and y have an arbitrary common sign.
+  """
+  w = mask.astype(offsets.dtype)
+  if center == "centroid":
+    cov, _ = geometry.centered_covariance(offsets, w)
+  elif center == "keypoint":
+    cov = geometry.weighted_covariance(offsets, w)
+  else:
+    raise ValueError(f"center: expected 'centroid' or 'keypoint', got {center!r}")
+  _, evecs, ok = geometry.eigen_frame(cov)
+  n = geometry.finite_or_zero(kp_normal)
+  n_ok = jnp.all(jnp.isfinite(kp_normal)) & (geometry.safe_norm(n) > 0)
+  z = geometry.orient_like(evecs[2], n)
+  frame, f_ok = geometry.frame_from_zx(z, evecs[0])
+  valid = ok & n_ok & f_ok & (jnp.sum(mask) >= MIN_NEIGHBOURS)
+  return geometry.identity_where_invalid(frame, valid), valid
+
+
+def mian_frames(patches: Patches, kp_normal: jax.Array, *,
+                center: str = "centroid") -> tuple[jax.Array, jax.Array]:
+  """Mian frames for a batch (pure, jittable).
+
+  Args:
+    patches: `Patches` (N keypoints); `k=None` uses every neighbour (the registry's default).
+    kp_normal: (N, 3) normals of the keypoints (they fix the sign of z only).
+    center: "centroid" (default, Mian et al.) or "keypoint".
+
+  Returns:
+    (frames (N, 3, 3) rows x, y, z; valid (N,) bool).
+  """
+  patches, finite = sanitize(patches)
+  frames, valid = jax.vmap(lambda o, m, n: mian_frame(o, m, n, center))(
+      patches.offsets, patches.mask, kp_normal)
+  valid = valid & finite
+  return geometry.identity_where_invalid(frames, valid), valid

@@ -1,0 +1,78 @@
+"""Point-signature local reference frames (Chua & Jarvis 1997), discretised for point clouds.
+
+Chua & Jarvis intersect a sphere of radius r centred at p with the surface, fit a plane to the
+resulting contour, translate it to p and take its normal as z; x points from p towards the
+projection of the contour point with the largest signed distance to that plane. Our discrete
+version for a cloud:
+
+* contour: the points in the spherical shell `CONTOUR_RATIO` · r <= |pq_i| <= r (a band of the
+  support's outer 15 %, the same ring as BOARD/FLARE's margin);
+* z: the least-squares plane normal of the contour points (smallest eigenvector of their
+  covariance about their centroid), flipped to agree with the keypoint's normal (z · n(p) >= 0);
+* x: the unit tangent projection of pq_j for the contour point with the largest signed distance
+  h_j = pq_j · z to the tangent plane through p (ties: the nearer, then the lower cloud index);
+  y = z × x.
+
+Minimum neighbours: 5 contour points. Invalid also for a degenerate contour plane (collinear
+contour), a non-finite keypoint normal, a chosen point projecting onto p, or a non-finite input.
+
+References:
+  Chua, Jarvis, "Point signatures: a new representation for 3D object recognition", IJCV 25(1),
+  1997, section 3.
+"""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+
+from lrf_jax import geometry
+from lrf_jax.frames.lrf_net import sanitize
+from lrf_jax.neighborhoods import Patches
+
+CONTOUR_RATIO = 0.85
+MIN_CONTOUR = 5
+
+
+def ps_frame(offsets, mask, index, radius, kp_normal):
+  """Point-signature frame of one keypoint.
+
+  Args:
+    offsets: (K, 3) pq_i (cloud units), finite.
+    mask: (K,) bool.
+    index: (K,) int cloud indices (tie-breaking only).
+    radius: () support radius r.
+    kp_normal: (3,) the keypoint's normal (NaN allowed: invalid).
+
+  Returns:
+    (frame (3, 3) rows x, y, z; valid () bool).
+  """
+  dist2 = jnp.sum(offsets * offsets, axis=-1)
+  contour = mask & (dist2 >= (CONTOUR_RATIO * radius) ** 2)
+  cov, _ = geometry.centered_covariance(offsets, contour.astype(offsets.dtype))
+  z, z_ok = geometry.smallest_eigvec(cov)
+  n = geometry.finite_or_zero(kp_normal)
+  n_ok = jnp.all(jnp.isfinite(kp_normal)) & (geometry.safe_norm(n) > 0)
+  z = geometry.orient_like(z, n)
+  slot, found = geometry.lexicographic_argmax(offsets @ z, contour, dist2, index)
+  x, x_ok = geometry.directed_tangent_axis(z, offsets[slot])
+  frame, f_ok = geometry.frame_from_zx(z, x)
+  valid = z_ok & n_ok & found & x_ok & f_ok & (jnp.sum(contour) >= MIN_CONTOUR)
+  return geometry.identity_where_invalid(frame, valid), valid
+
+
+def ps_frames(patches: Patches, kp_normal: jax.Array) -> tuple[jax.Array, jax.Array]:
+  """Point-signature frames for a batch (pure, jittable).
+
+  Args:
+    patches: `Patches` (N keypoints); `k=None` (the registry's default) keeps every contour point.
+    kp_normal: (N, 3) normals of the keypoints (they fix the sign of z only).
+
+  Returns:
+    (frames (N, 3, 3) rows x, y, z; valid (N,) bool).
+  """
+  patches, finite = sanitize(patches)
+  frames, valid = jax.vmap(ps_frame)(patches.offsets, patches.mask, patches.indices,
+                                     patches.radius, kp_normal)
+  valid = valid & finite
+  return geometry.identity_where_invalid(frames, valid), valid

@@ -1,0 +1,342 @@
+"""Host-side surface normals and mesh quantities shared by the hand-crafted LRFs.
+
+Everything here runs once per cloud on the host (numpy / scipy, float64); the LRF functions in
+`lrf_jax.frames` then receive per-keypoint gathers of these arrays through their `prepare` hook
+(`prepare_normals`, `frames.rops.prepare_triangles`).
+
+Normals (`estimate_normals`, used when `compute_frames` is called without `normals=`):
+
+* direction: PCL's `NormalEstimation` (Rusu 2009): the eigenvector of the smallest eigenvalue of
+  the covariance, about their centroid, of all points within `normal_radius` of the point
+  (default `NORMAL_RADIUS_RATIO` · r = 3 mr at the paper's r = 15 mr); NaN for fewer than 3
+  neighbours (PCL's rule) or a degenerate spectrum (collinear points);
+* orientation, which must be *equivariant* (it may not depend on a fixed viewpoint, which does not
+  move with the cloud):
+  - with a mesh (`faces`): the sign that agrees with the area-weighted vertex normal of the faces,
+    i.e. with the triangles' winding;
+  - without: Hoppe et al. (1992) propagation. Over a k-nearest-neighbour graph weighted by
+    1 - |n_i · n_j|, the minimum spanning tree is walked breadth-first from one seed per connected
+    component; each child takes the sign that agrees with its parent. The seed is the component's
+    point farthest from the component's centroid, oriented away from that centroid (outward for a
+    closed surface). For a single-view scan pass normals oriented towards the sensor instead
+    (`pca_normals(..., viewpoint=...)`, PCL's `flipNormalTowardsViewpoint`).
+
+Mesh quantities: `vertex_normals` (area-weighted face normals) and `mean_curvature` (cotangent
+Laplacian, Meyer et al. 2003), the scalar function of GFrames.
+
+Results for the last cloud are cached (one entry, keyed by a digest of the arrays' bytes), so
+`compute_frames`, which calls `prepare` once per chunk of keypoints, computes them once.
+"""
+
+from __future__ import annotations
+
+import hashlib
+from typing import Any
+
+import numpy as np
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import breadth_first_order, connected_components, minimum_spanning_tree
+from scipy.spatial import cKDTree
+
+# Default normal radius as a fraction of the support radius r (3 mr at r = 15 mr).
+NORMAL_RADIUS_RATIO = 0.2
+# Neighbours per point in the orientation graph of `orient_by_propagation`.
+PROPAGATION_K = 8
+# Relative eigenvalue gap below which a PCA normal is undefined (as geometry.DEGENERATE_EPS).
+_DEGENERATE = 1e-6
+
+_CACHE: dict[str, Any] = {}
+
+
+def _digest(*arrays: Any) -> str:
+  h = hashlib.blake2b(digest_size=16)
+  for a in arrays:
+    if a is None:
+      h.update(b"none")
+    elif isinstance(a, np.ndarray):
+      a = np.ascontiguousarray(a)
+      h.update(str((a.dtype, a.shape)).encode())
+      h.update(a.data)
+    else:
+      h.update(repr(a).encode())
+  return h.hexdigest()
+
+
+def cache_last(kind: str, key_arrays: tuple, fn):
+  """One cached result per `kind`: `fn()` is recomputed only when the inputs' digest changes.
+
+  Args:
+    kind: cache slot name.
+    key_arrays: the arrays/values the result depends on.
+    fn: zero-argument function computing the result.
+
+  Returns:
+    `fn()`, or the stored result for identical inputs.
+  """
+  key = _digest(kind, *key_arrays)
+  hit = _CACHE.get(kind)
+  if hit is not None and hit[0] == key:
+    return hit[1]
+  out = fn()
+  _CACHE[kind] = (key, out)
+  return out
+
+
+def pca_normals(points: np.ndarray, radius: float, *, tree: cKDTree | None = None,
+                viewpoint: np.ndarray | None = None, min_neighbors: int = 3) -> np.ndarray:
+  """PCL-like PCA normals: smallest eigenvector of the neighbours' covariance about their centroid.
+
+  Args:
+    points: (n, 3) cloud.
+    radius: normal radius (cloud units); every point within it, the point itself included, counts.
+    tree: optional `cKDTree(points)`.
+    viewpoint: (3,) optional; when given, normals are flipped towards it as PCL's
+      `flipNormalTowardsViewpoint` ((v - p) · n >= 0). When None the sign is arbitrary (orient them
+      with `orient_normals`).
+    min_neighbors: fewer neighbours than this give a NaN normal (PCL: 3).
+
+  Returns:
+    (n, 3) float64 unit normals; NaN rows where undefined (too few neighbours, collinear points).
+
+  References:
+    Rusu, "Semantic 3D object maps for everyday manipulation in human living environments", 2009
+    (PCL `NormalEstimation::computePointNormal`).
+  """
+  pts = np.asarray(points, np.float64)
+  n = pts.shape[0]
+  if tree is None:
+    tree = cKDTree(pts)
+  lists = tree.query_ball_point(pts, radius, workers=-1, return_sorted=False)
+  counts = np.fromiter((len(l) for l in lists), dtype=np.int64, count=n)
+  rows = np.repeat(np.arange(n), counts)
+  cols = np.fromiter((j for l in lists for j in l), dtype=np.int64, count=int(counts.sum()))
+  off = pts[cols] - pts[rows]  # relative to the query point: numerically stable
+  denom = np.maximum(counts, 1).astype(np.float64)
+  mean = np.stack([np.bincount(rows, off[:, a], minlength=n) for a in range(3)], 1) / denom[:, None]
+  cov = np.empty((n, 3, 3))
+  for a in range(3):
+    for b in range(a, 3):
+      cov[:, a, b] = cov[:, b, a] = np.bincount(rows, off[:, a] * off[:, b], minlength=n) / denom
+  cov -= mean[:, :, None] * mean[:, None, :]
+  evals, evecs = np.linalg.eigh(cov)
+  normals = evecs[:, :, 0]
+  scale = np.maximum(evals[:, 2], 0.0)
+  ok = (counts >= min_neighbors) & (scale > 0) & (evals[:, 1] - evals[:, 0] > _DEGENERATE * scale)
+  if viewpoint is not None:
+    flip = np.einsum("ij,ij->i", np.asarray(viewpoint, np.float64)[None] - pts, normals) < 0
+    normals[flip] *= -1.0
+  normals[~ok] = np.nan
+  return normals
+
+
+def vertex_normals(points: np.ndarray, faces: np.ndarray) -> np.ndarray:
+  """Area-weighted vertex normals of a triangle mesh (orientation from the faces' winding).
+
+  Args:
+    points: (n, 3) vertices.
+    faces: (f, 3) vertex indices, counter-clockwise seen from outside.
+
+  Returns:
+    (n, 3) float64 unit normals; NaN for vertices without (non-degenerate) faces.
+  """
+  pts = np.asarray(points, np.float64)
+  f = np.asarray(faces, np.int64)
+  cross = np.cross(pts[f[:, 1]] - pts[f[:, 0]], pts[f[:, 2]] - pts[f[:, 0]])  # 2·area·n
+  acc = np.zeros_like(pts)
+  for c in range(3):
+    np.add.at(acc, f[:, c], cross)
+  norm = np.linalg.norm(acc, axis=1, keepdims=True)
+  with np.errstate(invalid="ignore", divide="ignore"):
+    out = acc / norm
+  out[norm[:, 0] == 0] = np.nan
+  return out
+
+
+def orient_by_reference(normals: np.ndarray, reference: np.ndarray) -> np.ndarray:
+  """Flip normals where they disagree with a reference field (n · ref < 0); NaN stays NaN."""
+  out = np.array(normals, np.float64, copy=True)
+  flip = np.einsum("ij,ij->i", np.nan_to_num(out), np.nan_to_num(reference)) < 0
+  out[flip] *= -1.0
+  return out
+
+
+def orient_by_propagation(points: np.ndarray, normals: np.ndarray, *, k: int = PROPAGATION_K,
+                          tree: cKDTree | None = None) -> np.ndarray:
+  """Consistent orientation by minimum-spanning-tree propagation (Hoppe et al. 1992).
+
+  Equivariant: the graph, the weights 1 - |n_i · n_j| and the seed rule (the point farthest from
+  its component's centroid, oriented away from it) all move with the cloud.
+
+  Args:
+    points: (n, 3) cloud.
+    normals: (n, 3) unit normals of arbitrary sign; NaN rows are left NaN (and not traversed).
+    k: neighbours per point in the graph.
+    tree: optional `cKDTree(points)`.
+
+  Returns:
+    (n, 3) float64 consistently oriented normals.
+
+  References:
+    Hoppe, DeRose, Duchamp, McDonald, Stuetzle, "Surface reconstruction from unorganized points",
+    SIGGRAPH 1992, section 3.3.
+  """
+  pts = np.asarray(points, np.float64)
+  nrm = np.array(normals, np.float64, copy=True)
+  n = pts.shape[0]
+  good = np.all(np.isfinite(nrm), axis=1)
+  idx = np.flatnonzero(good)
+  if idx.size == 0:
+    return nrm
+  sub = pts[idx]
+  sub_n = nrm[idx]
+  kk = min(k + 1, idx.size)
+  sub_tree = cKDTree(sub) if (tree is None or idx.size != n) else tree
+  _, nb = sub_tree.query(sub, k=kk, workers=-1)
+  nb = nb.reshape(idx.size, kk)
+  r = np.repeat(np.arange(idx.size), kk)
+  c = nb.reshape(-1)
+  keep = r != c
+  r, c = r[keep], c[keep]
+  w = 1.0 - np.abs(np.einsum("ij,ij->i", sub_n[r], sub_n[c])) + 1e-9  # > 0: zero = no edge
+  graph = coo_matrix((w, (r, c)), shape=(idx.size, idx.size)).tocsr()
+  graph = graph.maximum(graph.T)
+  mst = minimum_spanning_tree(graph)
+  mst = mst + mst.T
+  n_comp, labels = connected_components(mst, directed=False)
+  sign = np.ones(idx.size)
+  for comp in range(n_comp):
+    members = np.flatnonzero(labels == comp)
+    cen = sub[members].mean(axis=0)
+    d = np.linalg.norm(sub[members] - cen, axis=1)
+    seed = members[np.argmax(d)]
+    sign[seed] = 1.0 if np.dot(sub_n[seed], sub[seed] - cen) >= 0 else -1.0
+    if members.size == 1:
+      continue
+    order, pred = breadth_first_order(mst, seed, directed=False, return_predecessors=True)
+    dots = np.einsum("ij,ij->i", sub_n[order[1:]], sub_n[pred[order[1:]]])
+    rel = np.where(dots >= 0, 1.0, -1.0)
+    parents = pred[order[1:]]
+    for node, parent, s in zip(order[1:].tolist(), parents.tolist(), rel.tolist()):
+      sign[node] = sign[parent] * s
+  nrm[idx] = sub_n * sign[:, None]
+  return nrm
+
+
+def estimate_normals(points: np.ndarray, normal_radius: float,
+                     faces: np.ndarray | None = None) -> np.ndarray:
+  """The default normals of `compute_frames`: PCA over `normal_radius`, oriented equivariantly.
+
+  See the module docstring: mesh winding when `faces` is given, MST propagation otherwise.
+  Cached for the last (points, radius, faces).
+
+  Args:
+    points: (n, 3) cloud.
+    normal_radius: PCA radius (cloud units).
+    faces: optional (f, 3) triangles used for the orientation only.
+
+  Returns:
+    (n, 3) float64 unit normals, NaN where undefined.
+  """
+  pts = np.asarray(points, np.float64)
+
+  def compute():
+    tree = cKDTree(pts)
+    nrm = pca_normals(pts, normal_radius, tree=tree)
+    if faces is not None:
+      return orient_by_reference(nrm, vertex_normals(pts, faces))
+    return orient_by_propagation(pts, nrm, tree=tree)
+
+  return cache_last("normals", (pts, float(normal_radius), faces), compute)
+
+
+def cotangent_laplacian_curvature(points: np.ndarray, faces: np.ndarray) -> np.ndarray:
+  """Signed mean curvature per vertex from the cotangent Laplacian (uncached; see mean_curvature).
+
+  H_i = -(Δx)_i · n_i / 2 with (Δx)_i = Σ_j (cot α_ij + cot β_ij)(x_j - x_i) / (2 A_i), A_i one
+  third of the area of the faces around i (barycentric cells) and n_i the area-weighted vertex
+  normal; positive for a convex surface whose faces wind outward (a sphere of radius ρ gives 1/ρ).
+  Cotangents are clipped to ±1e3 so that slivers cannot dominate.
+
+  Args:
+    points: (n, 3) vertices.
+    faces: (f, 3) triangles.
+
+  Returns:
+    (n,) float64 mean curvature (1 / cloud units); 0 for isolated vertices.
+
+  References:
+    Meyer, Desbrun, Schröder, Barr, "Discrete differential-geometry operators for triangulated
+    2-manifolds", 2003.
+  """
+  pts = np.asarray(points, np.float64)
+  f = np.asarray(faces, np.int64)
+  n = pts.shape[0]
+  lap = np.zeros_like(pts)
+  area = np.zeros(n)
+  e1 = pts[f[:, 1]] - pts[f[:, 0]]
+  e2 = pts[f[:, 2]] - pts[f[:, 0]]
+  tri_area = 0.5 * np.linalg.norm(np.cross(e1, e2), axis=1)
+  for c in range(3):
+    np.add.at(area, f[:, c], tri_area / 3.0)
+  for c in range(3):
+    i, j, o = f[:, (c + 1) % 3], f[:, (c + 2) % 3], f[:, c]  # edge (i, j) opposite vertex o
+    u, v = pts[i] - pts[o], pts[j] - pts[o]
+    cr = np.linalg.norm(np.cross(u, v), axis=1)
+    with np.errstate(invalid="ignore", divide="ignore"):
+      cot = np.einsum("ij,ij->i", u, v) / cr
+    cot = np.clip(np.nan_to_num(cot, nan=0.0, posinf=1e3, neginf=-1e3), -1e3, 1e3)
+    d = pts[j] - pts[i]
+    np.add.at(lap, i, cot[:, None] * d)
+    np.add.at(lap, j, -cot[:, None] * d)
+  with np.errstate(invalid="ignore", divide="ignore"):
+    lap = lap / (2.0 * area[:, None])
+  vn = vertex_normals(pts, f)
+  h = -0.5 * np.einsum("ij,ij->i", np.nan_to_num(lap), np.nan_to_num(vn))
+  return np.where(area > 0, h, 0.0)
+
+
+def mean_curvature(points: np.ndarray, faces: np.ndarray) -> np.ndarray:
+  """`cotangent_laplacian_curvature`, cached for the last mesh."""
+  pts = np.asarray(points, np.float64)
+  f = np.asarray(faces, np.int64)
+  return cache_last("mean_curvature", (pts, f), lambda: cotangent_laplacian_curvature(pts, f))
+
+
+def default_normals(points: np.ndarray, radius: float, faces: np.ndarray | None,
+                    normals: np.ndarray | None) -> np.ndarray:
+  """The normals a method uses: the caller's, else `estimate_normals` at NORMAL_RADIUS_RATIO · r.
+
+  Raises:
+    ValueError: `normals` of the wrong shape.
+  """
+  if normals is not None:
+    nrm = np.asarray(normals)
+    if nrm.ndim != 2 or nrm.shape != np.shape(points):
+      raise ValueError(f"normals: expected shape {np.shape(points)} (one per point), "
+                       f"got {nrm.shape}")
+    return nrm
+  return estimate_normals(points, NORMAL_RADIUS_RATIO * radius, faces)
+
+
+def prepare_normals(points: np.ndarray, keypoints: np.ndarray, patches, *,
+                    faces: np.ndarray | None = None, normals: np.ndarray | None = None,
+                    radius: float) -> dict[str, np.ndarray]:
+  """`MethodSpec.prepare` hook of the normal-based LRFs (mian, board, flare, ps).
+
+  Args:
+    points: (n, 3) cloud.
+    keypoints: (N,) indices.
+    patches: their `Patches` (K slots).
+    faces: optional (f, 3) triangles (used to orient estimated normals).
+    normals: optional (n, 3) normals; None = `estimate_normals`.
+    radius: the support radius r.
+
+  Returns:
+    {"normals": (N, K, 3) float32 normals of the patch slots (0 in padding, NaN where undefined),
+     "kp_normal": (N, 3) float32 normal of each keypoint}.
+  """
+  nrm = default_normals(points, radius, faces, normals).astype(np.float32)
+  idx = np.asarray(patches.indices)
+  gathered = nrm[np.maximum(idx, 0)]
+  gathered[idx < 0] = 0.0
+  return {"normals": gathered, "kp_normal": nrm[np.asarray(keypoints)]}

@@ -1,0 +1,377 @@
+"""Hand-crafted LRFs (mian, shot, rops, board, flare, ps, gframes, toldi): the conventions.
+
+For every method: orthonormal rows and det +1; rotation + translation equivariance on real BR bunny
+patches (exact, except Mian's x/y, which are sign-ambiguous by definition); invariance to the order
+of the patch slots (and triangle slots) and to extra padding holding garbage; degenerate keypoints
+(too few neighbours, collinear support, NaN input) flagged invalid with an identity frame.
+Plus: TOLDI's signed vs unsigned x weights, SHOT's batched tie rule, and the normal estimation's
+equivariance.
+"""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import lrf_jax
+from lrf_jax import normals as nm
+from lrf_jax.api import frames_from_patches
+from lrf_jax.frames import shot as shot_mod
+from lrf_jax.neighborhoods import build_patches
+from tests.lrf_testing import (assert_frames_orthonormal, equivariance_deficit, random_rotation)
+
+METHODS = ("toldi", "mian", "shot", "rops", "board", "flare", "ps", "gframes")
+SLOT_KEYS = ("normals",)  # extra arrays indexed like the patch slots (N, K, ...)
+TRI_KEYS = ("tri", "tri_mask", "tri_f")  # extra arrays indexed by triangle slot (N, T, ...)
+EXACT = 1e-4  # largest allowed 1 - MeanCos for "exact" equivariance (float32 round-off: ~1e-7)
+
+
+# ----------------------------------------------------------------------------------------------
+# A synthetic mesh: an irregular height field plus two degenerate far-away parts.
+# ----------------------------------------------------------------------------------------------
+
+
+def _synthetic():
+  rng = np.random.default_rng(3)
+  n = 41
+  gx, gy = np.meshgrid(np.arange(n, dtype=float), np.arange(n, dtype=float), indexing="ij")
+  x = gx + rng.uniform(-0.1, 0.1, gx.shape)
+  y = gy + rng.uniform(-0.1, 0.1, gy.shape)
+  z = 1.5 * np.sin(0.35 * x + 0.2 * y) + 0.8 * np.cos(0.3 * y - 0.15 * x) + 0.01 * x * y
+  grid = np.stack([x, y, z], -1).reshape(-1, 3)
+  ids = np.arange(n * n).reshape(n, n)
+  a, b, c, d = ids[:-1, :-1], ids[1:, :-1], ids[1:, 1:], ids[:-1, 1:]
+  faces = np.concatenate([np.stack([a, b, c], -1).reshape(-1, 3),
+                          np.stack([a, c, d], -1).reshape(-1, 3)])
+  pair = np.array([[500.0, 500.0, 500.0], [500.1, 500.0, 500.0]])  # too few neighbours
+  direction = np.array([1.0, 2.0, 3.0]) / np.sqrt(14.0)
+  line = np.array([-500.0, -500.0, -500.0]) + 0.5 * np.arange(30)[:, None] * direction  # collinear
+  points = np.concatenate([grid, pair, line])
+  l0 = n * n + 2
+  line_faces = np.stack([l0 + np.arange(28), l0 + np.arange(1, 29), l0 + np.arange(2, 30)], -1)
+  faces = np.concatenate([faces, line_faces])  # zero-area triangles along the line
+  interior = ids[14:27:4, 14:27:4].reshape(-1)[:12]
+  keypoints = np.concatenate([interior, [n * n], [l0 + 15]])
+  return points, faces.astype(np.int64), keypoints, 6.0
+
+
+SYN = _synthetic()
+N_GOOD = 12  # the first 12 keypoints are interior surface points; then the pair, the line
+
+
+def _inputs(method, points, faces, keypoints, radius, normals=None, k=None):
+  spec = lrf_jax.METHODS[method]
+  patches = build_patches(points, keypoints, radius, k, z_ratio=spec.z_ratio)
+  extra = None
+  if spec.prepare is not None:
+    extra = spec.prepare(points, keypoints, patches, faces=faces, normals=normals, radius=radius)
+  return patches, extra
+
+
+def _run(method, patches, extra):
+  f, v = frames_from_patches(patches, method, extra=extra)
+  return np.asarray(f), np.asarray(v)
+
+
+@pytest.fixture(scope="module")
+def synthetic_normals():
+  points, faces, _, radius = SYN
+  return nm.estimate_normals(points, nm.NORMAL_RADIUS_RATIO * radius, faces)
+
+
+@pytest.fixture(scope="module", params=METHODS)
+def synthetic_case(request, synthetic_normals):
+  method = request.param
+  points, faces, keypoints, radius = SYN
+  patches, extra = _inputs(method, points, faces, keypoints, radius, synthetic_normals)
+  frames, valid = _run(method, patches, extra)
+  return method, patches, extra, frames, valid
+
+
+def _permute(patches, extra, seed):
+  rng = np.random.default_rng(seed)
+  n, k = patches.mask.shape
+  perm = np.stack([rng.permutation(k) for _ in range(n)])
+  take = lambda a, p: np.take_along_axis(a, p.reshape(p.shape + (1,) * (a.ndim - 2)), axis=1)
+  patches = patches._replace(offsets=take(patches.offsets, perm), mask=take(patches.mask, perm),
+                             indices=take(patches.indices, perm))
+  if extra is not None:
+    extra = dict(extra)
+    for key in SLOT_KEYS:
+      if key in extra:
+        extra[key] = take(extra[key], perm)
+    if "tri" in extra:
+      t = extra["tri_mask"].shape[1]
+      tperm = np.stack([rng.permutation(t) for _ in range(n)])
+      for key in TRI_KEYS:
+        if key in extra:
+          extra[key] = take(extra[key], tperm)
+  return patches, extra
+
+
+def _pad(patches, extra, more=32, seed=0):
+  """Append `more` masked slots (and triangles) holding finite garbage."""
+  rng = np.random.default_rng(seed)
+  n = patches.mask.shape[0]
+  junk = lambda *shape: rng.normal(scale=50.0, size=shape).astype(np.float32)
+  patches = patches._replace(
+      offsets=np.concatenate([patches.offsets, junk(n, more, 3)], 1),
+      mask=np.concatenate([patches.mask, np.zeros((n, more), bool)], 1),
+      indices=np.concatenate([patches.indices, np.full((n, more), -1, np.int32)], 1))
+  if extra is not None:
+    extra = dict(extra)
+    for key in SLOT_KEYS:
+      if key in extra:
+        extra[key] = np.concatenate([extra[key], junk(n, more, 3)], 1)
+    if "tri" in extra:
+      extra["tri"] = np.concatenate([extra["tri"], junk(n, more, 3, 3)], 1)
+      extra["tri_mask"] = np.concatenate([extra["tri_mask"], np.zeros((n, more), bool)], 1)
+      if "tri_f" in extra:
+        extra["tri_f"] = np.concatenate([extra["tri_f"], junk(n, more, 3)], 1)
+  return patches, extra
+
+
+# ----------------------------------------------------------------------------------------------
+# Synthetic: orthonormality, validity, degenerate cases, order and padding invariance.
+# ----------------------------------------------------------------------------------------------
+
+
+def test_registered_with_needs():
+  for m in METHODS:
+    assert m in lrf_jax.METHODS
+  assert lrf_jax.METHODS["rops"].needs_mesh and lrf_jax.METHODS["gframes"].needs_mesh
+  for m in ("mian", "board", "flare", "ps", "gframes", "rops"):
+    assert lrf_jax.METHODS[m].prepare is not None
+
+
+def test_orthonormal_valid_and_degenerate(synthetic_case):
+  method, _, _, frames, valid = synthetic_case
+  assert_frames_orthonormal(frames, valid)
+  assert valid[:N_GOOD].all(), f"{method}: interior keypoints invalid: {valid[:N_GOOD]}"
+  assert not valid[N_GOOD], f"{method}: a 2-point neighbourhood must be invalid"
+  assert not valid[N_GOOD + 1], f"{method}: a collinear support must be invalid"
+  np.testing.assert_array_equal(frames[~valid], np.broadcast_to(np.eye(3), frames[~valid].shape))
+
+
+def test_frames_differ_between_keypoints(synthetic_case):
+  # Guards against a method that ignores its input (e.g. returns a constant valid frame).
+  method, _, _, frames, valid = synthetic_case
+  f = frames[:N_GOOD]
+  cos = np.einsum("ni,mi->nm", f[:, 0], f[:, 0])
+  assert (cos < 0.999).sum() > 0, method
+
+
+def test_slot_order_invariance(synthetic_case):
+  method, patches, extra, frames, valid = synthetic_case
+  p2, e2 = _permute(patches, extra, seed=1)
+  f2, v2 = _run(method, p2, e2)
+  np.testing.assert_array_equal(v2, valid)
+  np.testing.assert_allclose(f2, frames, atol=2e-5)
+
+
+def test_padding_invariance(synthetic_case):
+  method, patches, extra, frames, valid = synthetic_case
+  p2, e2 = _pad(patches, extra)
+  f2, v2 = _run(method, p2, e2)
+  np.testing.assert_array_equal(v2, valid)
+  np.testing.assert_allclose(f2, frames, atol=2e-5)
+
+
+def test_nan_input_is_invalid_not_nan(synthetic_case):
+  method, patches, extra, frames, valid = synthetic_case
+  bad = 3
+  if method in ("rops", "gframes"):
+    extra = dict(extra)
+    tri = extra["tri"].copy()
+    tri[bad, int(np.argmax(extra["tri_mask"][bad])), 1, 2] = np.nan
+    extra["tri"] = tri
+  else:
+    offsets = patches.offsets.copy()
+    offsets[bad, int(np.argmax(patches.mask[bad])), 0] = np.nan
+    patches = patches._replace(offsets=offsets)
+  f2, v2 = _run(method, patches, extra)
+  assert not v2[bad]
+  np.testing.assert_array_equal(f2[bad], np.eye(3))
+  keep = np.arange(len(v2)) != bad
+  np.testing.assert_array_equal(v2[keep], valid[keep])
+  np.testing.assert_allclose(f2[keep], frames[keep], atol=1e-6)
+
+
+def test_mesh_methods_need_faces():
+  points, _, keypoints, radius = SYN
+  for m in ("rops", "gframes"):
+    with pytest.raises(ValueError, match="needs a triangle mesh"):
+      lrf_jax.compute_frames(points, keypoints, radius, m)
+
+
+def test_default_normals_are_estimated():
+  """Without `normals=`, the normal methods use normals.estimate_normals at 0.2 r (cached)."""
+  points, faces, keypoints, radius = SYN
+  for faces_arg in (faces, None):
+    own = nm.estimate_normals(points, nm.NORMAL_RADIUS_RATIO * radius, faces_arg)
+    f0, v0 = lrf_jax.compute_frames(points, keypoints, radius, "board", faces=faces_arg)
+    f1, v1 = lrf_jax.compute_frames(points, keypoints, radius, "board", faces=faces_arg,
+                                    normals=own)
+    assert np.asarray(v0)[:N_GOOD].all()
+    np.testing.assert_array_equal(np.asarray(f0), np.asarray(f1))
+
+
+def test_nan_keypoint_normal_is_invalid(synthetic_normals):
+  points, faces, keypoints, radius = SYN
+  bad_normals = synthetic_normals.copy()
+  bad_normals[keypoints[0]] = np.nan
+  for m in ("mian", "ps", "gframes"):
+    _, v = lrf_jax.compute_frames(points, keypoints[:2], radius, m, faces=faces,
+                                  normals=bad_normals)
+    assert not bool(v[0]) and bool(v[1]), m
+
+
+# ----------------------------------------------------------------------------------------------
+# Real data: equivariance on BR bunny patches.
+# ----------------------------------------------------------------------------------------------
+
+
+@pytest.fixture(scope="module")
+def bunny_setup(br_bunny):
+  points, faces, mr, _ = br_bunny
+  radius = 15.0 * mr
+  normals = nm.estimate_normals(points, nm.NORMAL_RADIUS_RATIO * radius, faces)
+  keypoints = np.random.default_rng(11).choice(points.shape[0], 48, replace=False)
+  rot = random_rotation(5)
+  shift = np.array([0.4, -1.3, 2.2])
+  return points, faces, radius, normals, keypoints, rot, shift
+
+
+@pytest.mark.data
+@pytest.mark.parametrize("method", METHODS)
+def test_bunny_equivariance(method, bunny_setup):
+  points, faces, radius, normals, keypoints, rot, shift = bunny_setup
+  f0, v0 = lrf_jax.compute_frames(points, keypoints, radius, method, faces=faces,
+                                  normals=normals)
+  f1, v1 = lrf_jax.compute_frames(points @ rot.T + shift, keypoints, radius, method, faces=faces,
+                                  normals=normals @ rot.T)
+  f0, v0, f1, v1 = map(np.asarray, (f0, v0, f1, v1))
+  assert_frames_orthonormal(f0, v0)
+  assert_frames_orthonormal(f1, v1)
+  assert v0.mean() > 0.95, f"{method}: only {v0.mean():.2f} valid on the bunny"
+  np.testing.assert_array_equal(v0, v1)
+  if method == "mian":
+    # z is fixed by the normal: exact; x (and y) only up to sign, by construction.
+    cz = np.sum((f0[:, 2] @ rot.T) * f1[:, 2], -1)
+    assert cz[v0].min() > 1 - EXACT
+    deficit = equivariance_deficit(f0, f1, rot, v0, v1, up_to_sign=True)
+    # ... and the ambiguity is real: some x axes come back flipped (about half on the bunny).
+    assert (equivariance_deficit(f0, f1, rot, v0, v1) > 0.5).any()
+  else:
+    deficit = equivariance_deficit(f0, f1, rot, v0, v1)
+  assert deficit[v0].max() < EXACT, f"{method}: max 1 - MeanCos = {deficit[v0].max():.2e}"
+
+
+@pytest.mark.data
+def test_normals_equivariant_and_consistent(br_bunny):
+  points, faces, mr, _ = br_bunny
+  rn = 3.0 * mr
+  rot, shift = random_rotation(8), np.array([1.0, 2.0, -3.0])
+  moved = points @ rot.T + shift
+  mesh = nm.estimate_normals(points, rn, faces)
+  prop = nm.estimate_normals(points, rn)  # MST propagation
+  assert np.isfinite(mesh).all()
+  # Propagation orients (almost) every normal as the mesh's winding does.
+  agree = np.einsum("ij,ij->i", mesh, prop) > 0
+  assert agree.mean() > 0.99, agree.mean()
+  for faces_arg, ref in ((faces, mesh), (None, prop)):
+    got = nm.estimate_normals(moved, rn, faces_arg)
+    cos = np.einsum("ij,ij->i", ref @ rot.T, got)
+    assert (cos > 1 - 1e-6).mean() > 0.999, (faces_arg is None, np.sort(cos)[:5])
+
+
+def test_pca_normals_plane_and_viewpoint():
+  rng = np.random.default_rng(0)
+  pts = np.c_[rng.uniform(-1, 1, (400, 2)), np.zeros(400)]
+  n = nm.pca_normals(pts, 0.3, viewpoint=np.array([0.0, 0.0, -5.0]))
+  np.testing.assert_allclose(n, np.tile([0.0, 0.0, -1.0], (400, 1)), atol=1e-9)
+  line = np.c_[np.linspace(0, 1, 50), np.zeros(50), np.zeros(50)]
+  assert np.isnan(nm.pca_normals(line, 0.2)).all()
+
+
+def test_mean_curvature_sphere():
+  # Icosphere-like UV sphere of radius 2: H ~ 1/2 with outward winding.
+  th, ph = np.meshgrid(np.linspace(0.2, np.pi - 0.2, 40), np.linspace(0, 2 * np.pi, 80,
+                                                                       endpoint=False),
+                       indexing="ij")
+  pts = 2.0 * np.stack([np.sin(th) * np.cos(ph), np.sin(th) * np.sin(ph), np.cos(th)],
+                       -1).reshape(-1, 3)
+  ids = np.arange(40 * 80).reshape(40, 80)
+  a, b = ids[:-1], ids[1:]
+  c, d = np.roll(b, -1, 1), np.roll(a, -1, 1)
+  faces = np.concatenate([np.stack([a, b, c], -1).reshape(-1, 3),
+                          np.stack([a, c, d], -1).reshape(-1, 3)])
+  h = nm.cotangent_laplacian_curvature(pts, faces)
+  interior = ids[5:-5].reshape(-1)
+  np.testing.assert_allclose(h[interior], 0.5, rtol=0.05)
+
+
+# ----------------------------------------------------------------------------------------------
+# TOLDI: the original signed weight vs the paper's unsigned one.
+# ----------------------------------------------------------------------------------------------
+
+
+def test_toldi_signed_vs_unsigned_weight():
+  """A bowl with a bump (+x) and a shallower dip (-x): the two weightings pick opposite x.
+
+  z: the bowl's centroid lies above p, so z = -e_z (TOLDI's rule Σ (p - q_i)·z >= 0). Heights
+  h = pq·z: bump -a, dip +a/2. Unsigned (paper) weights h² favour the bump: x -> +e_x. Signed
+  (original C++) weights sign(h) h²: both terms push towards -e_x.
+  """
+  g = np.arange(-1.0, 1.0001, 0.05)
+  x, y = np.meshgrid(g, g, indexing="ij")
+  keep = x ** 2 + y ** 2 <= 1.0
+  x, y = x[keep], y[keep]
+  z = (0.05 * (x ** 2 + y ** 2) + 0.1 * np.exp(-((x - 0.7) ** 2 + y ** 2) / 0.01)
+       - 0.05 * np.exp(-((x + 0.7) ** 2 + y ** 2) / 0.01))
+  pts = np.c_[x, y, z]
+  kp = np.array([int(np.argmin(x ** 2 + y ** 2))])
+  f_signed, v_s = lrf_jax.compute_frames(pts, kp, 1.0, "toldi")
+  f_paper, v_p = lrf_jax.compute_frames(pts, kp, 1.0, "toldi", signed=False)
+  assert bool(v_s[0]) and bool(v_p[0])
+  np.testing.assert_allclose(np.asarray(f_signed)[0, 2], [0, 0, -1], atol=1e-3)
+  assert float(f_signed[0, 0, 0]) < -0.99
+  assert float(f_paper[0, 0, 0]) > 0.99
+
+
+# ----------------------------------------------------------------------------------------------
+# SHOT: the batched tie rule equals the per-keypoint reference on an all-tied batch.
+# ----------------------------------------------------------------------------------------------
+
+
+def test_shot_tie_rule_batched_equals_reference():
+  rng = np.random.default_rng(4)
+  n, half = 200, 40
+  q = rng.normal(size=(n, half, 3)) * np.array([3.0, 2.0, 1.0])
+  offsets = np.concatenate([q, -q], 1).astype(np.float32)  # point-symmetric: every vote ties
+  mask = np.ones((n, 2 * half), bool)
+  mask[::3, -2:] = False  # keep the count even (symmetric pairs 38, 39 lose both halves)
+  mask[::3, half - 2:half] = False
+  indices = np.tile(np.arange(2 * half, dtype=np.int32), (n, 1))
+  radius = np.full((n,), 20.0, np.float32)
+  patches = lrf_jax.Patches(offsets, mask, indices, mask.sum(1).astype(np.int32), radius,
+                            np.zeros((n, 3, 3), np.float32), np.zeros((n, 3), np.float32),
+                            np.zeros((n,), np.int32))
+  fb, vb = jax.jit(shot_mod.shot_frames)(jax.tree.map(jnp.asarray, patches))
+  fr, vr = jax.jit(jax.vmap(shot_mod.shot_frame))(
+      jnp.asarray(offsets), jnp.asarray(mask), jnp.asarray(indices), jnp.asarray(radius))
+  assert np.asarray(vb).all()
+  np.testing.assert_array_equal(np.asarray(vb), np.asarray(vr))
+  np.testing.assert_allclose(np.asarray(fb), np.asarray(fr), atol=1e-6)
+  # Independent check of PCL's rule: after it, >= 3 of the 5 neighbours around the median of the
+  # (distance, index)-sorted list lie on the positive side of x and of z.
+  fb = np.asarray(fb)
+  for i in range(0, n, 7):
+    use = np.flatnonzero(mask[i])
+    d2 = np.sum(offsets[i, use] ** 2, -1)
+    order = use[np.lexsort((indices[i, use], d2))]
+    voters = offsets[i, order[len(use) // 2 - 2:len(use) // 2 + 3]]
+    for axis in (0, 2):
+      assert np.sum(voters @ fb[i, axis] > 0) >= 3, (i, axis)

@@ -33,6 +33,8 @@ def main(argv=None) -> None:
   ap.add_argument("--checkpoint", default=None,
                   help="a train.py workdir: its best checkpoint is 'lrf_net', its final "
                        "parameters 'lrf_net[final]' (default: the shipped weights)")
+  ap.add_argument("--params", nargs="+", default=[], metavar="LABEL=PATH",
+                  help="extra lrf_net columns from parameter files (.msgpack), e.g. mine=w.msgpack")
   ap.add_argument("--keypoints", type=int, default=1000, help="keypoints per pair (paper: 1000)")
   ap.add_argument("--max-pairs", type=int, default=None, help="at most N pairs per dataset")
   ap.add_argument("--radius-mr", type=float, default=15.0)
@@ -58,6 +60,11 @@ def main(argv=None) -> None:
     runs.append(evaluation.MethodRun("lrf_net[final]", "lrf_net", params=final))
     notes.append(f"lrf_net: best checkpoint of {args.checkpoint} (config {cfg.name}); "
                  "lrf_net[final]: its latest")
+  for item in args.params:
+    label, sep, path = item.partition("=")
+    if not sep:
+      raise SystemExit(f"--params: expected LABEL=PATH, got {item!r}")
+    runs.append(evaluation.MethodRun(label, "lrf_net", params=lrf_jax.load_params(path)))
   opts = evaluation.EvalOptions(data_root=args.data, n_keypoints=args.keypoints, seed=args.seed,
                                 radius_mr=args.radius_mr, max_pairs=args.max_pairs)
   cache = evaluation.PatchCache(args.cache_dir)

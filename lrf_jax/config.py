@@ -30,7 +30,9 @@ class TrainConfig:
     lr_decay: multiplicative decay applied once per epoch (0.95 = "5% every epoch").
     loss_reduction: Chamfer form, "min" (eq. eq_cham, the paper), "max" or "sum".
     widths: encoder widths of the weight network.
-    x_mode: "sum" (paper) or "max" (ablation; reuses Sum1-trained weights, see evaluate.py).
+    z_mode: "normal" (paper: the TOLDI normal over r/3) or "dr" (regressed; ablation).
+    x_mode: "sum" (paper, the ablation's "Sum1"), "sum2", "dr" or "max" (ablation, see
+      `lrf_jax.frames.ablation`; "max" has no gradient and reuses weights trained for "sum").
     noise_mr: augmentation beyond the paper: Gaussian noise (in mr) added to the scene side, as
       a list to draw from per batch; () = none (the paper).
     val_pairs: number of Stanford bunny scan pairs used for validation (0 disables).
@@ -52,6 +54,7 @@ class TrainConfig:
   lr_decay: float = 0.95
   loss_reduction: str = "min"
   widths: tuple[int, ...] = (16, 32, 64)
+  z_mode: str = "normal"
   x_mode: str = "sum"
   noise_mr: tuple[float, ...] = ()
   val_pairs: int = 9
@@ -61,7 +64,7 @@ class TrainConfig:
 
   # Fields that change the shape or meaning of the parameters: a checkpoint written under other
   # values cannot be resumed.
-  MODEL_FIELDS = ("widths", "x_mode")
+  MODEL_FIELDS = ("widths", "z_mode", "x_mode")
 
   def __post_init__(self):
     if self.data not in ("br", "demo"):
@@ -69,8 +72,11 @@ class TrainConfig:
     if self.loss_reduction not in ("min", "max", "sum"):
       raise ValueError(f"config.loss_reduction: expected 'min', 'max' or 'sum', got "
                        f"{self.loss_reduction!r}")
-    if self.x_mode not in ("sum", "max"):
-      raise ValueError(f"config.x_mode: expected 'sum' or 'max', got {self.x_mode!r}")
+    if self.x_mode not in ("sum", "sum2", "dr", "max"):
+      raise ValueError(f"config.x_mode: expected 'sum', 'sum2', 'dr' or 'max', got "
+                       f"{self.x_mode!r}")
+    if self.z_mode not in ("normal", "dr"):
+      raise ValueError(f"config.z_mode: expected 'normal' or 'dr', got {self.z_mode!r}")
     for f in ("num_train_keypoints", "patch_k", "batch_size", "epochs"):
       if getattr(self, f) < 1:
         raise ValueError(f"config.{f}: expected a positive integer, got {getattr(self, f)!r}")

@@ -68,7 +68,7 @@ def to_frame(offsets: jax.Array, frames: jax.Array) -> jax.Array:
 
 
 def siamese_loss(params: Params, model: Patches, scene: Patches, *, reduction: str = "min",
-                 x_mode: str = "sum") -> tuple[jax.Array, dict[str, jax.Array]]:
+                 x_mode: str = "sum", frames_fn=None) -> tuple[jax.Array, dict[str, jax.Array]]:
   """The LRF-Net training loss (eq. `eq_loss`) over a batch of corresponding patch pairs.
 
   Both streams share `params`. Pairs where either frame is invalid are left out of the mean.
@@ -79,13 +79,17 @@ def siamese_loss(params: Params, model: Patches, scene: Patches, *, reduction: s
     scene: `Patches` of the corresponding scene keypoints (N pairs).
     reduction: Chamfer reduction, see `chamfer`.
     x_mode: "sum" or "max" (see `lrf_net_frames`).
+    frames_fn: `(params, patches) -> (frames, valid)` replacing `lrf_net_frames` (ablation
+      variants); `x_mode` is then ignored.
 
   Returns:
     (loss, aux): the mean Chamfer distance over valid pairs (cloud units); aux holds
     `per_pair` (N,), `valid` (N,) and `valid_fraction` ().
   """
-  fm, vm = lrf_net_frames(params, model, x_mode=x_mode)
-  fs, vs = lrf_net_frames(params, scene, x_mode=x_mode)
+  if frames_fn is None:
+    frames_fn = lambda p, patches: lrf_net_frames(p, patches, x_mode=x_mode)  # noqa: E731
+  fm, vm = frames_fn(params, model)
+  fs, vs = frames_fn(params, scene)
   per_pair = batched_chamfer(to_frame(model.offsets, fm), model.mask,
                              to_frame(scene.offsets, fs), scene.mask, reduction)
   valid = vm & vs

@@ -100,8 +100,12 @@ def load_params(path: str | Path) -> Params:
     params = serialization.msgpack_restore(path.read_bytes())
   except Exception as e:  # msgpack raises several types on garbage
     raise ValueError(f"{path}: not a flax msgpack parameter file ({e})") from e
-  if not isinstance(params, dict) or "out" not in params or _num_enc(params) == 0:
-    raise ValueError(f"{path}: expected WeightNet parameters (enc*/dec*/out), got keys "
+  weightnet = isinstance(params, dict) and "out" in params and _num_enc(params) > 0
+  variant = (isinstance(params, dict) and params
+             and set(params) <= {"weights", "x_reg", "z_reg"})  # ablation variants
+  if not (weightnet or variant):
+    raise ValueError(f"{path}: expected WeightNet parameters (enc*/dec*/out) or ablation "
+                     f"parameters (weights/x_reg/z_reg), got keys "
                      f"{sorted(params) if isinstance(params, dict) else type(params)}")
   return jax.tree.map(jnp.asarray, params)
 
@@ -117,3 +121,31 @@ def default_params() -> Params:
   """The shipped LRF-Net weights (`lrf_jax/weights/lrf_net.msgpack`), or, while none are
   shipped, the seeded initialisation `init_params(0)`."""
   return _default_params_cached()
+
+
+class PointRegressor(nn.Module):
+  """PointNet-style direct regressor of one 3-vector from a padded point set (ablation "DR").
+
+  Per-point MLP (in -> 32 -> 64, ReLU), masked max pooling, MLP 64 -> 32 -> 3. The paper's DR
+  figure is lost; this is the smallest common design that can regress a direction.
+  """
+
+  @nn.compact
+  def __call__(self, feats: jax.Array, mask: jax.Array) -> jax.Array:
+    h = nn.relu(nn.Dense(32, name="p0")(feats))
+    h = nn.relu(nn.Dense(64, name="p1")(h))
+    h = jnp.max(jnp.where(mask[..., None], h, -1e9), axis=-2)
+    h = jnp.where(jnp.any(mask, axis=-1, keepdims=True), h, 0.0)
+    h = nn.relu(nn.Dense(32, name="g0")(h))
+    return nn.Dense(3, name="g1")(h)
+
+
+def init_regressor(seed: int, num_features: int) -> Params:
+  """Seeded parameters of `PointRegressor` for inputs with `num_features` per point."""
+  return PointRegressor().init(jax.random.key(seed), jnp.zeros((1, 4, num_features)),
+                               jnp.ones((1, 4), bool))["params"]
+
+
+def apply_regressor(params: Params, feats: jax.Array, mask: jax.Array) -> jax.Array:
+  """(..., K, F), (..., K) -> (..., 3)."""
+  return PointRegressor().apply({"params": params}, feats, mask)

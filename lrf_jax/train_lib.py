@@ -35,6 +35,7 @@ from jax.sharding import Mesh, NamedSharding, PartitionSpec as P
 
 from lrf_jax import metrics as metrics_lib
 from lrf_jax.config import TrainConfig
+from lrf_jax.frames.ablation import init_variant_params, variant_frames
 from lrf_jax.frames.lrf_net import lrf_net_frames
 from lrf_jax.losses import siamese_loss
 from lrf_jax.model import init_params, save_params
@@ -175,8 +176,25 @@ def make_optimizer(config: TrainConfig) -> optax.GradientTransformation:
   return optax.adam(schedule)
 
 
+def is_paper_model(config: TrainConfig) -> bool:
+  """True when the parameters are plain WeightNet parameters (`lrf_net_frames`)."""
+  return config.z_mode == "normal" and config.x_mode in ("sum", "max")
+
+
+def frames_fn(config: TrainConfig):
+  """`(params, patches) -> (frames, valid)` for the config's model (LRF-Net or an ablation)."""
+  if is_paper_model(config):
+    return lambda p, patches: lrf_net_frames(p, patches, x_mode=config.x_mode)
+  x_mode = "sum1" if config.x_mode == "sum" else config.x_mode
+  return lambda p, patches: variant_frames(p, patches, z_mode=config.z_mode, x_mode=x_mode)
+
+
 def create_state(config: TrainConfig) -> TrainState:
-  params = init_params(config.seed, widths=config.widths)
+  if is_paper_model(config):
+    params = init_params(config.seed, widths=config.widths)
+  else:
+    x_mode = "sum1" if config.x_mode == "sum" else config.x_mode
+    params = init_variant_params(config.seed, config.z_mode, x_mode, config.widths)
   return TrainState.create(apply_fn=None, params=params, tx=make_optimizer(config))
 
 
@@ -187,7 +205,7 @@ def make_train_step(config: TrainConfig):
 
   def loss_fn(params, batch: Batch):
     return siamese_loss(params, batch.model, batch.scene, reduction=config.loss_reduction,
-                        x_mode=config.x_mode)
+                        frames_fn=frames_fn(config))
 
   def train_step(state: TrainState, batch: Batch):
     (loss, aux), grads = jax.value_and_grad(loss_fn, has_aux=True)(state.params, batch)
@@ -227,9 +245,11 @@ def build_validation(pairs: list[Any], config: TrainConfig) -> ValidationSet:
   return ValidationSet(names, pm, ps, rots)
 
 
-def validate(params, val: ValidationSet, x_mode: str = "sum") -> dict[str, float]:
-  """Mean MeanCos over validation pairs (per pair first), and per pair."""
-  fn = jax.jit(lambda p, patches: lrf_net_frames(p, patches, x_mode=x_mode))
+def validate(params, val: ValidationSet, fn=None) -> dict[str, float]:
+  """Mean MeanCos over validation pairs (per pair first), and per pair.
+
+  `fn(params, patches) -> (frames, valid)` defaults to `lrf_net_frames`."""
+  fn = jax.jit(fn or lrf_net_frames)
   per_pair = {}
   for name, pm, ps, rot in zip(val.names, val.model, val.scene, val.rotations):
     fm, vm = fn(params, jax.tree.map(jnp.asarray, pm))
@@ -368,7 +388,7 @@ def train_and_evaluate(config: TrainConfig, workdir: str | Path, *,
                pairs_per_s=pairs_since / max(now - t_last, 1e-9))
       t_last, pairs_since = now, 0
       if end_of_epoch and val is not None:
-        m.update(validate(state.params, val, config.x_mode))
+        m.update(validate(state.params, val, frames_fn(config)))
       _append_jsonl(log_path, m)
       last = m
       bar.set_postfix(loss=f"{m['loss']:.4g}", val=f"{m.get('val_meancos', float('nan')):.3f}")

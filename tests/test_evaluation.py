@@ -88,3 +88,17 @@ def test_mesh_method_on_cloud_is_reported_na(demo_pair):
   rec = evaluate_pair(cloud, [MethodRun(needs_mesh[0], needs_mesh[0])], experiment="t",
                       n_keypoints=20)[0]
   assert rec["meancos"] is None and rec["note"].startswith("n/a")
+
+
+def test_ablation_variants_load_and_normal_sum1_is_equivariant():
+  """Shipped ablation weights load; the invariant variants are rotation equivariant and the
+  raw-coordinate ones (Sum2, DR) are not, which is what the paper's rotation experiment shows."""
+  from lrf_jax.evaluation.experiments import ablation_runs
+  runs = {r.label: r for r in ablation_runs()}
+  assert len(runs) == 8
+  pair = datasets.make_demo_pair(0, seed=0, partial=False)
+  recs = {r["method"]: r["meancos"] for r in evaluate_pair(
+      pair, [runs["Normal+Sum1"], runs["Normal+Max"], runs["Normal+Sum2"], runs["DR+DR"]],
+      experiment="t", n_keypoints=100, scene_first=False)}
+  assert recs["Normal+Sum1"] > 0.999 and recs["Normal+Max"] > 0.999
+  assert recs["Normal+Sum2"] < 0.99 and recs["DR+DR"] < 0.9

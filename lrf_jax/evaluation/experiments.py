@@ -18,7 +18,25 @@ NOISE_LEVELS = (0.1, 0.2, 0.3, 0.4, 0.5)
 DECIMATIONS = (1 / 2, 1 / 4, 1 / 8, 1 / 16)
 RADII_MR = (5.0, 7.5, 10.0, 12.5, 15.0, 20.0, 25.0)
 ROTATIONS_DEG = (30.0, 60.0, 90.0, 120.0)
-EXPERIMENTS = ("repeatability", "noise", "decimation", "radius", "rotation")
+EXPERIMENTS = ("repeatability", "noise", "decimation", "radius", "rotation", "ablation")
+ABLATION_Z = ("Normal", "DR")
+ABLATION_X = ("Sum1", "Sum2", "DR", "Max")
+
+
+def ablation_runs() -> list[MethodRun]:
+  """The 8 variants of the paper's section 3.3 with the shipped ablation weights
+  (lrf_jax/weights/ablation/, reduced schedule); "Max" reuses the Sum1 weights of its z."""
+  from lrf_jax.model import WEIGHTS_DIR, load_params
+
+  runs = []
+  for z in ABLATION_Z:
+    for x in ABLATION_X:
+      file_x = {"Sum1": "sum", "Sum2": "sum2", "DR": "dr", "Max": "sum"}[x]
+      params = load_params(WEIGHTS_DIR / "ablation" / f"{z.lower()}_{file_x}.msgpack")
+      runs.append(MethodRun(f"{z}+{x}", "lrf_net_variant", params=params,
+                            options=(("x_mode", x.lower() if x != "Sum1" else "sum1"),
+                                     ("z_mode", z.lower()))))
+  return runs
 
 
 @dataclasses.dataclass(frozen=True)
@@ -104,6 +122,13 @@ def run_experiment(name: str, dataset_names: list[str], methods: list[MethodRun]
                                          radius_mr=opts.radius_mr, **common), ds)
     return
   clean = sorted({_clean_name(ds) for ds in dataset_names} - {None})
+  if name == "ablation":  # the paper's tables: noise-free BR, UWA3M, UWAOR
+    runs = ablation_runs()
+    for ds in clean:
+      for pair in _limit(CLEAN[ds](opts.data_root, opts.seed), opts):
+        yield from _tagged(evaluate_pair(pair, runs, experiment=name, setting={},
+                                         radius_mr=opts.radius_mr, **common), ds)
+    return
   for ds in clean:
     pairs = _limit(CLEAN[ds](opts.data_root, opts.seed), opts)
     for pair in pairs:

@@ -95,10 +95,34 @@ def markdown_report(records: list[dict[str, Any]], *, title: str = "lrf_jax eval
       n_pairs = max(v["n_pairs"] for v in by_method.values())
       lines.append(f"| {ds} | {setting} | {n_pairs} | " + " | ".join(cells) + " |")
     lines.append("")
+  abl = summary_ablation(summary)
+  if abl:
+    lines += ["## ablation: ours vs the paper's tables (MeanCos)", "",
+              "| dataset | z \\ x | Sum1 | Sum2 | DR | Max |", "|---|---|---:|---:|---:|---:|"]
+    for ds, table in abl.items():
+      paper = PAPER_ABLATION.get(ds, {})
+      for z in ("Normal", "DR"):
+        cells = []
+        for x in ("Sum1", "Sum2", "DR", "Max"):
+          ours = table.get(f"{z}+{x}")
+          ref = paper.get(z, {}).get(x)
+          cells.append(("—" if ours is None else f"{ours:.3f}") +
+                       ("" if ref is None else f" (paper {ref:.3f})"))
+        lines.append(f"| {ds} | {z} | " + " | ".join(cells) + " |")
+    lines.append("")
   lines += ["MeanCos = (cos x + cos z) / 2 averaged over keypoints per pair, then over pairs; "
             "invalid frames count as 0; in parentheses the fraction of keypoints above 0.97. "
             "Bold: best in the row.", ""]
   return "\n".join(lines)
+
+
+def summary_ablation(summary) -> dict[str, dict[str, float]]:
+  """{dataset: {"Normal+Sum1": meancos, ...}} for the ablation experiment."""
+  out: dict[str, dict[str, float]] = {}
+  for (exp, ds, _), by_method in summary.items():
+    if exp == "ablation":
+      out[ds] = {m: v["meancos"] for m, v in by_method.items() if v.get("meancos") is not None}
+  return out
 
 
 def write_results(records: list[dict[str, Any]], out: Path, *, notes: list[str] | None = None,

@@ -71,6 +71,17 @@ def register(spec: MethodSpec) -> MethodSpec:
 register(MethodSpec(
     "lrf_net", _lrf_net, default_k=256, needs_params=True,
     description="LRF-Net (Zhu et al.): TOLDI z over r/3, learned per-point weights for x"))
+def _variant(patches, extra, *, params, z_mode: str = "normal", x_mode: str = "sum1"):
+  del extra
+  from lrf_jax.frames.ablation import variant_frames
+  if not any(k in params for k in ("weights", "x_reg", "z_reg")):
+    params = {"weights": params}  # plain LRF-Net parameters
+  return variant_frames(params, patches, z_mode=z_mode, x_mode=x_mode)
+
+
+register(MethodSpec(
+    "lrf_net_variant", _variant, default_k=256, needs_params=True,
+    description="LRF-Net ablation variants (options z_mode: normal/dr, x_mode: sum1/sum2/dr/max)"))
 register(MethodSpec(
     "uniform", _uniform, default_k=256,
     description="LRF-Net's construction with uniform weights (w = 1): the learned weights' baseline"))

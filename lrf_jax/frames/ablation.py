@@ -1,0 +1,78 @@
+"""The paper's 8-way ablation (section 3.3, tables analyse_BR/_UWA3M/_UWAOR) as one function.
+
+z-axis: "normal" (the TOLDI normal over r/3, as LRF-Net) or "dr" (regressed by a PointNet from
+the raw offsets q_i / r).
+x-axis, given z:
+  "sum1" LRF-Net: weights from the invariant attributes (|pq|/r, cos(z, pq)), weighted vector sum;
+  "sum2" weights from the raw [q_i / r, z] (6 numbers, not rotation invariant), vector sum;
+  "dr"   x regressed directly by a PointNet from [q_i / r, z], projected on the tangent plane;
+  "max"  the tangent projection of the neighbour with the largest Sum1 weight (no gradient
+         through the argmax, so it reuses weights trained for "sum1").
+(normal, sum1) is exactly `lrf_net_frames`. Parameters are a dict with the parts a variant uses:
+"weights" (WeightNet), "z_reg" / "x_reg" (PointRegressor).
+"""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+
+from lrf_jax import geometry
+from lrf_jax.frames.lrf_net import (attributes, frame_from_weights, sanitize, z_axes)
+from lrf_jax.model import (Params, apply_regressor, apply_weights, init_params, init_regressor)
+from lrf_jax.neighborhoods import Patches
+
+Z_MODES = ("normal", "dr")
+X_MODES = ("sum1", "sum2", "dr", "max")
+
+
+def check_modes(z_mode: str, x_mode: str) -> None:
+  if z_mode not in Z_MODES:
+    raise ValueError(f"z_mode: expected one of {Z_MODES}, got {z_mode!r}")
+  if x_mode not in X_MODES:
+    raise ValueError(f"x_mode: expected one of {X_MODES}, got {x_mode!r}")
+
+
+def init_variant_params(seed: int, z_mode: str, x_mode: str,
+                        widths: tuple[int, ...] = (16, 32, 64)) -> dict[str, Params]:
+  """Seeded parameters of one ablation variant."""
+  check_modes(z_mode, x_mode)
+  params = {}
+  if x_mode in ("sum1", "max"):
+    params["weights"] = init_params(seed, 2, widths)
+  elif x_mode == "sum2":
+    params["weights"] = init_params(seed, 6, widths)
+  else:
+    params["x_reg"] = init_regressor(seed + 1, 6)
+  if z_mode == "dr":
+    params["z_reg"] = init_regressor(seed + 2, 3)
+  return params
+
+
+def variant_frames(params: dict[str, Params], patches: Patches, *, z_mode: str = "normal",
+                   x_mode: str = "sum1") -> tuple[jax.Array, jax.Array]:
+  """Frames of an ablation variant for a batch of patches: (N, 3, 3) rows x, y, z; (N,) valid."""
+  check_modes(z_mode, x_mode)
+  patches, finite = sanitize(patches)
+  rel = patches.offsets / patches.radius[:, None, None]
+  if z_mode == "normal":
+    z, z_ok = z_axes(patches)
+  else:
+    z, z_ok = geometry.safe_normalize(apply_regressor(params["z_reg"], rel, patches.mask))
+  z_ok = z_ok & finite
+  if x_mode == "dr":
+    feats = jnp.concatenate([rel, jnp.broadcast_to(z[:, None, :], rel.shape)], axis=-1)
+    x_raw = apply_regressor(params["x_reg"], feats, patches.mask)
+    frames, ok = jax.vmap(geometry.frame_from_zx)(z, x_raw)
+    valid = z_ok & ok
+    return geometry.identity_where_invalid(frames, valid), valid
+  if x_mode == "sum2":
+    feats = jnp.concatenate([rel, jnp.broadcast_to(z[:, None, :], rel.shape)], axis=-1)
+    w = apply_weights(params["weights"], feats)
+  else:
+    w = apply_weights(params["weights"],
+                      jax.vmap(attributes)(patches.offsets, z, patches.radius))
+  if x_mode == "max":
+    idx = jnp.argmax(jnp.where(patches.mask, w, -jnp.inf), axis=-1)
+    w = jax.nn.one_hot(idx, w.shape[-1], dtype=w.dtype)
+  return jax.vmap(frame_from_weights)(patches.offsets, patches.mask, z, z_ok, w)

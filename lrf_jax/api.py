@@ -41,6 +41,15 @@ def frames_from_patches(patches: Patches, method: str = "lrf_net", *, params: An
   if spec.needs_params and params is None:
     params = default_params()
   fn = _jitted(method, tuple(sorted(options.items())))
+  n_dev = jax.local_device_count()
+  if n_dev > 1 and patches.offsets.shape[0] % n_dev == 0:
+    # Keypoints are independent: shard them over the local devices' "data" axis, replicate
+    # the parameters; XLA partitions the jitted function accordingly.
+    mesh = jax.make_mesh((n_dev,), ("data",), axis_types=(jax.sharding.AxisType.Auto,))
+    shard = jax.sharding.NamedSharding(mesh, jax.sharding.PartitionSpec("data"))
+    patches = jax.device_put(patches, shard)
+    extra = None if extra is None else jax.device_put(extra, shard)
+    return fn(patches, extra, params)
   return fn(jax.tree.map(jnp.asarray, patches), extra, params)
 
 
@@ -84,7 +93,7 @@ def compute_frames(
     faces: (f, 3) triangle indices, for mesh methods.
     normals: (n, 3) per-point normals, for methods that use them.
     chunk_size: keypoints per jitted call (bounds memory: about chunk_size x K x 16 bytes of
-      patches at a time).
+      patches at a time). With several local devices, each chunk is sharded over them.
     progress: show a progress bar over chunks (default: when there are more than 4 chunks).
     **options: method options (e.g. `x_mode`, `signed`).
 
@@ -117,7 +126,8 @@ def compute_frames(
     return jnp.zeros((0, 3, 3), jnp.float32), jnp.zeros((0,), bool)
 
   index = SearchIndex(points, seed)
-  chunk = min(int(chunk_size), m)
+  n_dev = jax.local_device_count()
+  chunk = min(int(chunk_size), -(-m // n_dev) * n_dev)  # a multiple of the devices: shardable
   frames_out, valid_out = [], []
   starts = range(0, m, chunk)
   if progress or (progress is None and len(starts) > 4):

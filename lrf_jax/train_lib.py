@@ -311,7 +311,8 @@ def _state_target(state: TrainState) -> dict[str, Any]:
 
 
 def _mesh() -> Mesh:
-  return jax.make_mesh((jax.device_count(),), ("data",))
+  return jax.make_mesh((jax.device_count(),), ("data",),
+                       axis_types=(jax.sharding.AxisType.Auto,))
 
 
 def train_and_evaluate(config: TrainConfig, workdir: str | Path, *,

@@ -27,11 +27,11 @@ class DatasetInfo:
 DATASETS: dict[str, DatasetInfo] = {
     info.folder: info for info in (
         DatasetInfo(
-            "bologna_retrieval", "Bologna retrieval (BR): 6 Stanford models, 18 scenes x 3 noise "
-            "levels",
+            "bologna_retrieval",
+            "Bologna retrieval (BR): 6 Stanford models, 18 scenes x 3 noise levels",
             "Tombari et al. 3D keypoint benchmark 'Retrieval' set; copy in "
-            "github.com/tolgabirdal/ppf_matching (data/Stanford/<model>/*_0.ply -> models/<model>/, "
-            "data/Retrieval1/* -> scenes/)"),
+            "github.com/tolgabirdal/ppf_matching (data/Stanford/<model>/*_0.ply -> "
+            "models/<model>/, data/Retrieval1/* -> scenes/)"),
         DatasetInfo(
             "uwa_object_recognition", "UWA object recognition (UWAOR): models, ground truth, "
             "scene rs1",

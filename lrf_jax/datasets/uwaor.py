@@ -50,7 +50,7 @@ _OCCLUSION_NAMES = {"chef": "chef", "chicken": "chicken", "para": "parasauroloph
 SceneVariant = Literal["full", "pcd", "downsampled"]
 
 
-def _folder(root):
+def _folder(root: str | os.PathLike | None) -> Path:
   return dataset_dir(FOLDER, root)
 
 

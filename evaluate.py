@@ -80,6 +80,11 @@ def main(argv=None) -> None:
   evaluation.write_results(records, out, notes=notes, meta={
       "args": vars(args), "seconds": time.perf_counter() - t0,
       "patch_cache": {"hits": cache.hits, "misses": cache.misses}})
+  lrf = next((r for r in runs if r.method == "lrf_net"), None)
+  if lrf is not None:  # the paper's weight visualisation, on the first dataset's first pair
+    from lrf_jax.evaluation.experiments import DATASETS as _D
+    first = _D[ok[0]][0](args.data, args.seed)[0]
+    evaluation.report.weights_figure(first, lrf.params, out, radius_mr=args.radius_mr)
   print(evaluation.markdown_report(records, notes=notes))
   print(f"wrote {out / 'results.json'}, {out / 'report.md'} and figures "
         f"({time.perf_counter() - t0:.0f} s)")

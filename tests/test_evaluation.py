@@ -102,3 +102,9 @@ def test_ablation_variants_load_and_normal_sum1_is_equivariant():
       experiment="t", n_keypoints=100, scene_first=False)}
   assert recs["Normal+Sum1"] > 0.999 and recs["Normal+Max"] > 0.999
   assert recs["Normal+Sum2"] < 0.99 and recs["DR+DR"] < 0.9
+
+
+def test_weights_figure_renders(tmp_path, demo_pair):
+  from lrf_jax.evaluation.report import weights_figure
+  path = weights_figure(demo_pair, lrf_jax.init_params(0), tmp_path, n=2)
+  assert path.stat().st_size > 5000

@@ -216,3 +216,25 @@ def plot_weights(patches_xyz: list[np.ndarray], weights: list[np.ndarray], frame
   fig.savefig(path, dpi=120)
   plt.close(fig)
   return path
+
+
+def weights_figure(pair: Any, params: Any, out: Path, *, n: int = 4, radius_mr: float = 15.0,
+                   seed: int = 0) -> Path:
+  """The paper's weight visualisation: `n` model patches of `pair` in their LRF-Net frames with
+  every neighbour coloured by its learned weight (figure `fig_weight`)."""
+  import jax
+  import jax.numpy as jnp
+
+  from lrf_jax.datasets import repeatability_keypoints
+  from lrf_jax.frames.lrf_net import frames_with_weight_fn, lrf_net_weights
+  from lrf_jax.model import default_params
+  from lrf_jax.neighborhoods import build_patches
+
+  params = default_params() if params is None else params
+  mi, _ = repeatability_keypoints(pair, n, seed)
+  patches = build_patches(pair.model_points, mi, radius_mr * pair.mr, 256, seed=seed)
+  frames, valid, w = frames_with_weight_fn(jax.tree.map(jnp.asarray, patches),
+                                           lrf_net_weights(params))
+  xyz = [patches.offsets[i][patches.mask[i]] for i in range(len(mi))]
+  ws = [np.asarray(w[i])[patches.mask[i]] for i in range(len(mi))]
+  return plot_weights(xyz, ws, [np.asarray(f) for f in frames], out)

@@ -50,7 +50,8 @@ def main(argv=None) -> None:
   if not ok:
     ok = ["demo"]
     notes.append("no real data found: ran on the procedural demo set (synthetic, labelled)")
-  runs = [evaluation.MethodRun(m, m) for m in (args.methods or list(lrf_jax.METHODS))]
+  default_methods = [m for m in lrf_jax.METHODS if m != "lrf_net_variant"]  # needs its params
+  runs = [evaluation.MethodRun(m, m) for m in (args.methods or default_methods)]
   if args.checkpoint:
     from lrf_jax.train_lib import restore_params
     best, cfg = restore_params(args.checkpoint, "best")

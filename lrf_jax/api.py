@@ -39,7 +39,7 @@ def frames_from_patches(patches: Patches, method: str = "lrf_net", *, params: An
   """
   spec = _spec(method)
   if spec.needs_params and params is None:
-    params = default_params()
+    params = default_params(spec.weights)
   fn = _jitted(method, tuple(sorted(options.items())))
   n_dev = jax.local_device_count()
   if n_dev > 1 and patches.offsets.shape[0] % n_dev == 0:
@@ -120,7 +120,7 @@ def compute_frames(
   if k == "default":
     k = spec.default_k
   if spec.needs_params and params is None:
-    params = default_params()
+    params = default_params(spec.weights)
   m = keypoints.shape[0]
   if m == 0:
     return jnp.zeros((0, 3, 3), jnp.float32), jnp.zeros((0,), bool)

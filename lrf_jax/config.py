@@ -31,6 +31,8 @@ class TrainConfig:
     loss_reduction: Chamfer form, "min" (eq. eq_cham, the paper), "max" or "sum".
     widths: encoder widths of the weight network.
     z_mode: "normal" (paper: the TOLDI normal over r/3) or "dr" (regressed; ablation).
+    z_sign: "toldi" (paper: sign from the r/3 neighbours) or "ball" (sign over the whole
+      support; lrf_net_plus, beyond the paper).
     x_mode: "sum" (paper, the ablation's "Sum1"), "sum2", "dr" or "max" (ablation, see
       `lrf_jax.frames.ablation`; "max" has no gradient and reuses weights trained for "sum").
     noise_mr: augmentation beyond the paper: Gaussian noise (in mr) added to the scene side, as
@@ -55,6 +57,7 @@ class TrainConfig:
   loss_reduction: str = "min"
   widths: tuple[int, ...] = (16, 32, 64)
   z_mode: str = "normal"
+  z_sign: str = "toldi"
   x_mode: str = "sum"
   noise_mr: tuple[float, ...] = ()
   val_pairs: int = 9
@@ -64,7 +67,7 @@ class TrainConfig:
 
   # Fields that change the shape or meaning of the parameters: a checkpoint written under other
   # values cannot be resumed.
-  MODEL_FIELDS = ("widths", "z_mode", "x_mode")
+  MODEL_FIELDS = ("widths", "z_mode", "z_sign", "x_mode")
 
   def __post_init__(self):
     if self.data not in ("br", "demo"):
@@ -75,6 +78,8 @@ class TrainConfig:
     if self.x_mode not in ("sum", "sum2", "dr", "max"):
       raise ValueError(f"config.x_mode: expected 'sum', 'sum2', 'dr' or 'max', got "
                        f"{self.x_mode!r}")
+    if self.z_sign not in ("toldi", "ball"):
+      raise ValueError(f"config.z_sign: expected 'toldi' or 'ball', got {self.z_sign!r}")
     if self.z_mode not in ("normal", "dr"):
       raise ValueError(f"config.z_mode: expected 'normal' or 'dr', got {self.z_mode!r}")
     for f in ("num_train_keypoints", "patch_k", "batch_size", "epochs"):

@@ -110,17 +110,19 @@ def load_params(path: str | Path) -> Params:
   return jax.tree.map(jnp.asarray, params)
 
 
-@functools.lru_cache(maxsize=1)
-def _default_params_cached() -> Params:
-  if DEFAULT_WEIGHTS.exists():
-    return load_params(DEFAULT_WEIGHTS)
+@functools.lru_cache(maxsize=8)
+def _default_params_cached(name: str) -> Params:
+  path = WEIGHTS_DIR / f"{name}.msgpack"
+  if path.exists():
+    return load_params(path)
   return init_params(0)
 
 
-def default_params() -> Params:
-  """The shipped LRF-Net weights (`lrf_jax/weights/lrf_net.msgpack`), or, while none are
-  shipped, the seeded initialisation `init_params(0)`."""
-  return _default_params_cached()
+def default_params(name: str = "lrf_net") -> Params:
+  """The shipped weights `lrf_jax/weights/<name>.msgpack` ("lrf_net": the paper's model trained
+  with the default config; "lrf_net_plus": see that method), or, where none are shipped, the
+  seeded initialisation `init_params(0)`."""
+  return _default_params_cached(name)
 
 
 class PointRegressor(nn.Module):

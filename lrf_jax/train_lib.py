@@ -184,7 +184,8 @@ def is_paper_model(config: TrainConfig) -> bool:
 def frames_fn(config: TrainConfig):
   """`(params, patches) -> (frames, valid)` for the config's model (LRF-Net or an ablation)."""
   if is_paper_model(config):
-    return lambda p, patches: lrf_net_frames(p, patches, x_mode=config.x_mode)
+    return lambda p, patches: lrf_net_frames(p, patches, x_mode=config.x_mode,
+                                             z_sign=config.z_sign)
   x_mode = "sum1" if config.x_mode == "sum" else config.x_mode
   return lambda p, patches: variant_frames(p, patches, z_mode=config.z_mode, x_mode=x_mode)
 

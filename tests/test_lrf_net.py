@@ -252,3 +252,21 @@ def test_methods_registry_lists_lrf_net():
   f = lrf_jax.geometry.frame_from_zx(jnp.array([0, 0, 1.0]), jnp.array([1.0, 1.0, 5.0]))[0]
   np.testing.assert_allclose(f, [[np.sqrt(.5), np.sqrt(.5), 0], [-np.sqrt(.5), np.sqrt(.5), 0],
                                  [0, 0, 1]], atol=1e-6)
+
+
+def test_lrf_net_plus_equivariant_and_ball_sign_rule(bunny):
+  """lrf_net_plus: rotation equivariant; z oriented so that Σ (p - q_i)·z >= 0 over the patch."""
+  pts, kp, r, _ = bunny
+  rot = random_rotation(11)
+  f, v = lrf_jax.compute_frames(pts, kp, r, "lrf_net_plus", params=PARAMS)
+  g, w = lrf_jax.compute_frames(pts @ rot.T - 2.0, kp, r, "lrf_net_plus", params=PARAMS)
+  f, v, g, w = map(np.asarray, (f, v, g, w))
+  assert equivariance_deficit(f, g, rot, v, w).mean() < 1e-4
+  assert_frames_orthonormal(f, v)
+  p = build_patches(pts, kp, r, 256)
+  for n in np.flatnonzero(v):
+    off = p.offsets[n][p.mask[n]]
+    assert np.sum(-off @ f[n, 2]) >= 0
+  # it is a different rule from TOLDI's r/3 one: on some keypoints the two disagree
+  t, _ = lrf_jax.compute_frames(pts, kp, r, "lrf_net", params=PARAMS)
+  assert np.any(np.sum(np.asarray(t)[:, 2] * f[:, 2], axis=-1) < 0)

@@ -32,6 +32,8 @@ class MethodSpec:
     prepare: optional host-side hook `prepare(points, keypoints, patches, faces=..., normals=...)`
       returning a pytree of per-keypoint arrays (leading axis N) fed to `fn` as `extra`.
     description: one line for `lrf_jax.METHODS` listings.
+    weights: name of the shipped parameter file used when no params are given
+      (`lrf_jax/weights/<weights>.msgpack`).
   """
 
   name: str
@@ -42,6 +44,7 @@ class MethodSpec:
   needs_mesh: bool = False
   prepare: Callable[..., Any] | None = None
   description: str = ""
+  weights: str = "lrf_net"
 
 
 def _lrf_net(patches, extra, *, params, x_mode: str = "sum"):
@@ -49,9 +52,14 @@ def _lrf_net(patches, extra, *, params, x_mode: str = "sum"):
   return lrf_net_frames(params, patches, x_mode=x_mode)
 
 
-def _uniform(patches, extra):
+def _uniform(patches, extra, *, z_sign: str = "toldi"):
   del extra
-  return uniform_frames(patches)
+  return uniform_frames(patches, z_sign=z_sign)
+
+
+def _lrf_net_plus(patches, extra, *, params, x_mode: str = "sum"):
+  del extra
+  return lrf_net_frames(params, patches, x_mode=x_mode, z_sign="ball")
 
 
 def _toldi(patches, extra, *, signed: bool = True):
@@ -82,6 +90,10 @@ def _variant(patches, extra, *, params, z_mode: str = "normal", x_mode: str = "s
 register(MethodSpec(
     "lrf_net_variant", _variant, default_k=256, needs_params=True,
     description="LRF-Net ablation variants (options z_mode: normal/dr, x_mode: sum1/sum2/dr/max)"))
+register(MethodSpec(
+    "lrf_net_plus", _lrf_net_plus, default_k=256, needs_params=True, weights="lrf_net_plus",
+    description="Beyond the paper: LRF-Net with the z sign taken over the whole support "
+                "(ball_sign) and weights trained with noise augmentation (weights/lrf_net_plus)"))
 register(MethodSpec(
     "uniform", _uniform, default_k=256,
     description="LRF-Net's construction with uniform weights (w = 1): the learned weights' baseline"))

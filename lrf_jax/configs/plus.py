@@ -1,0 +1,16 @@
+"""Beyond the paper (lrf_net_plus): z sign over the whole support (`z_sign="ball"`) and noise
+augmentation (0-0.5 mr on the scene side), on the reduced schedule of the ablation preset (5
+epochs of 10,000 BR keypoints). Switch either off with overrides to measure its share:
+
+    LRF_DATA=... python train.py --config plus --workdir runs/plus
+    LRF_DATA=... python train.py --config plus --workdir runs/plus_noaug noise_mr=
+"""
+
+import dataclasses
+
+from lrf_jax.configs import ablation
+
+
+def get_config():
+  return dataclasses.replace(ablation.get_config(), name="plus", z_sign="ball",
+                             noise_mr=(0.0, 0.1, 0.2, 0.3, 0.4, 0.5))

@@ -34,7 +34,8 @@ def main(argv=None) -> None:
                   help="a train.py workdir: its best checkpoint is 'lrf_net', its final "
                        "parameters 'lrf_net[final]' (default: the shipped weights)")
   ap.add_argument("--params", nargs="+", default=[], metavar="LABEL=PATH",
-                  help="extra lrf_net columns from parameter files (.msgpack), e.g. mine=w.msgpack")
+                  help="extra learned columns from parameter files: LABEL=PATH[@METHOD] (METHOD "
+                       "defaults to lrf_net), e.g. mine=w.msgpack or p=w.msgpack@lrf_net_plus")
   ap.add_argument("--keypoints", type=int, default=1000, help="keypoints per pair (paper: 1000)")
   ap.add_argument("--max-pairs", type=int, default=None, help="at most N pairs per dataset")
   ap.add_argument("--radius-mr", type=float, default=15.0)
@@ -63,9 +64,10 @@ def main(argv=None) -> None:
                  "lrf_net[final]: its latest")
   for item in args.params:
     label, sep, path = item.partition("=")
+    path, _, method = path.partition("@")
     if not sep:
-      raise SystemExit(f"--params: expected LABEL=PATH, got {item!r}")
-    runs.append(evaluation.MethodRun(label, "lrf_net", params=lrf_jax.load_params(path)))
+      raise SystemExit(f"--params: expected LABEL=PATH[@METHOD], got {item!r}")
+    runs.append(evaluation.MethodRun(label, method or "lrf_net", params=lrf_jax.load_params(path)))
   opts = evaluation.EvalOptions(data_root=args.data, n_keypoints=args.keypoints, seed=args.seed,
                                 radius_mr=args.radius_mr, max_pairs=args.max_pairs)
   cache = evaluation.PatchCache(args.cache_dir)

@@ -45,3 +45,15 @@ def test_shipped_weights_beat_toldi_on_noisy_br(data_root, noise):
     for rec in evaluate_pair(pair, runs, experiment="t", n_keypoints=300):
       got[rec["method"]].append(rec["meancos"])
   assert np.mean(got["lrf_net"]) > np.mean(got["toldi"]), got
+
+
+def test_lrf_net_plus_beats_lrf_net_and_uniform_on_noisy_br(data_root):
+  """The z sign over the support (lrf_net_plus) removes most z flips on noisy BR."""
+  runs = [MethodRun(m, m) for m in ("lrf_net_plus", "lrf_net", "uniform")]
+  got = {r.label: [] for r in runs}
+  for scene in (0, 3, 5):
+    pair = datasets.load_br_pair(scene, 0.5, data_root)
+    for rec in evaluate_pair(pair, runs, experiment="t", n_keypoints=300):
+      got[rec["method"]].append(rec["meancos"])
+  mean = {k: np.mean(v) for k, v in got.items()}
+  assert mean["lrf_net_plus"] > mean["uniform"] > mean["lrf_net"], mean

@@ -38,7 +38,8 @@ def main() -> None:
   ap.add_argument("--data", default=os.environ.get("LRF_DATA"))
   ap.add_argument("--model", default="dragon")
   ap.add_argument("--counts", type=int, nargs="+", default=[1000, 10000, 100000])
-  ap.add_argument("--methods", nargs="+", default=["lrf_net", "toldi", "shot"])
+  ap.add_argument("--methods", nargs="+", default=["lrf_net", "lrf_net:lut", "toldi", "shot"],
+                  help="registry names; NAME:lut reads the weights from a 257x257 table")
   ap.add_argument("--no-pcl", action="store_true")
   args = ap.parse_args()
   mesh = datasets.load_br_model(args.model, args.data)
@@ -60,13 +61,15 @@ def main() -> None:
       pcl_ok = False
   for m in args.counts:
     kp = rng.choice(len(pts), m, replace=m > len(pts))
-    for method in args.methods:
-      lrf_jax.compute_frames(pts, kp[:min(m, 4096)], r, method, progress=False)  # compile
+    for label in args.methods:
+      method, _, lut = label.partition(":")
+      opts = {"lut": 257} if lut else {}
+      lrf_jax.compute_frames(pts, kp[:min(m, 4096)], r, method, progress=False, **opts)
       t0 = time.perf_counter()
-      f, _ = lrf_jax.compute_frames(pts, kp, r, method, progress=False)
+      f, _ = lrf_jax.compute_frames(pts, kp, r, method, progress=False, **opts)
       f.block_until_ready()
       dt = time.perf_counter() - t0
-      print(f"| {m} | {method} | {m / dt:,.0f} | {dt:.2f} | {_rss_mb():,.0f} |", flush=True)
+      print(f"| {m} | {label} | {m / dt:,.0f} | {dt:.2f} | {_rss_mb():,.0f} |", flush=True)
     if pcl_ok:
       out = run_driver(pts, None, kp, r, methods=("shot",))
       dt = out["time_shot"]

@@ -270,3 +270,16 @@ def test_lrf_net_plus_equivariant_and_ball_sign_rule(bunny):
   # it is a different rule from TOLDI's r/3 one: on some keypoints the two disagree
   t, _ = lrf_jax.compute_frames(pts, kp, r, "lrf_net", params=PARAMS)
   assert np.any(np.sum(np.asarray(t)[:, 2] * f[:, 2], axis=-1) < 0)
+
+
+def test_lut_weights_match_exact_network(bunny):
+  """`lut=257`: the tabulated weight map gives the exact frames up to interpolation error."""
+  pts, kp, r, _ = bunny
+  exact, v = _frames(pts, kp, r)
+  fast, w = _frames(pts, kp, r, lut=257)
+  np.testing.assert_array_equal(v, w)
+  cos_x = np.sum(exact[:, 0] * fast[:, 0], axis=-1)
+  assert (1 - cos_x[v]).max() < 1e-3 and (1 - cos_x[v]).mean() < 1e-5
+  rot = random_rotation(4)
+  moved, wm = _frames(pts @ rot.T, kp, r, lut=257)
+  assert equivariance_deficit(fast, moved, rot, w, wm).mean() < 1e-4

@@ -47,9 +47,9 @@ class MethodSpec:
   weights: str = "lrf_net"
 
 
-def _lrf_net(patches, extra, *, params, x_mode: str = "sum"):
+def _lrf_net(patches, extra, *, params, x_mode: str = "sum", lut: int = 0):
   del extra
-  return lrf_net_frames(params, patches, x_mode=x_mode)
+  return lrf_net_frames(params, patches, x_mode=x_mode, lut=lut)
 
 
 def _uniform(patches, extra, *, z_sign: str = "toldi"):
@@ -57,9 +57,9 @@ def _uniform(patches, extra, *, z_sign: str = "toldi"):
   return uniform_frames(patches, z_sign=z_sign)
 
 
-def _lrf_net_plus(patches, extra, *, params, x_mode: str = "sum"):
+def _lrf_net_plus(patches, extra, *, params, x_mode: str = "sum", lut: int = 0):
   del extra
-  return lrf_net_frames(params, patches, x_mode=x_mode, z_sign="ball")
+  return lrf_net_frames(params, patches, x_mode=x_mode, z_sign="ball", lut=lut)
 
 
 def _toldi(patches, extra, *, signed: bool = True):

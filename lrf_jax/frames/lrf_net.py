@@ -168,6 +168,34 @@ def lrf_net_weights(params: Params) -> WeightFn:
   return fn
 
 
+def lut_weights(params: Params, size: int = 257) -> WeightFn:
+  """The learned weight function tabulated on a size x size grid over the attribute domain
+  (|pq|/r in [0, 1], cos in [-1, 1]) and read by bilinear interpolation.
+
+  The network maps 2 numbers to 1, so one table of size² evaluations replaces K evaluations per
+  keypoint (11k multiply-adds each): with K = 256 and 4096-keypoint chunks, 257² is 16x fewer
+  network evaluations, and the per-neighbour cost drops to a few gathers. The network is
+  piecewise linear (ReLU), so the interpolation error is small; `tests/test_lrf_net.py` bounds
+  the frame deviation from the exact weights.
+  """
+  grid = jnp.linspace(0.0, 1.0, size)
+  cgrid = jnp.linspace(-1.0, 1.0, size)
+  table = apply_weights(params, jnp.stack(jnp.meshgrid(grid, cgrid, indexing="ij"), -1))
+
+  def fn(offsets, z, radius):
+    a = jax.vmap(attributes)(offsets, z, radius)
+    u = jnp.clip(a[..., 0], 0.0, 1.0) * (size - 1)
+    v = (jnp.clip(a[..., 1], -1.0, 1.0) + 1.0) * 0.5 * (size - 1)
+    i0 = jnp.clip(jnp.floor(u).astype(jnp.int32), 0, size - 2)
+    j0 = jnp.clip(jnp.floor(v).astype(jnp.int32), 0, size - 2)
+    fu, fv = u - i0, v - j0
+    t00, t01 = table[i0, j0], table[i0, j0 + 1]
+    t10, t11 = table[i0 + 1, j0], table[i0 + 1, j0 + 1]
+    return ((1 - fu) * ((1 - fv) * t00 + fv * t01) + fu * ((1 - fv) * t10 + fv * t11))
+
+  return fn
+
+
 def uniform_weights(offsets, z, radius):
   """w_i = 1 for every neighbour: the "uniform weights, same z" baseline."""
   del z, radius
@@ -175,7 +203,7 @@ def uniform_weights(offsets, z, radius):
 
 
 def lrf_net_frames(params: Params, patches: Patches, *, x_mode: str = "sum",
-                   z_sign: str = "toldi") -> tuple[jax.Array, jax.Array]:
+                   z_sign: str = "toldi", lut: int = 0) -> tuple[jax.Array, jax.Array]:
   """LRF-Net frames for a batch of patches (pure; jit it or call through `compute_frames`).
 
   Args:
@@ -183,11 +211,14 @@ def lrf_net_frames(params: Params, patches: Patches, *, x_mode: str = "sum",
     patches: `Patches` (N keypoints, K neighbours).
     x_mode: "sum" (the paper) or "max" (ablation).
     z_sign: "toldi" (the paper) or "ball" (lrf_net_plus, see `ball_sign`).
+    lut: 0 evaluates the network per neighbour (exact); n > 1 reads the weights from an n x n
+      table of the network (`lut_weights`), much faster at the same K.
 
   Returns:
     (frames (N, 3, 3) rows x, y, z; valid (N,) bool).
   """
-  frames, valid, _ = frames_with_weight_fn(patches, lrf_net_weights(params), x_mode, z_sign)
+  weight_fn = lut_weights(params, lut) if lut > 1 else lrf_net_weights(params)
+  frames, valid, _ = frames_with_weight_fn(patches, weight_fn, x_mode, z_sign)
   return frames, valid
 
 

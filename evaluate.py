@@ -10,6 +10,7 @@ is intentionally kept short; the logic lives in lrf_jax/evaluation/.
 """
 
 import argparse
+import json
 import time
 from pathlib import Path
 
@@ -72,14 +73,19 @@ def main(argv=None) -> None:
                                 radius_mr=args.radius_mr, max_pairs=args.max_pairs)
   cache = evaluation.PatchCache(args.cache_dir)
   records = []
+  out = Path(args.out)
   t0 = time.perf_counter()
   with tqdm(desc="evaluate", unit="record", dynamic_ncols=True) as bar:
     for exp in args.experiments:
       for rec in evaluation.run_experiment(exp, ok, runs, opts, cache):
         records.append(rec)
+        if len(records) % 50 == 0:  # keep what is done if the run is stopped
+          out.mkdir(parents=True, exist_ok=True)
+          (out / "partial_records.jsonl").write_text(
+              "\n".join(json.dumps({k: v for k, v in r.items() if not k.startswith("_")})
+                        for r in records))
         bar.set_postfix(exp=exp, ds=rec["dataset"], pair=rec["pair"][:18])
         bar.update(1)
-  out = Path(args.out)
   evaluation.write_results(records, out, notes=notes, meta={
       "args": vars(args), "seconds": time.perf_counter() - t0,
       "patch_cache": {"hits": cache.hits, "misses": cache.misses}})

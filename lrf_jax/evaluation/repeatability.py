@@ -58,7 +58,7 @@ class PatchCache:
   .npz, so a second run of `evaluate.py` with another method does not search again.
   """
 
-  def __init__(self, directory: str | Path | None = None, max_items: int = 16):
+  def __init__(self, directory: str | Path | None = None, max_items: int = 4):
     self.directory = Path(directory) if directory else None
     self.max_items = max_items
     self._mem: dict[str, Patches] = {}

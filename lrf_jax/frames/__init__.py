@@ -91,9 +91,10 @@ register(MethodSpec(
     "lrf_net_variant", _variant, default_k=256, needs_params=True,
     description="LRF-Net ablation variants (options z_mode: normal/dr, x_mode: sum1/sum2/dr/max)"))
 register(MethodSpec(
-    "lrf_net_plus", _lrf_net_plus, default_k=256, needs_params=True, weights="lrf_net_plus",
+    "lrf_net_plus", _lrf_net_plus, default_k=256, needs_params=True, weights="lrf_net",
     description="Beyond the paper: LRF-Net with the z sign taken over the whole support "
-                "(ball_sign) and weights trained with noise augmentation (weights/lrf_net_plus)"))
+                "(ball_sign); default weights: the shipped LRF-Net ones, chosen over "
+                "noise-augmented ones on the bunny validation scans"))
 register(MethodSpec(
     "uniform", _uniform, default_k=256,
     description="LRF-Net's construction with uniform weights (w = 1): the learned weights' baseline"))

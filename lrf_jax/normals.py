@@ -33,6 +33,8 @@ from __future__ import annotations
 import hashlib
 from typing import Any
 
+import itertools
+
 import numpy as np
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import breadth_first_order, connected_components, minimum_spanning_tree
@@ -83,7 +85,7 @@ def cache_last(kind: str, key_arrays: tuple, fn):
 
 
 def pca_normals(points: np.ndarray, radius: float, *, tree: cKDTree | None = None,
-                viewpoint: np.ndarray | None = None, min_neighbors: int = 3) -> np.ndarray:
+                viewpoint: np.ndarray | None = None, min_neighbors: int = 3, chunk: int = 20_000) -> np.ndarray:
   """PCL-like PCA normals: smallest eigenvector of the neighbours' covariance about their centroid.
 
   Args:
@@ -94,6 +96,7 @@ def pca_normals(points: np.ndarray, radius: float, *, tree: cKDTree | None = Non
       `flipNormalTowardsViewpoint` ((v - p) · n >= 0). When None the sign is arbitrary (orient them
       with `orient_normals`).
     min_neighbors: fewer neighbours than this give a NaN normal (PCL: 3).
+    chunk: query points per batch (bounds memory on dense clouds).
 
   Returns:
     (n, 3) float64 unit normals; NaN rows where undefined (too few neighbours, collinear points).
@@ -106,17 +109,25 @@ def pca_normals(points: np.ndarray, radius: float, *, tree: cKDTree | None = Non
   n = pts.shape[0]
   if tree is None:
     tree = cKDTree(pts)
-  lists = tree.query_ball_point(pts, radius, workers=-1, return_sorted=False)
-  counts = np.fromiter((len(l) for l in lists), dtype=np.int64, count=n)
-  rows = np.repeat(np.arange(n), counts)
-  cols = np.fromiter((j for l in lists for j in l), dtype=np.int64, count=int(counts.sum()))
-  off = pts[cols] - pts[rows]  # relative to the query point: numerically stable
-  denom = np.maximum(counts, 1).astype(np.float64)
-  mean = np.stack([np.bincount(rows, off[:, a], minlength=n) for a in range(3)], 1) / denom[:, None]
-  cov = np.empty((n, 3, 3))
-  for a in range(3):
-    for b in range(a, 3):
-      cov[:, a, b] = cov[:, b, a] = np.bincount(rows, off[:, a] * off[:, b], minlength=n) / denom
+  counts = np.zeros(n, np.int64)
+  mean = np.zeros((n, 3))
+  cov = np.zeros((n, 3, 3))
+  for lo in range(0, n, chunk):  # bounded memory: dense scans hold 100s of points per ball
+    hi = min(n, lo + chunk)
+    lists = tree.query_ball_point(pts[lo:hi], radius, workers=-1, return_sorted=False)
+    c = np.fromiter(map(len, lists), dtype=np.int64, count=hi - lo)
+    rows = np.repeat(np.arange(hi - lo), c)
+    cols = np.fromiter(itertools.chain.from_iterable(lists), dtype=np.int64, count=int(c.sum()))
+    off = pts[cols] - pts[lo:hi][rows]  # relative to the query point: numerically stable
+    denom = np.maximum(c, 1).astype(np.float64)
+    m = hi - lo
+    mean[lo:hi] = np.stack([np.bincount(rows, off[:, a], minlength=m) for a in range(3)],
+                           1) / denom[:, None]
+    for a in range(3):
+      for b in range(a, 3):
+        cov[lo:hi, a, b] = cov[lo:hi, b, a] = np.bincount(
+            rows, off[:, a] * off[:, b], minlength=m) / denom
+    counts[lo:hi] = c
   cov -= mean[:, :, None] * mean[:, None, :]
   evals, evecs = np.linalg.eigh(cov)
   normals = evecs[:, :, 0]

@@ -8,12 +8,14 @@ right-handed, det +1; invalid frames are the identity with `valid == False`.
 """
 
 from lrf_jax.api import compute_frames, frames_from_patches
-from lrf_jax.frames import METHODS, MethodSpec, register
+from lrf_jax.frames import METHODS, MethodSpec
+from lrf_jax.frames import register as register_method
 from lrf_jax.frames.lrf_net import lrf_net_frames
 from lrf_jax.losses import batched_chamfer, chamfer, siamese_loss
 from lrf_jax.metrics import meancos, repeatability_summary
 from lrf_jax.model import default_params, init_params, load_params, save_params
 from lrf_jax.neighborhoods import Patches, build_patches
+from lrf_jax.registration import register
 
 __version__ = "0.1.0"
 
@@ -32,6 +34,7 @@ __all__ = [
     "lrf_net_frames",
     "meancos",
     "register",
+    "register_method",
     "repeatability_summary",
     "save_params",
     "siamese_loss",

@@ -1,0 +1,196 @@
+"""Descriptor matching (RPC), 6-DoF pose and scan registration, beside Open3D in the same run.
+
+    LRF_DATA=/path/to/data python benchmarks/bench_registration.py [--out out/bench_registration]
+        [--datasets BR@0.3 UWA3M UWAOR bunny] [--max-pairs N] [--keypoints 1000] [--skip-rpc]
+
+Three parts, on the datasets found (BR at 0.3 mr noise, UWA3M consecutive views, UWAOR scene
+rs1, the Stanford bunny's consecutive scans):
+
+1. description: each descriptor (snapshots, SHOT, RoPS, TOLDI) on its original LRF and on
+   LRF-Net, recall vs 1-precision (`lrf_jax.evaluation.description`), figures rpc_<dataset>.png;
+2. pose: one-correspondence LRF RANSAC (100 iterations) vs 3-point RANSAC (1000) on the 100 best
+   TOLDI + LRF-Net correspondences (`lrf_jax.evaluation.pose`), the paper's table beside ours;
+3. registration of the consecutive bunny scans with `lrf_jax.register` (default settings) and
+   with Open3D's FPFH + RANSAC (`registration_ransac_based_on_feature_matching`, the settings of
+   Open3D's global registration tutorial with the voxel size `--voxel-mr` mr), each followed by
+   ICP (ours: `registration.icp`; Open3D: point-to-point `registration_icp`, the same pairing
+   distance), accuracy (err_r deg, err_t mr, before and after ICP) and wall time per pair (after
+   a warm-up pair, so JAX compilation is excluded; Open3D's time includes its voxel downsampling,
+   normals and FPFH; ours includes the radius searches, frames and descriptors).
+
+Open3D comes from benchmarks/requirements-bench.txt; without it part 3 runs ours only and says so.
+Writes results.json and report.md to --out and prints the report.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO))
+
+import jax  # noqa: E402
+
+import lrf_jax  # noqa: E402
+from lrf_jax import datasets, evaluation  # noqa: E402
+from lrf_jax.evaluation.description import (description_report, plot_rpc,  # noqa: E402
+                                            run_description)
+from lrf_jax.evaluation.pose import pose_report, run_pose  # noqa: E402
+from lrf_jax.registration import icp, pose_errors, register  # noqa: E402
+
+
+def open3d_register(src: np.ndarray, dst: np.ndarray, mr: float, *, voxel_mr: float,
+                    icp_mr: float, seed: int) -> dict:
+  """Open3D FPFH + RANSAC (tutorial settings) then point-to-point ICP; returns transforms/time."""
+  import open3d as o3d
+
+  o3d.utility.random.seed(seed)
+  voxel = voxel_mr * mr
+  t0 = time.perf_counter()
+  feats = []
+  for pts in (src, dst):
+    pc = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.array(pts, np.float64)))
+    down = pc.voxel_down_sample(voxel)
+    down.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=2 * voxel, max_nn=30))
+    fpfh = o3d.pipelines.registration.compute_fpfh_feature(
+        down, o3d.geometry.KDTreeSearchParamHybrid(radius=5 * voxel, max_nn=100))
+    feats.append((pc, down, fpfh))
+  (pc_s, down_s, f_s), (pc_t, down_t, f_t) = feats
+  dist = 1.5 * voxel
+  reg = o3d.pipelines.registration
+  res = reg.registration_ransac_based_on_feature_matching(
+      down_s, down_t, f_s, f_t, True, dist,
+      reg.TransformationEstimationPointToPoint(False), 3,
+      [reg.CorrespondenceCheckerBasedOnEdgeLength(0.9),
+       reg.CorrespondenceCheckerBasedOnDistance(dist)],
+      reg.RANSACConvergenceCriteria(100000, 0.999))
+  t_coarse = time.perf_counter() - t0
+  fine = reg.registration_icp(pc_s, pc_t, icp_mr * mr, res.transformation,
+                              reg.TransformationEstimationPointToPoint(),
+                              reg.ICPConvergenceCriteria(max_iteration=50))
+  return {"coarse": np.asarray(res.transformation), "final": np.asarray(fine.transformation),
+          "seconds_coarse": t_coarse, "seconds": time.perf_counter() - t0,
+          "n_points": (len(down_s.points), len(down_t.points))}
+
+
+def bunny_registration(root, args) -> tuple[list[dict], list[str]]:
+  notes = []
+  try:
+    import open3d  # noqa: F401
+    have_o3d = True
+  except ImportError:
+    have_o3d = False
+    notes.append("open3d is not installed (pip install -r benchmarks/requirements-bench.txt): "
+                 "the Open3D baseline was skipped")
+  pairs = datasets.load_bunny_pairs(root)
+  rows = []
+  # Warm-up (JAX compilation) on the first pair, not timed.
+  register(pairs[0].model_points, pairs[0].scene_points, seed=args.seed)
+  for pair in pairs:
+    reg = register(pair.model_points, pair.scene_points, seed=args.seed)
+    row = {"pair": pair.name, "mr": pair.mr}
+    row["ours_coarse"] = pose_errors(reg.coarse_transform, pair.transform, pair.mr)
+    row["ours"] = pose_errors(reg.transform, pair.transform, pair.mr)
+    row["ours_seconds"] = reg.seconds
+    row["ours_inliers"] = reg.n_inliers
+    if have_o3d:
+      o3 = open3d_register(pair.model_points, pair.scene_points, pair.mr, voxel_mr=args.voxel_mr,
+                           icp_mr=3.0, seed=args.seed)
+      row["o3d_coarse"] = pose_errors(o3["coarse"], pair.transform, pair.mr)
+      row["o3d"] = pose_errors(o3["final"], pair.transform, pair.mr)
+      row["o3d_seconds"] = o3["seconds"]
+      row["o3d_points"] = o3["n_points"]
+    rows.append(row)
+    print(json.dumps(row), flush=True)
+  return rows, notes
+
+
+def registration_report(rows: list[dict]) -> str:
+  have = "o3d" in rows[0] if rows else False
+  head = ("| pair | ours coarse err_r / err_t | ours + ICP err_r / err_t | ours s |"
+          + (" Open3D coarse | Open3D + ICP | Open3D s |" if have else ""))
+  lines = ["## registration of consecutive bunny scans (err_r deg / err_t mr)", "", head,
+           "|---|---:|---:|---:|" + ("---:|---:|---:|" if have else "")]
+  fmt = lambda e: f"{e[0]:.2f} / {e[1]:.2f}"  # noqa: E731
+  for r in rows:
+    line = (f"| {r['pair']} | {fmt(r['ours_coarse'])} | {fmt(r['ours'])} | "
+            f"{r['ours_seconds']:.1f} |")
+    if have:
+      line += f" {fmt(r['o3d_coarse'])} | {fmt(r['o3d'])} | {r['o3d_seconds']:.1f} |"
+    lines.append(line)
+  for key, name in (("ours", "ours"), ("o3d", "Open3D")):
+    if rows and key in rows[0]:
+      er = np.array([r[key][0] for r in rows])
+      et = np.array([r[key][1] for r in rows])
+      sec = np.array([r[f"{key}_seconds"] for r in rows])
+      lines.append(f"\n{name} (+ ICP): {int((er < 5).sum())}/{len(rows)} pairs under 5 deg; "
+                   f"median err_r {np.median(er):.3f} deg, max {er.max():.3f}; median err_t "
+                   f"{np.median(et):.3f} mr; mean time {sec.mean():.2f} s per pair")
+  return "\n".join(lines) + "\n"
+
+
+def main() -> None:
+  ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+  ap.add_argument("--data", default=os.environ.get("LRF_DATA"))
+  ap.add_argument("--out", default="out/bench_registration")
+  ap.add_argument("--datasets", nargs="+", default=["BR@0.3", "UWA3M", "UWAOR", "bunny"])
+  ap.add_argument("--max-pairs", type=int, default=None, help="at most N pairs per dataset")
+  ap.add_argument("--keypoints", type=int, default=1000)
+  ap.add_argument("--voxel-mr", type=float, default=4.0, help="Open3D voxel size in mr")
+  ap.add_argument("--seed", type=int, default=0)
+  ap.add_argument("--skip-rpc", action="store_true")
+  ap.add_argument("--skip-pose", action="store_true")
+  ap.add_argument("--skip-registration", action="store_true")
+  args = ap.parse_args()
+
+  out = Path(args.out)
+  out.mkdir(parents=True, exist_ok=True)
+  machine = (f"{platform.processor() or platform.machine()}, {os.cpu_count()} CPUs, "
+             f"jax {jax.__version__} on {jax.default_backend()}")
+  ok, notes = evaluation.available(args.datasets, args.data, evaluation.DATASETS)
+  opts = evaluation.EvalOptions(data_root=args.data, n_keypoints=args.keypoints, seed=args.seed,
+                                max_pairs=args.max_pairs)
+  cache = evaluation.PatchCache()
+  results: dict = {"machine": machine, "args": vars(args), "notes": notes}
+  report = [f"# bench_registration ({machine})", ""] + [f"- {n}" for n in notes] + [""]
+  t_all = time.perf_counter()
+  if not args.skip_pose and ok:
+    t0 = time.perf_counter()
+    recs = list(run_pose(ok, opts, cache))
+    results["pose"] = recs
+    report.append(pose_report(recs))
+    report.append(f"(pose part: {time.perf_counter() - t0:.0f} s)\n")
+    print(pose_report(recs), flush=True)
+  if not args.skip_rpc and ok:
+    t0 = time.perf_counter()
+    recs = []
+    for rec in run_description(ok, opts, cache):
+      recs.append(rec)
+      print(rec["dataset"], rec["pair"], rec["method"], rec.get("recall_max"), flush=True)
+    results["description"] = recs
+    report.append(description_report(recs))
+    report.append("Figures: " + ", ".join(p.name for p in plot_rpc(recs, out)))
+    report.append(f"(description part: {time.perf_counter() - t0:.0f} s)\n")
+  if not args.skip_registration and "bunny" in ok:
+    rows, reg_notes = bunny_registration(args.data, args)
+    results["registration"] = rows
+    report += [f"- {n}" for n in reg_notes]
+    report.append(registration_report(rows))
+  report.append(f"Total {time.perf_counter() - t_all:.0f} s.")
+  text = "\n".join(report)
+  (out / "report.md").write_text(text)
+  (out / "results.json").write_text(json.dumps(results, indent=1, default=lambda o: (
+      o.tolist() if isinstance(o, np.ndarray) else str(o))))
+  print(text)
+
+
+if __name__ == "__main__":
+  main()

@@ -1,0 +1,281 @@
+"""LRF-based local shape descriptors: snapshots, SHOT, RoPS and TOLDI on frames from ANY LRF.
+
+    frames, valid = lrf_jax.compute_frames(points, kp, radius, method="lrf_net")
+    desc, ok = lrf_jax.descriptors.compute_descriptors(points, kp, radius, frames, valid,
+                                                       descriptor="toldi")
+
+Each descriptor is a pure jnp function of a `Patches` batch (every neighbour within r: `k=None`),
+the frames and their validity (plus, for SHOT, the neighbours' normals gathered on the host by a
+`prepare` hook), vmapped over keypoints. With an equivariant LRF the descriptors are rotation
+invariant: the patch is expressed in the frame before anything is binned.
+
+| name      | dim  | layout (module docstring)                         | original LRF |
+|-----------|------|---------------------------------------------------|--------------|
+| snapshots | 225  | 15 x 15 height image seen along z                 | mian         |
+| shot      | 352  | 32 volumes (8 azimuth x 2 shells x 2 elevation) x 11 cosine bins, L2 = 1 | shot |
+| rops      | 135  | 3 axes x 3 rotations x 3 planes x 5 statistics, L1 = 1 | rops (mesh) |
+| toldi     | 1200 | 3 views x 20 x 20 min-depth images, empty = 100   | toldi        |
+
+The paper (section 3.2.2) replaces each descriptor's original LRF with LRF-Net's.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+from typing import Any, Callable
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from scipy.spatial import cKDTree
+
+from lrf_jax.descriptors import rops as _rops
+from lrf_jax.descriptors import shot as _shot
+from lrf_jax.descriptors import snapshots as _snapshots
+from lrf_jax.descriptors import toldi as _toldi
+from lrf_jax.descriptors.common import (ball_patches, bucket_k, local_coordinates, pad_patches,
+                                       validate_frames)
+from lrf_jax.descriptors.matching import Matches, match_descriptors, top_correspondences
+from lrf_jax.descriptors.rops import rops_descriptors
+from lrf_jax.descriptors.shot import shot_descriptors
+from lrf_jax.descriptors.snapshots import snapshot_descriptors
+from lrf_jax.descriptors.toldi import toldi_descriptors
+from lrf_jax.neighborhoods import (Patches, SearchIndex, build_patches, validate_cloud,
+                                   validate_keypoints, validate_radius)
+from lrf_jax.normals import prepare_normals
+
+
+@dataclasses.dataclass(frozen=True)
+class DescriptorSpec:
+  """How to compute one descriptor.
+
+  Attributes:
+    name: registry key.
+    fn: `fn(patches, frames, valid, extra, **options) -> (desc (N, D), valid (N,))`, pure and
+      jittable; `extra` is what `prepare` returned (None without a `prepare`).
+    dim: descriptor length D with the default options.
+    original_lrf: the LRF method the descriptor was published with (a key of `lrf_jax.METHODS`).
+    prepare: optional host hook `prepare(points, keypoints, patches, faces=, normals=, radius=)`.
+    description: one line for listings.
+  """
+
+  name: str
+  fn: Callable[..., Any]
+  dim: int
+  original_lrf: str
+  prepare: Callable[..., Any] | None = None
+  description: str = ""
+
+
+def _snap(patches, frames, valid, extra, **options):
+  del extra
+  return snapshot_descriptors(patches, frames, valid, **options)
+
+
+def _shot_fn(patches, frames, valid, extra, **options):
+  return shot_descriptors(patches, frames, valid, extra["normals"], **options)
+
+
+def _rops_fn(patches, frames, valid, extra):
+  del extra
+  return rops_descriptors(patches, frames, valid)
+
+
+def _toldi_fn(patches, frames, valid, extra, **options):
+  del extra
+  return toldi_descriptors(patches, frames, valid, **options)
+
+
+def _shot_prepare(points, keypoints, patches, *, faces=None, normals=None, radius):
+  return {"normals": prepare_normals(points, keypoints, patches, faces=faces, normals=normals,
+                                     radius=radius)["normals"]}
+
+
+DESCRIPTORS: dict[str, DescriptorSpec] = {
+    "snapshots": DescriptorSpec(
+        "snapshots", _snap, _snapshots.GRID ** 2, "mian",
+        description="Snapshots (Malassiotis & Strintzis 2007): height image along the LRF z"),
+    "shot": DescriptorSpec(
+        "shot", _shot_fn, _shot.DIM, "shot", prepare=_shot_prepare,
+        description="SHOT352 (Tombari et al. 2010), PCL's interpolation; needs normals"),
+    "rops": DescriptorSpec(
+        "rops", _rops_fn, _rops.DIM, "rops",
+        description="RoPS (Guo et al. 2013), PCL's statistics; its own LRF needs a mesh"),
+    "toldi": DescriptorSpec(
+        "toldi", _toldi_fn, 3 * _toldi.GRID ** 2, "toldi",
+        description="TOLDI (Yang et al. 2017): three-view local depth images"),
+}
+
+
+def _spec(descriptor: str) -> DescriptorSpec:
+  if descriptor not in DESCRIPTORS:
+    raise ValueError(f"descriptor: unknown descriptor {descriptor!r}; expected one of "
+                     f"{sorted(DESCRIPTORS)}")
+  return DESCRIPTORS[descriptor]
+
+
+@functools.lru_cache(maxsize=32)
+def _jitted(name: str, static_items: tuple) -> Any:
+  spec = DESCRIPTORS[name]
+  return jax.jit(lambda p, f, v, e: spec.fn(p, f, v, e, **dict(static_items)))
+
+
+def descriptors_from_patches(patches: Patches, frames: Any, valid: Any, descriptor: str, *,
+                             extra: Any = None, **options: Any) -> tuple[jax.Array, jax.Array]:
+  """Run a registered descriptor's jitted function on prepared patches.
+
+  Args:
+    patches: `Patches` (every neighbour within r for the original descriptors).
+    frames: (N, 3, 3) frames, rows x, y, z.
+    valid: (N,) bool.
+    descriptor: a key of `DESCRIPTORS`.
+    extra: what the descriptor's `prepare` hook returned (SHOT: the neighbours' normals).
+    **options: static options (e.g. `grid=` for snapshots and TOLDI).
+
+  Returns:
+    (descriptors (N, D) float32, valid (N,) bool).
+  """
+  spec = _spec(descriptor)
+  if spec.prepare is not None and extra is None:
+    raise ValueError(f"descriptor {descriptor!r} needs `extra` from its prepare hook "
+                     f"(DESCRIPTORS[{descriptor!r}].prepare), e.g. the neighbours' normals")
+  fn = _jitted(descriptor, tuple(sorted(options.items())))
+  return fn(jax.tree.map(jnp.asarray, patches), jnp.asarray(frames, jnp.float32),
+            jnp.asarray(valid, bool), extra)
+
+
+def describe_patches(patches: Patches, frames: Any, valid: Any, descriptor: str, *,
+                     points: np.ndarray, keypoints: np.ndarray, radius: float,
+                     faces: np.ndarray | None = None, normals: np.ndarray | None = None,
+                     chunk_size: int = 256, **options: Any) -> tuple[jax.Array, jax.Array]:
+  """Descriptors from already searched patches, in chunks of bucketed shape (bounded memory).
+
+  Args:
+    patches: `Patches` of `keypoints` of `points` at radius `radius` (N keypoints).
+    frames: (N, 3, 3) frames, rows x, y, z.
+    valid: (N,) bool.
+    descriptor: a key of `DESCRIPTORS`.
+    points: (n, 3) the cloud (for the `prepare` hook).
+    keypoints: (N,) indices (for the `prepare` hook).
+    radius: r.
+    faces: optional triangles (orient estimated normals).
+    normals: optional (n, 3) normals for SHOT.
+    chunk_size: keypoints per jitted call.
+    **options: static descriptor options.
+
+  Returns:
+    (descriptors (N, D) float32, valid (N,) bool).
+  """
+  spec = _spec(descriptor)
+  n = int(np.shape(patches.mask)[0])
+  frames = np.asarray(frames, np.float32)
+  valid = np.asarray(valid, bool)
+  if n == 0:
+    return jnp.zeros((0, spec.dim), jnp.float32), jnp.zeros((0,), bool)
+  chunk = min(int(chunk_size), n)
+  out_d, out_v = [], []
+  for start in range(0, n, chunk):
+    idx = np.arange(start, min(start + chunk, n))
+    n_real = idx.size
+    if n_real < chunk:  # pad to the compiled shape with invalid copies of the first keypoint
+      idx = np.concatenate([idx, np.full(chunk - n_real, idx[0])])
+    part = Patches(*(np.asarray(a)[idx] for a in patches))
+    k_eff = max(1, int(np.asarray(part.mask).sum(axis=1).max()))
+    order = np.argsort(~np.asarray(part.mask), axis=1, kind="stable")[:, :k_eff]
+    part = part._replace(offsets=np.take_along_axis(np.asarray(part.offsets), order[..., None], 1),
+                         mask=np.take_along_axis(np.asarray(part.mask), order, 1),
+                         indices=np.take_along_axis(np.asarray(part.indices), order, 1))
+    part = pad_patches(part, bucket_k(k_eff))
+    fr, va = frames[idx], valid[idx].copy()
+    va[n_real:] = False
+    kp = np.asarray(keypoints)[idx]
+    extra = None
+    if spec.prepare is not None:
+      extra = spec.prepare(points, kp, part, faces=faces, normals=normals, radius=radius)
+    d, v = descriptors_from_patches(part, fr, va, descriptor, extra=extra, **options)
+    out_d.append(d[:n_real])
+    out_v.append(v[:n_real])
+  return jnp.concatenate(out_d), jnp.concatenate(out_v)
+
+
+def compute_descriptors(
+    points: np.ndarray,
+    keypoints: np.ndarray,
+    radius: float,
+    frames: Any,
+    valid: Any = None,
+    descriptor: str = "toldi",
+    *,
+    faces: np.ndarray | None = None,
+    normals: np.ndarray | None = None,
+    k: int | None = None,
+    seed: int = 0,
+    chunk_size: int = 256,
+    index: SearchIndex | None = None,
+    **options: Any,
+) -> tuple[jax.Array, jax.Array]:
+  """Descriptors of `keypoints` of a cloud on given frames (from any LRF method).
+
+  The radius search runs on the host, chunk by chunk; each chunk's patch size K is bucketed
+  (`common.bucket_k`), so a handful of compiled shapes serve every cloud.
+
+  Args:
+    points: (n, 3) cloud.
+    keypoints: (m,) integer indices.
+    radius: support radius r (cloud units; the paper: 15 mr, as the LRF).
+    frames: (m, 3, 3) frames of the keypoints, rows x, y, z.
+    valid: (m,) bool validity of the frames (None: every finite frame).
+    descriptor: a key of `DESCRIPTORS`.
+    faces: optional (f, 3) triangles (orient SHOT's estimated normals by the winding).
+    normals: optional (n, 3) normals for SHOT (default: `lrf_jax.normals.estimate_normals`).
+    k: neighbours per patch; None = every neighbour within r (the original descriptors).
+    seed: seed of the subsample when `k` is set.
+    chunk_size: keypoints per search and jitted call (memory: about chunk_size x K x 60 bytes
+      for SHOT, x 250 bytes for RoPS).
+    index: optional prebuilt `SearchIndex(points, seed)` (used when `k` is set).
+    **options: static descriptor options (`grid=`, `empty=`, `align_normals=`).
+
+  Returns:
+    (descriptors (m, D) float32, zeros where invalid; valid (m,) bool).
+
+  Raises:
+    ValueError: a bad cloud, keypoints, radius, frames or descriptor name.
+  """
+  spec = _spec(descriptor)
+  points = validate_cloud(points)
+  keypoints = validate_keypoints(keypoints, points.shape[0])
+  radius = validate_radius(radius)
+  m = keypoints.shape[0]
+  frames, valid = validate_frames(frames, valid, m)
+  if int(chunk_size) < 1:
+    raise ValueError(f"chunk_size: expected a positive integer, got {chunk_size!r}")
+  if m == 0:
+    return jnp.zeros((0, spec.dim), jnp.float32), jnp.zeros((0,), bool)
+  if k is None:
+    tree = cKDTree(points)
+  elif index is None or index.seed != seed:
+    index = SearchIndex(points, seed)
+  chunk = min(int(chunk_size), m)
+  out_d, out_v = [], []
+  for start in range(0, m, chunk):
+    sl = slice(start, start + chunk)
+    if k is None:  # the whole ball: one plain radius search
+      patches = ball_patches(tree, points, keypoints[sl], radius)
+    else:
+      patches = build_patches(points, keypoints[sl], radius, k, seed=seed, index=index,
+                              validate=False)
+    d, v = describe_patches(patches, frames[sl], valid[sl], descriptor, points=points,
+                            keypoints=keypoints[sl], radius=radius, faces=faces,
+                            normals=normals, chunk_size=chunk, **options)
+    out_d.append(d)
+    out_v.append(v)
+  return jnp.concatenate(out_d), jnp.concatenate(out_v)
+
+
+__all__ = [
+    "DESCRIPTORS", "DescriptorSpec", "Matches", "compute_descriptors", "describe_patches",
+    "descriptors_from_patches",
+    "local_coordinates", "match_descriptors", "pad_patches", "rops_descriptors",
+    "shot_descriptors", "snapshot_descriptors", "toldi_descriptors", "top_correspondences",
+]

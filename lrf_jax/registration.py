@@ -1,0 +1,591 @@
+"""6-DoF pose from correspondences (paper section 3.2.3) and `register` for users' scans.
+
+Two RANSAC estimators that differ ONLY in the minimal sample (same inlier threshold, same score =
+number of correspondences within the threshold, same final refit, seeded and deterministic,
+hypotheses generated and scored at once with `jax.vmap`):
+
+* `lrf_ransac` (the paper's LRF-Net variant, 100 iterations): one correspondence per hypothesis.
+  With LRFs F_s, F_t (rows x, y, z) at the points p, q, three point pairs (p, q),
+  (p + s x_s, q + s x_t), (p + s y_s, q + s y_t) give the pose by Kabsch (paper figure
+  `fig_SVD`): for exactly repeatable frames (F_t = F_s Rᵀ) it is R = F_tᵀ F_s, t = q - R p.
+* `ransac_3point` (classic RANSAC, 1000 iterations): three distinct correspondences per
+  hypothesis, Kabsch.
+
+The best hypothesis (most inliers; ties: the earliest) is refitted by Kabsch on its inliers
+(`refine=True`; skipped when it has fewer than 3) and the inliers are recounted.
+
+Errors (paper eqs. `eq_err_r`, `eq_err_t`): err_r = arccos(clip((trace(R_gtᵀ R) - 1) / 2))
+in degrees, err_t = |t_gt - t| / mr.
+
+`register(source, target)` is the user-facing pipeline: mr from the source, seeded random
+keypoints on both clouds, LRF-Net frames, TOLDI descriptors, ratio matching, one hypothesis per
+correspondence from its LRFs, the best few verified by overlap, then point-to-point ICP.
+
+References:
+  Fischler & Bolles, "Random sample consensus", CACM 1981. Kabsch, Acta Cryst. A32, 1976.
+  Besl & McKay, "A method for registration of 3-D shapes", TPAMI 1992 (ICP).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+import os
+import time
+from typing import Any, NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from scipy.spatial import cKDTree
+
+from lrf_jax.geometry import kabsch
+
+# ------------------------------------------------------------------------------------------------
+# Pose errors
+# ------------------------------------------------------------------------------------------------
+
+
+def rotation_error_deg(r_est: np.ndarray, r_gt: np.ndarray) -> float:
+  """err_r = arccos(clip((trace(R_gtᵀ R_est) - 1) / 2, -1, 1)) in degrees (paper eq. `eq_err_r`).
+
+  Args:
+    r_est: (3, 3) estimated rotation.
+    r_gt: (3, 3) ground-truth rotation.
+
+  Returns:
+    The angle of R_gtᵀ R_est in degrees, in [0, 180].
+  """
+  r_est = np.asarray(r_est, np.float64)
+  r_gt = np.asarray(r_gt, np.float64)
+  c = (np.trace(r_gt.T @ r_est) - 1.0) / 2.0
+  return float(np.degrees(np.arccos(np.clip(c, -1.0, 1.0))))
+
+
+def pose_errors(transform_est: np.ndarray, transform_gt: np.ndarray,
+                mr: float) -> tuple[float, float]:
+  """(err_r in degrees, err_t in mr) between two (4, 4) rigid transforms (paper eqs. `eq_err_r`,
+  `eq_err_t`).
+
+  Args:
+    transform_est: (4, 4) estimate.
+    transform_gt: (4, 4) ground truth.
+    mr: mesh resolution (the unit of err_t).
+
+  Returns:
+    (err_r, err_t).
+  """
+  te = _check_transform(transform_est, "transform_est")
+  tg = _check_transform(transform_gt, "transform_gt")
+  if not mr > 0:
+    raise ValueError(f"mr: expected a positive mesh resolution, got {mr!r}")
+  return (rotation_error_deg(te[:3, :3], tg[:3, :3]),
+          float(np.linalg.norm(tg[:3, 3] - te[:3, 3]) / mr))
+
+
+def to_transform(rotation: Any, translation: Any) -> np.ndarray:
+  """(4, 4) float64 [R t; 0 0 0 1] from a (3, 3) rotation and a (3,) translation."""
+  out = np.eye(4)
+  out[:3, :3] = np.asarray(rotation, np.float64)
+  out[:3, 3] = np.asarray(translation, np.float64)
+  return out
+
+
+def _check_transform(t: Any, name: str) -> np.ndarray:
+  a = np.asarray(t, np.float64)
+  if a.shape != (4, 4) or not np.all(np.isfinite(a)):
+    raise ValueError(f"{name}: expected a finite (4, 4) rigid transform, got shape {a.shape}")
+  return a
+
+
+# ------------------------------------------------------------------------------------------------
+# Minimal solvers
+# ------------------------------------------------------------------------------------------------
+
+
+def frame_point_triplets(points: jax.Array, frames: jax.Array, scale: float) -> jax.Array:
+  """The three points p, p + s x, p + s y of each (point, frame): (..., 3) -> (..., 3, 3)."""
+  return jnp.stack([points, points + scale * frames[..., 0, :],
+                    points + scale * frames[..., 1, :]], axis=-2)
+
+
+def pose_from_correspondence(src_point: Any, src_frame: Any, dst_point: Any, dst_frame: Any, *,
+                             scale: float = 1.0) -> tuple[jax.Array, jax.Array]:
+  """The pose from ONE correspondence with LRFs: Kabsch on three point pairs (paper fig_SVD).
+
+  Args:
+    src_point: (3,) keypoint p on the source.
+    src_frame: (3, 3) its LRF, rows x, y, z.
+    dst_point: (3,) corresponding keypoint q on the target.
+    dst_frame: (3, 3) its LRF.
+    scale: s, the length of the frame arms (any positive value; for exact frames the pose does
+      not depend on it; the support radius is a natural choice).
+
+  Returns:
+    (R (3, 3), t (3,)) with q ≈ R p + t and F_dst ≈ F_src Rᵀ.
+  """
+  src = frame_point_triplets(jnp.asarray(src_point), jnp.asarray(src_frame), scale)
+  dst = frame_point_triplets(jnp.asarray(dst_point), jnp.asarray(dst_frame), scale)
+  return kabsch(src, dst)
+
+
+# ------------------------------------------------------------------------------------------------
+# RANSAC
+# ------------------------------------------------------------------------------------------------
+
+
+class RansacResult(NamedTuple):
+  """Result of a RANSAC estimator.
+
+  Attributes:
+    transform: (4, 4) float64, source -> target (after the refit when `refine`).
+    inliers: (M,) bool, correspondences within the threshold under `transform`.
+    n_inliers: number of inliers under `transform`.
+    best_hypothesis: index of the winning hypothesis.
+    hypothesis_inliers: inlier count of the winning hypothesis (before the refit).
+  """
+
+  transform: np.ndarray
+  inliers: np.ndarray
+  n_inliers: int
+  best_hypothesis: int
+  hypothesis_inliers: int
+
+
+def _inlier_mask(r: jax.Array, t: jax.Array, src: jax.Array, dst: jax.Array,
+                 threshold: float) -> jax.Array:
+  res = src @ r.T + t - dst
+  return jnp.sum(res * res, axis=-1) <= threshold * threshold
+
+
+@functools.partial(jax.jit, static_argnames=("refine",))
+def _select_and_refine(rs: jax.Array, ts: jax.Array, src: jax.Array, dst: jax.Array,
+                       threshold: jax.Array, refine: bool):
+  masks = jax.vmap(lambda r, t: _inlier_mask(r, t, src, dst, threshold))(rs, ts)  # (H, M)
+  counts = jnp.sum(masks, axis=1)
+  best = jnp.argmax(counts)  # first maximum: deterministic
+  r, t, mask = rs[best], ts[best], masks[best]
+  if refine:
+    ok = jnp.sum(mask) >= 3
+    w = jnp.where(ok, mask.astype(src.dtype), jnp.ones_like(mask, src.dtype))
+    r2, t2 = kabsch(src, dst, w)
+    r = jnp.where(ok, r2, r)
+    t = jnp.where(ok, t2, t)
+    mask = _inlier_mask(r, t, src, dst, threshold)
+  return r, t, mask, best, counts[best]
+
+
+def _check_correspondences(src: Any, dst: Any, threshold: float,
+                           iterations: int) -> tuple[np.ndarray, np.ndarray]:
+  s = np.asarray(src, np.float64)
+  d = np.asarray(dst, np.float64)
+  if s.ndim != 2 or s.shape[1] != 3 or d.shape != s.shape:
+    raise ValueError(f"correspondences: expected source and target points of the same shape "
+                     f"(M, 3), got {s.shape} and {d.shape}")
+  if not (np.all(np.isfinite(s)) and np.all(np.isfinite(d))):
+    raise ValueError("correspondences: expected finite coordinates, found NaN or inf")
+  if not (np.isfinite(threshold) and threshold > 0):
+    raise ValueError(f"inlier_threshold: expected a positive distance, got {threshold!r}")
+  if int(iterations) < 1 or int(iterations) != iterations:
+    raise ValueError(f"iterations: expected a positive integer, got {iterations!r}")
+  return s, d
+
+
+def _finish(r, t, mask, best, count) -> RansacResult:
+  mask = np.asarray(mask)
+  return RansacResult(to_transform(np.asarray(r), np.asarray(t)), mask, int(mask.sum()),
+                      int(best), int(count))
+
+
+def _centred(s: np.ndarray, d: np.ndarray) -> tuple[jax.Array, jax.Array, np.ndarray, np.ndarray]:
+  """float32 coordinates about the source/target centroids (precision away from the origin)."""
+  cs, cd = s.mean(axis=0), d.mean(axis=0)
+  return (jnp.asarray(s - cs, jnp.float32), jnp.asarray(d - cd, jnp.float32), cs, cd)
+
+
+def _uncentre(r, t, cs, cd) -> tuple[np.ndarray, np.ndarray]:
+  r = np.asarray(r, np.float64)
+  return r, np.asarray(t, np.float64) + cd - r @ cs
+
+
+def lrf_ransac(src_points: Any, dst_points: Any, src_frames: Any, dst_frames: Any, *,
+               inlier_threshold: float, scale: float, iterations: int = 100, seed: int = 0,
+               valid: Any = None, refine: bool = True) -> RansacResult:
+  """RANSAC with ONE correspondence per hypothesis, the pose from the two LRFs (LRF-Net paper).
+
+  Args:
+    src_points: (M, 3) source keypoints of the correspondences.
+    dst_points: (M, 3) their target keypoints.
+    src_frames: (M, 3, 3) source LRFs, rows x, y, z.
+    dst_frames: (M, 3, 3) target LRFs.
+    inlier_threshold: a correspondence is an inlier when |R p + t - q| <= this (cloud units).
+    scale: frame arm length s of `pose_from_correspondence` (e.g. the support radius).
+    iterations: hypotheses (the paper: 100).
+    seed: sampling seed (`jax.random.key(seed)`); the same seed gives the same result.
+    valid: (M,) bool, correspondences whose two frames are valid (only those are sampled;
+      all count for the score). None: all.
+    refine: refit the best hypothesis by Kabsch on its inliers.
+
+  Returns:
+    `RansacResult` (transform source -> target).
+
+  Raises:
+    ValueError: mismatched shapes, non-finite input, a bad threshold/iteration count, or no
+      valid correspondence.
+  """
+  s, d = _check_correspondences(src_points, dst_points, inlier_threshold, iterations)
+  m = s.shape[0]
+  fs = np.asarray(src_frames, np.float64)
+  fd = np.asarray(dst_frames, np.float64)
+  if fs.shape != (m, 3, 3) or fd.shape != (m, 3, 3):
+    raise ValueError(f"frames: expected source and target frames of shape ({m}, 3, 3), got "
+                     f"{fs.shape} and {fd.shape}")
+  v = np.ones(m, bool) if valid is None else np.asarray(valid, bool).reshape(-1)
+  if v.shape != (m,):
+    raise ValueError(f"valid: expected shape ({m},), got {v.shape}")
+  v = v & np.all(np.isfinite(fs), axis=(1, 2)) & np.all(np.isfinite(fd), axis=(1, 2))
+  if not v.any():
+    raise ValueError("correspondences: none has two valid frames; cannot form a hypothesis")
+  if not (np.isfinite(scale) and scale > 0):
+    raise ValueError(f"scale: expected a positive length, got {scale!r}")
+  src, dst, cs, cd = _centred(s, d)
+  pick = jax.random.choice(jax.random.key(seed), jnp.asarray(np.flatnonzero(v)),
+                           (int(iterations),), replace=True)
+  rs, ts = _lrf_hypotheses(src[pick], jnp.asarray(fs[pick], jnp.float32), dst[pick],
+                           jnp.asarray(fd[pick], jnp.float32), float(scale))
+  r, t, mask, best, count = _select_and_refine(rs, ts, src, dst, float(inlier_threshold), refine)
+  r, t = _uncentre(r, t, cs, cd)
+  return _finish(r, t, mask, best, count)
+
+
+@jax.jit
+def _lrf_hypotheses(ps, fs, qs, fd, scale):
+  return jax.vmap(lambda p, f, q, g: pose_from_correspondence(p, f, q, g, scale=scale))(
+      ps, fs, qs, fd)
+
+
+@jax.jit
+def _kabsch_batch(a: jax.Array, b: jax.Array):
+  return jax.vmap(kabsch)(a, b)
+
+
+def ransac_3point(src_points: Any, dst_points: Any, *, inlier_threshold: float,
+                  iterations: int = 1000, seed: int = 0, refine: bool = True) -> RansacResult:
+  """Classic RANSAC: three distinct correspondences per hypothesis, Kabsch.
+
+  Same threshold, score and refit as `lrf_ransac`; only the sample differs.
+
+  Args:
+    src_points: (M, 3) source keypoints, M >= 3.
+    dst_points: (M, 3) target keypoints.
+    inlier_threshold: inlier distance (cloud units).
+    iterations: hypotheses (the paper: 1000).
+    seed: sampling seed.
+    refine: refit the best hypothesis on its inliers.
+
+  Returns:
+    `RansacResult` (transform source -> target).
+
+  Raises:
+    ValueError: mismatched shapes, fewer than 3 correspondences, bad threshold or iterations.
+  """
+  s, d = _check_correspondences(src_points, dst_points, inlier_threshold, iterations)
+  m = s.shape[0]
+  if m < 3:
+    raise ValueError(f"correspondences: 3-point RANSAC needs at least 3, got {m}")
+  src, dst, cs, cd = _centred(s, d)
+  keys = jax.random.split(jax.random.key(seed), int(iterations))
+  samples = jax.vmap(lambda k: jax.random.choice(k, m, (3,), replace=False))(keys)
+  rs, ts = _kabsch_batch(src[samples], dst[samples])
+  r, t, mask, best, count = _select_and_refine(rs, ts, src, dst, float(inlier_threshold), refine)
+  r, t = _uncentre(r, t, cs, cd)
+  return _finish(r, t, mask, best, count)
+
+
+# ------------------------------------------------------------------------------------------------
+# ICP (host, float64)
+# ------------------------------------------------------------------------------------------------
+
+
+def icp(source: np.ndarray, target: np.ndarray, init: np.ndarray, *, max_distance: float,
+        iterations: int = 30, tolerance: float = 1e-7,
+        target_tree: cKDTree | None = None) -> tuple[np.ndarray, float, float]:
+  """Point-to-point ICP from an initial pose (host, float64, deterministic).
+
+  Each iteration pairs every source point with its nearest target point, keeps the pairs closer
+  than `max_distance` and solves Kabsch; it stops when the pose changes by less than `tolerance`
+  (rotation in radians plus translation over `max_distance`).
+
+  Args:
+    source: (n, 3) points.
+    target: (m, 3) points.
+    init: (4, 4) initial source -> target transform.
+    max_distance: pairs farther apart are ignored (cloud units).
+    iterations: at most this many iterations.
+    tolerance: convergence threshold.
+    target_tree: optional `cKDTree(target)`.
+
+  Returns:
+    (transform (4, 4), fitness = fraction of source points paired, rmse of the pairs).
+  """
+  tree = target_tree or cKDTree(target)
+  tr = np.array(init, np.float64)
+  fitness, rmse = 0.0, float("inf")
+  for _ in range(int(iterations)):
+    moved = source @ tr[:3, :3].T + tr[:3, 3]
+    dist, nn = tree.query(moved, distance_upper_bound=max_distance, workers=-1)
+    ok = np.isfinite(dist)
+    fitness = float(ok.mean())
+    if ok.sum() < 3:
+      break
+    rmse = float(np.sqrt(np.mean(dist[ok] ** 2)))
+    a, b = moved[ok], target[nn[ok]]
+    ca, cb = a.mean(0), b.mean(0)
+    u, _, vt = np.linalg.svd((a - ca).T @ (b - cb))
+    dd = np.sign(np.linalg.det(vt.T @ u.T)) or 1.0
+    r = vt.T @ np.diag([1.0, 1.0, dd]) @ u.T
+    step = to_transform(r, cb - r @ ca)
+    tr = step @ tr
+    angle = np.arccos(np.clip((np.trace(r) - 1) / 2, -1, 1))
+    if angle + np.linalg.norm(step[:3, 3]) / max_distance < tolerance:
+      break
+  moved = source @ tr[:3, :3].T + tr[:3, 3]
+  dist, _ = tree.query(moved, distance_upper_bound=max_distance, workers=-1)
+  ok = np.isfinite(dist)
+  fitness = float(ok.mean())
+  rmse = float(np.sqrt(np.mean(dist[ok] ** 2))) if ok.any() else float("inf")
+  return tr, fitness, rmse
+
+
+# ------------------------------------------------------------------------------------------------
+# register: the user-facing pipeline
+# ------------------------------------------------------------------------------------------------
+
+
+@dataclasses.dataclass(frozen=True)
+class Registration:
+  """Result of `register`.
+
+  Attributes:
+    transform: (4, 4) float64, maps source points onto the target: target ≈ R source + t.
+    coarse_transform: (4, 4) the RANSAC estimate before ICP.
+    inliers: (C,) bool, which correspondences are inliers of the coarse estimate.
+    n_inliers: their number.
+    correspondences: (C, 2) int64 (source point index, target point index), best ratio first.
+    fitness: fraction of the (ICP's) source points within icp_mr mr of the target after
+      `transform`.
+    rmse: RMS distance of those points (cloud units).
+    mr: the mesh resolution used as the unit (cloud units).
+    seconds: wall time of the whole call.
+  """
+
+  transform: np.ndarray
+  coarse_transform: np.ndarray
+  inliers: np.ndarray
+  n_inliers: int
+  correspondences: np.ndarray
+  fitness: float
+  rmse: float
+  mr: float
+  seconds: float
+
+
+def _as_cloud(x: Any, name: str) -> tuple[np.ndarray, np.ndarray | None]:
+  from lrf_jax.io import Cloud, read_cloud
+  from lrf_jax.neighborhoods import validate_cloud
+
+  if isinstance(x, (str, os.PathLike)):
+    cloud = read_cloud(x)
+    return cloud.points, cloud.faces
+  if isinstance(x, Cloud):
+    return validate_cloud(x.points, name), x.faces
+  return validate_cloud(x, name), None
+
+
+def overlap_scores(rotations: np.ndarray, translations: np.ndarray, points: np.ndarray,
+                   tree: cKDTree, distance: float, block: int = 256) -> np.ndarray:
+  """Fraction of `points` within `distance` of the tree's cloud under each of H poses.
+
+  Args:
+    rotations: (H, 3, 3).
+    translations: (H, 3).
+    points: (P, 3) source points.
+    tree: `cKDTree` of the target cloud.
+    distance: the overlap distance (cloud units).
+    block: poses per batched query.
+
+  Returns:
+    (H,) float64 overlap fractions.
+  """
+  out = np.empty(len(rotations))
+  for s in range(0, len(rotations), block):
+    r, t = rotations[s:s + block], translations[s:s + block]
+    moved = np.einsum("hij,pj->hpi", r, points) + t[:, None, :]
+    d, _ = tree.query(moved.reshape(-1, 3), distance_upper_bound=distance, workers=-1)
+    out[s:s + block] = np.isfinite(d).reshape(len(r), -1).mean(axis=1)
+  return out
+
+
+def register(source: Any, target: Any, *, mr: float | None = None, radius_mr: float = 15.0,
+             n_keypoints: int = 3000, n_correspondences: int = 1000, iterations: int = 1000,
+             inlier_mr: float = 5.0, verify: int | None = None, estimator: str = "lrf",
+             icp_iterations: int = 50, icp_mr: float = 3.0, method: str = "lrf_net",
+             descriptor: str = "toldi", params: Any = None, seed: int = 0) -> Registration:
+  """Rigidly register `source` onto `target` with learned LRFs (LRF-Net frames, one-point RANSAC).
+
+  Pipeline (every length in mr: the source's mean edge length for a mesh, mean nearest-neighbour
+  distance for a cloud, `datasets.mesh_resolution`):
+
+  1. `n_keypoints` seeded random points per cloud; LRFs (`method`, default LRF-Net) and
+     descriptors (`descriptor`, default TOLDI) at r = radius_mr mr;
+  2. each source keypoint matched to its nearest target descriptor; the `n_correspondences` of
+     smallest ratio d1/d2 are kept;
+  3. hypotheses: with `estimator="lrf"` ONE per correspondence (the pose from its two LRFs, all
+     of them: no sampling needed), with `"3point"` `iterations` seeded triples; each is scored by
+     its inlier count (correspondences within inlier_mr mr), as in `lrf_ransac`;
+  4. verification: the `verify` best-scoring hypotheses (None: all) are re-ranked by their
+     overlap, the fraction of (up to 1000 seeded) source points that land within icp_mr mr of the
+     target (ties: more inliers); with verify=0 the inlier count alone decides, as in
+     `lrf_ransac`. The winner is refitted by Kabsch on its inliers;
+  5. point-to-point ICP (pairs within icp_mr mr) on up to 20000 seeded source points.
+
+  The same inputs and seed give the same transform.
+
+  Args:
+    source: (n, 3) array, an `lrf_jax.io.Cloud`, or a path to any cloud/mesh `lrf_jax.io`
+      reads (PLY, PCD, XYZ/TXT(.gz), NPY).
+    target: the same for the target.
+    mr: mesh resolution in the clouds' units (None: measured on the source).
+    radius_mr: support radius of the LRFs and descriptors, in mr (the paper: 15).
+    n_keypoints: keypoints per cloud (fewer when a cloud has fewer points).
+    n_correspondences: correspondences kept (and LRF hypotheses).
+    iterations: hypotheses of the 3-point estimator.
+    inlier_mr: inlier distance of the hypothesis score, in mr.
+    verify: hypotheses re-ranked by overlap (None: all of them; 0: none).
+    estimator: "lrf" (one correspondence per hypothesis) or "3point" (classic).
+    icp_iterations: ICP iterations (0: no ICP, `transform` = the RANSAC estimate).
+    icp_mr: ICP pairing and overlap distance, in mr.
+    method: LRF method (a key of `lrf_jax.METHODS`; mesh methods need mesh inputs).
+    descriptor: a key of `lrf_jax.descriptors.DESCRIPTORS`.
+    params: learned LRF parameters (None: the shipped LRF-Net weights).
+    seed: seed of keypoints, neighbour subsamples and sampling.
+
+  Returns:
+    `Registration`; `transform` maps source points into the target's frame.
+
+  Raises:
+    ValueError: a cloud that is not a non-empty (n, 3) array of finite floats, fewer than 10
+      points, a non-positive count or distance, or an unknown estimator/method/descriptor.
+    FileNotFoundError: a path that does not exist.
+
+  Example:
+    >>> reg = lrf_jax.register("scan_a.ply", "scan_b.ply")
+    >>> aligned = points_a @ reg.transform[:3, :3].T + reg.transform[:3, 3]
+  """
+  from lrf_jax.api import compute_frames
+  from lrf_jax.datasets.resolution import mesh_resolution
+  from lrf_jax.descriptors import (DESCRIPTORS, compute_descriptors, match_descriptors,
+                                   top_correspondences)
+  from lrf_jax.frames import METHODS
+
+  t0 = time.perf_counter()
+  src_pts, src_faces = _as_cloud(source, "source")
+  dst_pts, dst_faces = _as_cloud(target, "target")
+  for name, pts in (("source", src_pts), ("target", dst_pts)):
+    if len(pts) < 10:
+      raise ValueError(f"{name}: expected a cloud of at least 10 points, got {len(pts)}")
+  for name, val in (("radius_mr", radius_mr), ("inlier_mr", inlier_mr), ("icp_mr", icp_mr)):
+    if not (np.isfinite(val) and val > 0):
+      raise ValueError(f"{name}: expected a positive number of mesh resolutions, got {val!r}")
+  for name, val in (("n_keypoints", n_keypoints), ("n_correspondences", n_correspondences),
+                    ("iterations", iterations)):
+    if int(val) != val or val < 1:
+      raise ValueError(f"{name}: expected a positive integer, got {val!r}")
+  for name, val in (("icp_iterations", icp_iterations), ("verify", verify)):
+    if val is not None and (int(val) != val or val < 0):
+      raise ValueError(f"{name}: expected a non-negative integer, got {val!r}")
+  if estimator not in ("lrf", "3point"):
+    raise ValueError(f"estimator: expected 'lrf' or '3point', got {estimator!r}")
+  if method not in METHODS:
+    raise ValueError(f"method: unknown LRF method {method!r}; expected one of {sorted(METHODS)}")
+  if descriptor not in DESCRIPTORS:
+    raise ValueError(f"descriptor: unknown descriptor {descriptor!r}; expected one of "
+                     f"{sorted(DESCRIPTORS)}")
+  if METHODS[method].needs_mesh and (src_faces is None or dst_faces is None):
+    raise ValueError(f"method {method!r} needs triangle meshes on both sides")
+  if mr is None:
+    mr, _ = mesh_resolution(src_pts, src_faces)
+  elif not (np.isfinite(mr) and mr > 0):
+    raise ValueError(f"mr: expected a positive mesh resolution, got {mr!r}")
+  radius = radius_mr * mr
+
+  # 1-2: keypoints, frames, descriptors, matches.
+  rng = np.random.default_rng(seed)
+  sides = []
+  for pts, faces in ((src_pts, src_faces), (dst_pts, dst_faces)):
+    kp = np.sort(rng.choice(len(pts), min(int(n_keypoints), len(pts)), replace=False))
+    frames, valid = compute_frames(pts, kp, radius, method, params=params, faces=faces,
+                                   seed=seed)
+    desc, ok = compute_descriptors(pts, kp, radius, frames, valid, descriptor, faces=faces,
+                                   seed=seed)
+    sides.append((kp, np.asarray(frames), np.asarray(valid), np.asarray(desc), np.asarray(ok)))
+  (kp_s, f_s, v_s, d_s, ok_s), (kp_t, f_t, v_t, d_t, ok_t) = sides
+  need_frames = estimator == "lrf"
+  matches = match_descriptors(d_s, d_t, ok_s & (v_s | ~need_frames), ok_t & (v_t | ~need_frames))
+  qi, ri = top_correspondences(matches, n_correspondences)
+  if len(qi) < (1 if need_frames else 3):
+    raise ValueError(f"register: only {len(qi)} descriptor matches (valid frames: source "
+                     f"{int(v_s.sum())}, target {int(v_t.sum())}); the clouds are too small or "
+                     f"too sparse for r = {radius_mr} mr")
+  p, q = src_pts[kp_s[qi]], dst_pts[kp_t[ri]]
+  threshold = inlier_mr * mr
+
+  # 3: hypotheses and their inlier counts (float32 about the centroids).
+  src, dst, cs, cd = _centred(p, q)
+  if need_frames:
+    rs, ts = _lrf_hypotheses(src, jnp.asarray(f_s[qi], jnp.float32), dst,
+                             jnp.asarray(f_t[ri], jnp.float32), float(radius))
+  else:
+    keys = jax.random.split(jax.random.key(seed), int(iterations))
+    samples = jax.vmap(lambda k: jax.random.choice(k, len(qi), (3,), replace=False))(keys)
+    rs, ts = _kabsch_batch(src[samples], dst[samples])
+  counts = np.asarray(_count_inliers(rs, ts, src, dst, float(threshold)))
+  order = np.argsort(-counts, kind="stable")
+
+  # 4: verification by overlap, refit on the inliers.
+  best = int(order[0])
+  tree = cKDTree(dst_pts)
+  if verify is None or verify > 0:
+    cand = order if verify is None else order[:int(verify)]
+    sub = src_pts[np.sort(rng.choice(len(src_pts), min(1000, len(src_pts)), replace=False))]
+    r_c = np.asarray(rs, np.float64)[cand]
+    t_c = np.asarray(ts, np.float64)[cand] + cd - np.einsum("hij,j->hi", r_c, cs)
+    fits = overlap_scores(r_c, t_c, sub, tree, icp_mr * mr)
+    best = int(cand[int(np.argmax(fits))])  # first maximum: the higher inlier count
+  r, t, mask, _, _ = _select_and_refine(rs[best:best + 1], ts[best:best + 1], src, dst,
+                                        float(threshold), True)
+  res = _finish(*_uncentre(r, t, cs, cd), mask, best, counts[best])
+
+  # 5: ICP.
+  icp_src = src_pts
+  if len(src_pts) > 20000:
+    icp_src = src_pts[np.sort(rng.choice(len(src_pts), 20000, replace=False))]
+  final, fitness, rmse = icp(icp_src, dst_pts, res.transform, max_distance=icp_mr * mr,
+                             iterations=icp_iterations, target_tree=tree)
+  return Registration(transform=final, coarse_transform=res.transform, inliers=res.inliers,
+                      n_inliers=res.n_inliers,
+                      correspondences=np.stack([kp_s[qi], kp_t[ri]], axis=1).astype(np.int64),
+                      fitness=fitness, rmse=rmse, mr=float(mr),
+                      seconds=time.perf_counter() - t0)
+
+
+@jax.jit
+def _count_inliers(rs, ts, src, dst, threshold):
+  return jax.vmap(lambda r, t: jnp.sum(_inlier_mask(r, t, src, dst, threshold)))(rs, ts)
+
+
+__all__ = [
+    "RansacResult", "Registration", "frame_point_triplets", "icp", "lrf_ransac", "overlap_scores",
+    "pose_errors", "pose_from_correspondence", "ransac_3point", "register", "rotation_error_deg",
+    "to_transform",
+]

@@ -1,0 +1,203 @@
+"""Pose estimation: Kabsch, one-correspondence poses, the two RANSAC estimators, register()."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from scipy.spatial import cKDTree
+
+import lrf_jax
+from lrf_jax import datasets, registration
+from lrf_jax.geometry import kabsch
+from lrf_jax.registration import (icp, lrf_ransac, pose_errors, pose_from_correspondence,
+                                  ransac_3point, register, rotation_error_deg, to_transform)
+from tests.lrf_testing import random_rotation
+
+
+def _rigid(seed: int) -> tuple[np.ndarray, np.ndarray]:
+  return random_rotation(seed), np.random.default_rng(seed).normal(size=3) * 2.0
+
+
+def test_kabsch_recovers_a_known_transform():
+  rot, t = _rigid(0)
+  src = np.random.default_rng(1).normal(size=(40, 3))
+  r, tt = kabsch(src.astype(np.float32), (src @ rot.T + t).astype(np.float32))
+  np.testing.assert_allclose(np.asarray(r), rot, atol=2e-5)
+  np.testing.assert_allclose(np.asarray(tt), t, atol=2e-5)
+  assert np.linalg.det(np.asarray(r)) == pytest.approx(1.0, abs=1e-5)
+
+
+def test_one_correspondence_with_exact_frames_recovers_the_transform():
+  rot, t = _rigid(2)
+  f_src = random_rotation(3)            # any frame (rows x, y, z)
+  f_dst = f_src @ rot.T                 # the equivariance convention: rows rotate with the cloud
+  p = np.array([0.3, -1.2, 0.7])
+  r, tt = pose_from_correspondence(p, f_src, rot @ p + t, f_dst, scale=0.5)
+  np.testing.assert_allclose(np.asarray(r), rot, atol=2e-6)
+  np.testing.assert_allclose(np.asarray(tt), t, atol=2e-5)
+  # Independent of the arm length for exact frames.
+  r2, t2 = pose_from_correspondence(p, f_src, rot @ p + t, f_dst, scale=7.0)
+  np.testing.assert_allclose(np.asarray(r2), rot, atol=2e-6)
+  np.testing.assert_allclose(np.asarray(t2), t, atol=2e-5)
+
+
+def test_pose_errors():
+  rot = datasets.rotation_matrix(np.array([1.0, 2.0, -0.5]), 37.0)
+  est = to_transform(rot, [0.0, 0.3, 0.4])
+  err_r, err_t = pose_errors(est, np.eye(4), mr=0.1)
+  assert err_r == pytest.approx(37.0, abs=1e-6)
+  assert err_t == pytest.approx(5.0)
+  assert rotation_error_deg(np.eye(3), np.eye(3)) == 0.0
+  assert rotation_error_deg(np.diag([1.0, -1, -1]), np.eye(3)) == pytest.approx(180.0)
+
+
+def _synthetic_correspondences(seed: int, m: int = 80, outliers: float = 0.6):
+  rng = np.random.default_rng(seed)
+  rot, t = _rigid(seed)
+  src = rng.uniform(-1, 1, (m, 3))
+  dst = src @ rot.T + t + rng.normal(scale=0.002, size=(m, 3))
+  f_src = np.stack([random_rotation(seed * 1000 + i) for i in range(m)])
+  f_dst = f_src @ rot.T
+  bad = rng.random(m) < outliers
+  dst[bad] = rng.uniform(-3, 3, (bad.sum(), 3))
+  f_dst[bad] = np.stack([random_rotation(7 + i) for i in range(int(bad.sum()))])
+  return src, dst, f_src, f_dst, to_transform(rot, t), bad
+
+
+def test_both_estimators_recover_a_pose_among_outliers_deterministically():
+  src, dst, f_src, f_dst, gt, bad = _synthetic_correspondences(4)
+  a = lrf_ransac(src, dst, f_src, f_dst, inlier_threshold=0.02, scale=0.2, iterations=100,
+                 seed=0)
+  b = ransac_3point(src, dst, inlier_threshold=0.02, iterations=1000, seed=0)
+  for res in (a, b):
+    err_r, err_t = pose_errors(res.transform, gt, mr=0.01)
+    assert err_r < 0.5 and err_t < 1.0
+    np.testing.assert_array_equal(res.inliers, ~bad)
+  again = lrf_ransac(src, dst, f_src, f_dst, inlier_threshold=0.02, scale=0.2, iterations=100,
+                     seed=0)
+  np.testing.assert_array_equal(again.transform, a.transform)
+  assert again.best_hypothesis == a.best_hypothesis
+  # Without the refit the LRF estimate is exactly the winning correspondence's pose.
+  c = lrf_ransac(src, dst, f_src, f_dst, inlier_threshold=0.02, scale=0.2, iterations=100,
+                 seed=0, refine=False)
+  assert c.hypothesis_inliers == c.n_inliers
+
+
+@pytest.mark.data
+def test_noise_free_br_one_correspondence_is_exact(br_bunny):
+  """BR bunny model vs the model under its ground truth: LRF-Net frames of corresponding
+  keypoints are equivariant, so every single correspondence gives the pose (< 0.1 deg, 0.1 mr)."""
+  points, _, mr, xf = br_bunny
+  scene = datasets.transform_points(xf, points)
+  kp = np.sort(np.random.default_rng(0).choice(len(points), 40, replace=False))
+  radius = 15 * mr
+  fm, vm = lrf_jax.compute_frames(points, kp, radius, "lrf_net")
+  fs, vs = lrf_jax.compute_frames(scene, kp, radius, "lrf_net")
+  ok = np.asarray(vm) & np.asarray(vs)
+  assert ok.sum() >= 38
+  for i in np.flatnonzero(ok):
+    r, t = pose_from_correspondence(points[kp[i]], np.asarray(fm)[i], scene[kp[i]],
+                                    np.asarray(fs)[i], scale=radius)
+    # pose_from_correspondence runs in float32 on absolute coordinates (~0.1 m): fine at 0.1 mr.
+    err_r, err_t = pose_errors(to_transform(np.asarray(r), np.asarray(t)), xf, mr)
+    assert err_r < 0.1 and err_t < 0.1, (i, err_r, err_t)
+  res = lrf_ransac(points[kp], scene[kp], np.asarray(fm), np.asarray(fs), valid=ok,
+                   inlier_threshold=2 * mr, scale=radius, iterations=100, seed=0)
+  err_r, err_t = pose_errors(res.transform, xf, mr)
+  assert err_r < 0.1 and err_t < 0.1
+  assert res.n_inliers == len(kp)
+
+
+@pytest.mark.data
+def test_register_consecutive_bunny_scans(data_root):
+  pair = datasets.load_bunny_pairs(data_root)[0]
+  reg = register(pair.model_points, pair.scene_points, seed=0)
+  err_r, err_t = pose_errors(reg.transform, pair.transform, pair.mr)
+  assert err_r < 5.0, (err_r, err_t)
+  assert reg.transform.shape == (4, 4) and reg.n_inliers >= 3
+  assert reg.inliers.shape == (len(reg.correspondences),)
+
+
+def test_register_cli_on_demo_files(tmp_path):
+  """The CLI reads two PLY files and writes the 4x4 transform (synthetic data: no download)."""
+  from lrf_jax import io
+  from lrf_jax.register_cli import main
+  pair = datasets.make_demo_pair(0, seed=0, noise_mr=0.1, partial=True)
+  src, dst = tmp_path / "a.ply", tmp_path / "b.ply"
+  io.write_ply(src, pair.model_points, dtype="float64")
+  io.write_ply(dst, pair.scene_points, dtype="float64")
+  out = tmp_path / "T.txt"
+  assert main([str(src), str(dst), "--out", str(out), "--keypoints", "1000",
+               "--correspondences", "300", "--mr", str(pair.mr)]) == 0
+  est = np.loadtxt(out)
+  err_r, err_t = pose_errors(est, pair.transform, pair.mr)
+  assert err_r < 2.0 and err_t < 5.0, (err_r, err_t)
+  assert main([str(tmp_path / "missing.ply"), str(dst)]) == 2
+
+
+def test_bad_inputs_raise_clear_errors():
+  src, dst, f_src, f_dst, _, _ = _synthetic_correspondences(5, m=10)
+  with pytest.raises(ValueError, match=r"same shape \(M, 3\)"):
+    ransac_3point(src, dst[:5], inlier_threshold=0.1)
+  with pytest.raises(ValueError, match="at least 3"):
+    ransac_3point(src[:2], dst[:2], inlier_threshold=0.1)
+  with pytest.raises(ValueError, match="iterations"):
+    ransac_3point(src, dst, inlier_threshold=0.1, iterations=0)
+  with pytest.raises(ValueError, match="inlier_threshold"):
+    lrf_ransac(src, dst, f_src, f_dst, inlier_threshold=-1.0, scale=1.0)
+  with pytest.raises(ValueError, match=r"frames: expected .*\(10, 3, 3\)"):
+    lrf_ransac(src, dst, f_src[:3], f_dst, inlier_threshold=0.1, scale=1.0)
+  with pytest.raises(ValueError, match="none has two valid frames"):
+    lrf_ransac(src, dst, f_src, f_dst, inlier_threshold=0.1, scale=1.0,
+               valid=np.zeros(10, bool))
+  with pytest.raises(ValueError, match="finite"):
+    ransac_3point(np.full((5, 3), np.nan), dst[:5], inlier_threshold=0.1)
+  with pytest.raises(ValueError, match=r"source: expected shape \(n, 3\)"):
+    register(np.zeros((100, 2)), np.zeros((100, 3)))
+  with pytest.raises(ValueError, match="target: .*at least 10 points"):
+    register(np.random.default_rng(0).normal(size=(100, 3)), np.zeros((3, 3)))
+  with pytest.raises(ValueError, match="estimator"):
+    register(np.random.default_rng(0).normal(size=(100, 3)),
+             np.random.default_rng(1).normal(size=(100, 3)), estimator="4point")
+  with pytest.raises(FileNotFoundError, match="nowhere.ply"):
+    register("/nowhere.ply", np.zeros((100, 3)))
+  with pytest.raises(ValueError, match="transform_est"):
+    pose_errors(np.eye(3), np.eye(4), 1.0)
+
+
+def test_icp_refines_a_small_misalignment():
+  """A bumpy, irregularly sampled height field (no symmetry, no grid aliasing) moved by 3 deg."""
+  rng = np.random.default_rng(0)
+  x, y = rng.uniform(-1, 1, (2, 20000))
+  pts = np.stack([x, y, 0.3 * np.sin(3 * x) * np.cos(2 * y) + 0.2 * x ** 2], axis=1)
+  gt = to_transform(datasets.rotation_matrix(np.array([0.3, 1.0, 0.2]), 3.0), [0.01, -0.02, 0.005])
+  target = datasets.transform_points(gt, pts)
+  est, fitness, rmse = icp(pts[::5], target, np.eye(4), max_distance=0.1, iterations=60)
+  err_r, err_t = pose_errors(est, gt, mr=0.01)
+  assert err_r < 1e-3 and err_t < 1e-3 and fitness == 1.0 and rmse < 1e-9
+  tree = cKDTree(target)
+  fits = registration.overlap_scores(np.stack([est[:3, :3], np.eye(3)]),
+                                     np.stack([est[:3, 3], np.zeros(3)]), pts[::5], tree, 0.005)
+  assert fits[0] == 1.0 and fits[1] < 0.5
+
+
+def test_pose_protocol_on_a_rigidly_moved_cloud():
+  """Scene = model under a rigid motion: both estimators recover it from the matched keypoints;
+  the records carry the documented fields and serialise to JSON."""
+  import json
+
+  from lrf_jax.evaluation.pose import evaluate_pose_pair, pose_report
+  pts, faces = datasets.make_demo_mesh("blob", 0)
+  mr, _ = datasets.mesh_resolution(pts, faces)
+  tr = to_transform(random_rotation(8), [0.5, -1.0, 2.0])
+  pair = datasets.Pair("moved", "demo", pts, datasets.transform_points(tr, pts), faces, faces,
+                       tr, mr, "mean_edge_length", "index")
+  recs = evaluate_pose_pair(pair, n_keypoints=120, n_correspondences=50, seed=1)
+  json.dumps(recs)
+  assert [r["method"] for r in recs] == ["lrf_ransac", "ransac_3point"]
+  assert [r["setting"]["iterations"] for r in recs] == [100, 1000]
+  for r in recs:
+    assert r["experiment"] == "pose" and r["n_correspondences"] == 50
+    assert r["n_correct_correspondences"] == 50 and r["n_inliers"] == 50
+    assert r["err_r"] < 0.05 and r["err_t"] < 0.05
+  assert "| demo | lrf_ransac | 1 |" in pose_report(recs)

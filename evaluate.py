@@ -18,6 +18,7 @@ from tqdm.auto import tqdm
 
 import lrf_jax
 from lrf_jax import evaluation
+from lrf_jax.evaluation import description, pose
 from lrf_jax.evaluation.experiments import DATASETS, EXPERIMENTS
 
 REAL = ["BR@0.1", "BR@0.3", "BR@0.5", "UWA3M", "UWAOR", "bunny"]
@@ -28,7 +29,8 @@ def main(argv=None) -> None:
   ap.add_argument("--data", default=None, help="data root (default: $LRF_DATA, then data/)")
   ap.add_argument("--datasets", nargs="+", default=None, choices=sorted(DATASETS),
                   help="default: every real dataset found, else demo")
-  ap.add_argument("--experiments", nargs="+", default=["repeatability"], choices=EXPERIMENTS)
+  ap.add_argument("--experiments", nargs="+", default=["repeatability"],
+                  choices=EXPERIMENTS + ("description", "pose"))
   ap.add_argument("--methods", nargs="+", default=None,
                   help=f"default: all of {sorted(lrf_jax.METHODS)}")
   ap.add_argument("--checkpoint", default=None,
@@ -72,11 +74,20 @@ def main(argv=None) -> None:
   opts = evaluation.EvalOptions(data_root=args.data, n_keypoints=args.keypoints, seed=args.seed,
                                 radius_mr=args.radius_mr, max_pairs=args.max_pairs)
   cache = evaluation.PatchCache(args.cache_dir)
-  records = []
+  records, other = [], []
   out = Path(args.out)
   t0 = time.perf_counter()
   with tqdm(desc="evaluate", unit="record", dynamic_ncols=True) as bar:
     for exp in args.experiments:
+      if exp in ("description", "pose"):  # descriptors / 6-DoF pose with LRF-Net frames
+        lrf_params = next((r.params for r in runs if r.method == "lrf_net"), None)
+        gen = (description.run_description(ok, opts, cache, params=lrf_params)
+               if exp == "description" else pose.run_pose(ok, opts, cache, params=lrf_params))
+        for rec in gen:
+          other.append(rec)
+          bar.set_postfix(exp=exp, ds=rec["dataset"])
+          bar.update(1)
+        continue
       for rec in evaluation.run_experiment(exp, ok, runs, opts, cache):
         records.append(rec)
         if len(records) % 50 == 0:  # keep what is done if the run is stopped
@@ -94,7 +105,20 @@ def main(argv=None) -> None:
     from lrf_jax.evaluation.experiments import DATASETS as _D
     first = _D[ok[0]][0](args.data, args.seed)[0]
     evaluation.report.weights_figure(first, lrf.params, out, radius_mr=args.radius_mr)
+  extra_md = []
+  if any(r["experiment"] == "description" for r in other):
+    desc = [r for r in other if r["experiment"] == "description"]
+    extra_md.append(description.description_report(desc))
+    description.plot_rpc(desc, out)
+  if any(r["experiment"] == "pose" for r in other):
+    extra_md.append(pose.pose_report([r for r in other if r["experiment"] == "pose"]))
+  if other:
+    (out / "report.md").write_text((out / "report.md").read_text() + "\n" + "\n".join(extra_md))
+    (out / "results_description_pose.json").write_text(json.dumps(
+        [{k: v for k, v in r.items() if not k.startswith("_")} for r in other], indent=1,
+        default=float))
   print(evaluation.markdown_report(records, notes=notes))
+  print("\n".join(extra_md))
   print(f"wrote {out / 'results.json'}, {out / 'report.md'} and figures "
         f"({time.perf_counter() - t0:.0f} s)")
 

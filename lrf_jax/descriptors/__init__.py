@@ -46,6 +46,10 @@ from lrf_jax.neighborhoods import (Patches, SearchIndex, build_patches, validate
 from lrf_jax.normals import prepare_normals
 
 
+# Keypoints x neighbour slots per jitted call (bounds the memory of the vmapped descriptors).
+MAX_SLOTS = 1 << 20
+
+
 @dataclasses.dataclass(frozen=True)
 class DescriptorSpec:
   """How to compute one descriptor.
@@ -161,7 +165,8 @@ def describe_patches(patches: Patches, frames: Any, valid: Any, descriptor: str,
     radius: r.
     faces: optional triangles (orient estimated normals).
     normals: optional (n, 3) normals for SHOT.
-    chunk_size: keypoints per jitted call.
+    chunk_size: at most this many keypoints per jitted call (fewer for large balls: at most
+      `MAX_SLOTS` keypoint x neighbour slots per call).
     **options: static descriptor options.
 
   Returns:
@@ -173,7 +178,10 @@ def describe_patches(patches: Patches, frames: Any, valid: Any, descriptor: str,
   valid = np.asarray(valid, bool)
   if n == 0:
     return jnp.zeros((0, spec.dim), jnp.float32), jnp.zeros((0,), bool)
-  chunk = min(int(chunk_size), n)
+  # Bound keypoints x slots per call (dense balls, e.g. UWAOR's full-resolution scene at the
+  # decimated model's mr, hold 30k+ points): about MAX_SLOTS x 0.5 kB for RoPS.
+  k_max = bucket_k(max(1, int(np.asarray(patches.mask).sum(axis=1).max())))
+  chunk = max(1, min(int(chunk_size), n, MAX_SLOTS // k_max))
   out_d, out_v = [], []
   for start in range(0, n, chunk):
     idx = np.arange(start, min(start + chunk, n))

@@ -16,6 +16,9 @@ Protocol per model/scene pair (DESIGN.md section 5, as the repeatability experim
   the correct ones; recall = N_true / N_corr (eq. `eq_recall`), 1 - precision =
   (N_match - N_true) / N_match (eq. `eq_prec`). Counts are pooled over the pairs of a dataset.
 
+Normals (SHOT, and the LRFs that need them) are `lrf_jax.normals`' defaults (PCA over 0.2 r,
+oriented by the mesh winding or by propagation), estimated once per side and pair.
+
 Invalid descriptors (invalid frame, too few points) are never matched on the model side and never
 match on the scene side (they count in N_corr). Records carry the counts at `RATIO_THRESHOLDS`,
 so the per-dataset curve is exact; summaries: `recall_max` (tau = 1: the fraction of scene
@@ -38,6 +41,7 @@ from lrf_jax.datasets import Pair
 from lrf_jax.descriptors import DESCRIPTORS, describe_patches, match_descriptors
 from lrf_jax.evaluation.repeatability import MethodRun, PatchCache, correspondences
 from lrf_jax.frames import METHODS
+from lrf_jax.normals import default_normals
 
 RATIO_THRESHOLDS = np.round(np.linspace(0.0, 1.0, 101), 2)
 # What the paper states (its figure `fig_RPC` is missing from our copy).
@@ -135,12 +139,12 @@ def recall_at(recall: np.ndarray, omp: np.ndarray, level: float = 0.1) -> float:
   return float(recall[ok].max()) if ok.any() else 0.0
 
 
-def _frames(pts, faces, idx, radius, run: MethodRun, seed: int, cache: PatchCache):
+def _frames(pts, faces, idx, radius, run: MethodRun, seed: int, cache: PatchCache, normals):
   spec = METHODS[run.method]
   patches = cache.get(pts, idx, radius, run.patch_k, seed, spec.z_ratio)
   extra = None
   if spec.prepare is not None:
-    extra = spec.prepare(pts, idx, patches, faces=faces, normals=None, radius=radius)
+    extra = spec.prepare(pts, idx, patches, faces=faces, normals=normals(), radius=radius)
   f, v = frames_from_patches(patches, run.method, params=run.params, extra=extra,
                              **dict(run.options))
   return np.asarray(f), np.asarray(v)
@@ -178,6 +182,15 @@ def evaluate_description_pair(pair: Pair, runs: Iterable[DescriptionRun], *,
   desc_patches = {tag: cache.get(pts, idx, radius, None, seed, 1.0 / 3.0)
                   for tag, pts, _, idx in sides}
   frames: dict[str, Any] = {}
+  normal_cache: dict[str, np.ndarray] = {}
+
+  def normals_of(tag, pts, faces):  # the default normals, estimated once per side
+    def get():
+      if tag not in normal_cache:
+        normal_cache[tag] = default_normals(pts, radius, faces, None)
+      return normal_cache[tag]
+    return get
+
   records = []
   for run in runs:
     t0 = time.perf_counter()
@@ -191,13 +204,16 @@ def evaluate_description_pair(pair: Pair, runs: Iterable[DescriptionRun], *,
                           note="n/a: the LRF needs a mesh, the pair has a cloud side"))
       continue
     if run.lrf.label not in frames:
-      frames[run.lrf.label] = {tag: _frames(pts, faces, idx, radius, run.lrf, seed, cache)
+      frames[run.lrf.label] = {tag: _frames(pts, faces, idx, radius, run.lrf, seed, cache,
+                                            normals_of(tag, pts, faces))
                                for tag, pts, faces, idx in sides}
     desc = {}
     for tag, pts, faces, idx in sides:
       f, v = frames[run.lrf.label][tag]
+      nrm = normals_of(tag, pts, faces)() if DESCRIPTORS[run.descriptor].prepare else None
       d, ok = describe_patches(desc_patches[tag], f, v, run.descriptor, points=pts,
-                               keypoints=idx, radius=radius, faces=faces, **dict(run.options))
+                               keypoints=idx, radius=radius, faces=faces, normals=nrm,
+                               **dict(run.options))
       desc[tag] = (np.asarray(d), np.asarray(ok))
     (dm, okm), (ds, oks) = desc["model"], desc["scene"]
     matches = match_descriptors(ds, dm, oks, okm)

@@ -43,6 +43,8 @@ def main(argv=None) -> None:
   ap.add_argument("--max-pairs", type=int, default=None, help="at most N pairs per dataset")
   ap.add_argument("--radius-mr", type=float, default=15.0)
   ap.add_argument("--seed", type=int, default=0)
+  ap.add_argument("--max-neighbors", type=int, default=evaluation.MAX_NEIGHBORS,
+                  help="cap on all-neighbour patches (dense scans); 0 = no cap")
   ap.add_argument("--cache-dir", default=None, help="keep neighbourhoods on disk here")
   ap.add_argument("--out", default="out/eval", help="output folder")
   args = ap.parse_args(argv)
@@ -72,7 +74,8 @@ def main(argv=None) -> None:
       raise SystemExit(f"--params: expected LABEL=PATH[@METHOD], got {item!r}")
     runs.append(evaluation.MethodRun(label, method or "lrf_net", params=lrf_jax.load_params(path)))
   opts = evaluation.EvalOptions(data_root=args.data, n_keypoints=args.keypoints, seed=args.seed,
-                                radius_mr=args.radius_mr, max_pairs=args.max_pairs)
+                                radius_mr=args.radius_mr, max_pairs=args.max_pairs,
+                                max_neighbors=args.max_neighbors or None)
   cache = evaluation.PatchCache(args.cache_dir)
   records, other = [], []
   out = Path(args.out)

@@ -10,6 +10,7 @@ import jax.numpy as jnp
 import numpy as np
 from lrf_jax.frames import METHODS, MethodSpec
 from lrf_jax.model import default_params
+from lrf_jax.normals import NORMAL_RADIUS_RATIO, estimate_normals
 from lrf_jax.neighborhoods import (Patches, SearchIndex, build_patches, validate_cloud,
                                    validate_keypoints, validate_radius)
 
@@ -70,6 +71,7 @@ def compute_frames(
     seed: int = 0,
     faces: np.ndarray | None = None,
     normals: np.ndarray | None = None,
+    viewpoint: np.ndarray | None = None,
     chunk_size: int = 4096,
     progress: bool | None = None,
     **options: Any,
@@ -91,7 +93,12 @@ def compute_frames(
       neighbour in the ball.
     seed: seed of the neighbour subsample when a ball holds more than K points.
     faces: (f, 3) triangle indices, for mesh methods.
-    normals: (n, 3) per-point normals, for methods that use them.
+    normals: (n, 3) per-point normals, for methods that use them; None = estimated
+      (`lrf_jax.normals.estimate_normals`: PCA over 0.2 r, oriented by `faces`, else `viewpoint`,
+      else by propagation).
+    viewpoint: (3,) sensor position, for a single-view scan without faces: estimated normals are
+      oriented towards it (PCL's convention). Pass it for range scans: propagation cannot know
+      which side of an open scan is out.
     chunk_size: keypoints per jitted call (bounds memory: about chunk_size x K x 16 bytes of
       patches at a time). With several local devices, each chunk is sharded over them.
     progress: show a progress bar over chunks (default: when there are more than 4 chunks).
@@ -125,6 +132,8 @@ def compute_frames(
   if m == 0:
     return jnp.zeros((0, 3, 3), jnp.float32), jnp.zeros((0,), bool)
 
+  if spec.prepare is not None and normals is None and viewpoint is not None:
+    normals = estimate_normals(points, NORMAL_RADIUS_RATIO * radius, faces, viewpoint)
   index = SearchIndex(points, seed)
   n_dev = jax.local_device_count()
   chunk = min(int(chunk_size), -(-m // n_dev) * n_dev)  # a multiple of the devices: shardable

@@ -186,8 +186,15 @@ def _flatten(lists, counts: np.ndarray) -> np.ndarray:
                      count=int(counts.sum()))
 
 
-def _round_up(k: int, multiple: int = 32) -> int:
-  return max(multiple, -(-k // multiple) * multiple)
+def _round_up(k: int) -> int:
+  """The smallest size of the ladder 32, 48, 64, 96, 128, 192, ... that is >= k."""
+  size = 32
+  while True:
+    if size >= k:
+      return size
+    if size * 3 // 2 >= k:
+      return size * 3 // 2
+    size *= 2
 
 
 def build_patches(
@@ -200,6 +207,7 @@ def build_patches(
     z_ratio: float = 1.0 / 3.0,
     index: SearchIndex | None = None,
     validate: bool = True,
+    max_k: int | None = None,
 ) -> Patches:
   """Radius search around keypoints into fixed-size padded patches.
 
@@ -209,12 +217,15 @@ def build_patches(
     radius: support radius r, in the cloud's units (> 0).
     k: patch size K. Balls with more than K points keep the K points of smallest
       `hash_priority(seed, point index)`: a subsample that depends only on point indices and the
-      seed. `None` keeps every neighbour: K becomes the largest ball size rounded up to a multiple
-      of 32 (so that similar clouds share a compiled shape).
+      seed. `None` keeps every neighbour: K becomes the largest ball size rounded up to the next
+      size of the ladder 32, 48, 64, 96, 128, 192, ... (at most 1.5x padding and two sizes per
+      octave, so that runs over many clouds compile a handful of shapes, not one per cloud).
     seed: seed of the subsample.
     z_ratio: the normal support radius as a fraction of r (1/3: TOLDI, LRF-Net).
     index: an optional prebuilt `SearchIndex(points, seed)` to reuse across calls.
     validate: check the inputs (disable only for already validated arrays).
+    max_k: with `k=None`, an upper bound on K: larger balls keep their `max_k` points of smallest
+      priority (the same seeded subsample as an integer k). None = no bound.
 
   Returns:
     `Patches` with N = m; within a patch, neighbours are stored in priority order.
@@ -255,6 +266,8 @@ def build_patches(
     counts = np.asarray(index.tree.query_ball_point(centers, radius, workers=-1,
                                                     return_length=True), np.int64)
     k = _round_up(int(counts.max()) if m else 1)
+    if max_k is not None:
+      k = min(k, int(max_k))
   balls, counts = index.first_k(centers, radius, k)
   kept = np.minimum(counts, k)
   cols = _flatten(balls, kept)

@@ -190,6 +190,18 @@ def test_pair_nuisances_keep_mr_and_ground_truth():
   assert dec.meta["decimation"] == 0.25 and dec.meta["added_noise_mr"] == 0.3
 
 
+def test_rotation_moves_the_scene_viewpoint():
+  pair = ds.make_demo_pair(0, seed=1, partial=True)
+  assert pair.scene_viewpoint is not None and pair.model_viewpoint is None
+  rotated = ds.with_rotation(pair, 90, "x")
+  t = rotated.transform @ np.linalg.inv(pair.transform)  # the added rotation
+  np.testing.assert_allclose(rotated.scene_viewpoint, ds.transform_points(t, pair.scene_viewpoint[None])[0],
+                             atol=1e-9)
+  assert ds.with_noise(pair, 0.1, 0).scene_viewpoint is pair.scene_viewpoint
+  with pytest.raises(ValueError, match="scene_viewpoint"):
+    pair.replace(scene_viewpoint=np.array([1.0, 2.0]))
+
+
 # ---------------------------------------------------------------------------------------------
 # Pair and repeatability keypoints
 

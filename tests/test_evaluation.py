@@ -62,6 +62,25 @@ def test_patch_cache_shares_searches(demo_pair):
   assert cache.misses == 2 and cache.hits == 2
 
 
+def test_normals_estimated_once_per_side(demo_pair, monkeypatch):
+  from lrf_jax.evaluation import repeatability
+
+  calls = []
+  real = repeatability.estimate_normals
+
+  def counting(points, radius, faces=None, viewpoint=None):
+    calls.append(viewpoint)
+    return real(points, radius, faces, viewpoint)
+
+  monkeypatch.setattr(repeatability, "estimate_normals", counting)
+  runs = [MethodRun(m, m) for m in ("flare", "board", "mian", "uniform")]
+  recs = evaluate_pair(demo_pair, runs, experiment="t", n_keypoints=30)
+  assert len(calls) == 2  # model and scene, shared by the three normal-based methods
+  assert calls[1] is demo_pair.scene_viewpoint
+  assert all(r["meancos"] is not None and r["max_neighbors"] == evaluation.MAX_NEIGHBORS
+             for r in recs)
+
+
 def test_report_and_figures_render(tmp_path, demo_pair):
   runs = [MethodRun("toldi", "toldi"), MethodRun("uniform", "uniform")]
   records = evaluate_pair(demo_pair, runs, experiment="repeatability", n_keypoints=50)

@@ -158,6 +158,21 @@ def test_patches_match_brute_force_ball(bunny):
     np.testing.assert_allclose(p.z_cov[i], np.cov(inner.T, bias=True), rtol=1e-4, atol=1e-11)
 
 
+def test_all_neighbour_k_ladder_and_cap(bunny):
+  pts, kp, r, _ = bunny
+  full = build_patches(pts, kp[:40], r, None)
+  biggest = int(full.count.max())
+  assert full.k >= biggest and full.k <= 1.5 * biggest  # next ladder size: at most 1.5x padding
+  assert full.k in {s << j for s in (32, 48) for j in range(12)}
+  cap = 64
+  capped = build_patches(pts, kp[:40], r, None, max_k=cap)
+  assert capped.k == cap and biggest > cap
+  # A capped ball keeps the same seeded subsample as the integer K: its first `cap` priorities.
+  fixed = build_patches(pts, kp[:40], r, cap)
+  np.testing.assert_array_equal(capped.indices, fixed.indices)
+  np.testing.assert_array_equal(capped.count, full.count)
+
+
 # ----------------------------------------------------------------------------- degenerate cases
 
 

@@ -184,6 +184,8 @@ def with_rotation(pair: Pair, angle_deg: float, axis: str | np.ndarray = "z") ->
     A new Pair whose transform is the rotation composed with the old ground truth.
   """
   rotated, t = rotate_about_axis(pair.scene_points, angle_deg, axis)
-  return pair.replace(name=f"{pair.name}+rot{angle_deg:g}{axis if isinstance(axis, str) else ''}",
+  vp = pair.scene_viewpoint
+  return pair.replace(scene_viewpoint=None if vp is None else transform_points(t, vp[None])[0],
+                      name=f"{pair.name}+rot{angle_deg:g}{axis if isinstance(axis, str) else ''}",
                       scene_points=rotated, transform=t @ pair.transform,
                       meta={"rotation_deg": angle_deg})

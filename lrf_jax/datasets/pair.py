@@ -47,6 +47,11 @@ class Pair:
     correspondence: "index" (scene point i corresponds to model point i) or "nearest" (by
       mapping the model point with `transform` and taking the nearest scene point).
     meta: provenance (files, noise level and source, seeds, labels of synthetic parts).
+    model_viewpoint: (3,) float64 sensor position in the model's own coordinates when the model
+      is a single-view scan (normals of a scan are oriented towards it, as PCL's
+      `flipNormalTowardsViewpoint`), else None (a mesh or a complete model: orientation from the
+      faces' winding or by propagation, see `lrf_jax.normals`).
+    scene_viewpoint: (3,) the same for the scene, in the scene's coordinates.
   """
 
   name: str
@@ -60,8 +65,18 @@ class Pair:
   mr_definition: str
   correspondence: Correspondence
   meta: dict[str, Any] = dataclasses.field(default_factory=dict)
+  model_viewpoint: np.ndarray | None = None
+  scene_viewpoint: np.ndarray | None = None
 
   def __post_init__(self):
+    for field in ("model_viewpoint", "scene_viewpoint"):
+      v = getattr(self, field)
+      if v is not None:
+        v = np.asarray(v, dtype=np.float64)
+        if v.shape != (3,) or not np.isfinite(v).all():
+          raise ValueError(f"Pair {self.name}: {field}: expected a finite (3,) sensor position "
+                           f"or None, found {v!r}")
+        object.__setattr__(self, field, v)
     if self.correspondence not in ("index", "nearest"):
       raise ValueError(f"Pair {self.name}: correspondence: expected 'index' or 'nearest', "
                        f"found {self.correspondence!r}")

@@ -206,6 +206,7 @@ def make_demo_pair(index: int = 0, *, seed: int = 0, noise_mr: float = 0.0,
   scene = transform_points(transform, points)
   ids = np.arange(len(points))
   scene_faces = faces
+  scene_viewpoint = None
   meta = {"shape": shape, "seed": seed, "index": index, "noise_mr": noise_mr,
           "synthetic": True, "units": "arbitrary (radius ~1)"}
   if partial:
@@ -221,13 +222,15 @@ def make_demo_pair(index: int = 0, *, seed: int = 0, noise_mr: float = 0.0,
     scene_faces = remap[faces[visible[faces].all(axis=1)]]
     scene = scene[ids]
     meta.update(viewpoint=viewpoint, visible_fraction=len(ids) / len(points))
+    scene_viewpoint = viewpoint
   if noise_mr > 0:
     scene = add_gaussian_noise(scene, noise_mr, mr, rng)
   meta["scene_vertex_ids"] = ids
   return Pair(name=f"demo{index}/{shape}", dataset="demo", model_points=points,
               scene_points=scene, model_faces=faces, scene_faces=scene_faces,
               transform=transform, mr=mr, mr_definition=definition,
-              correspondence="nearest" if partial else "index", meta=meta)
+              correspondence="nearest" if partial else "index", meta=meta,
+              scene_viewpoint=scene_viewpoint)
 
 
 def load_demo(n_pairs: int = 4, *, seed: int = 0, noise_mr: float = 0.0,

@@ -37,6 +37,9 @@ from lrf_jax.io import check_rigid
 FOLDER = "uwa_3d_modeling_views"
 UWA3M_OBJECTS = ("chef", "parasaurolophus", "T-rex")
 PSEUDO_GT_FILE = "pseudo_gt_DERIVED.txt"
+# Each raw view is in its Minolta scanner's frame, camera at the origin looking down -z (the views
+# lie at z = -550 to -700 mm): scan normals are oriented towards the origin.
+SENSOR_ORIGIN = np.zeros(3)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -130,7 +133,8 @@ def load_uwa3m(root: str | os.PathLike | None = None, *,
             transform=np.linalg.inv(pb.transform) @ pa.transform, mr=a.mr,
             mr_definition=a.mr_definition, correspondence="nearest",
             meta={"object": obj, "views": (v, v + 1), "ground_truth": "pseudo", "units": "mm",
-                  "pseudo_gt_rmse_mm": (pa.rmse_mm, pb.rmse_mm)}))
+                  "pseudo_gt_rmse_mm": (pa.rmse_mm, pb.rmse_mm)},
+            model_viewpoint=SENSOR_ORIGIN, scene_viewpoint=SENSOR_ORIGIN))
     else:
       model = load_uwaor_model(obj, root)
       for v, path in views.items():
@@ -144,5 +148,6 @@ def load_uwa3m(root: str | os.PathLike | None = None, *,
             meta={"object": obj, "views": (v,), "ground_truth": "pseudo", "units": "mm",
                   "pseudo_gt_fitness": pose.fitness, "pseudo_gt_rmse_mm": (pose.rmse_mm,),
                   "model_stand_in": f"stand-in: UWAOR model {UWAOR_MODEL_FILES[obj]} (decimated "
-                                    "mesh), not the UWA3M model"}))
+                                    "mesh), not the UWA3M model"},
+            scene_viewpoint=SENSOR_ORIGIN))
   return pairs

@@ -158,6 +158,8 @@ def load_uwaor(root: str | os.PathLike | None = None, *, scene: str = "rs1",
   Returns:
     One Pair per object: model mesh (mm) -> the scene cloud, correspondence "nearest",
     mr = the model's mean edge length; meta holds the occlusion percent from occlusion.txt.
+    The scene is a single view with the scanner at the origin of the UWA frame (the scene lies at
+    z = -746 to -566 mm): `scene_viewpoint` is (0, 0, 0).
   """
   scene_points = load_uwaor_scene(scene, root, variant=variant)
   gt_dir = _folder(root) / "GroundTruth_3Dscenes"
@@ -173,5 +175,6 @@ def load_uwaor(root: str | os.PathLike | None = None, *, scene: str = "rs1",
         mr_definition=model.mr_definition, correspondence="nearest",
         meta={"object": name, "scene": scene, "scene_variant": variant, "units": "mm",
               "model_file": str(model.path),
-              "occlusion_percent": occlusion.get((int(scene[2:]), name))}))
+              "occlusion_percent": occlusion.get((int(scene[2:]), name))},
+        scene_viewpoint=np.zeros(3)))
   return pairs

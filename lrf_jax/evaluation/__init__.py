@@ -3,11 +3,11 @@
 from lrf_jax.evaluation.experiments import (DATASETS, EXPERIMENTS, EvalOptions, available,
                                             run_experiment)
 from lrf_jax.evaluation.report import markdown_report, plot_figures, summarise, write_results
-from lrf_jax.evaluation.repeatability import (MethodRun, PatchCache, correspondences,
+from lrf_jax.evaluation.repeatability import (MAX_NEIGHBORS, MethodRun, PatchCache, correspondences,
                                               evaluate_pair)
 
 __all__ = [
-    "DATASETS", "EXPERIMENTS", "EvalOptions", "MethodRun", "PatchCache", "available",
+    "DATASETS", "EXPERIMENTS", "EvalOptions", "MAX_NEIGHBORS", "MethodRun", "PatchCache", "available",
     "correspondences", "evaluate_pair", "markdown_report", "plot_figures", "run_experiment",
     "summarise", "write_results",
 ]

@@ -12,7 +12,7 @@ from typing import Any, Callable, Iterable, Iterator
 
 from lrf_jax import datasets
 from lrf_jax.datasets import Pair
-from lrf_jax.evaluation.repeatability import MethodRun, PatchCache, evaluate_pair
+from lrf_jax.evaluation.repeatability import MAX_NEIGHBORS, MethodRun, PatchCache, evaluate_pair
 
 NOISE_LEVELS = (0.1, 0.2, 0.3, 0.4, 0.5)
 DECIMATIONS = (1 / 2, 1 / 4, 1 / 8, 1 / 16)
@@ -49,6 +49,7 @@ class EvalOptions:
     seed: keypoint, subsample and nuisance seed.
     radius_mr: support radius in mr (15).
     max_pairs: at most this many pairs per dataset and setting (None: all), for quick runs.
+    max_neighbors: cap on all-neighbour patches (see `evaluate_pair`; None: no cap).
   """
 
   data_root: str | None = None
@@ -56,6 +57,7 @@ class EvalOptions:
   seed: int = 0
   radius_mr: float = 15.0
   max_pairs: int | None = None
+  max_neighbors: int | None = MAX_NEIGHBORS
 
 
 def _br(root, noise=0.3, seed=0):
@@ -80,6 +82,7 @@ CLEAN = {
     "BR": lambda root, seed: datasets.load_br(root, 0.0),
     "UWA3M": lambda root, seed: datasets.load_uwa3m(root, kind="consecutive"),
     "UWAOR": lambda root, seed: datasets.load_uwaor(root, scene="rs1"),
+    "bunny": lambda root, seed: datasets.load_bunny_pairs(root),
     "demo": lambda root, seed: datasets.load_demo(4, seed=seed, noise_mr=0.0, partial=True),
 }
 
@@ -113,7 +116,8 @@ def _limit(pairs: list[Pair], opts: EvalOptions) -> list[Pair]:
 def run_experiment(name: str, dataset_names: list[str], methods: list[MethodRun],
                    opts: EvalOptions, cache: PatchCache) -> Iterator[dict[str, Any]]:
   """Yield the records of one experiment over the given datasets (see module doc)."""
-  common = dict(n_keypoints=opts.n_keypoints, seed=opts.seed, cache=cache)
+  common = dict(n_keypoints=opts.n_keypoints, seed=opts.seed, cache=cache,
+                max_neighbors=opts.max_neighbors)
   if name == "repeatability":
     for ds in dataset_names:
       loader, setting = DATASETS[ds]

@@ -25,6 +25,10 @@ from lrf_jax.datasets import Pair, repeatability_keypoints, transform_points
 from lrf_jax.frames import METHODS
 from lrf_jax.metrics import meancos
 from lrf_jax.neighborhoods import Patches, SearchIndex, build_patches
+from lrf_jax.normals import NORMAL_RADIUS_RATIO, estimate_normals
+
+# Default cap on all-neighbour patches in evaluations (see `evaluate_pair`).
+MAX_NEIGHBORS = 4096
 
 
 @dataclasses.dataclass(frozen=True)
@@ -65,11 +69,11 @@ class PatchCache:
     self.hits = self.misses = 0
 
   def get(self, points: np.ndarray, keypoints: np.ndarray, radius: float, k: int | None,
-          seed: int, z_ratio: float) -> Patches:
-    """The patches of `keypoints` of `points` (built on a miss)."""
+          seed: int, z_ratio: float, max_k: int | None = None) -> Patches:
+    """The patches of `keypoints` of `points` (built on a miss; arguments as `build_patches`)."""
     h = hashlib.sha1(np.ascontiguousarray(points).tobytes())
     h.update(np.ascontiguousarray(keypoints).tobytes())
-    h.update(repr((float(radius), k, seed, float(z_ratio))).encode())
+    h.update(repr((float(radius), k, seed, float(z_ratio), max_k)).encode())
     key = h.hexdigest()[:20]  # content-addressed: BR model sides are shared across scenes
     if key in self._mem:
       self.hits += 1
@@ -81,7 +85,7 @@ class PatchCache:
     else:
       self.misses += 1
       patches = build_patches(points, keypoints, radius, k, seed=seed, z_ratio=z_ratio,
-                              index=SearchIndex(points, seed))
+                              index=SearchIndex(points, seed), max_k=max_k)
       if path is not None:
         path.parent.mkdir(parents=True, exist_ok=True)
         np.savez(path, **patches._asdict())
@@ -115,7 +119,7 @@ def correspondences(pair: Pair, n: int, seed: int, *, scene_first: bool = False,
 def evaluate_pair(pair: Pair, methods: Iterable[MethodRun], *, experiment: str,
                   setting: dict[str, Any] | None = None, n_keypoints: int = 1000,
                   seed: int = 0, radius_mr: float = 15.0, scene_first: bool = False,
-                  cache: PatchCache | None = None,
+                  cache: PatchCache | None = None, max_neighbors: int | None = MAX_NEIGHBORS,
                   keep_frames: bool = False) -> list[dict[str, Any]]:
   """Repeatability records of every method on one pair.
 
@@ -129,6 +133,10 @@ def evaluate_pair(pair: Pair, methods: Iterable[MethodRun], *, experiment: str,
     radius_mr: support radius in mr (one absolute radius on both sides).
     scene_first: draw keypoints on the scene (decimation), see `correspondences`.
     cache: shared patch cache.
+    max_neighbors: cap on the patch size of all-neighbour methods (K = None): balls with more
+      points keep this many by the seeded priority subsample (`build_patches(max_k=...)`). Only
+      dense clouds reach it (UWAOR's full-resolution rs1: 33-50k points per 15 mr ball, from the
+      decimated model's mr); None = no cap. Stored in each record as "max_neighbors".
     keep_frames: also return the frames (under "_frames") for figures.
 
   Returns:
@@ -141,8 +149,16 @@ def evaluate_pair(pair: Pair, methods: Iterable[MethodRun], *, experiment: str,
   mi, si = correspondences(pair, n_keypoints, seed, scene_first=scene_first)
   radius = radius_mr * pair.mr
   base = {"experiment": experiment, "dataset": pair.dataset, "pair": pair.name,
-          "setting": setting, "radius": radius, "mr_definition": pair.mr_definition}
+          "setting": setting, "radius": radius, "mr_definition": pair.mr_definition,
+          "max_neighbors": max_neighbors}
   records = []
+  side_normals: dict[str, np.ndarray] = {}  # estimated once per side, shared by every method
+
+  def normals_of(tag, pts, faces, viewpoint):
+    if tag not in side_normals:
+      side_normals[tag] = estimate_normals(pts, NORMAL_RADIUS_RATIO * radius, faces, viewpoint)
+    return side_normals[tag]
+
   for run in methods:
     spec = METHODS[run.method]
     rec = dict(base, method=run.label)
@@ -151,12 +167,14 @@ def evaluate_pair(pair: Pair, methods: Iterable[MethodRun], *, experiment: str,
                           n_valid=0, note="n/a: needs a mesh, the pair has a cloud side"))
       continue
     sides = []
-    for tag, pts, faces, idx in (("model", pair.model_points, pair.model_faces, mi),
-                                 ("scene", pair.scene_points, pair.scene_faces, si)):
-      patches = cache.get(pts, idx, radius, run.patch_k, seed, spec.z_ratio)
+    for tag, pts, faces, idx, vp in (
+        ("model", pair.model_points, pair.model_faces, mi, pair.model_viewpoint),
+        ("scene", pair.scene_points, pair.scene_faces, si, pair.scene_viewpoint)):
+      patches = cache.get(pts, idx, radius, run.patch_k, seed, spec.z_ratio, max_k=max_neighbors)
       extra = None
       if spec.prepare is not None:
-        extra = spec.prepare(pts, idx, patches, faces=faces, normals=None, radius=radius)
+        extra = spec.prepare(pts, idx, patches, faces=faces, radius=radius,
+                             normals=normals_of(tag, pts, faces, vp))
       sides.append(frames_from_patches(patches, run.method, params=run.params, extra=extra,
                                        **dict(run.options)))
     (fm, vm), (fs, vs) = sides

@@ -39,7 +39,9 @@ def main() -> None:
   ap.add_argument("--model", default="dragon")
   ap.add_argument("--counts", type=int, nargs="+", default=[1000, 10000, 100000])
   ap.add_argument("--methods", nargs="+", default=["lrf_net", "lrf_net:lut", "toldi", "shot"],
-                  help="registry names; NAME:lut reads the weights from a 257x257 table")
+                  help="registry names; NAME:lut reads the weights from a 257x257 table, "
+                       "NAME:device searches on the default device (lrf_jax.device_search), "
+                       "NAME:lut:device both")
   ap.add_argument("--no-pcl", action="store_true")
   args = ap.parse_args()
   mesh = datasets.load_br_model(args.model, args.data)
@@ -62,8 +64,9 @@ def main() -> None:
   for m in args.counts:
     kp = rng.choice(len(pts), m, replace=m > len(pts))
     for label in args.methods:
-      method, _, lut = label.partition(":")
-      opts = {"lut": 257} if lut else {}
+      method, *variants = label.split(":")
+      opts = {"lut": 257} if "lut" in variants else {}
+      opts["search"] = "device" if "device" in variants else "host"
       lrf_jax.compute_frames(pts, kp[:min(m, 4096)], r, method, progress=False, **opts)
       t0 = time.perf_counter()
       f, _ = lrf_jax.compute_frames(pts, kp, r, method, progress=False, **opts)

@@ -74,11 +74,13 @@ def compute_frames(
     viewpoint: np.ndarray | None = None,
     chunk_size: int = 4096,
     progress: bool | None = None,
+    search: str = "auto",
     **options: Any,
 ) -> tuple[jax.Array, jax.Array]:
   """Local reference frames of `keypoints` of a cloud, by any registered method.
 
-  The radius search runs on the host (scipy cKDTree, all cores), keypoints are processed in
+  The radius search runs on the host (scipy cKDTree, all cores) or on the accelerator (`search`),
+  keypoints are processed in
   fixed-size chunks (the last one padded) so that memory is bounded and one compiled function
   serves every chunk; everything after the search is jitted.
 
@@ -102,6 +104,10 @@ def compute_frames(
     chunk_size: keypoints per jitted call (bounds memory: about chunk_size x K x 16 bytes of
       patches at a time). With several local devices, each chunk is sharded over them.
     progress: show a progress bar over chunks (default: when there are more than 4 chunks).
+    search: where the radius search runs: "host" (scipy cKDTree, all cores), "device" (jitted
+      voxel grids on the default device, `lrf_jax.device_search`; integer K only; the same
+      patches, keypoints it cannot guarantee are redone on the host), or "auto" (device when the
+      default backend is a GPU/TPU and K is an integer, else host).
     **options: method options (e.g. `x_mode`, `signed`).
 
   Returns:
@@ -134,7 +140,19 @@ def compute_frames(
 
   if spec.prepare is not None and normals is None and viewpoint is not None:
     normals = estimate_normals(points, NORMAL_RADIUS_RATIO * radius, faces, viewpoint)
-  index = SearchIndex(points, seed)
+  if search not in ("auto", "host", "device"):
+    raise ValueError(f"search: expected 'auto', 'host' or 'device', got {search!r}")
+  if search == "device" and k is None:
+    raise ValueError(f"search='device' needs an integer patch size; method {method!r} uses "
+                     "every neighbour (k=None): use search='host'")
+  on_device = k is not None and (search == "device" or (
+      search == "auto" and jax.default_backend() != "cpu"))
+  if on_device:
+    from lrf_jax.device_search import DeviceIndex, build_patches_device
+    dindex = DeviceIndex(points, radius, k, seed, spec.z_ratio)
+    index = dindex.host
+  else:
+    index = SearchIndex(points, seed)
   n_dev = jax.local_device_count()
   chunk = min(int(chunk_size), -(-m // n_dev) * n_dev)  # a multiple of the devices: shardable
   frames_out, valid_out = [], []
@@ -147,8 +165,12 @@ def compute_frames(
     n_real = kp.shape[0]
     if n_real < chunk:  # pad to the compiled shape with a repeat of the first keypoint
       kp = np.concatenate([kp, np.full(chunk - n_real, kp[0])])
-    patches = build_patches(points, kp, radius, k, seed=seed, z_ratio=spec.z_ratio, index=index,
-                            validate=False)
+    if on_device:
+      patches, _ = build_patches_device(points, kp, radius, k, seed=seed, z_ratio=spec.z_ratio,
+                                        index=dindex)
+    else:
+      patches = build_patches(points, kp, radius, k, seed=seed, z_ratio=spec.z_ratio,
+                              index=index, validate=False)
     extra = None
     if spec.prepare is not None:
       extra = spec.prepare(points, kp, patches, faces=faces, normals=normals, radius=radius)

@@ -99,8 +99,8 @@ def compute_frames(
       (`lrf_jax.normals.estimate_normals`: PCA over 0.2 r, oriented by `faces`, else `viewpoint`,
       else by propagation).
     viewpoint: (3,) sensor position, for a single-view scan without faces: estimated normals are
-      oriented towards it (PCL's convention). Pass it for range scans: propagation cannot know
-      which side of an open scan is out.
+      oriented towards it (PCL's convention), and so is lrf_net_plus's z. Pass it for range
+      scans: propagation cannot know which side of an open scan is out.
     chunk_size: keypoints per jitted call (bounds memory: about chunk_size x K x 16 bytes of
       patches at a time). With several local devices, each chunk is sharded over them.
     progress: show a progress bar over chunks (default: when there are more than 4 chunks).
@@ -138,7 +138,8 @@ def compute_frames(
   if m == 0:
     return jnp.zeros((0, 3, 3), jnp.float32), jnp.zeros((0,), bool)
 
-  if spec.prepare is not None and normals is None and viewpoint is not None:
+  if (spec.prepare is not None and not spec.uses_viewpoint and normals is None
+      and viewpoint is not None):
     normals = estimate_normals(points, NORMAL_RADIUS_RATIO * radius, faces, viewpoint)
   if search not in ("auto", "host", "device"):
     raise ValueError(f"search: expected 'auto', 'host' or 'device', got {search!r}")
@@ -173,7 +174,8 @@ def compute_frames(
                               index=index, validate=False)
     extra = None
     if spec.prepare is not None:
-      extra = spec.prepare(points, kp, patches, faces=faces, normals=normals, radius=radius)
+      vp = {"viewpoint": viewpoint} if spec.uses_viewpoint else {}
+      extra = spec.prepare(points, kp, patches, faces=faces, normals=normals, radius=radius, **vp)
     f, v = frames_from_patches(patches, method, params=params, extra=extra, **options)
     frames_out.append(f[:n_real])
     valid_out.append(v[:n_real])

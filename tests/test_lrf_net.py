@@ -269,6 +269,27 @@ def test_methods_registry_lists_lrf_net():
                                  [0, 0, 1]], atol=1e-6)
 
 
+def test_lrf_net_plus_viewpoint_sign():
+  """With a sensor viewpoint lrf_net_plus's z faces the sensor, equivariantly; without one the
+  ball sign decides (here it points away from a sensor above this bump on one side)."""
+  rng = np.random.default_rng(5)
+  xy = rng.uniform(-3, 3, (6000, 2))
+  pts = np.c_[xy, np.exp(-np.sum(xy**2, 1))]  # a bump seen from +z
+  vp = np.array([0.0, 0.0, 30.0])
+  kp = np.arange(0, 6000, 53)
+  f, v = map(np.asarray, lrf_jax.compute_frames(pts, kp, 1.0, "lrf_net_plus", params=PARAMS,
+                                                viewpoint=vp))
+  assert v.mean() > 0.9
+  assert (np.einsum("nc,nc->n", f[v, 2], vp - pts[kp][v]) > 0).all()
+  rot, t = random_rotation(4), np.array([1.0, -2.0, 0.5])
+  g, w = map(np.asarray, lrf_jax.compute_frames(pts @ rot.T + t, kp, 1.0, "lrf_net_plus",
+                                                params=PARAMS, viewpoint=rot @ vp + t))
+  assert equivariance_deficit(f, g, rot, v, w).mean() < 1e-4
+  h, _ = map(np.asarray, lrf_jax.compute_frames(pts, kp, 1.0, "lrf_net_plus", params=PARAMS))
+  flipped = np.einsum("nc,nc->n", h[:, 2], f[:, 2]) < 0
+  assert flipped[v].any()  # the viewpoint changes the sign where the ball rule disagrees
+
+
 def test_lrf_net_plus_equivariant_and_ball_sign_rule(bunny):
   """lrf_net_plus: rotation equivariant; z oriented so that Σ (p - q_i)·z >= 0 over the patch."""
   pts, kp, r, _ = bunny

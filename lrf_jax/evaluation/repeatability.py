@@ -173,8 +173,12 @@ def evaluate_pair(pair: Pair, methods: Iterable[MethodRun], *, experiment: str,
       patches = cache.get(pts, idx, radius, run.patch_k, seed, spec.z_ratio, max_k=max_neighbors)
       extra = None
       if spec.prepare is not None:
-        extra = spec.prepare(pts, idx, patches, faces=faces, radius=radius,
-                             normals=normals_of(tag, pts, faces, vp))
+        if spec.uses_viewpoint:
+          extra = spec.prepare(pts, idx, patches, faces=faces, radius=radius, normals=None,
+                               viewpoint=vp)
+        else:
+          extra = spec.prepare(pts, idx, patches, faces=faces, radius=radius,
+                               normals=normals_of(tag, pts, faces, vp))
       sides.append(frames_from_patches(patches, run.method, params=run.params, extra=extra,
                                        **dict(run.options)))
     (fm, vm), (fs, vs) = sides

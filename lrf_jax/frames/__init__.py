@@ -12,7 +12,7 @@ from __future__ import annotations
 import dataclasses
 from typing import Any, Callable
 
-from lrf_jax.frames.lrf_net import lrf_net_frames, uniform_frames
+from lrf_jax.frames.lrf_net import lrf_net_frames, prepare_view, uniform_frames
 from lrf_jax.frames.toldi import toldi_frames
 
 
@@ -29,8 +29,11 @@ class MethodSpec:
     z_ratio: radius of the normal support as a fraction of r (stored in `Patches.z_*`).
     needs_params: the method takes learned parameters.
     needs_mesh: the method needs triangle faces (`faces=` in `compute_frames`).
-    prepare: optional host-side hook `prepare(points, keypoints, patches, faces=..., normals=...)`
-      returning a pytree of per-keypoint arrays (leading axis N) fed to `fn` as `extra`.
+    prepare: optional host-side hook `prepare(points, keypoints, patches, faces=..., normals=...,
+      radius=...)` returning a pytree of per-keypoint arrays (leading axis N) fed to `fn` as
+      `extra`.
+    uses_viewpoint: `prepare` also takes `viewpoint=` (the sensor position of a single-view scan,
+      or None) and handles it itself (methods without it get viewpoint-oriented normals instead).
     description: one line for `lrf_jax.METHODS` listings.
     weights: name of the shipped parameter file used when no params are given
       (`lrf_jax/weights/<weights>.msgpack`).
@@ -43,6 +46,7 @@ class MethodSpec:
   needs_params: bool = False
   needs_mesh: bool = False
   prepare: Callable[..., Any] | None = None
+  uses_viewpoint: bool = False
   description: str = ""
   weights: str = "lrf_net"
 
@@ -58,8 +62,8 @@ def _uniform(patches, extra, *, z_sign: str = "toldi"):
 
 
 def _lrf_net_plus(patches, extra, *, params, x_mode: str = "sum", lut: int = 0):
-  del extra
-  return lrf_net_frames(params, patches, x_mode=x_mode, z_sign="ball", lut=lut)
+  return lrf_net_frames(params, patches, x_mode=x_mode, z_sign="ball", lut=lut,
+                        view=None if extra is None else extra["view"])
 
 
 def _toldi(patches, extra, *, signed: bool = True):
@@ -92,7 +96,9 @@ register(MethodSpec(
     description="LRF-Net ablation variants (options z_mode: normal/dr, x_mode: sum1/sum2/dr/max)"))
 register(MethodSpec(
     "lrf_net_plus", _lrf_net_plus, default_k=256, needs_params=True, weights="lrf_net",
-    description="Beyond the paper: LRF-Net with the z sign taken over the whole support "
+    prepare=prepare_view, uses_viewpoint=True,
+    description="Beyond the paper: LRF-Net with the z sign towards the sensor of a scan "
+                "(viewpoint=), else taken over the whole support "
                 "(ball_sign); default weights: the shipped LRF-Net ones, chosen over "
                 "noise-augmented ones on the bunny validation scans"))
 register(MethodSpec(

@@ -23,6 +23,7 @@ from typing import Callable
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from lrf_jax import geometry
 from lrf_jax.model import Params, apply_weights
@@ -128,8 +129,34 @@ def ball_sign(z: jax.Array, offsets: jax.Array, mask: jax.Array) -> jax.Array:
   return jnp.where((h > 0)[:, None], -z, z)
 
 
+def view_sign(z: jax.Array, view: jax.Array) -> jax.Array:
+  """Orient z towards the sensor where a viewpoint is known (|view| > 0), as PCL orients scan
+  normals (`flipNormalTowardsViewpoint`); keypoints with view = 0 keep their z.
+
+  Args:
+    z: (N, 3) unit normals. view: (N, 3) sensor position minus keypoint (0: unknown).
+
+  Returns:
+    (N, 3) z with z · view >= 0 wherever view is non-zero.
+  """
+  h = jnp.einsum("nc,nc->n", z, view)
+  return jnp.where((h < 0)[:, None], -z, z)
+
+
+def prepare_view(points, keypoints, patches, *, faces=None, normals=None, radius=None,
+                 viewpoint=None) -> dict[str, np.ndarray]:
+  """`MethodSpec.prepare` hook of lrf_net_plus: {"view": (N, 3) float32 viewpoint - keypoint},
+  zeros when no viewpoint is given (then the z sign comes from `ball_sign`)."""
+  del faces, normals, radius, patches
+  kp = np.asarray(points, np.float64)[np.asarray(keypoints)]
+  if viewpoint is None:
+    return {"view": np.zeros(kp.shape, np.float32)}
+  return {"view": (np.asarray(viewpoint, np.float64)[None] - kp).astype(np.float32)}
+
+
 def frames_with_weight_fn(patches: Patches, weight_fn: WeightFn, x_mode: str = "sum",
-                          z_sign: str = "toldi") -> tuple[jax.Array, jax.Array, jax.Array]:
+                          z_sign: str = "toldi",
+                          view: jax.Array | None = None) -> tuple[jax.Array, jax.Array, jax.Array]:
   """Frames for all keypoints given a per-neighbour weight function.
 
   Args:
@@ -138,6 +165,8 @@ def frames_with_weight_fn(patches: Patches, weight_fn: WeightFn, x_mode: str = "
     x_mode: "sum" (eq. `eq_axis_x`) or "max" (the tangent projection of the neighbour with the
       largest weight, the paper's ablation "Max"; it has no gradient through the argmax).
     z_sign: "toldi" (the paper: sign from the r/3 neighbours) or "ball" (`ball_sign`).
+    view: optional (N, 3) sensor position minus keypoint; where non-zero it decides the z sign
+      (`view_sign`), overriding `z_sign`.
 
   Returns:
     (frames (N, 3, 3), valid (N,), weights (N, K)).
@@ -148,6 +177,8 @@ def frames_with_weight_fn(patches: Patches, weight_fn: WeightFn, x_mode: str = "
     z = ball_sign(z, patches.offsets, patches.mask)
   elif z_sign != "toldi":
     raise ValueError(f"z_sign: expected 'toldi' or 'ball', got {z_sign!r}")
+  if view is not None:
+    z = view_sign(z, view)
   w = weight_fn(patches.offsets, z, patches.radius)
   if x_mode == "max":
     idx = jnp.argmax(jnp.where(patches.mask, w, -jnp.inf), axis=-1)
@@ -203,7 +234,8 @@ def uniform_weights(offsets, z, radius):
 
 
 def lrf_net_frames(params: Params, patches: Patches, *, x_mode: str = "sum",
-                   z_sign: str = "toldi", lut: int = 0) -> tuple[jax.Array, jax.Array]:
+                   z_sign: str = "toldi", lut: int = 0,
+                   view: jax.Array | None = None) -> tuple[jax.Array, jax.Array]:
   """LRF-Net frames for a batch of patches (pure; jit it or call through `compute_frames`).
 
   Args:
@@ -213,12 +245,14 @@ def lrf_net_frames(params: Params, patches: Patches, *, x_mode: str = "sum",
     z_sign: "toldi" (the paper) or "ball" (lrf_net_plus, see `ball_sign`).
     lut: 0 evaluates the network per neighbour (exact); n > 1 reads the weights from an n x n
       table of the network (`lut_weights`), much faster at the same K.
+    view: optional (N, 3) sensor position minus keypoint (single-view scans): z is oriented
+      towards the sensor where it is non-zero (`view_sign`).
 
   Returns:
     (frames (N, 3, 3) rows x, y, z; valid (N,) bool).
   """
   weight_fn = lut_weights(params, lut) if lut > 1 else lrf_net_weights(params)
-  frames, valid, _ = frames_with_weight_fn(patches, weight_fn, x_mode, z_sign)
+  frames, valid, _ = frames_with_weight_fn(patches, weight_fn, x_mode, z_sign, view)
   return frames, valid
 
 

@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import dataclasses
 import hashlib
+import time
 from pathlib import Path
 from typing import Any, Iterable
 
@@ -141,7 +142,8 @@ def evaluate_pair(pair: Pair, methods: Iterable[MethodRun], *, experiment: str,
 
   Returns:
     One record per method with keys experiment, dataset, pair, method, setting, meancos,
-    frac_above_0.97, n_keypoints, n_valid, radius; meancos is None (and "note" says why) for a
+    frac_above_0.97, n_keypoints, n_valid, radius, seconds (search, normals and frames of both
+    sides, compilation included); meancos is None (and "note" says why) for a
     method the pair cannot feed (a mesh method on a cloud).
   """
   cache = cache or PatchCache()
@@ -166,6 +168,7 @@ def evaluate_pair(pair: Pair, methods: Iterable[MethodRun], *, experiment: str,
       records.append(dict(rec, meancos=None, **{"frac_above_0.97": None}, n_keypoints=len(mi),
                           n_valid=0, note="n/a: needs a mesh, the pair has a cloud side"))
       continue
+    t0 = time.perf_counter()
     sides = []
     for tag, pts, faces, idx, vp in (
         ("model", pair.model_points, pair.model_faces, mi, pair.model_viewpoint),
@@ -185,7 +188,8 @@ def evaluate_pair(pair: Pair, methods: Iterable[MethodRun], *, experiment: str,
     mc = np.asarray(meancos(fm, fs, pair.transform, vm, vs))
     rec.update(meancos=float(mc.mean()) if mc.size else float("nan"),
                **{"frac_above_0.97": float((mc > 0.97).mean()) if mc.size else float("nan")},
-               n_keypoints=int(mc.size), n_valid=int(np.sum(np.asarray(vm) & np.asarray(vs))))
+               n_keypoints=int(mc.size), n_valid=int(np.sum(np.asarray(vm) & np.asarray(vs))),
+               seconds=time.perf_counter() - t0)
     if keep_frames:
       rec["_frames"] = (np.asarray(fm), np.asarray(fs), mc, mi, si)
     records.append(rec)

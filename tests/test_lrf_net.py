@@ -319,3 +319,25 @@ def test_lut_weights_match_exact_network(bunny):
   rot = random_rotation(4)
   moved, wm = _frames(pts @ rot.T, kp, r, lut=257)
   assert equivariance_deficit(fast, moved, rot, w, wm).mean() < 1e-4
+
+
+def test_prepare_view_precedence(br_bunny):
+  """lrf_net_plus's sign reference: viewpoint, else given normals, else winding-oriented normals."""
+  from lrf_jax.frames.lrf_net import prepare_view
+  from lrf_jax.normals import NORMAL_RADIUS_RATIO, estimate_normals
+
+  points, faces, mr, _ = br_bunny
+  kp = np.arange(0, len(points), 997)
+  r = 15 * mr
+  vp = np.array([0.0, 1.0, 0.0])
+  got = prepare_view(points, kp, None, faces=faces, radius=r, viewpoint=vp)["view"]
+  np.testing.assert_allclose(got, vp - points[kp], atol=1e-6)
+  nrm = np.tile([0.0, 0.0, 1.0], (len(points), 1))
+  np.testing.assert_array_equal(prepare_view(points, kp, None, faces=faces, normals=nrm,
+                                             radius=r)["view"], nrm[kp])
+  want = estimate_normals(points, NORMAL_RADIUS_RATIO * r, faces)[kp]
+  np.testing.assert_allclose(prepare_view(points, kp, None, faces=faces, radius=r)["view"],
+                             np.nan_to_num(want), atol=1e-6)
+  assert not prepare_view(points, kp, None, radius=r)["view"].any()  # nothing known: ball sign
+  f, v = lrf_jax.compute_frames(points, kp, r, "lrf_net_plus", params=PARAMS, faces=faces)
+  assert (np.einsum("nc,nc->n", np.asarray(f)[:, 2], want) >= 0).all()

@@ -177,7 +177,9 @@ def evaluate_pair(pair: Pair, methods: Iterable[MethodRun], *, experiment: str,
       extra = None
       if spec.prepare is not None:
         if spec.uses_viewpoint:
-          extra = spec.prepare(pts, idx, patches, faces=faces, radius=radius, normals=None,
+          # Mesh sides share the estimated (winding-oriented) normals; clouds only use `vp`.
+          nrm = normals_of(tag, pts, faces, vp) if faces is not None and vp is None else None
+          extra = spec.prepare(pts, idx, patches, faces=faces, radius=radius, normals=nrm,
                                viewpoint=vp)
         else:
           extra = spec.prepare(pts, idx, patches, faces=faces, radius=radius,

@@ -329,15 +329,19 @@ def test_prepare_view_precedence(br_bunny):
   points, faces, mr, _ = br_bunny
   kp = np.arange(0, len(points), 997)
   r = 15 * mr
+  patches = build_patches(points, kp, r, 256)
   vp = np.array([0.0, 1.0, 0.0])
-  got = prepare_view(points, kp, None, faces=faces, radius=r, viewpoint=vp)["view"]
+  got = prepare_view(points, kp, patches, faces=faces, radius=r, viewpoint=vp)["view"]
   np.testing.assert_allclose(got, vp - points[kp], atol=1e-6)
   nrm = np.tile([0.0, 0.0, 1.0], (len(points), 1))
-  np.testing.assert_array_equal(prepare_view(points, kp, None, faces=faces, normals=nrm,
-                                             radius=r)["view"], nrm[kp])
-  want = estimate_normals(points, NORMAL_RADIUS_RATIO * r, faces)[kp]
-  np.testing.assert_allclose(prepare_view(points, kp, None, faces=faces, radius=r)["view"],
-                             np.nan_to_num(want), atol=1e-6)
-  assert not prepare_view(points, kp, None, radius=r)["view"].any()  # nothing known: ball sign
+  got = prepare_view(points, kp, patches, faces=faces, normals=nrm, radius=r)["view"]
+  near = patches.mask & (np.linalg.norm(patches.offsets, axis=-1) <= r / 3)
+  np.testing.assert_allclose(got, nrm[kp] * near.sum(1)[:, None])  # summed over the z support
+  assert (near.sum(1) < patches.mask.sum(1)).all()
+  est = estimate_normals(points, NORMAL_RADIUS_RATIO * r, faces)
+  want = np.stack([np.nansum(est[i[m]], 0) for i, m in zip(patches.indices, near)])
+  np.testing.assert_allclose(prepare_view(points, kp, patches, faces=faces, radius=r)["view"],
+                             want, rtol=1e-5, atol=1e-4)
+  assert not prepare_view(points, kp, patches, radius=r)["view"].any()  # nothing: ball sign
   f, v = lrf_jax.compute_frames(points, kp, r, "lrf_net_plus", params=PARAMS, faces=faces)
   assert (np.einsum("nc,nc->n", np.asarray(f)[:, 2], want) >= 0).all()

@@ -37,6 +37,11 @@ class TrainConfig:
       `lrf_jax.frames.ablation`; "max" has no gradient and reuses weights trained for "sum").
     noise_mr: augmentation beyond the paper: Gaussian noise (in mr) added to the scene side, as
       a list to draw from per batch; () = none (the paper).
+    crop_p: partiality augmentation beyond the paper: the probability that a training patch (each
+      side independently) is cut by a random plane, as a scan boundary cuts a support (see
+      `train_lib.crop_patches`); 0 = none (the paper).
+    crop_min: the cut plane's smallest distance from the keypoint, as a fraction of r (the
+      distance is uniform in [crop_min, 1)).
     val_pairs: number of Stanford bunny scan pairs used for validation (0 disables).
     val_keypoints: keypoints per validation pair.
     log_every: steps between logged metrics.
@@ -60,6 +65,8 @@ class TrainConfig:
   z_sign: str = "toldi"
   x_mode: str = "sum"
   noise_mr: tuple[float, ...] = ()
+  crop_p: float = 0.0
+  crop_min: float = 0.3
   val_pairs: int = 9
   val_keypoints: int = 500
   log_every: int = 10
@@ -82,6 +89,9 @@ class TrainConfig:
       raise ValueError(f"config.z_sign: expected 'toldi' or 'ball', got {self.z_sign!r}")
     if self.z_mode not in ("normal", "dr"):
       raise ValueError(f"config.z_mode: expected 'normal' or 'dr', got {self.z_mode!r}")
+    if not (0.0 <= self.crop_p <= 1.0 and 0.0 <= self.crop_min < 1.0):
+      raise ValueError(f"config.crop_p / crop_min: expected crop_p in [0, 1] and crop_min in "
+                       f"[0, 1), got {self.crop_p!r} / {self.crop_min!r}")
     for f in ("num_train_keypoints", "patch_k", "batch_size", "epochs"):
       if getattr(self, f) < 1:
         raise ValueError(f"config.{f}: expected a positive integer, got {getattr(self, f)!r}")

@@ -103,6 +103,37 @@ class Batch(NamedTuple):
   scene: Patches
 
 
+def crop_patches(patches: Patches, p: float, min_dist: float,
+                 rng: np.random.Generator) -> Patches:
+  """Partiality augmentation: cut a random fraction `p` of the patches by a plane.
+
+  For a cut patch, a direction u uniform on the sphere and a distance c uniform in
+  [min_dist, 1) · r are drawn; the neighbours with offset · u > c are dropped (mask False, offset
+  0, index -1), as if a scan's boundary ran there. The keypoint side of the plane is kept, and
+  the normal statistics (r/3) are left as they are: the cut teaches the x-axis weights to live
+  with a support that ends early on one side.
+
+  Args:
+    patches: host `Patches` (N rows).
+    p: probability of cutting each row.
+    min_dist: smallest plane distance, as a fraction of r.
+    rng: numpy generator (the caller seeds it per epoch, side and cloud).
+
+  Returns:
+    `Patches` with the same shapes.
+  """
+  n = patches.offsets.shape[0]
+  cut = rng.random(n) < p
+  u = rng.normal(size=(n, 3))
+  u /= np.linalg.norm(u, axis=1, keepdims=True)
+  c = rng.uniform(min_dist, 1.0, n) * np.asarray(patches.radius, np.float64)
+  drop = cut[:, None] & (np.einsum("nkc,nc->nk", patches.offsets, u) > c[:, None])
+  drop &= patches.mask
+  return patches._replace(offsets=np.where(drop[..., None], 0.0, patches.offsets).astype(np.float32),
+                          mask=patches.mask & ~drop,
+                          indices=np.where(drop, -1, patches.indices).astype(np.int32))
+
+
 class BatchMaker:
   """Builds the batch of any (epoch, step) from the seed alone.
 
@@ -111,7 +142,8 @@ class BatchMaker:
   Subsample seeds depend on (seed, epoch, side), so both sides of a pair sample their 256 points
   independently and every epoch sees new subsamples. With `config.noise_mr`, each cloud's scene
   side gets, per epoch, Gaussian noise of a level drawn from the list (seeded by (seed, epoch,
-  cloud)).
+  cloud)). With `config.crop_p`, patches are cut by random planes (`crop_patches`), seeded by
+  (seed, epoch, side, cloud).
   """
 
   def __init__(self, clouds: TrainingClouds, config: TrainConfig):
@@ -147,8 +179,12 @@ class BatchMaker:
         if level > 0:
           rng = np.random.default_rng(_mix(cfg.seed, 5, epoch, int(c)))
           pts = pts + rng.normal(scale=level * self.clouds.mr[c], size=pts.shape)
-        parts.append(build_patches(pts, kp[sel, 1], float(self.clouds.radii[c]), cfg.patch_k,
-                                   seed=seed, validate=False))
+        part = build_patches(pts, kp[sel, 1], float(self.clouds.radii[c]), cfg.patch_k,
+                             seed=seed, validate=False)
+        if cfg.crop_p > 0:
+          crop_rng = np.random.default_rng(_mix(cfg.seed, 6, epoch, side, int(c)))
+          part = crop_patches(part, cfg.crop_p, cfg.crop_min, crop_rng)
+        parts.append(part)
         rows.append(sel)
       inv = np.argsort(np.concatenate(rows))
       sides.append(Patches(*[np.concatenate(f)[inv] for f in zip(*parts)]))

@@ -120,3 +120,27 @@ def test_four_devices_give_the_same_loss_as_one(tmp_path):
   np.testing.assert_allclose(four[0]["loss"], one[0]["loss"], rtol=1e-5)
   np.testing.assert_allclose(four[0]["grad_norm"], one[0]["grad_norm"], rtol=1e-4)
   np.testing.assert_allclose([r["loss"] for r in four], [r["loss"] for r in one], rtol=0.2)
+
+
+def test_crop_augmentation_cuts_by_a_plane():
+  from lrf_jax.neighborhoods import build_patches
+
+  rng = np.random.default_rng(0)
+  pts = rng.normal(size=(4000, 3)) * [1.0, 1.0, 0.05]
+  patches = build_patches(pts, np.arange(0, 4000, 40), 0.8, 64)
+  same = train_lib.crop_patches(patches, 0.0, 0.3, np.random.default_rng(1))
+  for a, b in zip(same, patches):
+    np.testing.assert_array_equal(a, b)
+  cut = train_lib.crop_patches(patches, 1.0, 0.3, np.random.default_rng(1))
+  lost = patches.mask & ~cut.mask
+  assert lost.any(axis=1).mean() > 0.5  # most patches lose a side
+  assert not (cut.mask & ~patches.mask).any()  # nothing is added
+  # The kept offsets are the original ones, dropped slots are clean padding, and no neighbour
+  # closer than crop_min * r is ever dropped (the plane lies at least that far).
+  np.testing.assert_array_equal(cut.offsets[cut.mask], patches.offsets[cut.mask])
+  assert (cut.offsets[lost] == 0).all() and (cut.indices[lost] == -1).all()
+  assert np.linalg.norm(patches.offsets[lost], axis=-1).min() > 0.3 * 0.8
+  again = train_lib.crop_patches(patches, 1.0, 0.3, np.random.default_rng(1))
+  np.testing.assert_array_equal(again.mask, cut.mask)  # seeded
+  with pytest.raises(ValueError, match="crop"):
+    config_lib.replace(config_lib.TrainConfig(), crop_p=1.5)

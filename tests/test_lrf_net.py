@@ -345,3 +345,25 @@ def test_prepare_view_precedence(br_bunny):
   assert not prepare_view(points, kp, patches, radius=r)["view"].any()  # nothing: ball sign
   f, v = lrf_jax.compute_frames(points, kp, r, "lrf_net_plus", params=PARAMS, faces=faces)
   assert (np.einsum("nc,nc->n", np.asarray(f)[:, 2], want) >= 0).all()
+
+
+def test_patch_areas_follow_sampling_density():
+  from lrf_jax.frames.lrf_net import patch_areas
+
+  rng = np.random.default_rng(2)
+  sparse = rng.uniform([-2, -2], [0, 2], (2000, 2))
+  dense = rng.uniform([0, -2], [2, 2], (8000, 2))  # 4x the density on the right half
+  pts = np.c_[np.concatenate([sparse, dense]), np.zeros(10000)]
+  kp = np.flatnonzero(np.abs(pts[:, 0]) < 0.05)[:20]  # on the seam: both densities in each patch
+  patches = build_patches(pts, kp, 0.8, 256)
+  a = patch_areas(pts, patches)
+  valid = patches.mask
+  np.testing.assert_allclose(a.sum(1) / valid.sum(1), 1.0, rtol=1e-5)
+  assert (a[~valid] == 0).all()
+  left = valid & (patches.offsets[..., 0] + pts[kp, 0][:, None] < -0.1)
+  right = valid & (patches.offsets[..., 0] + pts[kp, 0][:, None] > 0.1)
+  ratio = a[left].mean() / a[right].mean()
+  assert 3.0 < ratio < 5.5, ratio  # a sparse point stands for ~4x the area
+  rot = random_rotation(6)
+  moved = build_patches(pts @ rot.T + 1.0, kp, 0.8, 256)
+  np.testing.assert_allclose(patch_areas(pts @ rot.T + 1.0, moved), a, rtol=1e-4)

@@ -61,9 +61,11 @@ def _uniform(patches, extra, *, z_sign: str = "toldi"):
   return uniform_frames(patches, z_sign=z_sign)
 
 
-def _lrf_net_plus(patches, extra, *, params, x_mode: str = "sum", lut: int = 0):
+def _lrf_net_plus(patches, extra, *, params, x_mode: str = "sum", lut: int = 0,
+                  density: bool = True):
   return lrf_net_frames(params, patches, x_mode=x_mode, z_sign="ball", lut=lut,
-                        view=None if extra is None else extra["view"])
+                        view=None if extra is None else extra["view"],
+                        area=None if extra is None or not density else extra["area"])
 
 
 def _toldi(patches, extra, *, signed: bool = True):
@@ -98,9 +100,11 @@ register(MethodSpec(
     "lrf_net_plus", _lrf_net_plus, default_k=256, needs_params=True, weights="lrf_net",
     prepare=prepare_view, uses_viewpoint=True,
     description="Beyond the paper: LRF-Net with the z sign towards the sensor of a scan "
-                "(viewpoint=), else taken over the whole support "
-                "(ball_sign); default weights: the shipped LRF-Net ones, chosen over "
-                "noise-augmented ones on the bunny validation scans"))
+                "(viewpoint=), else from the mesh's oriented normals, else over the whole "
+                "support (ball_sign); weights times the area each point stands for "
+                "(density=True: sampling-invariant x); default weights: the shipped LRF-Net "
+                "ones, chosen on the bunny validation scans over noise- and crop-augmented "
+                "ones"))
 register(MethodSpec(
     "uniform", _uniform, default_k=256,
     description="LRF-Net's construction with uniform weights (w = 1): the learned weights' baseline"))

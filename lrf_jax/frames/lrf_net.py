@@ -172,12 +172,39 @@ def prepare_view(points, keypoints, patches, *, faces=None, normals=None, radius
     view = np.where(near[..., None], np.nan_to_num(nrm[np.maximum(idx, 0)]), 0.0).sum(1)
   else:
     view = np.zeros((kp.shape[0], 3))
-  return {"view": np.nan_to_num(view).astype(np.float32)}
+  return {"view": np.nan_to_num(view).astype(np.float32),
+          "area": patch_areas(pts, patches) if patches is not None else None}
+
+
+AREA_NEIGHBOURS = 8
+
+
+def patch_areas(points: np.ndarray, patches: Patches) -> np.ndarray:
+  """(N, K) float32 surface area each patch neighbour stands for, relative to the patch mean.
+
+  A point's area is π d² / k with d the distance to its k-th nearest neighbour in the cloud
+  (k = `AREA_NEIGHBOURS`): the inverse of the local sampling density. Normalised to mean 1 over
+  each patch's neighbours (0 in padding). Rotation and translation invariant.
+  """
+  from lrf_jax.normals import cache_last
+  from scipy.spatial import cKDTree
+
+  pts = np.asarray(points, np.float64)
+
+  def compute():
+    d, _ = cKDTree(pts).query(pts, k=AREA_NEIGHBOURS + 1, workers=-1)
+    return np.pi * d[:, -1] ** 2 / AREA_NEIGHBOURS
+
+  per_point = cache_last("point_area", (pts,), compute)
+  idx = np.asarray(patches.indices)
+  a = np.where(idx >= 0, per_point[np.maximum(idx, 0)], 0.0)
+  mean = a.sum(1, keepdims=True) / np.maximum((idx >= 0).sum(1, keepdims=True), 1)
+  return (a / np.where(mean > 0, mean, 1.0)).astype(np.float32)
 
 
 def frames_with_weight_fn(patches: Patches, weight_fn: WeightFn, x_mode: str = "sum",
-                          z_sign: str = "toldi",
-                          view: jax.Array | None = None) -> tuple[jax.Array, jax.Array, jax.Array]:
+                          z_sign: str = "toldi", view: jax.Array | None = None,
+                          area: jax.Array | None = None) -> tuple[jax.Array, jax.Array, jax.Array]:
   """Frames for all keypoints given a per-neighbour weight function.
 
   Args:
@@ -188,6 +215,8 @@ def frames_with_weight_fn(patches: Patches, weight_fn: WeightFn, x_mode: str = "
     z_sign: "toldi" (the paper: sign from the r/3 neighbours) or "ball" (`ball_sign`).
     view: optional (N, 3) sensor position minus keypoint; where non-zero it decides the z sign
       (`view_sign`), overriding `z_sign`.
+    area: optional (N, K) surface area each neighbour stands for (`prepare_view`); the weights
+      are multiplied by it, so that x does not depend on the sampling density (beyond the paper).
 
   Returns:
     (frames (N, 3, 3), valid (N,), weights (N, K)).
@@ -201,6 +230,8 @@ def frames_with_weight_fn(patches: Patches, weight_fn: WeightFn, x_mode: str = "
   if view is not None:
     z = view_sign(z, view)
   w = weight_fn(patches.offsets, z, patches.radius)
+  if area is not None:
+    w = w * area
   if x_mode == "max":
     idx = jnp.argmax(jnp.where(patches.mask, w, -jnp.inf), axis=-1)
     w = jax.nn.one_hot(idx, w.shape[-1], dtype=w.dtype)
@@ -255,8 +286,8 @@ def uniform_weights(offsets, z, radius):
 
 
 def lrf_net_frames(params: Params, patches: Patches, *, x_mode: str = "sum",
-                   z_sign: str = "toldi", lut: int = 0,
-                   view: jax.Array | None = None) -> tuple[jax.Array, jax.Array]:
+                   z_sign: str = "toldi", lut: int = 0, view: jax.Array | None = None,
+                   area: jax.Array | None = None) -> tuple[jax.Array, jax.Array]:
   """LRF-Net frames for a batch of patches (pure; jit it or call through `compute_frames`).
 
   Args:
@@ -268,12 +299,13 @@ def lrf_net_frames(params: Params, patches: Patches, *, x_mode: str = "sum",
       table of the network (`lut_weights`), much faster at the same K.
     view: optional (N, 3) sensor position minus keypoint (single-view scans): z is oriented
       towards the sensor where it is non-zero (`view_sign`).
+    area: optional (N, K) area per neighbour multiplying the weights (`prepare_view`).
 
   Returns:
     (frames (N, 3, 3) rows x, y, z; valid (N,) bool).
   """
   weight_fn = lut_weights(params, lut) if lut > 1 else lrf_net_weights(params)
-  frames, valid, _ = frames_with_weight_fn(patches, weight_fn, x_mode, z_sign, view)
+  frames, valid, _ = frames_with_weight_fn(patches, weight_fn, x_mode, z_sign, view, area)
   return frames, valid
 
 

@@ -39,7 +39,8 @@ import numpy as np
 from lrf_jax.api import frames_from_patches
 from lrf_jax.datasets import Pair
 from lrf_jax.descriptors import DESCRIPTORS, describe_patches, match_descriptors
-from lrf_jax.evaluation.repeatability import MethodRun, PatchCache, correspondences
+from lrf_jax.evaluation.repeatability import (MethodRun, PatchCache, correspondences,
+                                              prepare_extra)
 from lrf_jax.frames import METHODS
 from lrf_jax.normals import default_normals
 
@@ -139,12 +140,12 @@ def recall_at(recall: np.ndarray, omp: np.ndarray, level: float = 0.1) -> float:
   return float(recall[ok].max()) if ok.any() else 0.0
 
 
-def _frames(pts, faces, idx, radius, run: MethodRun, seed: int, cache: PatchCache, normals):
+def _frames(pts, faces, idx, radius, run: MethodRun, seed: int, cache: PatchCache, normals,
+            viewpoint=None):
   spec = METHODS[run.method]
   patches = cache.get(pts, idx, radius, run.patch_k, seed, spec.z_ratio)
-  extra = None
-  if spec.prepare is not None:
-    extra = spec.prepare(pts, idx, patches, faces=faces, normals=normals(), radius=radius)
+  extra = prepare_extra(spec, pts, idx, patches, faces=faces, radius=radius, viewpoint=viewpoint,
+                        normals=normals)
   f, v = frames_from_patches(patches, run.method, params=run.params, extra=extra,
                              **dict(run.options))
   return np.asarray(f), np.asarray(v)
@@ -179,6 +180,7 @@ def evaluate_description_pair(pair: Pair, runs: Iterable[DescriptionRun], *,
   radius = radius_mr * pair.mr
   sides = (("model", pair.model_points, pair.model_faces, mi),
            ("scene", pair.scene_points, pair.scene_faces, si))
+  viewpoints = {"model": pair.model_viewpoint, "scene": pair.scene_viewpoint}
   desc_patches = {tag: cache.get(pts, idx, radius, None, seed, 1.0 / 3.0)
                   for tag, pts, _, idx in sides}
   frames: dict[str, Any] = {}
@@ -187,7 +189,7 @@ def evaluate_description_pair(pair: Pair, runs: Iterable[DescriptionRun], *,
   def normals_of(tag, pts, faces):  # the default normals, estimated once per side
     def get():
       if tag not in normal_cache:
-        normal_cache[tag] = default_normals(pts, radius, faces, None)
+        normal_cache[tag] = default_normals(pts, radius, faces, None, viewpoints[tag])
       return normal_cache[tag]
     return get
 
@@ -205,7 +207,7 @@ def evaluate_description_pair(pair: Pair, runs: Iterable[DescriptionRun], *,
       continue
     if run.lrf.label not in frames:
       frames[run.lrf.label] = {tag: _frames(pts, faces, idx, radius, run.lrf, seed, cache,
-                                            normals_of(tag, pts, faces))
+                                            normals_of(tag, pts, faces), viewpoints[tag])
                                for tag, pts, faces, idx in sides}
     desc = {}
     for tag, pts, faces, idx in sides:

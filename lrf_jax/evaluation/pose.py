@@ -30,9 +30,11 @@ import numpy as np
 
 from lrf_jax.api import frames_from_patches
 from lrf_jax.datasets import Pair, transform_points
-from lrf_jax.descriptors import describe_patches, match_descriptors, top_correspondences
-from lrf_jax.evaluation.repeatability import PatchCache, correspondences
+from lrf_jax.descriptors import (DESCRIPTORS, describe_patches, match_descriptors,
+                                 top_correspondences)
+from lrf_jax.evaluation.repeatability import PatchCache, correspondences, prepare_extra
 from lrf_jax.frames import METHODS
+from lrf_jax.normals import default_normals
 from lrf_jax.registration import lrf_ransac, pose_errors, ransac_3point
 
 # The paper's table `tabel_pose` (err_t in mr, err_r in degrees).
@@ -77,17 +79,18 @@ def evaluate_pose_pair(pair: Pair, *, n_keypoints: int = 1000, n_correspondences
   radius = radius_mr * pair.mr
   spec = METHODS[lrf]
   side = {}
-  for tag, pts, faces, idx in (("model", pair.model_points, pair.model_faces, mi),
-                               ("scene", pair.scene_points, pair.scene_faces, si)):
+  for tag, pts, faces, idx, vp in (
+      ("model", pair.model_points, pair.model_faces, mi, pair.model_viewpoint),
+      ("scene", pair.scene_points, pair.scene_faces, si, pair.scene_viewpoint)):
     patches = cache.get(pts, idx, radius, spec.default_k, seed, spec.z_ratio)
-    extra = None
-    if spec.prepare is not None:
-      extra = spec.prepare(pts, idx, patches, faces=faces, normals=None, radius=radius)
+    extra = prepare_extra(spec, pts, idx, patches, faces=faces, radius=radius, viewpoint=vp,
+                          normals=lambda: default_normals(pts, radius, faces, None, vp))
     f, v = frames_from_patches(patches, lrf, params=params if spec.needs_params else None,
                                extra=extra)
     dp = cache.get(pts, idx, radius, None, seed, 1.0 / 3.0)
+    nrm = default_normals(pts, radius, faces, None, vp) if DESCRIPTORS[descriptor].prepare else None
     d, ok = describe_patches(dp, f, v, descriptor, points=pts, keypoints=idx, radius=radius,
-                             faces=faces)
+                             faces=faces, normals=nrm)
     side[tag] = (pts[idx], np.asarray(f), np.asarray(v), np.asarray(d), np.asarray(ok))
   (pm, fm, vm, dm, okm), (ps, fs, vs, ds, oks) = side["model"], side["scene"]
   matches = match_descriptors(dm, ds, okm & vm, oks & vs)

@@ -16,7 +16,7 @@ import dataclasses
 import hashlib
 import time
 from pathlib import Path
-from typing import Any, Iterable
+from typing import Any, Callable, Iterable
 
 import numpy as np
 from scipy.spatial import cKDTree
@@ -94,6 +94,25 @@ class PatchCache:
       self._mem.pop(next(iter(self._mem)))
     self._mem[key] = patches
     return patches
+
+
+def prepare_extra(spec, points: np.ndarray, keypoints: np.ndarray, patches: Patches, *,
+                  faces: np.ndarray | None, radius: float, viewpoint: np.ndarray | None,
+                  normals: Callable[[], np.ndarray]) -> Any:
+  """What a method's `prepare` hook returns for one side of a pair (None without a hook).
+
+  Normal-based methods get `normals()` (the side's estimated normals: by winding with faces,
+  towards `viewpoint` for a scan); viewpoint-aware methods (lrf_net_plus) get the viewpoint, and
+  the normals only for a mesh side without one (a cloud's propagated normals have no reliable
+  outside). `normals` is a thunk so that sides no method needs normals for never estimate them.
+  """
+  if spec.prepare is None:
+    return None
+  if spec.uses_viewpoint:
+    nrm = normals() if faces is not None and viewpoint is None else None
+    return spec.prepare(points, keypoints, patches, faces=faces, radius=radius, normals=nrm,
+                        viewpoint=viewpoint)
+  return spec.prepare(points, keypoints, patches, faces=faces, radius=radius, normals=normals())
 
 
 def correspondences(pair: Pair, n: int, seed: int, *, scene_first: bool = False,
@@ -174,16 +193,8 @@ def evaluate_pair(pair: Pair, methods: Iterable[MethodRun], *, experiment: str,
         ("model", pair.model_points, pair.model_faces, mi, pair.model_viewpoint),
         ("scene", pair.scene_points, pair.scene_faces, si, pair.scene_viewpoint)):
       patches = cache.get(pts, idx, radius, run.patch_k, seed, spec.z_ratio, max_k=max_neighbors)
-      extra = None
-      if spec.prepare is not None:
-        if spec.uses_viewpoint:
-          # Mesh sides share the estimated (winding-oriented) normals; clouds only use `vp`.
-          nrm = normals_of(tag, pts, faces, vp) if faces is not None and vp is None else None
-          extra = spec.prepare(pts, idx, patches, faces=faces, radius=radius, normals=nrm,
-                               viewpoint=vp)
-        else:
-          extra = spec.prepare(pts, idx, patches, faces=faces, radius=radius,
-                               normals=normals_of(tag, pts, faces, vp))
+      extra = prepare_extra(spec, pts, idx, patches, faces=faces, radius=radius, viewpoint=vp,
+                            normals=lambda: normals_of(tag, pts, faces, vp))
       sides.append(frames_from_patches(patches, run.method, params=run.params, extra=extra,
                                        **dict(run.options)))
     (fm, vm), (fs, vs) = sides

@@ -127,3 +127,33 @@ def test_weights_figure_renders(tmp_path, demo_pair):
   from lrf_jax.evaluation.report import weights_figure
   path = weights_figure(demo_pair, lrf_jax.init_params(0), tmp_path, n=2)
   assert path.stat().st_size > 5000
+
+
+def test_plus_ablation_switches_and_figure(tmp_path):
+  opts = evaluation.EvalOptions(n_keypoints=30, max_pairs=1)
+  recs = list(evaluation.run_experiment("plus_ablation", ["demo"], [], opts, PatchCache()))
+  labels = [r["method"] for r in recs]
+  assert labels[0] == "LRF-Net (paper)" and labels[-1] == "lrf_net_plus (both)" and len(recs) == 5
+  assert all(r["meancos"] is not None for r in recs)
+  evaluation.write_results(recs, tmp_path)
+  assert (tmp_path / "plus_ablation.png").stat().st_size > 5000
+  assert "## plus_ablation" in (tmp_path / "report.md").read_text()
+
+
+def test_plus_with_switches_off_is_the_ball_sign_construction(demo_pair):
+  from lrf_jax.frames.lrf_net import lrf_net_frames
+  from lrf_jax.model import default_params
+  from lrf_jax.neighborhoods import build_patches
+
+  pts = demo_pair.scene_points
+  kp = np.arange(0, len(pts), 37)
+  r = 15 * demo_pair.mr
+  f, v = lrf_jax.compute_frames(pts, kp, r, "lrf_net_plus", faces=demo_pair.scene_faces,
+                                viewpoint=demo_pair.scene_viewpoint, density=False,
+                                oriented_sign=False)
+  g, w = lrf_net_frames(default_params("lrf_net"), build_patches(pts, kp, r, 256), z_sign="ball")
+  np.testing.assert_array_equal(np.asarray(v), np.asarray(w))
+  np.testing.assert_allclose(np.asarray(f), np.asarray(g), atol=1e-5)
+  h, _ = lrf_jax.compute_frames(pts, kp, r, "lrf_net_plus", faces=demo_pair.scene_faces,
+                                viewpoint=demo_pair.scene_viewpoint)
+  assert np.abs(np.asarray(h) - np.asarray(f)).max() > 1e-2  # the switches do something

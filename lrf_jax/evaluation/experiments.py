@@ -18,7 +18,20 @@ NOISE_LEVELS = (0.1, 0.2, 0.3, 0.4, 0.5)
 DECIMATIONS = (1 / 2, 1 / 4, 1 / 8, 1 / 16)
 RADII_MR = (5.0, 7.5, 10.0, 12.5, 15.0, 20.0, 25.0)
 ROTATIONS_DEG = (30.0, 60.0, 90.0, 120.0)
-EXPERIMENTS = ("repeatability", "noise", "decimation", "radius", "rotation", "ablation")
+EXPERIMENTS = ("repeatability", "noise", "decimation", "radius", "rotation", "ablation",
+               "plus_ablation")
+
+
+def plus_ablation_runs() -> list[MethodRun]:
+  """lrf_net_plus with each of its switches off in turn (beyond the paper, issue 10):
+  `oriented_sign` (z towards the sensor / the mesh's oriented normals; off = the ball sign only)
+  and `density` (weights times the area per point). LRF-Net as published is the reference."""
+  return [MethodRun("LRF-Net (paper)", "lrf_net"),
+          MethodRun("plus: ball sign only", "lrf_net_plus",
+                    options=(("density", False), ("oriented_sign", False))),
+          MethodRun("plus: + oriented sign", "lrf_net_plus", options=(("density", False),)),
+          MethodRun("plus: + density", "lrf_net_plus", options=(("oriented_sign", False),)),
+          MethodRun("lrf_net_plus (both)", "lrf_net_plus")]
 ABLATION_Z = ("Normal", "DR")
 ABLATION_X = ("Sum1", "Sum2", "DR", "Max")
 
@@ -118,11 +131,12 @@ def run_experiment(name: str, dataset_names: list[str], methods: list[MethodRun]
   """Yield the records of one experiment over the given datasets (see module doc)."""
   common = dict(n_keypoints=opts.n_keypoints, seed=opts.seed, cache=cache,
                 max_neighbors=opts.max_neighbors)
-  if name == "repeatability":
+  if name in ("repeatability", "plus_ablation"):
+    runs = methods if name == "repeatability" else plus_ablation_runs()
     for ds in dataset_names:
       loader, setting = DATASETS[ds]
       for pair in _limit(loader(opts.data_root, opts.seed), opts):
-        yield from _tagged(evaluate_pair(pair, methods, experiment=name, setting=setting,
+        yield from _tagged(evaluate_pair(pair, runs, experiment=name, setting=setting,
                                          radius_mr=opts.radius_mr, **common), ds)
     return
   clean = sorted({_clean_name(ds) for ds in dataset_names} - {None})
@@ -172,5 +186,5 @@ def _clean_name(ds: str) -> str | None:
 
 def _tagged(records: list[dict], ds: str) -> list[dict]:
   for r in records:
-    r["dataset"] = ds if r["experiment"] == "repeatability" else _clean_name(ds) or ds
+    r["dataset"] = ds if r["experiment"] in ("repeatability", "plus_ablation") else _clean_name(ds) or ds
   return records

@@ -18,6 +18,7 @@ PAPER_STATED = {
     "decimation": "LRF-Net best at 1/2, 1/4 and 1/8 on all datasets (figure only).",
     "radius": "LRF-Net stable on BR; best on UWA3M/UWAOR above 7.5 mr (figure only).",
     "rotation": "LRF-Net, Normal+Max and Normal+Sum2 stable under 30-120 deg about z (figure).",
+    "plus_ablation": "(not in the paper) lrf_net_plus, beyond the paper: each switch on and off.",
 }
 PAPER_ABLATION = {  # MeanCos, z-axis x x-axis (tables analyse_BR / _UWA3M / _UWAOR)
     "BR": {"Normal": {"Sum1": 0.999, "Sum2": 0.999, "DR": 0.775, "Max": 0.720},
@@ -145,19 +146,23 @@ def plot_figures(records: list[dict[str, Any]], out: Path) -> list[Path]:
   summary = summarise(records)
   methods = list(dict.fromkeys(r["method"] for r in records))
   written = []
-  rep = {k: v for k, v in summary.items() if k[0] == "repeatability"}
-  if rep:
+  for bar_exp, title in (("repeatability", "Repeatability (r = 15 mr)"),
+                         ("plus_ablation", "lrf_net_plus: each switch (r = 15 mr)")):
+    rep = {k: v for k, v in summary.items() if k[0] == bar_exp}
+    if not rep:
+      continue
+    exp_methods = list(dict.fromkeys(r["method"] for r in records if r["experiment"] == bar_exp))
     keys = list(rep)
     fig, ax = plt.subplots(figsize=(max(6, 1.4 * len(keys)), 4))
-    width = 0.8 / max(1, len(methods))
-    for i, m in enumerate(methods):
+    width = 0.8 / max(1, len(exp_methods))
+    for i, m in enumerate(exp_methods):
       vals = [rep[k].get(m, {}).get("meancos") or 0.0 for k in keys]
       ax.bar(np.arange(len(keys)) + i * width, vals, width, label=m)
     ax.set_xticks(np.arange(len(keys)) + 0.4 - width / 2, [k[1] for k in keys], rotation=20)
-    ax.set(ylabel="MeanCos", ylim=(0, 1), title="Repeatability (r = 15 mr)")
+    ax.set(ylabel="MeanCos", ylim=(0, 1), title=title)
     ax.legend(fontsize=7, ncol=2)
     fig.tight_layout()
-    path = out / "repeatability.png"
+    path = out / f"{bar_exp}.png"
     fig.savefig(path, dpi=120)
     plt.close(fig)
     written.append(path)

@@ -62,9 +62,9 @@ def _uniform(patches, extra, *, z_sign: str = "toldi"):
 
 
 def _lrf_net_plus(patches, extra, *, params, x_mode: str = "sum", lut: int = 0,
-                  density: bool = True):
+                  density: bool = True, oriented_sign: bool = True):
   return lrf_net_frames(params, patches, x_mode=x_mode, z_sign="ball", lut=lut,
-                        view=None if extra is None else extra["view"],
+                        view=None if extra is None or not oriented_sign else extra["view"],
                         area=None if extra is None or not density else extra["area"])
 
 

@@ -30,7 +30,6 @@ from __future__ import annotations
 
 import dataclasses
 import time
-from collections import defaultdict
 from pathlib import Path
 from typing import Any, Iterable, Iterator
 
@@ -40,7 +39,7 @@ from lrf_jax.api import frames_from_patches
 from lrf_jax.datasets import Pair
 from lrf_jax.descriptors import DESCRIPTORS, describe_patches, match_descriptors
 from lrf_jax.evaluation.repeatability import (MethodRun, PatchCache, correspondences,
-                                              prepare_extra)
+                                              group_records, prepare_extra)
 from lrf_jax.frames import METHODS
 from lrf_jax.normals import default_normals
 
@@ -271,10 +270,7 @@ def run_description(dataset_names: list[str], opts: Any, cache: PatchCache, *,
 def summarise_description(records: Iterable[dict[str, Any]]) -> dict[tuple, dict[str, Any]]:
   """{(dataset, run label): {"recall", "omp", "thresholds", "recall_max", "recall_at_0.1",
   "n_pairs", "descriptor", "lrf"}} with the counts pooled over the dataset's pairs."""
-  groups: dict[tuple, list[dict]] = defaultdict(list)
-  for r in records:
-    if r.get("experiment") == "description":
-      groups[(r["dataset"], r["method"])].append(r)
+  groups = group_records(records, "description")
   out = {}
   for key, rs in groups.items():
     ok = [r for r in rs if r.get("n_match") is not None]

@@ -23,7 +23,6 @@ the ground truth) and the estimator's time (a second, compiled call).
 from __future__ import annotations
 
 import time
-from collections import defaultdict
 from typing import Any, Iterable, Iterator
 
 import numpy as np
@@ -32,7 +31,8 @@ from lrf_jax.api import frames_from_patches
 from lrf_jax.datasets import Pair, transform_points
 from lrf_jax.descriptors import (DESCRIPTORS, describe_patches, match_descriptors,
                                  top_correspondences)
-from lrf_jax.evaluation.repeatability import PatchCache, correspondences, prepare_extra
+from lrf_jax.evaluation.repeatability import (PatchCache, correspondences, group_records,
+                                              prepare_extra)
 from lrf_jax.frames import METHODS
 from lrf_jax.normals import default_normals
 from lrf_jax.registration import lrf_ransac, pose_errors, ransac_3point
@@ -159,10 +159,7 @@ def run_pose(dataset_names: list[str], opts: Any, cache: PatchCache, *, params: 
 def summarise_pose(records: Iterable[dict[str, Any]]) -> dict[tuple, dict[str, float]]:
   """{(dataset, method): {"err_r_mean", "err_t_mean", "err_r_median", "err_t_median", "success",
   "n_pairs", "seconds"}}; success = err_r <= 5 deg and err_t <= 10 mr."""
-  groups: dict[tuple, list[dict]] = defaultdict(list)
-  for r in records:
-    if r.get("experiment") == "pose":
-      groups[(r["dataset"], r["method"])].append(r)
+  groups = group_records(records, "pose")
   out = {}
   for key, rs in groups.items():
     ok = [r for r in rs if r.get("err_r") is not None]

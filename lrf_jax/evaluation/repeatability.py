@@ -96,6 +96,15 @@ class PatchCache:
     return patches
 
 
+def group_records(records: Iterable[dict[str, Any]], experiment: str) -> dict[tuple, list[dict]]:
+  """{(dataset, method): [records]} of one experiment, in order of first appearance."""
+  groups: dict[tuple, list[dict]] = {}
+  for r in records:
+    if r.get("experiment") == experiment:
+      groups.setdefault((r["dataset"], r["method"]), []).append(r)
+  return groups
+
+
 def prepare_extra(spec, points: np.ndarray, keypoints: np.ndarray, patches: Patches, *,
                   faces: np.ndarray | None, radius: float, viewpoint: np.ndarray | None,
                   normals: Callable[[], np.ndarray]) -> Any:

@@ -299,7 +299,7 @@ def test_lrf_net_plus_equivariant_and_ball_sign_rule(bunny):
   f, v, g, w = map(np.asarray, (f, v, g, w))
   assert equivariance_deficit(f, g, rot, v, w).mean() < 1e-4
   assert_frames_orthonormal(f, v)
-  p = build_patches(pts, kp, r, 256)
+  p = build_patches(pts, kp, r, lrf_jax.METHODS["lrf_net_plus"].default_k)
   for n in np.flatnonzero(v):
     off = p.offsets[n][p.mask[n]]
     assert np.sum(-off @ f[n, 2]) >= 0

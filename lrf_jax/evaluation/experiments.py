@@ -25,13 +25,15 @@ EXPERIMENTS = ("repeatability", "noise", "decimation", "radius", "rotation", "ab
 def plus_ablation_runs() -> list[MethodRun]:
   """lrf_net_plus with each of its switches off in turn (beyond the paper, issue 10):
   `oriented_sign` (z towards the sensor / the mesh's oriented normals; off = the ball sign only)
-  and `density` (weights times the area per point). LRF-Net as published is the reference."""
+  and `density` (weights times the area per point), and its patch size (512; 256 = LRF-Net's).
+  LRF-Net as published is the reference."""
   return [MethodRun("LRF-Net (paper)", "lrf_net"),
           MethodRun("plus: ball sign only", "lrf_net_plus",
                     options=(("density", False), ("oriented_sign", False))),
           MethodRun("plus: + oriented sign", "lrf_net_plus", options=(("density", False),)),
           MethodRun("plus: + density", "lrf_net_plus", options=(("oriented_sign", False),)),
-          MethodRun("lrf_net_plus (both)", "lrf_net_plus")]
+          MethodRun("plus: both, K = 256", "lrf_net_plus", k=256),
+          MethodRun("lrf_net_plus (both, K = 512)", "lrf_net_plus")]
 ABLATION_Z = ("Normal", "DR")
 ABLATION_X = ("Sum1", "Sum2", "DR", "Max")
 

@@ -251,20 +251,14 @@ def run_description(dataset_names: list[str], opts: Any, cache: PatchCache, *,
   Yields:
     Records of `evaluate_description_pair`, "dataset" set to the dataset name.
   """
-  from lrf_jax.evaluation.experiments import DATASETS
+  from lrf_jax.evaluation.experiments import iter_pairs
   runs = runs or default_runs(params)
-  for ds in dataset_names:
-    loader, setting = DATASETS[ds]
-    pairs = loader(opts.data_root, opts.seed)
-    if opts.max_pairs is not None:
-      pairs = pairs[:opts.max_pairs]
-    for pair in pairs:
-      for rec in evaluate_description_pair(pair, runs, n_keypoints=opts.n_keypoints,
-                                           seed=opts.seed, radius_mr=opts.radius_mr,
-                                           correct_mr=correct_mr, cache=cache,
-                                           setting=setting):
-        rec["dataset"] = ds
-        yield rec
+  for ds, setting, pair in iter_pairs(dataset_names, opts):
+    for rec in evaluate_description_pair(pair, runs, n_keypoints=opts.n_keypoints,
+                                         seed=opts.seed, radius_mr=opts.radius_mr,
+                                         correct_mr=correct_mr, cache=cache, setting=setting):
+      rec["dataset"] = ds
+      yield rec
 
 
 def summarise_description(records: Iterable[dict[str, Any]]) -> dict[tuple, dict[str, Any]]:

@@ -128,6 +128,16 @@ def _limit(pairs: list[Pair], opts: EvalOptions) -> list[Pair]:
   return pairs if opts.max_pairs is None else pairs[:opts.max_pairs]
 
 
+def iter_pairs(dataset_names: Iterable[str],
+               opts: EvalOptions) -> Iterator[tuple[str, dict[str, Any], Pair]]:
+  """(dataset name, its setting, pair) for every pair of the named `DATASETS`, at most
+  `opts.max_pairs` per dataset (shared by the repeatability, description and pose runs)."""
+  for ds in dataset_names:
+    loader, setting = DATASETS[ds]
+    for pair in _limit(loader(opts.data_root, opts.seed), opts):
+      yield ds, setting, pair
+
+
 def run_experiment(name: str, dataset_names: list[str], methods: list[MethodRun],
                    opts: EvalOptions, cache: PatchCache) -> Iterator[dict[str, Any]]:
   """Yield the records of one experiment over the given datasets (see module doc)."""
@@ -135,11 +145,9 @@ def run_experiment(name: str, dataset_names: list[str], methods: list[MethodRun]
                 max_neighbors=opts.max_neighbors)
   if name in ("repeatability", "plus_ablation"):
     runs = methods if name == "repeatability" else plus_ablation_runs()
-    for ds in dataset_names:
-      loader, setting = DATASETS[ds]
-      for pair in _limit(loader(opts.data_root, opts.seed), opts):
-        yield from _tagged(evaluate_pair(pair, runs, experiment=name, setting=setting,
-                                         radius_mr=opts.radius_mr, **common), ds)
+    for ds, setting, pair in iter_pairs(dataset_names, opts):
+      yield from _tagged(evaluate_pair(pair, runs, experiment=name, setting=setting,
+                                       radius_mr=opts.radius_mr, **common), ds)
     return
   clean = sorted({_clean_name(ds) for ds in dataset_names} - {None})
   if name == "ablation":  # the paper's tables: noise-free BR, UWA3M, UWAOR

@@ -142,18 +142,13 @@ def run_pose(dataset_names: list[str], opts: Any, cache: PatchCache, *, params: 
   Yields:
     Records of `evaluate_pose_pair`, "dataset" set to the dataset name.
   """
-  from lrf_jax.evaluation.experiments import DATASETS
-  for ds in dataset_names:
-    loader, setting = DATASETS[ds]
-    pairs = loader(opts.data_root, opts.seed)
-    if opts.max_pairs is not None:
-      pairs = pairs[:opts.max_pairs]
-    for pair in pairs:
-      for rec in evaluate_pose_pair(pair, n_keypoints=opts.n_keypoints, seed=opts.seed,
-                                    radius_mr=opts.radius_mr, params=params,
-                                    inlier_mr=inlier_mr, cache=cache, setting=setting):
-        rec["dataset"] = ds
-        yield rec
+  from lrf_jax.evaluation.experiments import iter_pairs
+  for ds, setting, pair in iter_pairs(dataset_names, opts):
+    for rec in evaluate_pose_pair(pair, n_keypoints=opts.n_keypoints, seed=opts.seed,
+                                  radius_mr=opts.radius_mr, params=params,
+                                  inlier_mr=inlier_mr, cache=cache, setting=setting):
+      rec["dataset"] = ds
+      yield rec
 
 
 def summarise_pose(records: Iterable[dict[str, Any]]) -> dict[tuple, dict[str, float]]:

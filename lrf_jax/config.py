@@ -34,7 +34,8 @@ class TrainConfig:
     z_sign: "toldi" (paper: sign from the r/3 neighbours) or "ball" (sign over the whole
       support; lrf_net_plus, beyond the paper).
     x_mode: "sum" (paper, the ablation's "Sum1"), "sum2", "dr" or "max" (ablation, see
-      `lrf_jax.frames.ablation`; "max" has no gradient and reuses weights trained for "sum").
+      `lrf_jax.frames.ablation`; "max" has no gradient and reuses weights trained for "sum"), or
+      "softmax" (beyond the paper: the outputs are log-weights, `lrf_net.softmax_weights`).
     noise_mr: augmentation beyond the paper: Gaussian noise (in mr) added to the scene side, as
       a list to draw from per batch; () = none (the paper).
     crop_p: partiality augmentation beyond the paper: the probability that a training patch (each
@@ -82,8 +83,8 @@ class TrainConfig:
     if self.loss_reduction not in ("min", "max", "sum"):
       raise ValueError(f"config.loss_reduction: expected 'min', 'max' or 'sum', got "
                        f"{self.loss_reduction!r}")
-    if self.x_mode not in ("sum", "sum2", "dr", "max"):
-      raise ValueError(f"config.x_mode: expected 'sum', 'sum2', 'dr' or 'max', got "
+    if self.x_mode not in ("sum", "sum2", "dr", "max", "softmax"):
+      raise ValueError(f"config.x_mode: expected 'sum', 'sum2', 'dr', 'max' or 'softmax', got "
                        f"{self.x_mode!r}")
     if self.z_sign not in ("toldi", "ball"):
       raise ValueError(f"config.z_sign: expected 'toldi' or 'ball', got {self.z_sign!r}")

@@ -39,6 +39,13 @@ def build_parser() -> argparse.ArgumentParser:
   ap.add_argument("--checkpoint", default=None,
                   help="a train.py workdir whose best LRF-Net parameters to use "
                        "(default: the shipped weights)")
+  ap.add_argument("--method", default="lrf_net",
+                  help="LRF method, a key of lrf_jax.METHODS (default lrf_net; lrf_net_plus is "
+                       "the more repeatable one)")
+  ap.add_argument("--source-viewpoint", type=float, nargs=3, default=None, metavar=("X", "Y", "Z"),
+                  help="sensor position of a single-view SOURCE scan (orients its normals)")
+  ap.add_argument("--target-viewpoint", type=float, nargs=3, default=None, metavar=("X", "Y", "Z"),
+                  help="sensor position of a single-view TARGET scan")
   ap.add_argument("--seed", type=int, default=0)
   return ap
 
@@ -56,7 +63,9 @@ def main(argv: list[str] | None = None) -> int:
                    n_keypoints=args.keypoints, n_correspondences=args.correspondences,
                    inlier_mr=args.inlier_mr, estimator=args.estimator,
                    iterations=args.iterations, icp_iterations=args.icp_iterations,
-                   params=params, seed=args.seed)
+                   params=params, seed=args.seed, method=args.method,
+                   source_viewpoint=args.source_viewpoint,
+                   target_viewpoint=args.target_viewpoint)
   except (ValueError, FileNotFoundError) as e:
     print(f"error: {e}", file=sys.stderr)
     return 2

@@ -430,7 +430,8 @@ def register(source: Any, target: Any, *, mr: float | None = None, radius_mr: fl
              n_keypoints: int = 3000, n_correspondences: int = 1000, iterations: int = 1000,
              inlier_mr: float = 5.0, verify: int | None = None, estimator: str = "lrf",
              icp_iterations: int = 50, icp_mr: float = 3.0, method: str = "lrf_net",
-             descriptor: str = "toldi", params: Any = None, seed: int = 0) -> Registration:
+             descriptor: str = "toldi", params: Any = None, seed: int = 0,
+             source_viewpoint: Any = None, target_viewpoint: Any = None) -> Registration:
   """Rigidly register `source` onto `target` with learned LRFs (LRF-Net frames, one-point RANSAC).
 
   Pipeline (every length in mr: the source's mean edge length for a mesh, mean nearest-neighbour
@@ -469,6 +470,10 @@ def register(source: Any, target: Any, *, mr: float | None = None, radius_mr: fl
     descriptor: a key of `lrf_jax.descriptors.DESCRIPTORS`.
     params: learned LRF parameters (None: the shipped LRF-Net weights).
     seed: seed of keypoints, neighbour subsamples and sampling.
+    source_viewpoint, target_viewpoint: optional (3,) sensor positions of single-view scans, in
+      each cloud's own coordinates: estimated normals (and `method="lrf_net_plus"`'s z) are
+      oriented towards them (see `compute_frames`). Without them a scan's normals are oriented
+      by propagation, which cannot know which side of an open scan is out.
 
   Returns:
     `Registration`; `transform` maps source points into the target's frame.
@@ -513,6 +518,14 @@ def register(source: Any, target: Any, *, mr: float | None = None, radius_mr: fl
                      f"{sorted(DESCRIPTORS)}")
   if METHODS[method].needs_mesh and (src_faces is None or dst_faces is None):
     raise ValueError(f"method {method!r} needs triangle meshes on both sides")
+  views = []
+  for name, vp in (("source_viewpoint", source_viewpoint), ("target_viewpoint", target_viewpoint)):
+    if vp is not None:
+      vp = np.asarray(vp, np.float64)
+      if vp.shape != (3,) or not np.all(np.isfinite(vp)):
+        raise ValueError(f"{name}: expected a finite (3,) sensor position, got shape "
+                         f"{vp.shape}")
+    views.append(vp)
   if mr is None:
     mr, _ = mesh_resolution(src_pts, src_faces)
   elif not (np.isfinite(mr) and mr > 0):
@@ -522,12 +535,17 @@ def register(source: Any, target: Any, *, mr: float | None = None, radius_mr: fl
   # 1-2: keypoints, frames, descriptors, matches.
   rng = np.random.default_rng(seed)
   sides = []
-  for pts, faces in ((src_pts, src_faces), (dst_pts, dst_faces)):
+  for pts, faces, vp in ((src_pts, src_faces, views[0]), (dst_pts, dst_faces, views[1])):
     kp = np.sort(rng.choice(len(pts), min(int(n_keypoints), len(pts)), replace=False))
+    normals = None
+    if vp is not None and (METHODS[method].prepare is not None or descriptor == "shot"):
+      from lrf_jax.normals import NORMAL_RADIUS_RATIO, estimate_normals
+      normals = estimate_normals(pts, NORMAL_RADIUS_RATIO * radius, faces, vp)
     frames, valid = compute_frames(pts, kp, radius, method, params=params, faces=faces,
-                                   seed=seed)
+                                   seed=seed, viewpoint=vp,
+                                   normals=None if METHODS[method].uses_viewpoint else normals)
     desc, ok = compute_descriptors(pts, kp, radius, frames, valid, descriptor, faces=faces,
-                                   seed=seed)
+                                   seed=seed, normals=normals)
     sides.append((kp, np.asarray(frames), np.asarray(valid), np.asarray(desc), np.asarray(ok)))
   (kp_s, f_s, v_s, d_s, ok_s), (kp_t, f_t, v_t, d_t, ok_t) = sides
   need_frames = estimator == "lrf"

@@ -214,7 +214,7 @@ def make_optimizer(config: TrainConfig) -> optax.GradientTransformation:
 
 def is_paper_model(config: TrainConfig) -> bool:
   """True when the parameters are plain WeightNet parameters (`lrf_net_frames`)."""
-  return config.z_mode == "normal" and config.x_mode in ("sum", "max")
+  return config.z_mode == "normal" and config.x_mode in ("sum", "max", "softmax")
 
 
 def frames_fn(config: TrainConfig):

@@ -133,8 +133,8 @@ def test_plus_ablation_switches_and_figure(tmp_path):
   opts = evaluation.EvalOptions(n_keypoints=30, max_pairs=1)
   recs = list(evaluation.run_experiment("plus_ablation", ["demo"], [], opts, PatchCache()))
   labels = [r["method"] for r in recs]
-  assert labels[0] == "LRF-Net (paper)" and labels[-1].startswith("lrf_net_plus (both")
-  assert len(recs) == 6
+  assert labels[0] == "LRF-Net (paper)" and labels[-1] == "lrf_net_plus (shipped)"
+  assert len(recs) == 7
   assert all(r["meancos"] is not None for r in recs)
   evaluation.write_results(recs, tmp_path)
   assert (tmp_path / "plus_ablation.png").stat().st_size > 5000
@@ -153,7 +153,8 @@ def test_plus_with_switches_off_is_the_ball_sign_construction(demo_pair):
                                 viewpoint=demo_pair.scene_viewpoint, density=False,
                                 oriented_sign=False)
   k = lrf_jax.METHODS["lrf_net_plus"].default_k
-  g, w = lrf_net_frames(default_params("lrf_net"), build_patches(pts, kp, r, k), z_sign="ball")
+  g, w = lrf_net_frames(default_params("lrf_net_plus"), build_patches(pts, kp, r, k),
+                        z_sign="ball", x_mode="softmax")
   np.testing.assert_array_equal(np.asarray(v), np.asarray(w))
   np.testing.assert_allclose(np.asarray(f), np.asarray(g), atol=1e-5)
   h, _ = lrf_jax.compute_frames(pts, kp, r, "lrf_net_plus", faces=demo_pair.scene_faces,

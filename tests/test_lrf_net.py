@@ -1,5 +1,6 @@
 """LRF-Net frames: conventions, equivariance, invariances, formulas, degenerate cases, bad input."""
 
+import functools
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -7,7 +8,9 @@ import pytest
 
 import lrf_jax
 from lrf_jax import geometry
-from lrf_jax.frames.lrf_net import attributes, lrf_net_frames, uniform_frames
+from lrf_jax.frames.lrf_net import (attributes, lrf_net_frames, lrf_net_weights, softmax_weights,
+                                    uniform_frames)
+from lrf_jax.frames.lrf_net import lrf_net_frames as _lrf_net_frames
 from lrf_jax.neighborhoods import Patches, build_patches
 from lrf_jax.reference_numpy import reference_frames
 from tests.lrf_testing import (assert_frames_orthonormal, equivariance_deficit,
@@ -106,9 +109,11 @@ def _jnp(p: Patches) -> Patches:
   return jax.tree.map(jnp.asarray, p)
 
 
-def test_neighbour_order_and_padding_invariance(bunny):
+@pytest.mark.parametrize("x_mode", ["sum", "softmax"])
+def test_neighbour_order_and_padding_invariance(bunny, x_mode):
   pts, kp, r, _ = bunny
   p = build_patches(pts, kp[:50], r, 256)
+  lrf_net_frames = functools.partial(_lrf_net_frames, x_mode=x_mode)
   f, v = lrf_net_frames(PARAMS, _jnp(p))
   perm = np.random.default_rng(0).permutation(p.k)
   shuffled = p._replace(offsets=p.offsets[:, perm], mask=p.mask[:, perm],
@@ -367,3 +372,33 @@ def test_patch_areas_follow_sampling_density():
   rot = random_rotation(6)
   moved = build_patches(pts @ rot.T + 1.0, kp, 0.8, 256)
   np.testing.assert_allclose(patch_areas(pts @ rot.T + 1.0, moved), a, rtol=1e-4)
+
+
+def test_softmax_weights_properties():
+  """exp(s - max s) over real neighbours: in (0, 1], 1 at the best, 0 in padding, shift-free."""
+  rng = np.random.default_rng(0)
+  s = jnp.asarray(rng.normal(scale=5.0, size=(4, 9)), jnp.float32)
+  mask = jnp.asarray(rng.random((4, 9)) < 0.7).at[:, 0].set(True)
+  w = np.asarray(softmax_weights(s, mask))
+  assert np.all(w[~np.asarray(mask)] == 0) and np.all(w[np.asarray(mask)] > 0)
+  np.testing.assert_allclose(w.max(1), 1.0)
+  np.testing.assert_allclose(np.asarray(softmax_weights(s + 30.0, mask)), w, rtol=1e-4, atol=1e-7)
+  big = s.at[:, -1].set(1e4)  # a huge score in padding changes nothing
+  np.testing.assert_allclose(np.asarray(softmax_weights(big, mask.at[:, -1].set(False))),
+                             np.asarray(softmax_weights(s, mask.at[:, -1].set(False))))
+  assert np.all(np.asarray(softmax_weights(s, jnp.zeros_like(mask))) == 0)  # no NaN
+
+
+def test_softmax_x_matches_numpy(bunny):
+  """x_mode="softmax": x = normalised Σ exp(s_i) v_i in float64 numpy, with s the network."""
+  pts, kp, r, _ = bunny
+  p = build_patches(pts, kp[:20], r, 256)
+  f, v = _lrf_net_frames(PARAMS, _jnp(p), x_mode="softmax")
+  s = np.asarray(lrf_net_weights(PARAMS)(jnp.asarray(p.offsets), f[:, 2], jnp.asarray(p.radius)),
+                 np.float64)
+  for n in np.flatnonzero(np.asarray(v)):
+    z = np.asarray(f[n, 2], np.float64)
+    off = p.offsets[n][p.mask[n]].astype(np.float64)
+    e = np.exp(s[n][p.mask[n]] - s[n][p.mask[n]].max())
+    x = (e[:, None] * (off - np.outer(off @ z, z))).sum(0)
+    np.testing.assert_allclose(np.asarray(f[n, 0]), x / np.linalg.norm(x), atol=1e-4)

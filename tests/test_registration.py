@@ -118,6 +118,19 @@ def test_register_consecutive_bunny_scans(data_root):
   assert reg.inliers.shape == (len(reg.correspondences),)
 
 
+@pytest.mark.data
+def test_register_scans_with_viewpoints_and_lrf_net_plus(data_root):
+  """Sensor positions orient the scans' normals; lrf_net_plus with SHOT descriptors registers."""
+  pair = datasets.load_bunny_pairs(data_root)[0]
+  reg = register(pair.model_points, pair.scene_points, seed=0, method="lrf_net_plus",
+                 descriptor="shot", n_keypoints=1500, source_viewpoint=pair.model_viewpoint,
+                 target_viewpoint=pair.scene_viewpoint)
+  err_r, err_t = pose_errors(reg.transform, pair.transform, pair.mr)
+  assert err_r < 5.0, (err_r, err_t)
+  with pytest.raises(ValueError, match="source_viewpoint: expected a finite"):
+    register(pair.model_points, pair.scene_points, source_viewpoint=[0.0, 1.0])
+
+
 def test_register_cli_on_demo_files(tmp_path):
   """The CLI reads two PLY files and writes the 4x4 transform (synthetic data: no download)."""
   from lrf_jax import io

@@ -20,6 +20,12 @@ def test_shipped_weights_are_the_default_and_documented():
   card = json.loads((WEIGHTS_DIR / "lrf_net.json").read_text())
   assert card["config"]["name"] == "default" and card["config"]["epochs"] == 20
   assert "selected_val_meancos" in card
+  plus = json.loads((WEIGHTS_DIR / "lrf_net_plus.json").read_text())
+  assert plus["config"]["x_mode"] == "softmax" and plus["config"]["name"] == "plus_soft"
+  assert lrf_jax.METHODS["lrf_net_plus"].weights == "lrf_net_plus"
+  for a, b in zip(_leaves(load_params(WEIGHTS_DIR / "lrf_net_plus.msgpack")),
+                  _leaves(lrf_jax.default_params("lrf_net_plus"))):
+    np.testing.assert_array_equal(a, b)
 
 
 def _leaves(tree):

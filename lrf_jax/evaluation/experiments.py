@@ -24,16 +24,23 @@ EXPERIMENTS = ("repeatability", "noise", "decimation", "radius", "rotation", "ab
 
 def plus_ablation_runs() -> list[MethodRun]:
   """lrf_net_plus with each of its switches off in turn (beyond the paper, issue 10):
-  `oriented_sign` (z towards the sensor / the mesh's oriented normals; off = the ball sign only)
-  and `density` (weights times the area per point), and its patch size (512; 256 = LRF-Net's).
+  `oriented_sign` (z towards the sensor / the mesh's oriented normals; off = the ball sign only),
+  `density` (weights times the area per point), the softmax x with its own weights (off = the
+  paper's linear weights with the LRF-Net weights) and its patch size (512; 256 = LRF-Net's).
   LRF-Net as published is the reference."""
+  from lrf_jax.model import default_params
+
+  paper_x = dict(params=default_params("lrf_net"), options=(("x_mode", "sum"),))
   return [MethodRun("LRF-Net (paper)", "lrf_net"),
           MethodRun("plus: ball sign only", "lrf_net_plus",
                     options=(("density", False), ("oriented_sign", False))),
           MethodRun("plus: + oriented sign", "lrf_net_plus", options=(("density", False),)),
           MethodRun("plus: + density", "lrf_net_plus", options=(("oriented_sign", False),)),
-          MethodRun("plus: both, K = 256", "lrf_net_plus", k=256),
-          MethodRun("lrf_net_plus (both, K = 512)", "lrf_net_plus")]
+          MethodRun("plus: linear x, LRF-Net weights", "lrf_net_plus", **paper_x),
+          MethodRun("plus: K = 256", "lrf_net_plus", k=256),
+          MethodRun("lrf_net_plus (shipped)", "lrf_net_plus")]
+
+
 ABLATION_Z = ("Normal", "DR")
 ABLATION_X = ("Sum1", "Sum2", "DR", "Max")
 

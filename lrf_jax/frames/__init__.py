@@ -61,7 +61,7 @@ def _uniform(patches, extra, *, z_sign: str = "toldi"):
   return uniform_frames(patches, z_sign=z_sign)
 
 
-def _lrf_net_plus(patches, extra, *, params, x_mode: str = "sum", lut: int = 0,
+def _lrf_net_plus(patches, extra, *, params, x_mode: str = "softmax", lut: int = 0,
                   density: bool = True, oriented_sign: bool = True):
   return lrf_net_frames(params, patches, x_mode=x_mode, z_sign="ball", lut=lut,
                         view=None if extra is None or not oriented_sign else extra["view"],
@@ -97,16 +97,16 @@ register(MethodSpec(
     "lrf_net_variant", _variant, default_k=256, needs_params=True,
     description="LRF-Net ablation variants (options z_mode: normal/dr, x_mode: sum1/sum2/dr/max)"))
 register(MethodSpec(
-    "lrf_net_plus", _lrf_net_plus, default_k=512, needs_params=True, weights="lrf_net",
+    "lrf_net_plus", _lrf_net_plus, default_k=512, needs_params=True, weights="lrf_net_plus",
     prepare=prepare_view, uses_viewpoint=True,
     description="Beyond the paper: LRF-Net with the z sign towards the sensor of a scan "
                 "(viewpoint=), else from the mesh's oriented normals, else over the whole "
-                "support (ball_sign); weights times the area each point stands for "
-                "(density=True: sampling-invariant x); K = 512 (less subsampling noise, "
-                "chosen on the bunny validation scans within 2x of lrf_net's speed); default "
-                "weights: the shipped LRF-Net "
-                "ones, chosen on the bunny validation scans over noise- and crop-augmented "
-                "ones"))
+                "support (ball_sign); the network's outputs read as log-weights "
+                "(x_mode='softmax': x can follow a few rim points, as FLARE's does), trained "
+                "with noise augmentation (configs/plus_soft.py); weights times the area each "
+                "point stands for (density=True: sampling-invariant x); K = 512 (less "
+                "subsampling noise). Every choice was made on the bunny validation scans, "
+                "within 2x of lrf_net's speed"))
 register(MethodSpec(
     "uniform", _uniform, default_k=256,
     description="LRF-Net's construction with uniform weights (w = 1): the learned weights' baseline"))

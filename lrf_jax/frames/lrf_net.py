@@ -202,6 +202,25 @@ def patch_areas(points: np.ndarray, patches: Patches) -> np.ndarray:
   return (a / np.where(mean > 0, mean, 1.0)).astype(np.float32)
 
 
+def softmax_weights(scores: jax.Array, mask: jax.Array) -> jax.Array:
+  """Attention-style x weights (lrf_net_plus, beyond the paper): w_i = exp(s_i - max_j s_j) over
+  the real neighbours of each patch, 0 in padding.
+
+  The network's output is read as a log-weight, so it can concentrate x on a few neighbours (a
+  soft version of FLARE's "highest point on the rim") or spread it (a large temperature), and the
+  weights are positive. Normalisation is irrelevant (x is normalised), so no division.
+
+  Args:
+    scores: (N, K) network outputs. mask: (N, K) bool.
+
+  Returns:
+    (N, K) weights in [0, 1], 1 at each patch's best-scored neighbour.
+  """
+  s = jnp.where(mask, scores, -jnp.inf)
+  top = jax.lax.stop_gradient(jnp.max(s, axis=-1, keepdims=True))
+  return jnp.where(mask, jnp.exp(s - jnp.where(jnp.isfinite(top), top, 0.0)), 0.0)
+
+
 def frames_with_weight_fn(patches: Patches, weight_fn: WeightFn, x_mode: str = "sum",
                           z_sign: str = "toldi", view: jax.Array | None = None,
                           area: jax.Array | None = None) -> tuple[jax.Array, jax.Array, jax.Array]:
@@ -210,8 +229,9 @@ def frames_with_weight_fn(patches: Patches, weight_fn: WeightFn, x_mode: str = "
   Args:
     patches: `Patches` with leading axis N.
     weight_fn: (offsets (N, K, 3), z (N, 3), radius (N,)) -> weights (N, K).
-    x_mode: "sum" (eq. `eq_axis_x`) or "max" (the tangent projection of the neighbour with the
-      largest weight, the paper's ablation "Max"; it has no gradient through the argmax).
+    x_mode: "sum" (eq. `eq_axis_x`), "softmax" (the same sum with `softmax_weights` of the
+      outputs: lrf_net_plus, beyond the paper) or "max" (the tangent projection of the neighbour
+      with the largest weight, the paper's ablation "Max"; no gradient through the argmax).
     z_sign: "toldi" (the paper: sign from the r/3 neighbours) or "ball" (`ball_sign`).
     view: optional (N, 3) sensor position minus keypoint; where non-zero it decides the z sign
       (`view_sign`), overriding `z_sign`.
@@ -230,13 +250,15 @@ def frames_with_weight_fn(patches: Patches, weight_fn: WeightFn, x_mode: str = "
   if view is not None:
     z = view_sign(z, view)
   w = weight_fn(patches.offsets, z, patches.radius)
+  if x_mode == "softmax":
+    w = softmax_weights(w, patches.mask)
   if area is not None:
     w = w * area
   if x_mode == "max":
     idx = jnp.argmax(jnp.where(patches.mask, w, -jnp.inf), axis=-1)
     w = jax.nn.one_hot(idx, w.shape[-1], dtype=w.dtype)
-  elif x_mode != "sum":
-    raise ValueError(f"x_mode: expected 'sum' or 'max', got {x_mode!r}")
+  elif x_mode not in ("sum", "softmax"):
+    raise ValueError(f"x_mode: expected 'sum', 'softmax' or 'max', got {x_mode!r}")
   frames, valid = jax.vmap(frame_from_weights)(patches.offsets, patches.mask, z, z_ok & finite, w)
   return frames, valid, w
 
@@ -293,7 +315,7 @@ def lrf_net_frames(params: Params, patches: Patches, *, x_mode: str = "sum",
   Args:
     params: WeightNet parameters (`model.default_params()` for the shipped ones).
     patches: `Patches` (N keypoints, K neighbours).
-    x_mode: "sum" (the paper) or "max" (ablation).
+    x_mode: "sum" (the paper), "softmax" (`softmax_weights`, lrf_net_plus) or "max" (ablation).
     z_sign: "toldi" (the paper) or "ball" (lrf_net_plus, see `ball_sign`).
     lut: 0 evaluates the network per neighbour (exact); n > 1 reads the weights from an n x n
       table of the network (`lut_weights`), much faster at the same K.

@@ -41,6 +41,8 @@ def frames_from_patches(patches: Patches, method: str = "lrf_net", *, params: An
   spec = _spec(method)
   if spec.needs_params and params is None:
     params = default_params(spec.weights)
+  if spec.needs_params and int(options.get("lut", 0) or 0) > 1:
+    params = _weight_table(params, int(options["lut"]))
   fn = _jitted(method, tuple(sorted(options.items())))
   n_dev = jax.local_device_count()
   if n_dev > 1 and patches.offsets.shape[0] % n_dev == 0:
@@ -52,6 +54,24 @@ def frames_from_patches(patches: Patches, method: str = "lrf_net", *, params: An
     extra = None if extra is None else jax.device_put(extra, shard)
     return fn(patches, extra, params)
   return fn(jax.tree.map(jnp.asarray, patches), extra, params)
+
+
+_TABLES: list[tuple[Any, int, Any]] = []  # (params, size, WeightTable), most recent last
+
+
+def _weight_table(params: Any, size: int) -> Any:
+  """The `WeightTable` of `params` for `lut=size`, built once per parameter set (by identity:
+  the entry holds the parameters, so their id is not reused while cached)."""
+  from lrf_jax.frames.lrf_net import WeightTable, weight_table
+  if isinstance(params, WeightTable):
+    return params
+  for p, n, table in _TABLES:
+    if p is params and n == size:
+      return table
+  table = jax.jit(weight_table, static_argnums=1)(params, size)
+  _TABLES.append((params, size, table))
+  del _TABLES[:-4]
+  return table
 
 
 def _spec(method: str) -> MethodSpec:

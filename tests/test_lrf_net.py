@@ -326,6 +326,29 @@ def test_lut_weights_match_exact_network(bunny):
   assert equivariance_deficit(fast, moved, rot, w, wm).mean() < 1e-4
 
 
+def test_weight_table_is_cached_and_equals_the_parameters_path(bunny):
+  """`compute_frames(lut=)` builds the table once per parameter set; a prebuilt WeightTable
+  gives exactly the frames of the parameters."""
+  from lrf_jax import api
+  from lrf_jax.frames.lrf_net import WeightTable, weight_table
+
+  pts, kp, r, _ = bunny
+  p = _jnp(build_patches(pts, kp[:40], r, 256))
+  table = weight_table(PARAMS, 65)
+  assert isinstance(table, WeightTable) and table.values.shape == (65, 65)
+  a = _lrf_net_frames(PARAMS, p, lut=65)
+  b = _lrf_net_frames(table, p, lut=65)
+  np.testing.assert_array_equal(np.asarray(a[0]), np.asarray(b[0]))
+  with pytest.raises(ValueError, match="WeightTable of shape"):
+    _lrf_net_frames(table, p, lut=33)
+  api._TABLES.clear()
+  f1, _ = _frames(pts, kp[:40], r, lut=65)
+  cached = api._TABLES[-1][2]
+  f2, _ = _frames(pts, kp[:40], r, lut=65)
+  assert len(api._TABLES) == 1 and api._TABLES[-1][2] is cached
+  np.testing.assert_array_equal(f1, f2)
+
+
 def test_prepare_view_precedence(br_bunny):
   """lrf_net_plus's sign reference: viewpoint, else given normals, else winding-oriented normals."""
   from lrf_jax.frames.lrf_net import prepare_view
@@ -372,6 +395,31 @@ def test_patch_areas_follow_sampling_density():
   rot = random_rotation(6)
   moved = build_patches(pts @ rot.T + 1.0, kp, 0.8, 256)
   np.testing.assert_allclose(patch_areas(pts @ rot.T + 1.0, moved), a, rtol=1e-4)
+
+
+def test_patch_areas_of_a_mesh_are_barycentric():
+  """With faces, a vertex stands for a third of its triangles' area (they sum to the mesh's)."""
+  from lrf_jax.frames.lrf_net import patch_areas, vertex_areas
+
+  # a 2 x 1 strip: left square cut into 2 triangles, right square into 8 (finer on the right)
+  g = np.array([[x, y, 0.0] for y in (0, 1) for x in (0, 1, 2)])  # 0..5
+  mid = np.array([[1.5, 0.5, 0.0], [1.5, 0.0, 0.0], [2.0, 0.5, 0.0], [1.5, 1.0, 0.0],
+                  [1.0, 0.5, 0.0]])  # 6..10
+  pts = np.concatenate([g, mid, [[9.0, 9.0, 9.0]]])  # 11: a vertex on no triangle
+  faces = np.array([[0, 1, 4], [0, 4, 3], [1, 7, 6], [7, 2, 6], [2, 8, 6], [8, 5, 6],
+                    [5, 9, 6], [9, 4, 6], [4, 10, 6], [10, 1, 6]])
+  va = vertex_areas(pts, faces)
+  np.testing.assert_allclose(va.sum(), 2.0)
+  np.testing.assert_allclose(va[0], 1.0 / 3.0)  # two triangles of 1/2
+  assert va[11] == 0
+  p = Patches(offsets=(pts - pts[6]).astype(np.float32)[None], mask=np.ones((1, 12), bool),
+              indices=np.arange(12, dtype=np.int32)[None], z_cov=np.eye(3, dtype=np.float32)[None],
+              z_mean=np.zeros((1, 3), np.float32), z_count=np.array([12], np.int32),
+              count=np.array([12], np.int32), radius=np.array([20.0], np.float32))
+  a = patch_areas(pts, p, faces)[0]
+  np.testing.assert_allclose(a.mean(), 1.0, rtol=1e-6)
+  np.testing.assert_allclose(a[:11] / a[0], va[:11] / va[0], rtol=1e-6)
+  assert a[11] > 0  # the isolated vertex falls back to the nearest-neighbour estimate
 
 
 def test_softmax_weights_properties():

@@ -39,6 +39,7 @@ def frames_from_patches(patches: Patches, method: str = "lrf_net", *, params: An
     (frames (N, 3, 3), valid (N,)).
   """
   spec = _spec(method)
+  options = dict(spec.default_options) | options
   if spec.needs_params and params is None:
     params = default_params(spec.weights)
   if spec.needs_params and int(options.get("lut", 0) or 0) > 1:

@@ -113,9 +113,12 @@ def load_params(path: str | Path) -> Params:
 @functools.lru_cache(maxsize=8)
 def _default_params_cached(name: str) -> Params:
   path = WEIGHTS_DIR / f"{name}.msgpack"
-  if path.exists():
-    return load_params(path)
-  return init_params(0)
+  # Concrete arrays even when the first call happens inside a jit trace: the cache would
+  # otherwise keep (and later leak) that trace's tracers.
+  with jax.ensure_compile_time_eval():
+    if path.exists():
+      return load_params(path)
+    return init_params(0)
 
 
 def default_params(name: str = "lrf_net") -> Params:

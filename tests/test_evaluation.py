@@ -154,7 +154,7 @@ def test_plus_with_switches_off_is_the_ball_sign_construction(demo_pair):
                                 oriented_sign=False)
   k = lrf_jax.METHODS["lrf_net_plus"].default_k
   g, w = lrf_net_frames(default_params("lrf_net_plus"), build_patches(pts, kp, r, k),
-                        z_sign="ball", x_mode="softmax")
+                        z_sign="ball", x_mode="softmax", lut=257)
   np.testing.assert_array_equal(np.asarray(v), np.asarray(w))
   np.testing.assert_allclose(np.asarray(f), np.asarray(g), atol=1e-5)
   h, _ = lrf_jax.compute_frames(pts, kp, r, "lrf_net_plus", faces=demo_pair.scene_faces,

@@ -450,3 +450,15 @@ def test_softmax_x_matches_numpy(bunny):
     e = np.exp(s[n][p.mask[n]] - s[n][p.mask[n]].max())
     x = (e[:, None] * (off - np.outer(off @ z, z))).sum(0)
     np.testing.assert_allclose(np.asarray(f[n, 0]), x / np.linalg.norm(x), atol=1e-4)
+
+
+def test_lrf_net_plus_default_lut_is_close_to_the_exact_network(bunny):
+  """lrf_net_plus reads its weights from a 257 x 257 table by default; lut=0 is exact."""
+  pts, kp, r, _ = bunny
+  assert dict(lrf_jax.METHODS["lrf_net_plus"].default_options)["lut"] == 257
+  fast, v = _frames(pts, kp, r, "lrf_net_plus")
+  exact, w = _frames(pts, kp, r, "lrf_net_plus", lut=0)
+  np.testing.assert_array_equal(v, w)
+  cos_x = np.sum(exact[:, 0] * fast[:, 0], axis=-1)[v]
+  assert (1 - cos_x).max() < 1e-3 and (1 - cos_x).mean() < 1e-5
+  assert (1 - cos_x).max() > 0  # the two paths really differ

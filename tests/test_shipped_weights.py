@@ -28,6 +28,15 @@ def test_shipped_weights_are_the_default_and_documented():
     np.testing.assert_array_equal(a, b)
 
 
+def test_default_params_first_called_inside_jit_do_not_leak_tracers():
+  from lrf_jax.model import _default_params_cached
+  _default_params_cached.cache_clear()
+  jax.jit(lambda x: x + jax.tree.leaves(lrf_jax.default_params("lrf_net_plus"))[0].sum())(1.0)
+  for leaf in jax.tree.leaves(lrf_jax.default_params("lrf_net_plus")):
+    assert not isinstance(leaf, jax.core.Tracer)
+  jax.jit(lambda x: x + jax.tree.leaves(lrf_jax.default_params("lrf_net_plus"))[0].sum())(2.0)
+
+
 def _leaves(tree):
   return [np.asarray(x) for x in jax.tree.leaves(tree)]
 

@@ -37,6 +37,7 @@ class MethodSpec:
     description: one line for `lrf_jax.METHODS` listings.
     weights: name of the shipped parameter file used when no params are given
       (`lrf_jax/weights/<weights>.msgpack`).
+    default_options: options applied unless the caller gives them (lrf_net_plus: lut=257).
   """
 
   name: str
@@ -49,6 +50,7 @@ class MethodSpec:
   uses_viewpoint: bool = False
   description: str = ""
   weights: str = "lrf_net"
+  default_options: tuple[tuple[str, Any], ...] = ()
 
 
 def _lrf_net(patches, extra, *, params, x_mode: str = "sum", lut: int = 0):
@@ -98,15 +100,15 @@ register(MethodSpec(
     description="LRF-Net ablation variants (options z_mode: normal/dr, x_mode: sum1/sum2/dr/max)"))
 register(MethodSpec(
     "lrf_net_plus", _lrf_net_plus, default_k=512, needs_params=True, weights="lrf_net_plus",
-    prepare=prepare_view, uses_viewpoint=True,
+    prepare=prepare_view, uses_viewpoint=True, default_options=(("lut", 257),),
     description="Beyond the paper: LRF-Net with the z sign towards the sensor of a scan "
                 "(viewpoint=), else from the mesh's oriented normals, else over the whole "
                 "support (ball_sign); the network's outputs read as log-weights "
                 "(x_mode='softmax': x can follow a few rim points, as FLARE's does), trained "
                 "with noise augmentation (configs/plus_soft.py); weights times the area each "
                 "point stands for (density=True: sampling-invariant x); K = 512 (less "
-                "subsampling noise). Every choice was made on the bunny validation scans, "
-                "within 2x of lrf_net's speed"))
+                "subsampling noise); the network read from a 257 x 257 table (lut=257, "
+                "lut=0: exact). Every choice was made on the bunny validation scans"))
 register(MethodSpec(
     "uniform", _uniform, default_k=256,
     description="LRF-Net's construction with uniform weights (w = 1): the learned weights' baseline"))

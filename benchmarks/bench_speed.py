@@ -41,7 +41,8 @@ def main() -> None:
   ap.add_argument("--methods", nargs="+", default=["lrf_net", "lrf_net:lut", "toldi", "shot"],
                   help="registry names; NAME:lut reads the weights from a 257x257 table, "
                        "NAME:device searches on the default device (lrf_jax.device_search), "
-                       "NAME:lut:device both")
+                       "NAME:lut:device both, NAME:exact the network per point (lrf_net_plus "
+                       "reads a table by default), NAME:mesh passes the faces")
   ap.add_argument("--no-pcl", action="store_true")
   args = ap.parse_args()
   mesh = datasets.load_br_model(args.model, args.data)
@@ -65,8 +66,10 @@ def main() -> None:
     kp = rng.choice(len(pts), m, replace=m > len(pts))
     for label in args.methods:
       method, *variants = label.split(":")
-      opts = {"lut": 257} if "lut" in variants else {}
+      opts = {"lut": 257} if "lut" in variants else {"lut": 0} if "exact" in variants else {}
       opts["search"] = "device" if "device" in variants else "host"
+      if "mesh" in variants:  # give the mesh: lrf_net_plus then signs z by its oriented normals
+        opts["faces"] = faces
       lrf_jax.compute_frames(pts, kp[:min(m, 4096)], r, method, progress=False, **opts)
       t0 = time.perf_counter()
       f, _ = lrf_jax.compute_frames(pts, kp, r, method, progress=False, **opts)

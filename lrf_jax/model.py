@@ -12,6 +12,7 @@ the capacity to draw a smooth 2-D weight map w(d, cos θ), and every extra width
 FLOPs per keypoint on the hot path. The
 output is linear (signed weights): TOLDI's own weight (r - d)² sign(h) h² is signed, and a positive
 activation could not express it. The weights only matter up to a positive scale (x is normalised).
+lrf_net_plus reads the same output as a log-weight (`frames.lrf_net.softmax_weights`).
 """
 
 from __future__ import annotations

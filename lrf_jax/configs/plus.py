@@ -4,7 +4,8 @@ epochs of 10,000 BR keypoints). Switch either off with overrides to measure its 
 
 On the bunny validation scans the noise-augmented weights (lrf_jax/weights/ablation/
 plus_noise_aug.msgpack, 0.662) lost to the paper-config LRF-Net weights used with the ball sign
-(0.739), so `lrf_net_plus` ships with the latter; both are kept for the ablation.
+(0.739), so `lrf_net_plus` shipped with the latter until the softmax x of `plus_soft`
+(its current weights); both are kept for the ablation.
 
     LRF_DATA=... python train.py --config plus --workdir runs/plus
     LRF_DATA=... python train.py --config plus --workdir runs/plus_noaug noise_mr=

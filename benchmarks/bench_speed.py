@@ -5,7 +5,8 @@ when the driver in tools/pcl_driver is built; peak resident memory of the whole 
     LRF_DATA=/path/to/data python benchmarks/bench_speed.py [--model dragon] [--counts 1000 10000]
 
 Keypoints are drawn with replacement when more are asked for than the model has points. Each
-timing is the second call (the first compiles); PCL gets the same keypoints and radius.
+timing is the median of 3 calls after a compiling one (1 call above 10k keypoints), with the
+normal and area caches cleared before each; PCL gets the same keypoints and radius, also 3 runs.
 """
 
 from __future__ import annotations
@@ -27,10 +28,16 @@ sys.path.insert(0, str(REPO / "tools" / "pcl_driver"))
 
 import lrf_jax  # noqa: E402
 from lrf_jax import datasets  # noqa: E402
+from lrf_jax import normals as normals_cache  # noqa: E402
 
 
 def _rss_mb() -> float:
   return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+
+
+def _repeats(m: int) -> int:
+  """Timed calls per cell (the median is reported): 3 up to 10k keypoints, else 1."""
+  return 3 if m <= 10_000 else 1
 
 
 def main() -> None:
@@ -71,14 +78,18 @@ def main() -> None:
       if "mesh" in variants:  # give the mesh: lrf_net_plus then signs z by its oriented normals
         opts["faces"] = faces
       lrf_jax.compute_frames(pts, kp[:min(m, 4096)], r, method, progress=False, **opts)
-      t0 = time.perf_counter()
-      f, _ = lrf_jax.compute_frames(pts, kp, r, method, progress=False, **opts)
-      f.block_until_ready()
-      dt = time.perf_counter() - t0
+      times = []
+      for _ in range(_repeats(m)):
+        normals_cache._CACHE.clear()  # estimated normals and areas count in the timing
+        t0 = time.perf_counter()
+        f, _ = lrf_jax.compute_frames(pts, kp, r, method, progress=False, **opts)
+        f.block_until_ready()
+        times.append(time.perf_counter() - t0)
+      dt = float(np.median(times))
       print(f"| {m} | {label} | {m / dt:,.0f} | {dt:.2f} | {_rss_mb():,.0f} |", flush=True)
     if pcl_ok:
-      out = run_driver(pts, None, kp, r, methods=("shot",))
-      dt = out["time_shot"]
+      dt = float(np.median([run_driver(pts, None, kp, r, methods=("shot",))["time_shot"]
+                            for _ in range(_repeats(m))]))
       print(f"| {m} | PCL 1.13 SHOT (driver) | {m / dt:,.0f} | {dt:.2f} | (separate process) |",
             flush=True)
   if not pcl_ok:

@@ -108,6 +108,8 @@ def main(argv=None) -> None:
     from lrf_jax.evaluation.experiments import DATASETS as _D
     first = _D[ok[0]][0](args.data, args.seed)[0]
     evaluation.report.weights_figure(first, lrf.params, out, radius_mr=args.radius_mr)
+  if any(r.method in ("lrf_net", "lrf_net_plus") for r in runs):
+    evaluation.report.weight_maps_figure(out)
   extra_md = []
   if any(r["experiment"] == "description" for r in other):
     desc = [r for r in other if r["experiment"] == "description"]

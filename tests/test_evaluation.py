@@ -129,6 +129,12 @@ def test_weights_figure_renders(tmp_path, demo_pair):
   assert path.stat().st_size > 5000
 
 
+def test_weight_maps_figure_renders(tmp_path):
+  from lrf_jax.evaluation.report import weight_maps_figure
+  path = weight_maps_figure(tmp_path, size=21)
+  assert path.name == "weight_maps.png" and path.stat().st_size > 5000
+
+
 def test_plus_ablation_switches_and_figure(tmp_path):
   opts = evaluation.EvalOptions(n_keypoints=30, max_pairs=1)
   recs = list(evaluation.run_experiment("plus_ablation", ["demo"], [], opts, PatchCache()))

@@ -243,3 +243,48 @@ def weights_figure(pair: Any, params: Any, out: Path, *, n: int = 4, radius_mr: 
   xyz = [patches.offsets[i][patches.mask[i]] for i in range(len(mi))]
   ws = [np.asarray(w[i])[patches.mask[i]] for i in range(len(mi))]
   return plot_weights(xyz, ws, [np.asarray(f) for f in frames], out)
+
+
+def weight_maps_figure(out: Path, maps: dict[str, tuple[Any, str]] | None = None,
+                       size: int = 101) -> Path:
+  """The learned weight maps as images over the attribute plane (|pq|/r, cos(z, pq)): LRF-Net's
+  linear weights scaled to a maximum |w| of 1, and lrf_net_plus's log-weights s - max s (its
+  weights are exp of that; clipped at -20). Writes `weight_maps.png`.
+
+  Args:
+    out: output folder.
+    maps: {title: (params, "sum" | "softmax")}; default: the shipped lrf_net and lrf_net_plus.
+    size: grid points per axis.
+  """
+  import jax.numpy as jnp
+  import matplotlib
+  matplotlib.use("Agg")
+  import matplotlib.pyplot as plt
+
+  from lrf_jax.model import apply_weights, default_params
+
+  if maps is None:
+    maps = {"LRF-Net (linear weights)": (default_params("lrf_net"), "sum"),
+            "lrf_net_plus (softmax weights)": (default_params("lrf_net_plus"), "softmax")}
+  d, c = np.linspace(0.0, 1.0, size), np.linspace(-1.0, 1.0, size)
+  grid = jnp.asarray(np.stack(np.meshgrid(d, c, indexing="ij"), -1), jnp.float32)
+  fig, axes = plt.subplots(1, len(maps), figsize=(4.6 * len(maps), 3.8), squeeze=False)
+  for ax, (title, (params, mode)) in zip(axes[0], maps.items()):
+    s = np.asarray(apply_weights(params, grid), np.float64)
+    if mode == "softmax":  # log-weights: the weights themselves span many decades
+      im = ax.imshow(np.maximum(s - s.max(), -20.0).T, origin="lower", extent=(0, 1, -1, 1),
+                     aspect="auto", cmap="viridis", vmin=-20.0, vmax=0.0)
+      title = f"{title}\nlog w = s - max s"
+    else:
+      im = ax.imshow((s / (np.abs(s).max() or 1.0)).T, origin="lower", extent=(0, 1, -1, 1),
+                     aspect="auto", cmap="coolwarm", vmin=-1.0, vmax=1.0)
+    ax.set_xlabel("|pq| / r")
+    ax.set_ylabel("cos(z, pq)")
+    ax.set_title(title, fontsize=10)
+    fig.colorbar(im, ax=ax, shrink=0.8)
+  fig.suptitle("Learned x-axis weight per neighbour over the attribute plane")
+  fig.tight_layout()
+  path = Path(out) / "weight_maps.png"
+  fig.savefig(path, dpi=110)
+  plt.close(fig)
+  return path

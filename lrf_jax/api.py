@@ -60,16 +60,22 @@ def frames_from_patches(patches: Patches, method: str = "lrf_net", *, params: An
 _TABLES: list[tuple[Any, int, Any]] = []  # (params, size, WeightTable), most recent last
 
 
+@functools.partial(jax.jit, static_argnums=1)
+def _jit_weight_table(params: Any, size: int) -> Any:
+  from lrf_jax.frames.lrf_net import weight_table
+  return weight_table(params, size)
+
+
 def _weight_table(params: Any, size: int) -> Any:
   """The `WeightTable` of `params` for `lut=size`, built once per parameter set (by identity:
   the entry holds the parameters, so their id is not reused while cached)."""
-  from lrf_jax.frames.lrf_net import WeightTable, weight_table
+  from lrf_jax.frames.lrf_net import WeightTable
   if isinstance(params, WeightTable):
     return params
   for p, n, table in _TABLES:
     if p is params and n == size:
       return table
-  table = jax.jit(weight_table, static_argnums=1)(params, size)
+  table = _jit_weight_table(params, size)
   _TABLES.append((params, size, table))
   del _TABLES[:-4]
   return table

@@ -538,12 +538,14 @@ def register(source: Any, target: Any, *, mr: float | None = None, radius_mr: fl
   for pts, faces, vp in ((src_pts, src_faces, views[0]), (dst_pts, dst_faces, views[1])):
     kp = np.sort(rng.choice(len(pts), min(int(n_keypoints), len(pts)), replace=False))
     normals = None
-    if vp is not None and (METHODS[method].prepare is not None or descriptor == "shot"):
+    spec = METHODS[method]
+    if vp is not None and ((spec.prepare is not None and not spec.uses_viewpoint)
+                           or descriptor == "shot"):
       from lrf_jax.normals import NORMAL_RADIUS_RATIO, estimate_normals
       normals = estimate_normals(pts, NORMAL_RADIUS_RATIO * radius, faces, vp)
     frames, valid = compute_frames(pts, kp, radius, method, params=params, faces=faces,
                                    seed=seed, viewpoint=vp,
-                                   normals=None if METHODS[method].uses_viewpoint else normals)
+                                   normals=None if spec.uses_viewpoint else normals)
     desc, ok = compute_descriptors(pts, kp, radius, frames, valid, descriptor, faces=faces,
                                    seed=seed, normals=normals)
     sides.append((kp, np.asarray(frames), np.asarray(valid), np.asarray(desc), np.asarray(ok)))

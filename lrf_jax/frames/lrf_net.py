@@ -207,13 +207,18 @@ def patch_areas(points: np.ndarray, patches: Patches,
 
   pts = np.asarray(points, np.float64)
 
+  def estimate(which: np.ndarray) -> np.ndarray:
+    d, _ = cKDTree(pts).query(pts[which], k=AREA_NEIGHBOURS + 1, workers=-1)
+    return np.pi * d[:, -1] ** 2 / AREA_NEIGHBOURS
+
   def compute():
-    d, _ = cKDTree(pts).query(pts, k=AREA_NEIGHBOURS + 1, workers=-1)
-    est = np.pi * d[:, -1] ** 2 / AREA_NEIGHBOURS
     if faces is None or len(faces) == 0:
-      return est
-    mesh = vertex_areas(pts, faces)
-    return np.where(mesh > 0, mesh, est)
+      return estimate(np.arange(len(pts)))
+    area = vertex_areas(pts, faces)
+    lone = np.flatnonzero(area <= 0)  # vertices on no triangle: the cloud estimate
+    if lone.size:
+      area[lone] = estimate(lone)
+    return area
 
   key = (pts,) if faces is None else (pts, np.asarray(faces))
   per_point = cache_last("point_area", key, compute)

@@ -535,10 +535,10 @@ def register(source: Any, target: Any, *, mr: float | None = None, radius_mr: fl
   # 1-2: keypoints, frames, descriptors, matches.
   rng = np.random.default_rng(seed)
   sides = []
+  spec = METHODS[method]
   for pts, faces, vp in ((src_pts, src_faces, views[0]), (dst_pts, dst_faces, views[1])):
     kp = np.sort(rng.choice(len(pts), min(int(n_keypoints), len(pts)), replace=False))
     normals = None
-    spec = METHODS[method]
     if vp is not None and ((spec.prepare is not None and not spec.uses_viewpoint)
                            or descriptor == "shot"):
       from lrf_jax.normals import NORMAL_RADIUS_RATIO, estimate_normals

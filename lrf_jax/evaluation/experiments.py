@@ -20,6 +20,8 @@ RADII_MR = (5.0, 7.5, 10.0, 12.5, 15.0, 20.0, 25.0)
 ROTATIONS_DEG = (30.0, 60.0, 90.0, 120.0)
 EXPERIMENTS = ("repeatability", "noise", "decimation", "radius", "rotation", "ablation",
                "plus_ablation")
+# Experiments run on the named datasets as they are (the others on their noise-free versions).
+AS_NAMED = ("repeatability", "plus_ablation")
 
 
 def plus_ablation_runs() -> list[MethodRun]:
@@ -150,7 +152,7 @@ def run_experiment(name: str, dataset_names: list[str], methods: list[MethodRun]
   """Yield the records of one experiment over the given datasets (see module doc)."""
   common = dict(n_keypoints=opts.n_keypoints, seed=opts.seed, cache=cache,
                 max_neighbors=opts.max_neighbors)
-  if name in ("repeatability", "plus_ablation"):
+  if name in AS_NAMED:
     runs = methods if name == "repeatability" else plus_ablation_runs()
     for ds, setting, pair in iter_pairs(dataset_names, opts):
       yield from _tagged(evaluate_pair(pair, runs, experiment=name, setting=setting,
@@ -203,5 +205,5 @@ def _clean_name(ds: str) -> str | None:
 
 def _tagged(records: list[dict], ds: str) -> list[dict]:
   for r in records:
-    r["dataset"] = ds if r["experiment"] in ("repeatability", "plus_ablation") else _clean_name(ds) or ds
+    r["dataset"] = ds if r["experiment"] in AS_NAMED else _clean_name(ds) or ds
   return records

@@ -57,14 +57,16 @@ def main(argv=None) -> None:
     ok = ["demo"]
     notes.append("no real data found: ran on the procedural demo set (synthetic, labelled)")
   default_methods = [m for m in lrf_jax.METHODS if m != "lrf_net_variant"]  # needs its params
-  runs = [evaluation.MethodRun(m, m) for m in (args.methods or default_methods)]
+  runs = [evaluation.MethodRun(m, m, options=evaluation.paper_options(m))
+          for m in (args.methods or default_methods)]
   if args.checkpoint:
     from lrf_jax.train_lib import restore_params
     best, cfg = restore_params(args.checkpoint, "best")
     final, _ = restore_params(args.checkpoint, "latest")
-    runs = [evaluation.MethodRun(r.label, r.method, params=best)
+    runs = [evaluation.MethodRun(r.label, r.method, params=best, options=r.options)
             if r.method == "lrf_net" else r for r in runs]
-    runs.append(evaluation.MethodRun("lrf_net[final]", "lrf_net", params=final))
+    runs.append(evaluation.MethodRun("lrf_net[final]", "lrf_net", params=final,
+                                     options=evaluation.EXACT_NETWORK))
     notes.append(f"lrf_net: best checkpoint of {args.checkpoint} (config {cfg.name}); "
                  "lrf_net[final]: its latest")
   for item in args.params:
@@ -72,7 +74,9 @@ def main(argv=None) -> None:
     path, _, method = path.partition("@")
     if not sep:
       raise SystemExit(f"--params: expected LABEL=PATH[@METHOD], got {item!r}")
-    runs.append(evaluation.MethodRun(label, method or "lrf_net", params=lrf_jax.load_params(path)))
+    method = method or "lrf_net"
+    runs.append(evaluation.MethodRun(label, method, params=lrf_jax.load_params(path),
+                                     options=evaluation.paper_options(method)))
   opts = evaluation.EvalOptions(data_root=args.data, n_keypoints=args.keypoints, seed=args.seed,
                                 radius_mr=args.radius_mr, max_pairs=args.max_pairs,
                                 max_neighbors=args.max_neighbors or None)

@@ -96,7 +96,7 @@ class DeviceIndex:
                z_ratio: float = 1.0 / 3.0, cap: int | None = None):
     self.host = SearchIndex(points, seed)
     self.radius, self.k, self.seed, self.z_ratio = float(radius), int(k), int(seed), z_ratio
-    pts = self.host.tree.data  # priority order
+    pts = self.host.data  # priority order
     self.lo = pts.min(axis=0)
     self.patch_grid, max_patch = _grid(pts, self.lo, self.radius)
     self.inner_grid, max_inner = _grid(pts, self.lo, self.radius * z_ratio)

@@ -13,20 +13,25 @@ Two neighbourhoods are gathered per keypoint p with one search of radius r:
   on the host, in float64, to their count, centroid offset and covariance about the centroid. The
   z-axis therefore never depends on the K-point subsample (on BR a 15 mr ball holds 380-2800
   points, a 256-point subsample only 20-35 inside r/3).
+
+Both come from one call of the compiled engine (`lrf_jax.engine`: a uniform grid, numba,
+multi-threaded), which writes the arrays of `Patches` directly.
 """
 
 from __future__ import annotations
 
-import itertools
 from typing import NamedTuple
 
 import numpy as np
-from scipy.spatial import cKDTree
+
+from lrf_jax import engine
 
 # Multiplier of the splitmix64 finaliser (public domain, Steele et al.).
 _MIX1 = np.uint64(0xBF58476D1CE4E5B9)
 _MIX2 = np.uint64(0x94D049BB133111EB)
 _GOLDEN = np.uint64(0x9E3779B97F4A7C15)
+# Grid cells per support radius (cell side r / 3).
+CELLS_PER_RADIUS = 3.0
 
 
 class Patches(NamedTuple):
@@ -129,61 +134,42 @@ def hash_priority(seed: int, point: np.ndarray) -> np.ndarray:
 
 
 class SearchIndex:
-  """KD-trees over the cloud stored in seeded priority order, reusable across calls.
+  """The cloud binned for the engine's radius search, reusable across calls.
 
-  Storing the points sorted by `hash_priority(seed, index)` makes the sorted ball lists that
-  cKDTree returns come out in priority order, so "the K points of smallest priority" is simply
-  the first K of each list: no per-ball sort on the host.
+  Ranks are the seeded priority order (`hash_priority(seed, index)`, ties broken by index), so
+  that "the K points of smallest priority" of a ball are its K points of smallest rank. Grids
+  (`lrf_jax.engine.Grid`) are built lazily, one per cell size, for cells of `radius / 3` (the
+  size that measured fastest for the paper's 15 mr balls on BR; any radius is answered by any
+  grid, only the speed changes).
 
-  It also keeps trees over the priority-order *prefixes* of n/2, n/4, ... points. A prefix holds,
-  in every ball, exactly the ball's points of smallest priority; so when the prefix ball still
-  holds at least K points, its first K are the same K points as the full ball's, found while
-  materialising about K to 2K neighbours instead of all of them (a 15 mr ball on BR holds up to
-  2800 points for K = 256).
+  Args:
+    points: (n, 3) cloud (float64 on the host).
+    seed: the subsample seed.
   """
 
-  def __init__(self, points: np.ndarray, seed: int = 0, min_prefix: int = 2048):
-    self.points = np.asarray(points, np.float64)
+  def __init__(self, points: np.ndarray, seed: int = 0):
+    self.points = np.ascontiguousarray(points, np.float64)
     self.seed = int(seed)
-    self.order = np.argsort(hash_priority(self.seed, np.arange(len(self.points))), kind="stable")
-    self.tree = cKDTree(self.points[self.order])
-    self.prefix_trees = []  # (size, tree), largest first, sizes n/2, n/4, ...
-    size = len(self.points) // 2
-    while size >= min_prefix:
-      self.prefix_trees.append((size, cKDTree(self.tree.data[:size])))
-      size //= 2
+    n = len(self.points)
+    self.order = np.argsort(hash_priority(self.seed, np.arange(n)), kind="stable")
+    self.rank = np.empty(n, np.int64)
+    self.rank[self.order] = np.arange(n)
+    self._grids: dict[float, engine.Grid] = {}
 
-  def first_k(self, centers: np.ndarray, radius: float, k: int) -> tuple[list, np.ndarray]:
-    """Per center, the tree indices (= priority ranks) of its first min(K, count) ball points.
+  @property
+  def data(self) -> np.ndarray:
+    """(n, 3) the points in priority order (row i has rank i)."""
+    return self.points[self.order]
 
-    Returns:
-      (lists, counts): lists[i] holds up to K sorted tree indices; counts (m,) the exact number
-      of points within `radius`.
-    """
-    counts = self.tree.query_ball_point(centers, radius, workers=-1, return_length=True)
-    counts = np.asarray(counts, np.int64)
-    lists: list = [None] * len(centers)
-    todo = np.arange(len(centers))
-    for size, tree in reversed(self.prefix_trees):  # coarsest first
-      if not todo.size:
-        break
-      n_pref = tree.query_ball_point(centers[todo], radius, workers=-1, return_length=True)
-      ready = todo[np.asarray(n_pref) >= k]
-      if ready.size:
-        found = tree.query_ball_point(centers[ready], radius, workers=-1, return_sorted=True)
-        for i, b in zip(ready, found):
-          lists[i] = b[:k]
-      todo = todo[np.asarray(n_pref) < k]
-    if todo.size:
-      found = self.tree.query_ball_point(centers[todo], radius, workers=-1, return_sorted=True)
-      for i, b in zip(todo, found):
-        lists[i] = b[:k]
-    return lists, counts
-
-
-def _flatten(lists, counts: np.ndarray) -> np.ndarray:
-  return np.fromiter(itertools.chain.from_iterable(lists), dtype=np.int64,
-                     count=int(counts.sum()))
+  def grid(self, radius: float) -> engine.Grid:
+    """The grid for balls of `radius` (cells of radius / 3), built on first use."""
+    cell = float(radius) / CELLS_PER_RADIUS
+    g = self._grids.get(cell)
+    if g is None:
+      if len(self._grids) >= 4:
+        self._grids.clear()
+      g = self._grids[cell] = engine.Grid(self.points, cell, self.rank)
+    return g
 
 
 def _round_up(k: int) -> int:
@@ -246,47 +232,20 @@ def build_patches(
     index = SearchIndex(points, seed)
   m = keypoints.shape[0]
   centers = points[keypoints]
-
-  # Normal support: every neighbour within z_ratio * r, reduced to float64 statistics.
-  inner = index.tree.query_ball_point(centers, z_ratio * radius, workers=-1, return_sorted=False)
-  z_count = np.fromiter(map(len, inner), dtype=np.int64, count=m)
-  r_in = np.repeat(np.arange(m), z_count)
-  o_in = index.tree.data[_flatten(inner, z_count)] - centers[r_in]
-  s1 = np.stack([np.bincount(r_in, o_in[:, a], minlength=m) for a in range(3)], axis=1)
-  s2 = np.empty((m, 3, 3))
-  for a in range(3):
-    for b in range(a, 3):
-      s2[:, a, b] = s2[:, b, a] = np.bincount(r_in, o_in[:, a] * o_in[:, b], minlength=m)
-  denom = np.maximum(z_count, 1).astype(np.float64)
-  z_mean = s1 / denom[:, None]
-  z_cov = s2 / denom[:, None, None] - z_mean[:, :, None] * z_mean[:, None, :]
-
-  # Patch: the ball in priority order (sorted tree indices), truncated to K.
+  grid = index.grid(radius)
   if k is None:
-    counts = np.asarray(index.tree.query_ball_point(centers, radius, workers=-1,
-                                                    return_length=True), np.int64)
+    counts = engine.ball_counts(grid, centers, radius)
     k = _round_up(int(counts.max()) if m else 1)
     if max_k is not None:
       k = min(k, int(max_k))
-  balls, counts = index.first_k(centers, radius, k)
-  kept = np.minimum(counts, k)
-  cols = _flatten(balls, kept)
-  rows = np.repeat(np.arange(m), kept)
-  slot = np.arange(cols.size) - np.repeat(np.cumsum(kept) - kept, kept)
-
-  offsets = np.zeros((m, k, 3), np.float32)
-  mask = np.zeros((m, k), bool)
-  indices = np.full((m, k), -1, np.int32)
-  offsets[rows, slot] = index.tree.data[cols] - centers[rows]
-  mask[rows, slot] = True
-  indices[rows, slot] = index.order[cols]
+  out = engine.patches(grid, centers, radius, int(k), z_ratio * radius)
   return Patches(
-      offsets=offsets,
-      mask=mask,
-      indices=indices,
-      count=counts.astype(np.int32),
+      offsets=out["offsets"],
+      mask=out["mask"],
+      indices=out["indices"],
+      count=out["count"].astype(np.int32),
       radius=np.full((m,), radius, np.float32),
-      z_cov=z_cov.astype(np.float32),
-      z_mean=z_mean.astype(np.float32),
-      z_count=z_count.astype(np.int32),
+      z_cov=out["z_cov"].astype(np.float32),
+      z_mean=out["z_mean"].astype(np.float32),
+      z_count=out["z_count"].astype(np.int32),
   )

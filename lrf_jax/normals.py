@@ -33,12 +33,11 @@ from __future__ import annotations
 import hashlib
 from typing import Any
 
-import itertools
-
 import numpy as np
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import breadth_first_order, connected_components, minimum_spanning_tree
-from scipy.spatial import cKDTree
+
+from lrf_jax import engine
 
 # Default normal radius as a fraction of the support radius r (3 mr at r = 15 mr).
 NORMAL_RADIUS_RATIO = 0.2
@@ -84,19 +83,18 @@ def cache_last(kind: str, key_arrays: tuple, fn):
   return out
 
 
-def pca_normals(points: np.ndarray, radius: float, *, tree: cKDTree | None = None,
-                viewpoint: np.ndarray | None = None, min_neighbors: int = 3, chunk: int = 20_000) -> np.ndarray:
+def pca_normals(points: np.ndarray, radius: float, *, grid: engine.Grid | None = None,
+                viewpoint: np.ndarray | None = None, min_neighbors: int = 3) -> np.ndarray:
   """PCL-like PCA normals: smallest eigenvector of the neighbours' covariance about their centroid.
 
   Args:
     points: (n, 3) cloud.
     radius: normal radius (cloud units); every point within it, the point itself included, counts.
-    tree: optional `cKDTree(points)`.
+    grid: optional `lrf_jax.engine.Grid(points, cell)` to reuse (default: cells of radius / 2).
     viewpoint: (3,) optional; when given, normals are flipped towards it as PCL's
       `flipNormalTowardsViewpoint` ((v - p) · n >= 0). When None the sign is arbitrary (orient them
       with `orient_normals`).
     min_neighbors: fewer neighbours than this give a NaN normal (PCL: 3).
-    chunk: query points per batch (bounds memory on dense clouds).
 
   Returns:
     (n, 3) float64 unit normals; NaN rows where undefined (too few neighbours, collinear points).
@@ -106,29 +104,11 @@ def pca_normals(points: np.ndarray, radius: float, *, tree: cKDTree | None = Non
     (PCL `NormalEstimation::computePointNormal`).
   """
   pts = np.asarray(points, np.float64)
-  n = pts.shape[0]
-  if tree is None:
-    tree = cKDTree(pts)
-  counts = np.zeros(n, np.int64)
-  mean = np.zeros((n, 3))
-  cov = np.zeros((n, 3, 3))
-  for lo in range(0, n, chunk):  # bounded memory: dense scans hold 100s of points per ball
-    hi = min(n, lo + chunk)
-    lists = tree.query_ball_point(pts[lo:hi], radius, workers=-1, return_sorted=False)
-    c = np.fromiter(map(len, lists), dtype=np.int64, count=hi - lo)
-    rows = np.repeat(np.arange(hi - lo), c)
-    cols = np.fromiter(itertools.chain.from_iterable(lists), dtype=np.int64, count=int(c.sum()))
-    off = pts[cols] - pts[lo:hi][rows]  # relative to the query point: numerically stable
-    denom = np.maximum(c, 1).astype(np.float64)
-    m = hi - lo
-    mean[lo:hi] = np.stack([np.bincount(rows, off[:, a], minlength=m) for a in range(3)],
-                           1) / denom[:, None]
-    for a in range(3):
-      for b in range(a, 3):
-        cov[lo:hi, a, b] = cov[lo:hi, b, a] = np.bincount(
-            rows, off[:, a] * off[:, b], minlength=m) / denom
-    counts[lo:hi] = c
-  cov -= mean[:, :, None] * mean[:, None, :]
+  if grid is None:
+    grid = engine.Grid(pts, float(radius) / 2)
+  # One compiled pass: count, centroid and covariance about the centroid, offsets taken relative
+  # to the query point (numerically stable far from the origin).
+  counts, mean, cov = engine.ball_stats(grid, pts, radius)
   evals, evecs = np.linalg.eigh(cov)
   normals = evecs[:, :, 0]
   scale = np.maximum(evals[:, 2], 0.0)
@@ -171,8 +151,8 @@ def orient_by_reference(normals: np.ndarray, reference: np.ndarray) -> np.ndarra
   return out
 
 
-def orient_by_propagation(points: np.ndarray, normals: np.ndarray, *, k: int = PROPAGATION_K,
-                          tree: cKDTree | None = None) -> np.ndarray:
+def orient_by_propagation(points: np.ndarray, normals: np.ndarray, *, k: int = PROPAGATION_K
+                          ) -> np.ndarray:
   """Consistent orientation by minimum-spanning-tree propagation (Hoppe et al. 1992).
 
   Equivariant: the graph, the weights 1 - |n_i · n_j| and the seed rule (the point farthest from
@@ -181,8 +161,7 @@ def orient_by_propagation(points: np.ndarray, normals: np.ndarray, *, k: int = P
   Args:
     points: (n, 3) cloud.
     normals: (n, 3) unit normals of arbitrary sign; NaN rows are left NaN (and not traversed).
-    k: neighbours per point in the graph.
-    tree: optional `cKDTree(points)`.
+    k: neighbours per point in the graph (the engine's k-NN; ties broken by index).
 
   Returns:
     (n, 3) float64 consistently oriented normals.
@@ -201,8 +180,7 @@ def orient_by_propagation(points: np.ndarray, normals: np.ndarray, *, k: int = P
   sub = pts[idx]
   sub_n = nrm[idx]
   kk = min(k + 1, idx.size)
-  sub_tree = cKDTree(sub) if (tree is None or idx.size != n) else tree
-  _, nb = sub_tree.query(sub, k=kk, workers=-1)
+  _, nb = engine.knn(engine.knn_grid(sub, kk), sub, kk)
   nb = nb.reshape(idx.size, kk)
   r = np.repeat(np.arange(idx.size), kk)
   c = nb.reshape(-1)
@@ -257,13 +235,12 @@ def estimate_normals(points: np.ndarray, normal_radius: float,
   pts = np.asarray(points, np.float64)
 
   def compute():
-    tree = cKDTree(pts)
     if faces is None and viewpoint is not None:
-      return pca_normals(pts, normal_radius, tree=tree, viewpoint=viewpoint)
-    nrm = pca_normals(pts, normal_radius, tree=tree)
+      return pca_normals(pts, normal_radius, viewpoint=viewpoint)
+    nrm = pca_normals(pts, normal_radius)
     if faces is not None:
       return orient_by_reference(nrm, vertex_normals(pts, faces))
-    return orient_by_propagation(pts, nrm, tree=tree)
+    return orient_by_propagation(pts, nrm)
 
   if viewpoint is not None:
     viewpoint = np.asarray(viewpoint, np.float64)

@@ -52,6 +52,8 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: list[str] | None = None) -> int:
   args = build_parser().parse_args(argv)
+  from lrf_jax import compilation_cache
+  compilation_cache.enable()  # a second run loads the compiled functions instead of recompiling
   from lrf_jax.registration import register
 
   params = None

@@ -28,6 +28,7 @@ References:
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import functools
 import os
@@ -37,8 +38,8 @@ from typing import Any, NamedTuple
 import jax
 import jax.numpy as jnp
 import numpy as np
-from scipy.spatial import cKDTree
 
+from lrf_jax import engine
 from lrf_jax.geometry import kabsch
 
 # ------------------------------------------------------------------------------------------------
@@ -294,8 +295,7 @@ def ransac_3point(src_points: Any, dst_points: Any, *, inlier_threshold: float,
   if m < 3:
     raise ValueError(f"correspondences: 3-point RANSAC needs at least 3, got {m}")
   src, dst, cs, cd = _centred(s, d)
-  keys = jax.random.split(jax.random.key(seed), int(iterations))
-  samples = jax.vmap(lambda k: jax.random.choice(k, m, (3,), replace=False))(keys)
+  samples = _triples(m, iterations, seed)
   rs, ts = _kabsch_batch(src[samples], dst[samples])
   r, t, mask, best, count = _select_and_refine(rs, ts, src, dst, float(inlier_threshold), refine)
   r, t = _uncentre(r, t, cs, cd)
@@ -309,7 +309,7 @@ def ransac_3point(src_points: Any, dst_points: Any, *, inlier_threshold: float,
 
 def icp(source: np.ndarray, target: np.ndarray, init: np.ndarray, *, max_distance: float,
         iterations: int = 30, tolerance: float = 1e-7,
-        target_tree: cKDTree | None = None) -> tuple[np.ndarray, float, float]:
+        target_grid: engine.Grid | None = None) -> tuple[np.ndarray, float, float]:
   """Point-to-point ICP from an initial pose (host, float64, deterministic).
 
   Each iteration pairs every source point with its nearest target point, keeps the pairs closer
@@ -323,17 +323,23 @@ def icp(source: np.ndarray, target: np.ndarray, init: np.ndarray, *, max_distanc
     max_distance: pairs farther apart are ignored (cloud units).
     iterations: at most this many iterations.
     tolerance: convergence threshold.
-    target_tree: optional `cKDTree(target)`.
+    target_grid: optional `engine.Grid(target, max_distance)` to reuse.
 
   Returns:
     (transform (4, 4), fitness = fraction of source points paired, rmse of the pairs).
   """
-  tree = target_tree or cKDTree(target)
+  target = np.asarray(target, np.float64)
+  grid = target_grid if target_grid is not None else engine.Grid(target, max_distance)
+
+  def nearest(moved):
+    d, i = engine.knn(grid, moved, 1, max_distance)
+    return d[:, 0], i[:, 0]
+
   tr = np.array(init, np.float64)
   fitness, rmse = 0.0, float("inf")
   for _ in range(int(iterations)):
     moved = source @ tr[:3, :3].T + tr[:3, 3]
-    dist, nn = tree.query(moved, distance_upper_bound=max_distance, workers=-1)
+    dist, nn = nearest(moved)
     ok = np.isfinite(dist)
     fitness = float(ok.mean())
     if ok.sum() < 3:
@@ -350,7 +356,7 @@ def icp(source: np.ndarray, target: np.ndarray, init: np.ndarray, *, max_distanc
     if angle + np.linalg.norm(step[:3, 3]) / max_distance < tolerance:
       break
   moved = source @ tr[:3, :3].T + tr[:3, 3]
-  dist, _ = tree.query(moved, distance_upper_bound=max_distance, workers=-1)
+  dist, _ = nearest(moved)
   ok = np.isfinite(dist)
   fitness = float(ok.mean())
   rmse = float(np.sqrt(np.mean(dist[ok] ** 2))) if ok.any() else float("inf")
@@ -377,6 +383,8 @@ class Registration:
     rmse: RMS distance of those points (cloud units).
     mr: the mesh resolution used as the unit (cloud units).
     seconds: wall time of the whole call.
+    timings: wall seconds per stage of `register`, keyed "prepare", "frames", "descriptors",
+      "matching", "hypotheses", "verification", "icp".
   """
 
   transform: np.ndarray
@@ -388,6 +396,7 @@ class Registration:
   rmse: float
   mr: float
   seconds: float
+  timings: dict = dataclasses.field(default_factory=dict)
 
 
 def _as_cloud(x: Any, name: str) -> tuple[np.ndarray, np.ndarray | None]:
@@ -403,26 +412,32 @@ def _as_cloud(x: Any, name: str) -> tuple[np.ndarray, np.ndarray | None]:
 
 
 def overlap_scores(rotations: np.ndarray, translations: np.ndarray, points: np.ndarray,
-                   tree: cKDTree, distance: float, block: int = 256) -> np.ndarray:
-  """Fraction of `points` within `distance` of the tree's cloud under each of H poses.
+                   target: np.ndarray | engine.Grid, distance: float, block: int = 256
+                   ) -> np.ndarray:
+  """Fraction of `points` within `distance` of the target cloud under each of H poses.
 
   Args:
     rotations: (H, 3, 3).
     translations: (H, 3).
     points: (P, 3) source points.
-    tree: `cKDTree` of the target cloud.
+    target: (m, 3) target cloud, or an `engine.Grid` of it to reuse (cells >= `distance` are
+      fastest), or a scipy `cKDTree` of it (its `.data` is used).
     distance: the overlap distance (cloud units).
     block: poses per batched query.
 
   Returns:
     (H,) float64 overlap fractions.
   """
+  if isinstance(target, engine.Grid):
+    grid = target
+  else:  # an array, or an object holding its points as `.data` (e.g. a scipy cKDTree)
+    grid = engine.Grid(np.asarray(getattr(target, "data", target), np.float64), distance)
   out = np.empty(len(rotations))
   for s in range(0, len(rotations), block):
     r, t = rotations[s:s + block], translations[s:s + block]
     moved = np.einsum("hij,pj->hpi", r, points) + t[:, None, :]
-    d, _ = tree.query(moved.reshape(-1, 3), distance_upper_bound=distance, workers=-1)
-    out[s:s + block] = np.isfinite(d).reshape(len(r), -1).mean(axis=1)
+    hit = engine.any_within(grid, moved.reshape(-1, 3), distance)
+    out[s:s + block] = hit.reshape(len(r), -1).mean(axis=1)
   return out
 
 
@@ -487,13 +502,93 @@ def register(source: Any, target: Any, *, mr: float | None = None, radius_mr: fl
     >>> reg = lrf_jax.register("scan_a.ply", "scan_b.ply")
     >>> aligned = points_a @ reg.transform[:3, :3].T + reg.transform[:3, 3]
   """
-  from lrf_jax.api import compute_frames
-  from lrf_jax.datasets.resolution import mesh_resolution
-  from lrf_jax.descriptors import (DESCRIPTORS, compute_descriptors, match_descriptors,
-                                   top_correspondences)
-  from lrf_jax.frames import METHODS
+  timer = _StageTimer()
+  with timer("prepare"):
+    setup = _prepare(source, target, mr=mr, radius_mr=radius_mr, n_keypoints=n_keypoints,
+                     n_correspondences=n_correspondences, iterations=iterations,
+                     inlier_mr=inlier_mr, verify=verify, estimator=estimator,
+                     icp_iterations=icp_iterations, icp_mr=icp_mr, method=method,
+                     descriptor=descriptor, seed=seed, views=(source_viewpoint,
+                                                              target_viewpoint))
+  with timer("frames"):
+    frames = [_side_frames(side, setup, method, params, seed) for side in setup.sides]
+  with timer("descriptors"):
+    descs = [_side_descriptors(side, f, setup, descriptor, seed)
+             for side, f in zip(setup.sides, frames)]
+  with timer("matching"):
+    qi, ri = _match(frames, descs, estimator, n_correspondences, radius_mr)
+  (kp_s, (f_s, v_s)), (kp_t, (f_t, v_t)) = zip((s.keypoints for s in setup.sides), frames)
+  src_pts, dst_pts = setup.sides[0].points, setup.sides[1].points
+  p, q = src_pts[kp_s[qi]], dst_pts[kp_t[ri]]
+  threshold = inlier_mr * setup.mr
+  with timer("hypotheses"):
+    src, dst, cs, cd = _centred(p, q)
+    rs, ts = _hypotheses(src, dst, f_s[qi], f_t[ri], estimator, iterations, setup.radius, seed)
+    counts = np.asarray(_count_inliers(rs, ts, src, dst, float(threshold)))
+  with timer("verification"):
+    overlap_distance = icp_mr * setup.mr
+    target_grid = engine.Grid(dst_pts, overlap_distance)
+    best = _verify(rs, ts, counts, cs, cd, src_pts, target_grid, overlap_distance, verify,
+                   setup.rng)
+    r, t, mask, _, _ = _select_and_refine(rs[best:best + 1], ts[best:best + 1], src, dst,
+                                          float(threshold), True)
+    res = _finish(*_uncentre(r, t, cs, cd), mask, best, counts[best])
+  with timer("icp"):
+    icp_src = src_pts
+    if len(src_pts) > 20000:
+      icp_src = src_pts[np.sort(setup.rng.choice(len(src_pts), 20000, replace=False))]
+    final, fitness, rmse = icp(icp_src, dst_pts, res.transform, max_distance=overlap_distance,
+                               iterations=icp_iterations, target_grid=target_grid)
+  return Registration(transform=final, coarse_transform=res.transform, inliers=res.inliers,
+                      n_inliers=res.n_inliers,
+                      correspondences=np.stack([kp_s[qi], kp_t[ri]], axis=1).astype(np.int64),
+                      fitness=fitness, rmse=rmse, mr=float(setup.mr), seconds=timer.total(),
+                      timings=dict(timer.seconds))
 
-  t0 = time.perf_counter()
+
+class _StageTimer:
+  """Wall seconds per named stage (`with timer("frames"): ...`)."""
+
+  def __init__(self):
+    self.seconds: dict[str, float] = {}
+    self._t0 = time.perf_counter()
+
+  @contextlib.contextmanager
+  def __call__(self, name: str):
+    t = time.perf_counter()
+    try:
+      yield
+    finally:
+      self.seconds[name] = self.seconds.get(name, 0.0) + time.perf_counter() - t
+
+  def total(self) -> float:
+    return time.perf_counter() - self._t0
+
+
+class _Side(NamedTuple):
+  points: np.ndarray           # (n, 3) float64
+  faces: np.ndarray | None
+  viewpoint: np.ndarray | None
+  keypoints: np.ndarray        # (k,) sorted indices
+  normals: np.ndarray | None   # estimated towards the viewpoint when a method or SHOT needs them
+
+
+class _Setup(NamedTuple):
+  sides: tuple[_Side, _Side]
+  mr: float
+  radius: float
+  rng: np.random.Generator
+
+
+def _prepare(source: Any, target: Any, *, mr, radius_mr, n_keypoints, n_correspondences,
+             iterations, inlier_mr, verify, estimator, icp_iterations, icp_mr, method,
+             descriptor, seed, views) -> _Setup:
+  """Stage "prepare": read and check the inputs, measure mr, pick keypoints, estimate normals."""
+  from lrf_jax.datasets.resolution import mesh_resolution
+  from lrf_jax.descriptors import DESCRIPTORS
+  from lrf_jax.frames import METHODS
+  from lrf_jax.normals import NORMAL_RADIUS_RATIO, estimate_normals
+
   src_pts, src_faces = _as_cloud(source, "source")
   dst_pts, dst_faces = _as_cloud(target, "target")
   for name, pts in (("source", src_pts), ("target", dst_pts)):
@@ -516,40 +611,65 @@ def register(source: Any, target: Any, *, mr: float | None = None, radius_mr: fl
   if descriptor not in DESCRIPTORS:
     raise ValueError(f"descriptor: unknown descriptor {descriptor!r}; expected one of "
                      f"{sorted(DESCRIPTORS)}")
-  if METHODS[method].needs_mesh and (src_faces is None or dst_faces is None):
+  spec = METHODS[method]
+  if spec.needs_mesh and (src_faces is None or dst_faces is None):
     raise ValueError(f"method {method!r} needs triangle meshes on both sides")
-  views = []
-  for name, vp in (("source_viewpoint", source_viewpoint), ("target_viewpoint", target_viewpoint)):
+  checked = []
+  for name, vp in zip(("source_viewpoint", "target_viewpoint"), views):
     if vp is not None:
       vp = np.asarray(vp, np.float64)
       if vp.shape != (3,) or not np.all(np.isfinite(vp)):
         raise ValueError(f"{name}: expected a finite (3,) sensor position, got shape "
                          f"{vp.shape}")
-    views.append(vp)
+    checked.append(vp)
   if mr is None:
     mr, _ = mesh_resolution(src_pts, src_faces)
   elif not (np.isfinite(mr) and mr > 0):
     raise ValueError(f"mr: expected a positive mesh resolution, got {mr!r}")
   radius = radius_mr * mr
-
-  # 1-2: keypoints, frames, descriptors, matches.
   rng = np.random.default_rng(seed)
   sides = []
-  spec = METHODS[method]
-  for pts, faces, vp in ((src_pts, src_faces, views[0]), (dst_pts, dst_faces, views[1])):
+  for pts, faces, vp in ((src_pts, src_faces, checked[0]), (dst_pts, dst_faces, checked[1])):
     kp = np.sort(rng.choice(len(pts), min(int(n_keypoints), len(pts)), replace=False))
     normals = None
     if vp is not None and ((spec.prepare is not None and not spec.uses_viewpoint)
                            or descriptor == "shot"):
-      from lrf_jax.normals import NORMAL_RADIUS_RATIO, estimate_normals
       normals = estimate_normals(pts, NORMAL_RADIUS_RATIO * radius, faces, vp)
-    frames, valid = compute_frames(pts, kp, radius, method, params=params, faces=faces,
-                                   seed=seed, viewpoint=vp,
-                                   normals=None if spec.uses_viewpoint else normals)
-    desc, ok = compute_descriptors(pts, kp, radius, frames, valid, descriptor, faces=faces,
-                                   seed=seed, normals=normals)
-    sides.append((kp, np.asarray(frames), np.asarray(valid), np.asarray(desc), np.asarray(ok)))
-  (kp_s, f_s, v_s, d_s, ok_s), (kp_t, f_t, v_t, d_t, ok_t) = sides
+    sides.append(_Side(pts, faces, vp, kp, normals))
+  return _Setup(tuple(sides), float(mr), float(radius), rng)
+
+
+def _side_frames(side: _Side, setup: _Setup, method: str, params: Any, seed: int
+                 ) -> tuple[np.ndarray, np.ndarray]:
+  """Stage "frames": the LRFs of one side's keypoints."""
+  from lrf_jax.api import compute_frames
+  from lrf_jax.frames import METHODS
+
+  frames, valid = compute_frames(
+      side.points, side.keypoints, setup.radius, method, params=params, faces=side.faces,
+      seed=seed, viewpoint=side.viewpoint,
+      normals=None if METHODS[method].uses_viewpoint else side.normals)
+  return np.asarray(frames), np.asarray(valid)
+
+
+def _side_descriptors(side: _Side, frames: tuple[np.ndarray, np.ndarray], setup: _Setup,
+                      descriptor: str, seed: int) -> tuple[np.ndarray, np.ndarray]:
+  """Stage "descriptors": one side's descriptors on its frames."""
+  from lrf_jax.descriptors import compute_descriptors
+
+  desc, ok = compute_descriptors(side.points, side.keypoints, setup.radius, frames[0],
+                                 frames[1], descriptor, faces=side.faces, seed=seed,
+                                 normals=side.normals)
+  return np.asarray(desc), np.asarray(ok)
+
+
+def _match(frames, descs, estimator: str, n_correspondences: int, radius_mr: float
+           ) -> tuple[np.ndarray, np.ndarray]:
+  """Stage "matching": nearest descriptors, the `n_correspondences` of smallest ratio."""
+  from lrf_jax.descriptors import match_descriptors, top_correspondences
+
+  (_, v_s), (_, v_t) = frames
+  (d_s, ok_s), (d_t, ok_t) = descs
   need_frames = estimator == "lrf"
   matches = match_descriptors(d_s, d_t, ok_s & (v_s | ~need_frames), ok_t & (v_t | ~need_frames))
   qi, ri = top_correspondences(matches, n_correspondences)
@@ -557,46 +677,39 @@ def register(source: Any, target: Any, *, mr: float | None = None, radius_mr: fl
     raise ValueError(f"register: only {len(qi)} descriptor matches (valid frames: source "
                      f"{int(v_s.sum())}, target {int(v_t.sum())}); the clouds are too small or "
                      f"too sparse for r = {radius_mr} mr")
-  p, q = src_pts[kp_s[qi]], dst_pts[kp_t[ri]]
-  threshold = inlier_mr * mr
+  return qi, ri
 
-  # 3: hypotheses and their inlier counts (float32 about the centroids).
-  src, dst, cs, cd = _centred(p, q)
-  if need_frames:
-    rs, ts = _lrf_hypotheses(src, jnp.asarray(f_s[qi], jnp.float32), dst,
-                             jnp.asarray(f_t[ri], jnp.float32), float(radius))
-  else:
-    keys = jax.random.split(jax.random.key(seed), int(iterations))
-    samples = jax.vmap(lambda k: jax.random.choice(k, len(qi), (3,), replace=False))(keys)
-    rs, ts = _kabsch_batch(src[samples], dst[samples])
-  counts = np.asarray(_count_inliers(rs, ts, src, dst, float(threshold)))
+
+def _hypotheses(src, dst, f_src, f_dst, estimator: str, iterations: int, radius: float,
+                seed: int) -> tuple[jax.Array, jax.Array]:
+  """Stage "hypotheses": one pose per correspondence from its LRFs, or `iterations` seeded
+  triples (the `ransac_3point` sampler), in the centred float32 coordinates."""
+  if estimator == "lrf":
+    return _lrf_hypotheses(src, jnp.asarray(f_src, jnp.float32), dst,
+                           jnp.asarray(f_dst, jnp.float32), float(radius))
+  samples = _triples(len(src), iterations, seed)
+  return _kabsch_batch(src[samples], dst[samples])
+
+
+def _triples(m: int, iterations: int, seed: int) -> jax.Array:
+  """(iterations, 3) seeded triples of distinct correspondence indices."""
+  keys = jax.random.split(jax.random.key(seed), int(iterations))
+  return jax.vmap(lambda k: jax.random.choice(k, m, (3,), replace=False))(keys)
+
+
+def _verify(rs, ts, counts, cs, cd, src_pts, target_grid, distance, verify, rng) -> int:
+  """Stage "verification": the hypothesis of best overlap among the `verify` best-scoring ones
+  (None: all; 0: the inlier count alone decides)."""
   order = np.argsort(-counts, kind="stable")
-
-  # 4: verification by overlap, refit on the inliers.
   best = int(order[0])
-  tree = cKDTree(dst_pts)
   if verify is None or verify > 0:
     cand = order if verify is None else order[:int(verify)]
     sub = src_pts[np.sort(rng.choice(len(src_pts), min(1000, len(src_pts)), replace=False))]
     r_c = np.asarray(rs, np.float64)[cand]
     t_c = np.asarray(ts, np.float64)[cand] + cd - np.einsum("hij,j->hi", r_c, cs)
-    fits = overlap_scores(r_c, t_c, sub, tree, icp_mr * mr)
+    fits = overlap_scores(r_c, t_c, sub, target_grid, distance)
     best = int(cand[int(np.argmax(fits))])  # first maximum: the higher inlier count
-  r, t, mask, _, _ = _select_and_refine(rs[best:best + 1], ts[best:best + 1], src, dst,
-                                        float(threshold), True)
-  res = _finish(*_uncentre(r, t, cs, cd), mask, best, counts[best])
-
-  # 5: ICP.
-  icp_src = src_pts
-  if len(src_pts) > 20000:
-    icp_src = src_pts[np.sort(rng.choice(len(src_pts), 20000, replace=False))]
-  final, fitness, rmse = icp(icp_src, dst_pts, res.transform, max_distance=icp_mr * mr,
-                             iterations=icp_iterations, target_tree=tree)
-  return Registration(transform=final, coarse_transform=res.transform, inliers=res.inliers,
-                      n_inliers=res.n_inliers,
-                      correspondences=np.stack([kp_s[qi], kp_t[ri]], axis=1).astype(np.int64),
-                      fitness=fitness, rmse=rmse, mr=float(mr),
-                      seconds=time.perf_counter() - t0)
+  return best
 
 
 @jax.jit

@@ -27,7 +27,8 @@ def bunny(br_bunny):
 
 
 def _frames(pts, kp, r, method="lrf_net", **kw):
-  f, v = lrf_jax.compute_frames(pts, kp, r, method, **({"params": PARAMS} | kw)
+  """Frames of `method`; lrf_net runs its exact network (lut=0) unless `lut` is given."""
+  f, v = lrf_jax.compute_frames(pts, kp, r, method, **({"params": PARAMS, "lut": 0} | kw)
                                 if method == "lrf_net" else kw)
   return np.asarray(f), np.asarray(v)
 
@@ -324,6 +325,9 @@ def test_lut_weights_match_exact_network(bunny):
   rot = random_rotation(4)
   moved, wm = _frames(pts @ rot.T, kp, r, lut=257)
   assert equivariance_deficit(fast, moved, rot, w, wm).mean() < 1e-4
+  # The default call is the table (the fast path); lut=0 is one keyword away.
+  default, _ = lrf_jax.compute_frames(pts, kp, r, "lrf_net", params=PARAMS)
+  np.testing.assert_array_equal(np.asarray(default), fast)
 
 
 def test_weight_table_is_cached_and_equals_the_parameters_path(bunny):

@@ -11,7 +11,7 @@ from __future__ import annotations
 from typing import Literal
 
 import numpy as np
-from scipy.spatial import cKDTree
+from lrf_jax import engine
 
 MrDefinition = Literal["mean_edge_length", "mean_nn_distance"]
 
@@ -58,5 +58,5 @@ def mesh_resolution(points: np.ndarray,
       raise ValueError(f"faces: expected a non-empty (f, 3) array, found shape {faces.shape}")
     e = unique_edges(faces)
     return float(np.linalg.norm(pts[e[:, 0]] - pts[e[:, 1]], axis=1).mean()), "mean_edge_length"
-  d, _ = cKDTree(pts).query(pts, k=2, workers=-1)
+  d, _ = engine.knn(engine.knn_grid(pts, 2), pts, 2)  # the point itself, then its nearest
   return float(d[:, 1].mean()), "mean_nn_distance"

@@ -28,7 +28,6 @@ from typing import Any, Callable
 import jax
 import jax.numpy as jnp
 import numpy as np
-from scipy.spatial import cKDTree
 
 from lrf_jax.descriptors import rops as _rops
 from lrf_jax.descriptors import shot as _shot
@@ -241,7 +240,7 @@ def compute_descriptors(
     seed: seed of the subsample when `k` is set.
     chunk_size: keypoints per search and jitted call (memory: about chunk_size x K x 60 bytes
       for SHOT, x 250 bytes for RoPS).
-    index: optional prebuilt `SearchIndex(points, seed)` (used when `k` is set).
+    index: optional prebuilt `SearchIndex(points, seed)`.
     **options: static descriptor options (`grid=`, `empty=`, `align_normals=`).
 
   Returns:
@@ -260,16 +259,14 @@ def compute_descriptors(
     raise ValueError(f"chunk_size: expected a positive integer, got {chunk_size!r}")
   if m == 0:
     return jnp.zeros((0, spec.dim), jnp.float32), jnp.zeros((0,), bool)
-  if k is None:
-    tree = cKDTree(points)
-  elif index is None or index.seed != seed:
+  if index is None or index.seed != seed or index.points.shape != points.shape:
     index = SearchIndex(points, seed)
   chunk = min(int(chunk_size), m)
   out_d, out_v = [], []
   for start in range(0, m, chunk):
     sl = slice(start, start + chunk)
     if k is None:  # the whole ball: one plain radius search
-      patches = ball_patches(tree, points, keypoints[sl], radius)
+      patches = ball_patches(index, points, keypoints[sl], radius)
     else:
       patches = build_patches(points, keypoints[sl], radius, k, seed=seed, index=index,
                               validate=False)

@@ -7,14 +7,12 @@ ball, `k=None`, as the original descriptors use) and frames from ANY LRF method,
 
 from __future__ import annotations
 
-import itertools
-
 import jax
 import jax.numpy as jnp
 import numpy as np
-from scipy.spatial import cKDTree
 
-from lrf_jax.neighborhoods import Patches
+from lrf_jax import engine
+from lrf_jax.neighborhoods import Patches, SearchIndex, build_patches
 
 
 def local_coordinates(offsets: jax.Array, frames: jax.Array) -> jax.Array:
@@ -112,16 +110,15 @@ def validate_frames(frames, valid, n: int) -> tuple[np.ndarray, np.ndarray]:
   return f.astype(np.float32), v
 
 
-def ball_patches(tree: cKDTree, points: np.ndarray, keypoints: np.ndarray,
+def ball_patches(index: SearchIndex, points: np.ndarray, keypoints: np.ndarray,
                  radius: float) -> Patches:
-  """Patches with EVERY neighbour within `radius` (one radius search), K bucketed.
+  """Patches with EVERY neighbour within `radius` (the engine's radius search), K bucketed.
 
-  The descriptors' neighbourhood (the original descriptors use the whole ball). Slot order follows
-  the search and does not matter (descriptors are sums or extrema over the slots). The normal
-  statistics (`z_*`) are not computed (zeros; descriptors do not use them).
+  The descriptors' neighbourhood (the original descriptors use the whole ball). Slot order (the
+  index's priority order) does not matter: descriptors are sums or extrema over the slots.
 
   Args:
-    tree: `cKDTree(points)`.
+    index: `SearchIndex(points, seed)`.
     points: (n, 3) float64 cloud.
     keypoints: (m,) indices.
     radius: r.
@@ -130,20 +127,8 @@ def ball_patches(tree: cKDTree, points: np.ndarray, keypoints: np.ndarray,
     `Patches` with K = `bucket_k(largest ball)`.
   """
   centers = points[keypoints]
-  balls = tree.query_ball_point(centers, radius, workers=-1, return_sorted=False)
-  m = len(keypoints)
-  counts = np.fromiter(map(len, balls), dtype=np.int64, count=m)
-  k = bucket_k(int(counts.max()) if m else 1)
-  cols = np.fromiter(itertools.chain.from_iterable(balls), dtype=np.int64,
-                     count=int(counts.sum()))
-  rows = np.repeat(np.arange(m), counts)
-  slot = np.arange(cols.size) - np.repeat(np.cumsum(counts) - counts, counts)
-  offsets = np.zeros((m, k, 3), np.float32)
-  mask = np.zeros((m, k), bool)
-  indices = np.full((m, k), -1, np.int32)
-  offsets[rows, slot] = points[cols] - centers[rows]
-  mask[rows, slot] = True
-  indices[rows, slot] = cols
-  return Patches(offsets=offsets, mask=mask, indices=indices, count=counts.astype(np.int32),
-                 radius=np.full((m,), radius, np.float32), z_cov=np.zeros((m, 3, 3), np.float32),
-                 z_mean=np.zeros((m, 3), np.float32), z_count=np.zeros((m,), np.int32))
+  grid = index.grid(radius)
+  counts = engine.ball_counts(grid, centers, radius)
+  k = bucket_k(int(counts.max()) if len(keypoints) else 1)
+  return build_patches(points, keypoints, radius, k, seed=index.seed, index=index,
+                       validate=False)

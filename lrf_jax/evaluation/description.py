@@ -38,7 +38,7 @@ import numpy as np
 from lrf_jax.api import frames_from_patches
 from lrf_jax.datasets import Pair
 from lrf_jax.descriptors import DESCRIPTORS, describe_patches, match_descriptors
-from lrf_jax.evaluation.repeatability import (MethodRun, PatchCache, correspondences,
+from lrf_jax.evaluation.repeatability import (EXACT_NETWORK, MethodRun, PatchCache, correspondences,
                                               group_records, prepare_extra)
 from lrf_jax.frames import METHODS
 from lrf_jax.normals import default_normals
@@ -90,7 +90,8 @@ def default_runs(params: Any = None,
                        f"{sorted(DESCRIPTORS)}")
     orig = DESCRIPTORS[name].original_lrf
     runs.append(DescriptionRun(name, MethodRun(orig, orig)))
-    runs.append(DescriptionRun(name, MethodRun(learned_label, "lrf_net", params=params)))
+    runs.append(DescriptionRun(name, MethodRun(learned_label, "lrf_net", params=params,
+                                               options=EXACT_NETWORK)))
   return runs
 
 

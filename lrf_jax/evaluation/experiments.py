@@ -12,7 +12,8 @@ from typing import Any, Callable, Iterable, Iterator
 
 from lrf_jax import datasets
 from lrf_jax.datasets import Pair
-from lrf_jax.evaluation.repeatability import MAX_NEIGHBORS, MethodRun, PatchCache, evaluate_pair
+from lrf_jax.evaluation.repeatability import (EXACT_NETWORK, MAX_NEIGHBORS, MethodRun,
+                                              PatchCache, evaluate_pair)
 
 NOISE_LEVELS = (0.1, 0.2, 0.3, 0.4, 0.5)
 DECIMATIONS = (1 / 2, 1 / 4, 1 / 8, 1 / 16)
@@ -33,7 +34,7 @@ def plus_ablation_runs() -> list[MethodRun]:
   from lrf_jax.model import default_params
 
   paper_x = dict(params=default_params("lrf_net"), options=(("x_mode", "sum"),))
-  return [MethodRun("LRF-Net (paper)", "lrf_net"),
+  return [MethodRun("LRF-Net (paper)", "lrf_net", options=EXACT_NETWORK),
           MethodRun("plus: ball sign only", "lrf_net_plus",
                     options=(("density", False), ("oriented_sign", False))),
           MethodRun("plus: + oriented sign", "lrf_net_plus", options=(("density", False),)),

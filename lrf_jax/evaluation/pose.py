@@ -32,7 +32,7 @@ from lrf_jax.datasets import Pair, transform_points
 from lrf_jax.descriptors import (DESCRIPTORS, describe_patches, match_descriptors,
                                  top_correspondences)
 from lrf_jax.evaluation.repeatability import (PatchCache, correspondences, group_records,
-                                              prepare_extra)
+                                              paper_options, prepare_extra)
 from lrf_jax.frames import METHODS
 from lrf_jax.normals import default_normals
 from lrf_jax.registration import lrf_ransac, pose_errors, ransac_3point
@@ -86,7 +86,7 @@ def evaluate_pose_pair(pair: Pair, *, n_keypoints: int = 1000, n_correspondences
     extra = prepare_extra(spec, pts, idx, patches, faces=faces, radius=radius, viewpoint=vp,
                           normals=lambda: default_normals(pts, radius, faces, None, vp))
     f, v = frames_from_patches(patches, lrf, params=params if spec.needs_params else None,
-                               extra=extra)
+                               extra=extra, **dict(paper_options(lrf)))
     dp = cache.get(pts, idx, radius, None, seed, 1.0 / 3.0)
     nrm = default_normals(pts, radius, faces, None, vp) if DESCRIPTORS[descriptor].prepare else None
     d, ok = describe_patches(dp, f, v, descriptor, points=pts, keypoints=idx, radius=radius,

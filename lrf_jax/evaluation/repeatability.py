@@ -30,6 +30,14 @@ from lrf_jax.normals import NORMAL_RADIUS_RATIO, estimate_normals
 
 # Default cap on all-neighbour patches in evaluations (see `evaluate_pair`).
 MAX_NEIGHBORS = 4096
+# Options of the paper's LRF-Net in the paper's experiments: the exact network (lut=0), not the
+# weight table that `compute_frames` reads by default.
+EXACT_NETWORK = (("lut", 0),)
+
+
+def paper_options(method: str) -> tuple[tuple[str, Any], ...]:
+  """The options a paper experiment passes to `method`: `EXACT_NETWORK` for "lrf_net"."""
+  return EXACT_NETWORK if method == "lrf_net" else ()
 
 
 @dataclasses.dataclass(frozen=True)

@@ -85,8 +85,9 @@ def register(spec: MethodSpec) -> MethodSpec:
 
 
 register(MethodSpec(
-    "lrf_net", _lrf_net, default_k=256, needs_params=True,
-    description="LRF-Net (Zhu et al.): TOLDI z over r/3, learned per-point weights for x"))
+    "lrf_net", _lrf_net, default_k=256, needs_params=True, default_options=(("lut", 257),),
+    description="LRF-Net (Zhu et al.): TOLDI z over r/3, learned per-point weights for x, read "
+                "from a 257 x 257 table by default (lut=257; lut=0: the exact network)"))
 def _variant(patches, extra, *, params, z_mode: str = "normal", x_mode: str = "sum1"):
   del extra
   from lrf_jax.frames.ablation import variant_frames

@@ -25,7 +25,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from lrf_jax import geometry
+from lrf_jax import engine, geometry
 from lrf_jax.model import Params, apply_weights
 from lrf_jax.neighborhoods import Patches
 
@@ -203,12 +203,12 @@ def patch_areas(points: np.ndarray, patches: Patches,
   the model side too.
   """
   from lrf_jax.normals import cache_last
-  from scipy.spatial import cKDTree
 
   pts = np.asarray(points, np.float64)
 
   def estimate(which: np.ndarray) -> np.ndarray:
-    d, _ = cKDTree(pts).query(pts[which], k=AREA_NEIGHBOURS + 1, workers=-1)
+    kk = min(AREA_NEIGHBOURS + 1, len(pts))
+    d, _ = engine.knn(engine.knn_grid(pts, kk), pts[which], kk)
     return np.pi * d[:, -1] ** 2 / AREA_NEIGHBOURS
 
   def compute():

@@ -35,9 +35,8 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 import numpy as np
-from scipy.spatial import cKDTree
 
-from lrf_jax import geometry
+from lrf_jax import engine, geometry
 from lrf_jax.frames.lrf_net import sanitize
 from lrf_jax.neighborhoods import Patches, hash_priority
 from lrf_jax.normals import cache_last
@@ -97,11 +96,9 @@ def gather_triangles(points: np.ndarray, keypoints: np.ndarray, faces: np.ndarra
     rows, cols = np.nonzero(idx >= 0)
     cols = idx[rows, cols].astype(np.int64)
   else:
-    tree = cache_last("kdtree", (pts,), lambda: cKDTree(pts))
-    lists = tree.query_ball_point(pts[kp], radius, workers=-1, return_sorted=False)
-    counts = np.fromiter((len(l) for l in lists), dtype=np.int64, count=m)
-    rows = np.repeat(np.arange(m), counts)
-    cols = np.fromiter((j for l in lists for j in l), dtype=np.int64, count=int(counts.sum()))
+    grid = cache_last("grid", (pts, float(radius)), lambda: engine.Grid(pts, radius / 3))
+    ptr, cols = engine.ball_lists(grid, pts[kp], radius)
+    rows = np.repeat(np.arange(m), np.diff(ptr))
   deg = ptr[cols + 1] - ptr[cols]
   total = int(deg.sum())
   first = np.repeat(ptr[cols], deg)

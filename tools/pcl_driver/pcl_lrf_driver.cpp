@@ -17,6 +17,9 @@
 //                 are always written to DIR/pcl_normals.txt.
 //   --faces       text file "i j k" per triangle, for a .xyz cloud.
 //   --repeat      run each method N times and report the fastest (timing only).
+//   --threads     OpenMP threads of the *_omp variants (default 2): "shot_omp" (PCL's
+//                 SHOTLocalReferenceFrameEstimationOMP) and the "normals_omp" timing
+//                 (NormalEstimationOMP over every point, the normals BOARD and FLARE need).
 //
 // Output (DIR): <method>.txt with one row per keypoint, 9 floats: x axis, y axis, z axis (rows
 // of the LRF, NaN where PCL fails); pcl_normals.txt; timings.txt with "name seconds" lines.
@@ -33,7 +36,9 @@
 #include <pcl/features/normal_3d.h>
 #include <pcl/features/rops_estimation.h>
 #include <pcl/features/impl/rops_estimation.hpp>
+#include <pcl/features/normal_3d_omp.h>
 #include <pcl/features/shot_lrf.h>
+#include <pcl/features/shot_lrf_omp.h>
 #include <pcl/io/ply_io.h>
 #include <pcl/kdtree/kdtree_flann.h>
 #include <pcl/point_types.h>
@@ -130,6 +135,7 @@ int main(int argc, char** argv) {
   const float normal_radius =
       args.count("--normal-radius") ? std::stof(args["--normal-radius"]) : radius / 5.0f;
   const int repeat = args.count("--repeat") ? std::stoi(args["--repeat"]) : 1;
+  const int threads = args.count("--threads") ? std::stoi(args["--threads"]) : 2;
   const std::string methods = args.count("--methods") ? args["--methods"] : "shot,board,flare,rops";
   const std::string out = args["--out"];
 
@@ -191,8 +197,44 @@ int main(int argc, char** argv) {
     }
   }
 
-  auto want = [&](const std::string& m) { return methods.find(m) != std::string::npos; };
+  auto want = [&](const std::string& m) {
+    return ("," + methods + ",").find("," + m + ",") != std::string::npos;
+  };
   std::vector<Eigen::Matrix3f> frames(keypoints->size());
+
+  // ---- multi-threaded variants: PCL's OMP normals (timing only) and SHOT LRF ----
+  if (want("normals_omp")) {
+    double best = std::numeric_limits<double>::max();
+    for (int it = 0; it < repeat; ++it) {
+      double t0 = now();
+      pcl::NormalEstimationOMP<PointT, pcl::Normal> ne(threads);
+      ne.setInputCloud(cloud);
+      ne.setSearchMethod(pcl::search::KdTree<PointT>::Ptr(new pcl::search::KdTree<PointT>));
+      ne.setRadiusSearch(normal_radius);
+      pcl::PointCloud<pcl::Normal> tmp;
+      ne.compute(tmp);
+      best = std::min(best, now() - t0);
+    }
+    timings << "normals_omp " << best << "\n";
+  }
+  if (want("shot_omp")) {
+    double best = std::numeric_limits<double>::max();
+    for (int it = 0; it < repeat; ++it) {
+      double t0 = now();
+      pcl::SHOTLocalReferenceFrameEstimationOMP<PointT, pcl::ReferenceFrame> est;
+      est.setNumberOfThreads(threads);
+      est.setInputCloud(cloud);
+      est.setIndices(keypoints);
+      est.setSearchMethod(pcl::search::KdTree<PointT>::Ptr(new pcl::search::KdTree<PointT>));
+      est.setRadiusSearch(radius);
+      pcl::PointCloud<pcl::ReferenceFrame> rf;
+      est.compute(rf);
+      best = std::min(best, now() - t0);
+      for (std::size_t i = 0; i < rf.size(); ++i) frames[i] = to_matrix(rf[i]);
+    }
+    timings << "shot_omp " << best << "\n";
+    write_frames(out + "/shot_omp.txt", frames);
+  }
 
   // ---- SHOT ----
   if (want("shot")) {

@@ -51,7 +51,8 @@ def normals_digest(normals: np.ndarray) -> str:
 
 def run_driver(points: np.ndarray, faces: np.ndarray | None, keypoints: np.ndarray, radius: float,
                *, normals: np.ndarray | None = None, methods=METHODS, z_radius: float | None = None,
-               normal_radius: float | None = None, repeat: int = 1) -> dict[str, np.ndarray]:
+               normal_radius: float | None = None, repeat: int = 1,
+               threads: int = 2) -> dict[str, np.ndarray]:
   """Run `pcl_lrf_driver` and parse its output.
 
   Args:
@@ -76,7 +77,7 @@ def run_driver(points: np.ndarray, faces: np.ndarray | None, keypoints: np.ndarr
     np.savetxt(tmp / "kp.txt", np.asarray(keypoints, np.int64), fmt="%d")
     cmd = [str(DRIVER), "--cloud", str(tmp / "cloud.xyz"), "--keypoints", str(tmp / "kp.txt"),
            "--radius", repr(float(radius)), "--out", str(tmp), "--methods", ",".join(methods),
-           "--repeat", str(repeat)]
+           "--repeat", str(repeat), "--threads", str(int(threads))]
     if faces is not None:
       np.savetxt(tmp / "faces.txt", np.asarray(faces, np.int64), fmt="%d")
       cmd += ["--faces", str(tmp / "faces.txt")]

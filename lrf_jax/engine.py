@@ -1,0 +1,694 @@
+"""The compiled neighbourhood engine: uniform-grid radius and nearest-neighbour search (numba).
+
+Every radius and nearest-neighbour query on the paths `compute_frames`, training, evaluation,
+descriptors and `register` run goes through this module. It is host code, compiled once by
+numba (`cache=True`: the machine code is stored on disk and reused by later processes) and
+multi-threaded over query points (`parallel=True`).
+
+Design:
+
+* A `Grid` bins the cloud into cubic cells of side h >= the largest query radius and stores the
+  points sorted by (cell, rank) with a counting sort, O(n). `rank` is any permutation of the
+  point indices; the patch search uses the seeded priority order of `hash_priority`, so that
+  within every cell the points come in priority order.
+* A ball query scans the 3 x 3 x 3 cells around the query's cell (h >= r makes them cover the
+  ball) and tests every point with cKDTree's rule: float64 squared distance, summed over x, y, z
+  in that order, `<= r * r`.
+* The patch kernel writes `Patches` directly: the ball's count, the float64 statistics of the
+  inner ball (z_ratio * r: count, centroid, covariance about the centroid) and the K in-ball
+  points of smallest rank, sorted by rank (a partition of the in-ball ranks, then a sort of K).
+  The subsample is therefore exactly the one of `neighborhoods.hash_priority`: the same indices
+  whatever the search order, the thread count or the cloud's pose.
+* Nearest-neighbour queries within a bound (ICP pairs, overlap scores) scan the same 27 cells;
+  unbounded k-NN (mesh areas, the normal-orientation graph) grows the scanned cube of cells ring
+  by ring until the k-th distance found is within the ring's guaranteed radius.
+
+Threads: `set_num_threads(n)` or the environment variable `LRF_JAX_NUM_THREADS` (read at import);
+the default is every core numba sees. Results do not depend on the thread count: each query's
+output is computed by one thread, in a fixed order.
+
+Memory: the grid holds the cloud once more in float64 plus O(n + cells) int64; the number of
+cells is bounded by `max(8 n, 4096)` (h grows past r when a tiny radius would need more), so a
+far-flung cloud with a tiny radius costs time, never an unbounded table.
+"""
+
+from __future__ import annotations
+
+import os
+
+import numba as nb
+import numpy as np
+
+_ENV_THREADS = "LRF_JAX_NUM_THREADS"
+# Cells of h = r * (1 + _CELL_MARGIN): the 27 cells cover the ball even when the floor of
+# (p - origin) / h rounds across a cell boundary.
+_CELL_MARGIN = 1e-6
+_BLOCK = 32  # queries per parallel task
+
+
+def num_threads() -> int:
+  """The number of threads the engine's kernels use."""
+  return int(nb.get_num_threads())
+
+
+def set_num_threads(n: int | None = None) -> int:
+  """Set the engine's thread count (None: every core numba sees); returns the count set.
+
+  Raises:
+    ValueError: `n` not a positive integer.
+  """
+  limit = int(nb.config.NUMBA_NUM_THREADS)
+  if n is None:
+    n = limit
+  if isinstance(n, bool) or int(n) != n or n < 1:
+    raise ValueError(f"num_threads: expected a positive integer, got {n!r}")
+  nb.set_num_threads(min(int(n), limit))
+  return num_threads()
+
+
+def _threads_from_env() -> None:
+  value = os.environ.get(_ENV_THREADS)
+  if value:
+    try:
+      set_num_threads(int(value))
+    except ValueError:
+      raise ValueError(f"{_ENV_THREADS}: expected a positive integer, got {value!r}") from None
+
+
+_threads_from_env()
+
+
+# ---------------------------------------------------------------------------------------------
+# Grid construction.
+
+
+@nb.njit(cache=True)
+def _bin(points, rank, origin, h, dims):
+  """Counting sort of the points by (cell, rank). Returns (slot_index, starts)."""
+  n = points.shape[0]
+  ncell = dims[0] * dims[1] * dims[2]
+  cell_of = np.empty(n, np.int64)
+  starts = np.zeros(ncell + 1, np.int64)
+  for i in range(n):
+    c = _cell_id(points[i, 0], points[i, 1], points[i, 2], origin, h, dims)
+    cell_of[i] = c
+    starts[c + 1] += 1
+  for c in range(ncell):
+    starts[c + 1] += starts[c]
+  # Visit points in rank order so that each cell's run is sorted by rank.
+  by_rank = np.empty(n, np.int64)
+  for i in range(n):
+    by_rank[rank[i]] = i
+  fill = starts[:-1].copy()
+  slot_index = np.empty(n, np.int64)
+  for r in range(n):
+    i = by_rank[r]
+    c = cell_of[i]
+    slot_index[fill[c]] = i
+    fill[c] += 1
+  return slot_index, starts
+
+
+@nb.njit(inline="always")
+def _coord(x, o, h, d):
+  c = int(np.floor((x - o) / h))
+  return min(max(c, 0), d - 1)
+
+
+@nb.njit(inline="always")
+def _cell_id(x, y, z, origin, h, dims):
+  cx = _coord(x, origin[0], h, dims[0])
+  cy = _coord(y, origin[1], h, dims[1])
+  cz = _coord(z, origin[2], h, dims[2])
+  return (cx * dims[1] + cy) * dims[2] + cz
+
+
+class Grid:
+  """A cloud binned into cubic cells of side `cell`, points sorted by (cell, rank).
+
+  Args:
+    points: (n, 3) float64 cloud (finite; not checked here).
+    cell: cell side h (cloud units), at least the largest radius that will be queried; it is
+      enlarged when the cloud's bounding box would need more than max(8 n, 4096) cells.
+    rank: (n,) permutation of 0..n-1; within a cell, points are stored by increasing rank
+      (default: the point index).
+
+  Attributes:
+    points: (n, 3) float64, the cloud as given (indexed by point index).
+    xyz: (3, n) float64, the cloud in slot order, one row per coordinate (contiguous loads).
+    slot_index: (n,) int64, the point index of each slot.
+    slot_rank: (n,) int64, the rank of each slot's point.
+    starts: (cells + 1,) int64, slot range of each cell.
+    origin: (3,) float64, the corner of cell (0, 0, 0).
+    dims: (3,) int64, cells per axis.
+    h: float, the cell side actually used (>= `cell`).
+  """
+
+  def __init__(self, points: np.ndarray, cell: float, rank: np.ndarray | None = None):
+    pts = np.ascontiguousarray(points, np.float64)
+    n = pts.shape[0]
+    if rank is None:
+      rank = np.arange(n, dtype=np.int64)
+    lo = pts.min(axis=0) if n else np.zeros(3)
+    hi = pts.max(axis=0) if n else np.zeros(3)
+    extent = np.maximum(hi - lo, 0.0)
+    h = float(cell) * (1.0 + _CELL_MARGIN)
+    span = float(extent.max()) if n else 0.0
+    # At most 2**20 cells per axis, and a positive cell even for a zero radius or one point.
+    h = max(h, span * 2.0**-20, np.finfo(np.float64).tiny * 2.0**60)
+    if not np.isfinite(h):
+      raise ValueError(f"cell: expected a finite cell size, got {cell!r}")
+    limit = max(8 * n, 4096)
+    while True:
+      dims = (np.floor(extent / h) + 1).astype(np.int64)
+      if float(np.prod(dims.astype(np.float64))) <= limit:
+        break
+      h *= max(1.01, (float(np.prod(dims.astype(np.float64))) / limit) ** (1.0 / 3.0))
+    self.points = pts
+    self.origin = lo.astype(np.float64)
+    self.dims = dims
+    self.h = h
+    self.slot_index, self.starts = _bin(pts, np.asarray(rank, np.int64), self.origin, h, dims)
+    self.slot_rank = np.asarray(rank, np.int64)[self.slot_index]
+    self.xyz = np.ascontiguousarray(pts[self.slot_index].T)  # (3, n): x, y, z rows
+
+
+# ---------------------------------------------------------------------------------------------
+# Ball queries.
+
+# Columns are pruned with a radius enlarged by this factor: a point's cell comes from a rounded
+# division, its column's box from a rounded product; the margin keeps every in-ball point.
+_PRUNE_MARGIN = 1e-5
+
+
+@nb.njit(inline="always")
+def _cell(x, o, h):
+  """The (unclamped) cell index of coordinate x, bounded to +-2**40 so that it fits an int64."""
+  return int(min(max(np.floor((x - o) / h), -1099511627776.0), 1099511627776.0))
+
+
+@nb.njit(inline="always")
+def _columns(cx, cy, cz, origin, h, dims, starts, r, reach, js, je):
+  """Cell ranges [js, je) (consecutive cell ids) that may hold points within r of (cx, cy, cz).
+
+  For each column (x cell, y cell) within `reach` cells whose box comes within r of the centre,
+  the z cells that the ball's slice through that column can reach; the slots of cells js..je-1
+  are starts[js]..starts[je]. Returns the number of ranges.
+  """
+  rp = r * (1.0 + _PRUNE_MARGIN)
+  rp2 = rp * rp
+  ix = _cell(cx, origin[0], h)
+  iy = _cell(cy, origin[1], h)
+  n = 0
+  for a in range(max(ix - reach, 0), min(ix + reach, dims[0] - 1) + 1):
+    lo = origin[0] + a * h
+    ddx = lo - cx if cx < lo else (cx - lo - h if cx > lo + h else 0.0)
+    rx = rp2 - ddx * ddx
+    if rx < 0.0:
+      continue
+    for b in range(max(iy - reach, 0), min(iy + reach, dims[1] - 1) + 1):
+      lo = origin[1] + b * h
+      ddy = lo - cy if cy < lo else (cy - lo - h if cy > lo + h else 0.0)
+      rem = rx - ddy * ddy
+      if rem < 0.0:
+        continue
+      t = np.sqrt(rem)
+      z0 = max(_cell(cz - t, origin[2], h), 0)
+      z1 = min(_cell(cz + t, origin[2], h), dims[2] - 1)
+      if z0 > z1:
+        continue
+      base = (a * dims[1] + b) * dims[2]
+      if starts[base + z1 + 1] > starts[base + z0]:
+        js[n] = base + z0
+        je[n] = base + z1 + 1
+        n += 1
+  return n
+
+
+@nb.njit(parallel=True, cache=True)
+def _ball_counts(pts, starts, origin, h, dims, centers, r, reach):
+  m = centers.shape[0]
+  out = np.zeros(m, np.int64)
+  r2 = r * r
+  ncol = (2 * reach + 1) ** 2
+  nblock = (m + _BLOCK - 1) // _BLOCK
+  for blk in nb.prange(nblock):
+    js = np.empty(ncol, np.int64)
+    je = np.empty(ncol, np.int64)
+    for i in range(blk * _BLOCK, min(m, (blk + 1) * _BLOCK)):
+      cx, cy, cz = centers[i, 0], centers[i, 1], centers[i, 2]
+      nr = _columns(cx, cy, cz, origin, h, dims, starts, r, reach, js, je)
+      c = 0
+      for q in range(nr):
+        for j in range(starts[js[q]], starts[je[q]]):
+          dx = pts[0, j] - cx
+          dy = pts[1, j] - cy
+          dz = pts[2, j] - cz
+          c += 1 if dx * dx + dy * dy + dz * dz <= r2 else 0
+      out[i] = c
+  return out
+
+
+@nb.njit(inline="always")
+def _stats_one(pts, starts, cx, cy, cz, r2, nr, js, je, mean, cov):
+  """Count, centroid and covariance about the centroid of the points within sqrt(r2)."""
+  c = 0.0
+  s0 = s1 = s2 = 0.0
+  sxx = sxy = sxz = syy = syz = szz = 0.0
+  for q in range(nr):
+    for j in range(starts[js[q]], starts[je[q]]):
+      dx = pts[0, j] - cx
+      dy = pts[1, j] - cy
+      dz = pts[2, j] - cz
+      w = 1.0 if dx * dx + dy * dy + dz * dz <= r2 else 0.0  # branch-free: balls are random
+      c += w
+      wx, wy, wz = w * dx, w * dy, w * dz
+      s0 += wx
+      s1 += wy
+      s2 += wz
+      sxx += wx * dx
+      sxy += wx * dy
+      sxz += wx * dz
+      syy += wy * dy
+      syz += wy * dz
+      szz += wz * dz
+  d = max(c, 1.0)
+  mx, my, mz = s0 / d, s1 / d, s2 / d
+  mean[0], mean[1], mean[2] = mx, my, mz
+  cov[0, 0] = sxx / d - mx * mx
+  cov[0, 1] = cov[1, 0] = sxy / d - mx * my
+  cov[0, 2] = cov[2, 0] = sxz / d - mx * mz
+  cov[1, 1] = syy / d - my * my
+  cov[1, 2] = cov[2, 1] = syz / d - my * mz
+  cov[2, 2] = szz / d - mz * mz
+  return int(c)
+
+
+@nb.njit(parallel=True, cache=True)
+def _ball_stats(pts, starts, origin, h, dims, centers, r, reach):
+  """Count, centroid offset and covariance (about the centroid) of each ball, float64."""
+  m = centers.shape[0]
+  count = np.zeros(m, np.int64)
+  mean = np.zeros((m, 3))
+  cov = np.zeros((m, 3, 3))
+  ncol = (2 * reach + 1) ** 2
+  nblock = (m + _BLOCK - 1) // _BLOCK
+  for blk in nb.prange(nblock):
+    js = np.empty(ncol, np.int64)
+    je = np.empty(ncol, np.int64)
+    for i in range(blk * _BLOCK, min(m, (blk + 1) * _BLOCK)):
+      cx, cy, cz = centers[i, 0], centers[i, 1], centers[i, 2]
+      nr = _columns(cx, cy, cz, origin, h, dims, starts, r, reach, js, je)
+      count[i] = _stats_one(pts, starts, cx, cy, cz, r * r, nr, js, je, mean[i], cov[i])
+  return count, mean, cov
+
+
+@nb.njit(inline="always")
+def _pow2(x):
+  p = 1
+  while p < x:
+    p *= 2
+  return p
+
+
+@nb.njit(cache=True)
+def _smallest_sorted(keys, c, k, cnt, out, span):
+  """The min(c, k) smallest of keys[:c] into out[:min(c, k)], sorted; returns min(c, k).
+
+  keys are rank << 32 | slot with distinct ranks in [0, span). A bucket sort on the rank (the
+  ranks of a ball are a seeded random sample, so the c buckets hold about one key each), then an
+  insertion sort inside each bucket, stopping once k keys are out: O(c), not O(c log c).
+  """
+  if c == 0:
+    return 0
+  nbk = _pow2(c)
+  mult = (np.int64(nbk) << 32) // max(span, 1) + 1  # bucket = rank * nbk / span, < nbk
+  for b in range(nbk + 1):
+    cnt[b] = 0
+  for e in range(c):
+    b = min(((keys[e] >> 32) * mult) >> 32, nbk - 1)
+    cnt[b + 1] += 1
+  for b in range(nbk):
+    cnt[b + 1] += cnt[b]
+  for e in range(c):
+    b = min(((keys[e] >> 32) * mult) >> 32, nbk - 1)
+    out[cnt[b]] = keys[e]
+    cnt[b] += 1
+  # cnt[b] is now the end of bucket b, which starts where bucket b - 1 ends.
+  want = min(c, k)
+  lo = 0
+  for b in range(nbk):
+    hi = cnt[b]
+    for x in range(lo + 1, hi):  # insertion sort of one bucket
+      v = out[x]
+      y = x - 1
+      while y >= lo and out[y] > v:
+        out[y + 1] = out[y]
+        y -= 1
+      out[y + 1] = v
+    lo = hi
+    if lo >= want:
+      break
+  return want
+
+
+@nb.njit(parallel=True, cache=True)
+def _patch_kernel(pts, slot_index, slot_rank, starts, origin, h, dims, centers, r, rz, k,
+                  n_rank, reach, reach_in, offsets, mask, indices, count, z_count, z_mean,
+                  z_cov):
+  """Patches of the K points of smallest rank within r, plus the inner-ball statistics."""
+  m = centers.shape[0]
+  r2 = r * r
+  ncol = (2 * reach + 1) ** 2
+  nblock = (m + _BLOCK - 1) // _BLOCK
+  for blk in nb.prange(nblock):
+    js = np.empty(ncol, np.int64)
+    je = np.empty(ncol, np.int64)
+    cap = 1024
+    buf = np.empty(cap, np.int64)
+    out = np.empty(cap, np.int64)
+    cnt = np.empty(_pow2(cap) + 1, np.int64)
+    for i in range(blk * _BLOCK, min(m, (blk + 1) * _BLOCK)):
+      cx, cy, cz = centers[i, 0], centers[i, 1], centers[i, 2]
+      nr = _columns(cx, cy, cz, origin, h, dims, starts, rz, reach_in, js, je)
+      z_count[i] = _stats_one(pts, starts, cx, cy, cz, rz * rz, nr, js, je, z_mean[i], z_cov[i])
+      nr = _columns(cx, cy, cz, origin, h, dims, starts, r, reach, js, je)
+      c = 0
+      for q in range(nr):
+        for j in range(starts[js[q]], starts[je[q]]):
+          dx = pts[0, j] - cx
+          dy = pts[1, j] - cy
+          dz = pts[2, j] - cz
+          c += 1 if dx * dx + dy * dy + dz * dz <= r2 else 0
+      count[i] = c
+      # The K smallest of c random ranks lie below about n K / c: collect only the in-ball
+      # points under a threshold with a wide margin (each cell's run is sorted by rank, so the
+      # scan of a cell stops at the threshold); without enough of them, collect every point.
+      limit = np.int64(1) << 62
+      if c > k:
+        limit = np.int64((k + 6.0 * np.sqrt(k) + 16.0) / c * n_rank) + 1
+      while True:
+        if c >= cap:  # room for the c in-ball keys and one overwritten trailing write
+          cap = 2 * c + 2
+          buf = np.empty(cap, np.int64)
+          out = np.empty(cap, np.int64)
+          cnt = np.empty(_pow2(cap) + 1, np.int64)
+        got = 0
+        for q in range(nr):
+          for cell in range(js[q], je[q]):
+            for j in range(starts[cell], starts[cell + 1]):
+              if slot_rank[j] >= limit:
+                break
+              dx = pts[0, j] - cx
+              dy = pts[1, j] - cy
+              dz = pts[2, j] - cz
+              buf[got] = (slot_rank[j] << 32) | j  # sort key: the rank, then its slot
+              got += 1 if dx * dx + dy * dy + dz * dz <= r2 else 0
+        if got >= min(c, k):
+          break
+        limit = np.int64(1) << 62
+      c = got
+      kept = _smallest_sorted(buf, c, k, cnt, out, min(limit, n_rank))
+      for s in range(kept):
+        j = out[s] & 0xFFFFFFFF
+        offsets[i, s, 0] = pts[0, j] - cx
+        offsets[i, s, 1] = pts[1, j] - cy
+        offsets[i, s, 2] = pts[2, j] - cz
+        mask[i, s] = True
+        indices[i, s] = slot_index[j]
+
+
+def _reach(grid: Grid, radius: float) -> int:
+  return max(int(np.ceil(float(radius) / grid.h)), 1)
+
+
+def _centers(centers: np.ndarray) -> np.ndarray:
+  return np.ascontiguousarray(centers, np.float64).reshape(-1, 3)
+
+
+def ball_counts(grid: Grid, centers: np.ndarray, radius: float) -> np.ndarray:
+  """Number of grid points within `radius` of each centre (cKDTree's rule), (m,) int64."""
+  r = float(radius)
+  return _ball_counts(grid.xyz, grid.starts, grid.origin, grid.h, grid.dims, _centers(centers),
+                      r, _reach(grid, r))
+
+
+def ball_stats(grid: Grid, centers: np.ndarray, radius: float
+               ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+  """Float64 statistics of every ball of `radius` around `centers` (m, 3).
+
+  Returns:
+    (count (m,) int64, centroid offset (m, 3), covariance about the centroid (m, 3, 3)), the
+    offsets taken relative to the centre (numerically stable far from the origin); zeros for an
+    empty ball.
+  """
+  r = float(radius)
+  return _ball_stats(grid.xyz, grid.starts, grid.origin, grid.h, grid.dims, _centers(centers),
+                     r, _reach(grid, r))
+
+
+def patches(grid: Grid, centers: np.ndarray, radius: float, k: int, inner_radius: float
+            ) -> dict[str, np.ndarray]:
+  """The fields of `neighborhoods.Patches` for balls of `radius` around `centers`.
+
+  Args:
+    grid: a `Grid` whose ranks are the subsample priority order.
+    centers: (m, 3) query points.
+    radius: ball radius r (cloud units).
+    k: patch size K >= 1; balls of more points keep the K of smallest rank, sorted by rank.
+    inner_radius: radius of the normal-support statistics.
+
+  Returns:
+    dict with offsets (m, K, 3) float32, mask (m, K) bool, indices (m, K) int32 (-1 padding),
+    count (m,) int64, z_count (m,) int64, z_mean (m, 3) and z_cov (m, 3, 3) float64.
+  """
+  n = grid.xyz.shape[1]
+  if n >= 2**31:
+    raise ValueError(f"points: the engine indexes at most 2**31 - 1 points, got {n}")
+  c = _centers(centers)
+  m, k = c.shape[0], int(k)
+  out = dict(
+      offsets=np.zeros((m, k, 3), np.float32),
+      mask=np.zeros((m, k), bool),
+      indices=np.full((m, k), -1, np.int32),
+      count=np.zeros(m, np.int64),
+      z_count=np.zeros(m, np.int64),
+      z_mean=np.zeros((m, 3)),
+      z_cov=np.zeros((m, 3, 3)),
+  )
+  r, rz = float(radius), float(inner_radius)
+  _patch_kernel(grid.xyz, grid.slot_index, grid.slot_rank, grid.starts, grid.origin, grid.h,
+                grid.dims, c, r, rz, k, n, _reach(grid, r),
+                _reach(grid, rz), out["offsets"], out["mask"], out["indices"], out["count"],
+                out["z_count"], out["z_mean"], out["z_cov"])
+  return out
+
+
+# ---------------------------------------------------------------------------------------------
+# Nearest neighbours.
+
+
+@nb.njit(inline="always")
+def _insert(bd, bi, k, d2, j):
+  """Insert (d2, j) into the ascending arrays bd, bi of length k (ties: smaller j first)."""
+  if d2 > bd[k - 1] or (d2 == bd[k - 1] and j >= bi[k - 1]):
+    return
+  p = k - 1
+  while p > 0 and (bd[p - 1] > d2 or (bd[p - 1] == d2 and bi[p - 1] > j)):
+    bd[p] = bd[p - 1]
+    bi[p] = bi[p - 1]
+    p -= 1
+  bd[p] = d2
+  bi[p] = j
+
+
+@nb.njit(inline="always")
+def _outside(i, d):
+  """How many cells index i lies outside 0..d-1."""
+  return -i if i < 0 else (i - d + 1 if i > d - 1 else 0)
+
+
+@nb.njit(inline="always")
+def _knn_cells(pts, slot_index, starts, base, z0, z1, qx, qy, qz, max_d2, bd, bi, k):
+  if z0 > z1:
+    return
+  for j in range(starts[base + z0], starts[base + z1 + 1]):
+    dx = pts[0, j] - qx
+    dy = pts[1, j] - qy
+    dz = pts[2, j] - qz
+    d2 = dx * dx + dy * dy + dz * dz
+    if d2 <= max_d2:
+      _insert(bd, bi, k, d2, slot_index[j])
+
+
+@nb.njit(parallel=True, cache=True)
+def _knn_kernel(pts, slot_index, starts, origin, h, dims, queries, k, max_d2, out_d, out_i):
+  """k nearest grid points of each query, by growing cubes of cells around its cell."""
+  m = queries.shape[0]
+  n = pts.shape[1]
+  nblock = (m + _BLOCK - 1) // _BLOCK
+  for blk in nb.prange(nblock):
+    bd = np.empty(k)
+    bi = np.empty(k, np.int64)
+    for i in range(blk * _BLOCK, min(m, (blk + 1) * _BLOCK)):
+      qx, qy, qz = queries[i, 0], queries[i, 1], queries[i, 2]
+      for t in range(k):
+        bd[t] = np.inf
+        bi[t] = n
+      ix = _cell(qx, origin[0], h)
+      iy = _cell(qy, origin[1], h)
+      iz = _cell(qz, origin[2], h)
+      # Start at the first ring that reaches the grid (a query may lie far outside it).
+      ring = max(_outside(ix, dims[0]), max(_outside(iy, dims[1]), _outside(iz, dims[2])))
+      while True:
+        for a in range(max(ix - ring, 0), min(ix + ring, dims[0] - 1) + 1):
+          for b in range(max(iy - ring, 0), min(iy + ring, dims[1] - 1) + 1):
+            base = (a * dims[1] + b) * dims[2]
+            if abs(a - ix) == ring or abs(b - iy) == ring:  # a side of the shell: whole column
+              _knn_cells(pts, slot_index, starts, base, max(iz - ring, 0),
+                         min(iz + ring, dims[2] - 1), qx, qy, qz, max_d2, bd, bi, k)
+            else:  # inside: only the shell's two z faces
+              if 0 <= iz - ring < dims[2]:
+                _knn_cells(pts, slot_index, starts, base, iz - ring, iz - ring, qx, qy, qz,
+                           max_d2, bd, bi, k)
+              if ring > 0 and 0 <= iz + ring < dims[2]:
+                _knn_cells(pts, slot_index, starts, base, iz + ring, iz + ring, qx, qy, qz,
+                           max_d2, bd, bi, k)
+        # Every point not yet scanned lies outside the cube of cells ix +- ring.
+        g = np.inf
+        g = min(g, qx - (origin[0] + (ix - ring) * h), origin[0] + (ix + ring + 1) * h - qx)
+        g = min(g, qy - (origin[1] + (iy - ring) * h), origin[1] + (iy + ring + 1) * h - qy)
+        g = min(g, qz - (origin[2] + (iz - ring) * h), origin[2] + (iz + ring + 1) * h - qz)
+        g = g * (1.0 - _PRUNE_MARGIN)
+        if g > 0.0 and (g * g >= bd[k - 1] or g * g >= max_d2):
+          break
+        if (ix - ring <= 0 and ix + ring >= dims[0] - 1 and iy - ring <= 0
+            and iy + ring >= dims[1] - 1 and iz - ring <= 0 and iz + ring >= dims[2] - 1):
+          break  # the cube holds the whole grid
+        ring += 1
+      for t in range(k):
+        out_d[i, t] = np.sqrt(bd[t])
+        out_i[i, t] = bi[t]
+
+
+def knn(grid: Grid, queries: np.ndarray, k: int, max_distance: float = np.inf
+        ) -> tuple[np.ndarray, np.ndarray]:
+  """The k nearest grid points of each query, as `cKDTree.query(queries, k)` returns them.
+
+  Args:
+    grid: a `Grid` of the cloud (any cell size; `knn_grid` picks a good one).
+    queries: (m, 3) query points.
+    k: neighbours per query (>= 1).
+    max_distance: neighbours farther than this are not returned.
+
+  Returns:
+    (distances (m, k) float64 ascending, indices (m, k) int64 point indices); missing neighbours
+    have distance inf and index n (cKDTree's convention). Equal distances: smaller index first.
+  """
+  q = _centers(queries)
+  m, k = q.shape[0], int(k)
+  out_d = np.empty((m, k))
+  out_i = np.empty((m, k), np.int64)
+  md = float(max_distance)
+  _knn_kernel(grid.xyz, grid.slot_index, grid.starts, grid.origin, grid.h, grid.dims, q, k,
+              md * md if np.isfinite(md) else np.inf, out_d, out_i)
+  return out_d, out_i
+
+
+def knn_grid(points: np.ndarray, k: int = 8) -> Grid:
+  """A grid whose occupied cells hold about k points each (good for `knn` with that k).
+
+  Starts from cells of the bounding box's volume per point and refines while the occupied cells
+  hold more than 2 k points on average (surface clouds fill few cells).
+  """
+  pts = np.ascontiguousarray(points, np.float64)
+  n = max(pts.shape[0], 1)
+  extent = np.ptp(pts, axis=0) if pts.shape[0] else np.ones(3)
+  ext = np.maximum(extent, max(float(extent.max()), 1e-300) * 1e-3)
+  h = float(np.prod(ext) / n * max(k, 1)) ** (1.0 / 3.0)
+  if not np.isfinite(h) or h <= 0.0:
+    h = 1.0
+  for _ in range(4):
+    grid = Grid(pts, h)
+    occupied = int(np.count_nonzero(np.diff(grid.starts)))
+    per_cell = n / max(occupied, 1)
+    if per_cell <= 2 * max(k, 1):
+      break
+    h /= np.sqrt(per_cell / max(k, 1))
+  return grid
+
+
+@nb.njit(parallel=True, cache=True)
+def _any_within(pts, starts, origin, h, dims, queries, r, reach):
+  m = queries.shape[0]
+  out = np.zeros(m, np.bool_)
+  r2 = r * r
+  ncol = (2 * reach + 1) ** 2
+  nblock = (m + _BLOCK - 1) // _BLOCK
+  for blk in nb.prange(nblock):
+    js = np.empty(ncol, np.int64)
+    je = np.empty(ncol, np.int64)
+    for i in range(blk * _BLOCK, min(m, (blk + 1) * _BLOCK)):
+      cx, cy, cz = queries[i, 0], queries[i, 1], queries[i, 2]
+      nr = _columns(cx, cy, cz, origin, h, dims, starts, r, reach, js, je)
+      found = False
+      for q in range(nr):
+        for j in range(starts[js[q]], starts[je[q]]):
+          dx = pts[0, j] - cx
+          dy = pts[1, j] - cy
+          dz = pts[2, j] - cz
+          if dx * dx + dy * dy + dz * dz <= r2:
+            found = True
+            break
+        if found:
+          break
+      out[i] = found
+  return out
+
+
+def any_within(grid: Grid, queries: np.ndarray, radius: float) -> np.ndarray:
+  """(m,) bool: whether any grid point lies within `radius` of each query (stops at the first)."""
+  r = float(radius)
+  return _any_within(grid.xyz, grid.starts, grid.origin, grid.h, grid.dims, _centers(queries), r,
+                     _reach(grid, r))
+
+
+@nb.njit(parallel=True, cache=True)
+def _ball_fill(pts, slot_index, starts, origin, h, dims, centers, r, reach, ptr, out):
+  m = centers.shape[0]
+  r2 = r * r
+  ncol = (2 * reach + 1) ** 2
+  nblock = (m + _BLOCK - 1) // _BLOCK
+  for blk in nb.prange(nblock):
+    js = np.empty(ncol, np.int64)
+    je = np.empty(ncol, np.int64)
+    for i in range(blk * _BLOCK, min(m, (blk + 1) * _BLOCK)):
+      cx, cy, cz = centers[i, 0], centers[i, 1], centers[i, 2]
+      nr = _columns(cx, cy, cz, origin, h, dims, starts, r, reach, js, je)
+      w = ptr[i]
+      for q in range(nr):
+        for j in range(starts[js[q]], starts[je[q]]):
+          dx = pts[0, j] - cx
+          dy = pts[1, j] - cy
+          dz = pts[2, j] - cz
+          if dx * dx + dy * dy + dz * dz <= r2:
+            out[w] = slot_index[j]
+            w += 1
+
+
+def ball_lists(grid: Grid, centers: np.ndarray, radius: float) -> tuple[np.ndarray, np.ndarray]:
+  """Every grid point within `radius` of each centre, as compressed rows.
+
+  Returns:
+    (ptr (m + 1,) int64, indices (ptr[-1],) int64): the point indices of ball i are
+    indices[ptr[i]:ptr[i + 1]], in the grid's slot order (cell, then rank).
+  """
+  c = _centers(centers)
+  counts = ball_counts(grid, c, radius)
+  ptr = np.zeros(len(c) + 1, np.int64)
+  np.cumsum(counts, out=ptr[1:])
+  out = np.empty(int(ptr[-1]), np.int64)
+  r = float(radius)
+  _ball_fill(grid.xyz, grid.slot_index, grid.starts, grid.origin, grid.h, grid.dims, c, r,
+             _reach(grid, r), ptr, out)
+  return ptr, out

@@ -1,0 +1,181 @@
+"""The compiled neighbourhood engine against cKDTree references, on real and adversarial clouds."""
+
+import numpy as np
+import pytest
+from scipy.spatial import cKDTree
+
+from lrf_jax import engine
+from lrf_jax.neighborhoods import SearchIndex, build_patches, hash_priority
+
+# Float64 statistics are summed in another order than the reference's: they agree to this
+# relative tolerance (of the ball's squared radius for covariances, its radius for centroids).
+STATS_RTOL = 1e-9
+
+
+def reference_patches(points, keypoints, radius, k, seed=0, z_ratio=1.0 / 3.0):
+  """The engine's contract written with cKDTree: the K in-ball points of smallest
+  hash_priority (ties by index), in that order; float64 inner-ball statistics."""
+  pts = np.asarray(points, np.float64)
+  tree = cKDTree(pts)
+  prio = hash_priority(seed, np.arange(len(pts)))
+  order = np.lexsort((np.arange(len(pts)), prio))
+  rank = np.empty(len(pts), np.int64)
+  rank[order] = np.arange(len(pts))
+  m = len(keypoints)
+  idx = np.full((m, k), -1, np.int64)
+  count = np.zeros(m, np.int64)
+  z_count = np.zeros(m, np.int64)
+  z_mean = np.zeros((m, 3))
+  z_cov = np.zeros((m, 3, 3))
+  for i, p in enumerate(keypoints):
+    ball = np.asarray(tree.query_ball_point(pts[p], radius), np.int64)
+    count[i] = len(ball)
+    keep = ball[np.argsort(rank[ball])][:k]
+    idx[i, :len(keep)] = keep
+    inner = np.asarray(tree.query_ball_point(pts[p], z_ratio * radius), np.int64)
+    z_count[i] = len(inner)
+    if len(inner):
+      off = pts[inner] - pts[p]
+      z_mean[i] = off.mean(0)
+      z_cov[i] = (off.T @ off) / len(inner) - np.outer(z_mean[i], z_mean[i])
+  return idx, count, z_count, z_mean, z_cov
+
+
+def assert_matches_reference(points, keypoints, radius, k, seed=0):
+  got = engine.patches(SearchIndex(points, seed).grid(radius), np.asarray(points)[keypoints],
+                       radius, k, radius / 3)
+  idx, count, z_count, z_mean, z_cov = reference_patches(points, keypoints, radius, k, seed)
+  np.testing.assert_array_equal(got["indices"], idx)
+  np.testing.assert_array_equal(got["mask"], idx >= 0)
+  np.testing.assert_array_equal(got["count"], count)
+  np.testing.assert_array_equal(got["z_count"], z_count)
+  np.testing.assert_allclose(got["z_mean"], z_mean, rtol=0, atol=STATS_RTOL * radius)
+  np.testing.assert_allclose(got["z_cov"], z_cov, rtol=0, atol=STATS_RTOL * radius**2)
+  pts = np.asarray(points, np.float64)
+  off = np.where((idx >= 0)[..., None], pts[np.maximum(idx, 0)] - pts[keypoints][:, None], 0)
+  np.testing.assert_array_equal(got["offsets"], off.astype(np.float32))
+
+
+def _adversarial():
+  rng = np.random.default_rng(3)
+  plane = np.c_[rng.uniform(size=(3000, 2)), np.zeros(3000)]
+  strip = np.c_[rng.uniform(0.4, 0.45, size=(3000, 1)), rng.uniform(size=(3000, 1)),
+                np.zeros((3000, 1))]  # 20x denser than the plane around it
+  lattice = np.stack(np.meshgrid(*[np.arange(12) * 0.05] * 3), -1).reshape(-1, 3)
+  return {
+      "duplicates": (np.repeat(rng.normal(size=(400, 3)), 5, axis=0), 0.5),
+      "dense_strip": (np.r_[plane, strip], 0.08),
+      # Lattice spacing 0.05 with r = 0.15: many points exactly on cell boundaries of r / 3 and
+      # exactly at distance r (along the axes) from every keypoint.
+      "lattice_boundaries": (lattice, 0.15),
+      "single_cell": (rng.uniform(size=(300, 3)) * 1e-3, 1.0),
+      "far_from_origin": (rng.normal(size=(3000, 3)) * 0.01 + [1e6, -2e6, 5e5], 0.01),
+      "tiny_radius": (rng.uniform(size=(2000, 3)), 1e-9),
+  }
+
+
+@pytest.mark.parametrize("name", sorted(_adversarial()))
+@pytest.mark.parametrize("k", [1, 16, 256])
+def test_patches_equal_ckdtree_on_adversarial_clouds(name, k):
+  points, radius = _adversarial()[name]
+  kp = np.random.default_rng(0).choice(len(points), min(200, len(points)), replace=False)
+  assert_matches_reference(points, kp, radius, k)
+
+
+def test_in_ball_rule_is_ckdtree_squared_distance():
+  """Points at distance exactly r are in; one ulp beyond is out; (0.1, 0.2, 0.2), at distance
+  0.3 in exact arithmetic, is out because its float64 squared distance rounds above 0.3 * 0.3."""
+  r = 0.3
+  beyond = np.nextafter(r, 1.0)
+  pts = np.array([[0, 0, 0], [r, 0, 0], [0, -r, 0], [0, 0, beyond], [0.1, 0.2, 0.2]], float)
+  ptr, idx = engine.ball_lists(engine.Grid(pts, r / 3), pts[:1], r)
+  ref = cKDTree(pts).query_ball_point(pts[0], r)
+  assert sorted(idx.tolist()) == sorted(ref) == [0, 1, 2]
+
+
+@pytest.mark.data
+@pytest.mark.parametrize("cloud", ["br_bunny", "bunny_scan", "uwaor_rs1"])
+def test_patches_equal_ckdtree_on_real_clouds(cloud, data_root):
+  from lrf_jax.datasets.resolution import mesh_resolution
+  from lrf_jax.io import read_cloud
+  if cloud == "br_bunny":
+    c = read_cloud(data_root / "bologna_retrieval" / "models" / "bunny" / "bun_zipper_0.ply")
+  elif cloud == "bunny_scan":
+    c = read_cloud(data_root / "stanford_bunny_scans" / "bun045.ply")
+  else:
+    c = read_cloud(data_root / "uwa_object_recognition" / "scenes" / "rs1_normals2.ply")
+  pts = c.points
+  mr, _ = mesh_resolution(pts, c.faces)
+  kp = np.random.default_rng(1).choice(len(pts), 150, replace=False)
+  assert_matches_reference(pts, kp, 15 * mr, 256)
+
+
+def test_same_patches_with_one_and_two_threads():
+  rng = np.random.default_rng(5)
+  pts = rng.normal(size=(20000, 3)) * [1, 1, 0.05]
+  kp = rng.choice(len(pts), 2000, replace=False)
+  before = engine.num_threads()
+  try:
+    engine.set_num_threads(1)
+    one = build_patches(pts, kp, 0.3, 64)
+    engine.set_num_threads(2)
+    two = build_patches(pts, kp, 0.3, 64)
+  finally:
+    engine.set_num_threads(before)
+  for a, b in zip(one, two):
+    np.testing.assert_array_equal(a, b)
+
+
+def test_set_num_threads_rejects_bad_values():
+  for bad in (0, -1, 2.5, True):
+    with pytest.raises(ValueError, match="num_threads"):
+      engine.set_num_threads(bad)
+
+
+@pytest.mark.parametrize("name", sorted(_adversarial()))
+@pytest.mark.parametrize("k", [1, 2, 9])
+def test_knn_distances_equal_ckdtree(name, k):
+  points, _ = _adversarial()[name]
+  rng = np.random.default_rng(2)
+  queries = np.r_[points[:100], points.mean(0) + rng.normal(size=(30, 3)) * points.std() * 3]
+  d, i = engine.knn(engine.knn_grid(points, k), queries, k)
+  kk = min(k + 1, len(points))
+  rd, ri = cKDTree(points).query(queries, k=kk)
+  rd, ri = rd.reshape(len(queries), kk), ri.reshape(len(queries), kk)
+  scale = max(1.0, float(np.abs(points).max()))
+  np.testing.assert_allclose(d, rd[:, :k], rtol=1e-12, atol=1e-12 * scale)
+  # Indices agree wherever the distance is not tied with another point's (k + 1 reference
+  # neighbours show ties with the first point left out).
+  ext = np.c_[np.full(len(rd), -np.inf), rd, np.full(len(rd), np.inf)]
+  untied = (np.diff(ext, axis=1)[:, :-1] > 1e-9 * scale) & (np.diff(ext, axis=1)[:, 1:] > 1e-9 * scale)
+  untied, ri = untied[:, :k], ri[:, :k]
+  np.testing.assert_array_equal(i[untied], ri[untied])
+
+
+def test_bounded_knn_and_any_within_match_ckdtree():
+  rng = np.random.default_rng(4)
+  pts = rng.uniform(size=(5000, 3))
+  q = rng.uniform(-0.2, 1.2, size=(2000, 3))
+  bound = 0.03
+  grid = engine.Grid(pts, bound)
+  d, i = engine.knn(grid, q, 1, bound)
+  rd, ri = cKDTree(pts).query(q, distance_upper_bound=bound)
+  np.testing.assert_array_equal(np.isfinite(d[:, 0]), np.isfinite(rd))
+  np.testing.assert_array_equal(i[:, 0], ri)
+  np.testing.assert_array_equal(engine.any_within(grid, q, bound), np.isfinite(rd))
+
+
+def test_ball_lists_and_stats_match_ckdtree():
+  rng = np.random.default_rng(6)
+  pts = rng.normal(size=(4000, 3))
+  grid = engine.Grid(pts, 0.2)
+  ptr, idx = engine.ball_lists(grid, pts[:300], 0.4)
+  count, mean, cov = engine.ball_stats(grid, pts[:300], 0.4)
+  tree = cKDTree(pts)
+  for i in range(300):
+    ref = np.sort(tree.query_ball_point(pts[i], 0.4))
+    np.testing.assert_array_equal(np.sort(idx[ptr[i]:ptr[i + 1]]), ref)
+    assert count[i] == len(ref)
+    off = pts[ref] - pts[i]
+    np.testing.assert_allclose(mean[i], off.mean(0), atol=1e-12)
+    np.testing.assert_allclose(cov[i], np.cov(off.T, bias=True), atol=1e-12)

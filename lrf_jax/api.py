@@ -106,7 +106,8 @@ def compute_frames(
 ) -> tuple[jax.Array, jax.Array]:
   """Local reference frames of `keypoints` of a cloud, by any registered method.
 
-  The radius search runs on the host (scipy cKDTree, all cores) or on the accelerator (`search`),
+  The radius search runs on the host (the compiled engine, `lrf_jax.engine`, all cores) or on the
+  accelerator (`search`),
   keypoints are processed in
   fixed-size chunks (the last one padded) so that memory is bounded and one compiled function
   serves every chunk; everything after the search is jitted.
@@ -131,7 +132,7 @@ def compute_frames(
     chunk_size: keypoints per jitted call (bounds memory: about chunk_size x K x 16 bytes of
       patches at a time). With several local devices, each chunk is sharded over them.
     progress: show a progress bar over chunks (default: when there are more than 4 chunks).
-    search: where the radius search runs: "host" (scipy cKDTree, all cores), "device" (jitted
+    search: where the radius search runs: "host" (the compiled engine, all cores), "device" (jitted
       voxel grids on the default device, `lrf_jax.device_search`; integer K only; the same
       patches, keypoints it cannot guarantee are redone on the host), or "auto" (device when the
       default backend is a GPU/TPU and K is an integer, else host).
@@ -198,7 +199,8 @@ def compute_frames(
                                         index=dindex)
     else:
       patches = build_patches(points, kp, radius, k, seed=seed, z_ratio=spec.z_ratio,
-                              index=index, validate=False)
+                              index=index, validate=False,
+                              shells=spec.shells if k is None else None)
     extra = None
     if spec.prepare is not None:
       vp = {"viewpoint": viewpoint} if spec.uses_viewpoint else {}

@@ -44,6 +44,7 @@ _ENV_THREADS = "LRF_JAX_NUM_THREADS"
 # (p - origin) / h rounds across a cell boundary.
 _CELL_MARGIN = 1e-6
 _BLOCK = 32  # queries per parallel task
+_SHELL_SLACK = 1e-5
 
 
 def num_threads() -> int:
@@ -226,7 +227,8 @@ def _columns(cx, cy, cz, origin, h, dims, starts, r, reach, js, je):
 
 
 @nb.njit(parallel=True, cache=True)
-def _ball_counts(pts, starts, origin, h, dims, centers, r, reach):
+def _ball_counts(pts, starts, origin, h, dims, centers, r, reach, kin2, kout2):
+  """Points within r of each centre that also lie within sqrt(kin2) or beyond sqrt(kout2)."""
   m = centers.shape[0]
   out = np.zeros(m, np.int64)
   r2 = r * r
@@ -244,7 +246,8 @@ def _ball_counts(pts, starts, origin, h, dims, centers, r, reach):
           dx = pts[0, j] - cx
           dy = pts[1, j] - cy
           dz = pts[2, j] - cz
-          c += 1 if dx * dx + dy * dy + dz * dz <= r2 else 0
+          d2 = dx * dx + dy * dy + dz * dz
+          c += 1 if d2 <= r2 and (d2 <= kin2 or d2 > kout2) else 0
       out[i] = c
   return out
 
@@ -354,9 +357,10 @@ def _smallest_sorted(keys, c, k, cnt, out, span):
 
 @nb.njit(parallel=True, cache=True)
 def _patch_kernel(pts, slot_index, slot_rank, starts, origin, h, dims, centers, r, rz, k,
-                  n_rank, reach, reach_in, offsets, mask, indices, count, z_count, z_mean,
-                  z_cov):
-  """Patches of the K points of smallest rank within r, plus the inner-ball statistics."""
+                  n_rank, reach, reach_in, kin2, kout2, offsets, mask, indices, count, z_count,
+                  z_mean, z_cov):
+  """Patches of the K points of smallest rank within r (of those within sqrt(kin2) or beyond
+  sqrt(kout2): all of them when kin2 >= r * r), plus the inner-ball statistics."""
   m = centers.shape[0]
   r2 = r * r
   ncol = (2 * reach + 1) ** 2
@@ -374,13 +378,17 @@ def _patch_kernel(pts, slot_index, slot_rank, starts, origin, h, dims, centers, 
       z_count[i] = _stats_one(pts, starts, cx, cy, cz, rz * rz, nr, js, je, z_mean[i], z_cov[i])
       nr = _columns(cx, cy, cz, origin, h, dims, starts, r, reach, js, je)
       c = 0
+      ck = 0
       for q in range(nr):
         for j in range(starts[js[q]], starts[je[q]]):
           dx = pts[0, j] - cx
           dy = pts[1, j] - cy
           dz = pts[2, j] - cz
-          c += 1 if dx * dx + dy * dy + dz * dz <= r2 else 0
+          d2 = dx * dx + dy * dy + dz * dz
+          c += 1 if d2 <= r2 else 0
+          ck += 1 if d2 <= r2 and (d2 <= kin2 or d2 > kout2) else 0
       count[i] = c
+      c = ck  # the candidates of the patch
       # The K smallest of c random ranks lie below about n K / c: collect only the in-ball
       # points under a threshold with a wide margin (each cell's run is sorted by rank, so the
       # scan of a cell stops at the threshold); without enough of them, collect every point.
@@ -403,7 +411,8 @@ def _patch_kernel(pts, slot_index, slot_rank, starts, origin, h, dims, centers, 
               dy = pts[1, j] - cy
               dz = pts[2, j] - cz
               buf[got] = (slot_rank[j] << 32) | j  # sort key: the rank, then its slot
-              got += 1 if dx * dx + dy * dy + dz * dz <= r2 else 0
+              d2 = dx * dx + dy * dy + dz * dz
+              got += 1 if d2 <= r2 and (d2 <= kin2 or d2 > kout2) else 0
         if got >= min(c, k):
           break
         limit = np.int64(1) << 62
@@ -426,11 +435,25 @@ def _centers(centers: np.ndarray) -> np.ndarray:
   return np.ascontiguousarray(centers, np.float64).reshape(-1, 3)
 
 
-def ball_counts(grid: Grid, centers: np.ndarray, radius: float) -> np.ndarray:
-  """Number of grid points within `radius` of each centre (cKDTree's rule), (m,) int64."""
+def _keep(radius: float, shells: tuple[float, float] | None) -> tuple[float, float]:
+  """(kin2, kout2) squared radii of the kept shells (everything when `shells` is None), widened
+  by `_SHELL_SLACK` so that a float32 test of the same thresholds downstream finds every point
+  it would find in a full patch."""
   r = float(radius)
+  if shells is None:
+    return r * r, r * r
+  a, b = float(shells[0]) * r * (1 + _SHELL_SLACK), float(shells[1]) * r * (1 - _SHELL_SLACK)
+  return a * a, b * b
+
+
+def ball_counts(grid: Grid, centers: np.ndarray, radius: float,
+                shells: tuple[float, float] | None = None) -> np.ndarray:
+  """Number of grid points within `radius` of each centre (cKDTree's rule), (m,) int64; with
+  `shells=(a, b)`, only those within a * radius or beyond b * radius count."""
+  r = float(radius)
+  kin2, kout2 = _keep(r, shells)
   return _ball_counts(grid.xyz, grid.starts, grid.origin, grid.h, grid.dims, _centers(centers),
-                      r, _reach(grid, r))
+                      r, _reach(grid, r), kin2, kout2)
 
 
 def ball_stats(grid: Grid, centers: np.ndarray, radius: float
@@ -447,8 +470,8 @@ def ball_stats(grid: Grid, centers: np.ndarray, radius: float
                      r, _reach(grid, r))
 
 
-def patches(grid: Grid, centers: np.ndarray, radius: float, k: int, inner_radius: float
-            ) -> dict[str, np.ndarray]:
+def patches(grid: Grid, centers: np.ndarray, radius: float, k: int, inner_radius: float,
+            shells: tuple[float, float] | None = None) -> dict[str, np.ndarray]:
   """The fields of `neighborhoods.Patches` for balls of `radius` around `centers`.
 
   Args:
@@ -457,10 +480,12 @@ def patches(grid: Grid, centers: np.ndarray, radius: float, k: int, inner_radius
     radius: ball radius r (cloud units).
     k: patch size K >= 1; balls of more points keep the K of smallest rank, sorted by rank.
     inner_radius: radius of the normal-support statistics.
+    shells: (a, b): the patch holds only the in-ball points within a * radius or beyond
+      b * radius (a method that reads nothing in between); None: every in-ball point.
 
   Returns:
     dict with offsets (m, K, 3) float32, mask (m, K) bool, indices (m, K) int32 (-1 padding),
-    count (m,) int64, z_count (m,) int64, z_mean (m, 3) and z_cov (m, 3, 3) float64.
+    count (m,) int64 (every point within radius, whatever `shells`), z_count (m,) int64, z_mean (m, 3) and z_cov (m, 3, 3) float64.
   """
   n = grid.xyz.shape[1]
   if n >= 2**31:
@@ -479,7 +504,7 @@ def patches(grid: Grid, centers: np.ndarray, radius: float, k: int, inner_radius
   r, rz = float(radius), float(inner_radius)
   _patch_kernel(grid.xyz, grid.slot_index, grid.slot_rank, grid.starts, grid.origin, grid.h,
                 grid.dims, c, r, rz, k, n, _reach(grid, r),
-                _reach(grid, rz), out["offsets"], out["mask"], out["indices"], out["count"],
+                _reach(grid, rz), *_keep(r, shells), out["offsets"], out["mask"], out["indices"], out["count"],
                 out["z_count"], out["z_mean"], out["z_cov"])
   return out
 

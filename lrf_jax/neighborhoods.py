@@ -194,6 +194,7 @@ def build_patches(
     index: SearchIndex | None = None,
     validate: bool = True,
     max_k: int | None = None,
+    shells: tuple[float, float] | None = None,
 ) -> Patches:
   """Radius search around keypoints into fixed-size padded patches.
 
@@ -212,6 +213,9 @@ def build_patches(
     validate: check the inputs (disable only for already validated arrays).
     max_k: with `k=None`, an upper bound on K: larger balls keep their `max_k` points of smallest
       priority (the same seeded subsample as an integer k). None = no bound.
+    shells: (a, b) fractions of r: the patch holds only the neighbours within a * r or beyond
+      b * r, still in priority order (for methods that read nothing in between, e.g. FLARE: its
+      r/3 plane support and its 0.85 r margin). `count` still counts every point within r.
 
   Returns:
     `Patches` with N = m; within a patch, neighbours are stored in priority order.
@@ -234,11 +238,11 @@ def build_patches(
   centers = points[keypoints]
   grid = index.grid(radius)
   if k is None:
-    counts = engine.ball_counts(grid, centers, radius)
+    counts = engine.ball_counts(grid, centers, radius, shells)
     k = _round_up(int(counts.max()) if m else 1)
     if max_k is not None:
       k = min(k, int(max_k))
-  out = engine.patches(grid, centers, radius, int(k), z_ratio * radius)
+  out = engine.patches(grid, centers, radius, int(k), z_ratio * radius, shells)
   return Patches(
       offsets=out["offsets"],
       mask=out["mask"],

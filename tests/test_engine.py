@@ -179,3 +179,37 @@ def test_ball_lists_and_stats_match_ckdtree():
     off = pts[ref] - pts[i]
     np.testing.assert_allclose(mean[i], off.mean(0), atol=1e-12)
     np.testing.assert_allclose(cov[i], np.cov(off.T, bias=True), atol=1e-12)
+
+
+def test_shell_patches_hold_exactly_the_inner_and_outer_neighbours():
+  rng = np.random.default_rng(7)
+  pts = rng.normal(size=(6000, 3)) * [1, 1, 0.1]
+  kp = rng.choice(len(pts), 300, replace=False)
+  r = 0.4
+  full = build_patches(pts, kp, r, None)
+  ring = build_patches(pts, kp, r, None, shells=(1 / 3, 0.85))
+  np.testing.assert_array_equal(ring.count, full.count)
+  np.testing.assert_array_equal(ring.z_cov, full.z_cov)
+  for i in range(len(kp)):
+    d = np.linalg.norm(full.offsets[i][full.mask[i]], axis=1)
+    want = full.indices[i][full.mask[i]][(d <= r / 3 * (1 + 1e-5)) | (d > 0.85 * r * (1 - 1e-5))]
+    np.testing.assert_array_equal(ring.indices[i][ring.mask[i]], want)  # same priority order
+  assert ring.k < full.k
+
+
+def test_flare_frames_from_shell_patches_equal_full_patches():
+  from lrf_jax.api import frames_from_patches
+  from lrf_jax.frames import METHODS
+  from lrf_jax.normals import prepare_normals
+  rng = np.random.default_rng(8)
+  u, v = rng.uniform(-1, 1, size=(2, 8000))
+  pts = np.c_[u, v, 0.2 * np.sin(2 * u) * np.cos(3 * v)]
+  kp = rng.choice(len(pts), 200, replace=False)
+  spec = METHODS["flare"]
+  out = []
+  for shells in (None, spec.shells):
+    p = build_patches(pts, kp, 0.3, None, z_ratio=spec.z_ratio, shells=shells)
+    extra = prepare_normals(pts, kp, p, radius=0.3)
+    out.append([np.asarray(a) for a in frames_from_patches(p, "flare", extra=extra)])
+  np.testing.assert_array_equal(out[0][1], out[1][1])
+  np.testing.assert_array_equal(out[0][0], out[1][0])

@@ -38,6 +38,10 @@ class MethodSpec:
     weights: name of the shipped parameter file used when no params are given
       (`lrf_jax/weights/<weights>.msgpack`).
     default_options: options applied unless the caller gives them (lrf_net_plus: lut=257).
+    shells: (a, b) fractions of r when the method reads only the neighbours within a * r or
+      beyond b * r (FLARE: its r/3 plane support and its 0.85 r margin): with every neighbour
+      (k=None), `compute_frames` then gathers only those (`build_patches(shells=)`), which gives
+      the same frames from smaller patches. None: the method reads the whole ball.
   """
 
   name: str
@@ -51,6 +55,7 @@ class MethodSpec:
   description: str = ""
   weights: str = "lrf_net"
   default_options: tuple[tuple[str, Any], ...] = ()
+  shells: tuple[float, float] | None = None
 
 
 def _lrf_net(patches, extra, *, params, x_mode: str = "sum", lut: int = 0):
@@ -183,6 +188,7 @@ register(MethodSpec(
                 "inclined margin normal (PCL)"))
 register(MethodSpec(
     "flare", _flare, default_k=None, z_ratio=_flare_mod.Z_RATIO, prepare=prepare_normals,
+    shells=(_flare_mod.Z_RATIO, _flare_mod.MARGIN),
     description="FLARE / SD (Petrelli & Di Stefano 2012): plane-fit z over r/3, x to the "
                 "highest margin point (PCL)"))
 register(MethodSpec(

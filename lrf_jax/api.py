@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import functools
+import inspect
 from typing import Any
 
 import jax
@@ -39,6 +40,7 @@ def frames_from_patches(patches: Patches, method: str = "lrf_net", *, params: An
     (frames (N, 3, 3), valid (N,)).
   """
   spec = _spec(method)
+  _check_options(method, options)
   options = dict(spec.default_options) | options
   if spec.needs_params and params is None:
     params = default_params(spec.weights)
@@ -85,6 +87,46 @@ def _spec(method: str) -> MethodSpec:
   if method not in METHODS:
     raise ValueError(f"method: unknown LRF method {method!r}; expected one of {sorted(METHODS)}")
   return METHODS[method]
+
+
+def method_options(method: str) -> list[str]:
+  """The option names `method` accepts (keyword arguments of its frame function)."""
+  spec = _spec(method)
+  params = inspect.signature(spec.fn).parameters.values()
+  return sorted(p.name for p in params if p.kind is p.KEYWORD_ONLY and p.name != "params")
+
+
+def _check_options(method: str, options: dict) -> None:
+  valid = method_options(method)
+  unknown = sorted(set(options) - set(valid))
+  if unknown:
+    raise ValueError(f"options: unknown option(s) {unknown} for method {method!r}; its options "
+                     f"are {valid or 'none'}")
+
+
+def validate_viewpoint(viewpoint: Any, name: str = "viewpoint") -> np.ndarray | None:
+  """None, or the sensor position as a finite (3,) float64 array.
+
+  Raises:
+    ValueError: naming `name`, when it is not a finite (3,) position.
+  """
+  if viewpoint is None:
+    return None
+  try:
+    vp = np.asarray(viewpoint, np.float64)
+  except (TypeError, ValueError):
+    raise ValueError(f"{name}: expected a finite (3,) sensor position, got {viewpoint!r}") from None
+  if vp.shape != (3,) or not np.all(np.isfinite(vp)):
+    raise ValueError(f"{name}: expected a finite (3,) sensor position, got {viewpoint!r}")
+  return vp
+
+
+def _validate_k(k: Any) -> None:
+  if k is None or (isinstance(k, str) and k == "default"):
+    return
+  if isinstance(k, (bool, np.bool_)) or not isinstance(k, (int, np.integer)) or k < 1:
+    raise ValueError(f"k: expected a positive integer patch size, None (every neighbour) or "
+                     f"'default', got {k!r}")
 
 
 def compute_frames(
@@ -144,7 +186,10 @@ def compute_frames(
 
   Raises:
     ValueError: a cloud that is not a non-empty (n, 3) array of finite floats, an out-of-range or
-      non-integer keypoint, a non-positive radius, an unknown method, or a missing mesh.
+      non-integer keypoint, a non-positive radius, an unknown method, a missing mesh, a `k` that
+      is not a positive integer, None or "default", a non-positive `chunk_size`, a viewpoint
+      that is not a finite (3,) position, or an option the method does not take (the message
+      lists its options).
 
   Example:
     >>> frames, valid = compute_frames(points, np.arange(100), radius=0.02)
@@ -156,8 +201,12 @@ def compute_frames(
   if spec.needs_mesh and faces is None:
     raise ValueError(f"method {method!r} needs a triangle mesh: pass faces=(f, 3) indices "
                      "(a cloud without faces is not supported by this method)")
-  if int(chunk_size) < 1:
+  if (isinstance(chunk_size, (bool, np.bool_)) or not isinstance(chunk_size, (int, np.integer))
+      or chunk_size < 1):
     raise ValueError(f"chunk_size: expected a positive integer, got {chunk_size!r}")
+  _validate_k(k)
+  _check_options(method, options)
+  viewpoint = validate_viewpoint(viewpoint)
   if k == "default":
     k = spec.default_k
   if spec.needs_params and params is None:

@@ -18,7 +18,7 @@ import numpy as np
 
 
 def build_parser() -> argparse.ArgumentParser:
-  ap = argparse.ArgumentParser(prog="python -m lrf_jax.register_cli",
+  ap = argparse.ArgumentParser(prog="lrf-register",
                                description="Rigid registration of two scans with learned LRFs "
                                            "(LRF-Net frames, TOLDI matching, one-point RANSAC, "
                                            "ICP).")
@@ -50,8 +50,25 @@ def build_parser() -> argparse.ArgumentParser:
   return ap
 
 
+def _check_paths(args: argparse.Namespace) -> str | None:
+  """What is wrong with --out or --checkpoint, checked before any work is done (None: fine)."""
+  from pathlib import Path
+  if args.out:
+    parent = Path(args.out).expanduser().resolve().parent
+    if not parent.is_dir():
+      return f"--out: the folder {parent} does not exist (create it, or pick another path)"
+  if args.checkpoint and not Path(args.checkpoint).expanduser().is_dir():
+    return (f"--checkpoint: {args.checkpoint} is not a folder; expected a train.py workdir "
+            "(the one passed to train.py --workdir)")
+  return None
+
+
 def main(argv: list[str] | None = None) -> int:
   args = build_parser().parse_args(argv)
+  problem = _check_paths(args)
+  if problem:
+    print(f"error: {problem}", file=sys.stderr)
+    return 2
   from lrf_jax import compilation_cache
   compilation_cache.enable()  # a second run loads the compiled functions instead of recompiling
   from lrf_jax.registration import register

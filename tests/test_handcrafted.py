@@ -427,3 +427,29 @@ def test_bunny_scan_normals_need_the_viewpoint(data_root):
 
   assert agreement(None, None) < 0  # the failure this fixes: most normals disagree
   assert agreement(pair.model_viewpoint, pair.scene_viewpoint) > 0.95
+
+
+# ---- bad arguments at the compute_frames boundary ------------------------------------------
+
+
+@pytest.mark.parametrize("viewpoint", [(np.nan, 0, 0), (0, 0), (0, 0, 0, 1), "abc",
+                                       (np.inf, 1, 2)])
+def test_bad_viewpoint_is_rejected_by_name(viewpoint):
+  pts = np.random.default_rng(0).normal(size=(300, 3))
+  with pytest.raises(ValueError, match="viewpoint: expected a finite \\(3,\\) sensor position"):
+    lrf_jax.compute_frames(pts, np.arange(5), 0.8, "lrf_net_plus", viewpoint=viewpoint)
+
+
+@pytest.mark.parametrize("k", [0, -5, 2.5, True, "all"])
+def test_bad_k_is_rejected_by_name(k):
+  pts = np.random.default_rng(0).normal(size=(300, 3))
+  with pytest.raises(ValueError, match="k: expected a positive integer"):
+    lrf_jax.compute_frames(pts, np.arange(5), 0.8, "lrf_net", k=k)
+
+
+def test_unknown_option_lists_the_valid_ones():
+  pts = np.random.default_rng(0).normal(size=(300, 3))
+  with pytest.raises(ValueError, match=r"unknown option\(s\) \['x_mod'\].*'x_mode'"):
+    lrf_jax.compute_frames(pts, np.arange(5), 0.8, "lrf_net_plus", x_mod="softmax")
+  with pytest.raises(ValueError, match="its options are none"):
+    lrf_jax.compute_frames(pts, np.arange(5), 0.8, "shot", signed=True)

@@ -148,6 +148,27 @@ def test_register_cli_on_demo_files(tmp_path):
   assert main([str(tmp_path / "missing.ply"), str(dst)]) == 2
 
 
+def test_register_cli_rejects_bad_paths_before_any_work(tmp_path, capsys):
+  from lrf_jax.register_cli import build_parser, main
+  a = tmp_path / "a.ply"
+  a.write_text("not read: the path check comes first")
+  assert main([str(a), str(a), "--out", str(tmp_path / "missing" / "T.txt")]) == 2
+  assert "--out: the folder" in capsys.readouterr().err
+  assert main([str(a), str(a), "--checkpoint", str(tmp_path / "nonexistent")]) == 2
+  assert "--checkpoint:" in capsys.readouterr().err
+  assert build_parser().format_usage().startswith("usage: lrf-register")
+
+
+def test_registration_reports_every_stage(tmp_path):
+  pair = datasets.make_demo_pair(0, seed=0, noise_mr=0.1, partial=True)
+  reg = register(pair.model_points, pair.scene_points, n_keypoints=800, n_correspondences=200,
+                 mr=pair.mr)
+  assert list(reg.timings) == ["prepare", "frames", "descriptors", "matching", "hypotheses",
+                               "verification", "icp"]
+  assert all(t >= 0 for t in reg.timings.values())
+  assert sum(reg.timings.values()) <= reg.seconds + 1e-6
+
+
 def test_bad_inputs_raise_clear_errors():
   src, dst, f_src, f_dst, _, _ = _synthetic_correspondences(5, m=10)
   with pytest.raises(ValueError, match=r"same shape \(M, 3\)"):

@@ -56,7 +56,9 @@ def main(argv=None) -> None:
   if not ok:
     ok = ["demo"]
     notes.append("no real data found: ran on the procedural demo set (synthetic, labelled)")
-  default_methods = [m for m in lrf_jax.METHODS if m != "lrf_net_variant"]  # needs its params
+  # lrf_net_plus (the most repeatable) first; lrf_net_variant needs its own params.
+  default_methods = ["lrf_net_plus"] + [m for m in lrf_jax.METHODS
+                                        if m not in ("lrf_net_variant", "lrf_net_plus")]
   runs = [evaluation.MethodRun(m, m, options=evaluation.paper_options(m))
           for m in (args.methods or default_methods)]
   if args.checkpoint:

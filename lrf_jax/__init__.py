@@ -7,7 +7,9 @@ Conventions: frames are (..., 3, 3) with rows x, y, z (they map world vectors in
 right-handed, det +1; invalid frames are the identity with `valid == False`.
 """
 
-from lrf_jax.api import compute_frames, frames_from_patches
+from lrf_jax import engine
+from lrf_jax.api import compute_frames, frames_from_patches, mesh_resolution
+from lrf_jax.engine import set_num_threads
 from lrf_jax.frames import METHODS, MethodSpec
 from lrf_jax.frames import register as register_method
 from lrf_jax.frames.lrf_net import lrf_net_frames
@@ -17,7 +19,7 @@ from lrf_jax.model import default_params, init_params, load_params, save_params
 from lrf_jax.neighborhoods import Patches, build_patches
 from lrf_jax.registration import register
 
-__version__ = "0.1.0"
+__version__ = "0.2.0"
 
 __all__ = [
     "METHODS",
@@ -28,14 +30,17 @@ __all__ = [
     "chamfer",
     "compute_frames",
     "default_params",
+    "engine",
     "frames_from_patches",
     "init_params",
     "load_params",
     "lrf_net_frames",
     "meancos",
+    "mesh_resolution",
     "register",
     "register_method",
     "repeatability_summary",
     "save_params",
+    "set_num_threads",
     "siamese_loss",
 ]

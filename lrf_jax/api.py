@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import functools
 import inspect
+import warnings
 from typing import Any
 
 import jax
@@ -12,8 +13,15 @@ import numpy as np
 from lrf_jax.frames import METHODS, MethodSpec
 from lrf_jax.model import default_params
 from lrf_jax.normals import NORMAL_RADIUS_RATIO, estimate_normals
-from lrf_jax.neighborhoods import (Patches, SearchIndex, build_patches, validate_cloud,
-                                   validate_keypoints, validate_radius)
+from lrf_jax import engine
+from lrf_jax.datasets.resolution import mesh_resolution as _mesh_resolution
+from lrf_jax.inputs import as_cloud
+from lrf_jax.neighborhoods import (Patches, SearchIndex, build_patches, validate_keypoints,
+                                   validate_radius)
+
+# Ball sizes outside these bounds (median over a sample of keypoints) draw a warning.
+MIN_MEDIAN_BALL = 10
+MAX_BALL_FRACTION = 0.5
 
 
 @functools.lru_cache(maxsize=64)
@@ -25,13 +33,14 @@ def _jitted(name: str, static_items: tuple) -> Any:
   return jax.jit(lambda patches, extra, params: spec.fn(patches, extra, **static))
 
 
-def frames_from_patches(patches: Patches, method: str = "lrf_net", *, params: Any = None,
+def frames_from_patches(patches: Patches, method: str = "lrf_net_plus", *, params: Any = None,
                         extra: Any = None, **options: Any) -> tuple[jax.Array, jax.Array]:
   """Run a registered method's jitted frame function on prepared patches.
 
   Args:
     patches: `Patches` from `build_patches`.
-    method: a key of `lrf_jax.METHODS`.
+    method: a key of `lrf_jax.METHODS` (default "lrf_net_plus", the most repeatable shipped
+      method; "lrf_net" is the paper's model).
     params: learned parameters for learned methods (None: the shipped default).
     extra: what the method's `prepare` hook returned, if it has one.
     **options: static method options (e.g. `x_mode="max"` for lrf_net, `signed=False` for toldi).
@@ -89,6 +98,21 @@ def _spec(method: str) -> MethodSpec:
   return METHODS[method]
 
 
+def mesh_resolution(points: Any, faces: Any = None) -> float:
+  """The length unit of support radii and noise: mean edge length of a mesh (with `faces`), mean
+  nearest-neighbour distance of a cloud (without), as the datasets measure it.
+
+  Args:
+    points: any cloud input `compute_frames` takes (an (n, 3) array, a `Cloud`, a path, ...).
+    faces: optional (f, 3) triangles (default: those the input carries).
+
+  Returns:
+    mr in the cloud's units. `compute_frames(..., radius_mr=15)` is the paper's support radius.
+  """
+  pts, f, _ = as_cloud(points, "points", faces=faces)
+  return float(_mesh_resolution(pts, f)[0])
+
+
 def method_options(method: str) -> list[str]:
   """The option names `method` accepts (keyword arguments of its frame function)."""
   spec = _spec(method)
@@ -121,6 +145,35 @@ def validate_viewpoint(viewpoint: Any, name: str = "viewpoint") -> np.ndarray | 
   return vp
 
 
+def _resolve_radius(points: np.ndarray, faces: Any, radius: Any, radius_mr: Any) -> float:
+  if (radius is None) == (radius_mr is None):
+    raise ValueError("radius, radius_mr: expected exactly one of them (radius in cloud units, "
+                     f"or radius_mr in mesh resolutions), got radius={radius!r}, "
+                     f"radius_mr={radius_mr!r}")
+  if radius is not None:
+    return validate_radius(radius)
+  mr, _ = _mesh_resolution(points, faces)
+  return validate_radius(validate_radius(radius_mr, "radius_mr") * mr)
+
+
+def _warn_on_ball_size(index: SearchIndex, points: np.ndarray, keypoints: np.ndarray,
+                       radius: float) -> None:
+  """Warn when the median ball (over up to 256 of the keypoints) holds fewer than
+  `MIN_MEDIAN_BALL` points or more than `MAX_BALL_FRACTION` of the cloud."""
+  sample = keypoints[:: max(1, len(keypoints) // 256)]
+  med = float(np.median(engine.ball_counts(index.grid(radius), points[sample], radius)))
+  n = len(points)
+  if med < MIN_MEDIAN_BALL:
+    warnings.warn(f"radius {radius:.6g}: the median ball holds {med:.0f} points (fewer than "
+                  f"{MIN_MEDIAN_BALL}); most frames will be invalid. The paper uses 15 mesh "
+                  f"resolutions: radius_mr=15 (this cloud's mr is "
+                  f"{_mesh_resolution(points)[0]:.6g})", stacklevel=3)
+  elif med > MAX_BALL_FRACTION * n:
+    warnings.warn(f"radius {radius:.6g}: the median ball holds {med:.0f} of the cloud's {n} "
+                  f"points (more than {MAX_BALL_FRACTION:.0%}); the frames are not local. The "
+                  "paper uses 15 mesh resolutions: radius_mr=15", stacklevel=3)
+
+
 def _validate_k(k: Any) -> None:
   if k is None or (isinstance(k, str) and k == "default"):
     return
@@ -130,11 +183,12 @@ def _validate_k(k: Any) -> None:
 
 
 def compute_frames(
-    points: np.ndarray,
+    points: Any,
     keypoints: np.ndarray,
-    radius: float,
-    method: str = "lrf_net",
+    radius: float | None = None,
+    method: str = "lrf_net_plus",
     *,
+    radius_mr: float | None = None,
     params: Any = None,
     k: int | None | str = "default",
     seed: int = 0,
@@ -155,10 +209,18 @@ def compute_frames(
   serves every chunk; everything after the search is jitted.
 
   Args:
-    points: (n, 3) cloud, finite floats (any units).
+    points: the cloud: an (n, 3) array of finite floats (any units), an `lrf_jax.io.Cloud`, a
+      path any `lrf_jax.io` reader opens, or an object with `.points` (or `.vertices` and
+      `.triangles`), e.g. Open3D's; its faces and normals are used unless `faces=` /
+      `normals=` are given (`lrf_jax.inputs.as_cloud`).
     keypoints: (m,) integer indices into `points`.
-    radius: support radius r in the cloud's units (the paper: 15 mesh resolutions).
-    method: a key of `lrf_jax.METHODS` (default "lrf_net").
+    radius: support radius r in the cloud's units (the paper: 15 mesh resolutions); give this or
+      `radius_mr`.
+    method: a key of `lrf_jax.METHODS`; default "lrf_net_plus", the most repeatable shipped
+      method ("lrf_net" is the paper's LRF-Net).
+    radius_mr: the support radius in mesh resolutions instead (`lrf_jax.mesh_resolution` of this
+      call's points and faces: mean edge length of a mesh, mean nearest-neighbour distance of a
+      cloud); the paper uses 15.
     params: learned parameters for learned methods; None = the shipped default weights
       (`lrf_jax.default_params()`).
     k: patch size K; "default" = the method's own (`METHODS[method].default_k`); None = every
@@ -195,9 +257,9 @@ def compute_frames(
     >>> frames, valid = compute_frames(points, np.arange(100), radius=0.02)
   """
   spec = _spec(method)
-  points = validate_cloud(points)
+  points, faces, normals = as_cloud(points, "points", faces=faces, normals=normals)
   keypoints = validate_keypoints(keypoints, points.shape[0])
-  radius = validate_radius(radius)
+  radius = _resolve_radius(points, faces, radius, radius_mr)
   if spec.needs_mesh and faces is None:
     raise ValueError(f"method {method!r} needs a triangle mesh: pass faces=(f, 3) indices "
                      "(a cloud without faces is not supported by this method)")
@@ -231,6 +293,7 @@ def compute_frames(
     index = dindex.host
   else:
     index = SearchIndex(points, seed)
+  _warn_on_ball_size(index, points, keypoints, radius)
   n_dev = jax.local_device_count()
   chunk = min(int(chunk_size), -(-m // n_dev) * n_dev)  # a multiple of the devices: shardable
   frames_out, valid_out = [], []

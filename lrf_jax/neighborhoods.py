@@ -151,7 +151,9 @@ class SearchIndex:
     self.points = np.ascontiguousarray(points, np.float64)
     self.seed = int(seed)
     n = len(self.points)
-    self.order = np.argsort(hash_priority(self.seed, np.arange(n)), kind="stable")
+    # The priorities are distinct (splitmix64 is a bijection of the distinct keys seed * golden
+    # + index), so the fast unstable sort gives the one possible order.
+    self.order = np.argsort(hash_priority(self.seed, np.arange(n)))
     self.rank = np.empty(n, np.int64)
     self.rank[self.order] = np.arange(n)
     self._grids: dict[float, engine.Grid] = {}

@@ -39,9 +39,9 @@ def build_parser() -> argparse.ArgumentParser:
   ap.add_argument("--checkpoint", default=None,
                   help="a train.py workdir whose best LRF-Net parameters to use "
                        "(default: the shipped weights)")
-  ap.add_argument("--method", default="lrf_net",
-                  help="LRF method, a key of lrf_jax.METHODS (default lrf_net; lrf_net_plus is "
-                       "the more repeatable one)")
+  ap.add_argument("--method", default="lrf_net_plus",
+                  help="LRF method, a key of lrf_jax.METHODS (default lrf_net_plus, the most "
+                       "repeatable; lrf_net is the paper's LRF-Net)")
   ap.add_argument("--source-viewpoint", type=float, nargs=3, default=None, metavar=("X", "Y", "Z"),
                   help="sensor position of a single-view SOURCE scan (orients its normals)")
   ap.add_argument("--target-viewpoint", type=float, nargs=3, default=None, metavar=("X", "Y", "Z"),

@@ -400,15 +400,9 @@ class Registration:
 
 
 def _as_cloud(x: Any, name: str) -> tuple[np.ndarray, np.ndarray | None]:
-  from lrf_jax.io import Cloud, read_cloud
-  from lrf_jax.neighborhoods import validate_cloud
-
-  if isinstance(x, (str, os.PathLike)):
-    cloud = read_cloud(x)
-    return cloud.points, cloud.faces
-  if isinstance(x, Cloud):
-    return validate_cloud(x.points, name), x.faces
-  return validate_cloud(x, name), None
+  from lrf_jax.inputs import as_cloud
+  cloud = as_cloud(x, name)
+  return cloud.points, cloud.faces
 
 
 def overlap_scores(rotations: np.ndarray, translations: np.ndarray, points: np.ndarray,
@@ -444,15 +438,15 @@ def overlap_scores(rotations: np.ndarray, translations: np.ndarray, points: np.n
 def register(source: Any, target: Any, *, mr: float | None = None, radius_mr: float = 15.0,
              n_keypoints: int = 3000, n_correspondences: int = 1000, iterations: int = 1000,
              inlier_mr: float = 5.0, verify: int | None = None, estimator: str = "lrf",
-             icp_iterations: int = 50, icp_mr: float = 3.0, method: str = "lrf_net",
+             icp_iterations: int = 50, icp_mr: float = 3.0, method: str = "lrf_net_plus",
              descriptor: str = "toldi", params: Any = None, seed: int = 0,
              source_viewpoint: Any = None, target_viewpoint: Any = None) -> Registration:
-  """Rigidly register `source` onto `target` with learned LRFs (LRF-Net frames, one-point RANSAC).
+  """Rigidly register `source` onto `target` with learned LRFs (one-point RANSAC on their frames).
 
   Pipeline (every length in mr: the source's mean edge length for a mesh, mean nearest-neighbour
   distance for a cloud, `datasets.mesh_resolution`):
 
-  1. `n_keypoints` seeded random points per cloud; LRFs (`method`, default LRF-Net) and
+  1. `n_keypoints` seeded random points per cloud; LRFs (`method`, default lrf_net_plus) and
      descriptors (`descriptor`, default TOLDI) at r = radius_mr mr;
   2. each source keypoint matched to its nearest target descriptor; the `n_correspondences` of
      smallest ratio d1/d2 are kept;
@@ -468,8 +462,9 @@ def register(source: Any, target: Any, *, mr: float | None = None, radius_mr: fl
   The same inputs and seed give the same transform.
 
   Args:
-    source: (n, 3) array, an `lrf_jax.io.Cloud`, or a path to any cloud/mesh `lrf_jax.io`
-      reads (PLY, PCD, XYZ/TXT(.gz), NPY).
+    source: (n, 3) array, an `lrf_jax.io.Cloud`, a path to any cloud/mesh `lrf_jax.io`
+      reads (PLY, PCD, XYZ/TXT(.gz), NPY), or an object with `.points` (e.g. Open3D's), as
+      `compute_frames` takes (`lrf_jax.inputs.as_cloud`).
     target: the same for the target.
     mr: mesh resolution in the clouds' units (None: measured on the source).
     radius_mr: support radius of the LRFs and descriptors, in mr (the paper: 15).
@@ -481,9 +476,10 @@ def register(source: Any, target: Any, *, mr: float | None = None, radius_mr: fl
     estimator: "lrf" (one correspondence per hypothesis) or "3point" (classic).
     icp_iterations: ICP iterations (0: no ICP, `transform` = the RANSAC estimate).
     icp_mr: ICP pairing and overlap distance, in mr.
-    method: LRF method (a key of `lrf_jax.METHODS`; mesh methods need mesh inputs).
+    method: LRF method (a key of `lrf_jax.METHODS`; default "lrf_net_plus", the most repeatable
+      shipped one; "lrf_net" is the paper's LRF-Net; mesh methods need mesh inputs).
     descriptor: a key of `lrf_jax.descriptors.DESCRIPTORS`.
-    params: learned LRF parameters (None: the shipped LRF-Net weights).
+    params: learned LRF parameters (None: the method's shipped weights).
     seed: seed of keypoints, neighbour subsamples and sampling.
     source_viewpoint, target_viewpoint: optional (3,) sensor positions of single-view scans, in
       each cloud's own coordinates: estimated normals (and `method="lrf_net_plus"`'s z) are

@@ -186,8 +186,12 @@ class BatchMaker:
           part = crop_patches(part, cfg.crop_p, cfg.crop_min, crop_rng)
         parts.append(part)
         rows.append(sel)
-      inv = np.argsort(np.concatenate(rows))
-      sides.append(Patches(*[np.concatenate(f)[inv] for f in zip(*parts)]))
+      # Scatter each cloud's rows into place (one copy, instead of concatenate + gather).
+      fields = [np.empty((len(kp),) + a.shape[1:], a.dtype) for a in parts[0]]
+      for part, sel in zip(parts, rows):
+        for out, a in zip(fields, part):
+          out[sel] = a
+      sides.append(Patches(*fields))
     self._epoch, self._patches = epoch, (sides[0], sides[1])
     return self._patches
 

@@ -80,7 +80,29 @@ def _toldi(patches, extra, *, signed: bool = True):
   return toldi_frames(patches, signed=signed)
 
 
-METHODS: dict[str, MethodSpec] = {}
+class MethodRegistry(dict):
+  """`METHODS`: a dict name -> `MethodSpec` that prints as a table, one method per line."""
+
+  def table(self) -> str:
+    """name, kind, needs, default K and weights of every method, aligned columns."""
+    rows = [("name", "kind", "needs", "default K", "weights")]
+    for name, spec in self.items():
+      needs = [w for w, on in (("mesh", spec.needs_mesh), ("params", spec.needs_params),
+                               ("normals", spec.prepare is not None and not spec.needs_mesh
+                                and not spec.needs_params)) if on]
+      rows.append((name, "learned" if spec.needs_params else "hand-crafted",
+                   ", ".join(needs) or "-", "all" if spec.default_k is None else
+                   str(spec.default_k), spec.weights if spec.needs_params else "-"))
+    width = [max(len(r[i]) for r in rows) for i in range(5)]
+    return "\n".join("  ".join(c.ljust(w) for c, w in zip(r, width)).rstrip() for r in rows)
+
+  def __repr__(self) -> str:
+    return self.table()
+
+  __str__ = __repr__
+
+
+METHODS: MethodRegistry = MethodRegistry()
 
 
 def register(spec: MethodSpec) -> MethodSpec:
@@ -122,7 +144,7 @@ register(MethodSpec(
     "toldi", _toldi, default_k=None,
     description="TOLDI (Yang et al. 2017): z over r/3, x weights (r-d)^2 sign(h) h^2 (original C++)"))
 
-__all__ = ["METHODS", "MethodSpec", "register", "lrf_net_frames", "toldi_frames", "uniform_frames"]
+__all__ = ["METHODS", "MethodRegistry", "MethodSpec", "register", "lrf_net_frames", "toldi_frames", "uniform_frames"]
 
 # ------------------------------------------------------------------------------------------------
 # Hand-crafted LRFs (PCL-equivalent where PCL has them). Imported here, after `register`, so that

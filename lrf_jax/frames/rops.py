@@ -43,7 +43,6 @@ from lrf_jax.normals import cache_last
 
 MAX_TRIANGLES = 8192
 _T_MULTIPLE = 64
-_MARK_BYTES = 1 << 25  # dense (keypoint, face) marks per block: 32 MB
 
 
 def _vertex_faces(faces: np.ndarray, n_points: int) -> tuple[np.ndarray, np.ndarray]:
@@ -93,33 +92,16 @@ def gather_triangles(points: np.ndarray, keypoints: np.ndarray, faces: np.ndarra
   ptr, vf = cache_last("vertex_faces", (f, pts.shape[0]), lambda: _vertex_faces(f, pts.shape[0]))
   if patches is not None and np.all(np.asarray(patches.count) <= np.asarray(patches.mask).sum(1)):
     idx = np.asarray(patches.indices)
-    rows, cols = np.nonzero(idx >= 0)
-    cols = idx[rows, cols].astype(np.int64)
+    have = idx >= 0
+    ball_ptr = np.zeros(m + 1, np.int64)
+    np.cumsum(have.sum(1), out=ball_ptr[1:])
+    ball = idx[have].astype(np.int64)  # row-major: the rows' neighbours in order
   else:
     grid = cache_last("grid", (pts, float(radius)), lambda: engine.Grid(pts, radius / 3))
-    ptr, cols = engine.ball_lists(grid, pts[kp], radius)
-    rows = np.repeat(np.arange(m), np.diff(ptr))
-  deg = ptr[cols + 1] - ptr[cols]
-  total = int(deg.sum())
-  first = np.repeat(ptr[cols], deg)
-  within = np.arange(total) - np.repeat(np.cumsum(deg) - deg, deg)
-  pair_row, pair_face = np.repeat(rows, deg), vf[first + within]
-  # Deduplicate (keypoint, face) pairs with a dense mark per block of keypoints (much faster than
-  # np.unique); np.nonzero returns them sorted by keypoint, then face index.
-  n_faces = max(f.shape[0], 1)
-  block = max(1, _MARK_BYTES // n_faces)
-  r_parts, t_parts = [], []
-  bounds = np.searchsorted(pair_row, np.arange(0, m + block, block))
-  for b, (lo, hi) in enumerate(zip(bounds[:-1], bounds[1:])):
-    if hi <= lo:
-      continue
-    marks = np.zeros((min(block, m - b * block), n_faces), bool)
-    marks[pair_row[lo:hi] - b * block, pair_face[lo:hi]] = True
-    rb, tb = np.nonzero(marks)
-    r_parts.append(rb + b * block)
-    t_parts.append(tb)
-  r_t = np.concatenate(r_parts) if r_parts else np.zeros(0, np.int64)
-  t_id = np.concatenate(t_parts) if t_parts else np.zeros(0, np.int64)
+    ball_ptr, ball = engine.ball_lists(grid, pts[kp], radius)
+  # Every face touching a ball vertex, once per keypoint, sorted by face index (compiled).
+  face_ptr, t_id = engine.incident_faces(ball_ptr, ball, ptr, vf, f.shape[0])
+  r_t = np.repeat(np.arange(m), np.diff(face_ptr))
   counts = np.bincount(r_t, minlength=m)
   starts = np.concatenate([[0], np.cumsum(counts)[:-1]])
   if m and counts.max() > cap:  # seeded subsample: keep the `cap` faces of smallest priority
@@ -130,19 +112,7 @@ def gather_triangles(points: np.ndarray, keypoints: np.ndarray, faces: np.ndarra
   rr, slot, tt = r_t[keep], rank[keep], t_id[keep]
   width = int(min(max(int(counts.max()) if m else 1, 1), cap))
   width = -(-width // _T_MULTIPLE) * _T_MULTIPLE
-  tri = np.zeros((m * width, 3, 3), np.float32)
-  mask = np.zeros((m * width,), bool)
-  ids = np.full((m * width,), -1, np.int64)
-  dest = rr * width + slot
-  centers = pts[kp]
-  step = 1 << 18  # float64 offsets in blocks: bounded temporaries
-  for lo in range(0, dest.size, step):
-    sl = slice(lo, lo + step)
-    tri[dest[sl]] = pts[f[tt[sl]]] - centers[rr[sl]][:, None, :]
-  mask[dest] = True
-  ids[dest] = tt
-  tri, mask, ids = tri.reshape(m, width, 3, 3), mask.reshape(m, width), ids.reshape(m, width)
-  return tri, mask, ids
+  return engine.fill_triangles(pts, f, pts[kp], rr, slot, tt, width)
 
 
 def prepare_triangles(points, keypoints, patches, *, faces=None, normals=None,

@@ -1,0 +1,91 @@
+"""compute_frames for users: the default method, every cloud input kind, radius_mr, warnings."""
+
+import inspect
+import warnings
+
+import numpy as np
+import pytest
+
+import lrf_jax
+from lrf_jax import datasets, io
+
+
+@pytest.fixture(scope="module")
+def demo():
+  pair = datasets.make_demo_pair(0, seed=0, noise_mr=0.0, partial=False)
+  return pair.model_points, pair.model_faces, pair.mr
+
+
+def test_default_method_is_lrf_net_plus():
+  for fn in (lrf_jax.compute_frames, lrf_jax.frames_from_patches, lrf_jax.register):
+    assert inspect.signature(fn).parameters["method"].default == "lrf_net_plus", fn
+  from lrf_jax.register_cli import build_parser
+  assert build_parser().get_default("method") == "lrf_net_plus"
+
+
+class _PointsOnly:
+  """A stand-in for Open3D's PointCloud: `.points` convertible to (n, 3)."""
+
+  def __init__(self, points):
+    self.points = [tuple(p) for p in points]
+
+
+class _MeshLike:
+  """A stand-in for Open3D's TriangleMesh: `.vertices` and `.triangles`."""
+
+  def __init__(self, points, faces):
+    self.vertices, self.triangles = points, faces
+
+
+def test_every_input_kind_gives_the_array_frames(demo, tmp_path):
+  pts, faces, mr = demo
+  kp = np.arange(0, len(pts), 97)
+  ref, v = lrf_jax.compute_frames(pts, kp, 15 * mr, "lrf_net")
+  path = tmp_path / "cloud.ply"
+  io.write_ply(path, pts, dtype="float64")
+  for x in (io.Cloud(points=pts), str(path), path, _PointsOnly(pts)):
+    f, w = lrf_jax.compute_frames(x, kp, 15 * mr, "lrf_net")
+    np.testing.assert_allclose(np.asarray(f), np.asarray(ref), atol=1e-6)
+    np.testing.assert_array_equal(w, v)
+  # A mesh object's faces are used (rops needs them) and an explicit faces= wins.
+  f_mesh, _ = lrf_jax.compute_frames(_MeshLike(pts, faces), kp, 15 * mr, "rops")
+  f_expl, _ = lrf_jax.compute_frames(pts, kp, 15 * mr, "rops", faces=faces)
+  np.testing.assert_allclose(np.asarray(f_mesh), np.asarray(f_expl), atol=1e-6)
+  with pytest.raises(ValueError, match="needs a triangle mesh"):
+    lrf_jax.compute_frames(_PointsOnly(pts), kp, 15 * mr, "rops")
+
+
+def test_radius_mr_measures_mr_with_the_calls_faces(demo):
+  pts, faces, mr = demo
+  assert lrf_jax.mesh_resolution(pts, faces) == pytest.approx(mr)
+  assert lrf_jax.mesh_resolution(pts) < lrf_jax.mesh_resolution(pts, faces)  # nn < edge
+  kp = np.arange(0, len(pts), 131)
+  a, _ = lrf_jax.compute_frames(pts, kp, method="toldi", radius_mr=15, faces=faces)
+  b, _ = lrf_jax.compute_frames(pts, kp, 15 * lrf_jax.mesh_resolution(pts, faces), "toldi",
+                                faces=faces)
+  np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+  with pytest.raises(ValueError, match="exactly one of them"):
+    lrf_jax.compute_frames(pts, kp, 0.1, "toldi", radius_mr=15)
+  with pytest.raises(ValueError, match="exactly one of them"):
+    lrf_jax.compute_frames(pts, kp, method="toldi")
+
+
+def test_radius_warnings_both_ways(demo):
+  pts, _, mr = demo
+  kp = np.arange(0, len(pts), 211)
+  with pytest.warns(UserWarning, match="fewer than 10"):
+    lrf_jax.compute_frames(pts, kp, 0.5 * mr, "toldi")
+  with pytest.warns(UserWarning, match="more than 50%"):
+    lrf_jax.compute_frames(pts, kp, 1e3 * mr, "toldi")
+  with warnings.catch_warnings():
+    warnings.simplefilter("error")
+    lrf_jax.compute_frames(pts, kp, 15 * mr, "toldi")
+
+
+def test_methods_print_as_a_table():
+  lines = str(lrf_jax.METHODS).splitlines()
+  assert lines[0].split() == ["name", "kind", "needs", "default", "K", "weights"]
+  assert len(lines) == len(lrf_jax.METHODS) + 1
+  row = next(line for line in lines if line.startswith("lrf_net_plus "))
+  assert row.split() == ["lrf_net_plus", "learned", "params", "512", "lrf_net_plus"]
+  assert repr(lrf_jax.METHODS) == str(lrf_jax.METHODS)

@@ -213,3 +213,24 @@ def test_flare_frames_from_shell_patches_equal_full_patches():
     out.append([np.asarray(a) for a in frames_from_patches(p, "flare", extra=extra)])
   np.testing.assert_array_equal(out[0][1], out[1][1])
   np.testing.assert_array_equal(out[0][0], out[1][0])
+
+
+def test_rops_triangles_from_a_subsampled_patch_equal_the_complete_ones():
+  """gather_triangles searches the ball again when the patch is a subsample (the evaluation's
+  neighbour cap): both paths give the same triangles."""
+  from lrf_jax.frames.rops import gather_triangles
+  rng = np.random.default_rng(9)
+  n = 40
+  u, v = np.meshgrid(np.linspace(0, 1, n), np.linspace(0, 1, n))
+  pts = np.c_[u.ravel(), v.ravel(), 0.05 * np.sin(6 * u.ravel())]
+  quads = np.array([[i * n + j, i * n + j + 1, (i + 1) * n + j, (i + 1) * n + j + 1]
+                    for i in range(n - 1) for j in range(n - 1)])
+  faces = np.r_[quads[:, [0, 1, 2]], quads[:, [1, 3, 2]]]
+  kp = rng.choice(len(pts), 50, replace=False)
+  full = build_patches(pts, kp, 0.12, None)
+  sub = build_patches(pts, kp, 0.12, 16)
+  assert np.all(full.count <= full.mask.sum(1)) and np.any(sub.count > sub.mask.sum(1))
+  a = gather_triangles(pts, kp, faces, 0.12, patches=full)
+  b = gather_triangles(pts, kp, faces, 0.12, patches=sub)
+  for x, y in zip(a, b):
+    np.testing.assert_array_equal(x, y)

@@ -10,12 +10,13 @@ lives in lrf_jax/train_lib.py.
 """
 
 import argparse
+import sys
 
 from lrf_jax import config as config_lib
 from lrf_jax import train_lib
 
 
-def main(argv=None) -> None:
+def main(argv=None) -> int:
   ap = argparse.ArgumentParser(description="Train LRF-Net (weakly supervised, Chamfer loss).")
   ap.add_argument("--config", default="default", help="preset name or path (.py / .json)")
   ap.add_argument("--workdir", default=None, help="output folder (default: runs/<config name>)")
@@ -32,9 +33,14 @@ def main(argv=None) -> None:
   config = config_lib.replace(config_lib.load_config(args.config),
                               **config_lib.parse_overrides(args.overrides))
   workdir = args.workdir or f"runs/{config.name}"
-  final = train_lib.train_and_evaluate(config, workdir, progress=not args.no_progress)
+  try:
+    final = train_lib.train_and_evaluate(config, workdir, progress=not args.no_progress)
+  except FloatingPointError as e:  # diverged: nothing non-finite was saved
+    print(f"error: {e}", file=sys.stderr)
+    return 1
   print({k: v for k, v in final.items() if k != "val_per_pair"})
+  return 0
 
 
 if __name__ == "__main__":
-  main()
+  sys.exit(main())

@@ -400,6 +400,12 @@ def train_and_evaluate(config: TrainConfig, workdir: str | Path, *,
         state=ocp.args.StandardRestore(_state_target(state))))["state"]
     state = state.replace(params=restored["params"], opt_state=restored["opt_state"],
                           step=restored["step"])
+    bad = nonfinite_leaves(state.params)
+    if bad:
+      raise FloatingPointError(
+          f"checkpoint {workdir / 'checkpoints' / str(start)}: non-finite parameters in {bad}; "
+          "delete that checkpoint folder to resume from an older one, or the workdir to start "
+          "afresh")
   start = int(state.step)
   state = jax.device_put(state, replicated)
   step_fn = jax.jit(make_train_step(config), donate_argnums=0,
@@ -409,6 +415,7 @@ def train_and_evaluate(config: TrainConfig, workdir: str | Path, *,
   total = config.total_steps if stop_after_steps is None else min(config.total_steps,
                                                                    stop_after_steps)
   log_path = workdir / "metrics.jsonl"
+  _trim_log(log_path, start)  # steps after the checkpoint are replayed: log them once
   last: dict[str, Any] = {"step": start}
   bar = _progress(total, start, progress)
   t_last, pairs_since = time.perf_counter(), 0
@@ -419,12 +426,11 @@ def train_and_evaluate(config: TrainConfig, workdir: str | Path, *,
     pairs_since += config.batch_size
     done = step + 1
     end_of_epoch = done % config.steps_per_epoch == 0
-    if done % config.log_every == 0 or end_of_epoch or done == total:
+    will_save = end_of_epoch or done % config.checkpoint_every == 0 or done == total
+    if done % config.log_every == 0 or will_save:
       m = {k: float(v) for k, v in jax.device_get(m).items()}
-      if not math.isfinite(m["loss"]):
-        raise FloatingPointError(
-            f"non-finite loss {m['loss']} at step {done} (epoch {epoch}); metrics {m}. "
-            "Lower the learning rate or check the data for degenerate patches.")
+      check_finite(m, state.params, done, epoch)  # before anything is logged or saved
+    if done % config.log_every == 0 or end_of_epoch or done == total:
       now = time.perf_counter()
       m.update(step=done, epoch=done / config.steps_per_epoch,
                pairs_per_s=pairs_since / max(now - t_last, 1e-9))
@@ -450,6 +456,42 @@ def train_and_evaluate(config: TrainConfig, workdir: str | Path, *,
     plot_curves(log_path, workdir / "curves.png")
   mngr.close()
   return last
+
+
+def nonfinite_leaves(tree: Any) -> list[str]:
+  """Paths of the leaves of `tree` that hold a NaN or an infinity."""
+  bad = []
+  for path, leaf in jax.tree_util.tree_flatten_with_path(tree)[0]:
+    if not bool(jnp.all(jnp.isfinite(jnp.asarray(leaf)))):
+      bad.append(jax.tree_util.keystr(path))
+  return bad
+
+
+def check_finite(metrics: dict, params: Any, step: int, epoch: int) -> None:
+  """Raise FloatingPointError naming the step and what went wrong: a non-finite loss or gradient
+  norm, a batch whose frames were all invalid (valid fraction 0: the loss is then 0 and means
+  nothing), or non-finite parameters."""
+  for key in ("loss", "grad_norm"):
+    if key in metrics and not math.isfinite(metrics[key]):
+      raise FloatingPointError(
+          f"step {step} (epoch {epoch}): non-finite {key} {metrics[key]}; metrics {metrics}. "
+          "Lower the learning rate or check the data for degenerate patches.")
+  if metrics.get("valid_fraction", 1.0) <= 0.0:
+    raise FloatingPointError(
+        f"step {step} (epoch {epoch}): valid fraction 0 (every frame of the batch is invalid); "
+        f"metrics {metrics}. The parameters have probably diverged: lower the learning rate.")
+  bad = nonfinite_leaves(params)
+  if bad:
+    raise FloatingPointError(f"step {step} (epoch {epoch}): non-finite parameters in {bad}")
+
+
+def _trim_log(path: Path, step: int) -> None:
+  """Drop the records of `metrics.jsonl` after `step` (a resumed run logs them again)."""
+  if not path.exists():
+    return
+  keep = [line for line in path.read_text().splitlines()
+          if line.strip() and json.loads(line).get("step", 0) <= step]
+  path.write_text("".join(line + "\n" for line in keep))
 
 
 def _save(mngr, step, state, config, val_metrics):

@@ -144,3 +144,33 @@ def test_crop_augmentation_cuts_by_a_plane():
   np.testing.assert_array_equal(again.mask, cut.mask)  # seeded
   with pytest.raises(ValueError, match="crop"):
     config_lib.replace(config_lib.TrainConfig(), crop_p=1.5)
+
+
+def test_diverging_run_stops_without_saving_nonfinite_params(tmp_path, capsys):
+  """learning_rate=1e30: the loss reads 0 once every frame is invalid, but the gradient norm,
+  the valid fraction and the parameters give it away; no params file is written."""
+  sys.path.insert(0, str(REPO))
+  import train
+  rc = train.main(["--config", "smoke", "--workdir", str(tmp_path), "--no-progress",
+                   "learning_rate=1e30", "epochs=1"])
+  err = capsys.readouterr().err
+  assert rc == 1
+  assert err.startswith("error: step ") and ("non-finite" in err or "valid fraction 0" in err)
+  assert not (tmp_path / "final_params.msgpack").exists()
+  assert not (tmp_path / "best_params.msgpack").exists()
+  if any((tmp_path / "checkpoints").glob("[0-9]*")):
+    params, _ = train_lib.restore_params(tmp_path, "latest")
+    assert not train_lib.nonfinite_leaves(params)
+
+
+def test_resumed_run_logs_each_step_once(tmp_path, smoke):
+  cfg = config_lib.replace(smoke, epochs=2)
+  import shutil
+  train_lib.train_and_evaluate(cfg, tmp_path, progress=False, stop_after_steps=12)
+  # A kill during step 12's checkpoint write (after its log line): the run resumes from step 8
+  # and replays steps 9-12.
+  shutil.rmtree(tmp_path / "checkpoints" / "12")
+  train_lib.train_and_evaluate(cfg, tmp_path, progress=False)
+  steps = [json.loads(line)["step"] for line in (tmp_path / "metrics.jsonl").open()]
+  assert steps == sorted(set(steps)), steps
+  assert steps[-1] == cfg.total_steps

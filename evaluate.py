@@ -11,6 +11,7 @@ is intentionally kept short; the logic lives in lrf_jax/evaluation/.
 
 import argparse
 import json
+import sys
 import time
 from pathlib import Path
 
@@ -24,7 +25,7 @@ from lrf_jax.evaluation.experiments import DATASETS, EXPERIMENTS
 REAL = ["BR@0.1", "BR@0.3", "BR@0.5", "UWA3M", "UWAOR", "bunny"]
 
 
-def main(argv=None) -> None:
+def main(argv=None) -> int:
   ap = argparse.ArgumentParser(description="LRF repeatability experiments (MeanCos).")
   ap.add_argument("--data", default=None, help="data root (default: $LRF_DATA, then data/)")
   ap.add_argument("--datasets", nargs="+", default=None, choices=sorted(DATASETS),
@@ -52,6 +53,12 @@ def main(argv=None) -> None:
   notes = []
   names = args.datasets or REAL
   ok, missing = evaluation.available(names, args.data, DATASETS)
+  if missing:  # the whole message (where we looked, how to get the data) before any work
+    _, full = evaluation.available(names, args.data, DATASETS, full=True)
+    print("\n\n".join(full), file=sys.stderr)
+    if args.datasets:
+      print("error: data not found for the --datasets asked for (above)", file=sys.stderr)
+      return 2
   notes += missing
   if not ok:
     ok = ["demo"]
@@ -132,7 +139,8 @@ def main(argv=None) -> None:
   print("\n".join(extra_md))
   print(f"wrote {out / 'results.json'}, {out / 'report.md'} and figures "
         f"({time.perf_counter() - t0:.0f} s)")
+  return 0
 
 
 if __name__ == "__main__":
-  main()
+  sys.exit(main())

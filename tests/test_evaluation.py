@@ -166,3 +166,20 @@ def test_plus_with_switches_off_is_the_ball_sign_construction(demo_pair):
   h, _ = lrf_jax.compute_frames(pts, kp, r, "lrf_net_plus", faces=demo_pair.scene_faces,
                                 viewpoint=demo_pair.scene_viewpoint)
   assert np.abs(np.asarray(h) - np.asarray(f)).max() > 1e-2  # the switches do something
+
+
+def test_evaluate_with_missing_data_says_where_it_looked_and_exits_2(tmp_path, monkeypatch,
+                                                                     capsys):
+  import sys
+  from pathlib import Path
+  sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+  import evaluate
+  monkeypatch.delenv("LRF_DATA", raising=False)
+  monkeypatch.chdir(tmp_path)
+  rc = evaluate.main(["--data", str(tmp_path / "nowhere"), "--datasets", "bunny",
+                      "--out", str(tmp_path / "out")])
+  err = capsys.readouterr().err
+  assert rc == 2
+  assert "Looked in:" in err and str(tmp_path / "nowhere") in err
+  assert "LRF_DATA" in err and "data/README.md" in err
+  assert not (tmp_path / "out").exists()  # nothing ran

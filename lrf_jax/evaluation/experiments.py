@@ -116,9 +116,14 @@ FOLDERS = {"BR": "bologna_retrieval", "UWA3M": "uwa_3d_modeling_views",
            "UWAOR": "uwa_object_recognition", "bunny": "stanford_bunny_scans"}
 
 
-def available(names: Iterable[str], root: str | None, table: dict) -> tuple[list[str], list[str]]:
-  """Split dataset names into those whose data folder is found and messages for the others."""
-  ok, missing = [], []
+def available(names: Iterable[str], root: str | None, table: dict, *,
+              full: bool = False) -> tuple[list[str], list[str]]:
+  """Split dataset names into those whose data folder is found and messages for the others.
+
+  With `full`, each message is the whole data-not-found text (where it looked, the LRF_DATA
+  variable, how to get the data), once per missing folder; else one line per dataset.
+  """
+  ok, missing, seen = [], [], set()
   for name in names:
     if name not in table:
       raise ValueError(f"--datasets: unknown dataset {name!r}; expected some of {sorted(table)}")
@@ -130,7 +135,11 @@ def available(names: Iterable[str], root: str | None, table: dict) -> tuple[list
       datasets.find_data_root(root, FOLDERS[base])
       ok.append(name)
     except datasets.DataNotFoundError as e:
-      missing.append(f"{name}: skipped, data not found ({str(e).splitlines()[0]})")
+      if not full:
+        missing.append(f"{name}: skipped, data not found ({str(e).splitlines()[0]})")
+      elif base not in seen:
+        seen.add(base)
+        missing.append(f"{name}: {e}")
   return ok, missing
 
 

@@ -16,6 +16,7 @@ import numpy as np
 import pytest
 
 import lrf_jax
+from lrf_jax import datasets
 from lrf_jax import normals as nm
 from lrf_jax.api import frames_from_patches
 from lrf_jax.frames import shot as shot_mod
@@ -453,3 +454,20 @@ def test_unknown_option_lists_the_valid_ones():
     lrf_jax.compute_frames(pts, np.arange(5), 0.8, "lrf_net_plus", x_mod="softmax")
   with pytest.raises(ValueError, match="its options are none"):
     lrf_jax.compute_frames(pts, np.arange(5), 0.8, "shot", signed=True)
+
+
+@pytest.mark.parametrize("method", ["toldi", "lrf_net", "shot", "flare"])
+def test_frames_are_scale_invariant(method):
+  """Frames of s P at radius s r equal those of P at r, s from 1e-6 to 1e8 (float64 input,
+  float32 compute): TOLDI's fourth powers used to underflow (s <= 1e-2) and overflow (s >= 1e6)."""
+  pair = datasets.make_demo_pair(1, seed=0, noise_mr=0.0, partial=False)
+  pts, r = pair.model_points, 15 * pair.mr
+  kp = np.random.default_rng(0).choice(len(pts), 150, replace=False)
+  ref, v_ref = (np.asarray(a) for a in lrf_jax.compute_frames(pts, kp, r, method))
+  assert v_ref.mean() > 0.9
+  for s in (1e-6, 1e-2, 1e8):
+    f, v = (np.asarray(a) for a in lrf_jax.compute_frames(pts * s, kp, r * s, method))
+    assert (v == v_ref).mean() >= 0.99, (s, v.mean(), v_ref.mean())
+    both = v & v_ref
+    mc = (np.sum(f[both, 0] * ref[both, 0], -1) + np.sum(f[both, 2] * ref[both, 2], -1)) / 2
+    assert mc.mean() >= 0.999, (s, mc.mean())

@@ -22,10 +22,16 @@ from lrf_jax.neighborhoods import Patches
 
 def toldi_weights(offsets: jax.Array, z: jax.Array, radius: jax.Array,
                   signed: bool = True) -> jax.Array:
-  """TOLDI's x weights for a batch: offsets (N, K, 3), z (N, 3), radius (N,) -> (N, K)."""
-  d = geometry.safe_norm(offsets)
-  h = jnp.einsum("nkc,nc->nk", offsets, z)
-  w = (radius[:, None] - d) ** 2 * h * h
+  """TOLDI's x weights for a batch: offsets (N, K, 3), z (N, 3), radius (N,) -> (N, K).
+
+  Computed on the offsets in units of r, (1 - d/r)^2 (h/r)^2: the original (r - d)^2 h^2 over
+  r^4, the same x-axis, but scale free: in float32 the unscaled fourth powers underflow for
+  clouds in small units (r ~ 1e-4) and overflow for large ones (r ~ 1e6).
+  """
+  r = radius[:, None]
+  d = geometry.safe_norm(offsets) / r
+  h = jnp.einsum("nkc,nc->nk", offsets, z) / r
+  w = (1.0 - d) ** 2 * h * h
   return w * jnp.sign(h) if signed else w
 
 

@@ -429,3 +429,30 @@ def test_3dmatch_log(tmp_path):
     q.write_text(content + "\n")
     with _raises(ValueError, q, *fragments):
       io.read_3dmatch_log(q)
+
+
+def test_pcd_point_count_must_match_what_is_stored(tmp_path):
+  pts = np.random.default_rng(0).normal(size=(1000, 3)).astype(np.float32)
+  for enc in (Encoding.BINARY, Encoding.ASCII):
+    p = tmp_path / f"lie_{enc.value}.pcd"
+    PointCloud.from_xyz_points(pts).save(p, encoding=enc)
+    raw = p.read_bytes()
+    for lie in (b"POINTS 10\n", b"POINTS 1000000000000\n"):
+      fake = raw.replace(b"POINTS 1000\n", lie).replace(b"WIDTH 1000\n",
+                                                          lie.replace(b"POINTS", b"WIDTH"))
+      p.write_bytes(fake)
+      with _raises(ValueError, p, "POINTS"):
+        io.read_pcd(p)
+
+
+def test_npy_rejects_huge_shapes_and_non_real_dtypes(tmp_path):
+  np.save(tmp_path / "huge.npy", np.zeros((4, 3)))
+  raw = (tmp_path / "huge.npy").read_bytes().replace(b"(4, 3)", b"(4000000000000, 3)")
+  (tmp_path / "huge.npy").write_bytes(raw)
+  with _raises(ValueError, tmp_path / "huge.npy"):
+    io.read_npy(tmp_path / "huge.npy")
+  for name, arr in (("c.npy", np.zeros((5, 3), complex)), ("b.npy", np.zeros((5, 3), bool)),
+                    ("s.npy", np.full((5, 3), "a"))):
+    np.save(tmp_path / name, arr)
+    with _raises(ValueError, tmp_path / name, "dtype"):
+      io.read_npy(tmp_path / name)

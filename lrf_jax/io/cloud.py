@@ -42,15 +42,19 @@ def read_npy(path: str | os.PathLike) -> Cloud:
 
   Raises:
     FileNotFoundError: missing file.
-    ValueError: unreadable file, wrong shape, empty, or non-finite values.
+    ValueError: unreadable file, a header shape larger than the file, a dtype that is not real
+      floating or integer (complex, bool, strings), wrong shape, empty, or non-finite values.
   """
   p = require_file(path)
-  try:
-    arr = np.load(p, allow_pickle=False)
+  try:  # memory-mapped first: the header's shape is checked against the file before loading
+    arr = np.load(p, allow_pickle=False, mmap_mode="r")
   except (ValueError, OSError, EOFError) as e:
     raise bad_input(p, "array", "a numeric .npy array", f"an unreadable file ({e})") from e
+  if arr.dtype.kind not in "fiu":
+    raise bad_input(p, "dtype", "real floating or integer values", f"dtype {arr.dtype}")
   if arr.ndim != 2 or arr.shape[1] not in (3, 6):
     raise bad_input(p, "array", "shape (n, 3) or (n, 6)", f"shape {arr.shape}")
+  arr = np.asarray(arr)
   points = check_points(arr[:, :3], p, "x/y/z columns")
   normals = check_points(arr[:, 3:], p, "normal columns") if arr.shape[1] == 6 else None
   return Cloud(points, None, normals, p)

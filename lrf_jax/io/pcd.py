@@ -28,11 +28,14 @@ def read_pcd(path: str | os.PathLike, *, drop_nonfinite: bool = False) -> Cloud:
 
   Raises:
     FileNotFoundError: missing file.
-    ValueError: a corrupt header or body, fewer points than the header's POINTS, no x/y/z
-      field, an empty cloud, or NaN/inf coordinates (unless dropped).
+    ValueError: a corrupt header or body, a stored point count that differs from the header's
+      POINTS (more or fewer; for DATA binary and ascii this is checked against the file size
+      before anything is allocated), no x/y/z field, an empty cloud, or NaN/inf coordinates
+      (unless dropped).
   """
   p = require_file(path)
   header = _sniff_header(p)
+  _check_body_size(p, header)
   try:
     pc = PointCloud.from_path(p)
   except (ValueError, RuntimeError, TypeError, KeyError, IndexError, struct.error) as e:
@@ -66,7 +69,7 @@ def read_pcd(path: str | os.PathLike, *, drop_nonfinite: bool = False) -> Cloud:
 
 
 def _sniff_header(p) -> dict[str, str]:
-  """The first header lines as {KEY: value text}, for error messages only."""
+  """The first header lines as {KEY: value text}; "_BODY" is the byte offset of the data."""
   out: dict[str, str] = {}
   with open(p, "rb") as f:
     for _ in range(16):
@@ -76,4 +79,31 @@ def _sniff_header(p) -> dict[str, str]:
         out[key.upper()] = value
       if line.upper().startswith("DATA"):
         break
+    out["_BODY"] = str(f.tell())
   return out
+
+
+def _check_body_size(p, header: dict[str, str]) -> None:
+  """Compare the header's POINTS with what the file stores, before anything is allocated:
+  the exact byte count for DATA binary, the number of data lines for DATA ascii."""
+  try:
+    points = int(header.get("POINTS", ""))
+    sizes = [int(v) for v in header.get("SIZE", "").split()]
+    counts = [int(v) for v in header.get("COUNT", "").split()] or [1] * len(sizes)
+  except ValueError:
+    return  # a malformed header: pypcd4's own error names it
+  mode = header.get("DATA", "").strip().lower()
+  body = p.stat().st_size - int(header["_BODY"])
+  if mode == "binary":
+    want = points * sum(s * c for s, c in zip(sizes, counts))
+    if want != body:
+      raise bad_input(p, "POINTS", f"{points} points x {want // max(points, 1)} bytes = "
+                      f"{want} bytes of DATA binary (header)", f"{body} bytes stored")
+  elif mode == "ascii":
+    if points > body:  # every point takes at least one byte: checked before reading
+      raise bad_input(p, "POINTS", f"{points} points (header)", f"only {body} bytes of data")
+    with open(p, "rb") as f:
+      f.seek(int(header["_BODY"]))
+      lines = sum(1 for line in f if line.strip())
+    if lines != points:
+      raise bad_input(p, "POINTS", f"{points} points (header)", f"{lines} data lines stored")

@@ -27,11 +27,15 @@ def main(argv=None) -> int:
   ap.add_argument("--process-id", type=int, default=None)
   ap.add_argument("overrides", nargs="*", help="key=value config overrides")
   args = ap.parse_args(argv)
+  try:
+    config = config_lib.replace(config_lib.load_config(args.config),
+                                **config_lib.parse_overrides(args.overrides))
+  except ValueError as e:  # a bad preset or override: name it, no traceback
+    print(f"error: {e}", file=sys.stderr)
+    return 2
   if args.coordinator:
     import jax
     jax.distributed.initialize(args.coordinator, args.num_processes, args.process_id)
-  config = config_lib.replace(config_lib.load_config(args.config),
-                              **config_lib.parse_overrides(args.overrides))
   workdir = args.workdir or f"runs/{config.name}"
   try:
     final = train_lib.train_and_evaluate(config, workdir, progress=not args.no_progress)

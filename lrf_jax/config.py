@@ -6,6 +6,7 @@ import dataclasses
 import importlib
 import importlib.util
 import json
+import math
 from pathlib import Path
 from typing import Any
 
@@ -93,9 +94,29 @@ class TrainConfig:
     if not (0.0 <= self.crop_p <= 1.0 and 0.0 <= self.crop_min < 1.0):
       raise ValueError(f"config.crop_p / crop_min: expected crop_p in [0, 1] and crop_min in "
                        f"[0, 1), got {self.crop_p!r} / {self.crop_min!r}")
-    for f in ("num_train_keypoints", "patch_k", "batch_size", "epochs"):
-      if getattr(self, f) < 1:
-        raise ValueError(f"config.{f}: expected a positive integer, got {getattr(self, f)!r}")
+    for f in ("num_train_keypoints", "patch_k", "batch_size", "epochs", "val_keypoints",
+              "log_every", "checkpoint_every"):
+      v = getattr(self, f)
+      if isinstance(v, bool) or not isinstance(v, int) or v < 1:
+        raise ValueError(f"config.{f}: expected a positive integer, got {v!r}")
+    for f in ("seed", "val_pairs"):
+      v = getattr(self, f)
+      if isinstance(v, bool) or not isinstance(v, int) or v < 0:
+        raise ValueError(f"config.{f}: expected a non-negative integer, got {v!r}")
+    for f in ("radius_mr", "learning_rate"):
+      v = getattr(self, f)
+      if not isinstance(v, (int, float)) or not math.isfinite(v) or v <= 0:
+        raise ValueError(f"config.{f}: expected a positive finite number, got {v!r}")
+    if not (isinstance(self.lr_decay, (int, float)) and 0 < self.lr_decay <= 1):
+      raise ValueError(f"config.lr_decay: expected a number in (0, 1], got {self.lr_decay!r}")
+    if any(not (isinstance(v, (int, float)) and math.isfinite(v) and v >= 0)
+           for v in self.noise_mr):
+      raise ValueError(f"config.noise_mr: expected non-negative noise levels in mr, got "
+                       f"{self.noise_mr!r}")
+    if not self.widths or any(isinstance(v, bool) or not isinstance(v, int) or v < 1
+                              for v in self.widths):
+      raise ValueError(f"config.widths: expected positive integer layer widths, got "
+                       f"{self.widths!r}")
 
   @property
   def steps_per_epoch(self) -> int:
@@ -123,16 +144,24 @@ def _coerce(field: dataclasses.Field, value: Any) -> Any:
   default = field.default
   if value.lower() in ("none", "null") and field.name == "data_root":
     return None
-  if isinstance(default, bool):
-    return value.lower() in ("1", "true", "yes")
-  if isinstance(default, int):
-    return int(value)
-  if isinstance(default, float):
-    return float(value)
-  if isinstance(default, tuple):
-    items = [v for v in value.strip("()[]").split(",") if v.strip()]
-    cast = float if field.name == "noise_mr" else int
-    return tuple(cast(v) for v in items)
+  try:
+    if isinstance(default, bool):
+      if value.lower() not in ("1", "0", "true", "false", "yes", "no"):
+        raise ValueError(value)
+      return value.lower() in ("1", "true", "yes")
+    if isinstance(default, int):
+      return int(value)
+    if isinstance(default, float):
+      return float(value)
+    if isinstance(default, tuple):
+      items = [v for v in value.strip("()[]").split(",") if v.strip()]
+      cast = float if field.name == "noise_mr" else int
+      return tuple(cast(v) for v in items)
+  except ValueError:
+    kind = ("true/false" if isinstance(default, bool) else "an integer" if isinstance(default, int)
+            else "a number" if isinstance(default, float) else "a comma-separated list")
+    raise ValueError(f"config.{field.name}: expected {kind} (default {default!r}), got "
+                     f"{value!r}") from None
   return value
 
 

@@ -174,3 +174,19 @@ def test_resumed_run_logs_each_step_once(tmp_path, smoke):
   steps = [json.loads(line)["step"] for line in (tmp_path / "metrics.jsonl").open()]
   assert steps == sorted(set(steps)), steps
   assert steps[-1] == cfg.total_steps
+
+
+@pytest.mark.parametrize("override,key", [("epochs=two", "config.epochs"),
+                                          ("seed=1e3", "config.seed"),
+                                          ("log_every=0", "config.log_every"),
+                                          ("radius_mr=-5", "config.radius_mr"),
+                                          ("learning_rate=nan", "config.learning_rate"),
+                                          ("noise_mr=0.1,x", "config.noise_mr"),
+                                          ("epoch=3", "unknown key")])
+def test_bad_override_is_a_clean_error_naming_the_key(override, key, tmp_path, capsys):
+  sys.path.insert(0, str(REPO))
+  import train
+  rc = train.main(["--config", "smoke", "--workdir", str(tmp_path), "--no-progress", override])
+  err = capsys.readouterr().err
+  assert rc == 2 and err.startswith("error: ") and key in err, err
+  assert "Traceback" not in err and not any(tmp_path.iterdir())

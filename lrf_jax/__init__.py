@@ -9,6 +9,7 @@ right-handed, det +1; invalid frames are the identity with `valid == False`.
 
 from lrf_jax import engine
 from lrf_jax.api import compute_frames, frames_from_patches, mesh_resolution
+from lrf_jax.caches import clear_caches
 from lrf_jax.engine import set_num_threads
 from lrf_jax.frames import METHODS, MethodSpec
 from lrf_jax.frames import register as register_method
@@ -28,6 +29,7 @@ __all__ = [
     "batched_chamfer",
     "build_patches",
     "chamfer",
+    "clear_caches",
     "compute_frames",
     "default_params",
     "engine",

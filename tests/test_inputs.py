@@ -89,3 +89,13 @@ def test_methods_print_as_a_table():
   row = next(line for line in lines if line.startswith("lrf_net_plus "))
   assert row.split() == ["lrf_net_plus", "learned", "params", "512", "lrf_net_plus"]
   assert repr(lrf_jax.METHODS) == str(lrf_jax.METHODS)
+
+
+def test_clear_caches_empties_them(demo):
+  from lrf_jax import api, normals
+  pts, faces, mr = demo
+  lrf_jax.compute_frames(pts, np.arange(0, len(pts), 97), 15 * mr, "flare")
+  lrf_jax.compute_frames(pts, np.arange(0, len(pts), 97), 15 * mr, "lrf_net")
+  assert normals._CACHE and api._TABLES and api._jitted.cache_info().currsize
+  lrf_jax.clear_caches()
+  assert not normals._CACHE and not api._TABLES and api._jitted.cache_info().currsize == 0

@@ -43,7 +43,7 @@ def _frozen(a: np.ndarray | None) -> np.ndarray | None:
   return a
 
 
-@functools.lru_cache(maxsize=None)
+@functools.lru_cache(maxsize=64)  # about 5 MB a BR scene: bounded by a few hundred MB
 def _load(path: str, mtime_ns: int, size: int) -> Mesh:
   del mtime_ns, size  # only part of the cache key
   cloud = read_cloud(path)

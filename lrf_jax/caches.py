@@ -1,0 +1,31 @@
+"""Every module-level cache of lrf_jax, its bound, and `clear_caches()` to empty them all.
+
+| cache | holds | bound |
+|---|---|---|
+| `normals.cache_last` | the last estimated normals, areas, grids, curvature (one per kind) | one entry per kind (about 8) |
+| `api._TABLES` | lrf_net / lrf_net_plus weight tables (257 x 257) | 4 |
+| `api._jitted`, `descriptors._jitted` | jitted frame / descriptor functions per option set | 64 / 32 |
+| `model._default_params_cached` | the shipped weights | 8 |
+| `datasets.cache._load` | meshes and clouds read by the dataset loaders | 64 |
+| `datasets.synthetic.icosphere` | the demo set's base spheres | 8 |
+
+Compiled code (numba's on-disk cache, JAX's jit caches and its optional persistent cache) is not
+cleared here.
+"""
+
+from __future__ import annotations
+
+from lrf_jax import api, descriptors, model, normals
+from lrf_jax.datasets import cache as dataset_cache
+from lrf_jax.datasets import synthetic
+
+
+def clear_caches() -> None:
+  """Empty every cache listed in this module's docstring."""
+  normals._CACHE.clear()
+  api._TABLES.clear()
+  api._jitted.cache_clear()
+  descriptors._jitted.cache_clear()
+  model._default_params_cached.cache_clear()
+  dataset_cache._load.cache_clear()
+  synthetic.icosphere.cache_clear()

@@ -1,7 +1,8 @@
 """Register two scans with LRF-Net frames: `python -m lrf_jax.register_cli SRC TGT [--out T.txt]`.
 
 Prints the 4 x 4 transform that maps SRC onto TGT (rows, 9 significant digits), the inlier count
-of the coarse estimate, the final overlap (fitness) and RMSE; `--out` also writes the matrix as
+of the coarse estimate, the final overlap (fitness) and RMSE and the verdict
+(`Registration.success`; exit code 3 when it failed, 2 for bad input); `--out` also writes the matrix as
 text (`numpy.loadtxt` reads it back). Inputs: any cloud or mesh `lrf_jax.io.read_cloud` reads
 (PLY, PCD, XYZ/TXT(.gz), NPY). Every length is in mesh resolutions of SRC unless `--mr` is given.
 This file is intentionally thin; the pipeline is `lrf_jax.registration.register`.
@@ -90,12 +91,15 @@ def main(argv: list[str] | None = None) -> int:
     return 2
   text = "\n".join(" ".join(f"{v:.9g}" for v in row) for row in reg.transform)
   print(text)
-  print(f"# inliers {reg.n_inliers}/{len(reg.correspondences)} (coarse), fitness "
+  print(f"# inliers {reg.n_inliers}/{len(reg.correspondences)} (coarse; chance level "
+        f"{reg.chance_inliers}), overlap contrast {reg.overlap_contrast:.2f}, fitness "
         f"{reg.fitness:.3f}, rmse {reg.rmse / reg.mr:.3f} mr, mr {reg.mr:.6g}, "
         f"{reg.seconds:.1f} s", file=sys.stderr)
+  print(f"# verdict: {'success' if reg.success else 'FAILED (do not trust this transform)'}",
+        file=sys.stderr)
   if args.out:
     np.savetxt(args.out, reg.transform, fmt="%.9g")
-  return 0
+  return 0 if reg.success else 3
 
 
 if __name__ == "__main__":

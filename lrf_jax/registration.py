@@ -385,6 +385,14 @@ class Registration:
     seconds: wall time of the whole call.
     timings: wall seconds per stage of `register`, keyed "prepare", "frames", "descriptors",
       "matching", "hypotheses", "verification", "icp".
+    success: the verdict (a Python bool, `verdict`): fitness >= 0.2 and either n_inliers >=
+      2 x chance_inliers + 3 or overlap_contrast >= 1.6. False means the result should not be
+      trusted: no overlap found, a mirror image, two different objects.
+    inlier_ratio: n_inliers / number of correspondences.
+    chance_inliers: the most inliers a hypothesis reaches on the same correspondences shuffled
+      (the chance level of this pair of clouds; `_chance_inliers`).
+    overlap_contrast: the chosen hypothesis's overlap over the 99th percentile of all
+      hypotheses' (`overlap_contrast`; 0 when verification is off).
   """
 
   transform: np.ndarray
@@ -397,6 +405,10 @@ class Registration:
   mr: float
   seconds: float
   timings: dict = dataclasses.field(default_factory=dict)
+  success: bool = False
+  inlier_ratio: float = 0.0
+  chance_inliers: int = 0
+  overlap_contrast: float = 0.0
 
 
 def _as_cloud(x: Any, name: str) -> tuple[np.ndarray, np.ndarray | None]:
@@ -521,11 +533,13 @@ def register(source: Any, target: Any, *, mr: float | None = None, radius_mr: fl
     src, dst, cs, cd = _centred(p, q)
     rs, ts = _hypotheses(src, dst, f_s[qi], f_t[ri], estimator, iterations, setup.radius, seed)
     counts = np.asarray(_count_inliers(rs, ts, src, dst, float(threshold)))
+    chance = _chance_inliers(src, dst, f_s[qi], f_t[ri], estimator, iterations, setup.radius,
+                             seed, float(threshold))
   with timer("verification"):
     overlap_distance = icp_mr * setup.mr
     target_grid = engine.Grid(dst_pts, overlap_distance)
-    best = _verify(rs, ts, counts, cs, cd, src_pts, target_grid, overlap_distance, verify,
-                   setup.rng)
+    best, fits = _verify(rs, ts, counts, cs, cd, src_pts, target_grid, overlap_distance, verify,
+                         setup.rng)
     r, t, mask, _, _ = _select_and_refine(rs[best:best + 1], ts[best:best + 1], src, dst,
                                           float(threshold), True)
     res = _finish(*_uncentre(r, t, cs, cd), mask, best, counts[best])
@@ -535,11 +549,61 @@ def register(source: Any, target: Any, *, mr: float | None = None, radius_mr: fl
       icp_src = src_pts[np.sort(setup.rng.choice(len(src_pts), 20000, replace=False))]
     final, fitness, rmse = icp(icp_src, dst_pts, res.transform, max_distance=overlap_distance,
                                iterations=icp_iterations, target_grid=target_grid)
+  n_corr = len(qi)
+  contrast = overlap_contrast(fits)
+  success = verdict(res.n_inliers, chance, fitness, contrast)
   return Registration(transform=final, coarse_transform=res.transform, inliers=res.inliers,
                       n_inliers=res.n_inliers,
                       correspondences=np.stack([kp_s[qi], kp_t[ri]], axis=1).astype(np.int64),
                       fitness=fitness, rmse=rmse, mr=float(setup.mr), seconds=timer.total(),
-                      timings=dict(timer.seconds))
+                      timings=dict(timer.seconds), success=success,
+                      inlier_ratio=res.n_inliers / max(n_corr, 1), chance_inliers=chance,
+                      overlap_contrast=contrast)
+
+
+# The verdict (`verdict`): the coarse estimate's inliers beat what chance alignment reaches on
+# the same correspondences by VERDICT_FACTOR and VERDICT_MARGIN, or its overlap stands out from
+# the other hypotheses' by VERDICT_CONTRAST; and ICP pairs at least VERDICT_FITNESS of the source.
+VERDICT_FACTOR = 2.0
+VERDICT_MARGIN = 3
+VERDICT_CONTRAST = 1.6
+VERDICT_FITNESS = 0.2
+CHANCE_SHUFFLES = 4
+
+
+def overlap_contrast(fits: np.ndarray) -> float:
+  """Best overlap score over the 99th percentile of all hypotheses' (0 without scores): a real
+  overlap is found by few hypotheses and stands out; chance alignment (blobs, a mirror image, two
+  objects) is as good as many other poses."""
+  fits = np.asarray(fits, np.float64)
+  if fits.size == 0:
+    return 0.0
+  return float(fits.max() / max(np.percentile(fits, 99), 1e-12))
+
+
+def verdict(n_inliers: int, chance_inliers: int, fitness: float, contrast: float) -> bool:
+  """`Registration.success`: fitness >= VERDICT_FITNESS and (n_inliers >= VERDICT_FACTOR *
+  chance_inliers + VERDICT_MARGIN or contrast >= VERDICT_CONTRAST)."""
+  by_inliers = n_inliers >= VERDICT_FACTOR * chance_inliers + VERDICT_MARGIN
+  return bool(fitness >= VERDICT_FITNESS and (by_inliers or contrast >= VERDICT_CONTRAST))
+
+
+def _chance_inliers(src, dst, f_src, f_dst, estimator, iterations, radius, seed,
+                    threshold) -> int:
+  """The most inliers any hypothesis reaches when the correspondences are shuffled (the target
+  side permuted, `CHANCE_SHUFFLES` seeded times): what the clouds' shapes give by chance alone.
+
+  Two unrelated blobs or a mirrored cloud reach about as many inliers by chance as with their
+  real matches; a true overlap reaches several times more.
+  """
+  rng = np.random.default_rng([seed, 7])
+  best = 0
+  for _ in range(CHANCE_SHUFFLES):
+    perm = rng.permutation(len(src))
+    d, fd = dst[perm], np.asarray(f_dst)[perm]
+    rs, ts = _hypotheses(src, d, f_src, fd, estimator, iterations, radius, seed)
+    best = max(best, int(np.max(np.asarray(_count_inliers(rs, ts, src, d, threshold)))))
+  return best
 
 
 class _StageTimer:
@@ -693,11 +757,13 @@ def _triples(m: int, iterations: int, seed: int) -> jax.Array:
   return jax.vmap(lambda k: jax.random.choice(k, m, (3,), replace=False))(keys)
 
 
-def _verify(rs, ts, counts, cs, cd, src_pts, target_grid, distance, verify, rng) -> int:
+def _verify(rs, ts, counts, cs, cd, src_pts, target_grid, distance, verify, rng
+            ) -> tuple[int, np.ndarray]:
   """Stage "verification": the hypothesis of best overlap among the `verify` best-scoring ones
   (None: all; 0: the inlier count alone decides)."""
   order = np.argsort(-counts, kind="stable")
   best = int(order[0])
+  fits = np.zeros(0)
   if verify is None or verify > 0:
     cand = order if verify is None else order[:int(verify)]
     sub = src_pts[np.sort(rng.choice(len(src_pts), min(1000, len(src_pts)), replace=False))]
@@ -705,7 +771,7 @@ def _verify(rs, ts, counts, cs, cd, src_pts, target_grid, distance, verify, rng)
     t_c = np.asarray(ts, np.float64)[cand] + cd - np.einsum("hij,j->hi", r_c, cs)
     fits = overlap_scores(r_c, t_c, sub, target_grid, distance)
     best = int(cand[int(np.argmax(fits))])  # first maximum: the higher inlier count
-  return best
+  return best, fits
 
 
 @jax.jit

@@ -235,3 +235,30 @@ def test_pose_protocol_on_a_rigidly_moved_cloud():
     assert r["n_correct_correspondences"] == 50 and r["n_inliers"] == 50
     assert r["err_r"] < 0.05 and r["err_t"] < 0.05
   assert "| demo | lrf_ransac | 1 |" in pose_report(recs)
+
+
+def test_verdict_rule():
+  from lrf_jax.registration import verdict
+  assert verdict(40, 5, 0.6, 1.0)            # far above the chance level
+  assert verdict(7, 7, 0.42, 2.1)            # few inliers, but the overlap stands out
+  assert not verdict(54, 36, 0.98, 1.0)      # blobs: chance reaches nearly as many inliers
+  assert not verdict(9, 5, 0.37, 1.3)        # a mirror image
+  assert not verdict(400, 5, 0.1, 3.0)       # ICP pairs almost nothing
+
+
+def test_register_verdict_on_a_real_pair_and_on_unrelated_blobs(tmp_path, capsys):
+  from lrf_jax import io
+  from lrf_jax.register_cli import main
+  pair = datasets.make_demo_pair(0, seed=0, noise_mr=0.1, partial=True)
+  good = register(pair.model_points, pair.scene_points, n_keypoints=800, n_correspondences=200,
+                  mr=pair.mr)
+  assert good.success is True and good.n_inliers > good.chance_inliers
+  rng = np.random.default_rng(0)
+  a, b = rng.normal(size=(4000, 3)), rng.normal(size=(4000, 3))
+  bad = register(a, b, n_keypoints=800, n_correspondences=200)
+  assert bad.success is False, (bad.n_inliers, bad.chance_inliers, bad.overlap_contrast)
+  io.write_ply(tmp_path / "a.ply", a, dtype="float64")
+  io.write_ply(tmp_path / "b.ply", b, dtype="float64")
+  assert main([str(tmp_path / "a.ply"), str(tmp_path / "b.ply"), "--keypoints", "800",
+               "--correspondences", "200"]) == 3
+  assert "verdict: FAILED" in capsys.readouterr().err

@@ -183,3 +183,10 @@ def test_evaluate_with_missing_data_says_where_it_looked_and_exits_2(tmp_path, m
   assert "Looked in:" in err and str(tmp_path / "nowhere") in err
   assert "LRF_DATA" in err and "data/README.md" in err
   assert not (tmp_path / "out").exists()  # nothing ran
+
+
+def test_method_styles_are_distinct_for_any_number_of_methods():
+  from lrf_jax.evaluation.report import method_styles
+  for n in (3, 11, 20, 45):
+    styles = method_styles([f"m{i}" for i in range(n)])
+    assert len({(tuple(c), h) for c, h in styles.values()}) == n

@@ -137,6 +137,21 @@ def write_results(records: list[dict[str, Any]], out: Path, *, notes: list[str] 
   plot_figures(clean, out)
 
 
+HATCHES = ("", "//", "..", "xx", "\\\\", "++")
+AXIS_LABELS = {"noise_mr": "Gaussian noise (mr)", "decimation": "fraction of vertices kept",
+               "radius_mr": "support radius (mr)", "rotation_deg": "scene rotation about z (deg)"}
+
+
+def method_styles(methods: list[str]) -> dict[str, tuple[Any, str]]:
+  """A distinct (colour, hatch) per method for any number of methods: the 20 colours of
+  matplotlib's tab20 (dark shades first), then the same colours again with a hatch."""
+  import matplotlib
+  cmap = matplotlib.colormaps["tab20"]
+  order = list(range(0, 20, 2)) + list(range(1, 20, 2))
+  return {m: (cmap(order[i % 20]), HATCHES[(i // 20) % len(HATCHES)])
+          for i, m in enumerate(methods)}
+
+
 def plot_figures(records: list[dict[str, Any]], out: Path) -> list[Path]:
   """Bars per dataset (repeatability) and curves per dataset for the nuisance sweeps."""
   import matplotlib
@@ -145,6 +160,7 @@ def plot_figures(records: list[dict[str, Any]], out: Path) -> list[Path]:
 
   summary = summarise(records)
   methods = list(dict.fromkeys(r["method"] for r in records))
+  style = method_styles(methods)
   written = []
   for bar_exp, title in (("repeatability", "Repeatability (r = 15 mr)"),
                          ("plus_ablation", "lrf_net_plus: each switch (r = 15 mr)")):
@@ -153,14 +169,17 @@ def plot_figures(records: list[dict[str, Any]], out: Path) -> list[Path]:
       continue
     exp_methods = list(dict.fromkeys(r["method"] for r in records if r["experiment"] == bar_exp))
     keys = list(rep)
-    fig, ax = plt.subplots(figsize=(max(6, 1.4 * len(keys)), 4))
+    fig, ax = plt.subplots(figsize=(max(6, 1.4 * len(keys)) + 2.5, 4))
     width = 0.8 / max(1, len(exp_methods))
+    bar_style = method_styles(exp_methods)
     for i, m in enumerate(exp_methods):
       vals = [rep[k].get(m, {}).get("meancos") or 0.0 for k in keys]
-      ax.bar(np.arange(len(keys)) + i * width, vals, width, label=m)
+      colour, hatch = bar_style[m]
+      ax.bar(np.arange(len(keys)) + i * width, vals, width, label=m, color=colour, hatch=hatch,
+             edgecolor="0.25", linewidth=0.4)
     ax.set_xticks(np.arange(len(keys)) + 0.4 - width / 2, [k[1] for k in keys], rotation=20)
-    ax.set(ylabel="MeanCos", ylim=(0, 1), title=title)
-    ax.legend(fontsize=7, ncol=2)
+    ax.set(xlabel="dataset", ylabel="MeanCos (1: identical frames)", ylim=(0, 1), title=title)
+    ax.legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.01, 1.0), title="method")
     fig.tight_layout()
     path = out / f"{bar_exp}.png"
     fig.savefig(path, dpi=120)
@@ -181,11 +200,13 @@ def plot_figures(records: list[dict[str, Any]], out: Path) -> list[Path]:
             pts[r["setting"][key]].append(r["meancos"])
         if pts:
           xs = sorted(pts)
-          ax.plot(xs, [np.mean(pts[x]) for x in xs], marker="o", label=m)
+          colour, hatch = style[m]
+          ax.plot(xs, [np.mean(pts[x]) for x in xs], marker="o", label=m, color=colour,
+                  linestyle="--" if hatch else "-")
       if exp == "decimation":
         ax.set_xscale("log", base=2)
-      ax.set(title=f"{ds}", xlabel=key, ylabel="MeanCos", ylim=(0, 1))
-    axes[0][0].legend(fontsize=7)
+      ax.set(title=f"{ds}", xlabel=AXIS_LABELS.get(key, key), ylabel="MeanCos", ylim=(0, 1))
+    axes[0][-1].legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.02, 1.0), title="method")
     fig.suptitle(f"Robustness: {exp}")
     fig.tight_layout()
     path = out / f"{exp}.png"
@@ -203,20 +224,20 @@ def plot_weights(patches_xyz: list[np.ndarray], weights: list[np.ndarray], frame
   import matplotlib.pyplot as plt
 
   n = len(patches_xyz)
-  fig, axes = plt.subplots(1, n, figsize=(3.4 * n, 3.4), squeeze=False)
+  fig, axes = plt.subplots(1, n, figsize=(3.4 * n + 1.0, 3.6), squeeze=False,
+                           layout="constrained")
+  lim = max((float(np.abs(w).max()) for w in weights), default=1.0) or 1.0  # one scale
   for ax, xyz, w, f in zip(axes[0], patches_xyz, weights, frames):
-    local = xyz @ f.T  # coordinates in the LRF: x right, y up (seen from +z)
-    lim = np.abs(w).max() or 1.0
+    r = np.linalg.norm(xyz, axis=1).max() or 1.0
+    local = xyz @ f.T / r  # coordinates in the LRF, in units of r: x right, y up (seen from +z)
     sc = ax.scatter(local[:, 0], local[:, 1], c=w, cmap="coolwarm", vmin=-lim, vmax=lim, s=6)
-    r = np.linalg.norm(xyz, axis=1).max()
-    ax.arrow(0, 0, 0.6 * r, 0, width=0.01 * r, color="k")
-    ax.text(0.65 * r, 0, "x", fontsize=9)
+    ax.arrow(0, 0, 0.6, 0, width=0.01, color="k")
+    ax.text(0.65, 0, "x", fontsize=9)
     ax.set_aspect("equal")
-    ax.set_xticks([])
-    ax.set_yticks([])
-    fig.colorbar(sc, ax=ax, shrink=0.7)
+    ax.set_xlabel("x in the LRF (r)")
+  axes[0][0].set_ylabel("y in the LRF (r)")
+  fig.colorbar(sc, ax=list(axes[0]), shrink=0.8, label="learned weight (shared scale)")
   fig.suptitle("LRF-Net weights per neighbour (seen from +z, x axis drawn)")
-  fig.tight_layout()
   path = out / "weights.png"
   fig.savefig(path, dpi=120)
   plt.close(fig)

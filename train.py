@@ -42,6 +42,9 @@ def main(argv=None) -> int:
   except FloatingPointError as e:  # diverged: nothing non-finite was saved
     print(f"error: {e}", file=sys.stderr)
     return 1
+  except (ValueError, FileNotFoundError) as e:  # bad data path, incompatible or no checkpoint
+    print(f"error: {e}", file=sys.stderr)
+    return 2
   print({k: v for k, v in final.items() if k != "val_per_pair"})
   return 0
 

@@ -22,6 +22,7 @@ import dataclasses
 import json
 import math
 import time
+import warnings
 from pathlib import Path
 from typing import Any, Iterator, NamedTuple
 
@@ -304,9 +305,9 @@ def validate(params, val: ValidationSet, fn=None) -> dict[str, float]:
 
 
 def checkpoint_manager(workdir: Path, create: bool = True) -> ocp.CheckpointManager:
-  """Keeps the latest checkpoint and the best one by validation MeanCos."""
+  """Keeps the latest two checkpoints (one to fall back to) and the best by validation MeanCos."""
   policy = ocp.checkpoint_managers.AnyPreservationPolicy([
-      ocp.checkpoint_managers.LatestN(n=1),
+      ocp.checkpoint_managers.LatestN(n=2),
       ocp.checkpoint_managers.BestN(get_metric_fn=lambda m: m["val_meancos"], reverse=False, n=1,
                                     keep_checkpoints_without_metrics=False),
   ])
@@ -392,20 +393,8 @@ def train_and_evaluate(config: TrainConfig, workdir: str | Path, *,
 
   state = create_state(config)
   mngr = checkpoint_manager(workdir)
-  start = mngr.latest_step()
-  if start is not None:
-    saved = mngr.restore(start, args=ocp.args.Composite(config=ocp.args.JsonRestore()))
-    check_compatible(saved["config"], config, workdir)
-    restored = mngr.restore(start, args=ocp.args.Composite(
-        state=ocp.args.StandardRestore(_state_target(state))))["state"]
-    state = state.replace(params=restored["params"], opt_state=restored["opt_state"],
-                          step=restored["step"])
-    bad = nonfinite_leaves(state.params)
-    if bad:
-      raise FloatingPointError(
-          f"checkpoint {workdir / 'checkpoints' / str(start)}: non-finite parameters in {bad}; "
-          "delete that checkpoint folder to resume from an older one, or the workdir to start "
-          "afresh")
+  if mngr.latest_step() is not None:
+    mngr, state = _restore_readable(mngr, state, config, workdir)
   start = int(state.step)
   state = jax.device_put(state, replicated)
   step_fn = jax.jit(make_train_step(config), donate_argnums=0,
@@ -456,6 +445,51 @@ def train_and_evaluate(config: TrainConfig, workdir: str | Path, *,
     plot_curves(log_path, workdir / "curves.png")
   mngr.close()
   return last
+
+
+def _restore_readable(mngr: ocp.CheckpointManager, state: Any, config: TrainConfig,
+                      workdir: Path) -> tuple[ocp.CheckpointManager, Any]:
+  """Restore the newest readable checkpoint, newest first.
+
+  An unreadable one (a corrupt file, non-finite parameters) is renamed
+  `checkpoints/<step>.unreadable` (kept, out of the way of the steps replayed over it) with one
+  warning naming it. A checkpoint written under an incompatible config is an error, not skipped.
+
+  Raises:
+    ValueError: no checkpoint is readable (the message says how to start afresh).
+  """
+  root = workdir / "checkpoints"
+  skipped = []
+  for step in sorted(mngr.all_steps(), reverse=True):
+    try:
+      saved = mngr.restore(step, args=ocp.args.Composite(config=ocp.args.JsonRestore()))
+    except Exception as e:  # orbax raises JSON, tensorstore, Key and Value errors here
+      skipped.append((step, e))
+      continue
+    check_compatible(saved["config"], config, workdir)
+    try:
+      restored = mngr.restore(step, args=ocp.args.Composite(
+          state=ocp.args.StandardRestore(_state_target(state))))["state"]
+      bad = nonfinite_leaves(restored["params"])
+      if bad:
+        raise FloatingPointError(f"non-finite parameters in {bad}")
+    except Exception as e:
+      skipped.append((step, e))
+      continue
+    if skipped:
+      mngr.close()
+      for bad_step, err in skipped:
+        (root / str(bad_step)).rename(root / f"{bad_step}.unreadable")
+      names = ", ".join(f"checkpoints/{s} ({type(e).__name__})" for s, e in skipped)
+      warnings.warn(f"{names}: unreadable, kept as <step>.unreadable; resumed from "
+                    f"checkpoints/{step}", stacklevel=3)
+      mngr = checkpoint_manager(workdir)
+    return mngr, state.replace(params=restored["params"], opt_state=restored["opt_state"],
+                               step=restored["step"])
+  tried = ", ".join(f"{s} ({type(e).__name__}: {str(e).splitlines()[0][:80]})"
+                    for s, e in skipped)
+  raise ValueError(f"{root}: no readable checkpoint (tried {tried}); delete that folder (or "
+                   "choose another --workdir) to start afresh")
 
 
 def nonfinite_leaves(tree: Any) -> list[str]:

@@ -190,3 +190,30 @@ def test_bad_override_is_a_clean_error_naming_the_key(override, key, tmp_path, c
   err = capsys.readouterr().err
   assert rc == 2 and err.startswith("error: ") and key in err, err
   assert "Traceback" not in err and not any(tmp_path.iterdir())
+
+
+def test_corrupt_latest_checkpoint_falls_back_to_the_previous_one(tmp_path, smoke):
+  cfg = config_lib.replace(smoke, epochs=2)
+  train_lib.train_and_evaluate(cfg, tmp_path, progress=False, stop_after_steps=12)
+  steps = sorted(int(p.name) for p in (tmp_path / "checkpoints").iterdir() if p.name.isdigit())
+  assert steps[-2:] == [8, 12], steps  # the latest two are kept
+  (tmp_path / "checkpoints" / "12" / "state" / "_METADATA").write_bytes(b"")
+  with pytest.warns(UserWarning, match=r"checkpoints/12 .*resumed from checkpoints/8"):
+    final = train_lib.train_and_evaluate(cfg, tmp_path, progress=False)
+  assert final["step"] == cfg.total_steps
+  assert (tmp_path / "checkpoints" / "12.unreadable").is_dir()
+  assert not train_lib.nonfinite_leaves(load_params(tmp_path / "final_params.msgpack"))
+
+
+def test_no_readable_checkpoint_is_one_clean_error(tmp_path, smoke, capsys):
+  cfg = config_lib.replace(smoke, epochs=2)
+  train_lib.train_and_evaluate(cfg, tmp_path, progress=False, stop_after_steps=12)
+  for p in (tmp_path / "checkpoints").iterdir():
+    if p.name.isdigit():
+      (p / "state" / "_METADATA").write_bytes(b"")
+      (p / "config" / "metadata").write_bytes(b"") if (p / "config" / "metadata").exists() else None
+  sys.path.insert(0, str(REPO))
+  import train
+  rc = train.main(["--config", "smoke", "--workdir", str(tmp_path), "--no-progress", "epochs=2"])
+  err = capsys.readouterr().err
+  assert rc == 2 and "no readable checkpoint" in err and "start afresh" in err, err

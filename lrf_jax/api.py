@@ -17,7 +17,7 @@ from lrf_jax import engine
 from lrf_jax.datasets.resolution import mesh_resolution as _mesh_resolution
 from lrf_jax.inputs import as_cloud
 from lrf_jax.neighborhoods import (Patches, SearchIndex, build_patches, validate_keypoints,
-                                   validate_radius)
+                                   validate_radius, validate_viewpoint)
 
 # Ball sizes outside these bounds (median over a sample of keypoints) draw a warning.
 MIN_MEDIAN_BALL = 10
@@ -126,23 +126,6 @@ def _check_options(method: str, options: dict) -> None:
   if unknown:
     raise ValueError(f"options: unknown option(s) {unknown} for method {method!r}; its options "
                      f"are {valid or 'none'}")
-
-
-def validate_viewpoint(viewpoint: Any, name: str = "viewpoint") -> np.ndarray | None:
-  """None, or the sensor position as a finite (3,) float64 array.
-
-  Raises:
-    ValueError: naming `name`, when it is not a finite (3,) position.
-  """
-  if viewpoint is None:
-    return None
-  try:
-    vp = np.asarray(viewpoint, np.float64)
-  except (TypeError, ValueError):
-    raise ValueError(f"{name}: expected a finite (3,) sensor position, got {viewpoint!r}") from None
-  if vp.shape != (3,) or not np.all(np.isfinite(vp)):
-    raise ValueError(f"{name}: expected a finite (3,) sensor position, got {viewpoint!r}")
-  return vp
 
 
 def _resolve_radius(points: np.ndarray, faces: Any, radius: Any, radius_mr: Any) -> float:

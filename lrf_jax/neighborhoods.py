@@ -116,6 +116,23 @@ def validate_radius(radius: float, name: str = "radius") -> float:
   return r
 
 
+def validate_viewpoint(viewpoint: object, name: str = "viewpoint") -> np.ndarray | None:
+  """None, or the sensor position as a finite (3,) float64 array.
+
+  Raises:
+    ValueError: naming `name`, when it is not a finite (3,) position.
+  """
+  if viewpoint is None:
+    return None
+  try:
+    vp = np.asarray(viewpoint, np.float64)
+  except (TypeError, ValueError):
+    raise ValueError(f"{name}: expected a finite (3,) sensor position, got {viewpoint!r}") from None
+  if vp.shape != (3,) or not np.all(np.isfinite(vp)):
+    raise ValueError(f"{name}: expected a finite (3,) sensor position, got {viewpoint!r}")
+  return vp
+
+
 def hash_priority(seed: int, point: np.ndarray) -> np.ndarray:
   """A pseudo-random uint64 per (seed, point index): splitmix64 of a mixed key.
 

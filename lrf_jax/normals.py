@@ -38,6 +38,7 @@ from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import breadth_first_order, connected_components, minimum_spanning_tree
 
 from lrf_jax import engine
+from lrf_jax.neighborhoods import validate_viewpoint
 
 # Default normal radius as a fraction of the support radius r (3 mr at r = 15 mr).
 NORMAL_RADIUS_RATIO = 0.2
@@ -242,10 +243,7 @@ def estimate_normals(points: np.ndarray, normal_radius: float,
       return orient_by_reference(nrm, vertex_normals(pts, faces))
     return orient_by_propagation(pts, nrm)
 
-  if viewpoint is not None:
-    viewpoint = np.asarray(viewpoint, np.float64)
-    if viewpoint.shape != (3,) or not np.isfinite(viewpoint).all():
-      raise ValueError(f"viewpoint: expected a finite (3,) sensor position, got {viewpoint!r}")
+  viewpoint = validate_viewpoint(viewpoint)
   return cache_last("normals", (pts, float(normal_radius), faces, viewpoint), compute)
 
 

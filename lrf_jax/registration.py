@@ -41,6 +41,7 @@ import numpy as np
 
 from lrf_jax import engine
 from lrf_jax.geometry import kabsch
+from lrf_jax.neighborhoods import validate_viewpoint
 
 # ------------------------------------------------------------------------------------------------
 # Pose errors
@@ -674,14 +675,8 @@ def _prepare(source: Any, target: Any, *, mr, radius_mr, n_keypoints, n_correspo
   spec = METHODS[method]
   if spec.needs_mesh and (src_faces is None or dst_faces is None):
     raise ValueError(f"method {method!r} needs triangle meshes on both sides")
-  checked = []
-  for name, vp in zip(("source_viewpoint", "target_viewpoint"), views):
-    if vp is not None:
-      vp = np.asarray(vp, np.float64)
-      if vp.shape != (3,) or not np.all(np.isfinite(vp)):
-        raise ValueError(f"{name}: expected a finite (3,) sensor position, got shape "
-                         f"{vp.shape}")
-    checked.append(vp)
+  checked = [validate_viewpoint(vp, name)
+             for name, vp in zip(("source_viewpoint", "target_viewpoint"), views)]
   if mr is None:
     mr, _ = mesh_resolution(src_pts, src_faces)
   elif not (np.isfinite(mr) and mr > 0):

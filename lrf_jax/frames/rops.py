@@ -101,9 +101,9 @@ def gather_triangles(points: np.ndarray, keypoints: np.ndarray, faces: np.ndarra
     ball_ptr, ball = engine.ball_lists(grid, pts[kp], radius)
   # Every face touching a ball vertex, once per keypoint, sorted by face index (compiled).
   face_ptr, t_id = engine.incident_faces(ball_ptr, ball, ptr, vf, f.shape[0])
-  r_t = np.repeat(np.arange(m), np.diff(face_ptr))
-  counts = np.bincount(r_t, minlength=m)
-  starts = np.concatenate([[0], np.cumsum(counts)[:-1]])
+  counts = np.diff(face_ptr)
+  starts = face_ptr[:-1]
+  r_t = np.repeat(np.arange(m), counts)
   if m and counts.max() > cap:  # seeded subsample: keep the `cap` faces of smallest priority
     order = np.lexsort((hash_priority(seed, t_id), r_t))
     r_t, t_id = r_t[order], t_id[order]

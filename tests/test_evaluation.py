@@ -190,3 +190,25 @@ def test_method_styles_are_distinct_for_any_number_of_methods():
   for n in (3, 11, 20, 45):
     styles = method_styles([f"m{i}" for i in range(n)])
     assert len({(tuple(c), h) for c, h in styles.values()}) == n
+
+
+def test_evaluate_progress_total_is_the_number_of_records(tmp_path):
+  """The bar's total (its ETA) is computed before any work: it equals the records run."""
+  from lrf_jax.evaluation import runner
+  runs, _ = runner.method_runs(["shot", "uniform"])
+  opts = evaluation.EvalOptions(n_keypoints=40, max_pairs=1)
+  plan = runner.EvalPlan(["demo"], ["repeatability", "rotation"], runs, opts)
+  cache = PatchCache()
+  for exp, expected in (("repeatability", 2), ("rotation", 8)):
+    assert runner.count_records(exp, plan) == expected
+    assert sum(1 for _ in runner._records(exp, plan, cache)) == expected
+  plan.experiments = ["repeatability"]
+  text = runner.evaluate(plan, tmp_path, progress=False)
+  assert "shot" in text and (tmp_path / "results.json").exists()
+  assert len(json.loads((tmp_path / "results.json").read_text())["records"]) == 2
+
+
+def test_evaluate_rejects_a_malformed_params_item():
+  from lrf_jax.evaluation import runner
+  with pytest.raises(ValueError, match="LABEL=PATH"):
+    runner.method_runs(["shot"], params=("no-equals-sign",))

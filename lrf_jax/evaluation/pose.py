@@ -46,6 +46,9 @@ SUCCESS_DEG = 5.0
 SUCCESS_MR = 10.0
 
 
+# The estimators compared on every pair, in the order of its records.
+ESTIMATORS = ("lrf_ransac", "ransac_3point")
+
 def evaluate_pose_pair(pair: Pair, *, n_keypoints: int = 1000, n_correspondences: int = 100,
                        lrf_iterations: int = 100, ransac_iterations: int = 1000,
                        inlier_mr: float = 5.0, seed: int = 0, radius_mr: float = 15.0,

@@ -1,0 +1,190 @@
+"""The whole evaluation job behind `evaluate.py`: which runs, the loop over experiments, the outputs.
+
+`evaluate(plan, out)` runs every experiment of an `EvalPlan` with one progress bar (its total is
+the number of records, so it shows an ETA), keeps what is done in `partial_records.jsonl` every
+50 records, and writes results.json, report.md and the figures; `evaluate.py` only parses
+arguments into a plan.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import time
+from pathlib import Path
+from typing import Any, Iterator
+
+from tqdm.auto import tqdm
+
+from lrf_jax.evaluation import description, pose, report
+from lrf_jax.evaluation.experiments import (ABLATION_X, ABLATION_Z, AS_NAMED, CLEAN, DATASETS,
+                                            DECIMATIONS, NOISE_LEVELS, RADII_MR, ROTATIONS_DEG,
+                                            EvalOptions, _clean_name, _limit, iter_pairs,
+                                            plus_ablation_runs, run_experiment)
+from lrf_jax.evaluation.repeatability import (EXACT_NETWORK, MethodRun, PatchCache,
+                                              paper_options)
+from lrf_jax.frames import METHODS
+from lrf_jax.model import load_params
+
+# Experiments that sweep one nuisance: the number of settings per clean pair.
+SWEEPS = {"noise": len(NOISE_LEVELS), "decimation": len(DECIMATIONS), "radius": len(RADII_MR),
+          "rotation": len(ROTATIONS_DEG)}
+PARTIAL_EVERY = 50  # records between two writes of partial_records.jsonl
+
+
+def default_methods() -> list[str]:
+  """Every registered method, lrf_net_plus (the most repeatable) first; lrf_net_variant left
+  out (it needs its own parameters, see the ablation experiment)."""
+  return ["lrf_net_plus"] + [m for m in METHODS if m not in ("lrf_net_variant", "lrf_net_plus")]
+
+
+def method_runs(methods: list[str] | None = None, *, checkpoint: str | None = None,
+                params: tuple[str, ...] = ()) -> tuple[list[MethodRun], list[str]]:
+  """The columns of the evaluation and the notes that say where learned parameters came from.
+
+  Args:
+    methods: method names (None: `default_methods()`); each runs with `paper_options`.
+    checkpoint: a train.py workdir: its best checkpoint replaces lrf_net's shipped weights and
+      its latest parameters add a column "lrf_net[final]".
+    params: "LABEL=PATH[@METHOD]" items: extra learned columns from parameter files (METHOD
+      defaults to lrf_net).
+
+  Returns:
+    (runs, notes).
+
+  Raises:
+    ValueError: a `params` item not of the form LABEL=PATH[@METHOD].
+  """
+  runs = [MethodRun(m, m, options=paper_options(m)) for m in (methods or default_methods())]
+  notes = []
+  if checkpoint:
+    from lrf_jax.train_lib import restore_params
+    best, cfg = restore_params(checkpoint, "best")
+    final, _ = restore_params(checkpoint, "latest")
+    runs = [MethodRun(r.label, r.method, params=best, options=r.options)
+            if r.method == "lrf_net" else r for r in runs]
+    runs.append(MethodRun("lrf_net[final]", "lrf_net", params=final, options=EXACT_NETWORK))
+    notes.append(f"lrf_net: best checkpoint of {checkpoint} (config {cfg.name}); "
+                 "lrf_net[final]: its latest")
+  for item in params:
+    label, sep, path = item.partition("=")
+    path, _, method = path.partition("@")
+    if not sep:
+      raise ValueError(f"--params: expected LABEL=PATH[@METHOD], got {item!r}")
+    method = method or "lrf_net"
+    runs.append(MethodRun(label, method, params=load_params(path), options=paper_options(method)))
+  return runs, notes
+
+
+@dataclasses.dataclass
+class EvalPlan:
+  """What one evaluation runs.
+
+  Attributes:
+    datasets: names of `DATASETS` whose data was found.
+    experiments: names of `EXPERIMENTS`, "description" or "pose".
+    runs: the method columns (`method_runs`).
+    options: the knobs shared by every experiment.
+    notes: lines for the report (skipped data, where parameters came from).
+    cache_dir: keep neighbourhoods on disk here (None: in memory only).
+    meta: extra fields for results.json's "meta".
+  """
+
+  datasets: list[str]
+  experiments: list[str]
+  runs: list[MethodRun]
+  options: EvalOptions
+  notes: list[str] = dataclasses.field(default_factory=list)
+  cache_dir: str | None = None
+  meta: dict[str, Any] = dataclasses.field(default_factory=dict)
+
+
+def count_records(experiment: str, plan: EvalPlan) -> int:
+  """How many records `experiment` yields under `plan` (reads the pair lists, runs nothing)."""
+  opts = plan.options
+  if experiment in ("description", "pose"):
+    per_pair = (len(description.default_runs(None)) if experiment == "description"
+                else len(pose.ESTIMATORS))
+    return per_pair * sum(1 for _ in iter_pairs(plan.datasets, opts))
+  if experiment in AS_NAMED:
+    runs = plan.runs if experiment == "repeatability" else plus_ablation_runs()
+    return len(runs) * sum(1 for _ in iter_pairs(plan.datasets, opts))
+  clean = sorted({_clean_name(ds) for ds in plan.datasets} - {None})
+  pairs = sum(len(_limit(CLEAN[ds](opts.data_root, opts.seed), opts)) for ds in clean)
+  per_pair = (len(ABLATION_Z) * len(ABLATION_X) if experiment == "ablation"
+              else SWEEPS[experiment] * len(plan.runs))
+  return pairs * per_pair
+
+
+def _records(experiment: str, plan: EvalPlan, cache: PatchCache) -> Iterator[dict[str, Any]]:
+  lrf_params = next((r.params for r in plan.runs if r.method == "lrf_net"), None)
+  if experiment == "description":
+    return description.run_description(plan.datasets, plan.options, cache, params=lrf_params)
+  if experiment == "pose":
+    return pose.run_pose(plan.datasets, plan.options, cache, params=lrf_params)
+  return run_experiment(experiment, plan.datasets, plan.runs, plan.options, cache)
+
+
+def _clean(records: list[dict[str, Any]]) -> list[dict[str, Any]]:
+  return [{k: v for k, v in r.items() if not k.startswith("_")} for r in records]
+
+
+def evaluate(plan: EvalPlan, out: Path, *, progress: bool = True) -> str:
+  """Run `plan`, write its outputs to `out` and return the markdown report.
+
+  Writes results.json (the repeatability records and `meta`), report.md, the figures of
+  `report.plot_figures`, LRF-Net's weight figures when a learned method ran, and for the
+  description / pose experiments results_description_pose.json and their sections of report.md
+  (with the RPC figure). `partial_records.jsonl` holds the records done so far while it runs.
+  """
+  out = Path(out)
+  cache = PatchCache(plan.cache_dir)
+  total = sum(count_records(exp, plan) for exp in plan.experiments)
+  records, other = [], []
+  t0 = time.perf_counter()
+  with tqdm(total=total, desc="evaluate", unit="record", dynamic_ncols=True,
+            disable=not progress) as bar:
+    for exp in plan.experiments:
+      for rec in _records(exp, plan, cache):
+        (other if exp in ("description", "pose") else records).append(rec)
+        if exp not in ("description", "pose") and len(records) % PARTIAL_EVERY == 0:
+          out.mkdir(parents=True, exist_ok=True)  # keep what is done if the run is stopped
+          (out / "partial_records.jsonl").write_text(
+              "\n".join(json.dumps(r) for r in _clean(records)))
+        bar.set_postfix(exp=exp, ds=rec["dataset"], pair=str(rec.get("pair", ""))[:18])
+        bar.update(1)
+  meta = dict(plan.meta, seconds=time.perf_counter() - t0,
+              patch_cache={"hits": cache.hits, "misses": cache.misses})
+  report.write_results(records, out, notes=plan.notes, meta=meta)
+  _learned_figures(plan, out)
+  text = report.markdown_report(records, notes=plan.notes)
+  extra_md = _description_pose_outputs(other, out)
+  if extra_md:
+    (out / "report.md").write_text(text + "\n" + "\n".join(extra_md))
+  return "\n".join([text] + extra_md)
+
+
+def _learned_figures(plan: EvalPlan, out: Path) -> None:
+  """The paper's weight visualisation on the first dataset's first pair, and the weight maps."""
+  lrf = next((r for r in plan.runs if r.method == "lrf_net"), None)
+  if lrf is not None:
+    first = DATASETS[plan.datasets[0]][0](plan.options.data_root, plan.options.seed)[0]
+    report.weights_figure(first, lrf.params, out, radius_mr=plan.options.radius_mr)
+  if any(r.method in ("lrf_net", "lrf_net_plus") for r in plan.runs):
+    report.weight_maps_figure(out)
+
+
+def _description_pose_outputs(other: list[dict[str, Any]], out: Path) -> list[str]:
+  """Report sections and files of the description and pose records (none: [])."""
+  extra_md = []
+  desc = [r for r in other if r["experiment"] == "description"]
+  if desc:
+    extra_md.append(description.description_report(desc))
+    description.plot_rpc(desc, out)
+  poses = [r for r in other if r["experiment"] == "pose"]
+  if poses:
+    extra_md.append(pose.pose_report(poses))
+  if other:
+    (out / "results_description_pose.json").write_text(
+        json.dumps(_clean(other), indent=1, default=float))
+  return extra_md

@@ -3,15 +3,20 @@
     python train.py --config default --workdir runs/default            # the paper (needs LRF_DATA)
     python train.py --config smoke --workdir /tmp/smoke epochs=2       # CPU, about a minute
     python train.py --config default --workdir runs/x batch_size=256 noise_mr=0.1,0.3
+    python train.py --config default --workdir /shared/runs/x \
+        --coordinator HOST0:1234 --num-processes N --process-id I     # on each of N hosts
 
 Overrides are `key=value` fields of `lrf_jax.config.TrainConfig`. A run restarted with the same
---workdir resumes from its latest checkpoint. This file is intentionally kept short; the logic
-lives in lrf_jax/train_lib.py.
+--workdir resumes from its latest checkpoint. With --coordinator, the processes join one
+`jax.distributed` job (gloo collectives on CPU), the batch is split over the devices of all of
+them, the workdir must be shared, and only process 0 prints and writes files besides the
+checkpoints. This file is intentionally kept short; the loop lives in lrf_jax/train_lib.py.
 """
 
 import argparse
 import sys
 
+from lrf_jax import checkpoints
 from lrf_jax import config as config_lib
 from lrf_jax import train_lib
 
@@ -23,8 +28,10 @@ def main(argv=None) -> int:
   ap.add_argument("--no-progress", action="store_true", help="no progress bar")
   ap.add_argument("--coordinator", default=None,
                   help="multi-host: coordinator address host:port (jax.distributed)")
-  ap.add_argument("--num-processes", type=int, default=None)
-  ap.add_argument("--process-id", type=int, default=None)
+  ap.add_argument("--num-processes", type=int, default=None,
+                  help="multi-host: number of processes of the job (with --coordinator)")
+  ap.add_argument("--process-id", type=int, default=None,
+                  help="multi-host: this process's index in [0, N) (with --coordinator)")
   ap.add_argument("overrides", nargs="*", help="key=value config overrides")
   args = ap.parse_args(argv)
   try:
@@ -33,8 +40,14 @@ def main(argv=None) -> int:
   except ValueError as e:  # a bad preset or override: name it, no traceback
     print(f"error: {e}", file=sys.stderr)
     return 2
+  if not args.coordinator and (args.num_processes is not None or args.process_id is not None):
+    print("error: --num-processes and --process-id need --coordinator host:port",
+          file=sys.stderr)
+    return 2
   if args.coordinator:
     import jax
+    # CPU devices of different processes talk through gloo (no effect on GPU or TPU devices).
+    jax.config.update("jax_cpu_collectives_implementation", "gloo")
     jax.distributed.initialize(args.coordinator, args.num_processes, args.process_id)
   workdir = args.workdir or f"runs/{config.name}"
   try:
@@ -45,7 +58,8 @@ def main(argv=None) -> int:
   except (ValueError, FileNotFoundError) as e:  # bad data path, incompatible or no checkpoint
     print(f"error: {e}", file=sys.stderr)
     return 2
-  print({k: v for k, v in final.items() if k != "val_per_pair"})
+  if checkpoints.is_primary():
+    print({k: v for k, v in final.items() if k != "val_per_pair"})
   return 0
 
 

@@ -22,7 +22,8 @@ import jax
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from lrf_jax import config as config_lib  # noqa: E402
-from lrf_jax import data_sources, train_lib  # noqa: E402
+from lrf_jax import data_sources, train_step  # noqa: E402
+from lrf_jax.batches import BatchMaker  # noqa: E402
 
 
 def main() -> None:
@@ -34,9 +35,9 @@ def main() -> None:
   cfg = config_lib.replace(config_lib.load_config("default"), data=args.data,
                            batch_size=args.batch_size, val_pairs=0)
   clouds = data_sources.training_clouds(cfg)
-  maker = train_lib.BatchMaker(clouds, cfg)
-  state = train_lib.create_state(cfg)
-  step = jax.jit(train_lib.make_train_step(cfg), donate_argnums=0)
+  maker = BatchMaker(clouds, cfg)
+  state = train_step.create_state(cfg)
+  step = jax.jit(train_step.make_train_step(cfg), donate_argnums=0)
   batches = [maker.batch(0, i % cfg.steps_per_epoch) for i in range(args.steps)]
   state, m = step(state, batches[0])
   jax.block_until_ready(m)
@@ -57,7 +58,7 @@ def main() -> None:
   host = 2 * len(clouds.keypoints) / (time.perf_counter() - t0)
   with jax.disable_jit():
     t0 = time.perf_counter()
-    train_lib.make_train_step(cfg)(train_lib.create_state(cfg), batches[0])
+    train_step.make_train_step(cfg)(train_step.create_state(cfg), batches[0])
     eager = cfg.batch_size / (time.perf_counter() - t0)
   total = cfg.epochs * cfg.steps_per_epoch * cfg.batch_size
   print(f"machine: {platform.machine()}, {os.cpu_count()} cores, jax {jax.__version__} on "

@@ -11,8 +11,7 @@ from lrf_jax import engine
 from lrf_jax.api import compute_frames, frames_from_patches, mesh_resolution
 from lrf_jax.caches import clear_caches
 from lrf_jax.engine import set_num_threads
-from lrf_jax.frames import METHODS, MethodSpec
-from lrf_jax.frames import register as register_method
+from lrf_jax.frames import METHODS, MethodSpec, register_method
 from lrf_jax.frames.lrf_net import lrf_net_frames
 from lrf_jax.losses import batched_chamfer, chamfer, siamese_loss
 from lrf_jax.metrics import meancos, repeatability_summary
@@ -20,7 +19,7 @@ from lrf_jax.model import default_params, init_params, load_params, save_params
 from lrf_jax.neighborhoods import Patches, build_patches
 from lrf_jax.registration import register
 
-__version__ = "0.2.0"
+__version__ = "0.3.0"
 
 __all__ = [
     "METHODS",

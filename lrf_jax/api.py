@@ -10,14 +10,16 @@ from typing import Any
 import jax
 import jax.numpy as jnp
 import numpy as np
-from lrf_jax.frames import METHODS, MethodSpec
-from lrf_jax.model import default_params
-from lrf_jax.normals import NORMAL_RADIUS_RATIO, estimate_normals
+
 from lrf_jax import engine
+from lrf_jax.chunks import map_chunks
 from lrf_jax.datasets.resolution import mesh_resolution as _mesh_resolution
+from lrf_jax.frames import METHODS, MethodSpec
 from lrf_jax.inputs import as_cloud
+from lrf_jax.model import default_params
 from lrf_jax.neighborhoods import (Patches, SearchIndex, build_patches, validate_keypoints,
-                                   validate_radius, validate_viewpoint)
+                                   validate_radius, validate_seed, validate_viewpoint)
+from lrf_jax.prepare import method_normals, prepare_extra
 
 # Ball sizes outside these bounds (median over a sample of keypoints) draw a warning.
 MIN_MEDIAN_BALL = 10
@@ -25,8 +27,7 @@ MAX_BALL_FRACTION = 0.5
 
 
 @functools.lru_cache(maxsize=64)
-def _jitted(name: str, static_items: tuple) -> Any:
-  spec = METHODS[name]
+def _jitted(spec: MethodSpec, static_items: tuple) -> Any:
   static = dict(static_items)
   if spec.needs_params:
     return jax.jit(lambda patches, extra, params: spec.fn(patches, extra, params=params, **static))
@@ -55,7 +56,7 @@ def frames_from_patches(patches: Patches, method: str = "lrf_net_plus", *, param
     params = default_params(spec.weights)
   if spec.needs_params and int(options.get("lut", 0) or 0) > 1:
     params = _weight_table(params, int(options["lut"]))
-  fn = _jitted(method, tuple(sorted(options.items())))
+  fn = _jitted(spec, tuple(sorted(options.items())))
   n_dev = jax.local_device_count()
   if n_dev > 1 and patches.offsets.shape[0] % n_dev == 0:
     # Keypoints are independent: shard them over the local devices' "data" axis, replicate
@@ -93,7 +94,7 @@ def _weight_table(params: Any, size: int) -> Any:
 
 
 def _spec(method: str) -> MethodSpec:
-  if method not in METHODS:
+  if not isinstance(method, str) or method not in METHODS:
     raise ValueError(f"method: unknown LRF method {method!r}; expected one of {sorted(METHODS)}")
   return METHODS[method]
 
@@ -232,9 +233,9 @@ def compute_frames(
   Raises:
     ValueError: a cloud that is not a non-empty (n, 3) array of finite floats, an out-of-range or
       non-integer keypoint, a non-positive radius, an unknown method, a missing mesh, a `k` that
-      is not a positive integer, None or "default", a non-positive `chunk_size`, a viewpoint
-      that is not a finite (3,) position, or an option the method does not take (the message
-      lists its options).
+      is not a positive integer, None or "default", a non-positive `chunk_size`, a `seed` that is
+      not a non-negative integer, a viewpoint that is not a finite (3,) position, or an option the
+      method does not take (the message lists its options).
 
   Example:
     >>> frames, valid = compute_frames(points, np.arange(100), radius=0.02)
@@ -250,57 +251,68 @@ def compute_frames(
       or chunk_size < 1):
     raise ValueError(f"chunk_size: expected a positive integer, got {chunk_size!r}")
   _validate_k(k)
+  seed = validate_seed(seed)
   _check_options(method, options)
   viewpoint = validate_viewpoint(viewpoint)
-  if k == "default":
-    k = spec.default_k
+  k = spec.default_k if k == "default" else k
   if spec.needs_params and params is None:
     params = default_params(spec.weights)
   m = keypoints.shape[0]
   if m == 0:
     return jnp.zeros((0, 3, 3), jnp.float32), jnp.zeros((0,), bool)
+  search_patches = _patch_search(points, spec, radius, k, seed, search)
+  _warn_on_ball_size(search_patches.index, points, keypoints, radius)
+  normals = method_normals(spec, points, radius, faces=faces, normals=normals,
+                           viewpoint=viewpoint)
 
-  if (spec.prepare is not None and not spec.uses_viewpoint and normals is None
-      and viewpoint is not None):
-    normals = estimate_normals(points, NORMAL_RADIUS_RATIO * radius, faces, viewpoint)
+  def run(idx: np.ndarray, n_real: int) -> tuple[jax.Array, jax.Array]:
+    kp = keypoints[idx]
+    patches = search_patches(kp)
+    extra = prepare_extra(spec, points, kp, patches, radius=radius, faces=faces,
+                          normals=normals, viewpoint=viewpoint)
+    return frames_from_patches(patches, method, params=params, extra=extra, **options)
+
+  n_dev = jax.local_device_count()
+  chunk = min(int(chunk_size), -(-m // n_dev) * n_dev)  # a multiple of the devices: shardable
+  show = bool(progress) or (progress is None and -(-m // chunk) > 4)
+  return map_chunks(run, m, chunk, progress=show, desc=f"{method} frames")
+
+
+class _PatchSearch:
+  """`compute_frames`' radius search, on the host engine or on the device: `self(kp) -> Patches`;
+  `index` is the host `SearchIndex` (also behind the device search's fallback)."""
+
+  def __init__(self, points: np.ndarray, spec: MethodSpec, radius: float, k: int | None,
+               seed: int, on_device: bool):
+    self.points, self.spec, self.radius, self.k, self.seed = points, spec, radius, k, seed
+    self.device = None
+    if on_device:
+      from lrf_jax.device_search import DeviceIndex
+      self.device = DeviceIndex(points, radius, k, seed, spec.z_ratio)
+      self.index = self.device.host
+    else:
+      self.index = SearchIndex(points, seed)
+
+  def __call__(self, kp: np.ndarray) -> Patches:
+    spec, k = self.spec, self.k
+    if self.device is not None:
+      from lrf_jax.device_search import build_patches_device
+      patches, _ = build_patches_device(self.points, kp, self.radius, k, seed=self.seed,
+                                        z_ratio=spec.z_ratio, index=self.device)
+      return patches
+    return build_patches(self.points, kp, self.radius, k, seed=self.seed, z_ratio=spec.z_ratio,
+                         index=self.index, validate=False,
+                         shells=spec.shells if k is None else None)
+
+
+def _patch_search(points: np.ndarray, spec: MethodSpec, radius: float, k: int | None, seed: int,
+                  search: str) -> _PatchSearch:
+  """The search `compute_frames(search=...)` asks for (validated)."""
   if search not in ("auto", "host", "device"):
     raise ValueError(f"search: expected 'auto', 'host' or 'device', got {search!r}")
   if search == "device" and k is None:
-    raise ValueError(f"search='device' needs an integer patch size; method {method!r} uses "
+    raise ValueError(f"search='device' needs an integer patch size; method {spec.name!r} uses "
                      "every neighbour (k=None): use search='host'")
   on_device = k is not None and (search == "device" or (
       search == "auto" and jax.default_backend() != "cpu"))
-  if on_device:
-    from lrf_jax.device_search import DeviceIndex, build_patches_device
-    dindex = DeviceIndex(points, radius, k, seed, spec.z_ratio)
-    index = dindex.host
-  else:
-    index = SearchIndex(points, seed)
-  _warn_on_ball_size(index, points, keypoints, radius)
-  n_dev = jax.local_device_count()
-  chunk = min(int(chunk_size), -(-m // n_dev) * n_dev)  # a multiple of the devices: shardable
-  frames_out, valid_out = [], []
-  starts = range(0, m, chunk)
-  if progress or (progress is None and len(starts) > 4):
-    from tqdm.auto import tqdm
-    starts = tqdm(starts, desc=f"{method} frames", unit="chunk", dynamic_ncols=True)
-  for start in starts:
-    kp = keypoints[start:start + chunk]
-    n_real = kp.shape[0]
-    if n_real < chunk:  # pad to the compiled shape with a repeat of the first keypoint
-      kp = np.concatenate([kp, np.full(chunk - n_real, kp[0])])
-    if on_device:
-      patches, _ = build_patches_device(points, kp, radius, k, seed=seed, z_ratio=spec.z_ratio,
-                                        index=dindex)
-    else:
-      patches = build_patches(points, kp, radius, k, seed=seed, z_ratio=spec.z_ratio,
-                              index=index, validate=False,
-                              shells=spec.shells if k is None else None)
-    extra = None
-    if spec.prepare is not None:
-      vp = {"viewpoint": viewpoint} if spec.uses_viewpoint else {}
-      extra = spec.prepare(points, kp, patches, faces=faces, normals=normals, radius=radius, **vp)
-    f, v = frames_from_patches(patches, method, params=params, extra=extra, **options)
-    frames_out.append(f[:n_real])
-    valid_out.append(v[:n_real])
-  return jnp.concatenate(frames_out), jnp.concatenate(valid_out)
+  return _PatchSearch(points, spec, radius, k, seed, on_device)

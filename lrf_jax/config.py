@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import dataclasses
-import importlib
 import importlib.util
 import json
 import math
@@ -41,7 +40,7 @@ class TrainConfig:
       a list to draw from per batch; () = none (the paper).
     crop_p: partiality augmentation beyond the paper: the probability that a training patch (each
       side independently) is cut by a random plane, as a scan boundary cuts a support (see
-      `train_lib.crop_patches`); 0 = none (the paper).
+      `batches.crop_patches`); 0 = none (the paper).
     crop_min: the cut plane's smallest distance from the keypoint, as a fraction of r (the
       distance is uniform in [crop_min, 1)).
     val_pairs: number of Stanford bunny scan pairs used for validation (0 disables).
@@ -199,16 +198,14 @@ def load_config(name_or_path: str) -> TrainConfig:
   path = Path(name_or_path)
   if path.suffix == ".json" and path.exists():
     return TrainConfig.from_dict(json.loads(path.read_text()))
-  if path.suffix == ".py" and path.exists():
-    spec = importlib.util.spec_from_file_location(path.stem, path)
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module.get_config()
-  try:
-    module = importlib.import_module(f"lrf_jax.configs.{name_or_path}")
-  except ModuleNotFoundError:
-    presets = sorted(p.stem for p in (Path(__file__).parent / "configs").glob("*.py")
-                     if not p.stem.startswith("_"))
-    raise ValueError(f"--config {name_or_path!r}: no such preset or file; presets are "
-                     f"{presets}, or give a path to a .py (with get_config()) or .json") from None
+  presets = Path(__file__).parent / "configs"
+  if not (path.suffix == ".py" and path.exists()):
+    path = presets / f"{name_or_path}.py"
+    if name_or_path.startswith("_") or "/" in name_or_path or not path.exists():
+      names = sorted(p.stem for p in presets.glob("*.py") if not p.stem.startswith("_"))
+      raise ValueError(f"--config {name_or_path!r}: no such preset or file; presets are "
+                       f"{names}, or give a path to a .py (with get_config()) or .json")
+  spec = importlib.util.spec_from_file_location(f"lrf_jax_config_{path.stem}", path)
+  module = importlib.util.module_from_spec(spec)
+  spec.loader.exec_module(module)
   return module.get_config()

@@ -6,7 +6,7 @@ import numpy as np
 
 from lrf_jax import datasets
 from lrf_jax.config import TrainConfig
-from lrf_jax.train_lib import TrainingClouds, sample_training_keypoints
+from lrf_jax.batches import TrainingClouds, sample_training_keypoints
 
 
 def training_clouds(config: TrainConfig) -> TrainingClouds:

@@ -1,18 +1,24 @@
 """Shared, pure geometry for every LRF method.
 
-All functions are written for one keypoint and are meant to be `jax.vmap`-ed over keypoints. They
+All functions but `sanitize` (the input hygiene every method applies to a whole `Patches` batch
+first) are written for one keypoint and are meant to be `jax.vmap`-ed over keypoints. They
 never return NaN: degenerate inputs are handled with the "double where" idiom (the unsafe branch is
 fed a harmless value so that neither the value nor its gradient can become NaN), and callers get a
 boolean flag telling them whether the result is meaningful.
 
-Conventions (DESIGN.md, section 2): a frame is a (3, 3) array whose *rows* are the x, y, z axes;
+Conventions: a frame is a (3, 3) array whose *rows* are the x, y, z axes;
 it maps world vectors into the LRF; right-handed (y = z × x, det = +1).
 """
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import jax
 import jax.numpy as jnp
+
+if TYPE_CHECKING:
+  from lrf_jax.neighborhoods import Patches
 
 Array = jax.Array
 
@@ -205,7 +211,7 @@ def kabsch(src: Array, dst: Array, weights: Array | None = None) -> tuple[Array,
 
 
 def identity_where_invalid(frames: Array, valid: Array) -> Array:
-  """Replace invalid frames by the identity (DESIGN.md: invalid frames are flagged, never NaN).
+  """Replace invalid frames by the identity (invalid frames are flagged, never NaN).
 
   Args:
     frames: (..., 3, 3).
@@ -331,3 +337,24 @@ def directed_tangent_axis(z: Array, offset: Array, eps: float = 0.0) -> tuple[Ar
     (x, ok): x (3,) unit vector orthogonal to z; ok False when the projection vanishes.
   """
   return safe_normalize(offset - jnp.dot(offset, z) * z, eps)
+
+
+def sanitize(patches: Patches) -> tuple[Patches, jax.Array]:
+  """Zero out non-finite inputs so nothing downstream sees NaN; report which keypoints had any.
+
+  Returns:
+    (patches, finite): finite (N,) is False where a keypoint's offsets or statistics were not finite.
+  """
+  off_ok = jnp.all(jnp.isfinite(patches.offsets), axis=-1)  # (N, K)
+  finite = (jnp.all(off_ok | ~patches.mask, axis=-1)
+            & jnp.all(jnp.isfinite(patches.z_cov), axis=(-1, -2))
+            & jnp.all(jnp.isfinite(patches.z_mean), axis=-1)
+            & jnp.isfinite(patches.radius) & (patches.radius > 0))
+  patches = patches._replace(
+      offsets=jnp.where(off_ok[..., None], patches.offsets, 0.0),
+      mask=patches.mask & off_ok,
+      z_cov=jnp.where(jnp.isfinite(patches.z_cov), patches.z_cov, 0.0),
+      z_mean=jnp.where(jnp.isfinite(patches.z_mean), patches.z_mean, 0.0),
+      radius=jnp.where(jnp.isfinite(patches.radius) & (patches.radius > 0), patches.radius, 1.0),
+  )
+  return patches, finite

@@ -18,7 +18,7 @@ from typing import Any, NamedTuple
 import numpy as np
 
 from lrf_jax.io import Cloud, read_cloud
-from lrf_jax.neighborhoods import validate_cloud
+from lrf_jax.neighborhoods import validate_cloud, validate_faces, validate_normals
 
 
 class CloudInput(NamedTuple):
@@ -40,7 +40,8 @@ def as_cloud(x: Any, name: str = "points", *, faces: Any = None,
     normals: explicit (n, 3) normals, winning over the object's.
 
   Raises:
-    ValueError: not a non-empty (n, 3) cloud of finite floats (naming `name`).
+    ValueError: not a non-empty (n, 3) cloud of finite floats (naming `name`), faces that are
+      not (f, 3) indices into it or normals that are not (n, 3) real numbers (naming them).
     FileNotFoundError: a path that does not exist.
   """
   own_faces = own_normals = None
@@ -49,11 +50,11 @@ def as_cloud(x: Any, name: str = "points", *, faces: Any = None,
   if isinstance(x, Cloud):
     pts, own_faces, own_normals = x.points, x.faces, x.normals
   elif hasattr(x, "vertices") and hasattr(x, "triangles"):  # a mesh object (Open3D TriangleMesh)
-    pts = np.asarray(x.vertices)
+    pts = validate_cloud(x.vertices, name)
     tri = np.asarray(x.triangles)
     own_faces = tri.astype(np.int64) if tri.size else None
   elif hasattr(x, "points") and not isinstance(x, np.ndarray):  # a cloud object
-    pts = np.asarray(x.points)
+    pts = validate_cloud(x.points, name)
     nrm = np.asarray(getattr(x, "normals", ()))
     own_normals = nrm.astype(np.float64) if nrm.size and nrm.shape == pts.shape else None
   else:
@@ -61,4 +62,11 @@ def as_cloud(x: Any, name: str = "points", *, faces: Any = None,
   pts = validate_cloud(pts, name)
   f = faces if faces is not None else own_faces
   n = normals if normals is not None else own_normals
-  return CloudInput(pts, None if f is None else np.asarray(f), None if n is None else np.asarray(n))
+  # Named after the argument when given explicitly, else after the cloud that carried them.
+  return CloudInput(
+      pts, None if f is None else validate_faces(f, len(pts), _own(faces, "faces", name)),
+      None if n is None else validate_normals(n, len(pts), _own(normals, "normals", name)))
+
+
+def _own(explicit: Any, what: str, name: str) -> str:
+  return what if explicit is not None else f"{name} {what}"

@@ -12,7 +12,7 @@ def meancos(frames_a, frames_b, rotation, valid_a=None, valid_b=None):
   The scene frame is mapped back by the ground-truth rotation R (model -> scene) before the axes
   are compared: with rows as axes, a perfectly repeatable scene frame is L_s = L_m Rᵀ, so
   cos x = x_m · (Rᵀ x_s) and likewise for z. MeanCos = (cos x + cos z) / 2; keypoints where either
-  frame is invalid count as 0 (DESIGN.md, section 5).
+  frame is invalid count as 0.
 
   Args:
     frames_a: (N, 3, 3) model frames (rows x, y, z).

@@ -72,7 +72,11 @@ def validate_cloud(points: np.ndarray, name: str = "points") -> np.ndarray:
   Raises:
     ValueError: naming what was wrong and what was expected.
   """
-  arr = np.asarray(points)
+  try:
+    arr = np.asarray(points)
+  except (TypeError, ValueError):  # e.g. rows of different lengths
+    raise ValueError(f"{name}: expected a numeric (n, 3) array of floats, got "
+                     f"{type(points).__name__} {points!r:.80} (not an array)") from None
   if arr.dtype.kind not in "fiu":
     raise ValueError(f"{name}: expected a numeric (n, 3) array of floats, got dtype {arr.dtype}")
   if arr.ndim != 2 or arr.shape[1] != 3:
@@ -91,7 +95,11 @@ def validate_cloud(points: np.ndarray, name: str = "points") -> np.ndarray:
 
 def validate_keypoints(keypoints: np.ndarray, n_points: int, name: str = "keypoints") -> np.ndarray:
   """Check that `keypoints` is a 1-D array of integer indices into a cloud of `n_points`."""
-  kp = np.asarray(keypoints)
+  try:
+    kp = np.asarray(keypoints)
+  except (TypeError, ValueError):  # e.g. nested lists of different lengths
+    raise ValueError(f"{name}: expected a 1-D array of point indices, got "
+                     f"{type(keypoints).__name__} {keypoints!r:.80} (not an array)") from None
   if kp.ndim != 1:
     raise ValueError(f"{name}: expected a 1-D array of point indices, got shape {kp.shape}")
   if kp.size and kp.dtype.kind not in "iu":
@@ -106,7 +114,9 @@ def validate_keypoints(keypoints: np.ndarray, n_points: int, name: str = "keypoi
 
 
 def validate_radius(radius: float, name: str = "radius") -> float:
-  """Check that the support radius is a positive finite number."""
+  """Check that the support radius is a positive finite number (not a string or bool)."""
+  if isinstance(radius, (str, bytes, bool, np.bool_)):
+    raise ValueError(f"{name}: expected a positive number, got {radius!r}")
   try:
     r = float(radius)
   except (TypeError, ValueError):
@@ -114,6 +124,52 @@ def validate_radius(radius: float, name: str = "radius") -> float:
   if not np.isfinite(r) or r <= 0:
     raise ValueError(f"{name}: expected a positive finite number (cloud units), got {radius!r}")
   return r
+
+
+def validate_faces(faces: object, n_points: int, name: str = "faces") -> np.ndarray:
+  """Check that `faces` is an (f, 3) integer array of indices into `n_points` vertices.
+
+  Returns:
+    The faces as int64.
+  """
+  try:
+    f = np.asarray(faces)
+  except (TypeError, ValueError):  # e.g. rows of different lengths
+    raise ValueError(f"{name}: expected an (f, 3) integer array of triangle vertex indices, got "
+                     f"{type(faces).__name__} {faces!r:.80} (not an array)") from None
+  if f.ndim != 2 or f.shape[1] != 3 or (f.size and f.dtype.kind not in "iu"):
+    raise ValueError(f"{name}: expected an (f, 3) integer array of triangle vertex indices, got "
+                     f"shape {f.shape} and dtype {f.dtype}")
+  f = f.astype(np.int64)
+  if f.size and (f.min() < 0 or f.max() >= n_points):
+    raise ValueError(f"{name}: indices must lie in [0, {n_points}), got [{f.min()}, {f.max()}]")
+  return f
+
+
+def validate_normals(normals: object, n_points: int, name: str = "normals") -> np.ndarray:
+  """Check that `normals` is an (n_points, 3) array of real numbers. NaN rows are allowed: they
+  mark missing normals, and the frames that need them come out invalid.
+
+  Returns:
+    The normals as an array (dtype unchanged).
+  """
+  try:
+    nrm = np.asarray(normals)
+  except (TypeError, ValueError):  # e.g. rows of different lengths
+    nrm = np.empty(())  # reported as shape ()
+  if nrm.shape != (n_points, 3):
+    raise ValueError(f"{name}: expected shape {(n_points, 3)} (one per point), got {nrm.shape}")
+  if nrm.dtype.kind not in "fiu":
+    raise ValueError(f"{name}: expected real numbers, got dtype {nrm.dtype}")
+  return nrm
+
+
+def validate_seed(seed: object, name: str = "seed") -> int:
+  """Check that a seed is a non-negative integer (numpy's and jax's generators need one)."""
+  if (isinstance(seed, (bool, np.bool_)) or not isinstance(seed, (int, np.integer))
+      or seed < 0):
+    raise ValueError(f"{name}: expected a non-negative integer, got {seed!r}")
+  return int(seed)
 
 
 def validate_viewpoint(viewpoint: object, name: str = "viewpoint") -> np.ndarray | None:
@@ -155,9 +211,8 @@ class SearchIndex:
 
   Ranks are the seeded priority order (`hash_priority(seed, index)`, ties broken by index), so
   that "the K points of smallest priority" of a ball are its K points of smallest rank. Grids
-  (`lrf_jax.engine.Grid`) are built lazily, one per cell size, for cells of `radius / 3` (the
-  size that measured fastest for the paper's 15 mr balls on BR; any radius is answered by any
-  grid, only the speed changes).
+  (`lrf_jax.engine.Grid`) are built lazily, one per cell size, for cells of `radius / 3` (any
+  radius is answered by any grid, only the speed changes).
 
   Args:
     points: (n, 3) cloud (float64 on the host).

@@ -2,7 +2,7 @@
 
 Everything here runs once per cloud on the host (numpy / scipy, float64); the LRF functions in
 `lrf_jax.frames` then receive per-keypoint gathers of these arrays through their `prepare` hook
-(`prepare_normals`, `frames.rops.prepare_triangles`).
+(`frames.normal_based.prepare_normals`, `frames.rops.prepare_triangles`).
 
 Normals (`estimate_normals`, used when `compute_frames` is called without `normals=`):
 
@@ -315,27 +315,3 @@ def default_normals(points: np.ndarray, radius: float, faces: np.ndarray | None,
                        f"got {nrm.shape}")
     return nrm
   return estimate_normals(points, NORMAL_RADIUS_RATIO * radius, faces, viewpoint)
-
-
-def prepare_normals(points: np.ndarray, keypoints: np.ndarray, patches, *,
-                    faces: np.ndarray | None = None, normals: np.ndarray | None = None,
-                    radius: float) -> dict[str, np.ndarray]:
-  """`MethodSpec.prepare` hook of the normal-based LRFs (mian, board, flare, ps).
-
-  Args:
-    points: (n, 3) cloud.
-    keypoints: (N,) indices.
-    patches: their `Patches` (K slots).
-    faces: optional (f, 3) triangles (used to orient estimated normals).
-    normals: optional (n, 3) normals; None = `estimate_normals`.
-    radius: the support radius r.
-
-  Returns:
-    {"normals": (N, K, 3) float32 normals of the patch slots (0 in padding, NaN where undefined),
-     "kp_normal": (N, 3) float32 normal of each keypoint}.
-  """
-  nrm = default_normals(points, radius, faces, normals).astype(np.float32)
-  idx = np.asarray(patches.indices)
-  gathered = nrm[np.maximum(idx, 0)]
-  gathered[idx < 0] = 0.0
-  return {"normals": gathered, "kp_normal": nrm[np.asarray(keypoints)]}

@@ -76,7 +76,7 @@ def main(argv: list[str] | None = None) -> int:
 
   params = None
   if args.checkpoint:
-    from lrf_jax.train_lib import restore_params
+    from lrf_jax.checkpoints import restore_params
     params, _ = restore_params(args.checkpoint, "best")
   try:
     reg = register(args.source, args.target, mr=args.mr, radius_mr=args.radius_mr,

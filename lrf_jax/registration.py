@@ -31,7 +31,6 @@ from __future__ import annotations
 import contextlib
 import dataclasses
 import functools
-import os
 import time
 from typing import Any, NamedTuple
 
@@ -40,8 +39,15 @@ import jax.numpy as jnp
 import numpy as np
 
 from lrf_jax import engine
+from lrf_jax.api import compute_frames
+from lrf_jax.datasets.resolution import mesh_resolution
+from lrf_jax.descriptors import (DESCRIPTORS, compute_descriptors, match_descriptors,
+                                 top_correspondences)
+from lrf_jax.frames import METHODS
 from lrf_jax.geometry import kabsch
-from lrf_jax.neighborhoods import validate_viewpoint
+from lrf_jax.inputs import as_cloud
+from lrf_jax.neighborhoods import validate_seed, validate_viewpoint
+from lrf_jax.normals import NORMAL_RADIUS_RATIO, estimate_normals
 
 # ------------------------------------------------------------------------------------------------
 # Pose errors
@@ -413,7 +419,6 @@ class Registration:
 
 
 def _as_cloud(x: Any, name: str) -> tuple[np.ndarray, np.ndarray | None]:
-  from lrf_jax.inputs import as_cloud
   cloud = as_cloud(x, name)
   return cloud.points, cloud.faces
 
@@ -504,7 +509,8 @@ def register(source: Any, target: Any, *, mr: float | None = None, radius_mr: fl
 
   Raises:
     ValueError: a cloud that is not a non-empty (n, 3) array of finite floats, fewer than 10
-      points, a non-positive count or distance, or an unknown estimator/method/descriptor.
+      points, a non-positive count or distance, a seed that is not a non-negative integer, or
+      an unknown estimator/method/descriptor.
     FileNotFoundError: a path that does not exist.
 
   Example:
@@ -645,10 +651,6 @@ def _prepare(source: Any, target: Any, *, mr, radius_mr, n_keypoints, n_correspo
              iterations, inlier_mr, verify, estimator, icp_iterations, icp_mr, method,
              descriptor, seed, views) -> _Setup:
   """Stage "prepare": read and check the inputs, measure mr, pick keypoints, estimate normals."""
-  from lrf_jax.datasets.resolution import mesh_resolution
-  from lrf_jax.descriptors import DESCRIPTORS
-  from lrf_jax.frames import METHODS
-  from lrf_jax.normals import NORMAL_RADIUS_RATIO, estimate_normals
 
   src_pts, src_faces = _as_cloud(source, "source")
   dst_pts, dst_faces = _as_cloud(target, "target")
@@ -656,20 +658,21 @@ def _prepare(source: Any, target: Any, *, mr, radius_mr, n_keypoints, n_correspo
     if len(pts) < 10:
       raise ValueError(f"{name}: expected a cloud of at least 10 points, got {len(pts)}")
   for name, val in (("radius_mr", radius_mr), ("inlier_mr", inlier_mr), ("icp_mr", icp_mr)):
-    if not (np.isfinite(val) and val > 0):
+    if not _is_positive(val):
       raise ValueError(f"{name}: expected a positive number of mesh resolutions, got {val!r}")
   for name, val in (("n_keypoints", n_keypoints), ("n_correspondences", n_correspondences),
                     ("iterations", iterations)):
-    if int(val) != val or val < 1:
+    if not _is_count(val, 1):
       raise ValueError(f"{name}: expected a positive integer, got {val!r}")
   for name, val in (("icp_iterations", icp_iterations), ("verify", verify)):
-    if val is not None and (int(val) != val or val < 0):
+    if not ((val is None and name == "verify") or _is_count(val, 0)):
       raise ValueError(f"{name}: expected a non-negative integer, got {val!r}")
+  seed = validate_seed(seed)
   if estimator not in ("lrf", "3point"):
     raise ValueError(f"estimator: expected 'lrf' or '3point', got {estimator!r}")
-  if method not in METHODS:
+  if not isinstance(method, str) or method not in METHODS:
     raise ValueError(f"method: unknown LRF method {method!r}; expected one of {sorted(METHODS)}")
-  if descriptor not in DESCRIPTORS:
+  if not isinstance(descriptor, str) or descriptor not in DESCRIPTORS:
     raise ValueError(f"descriptor: unknown descriptor {descriptor!r}; expected one of "
                      f"{sorted(DESCRIPTORS)}")
   spec = METHODS[method]
@@ -679,7 +682,7 @@ def _prepare(source: Any, target: Any, *, mr, radius_mr, n_keypoints, n_correspo
              for name, vp in zip(("source_viewpoint", "target_viewpoint"), views)]
   if mr is None:
     mr, _ = mesh_resolution(src_pts, src_faces)
-  elif not (np.isfinite(mr) and mr > 0):
+  elif not _is_positive(mr):
     raise ValueError(f"mr: expected a positive mesh resolution, got {mr!r}")
   radius = radius_mr * mr
   rng = np.random.default_rng(seed)
@@ -687,18 +690,35 @@ def _prepare(source: Any, target: Any, *, mr, radius_mr, n_keypoints, n_correspo
   for pts, faces, vp in ((src_pts, src_faces, checked[0]), (dst_pts, dst_faces, checked[1])):
     kp = np.sort(rng.choice(len(pts), min(int(n_keypoints), len(pts)), replace=False))
     normals = None
-    if vp is not None and ((spec.prepare is not None and not spec.uses_viewpoint)
-                           or descriptor == "shot"):
+    if vp is not None and (spec.needs_normals or descriptor == "shot"):
       normals = estimate_normals(pts, NORMAL_RADIUS_RATIO * radius, faces, vp)
     sides.append(_Side(pts, faces, vp, kp, normals))
   return _Setup(tuple(sides), float(mr), float(radius), rng)
 
 
+def _is_positive(val: Any) -> bool:
+  """A positive finite number (False for strings, bools, None, lists: no TypeError)."""
+  if isinstance(val, (str, bytes, bool, np.bool_)):
+    return False
+  try:
+    return bool(np.isfinite(val) and val > 0)
+  except (TypeError, ValueError):
+    return False
+
+
+def _is_count(val: Any, minimum: int) -> bool:
+  """An integer-valued number >= minimum (1000.0 counts; strings, bools, None and 2.5 do not)."""
+  if isinstance(val, (str, bytes, bool, np.bool_)):
+    return False
+  try:
+    return bool(int(val) == val and val >= minimum)
+  except (TypeError, ValueError, OverflowError):
+    return False
+
+
 def _side_frames(side: _Side, setup: _Setup, method: str, params: Any, seed: int
                  ) -> tuple[np.ndarray, np.ndarray]:
   """Stage "frames": the LRFs of one side's keypoints."""
-  from lrf_jax.api import compute_frames
-  from lrf_jax.frames import METHODS
 
   frames, valid = compute_frames(
       side.points, side.keypoints, setup.radius, method, params=params, faces=side.faces,
@@ -710,7 +730,6 @@ def _side_frames(side: _Side, setup: _Setup, method: str, params: Any, seed: int
 def _side_descriptors(side: _Side, frames: tuple[np.ndarray, np.ndarray], setup: _Setup,
                       descriptor: str, seed: int) -> tuple[np.ndarray, np.ndarray]:
   """Stage "descriptors": one side's descriptors on its frames."""
-  from lrf_jax.descriptors import compute_descriptors
 
   desc, ok = compute_descriptors(side.points, side.keypoints, setup.radius, frames[0],
                                  frames[1], descriptor, faces=side.faces, seed=seed,
@@ -721,7 +740,6 @@ def _side_descriptors(side: _Side, frames: tuple[np.ndarray, np.ndarray], setup:
 def _match(frames, descs, estimator: str, n_correspondences: int, radius_mr: float
            ) -> tuple[np.ndarray, np.ndarray]:
   """Stage "matching": nearest descriptors, the `n_correspondences` of smallest ratio."""
-  from lrf_jax.descriptors import match_descriptors, top_correspondences
 
   (_, v_s), (_, v_t) = frames
   (d_s, ok_s), (d_t, ok_t) = descs

@@ -33,3 +33,11 @@ def br_bunny(data_root):
   """The BR bunny model (points float64, faces), its mr (mean edge length) and Scene0's .xf."""
   from tests.lrf_testing import load_br_model
   return load_br_model(data_root, "bunny", scene=0)
+
+
+def pytest_collection_modifyitems(config, items):
+  """Every test that reaches the real data through the `data_root` fixture (directly or through
+  a fixture built on it) is marked `data`, so `-m "not data"` means what it says."""
+  for item in items:
+    if "data_root" in getattr(item, "fixturenames", ()):
+      item.add_marker(pytest.mark.data)

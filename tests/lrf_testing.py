@@ -60,3 +60,36 @@ def load_br_model(root: Path, name: str, scene: int | None = None):
   if scene is not None:
     xf = np.loadtxt(Path(root) / "bologna_retrieval" / "scenes" / f"Scene{scene}-rs0.xf")
   return pts, faces, mr, xf
+
+
+N_GOOD = 12  # interior keypoints of `synthetic_mesh`
+
+
+def synthetic_mesh():
+  """An irregular 41 x 41 height field (radius 6) plus two degenerate far-away parts.
+
+  Returns:
+    (points, faces, keypoints, radius): the first `N_GOOD` keypoints are interior surface points,
+    then a keypoint with one neighbour and one on a collinear support.
+  """
+  rng = np.random.default_rng(3)
+  n = 41
+  gx, gy = np.meshgrid(np.arange(n, dtype=float), np.arange(n, dtype=float), indexing="ij")
+  x = gx + rng.uniform(-0.1, 0.1, gx.shape)
+  y = gy + rng.uniform(-0.1, 0.1, gy.shape)
+  z = 1.5 * np.sin(0.35 * x + 0.2 * y) + 0.8 * np.cos(0.3 * y - 0.15 * x) + 0.01 * x * y
+  grid = np.stack([x, y, z], -1).reshape(-1, 3)
+  ids = np.arange(n * n).reshape(n, n)
+  a, b, c, d = ids[:-1, :-1], ids[1:, :-1], ids[1:, 1:], ids[:-1, 1:]
+  faces = np.concatenate([np.stack([a, b, c], -1).reshape(-1, 3),
+                          np.stack([a, c, d], -1).reshape(-1, 3)])
+  pair = np.array([[500.0, 500.0, 500.0], [500.1, 500.0, 500.0]])  # too few neighbours
+  direction = np.array([1.0, 2.0, 3.0]) / np.sqrt(14.0)
+  line = np.array([-500.0, -500.0, -500.0]) + 0.5 * np.arange(30)[:, None] * direction  # collinear
+  points = np.concatenate([grid, pair, line])
+  l0 = n * n + 2
+  line_faces = np.stack([l0 + np.arange(28), l0 + np.arange(1, 29), l0 + np.arange(2, 30)], -1)
+  faces = np.concatenate([faces, line_faces])  # zero-area triangles along the line
+  interior = ids[14:27:4, 14:27:4].reshape(-1)[:12]
+  keypoints = np.concatenate([interior, [n * n], [l0 + 15]])
+  return points, faces.astype(np.int64), keypoints, 6.0

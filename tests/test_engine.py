@@ -200,7 +200,7 @@ def test_shell_patches_hold_exactly_the_inner_and_outer_neighbours():
 def test_flare_frames_from_shell_patches_equal_full_patches():
   from lrf_jax.api import frames_from_patches
   from lrf_jax.frames import METHODS
-  from lrf_jax.normals import prepare_normals
+  from lrf_jax.frames.normal_based import prepare_normals
   rng = np.random.default_rng(8)
   u, v = rng.uniform(-1, 1, size=(2, 8000))
   pts = np.c_[u, v, 0.2 * np.sin(2 * u) * np.cos(3 * v)]

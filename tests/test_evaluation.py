@@ -147,6 +147,7 @@ def test_plus_ablation_switches_and_figure(tmp_path):
   assert "## plus_ablation" in (tmp_path / "report.md").read_text()
 
 
+@pytest.mark.slow
 def test_plus_with_switches_off_is_the_ball_sign_construction(demo_pair):
   from lrf_jax.frames.lrf_net import lrf_net_frames
   from lrf_jax.model import default_params
@@ -192,6 +193,7 @@ def test_method_styles_are_distinct_for_any_number_of_methods():
     assert len({(tuple(c), h) for c, h in styles.values()}) == n
 
 
+@pytest.mark.slow
 def test_evaluate_progress_total_is_the_number_of_records(tmp_path):
   """The bar's total (its ETA) is computed before any work: it equals the records run."""
   from lrf_jax.evaluation import runner

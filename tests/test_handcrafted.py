@@ -1,11 +1,10 @@
-"""Hand-crafted LRFs (mian, shot, rops, board, flare, ps, gframes, toldi): the conventions.
+"""Hand-crafted LRFs (mian, shot, rops, board, flare, ps, gframes, toldi): what is theirs.
 
-For every method: orthonormal rows and det +1; rotation + translation equivariance on real BR bunny
-patches (exact, except Mian's x/y, which are sign-ambiguous by definition); invariance to the order
-of the patch slots (and triangle slots) and to extra padding holding garbage; degenerate keypoints
-(too few neighbours, collinear support, NaN input) flagged invalid with an identity frame.
-Plus: TOLDI's signed vs unsigned x weights, SHOT's batched tie rule, and the normal estimation's
-equivariance.
+Rotation + translation equivariance on real BR bunny patches (exact, except Mian's x/y, which are
+sign-ambiguous by definition); mesh methods refusing clouds; the default normals; TOLDI's signed
+vs unsigned x weights, SHOT's batched tie rule, and the normal estimation's equivariance. The
+properties every registered method shares (orthonormal, degenerate keypoints invalid, slot order
+and padding invariance, NaN input) are in test_method_properties.py.
 """
 
 from __future__ import annotations
@@ -18,186 +17,21 @@ import pytest
 import lrf_jax
 from lrf_jax import datasets
 from lrf_jax import normals as nm
-from lrf_jax.api import frames_from_patches
 from lrf_jax.frames import shot as shot_mod
-from lrf_jax.neighborhoods import build_patches
-from tests.lrf_testing import (assert_frames_orthonormal, equivariance_deficit, random_rotation)
+from tests.lrf_testing import (N_GOOD, assert_frames_orthonormal, equivariance_deficit,
+                               random_rotation, synthetic_mesh)
 
 METHODS = ("toldi", "mian", "shot", "rops", "board", "flare", "ps", "gframes")
-SLOT_KEYS = ("normals",)  # extra arrays indexed like the patch slots (N, K, ...)
-TRI_KEYS = ("tri", "tri_mask", "tri_f")  # extra arrays indexed by triangle slot (N, T, ...)
 EXACT = 1e-4  # largest allowed 1 - MeanCos for "exact" equivariance (float32 round-off: ~1e-7)
 
 
-# ----------------------------------------------------------------------------------------------
-# A synthetic mesh: an irregular height field plus two degenerate far-away parts.
-# ----------------------------------------------------------------------------------------------
-
-
-def _synthetic():
-  rng = np.random.default_rng(3)
-  n = 41
-  gx, gy = np.meshgrid(np.arange(n, dtype=float), np.arange(n, dtype=float), indexing="ij")
-  x = gx + rng.uniform(-0.1, 0.1, gx.shape)
-  y = gy + rng.uniform(-0.1, 0.1, gy.shape)
-  z = 1.5 * np.sin(0.35 * x + 0.2 * y) + 0.8 * np.cos(0.3 * y - 0.15 * x) + 0.01 * x * y
-  grid = np.stack([x, y, z], -1).reshape(-1, 3)
-  ids = np.arange(n * n).reshape(n, n)
-  a, b, c, d = ids[:-1, :-1], ids[1:, :-1], ids[1:, 1:], ids[:-1, 1:]
-  faces = np.concatenate([np.stack([a, b, c], -1).reshape(-1, 3),
-                          np.stack([a, c, d], -1).reshape(-1, 3)])
-  pair = np.array([[500.0, 500.0, 500.0], [500.1, 500.0, 500.0]])  # too few neighbours
-  direction = np.array([1.0, 2.0, 3.0]) / np.sqrt(14.0)
-  line = np.array([-500.0, -500.0, -500.0]) + 0.5 * np.arange(30)[:, None] * direction  # collinear
-  points = np.concatenate([grid, pair, line])
-  l0 = n * n + 2
-  line_faces = np.stack([l0 + np.arange(28), l0 + np.arange(1, 29), l0 + np.arange(2, 30)], -1)
-  faces = np.concatenate([faces, line_faces])  # zero-area triangles along the line
-  interior = ids[14:27:4, 14:27:4].reshape(-1)[:12]
-  keypoints = np.concatenate([interior, [n * n], [l0 + 15]])
-  return points, faces.astype(np.int64), keypoints, 6.0
-
-
-SYN = _synthetic()
-N_GOOD = 12  # the first 12 keypoints are interior surface points; then the pair, the line
-
-
-def _inputs(method, points, faces, keypoints, radius, normals=None, k=None):
-  spec = lrf_jax.METHODS[method]
-  patches = build_patches(points, keypoints, radius, k, z_ratio=spec.z_ratio)
-  extra = None
-  if spec.prepare is not None:
-    extra = spec.prepare(points, keypoints, patches, faces=faces, normals=normals, radius=radius)
-  return patches, extra
-
-
-def _run(method, patches, extra):
-  f, v = frames_from_patches(patches, method, extra=extra)
-  return np.asarray(f), np.asarray(v)
+SYN = synthetic_mesh()
 
 
 @pytest.fixture(scope="module")
 def synthetic_normals():
   points, faces, _, radius = SYN
   return nm.estimate_normals(points, nm.NORMAL_RADIUS_RATIO * radius, faces)
-
-
-@pytest.fixture(scope="module", params=METHODS)
-def synthetic_case(request, synthetic_normals):
-  method = request.param
-  points, faces, keypoints, radius = SYN
-  patches, extra = _inputs(method, points, faces, keypoints, radius, synthetic_normals)
-  frames, valid = _run(method, patches, extra)
-  return method, patches, extra, frames, valid
-
-
-def _permute(patches, extra, seed):
-  rng = np.random.default_rng(seed)
-  n, k = patches.mask.shape
-  perm = np.stack([rng.permutation(k) for _ in range(n)])
-  take = lambda a, p: np.take_along_axis(a, p.reshape(p.shape + (1,) * (a.ndim - 2)), axis=1)
-  patches = patches._replace(offsets=take(patches.offsets, perm), mask=take(patches.mask, perm),
-                             indices=take(patches.indices, perm))
-  if extra is not None:
-    extra = dict(extra)
-    for key in SLOT_KEYS:
-      if key in extra:
-        extra[key] = take(extra[key], perm)
-    if "tri" in extra:
-      t = extra["tri_mask"].shape[1]
-      tperm = np.stack([rng.permutation(t) for _ in range(n)])
-      for key in TRI_KEYS:
-        if key in extra:
-          extra[key] = take(extra[key], tperm)
-  return patches, extra
-
-
-def _pad(patches, extra, more=32, seed=0):
-  """Append `more` masked slots (and triangles) holding finite garbage."""
-  rng = np.random.default_rng(seed)
-  n = patches.mask.shape[0]
-  junk = lambda *shape: rng.normal(scale=50.0, size=shape).astype(np.float32)
-  patches = patches._replace(
-      offsets=np.concatenate([patches.offsets, junk(n, more, 3)], 1),
-      mask=np.concatenate([patches.mask, np.zeros((n, more), bool)], 1),
-      indices=np.concatenate([patches.indices, np.full((n, more), -1, np.int32)], 1))
-  if extra is not None:
-    extra = dict(extra)
-    for key in SLOT_KEYS:
-      if key in extra:
-        extra[key] = np.concatenate([extra[key], junk(n, more, 3)], 1)
-    if "tri" in extra:
-      extra["tri"] = np.concatenate([extra["tri"], junk(n, more, 3, 3)], 1)
-      extra["tri_mask"] = np.concatenate([extra["tri_mask"], np.zeros((n, more), bool)], 1)
-      if "tri_f" in extra:
-        extra["tri_f"] = np.concatenate([extra["tri_f"], junk(n, more, 3)], 1)
-  return patches, extra
-
-
-# ----------------------------------------------------------------------------------------------
-# Synthetic: orthonormality, validity, degenerate cases, order and padding invariance.
-# ----------------------------------------------------------------------------------------------
-
-
-def test_registered_with_needs():
-  for m in METHODS:
-    assert m in lrf_jax.METHODS
-  assert lrf_jax.METHODS["rops"].needs_mesh and lrf_jax.METHODS["gframes"].needs_mesh
-  for m in ("mian", "board", "flare", "ps", "gframes", "rops"):
-    assert lrf_jax.METHODS[m].prepare is not None
-
-
-def test_orthonormal_valid_and_degenerate(synthetic_case):
-  method, _, _, frames, valid = synthetic_case
-  assert_frames_orthonormal(frames, valid)
-  assert valid[:N_GOOD].all(), f"{method}: interior keypoints invalid: {valid[:N_GOOD]}"
-  assert not valid[N_GOOD], f"{method}: a 2-point neighbourhood must be invalid"
-  assert not valid[N_GOOD + 1], f"{method}: a collinear support must be invalid"
-  np.testing.assert_array_equal(frames[~valid], np.broadcast_to(np.eye(3), frames[~valid].shape))
-
-
-def test_frames_differ_between_keypoints(synthetic_case):
-  # Guards against a method that ignores its input (e.g. returns a constant valid frame).
-  method, _, _, frames, valid = synthetic_case
-  f = frames[:N_GOOD]
-  cos = np.einsum("ni,mi->nm", f[:, 0], f[:, 0])
-  assert (cos < 0.999).sum() > 0, method
-
-
-def test_slot_order_invariance(synthetic_case):
-  method, patches, extra, frames, valid = synthetic_case
-  p2, e2 = _permute(patches, extra, seed=1)
-  f2, v2 = _run(method, p2, e2)
-  np.testing.assert_array_equal(v2, valid)
-  np.testing.assert_allclose(f2, frames, atol=2e-5)
-
-
-def test_padding_invariance(synthetic_case):
-  method, patches, extra, frames, valid = synthetic_case
-  p2, e2 = _pad(patches, extra)
-  f2, v2 = _run(method, p2, e2)
-  np.testing.assert_array_equal(v2, valid)
-  np.testing.assert_allclose(f2, frames, atol=2e-5)
-
-
-def test_nan_input_is_invalid_not_nan(synthetic_case):
-  method, patches, extra, frames, valid = synthetic_case
-  bad = 3
-  if method in ("rops", "gframes"):
-    extra = dict(extra)
-    tri = extra["tri"].copy()
-    tri[bad, int(np.argmax(extra["tri_mask"][bad])), 1, 2] = np.nan
-    extra["tri"] = tri
-  else:
-    offsets = patches.offsets.copy()
-    offsets[bad, int(np.argmax(patches.mask[bad])), 0] = np.nan
-    patches = patches._replace(offsets=offsets)
-  f2, v2 = _run(method, patches, extra)
-  assert not v2[bad]
-  np.testing.assert_array_equal(f2[bad], np.eye(3))
-  keep = np.arange(len(v2)) != bad
-  np.testing.assert_array_equal(v2[keep], valid[keep])
-  np.testing.assert_allclose(f2[keep], frames[keep], atol=1e-6)
 
 
 def test_mesh_methods_need_faces():

@@ -355,7 +355,7 @@ def test_weight_table_is_cached_and_equals_the_parameters_path(bunny):
 
 def test_prepare_view_precedence(br_bunny):
   """lrf_net_plus's sign reference: viewpoint, else given normals, else winding-oriented normals."""
-  from lrf_jax.frames.lrf_net import prepare_view
+  from lrf_jax.frames.lrf_net_plus import prepare_view
   from lrf_jax.normals import NORMAL_RADIUS_RATIO, estimate_normals
 
   points, faces, mr, _ = br_bunny
@@ -363,24 +363,24 @@ def test_prepare_view_precedence(br_bunny):
   r = 15 * mr
   patches = build_patches(points, kp, r, 256)
   vp = np.array([0.0, 1.0, 0.0])
-  got = prepare_view(points, kp, patches, faces=faces, radius=r, viewpoint=vp)["view"]
+  got = prepare_view(points, kp, patches, faces=faces, radius=r, viewpoint=vp).view
   np.testing.assert_allclose(got, vp - points[kp], atol=1e-6)
   nrm = np.tile([0.0, 0.0, 1.0], (len(points), 1))
-  got = prepare_view(points, kp, patches, faces=faces, normals=nrm, radius=r)["view"]
+  got = prepare_view(points, kp, patches, faces=faces, normals=nrm, radius=r).view
   near = patches.mask & (np.linalg.norm(patches.offsets, axis=-1) <= r / 3)
   np.testing.assert_allclose(got, nrm[kp] * near.sum(1)[:, None])  # summed over the z support
   assert (near.sum(1) < patches.mask.sum(1)).all()
   est = estimate_normals(points, NORMAL_RADIUS_RATIO * r, faces)
   want = np.stack([np.nansum(est[i[m]], 0) for i, m in zip(patches.indices, near)])
-  np.testing.assert_allclose(prepare_view(points, kp, patches, faces=faces, radius=r)["view"],
+  np.testing.assert_allclose(prepare_view(points, kp, patches, faces=faces, radius=r).view,
                              want, rtol=1e-5, atol=1e-4)
-  assert not prepare_view(points, kp, patches, radius=r)["view"].any()  # nothing: ball sign
+  assert not prepare_view(points, kp, patches, radius=r).view.any()  # nothing: ball sign
   f, v = lrf_jax.compute_frames(points, kp, r, "lrf_net_plus", params=PARAMS, faces=faces)
   assert (np.einsum("nc,nc->n", np.asarray(f)[:, 2], want) >= 0).all()
 
 
 def test_patch_areas_follow_sampling_density():
-  from lrf_jax.frames.lrf_net import patch_areas
+  from lrf_jax.frames.lrf_net_plus import patch_areas
 
   rng = np.random.default_rng(2)
   sparse = rng.uniform([-2, -2], [0, 2], (2000, 2))
@@ -403,7 +403,7 @@ def test_patch_areas_follow_sampling_density():
 
 def test_patch_areas_of_a_mesh_are_barycentric():
   """With faces, a vertex stands for a third of its triangles' area (they sum to the mesh's)."""
-  from lrf_jax.frames.lrf_net import patch_areas, vertex_areas
+  from lrf_jax.frames.lrf_net_plus import patch_areas, vertex_areas
 
   # a 2 x 1 strip: left square cut into 2 triangles, right square into 8 (finer on the right)
   g = np.array([[x, y, 0.0] for y in (0, 1) for x in (0, 1, 2)])  # 0..5

@@ -12,7 +12,8 @@ import numpy as np
 import pytest
 
 from lrf_jax import config as config_lib
-from lrf_jax import data_sources, train_lib
+from lrf_jax import checkpoints, data_sources, train_lib, train_step
+from lrf_jax.batches import BatchMaker, crop_patches
 from lrf_jax.losses import siamese_loss
 from lrf_jax.model import load_params
 
@@ -33,10 +34,10 @@ def smoke_run(tmp_path_factory, smoke):
 
 def test_smoke_trains_and_loss_falls(smoke_run, smoke):
   workdir, final = smoke_run
-  maker = train_lib.BatchMaker(data_sources.training_clouds(smoke), smoke)
+  maker = BatchMaker(data_sources.training_clouds(smoke), smoke)
   batches = [jax.tree.map(jnp.asarray, maker.batch(0, i)) for i in range(4)]
   loss = jax.jit(lambda p, b: siamese_loss(p, b.model, b.scene)[0])
-  before = np.mean([loss(train_lib.create_state(smoke).params, b) for b in batches])
+  before = np.mean([loss(train_step.create_state(smoke).params, b) for b in batches])
   after = np.mean([loss(load_params(workdir / "final_params.msgpack"), b) for b in batches])
   assert after < 0.98 * before, (before, after)
   rows = [json.loads(l) for l in (workdir / "metrics.jsonl").read_text().splitlines()]
@@ -49,6 +50,7 @@ def test_smoke_trains_and_loss_falls(smoke_run, smoke):
   assert (workdir / "best_params.msgpack").exists()
 
 
+@pytest.mark.slow
 def test_killed_run_resumes_to_the_same_state(tmp_path, smoke):
   cfg = config_lib.replace(smoke, epochs=2)
   full = train_lib.train_and_evaluate(cfg, tmp_path / "a", progress=False)
@@ -65,7 +67,7 @@ def test_killed_run_resumes_to_the_same_state(tmp_path, smoke):
 
 def test_restore_params_for_evaluation(smoke_run, smoke):
   workdir, _ = smoke_run
-  params, cfg = train_lib.restore_params(workdir, "latest")
+  params, cfg = checkpoints.restore_params(workdir, "latest")
   assert cfg == smoke
   final = load_params(workdir / "final_params.msgpack")
   for x, y in zip(jax.tree.leaves(params), jax.tree.leaves(final)):
@@ -106,6 +108,7 @@ def _train_in_subprocess(workdir: Path, devices: int) -> list[dict]:
   return [json.loads(l) for l in (workdir / "metrics.jsonl").read_text().splitlines()]
 
 
+@pytest.mark.slow
 def test_four_devices_give_the_same_loss_as_one(tmp_path):
   """The batch is sharded over 4 devices: the loss and gradient of a step are the same numbers.
 
@@ -128,10 +131,10 @@ def test_crop_augmentation_cuts_by_a_plane():
   rng = np.random.default_rng(0)
   pts = rng.normal(size=(4000, 3)) * [1.0, 1.0, 0.05]
   patches = build_patches(pts, np.arange(0, 4000, 40), 0.8, 64)
-  same = train_lib.crop_patches(patches, 0.0, 0.3, np.random.default_rng(1))
+  same = crop_patches(patches, 0.0, 0.3, np.random.default_rng(1))
   for a, b in zip(same, patches):
     np.testing.assert_array_equal(a, b)
-  cut = train_lib.crop_patches(patches, 1.0, 0.3, np.random.default_rng(1))
+  cut = crop_patches(patches, 1.0, 0.3, np.random.default_rng(1))
   lost = patches.mask & ~cut.mask
   assert lost.any(axis=1).mean() > 0.5  # most patches lose a side
   assert not (cut.mask & ~patches.mask).any()  # nothing is added
@@ -140,7 +143,7 @@ def test_crop_augmentation_cuts_by_a_plane():
   np.testing.assert_array_equal(cut.offsets[cut.mask], patches.offsets[cut.mask])
   assert (cut.offsets[lost] == 0).all() and (cut.indices[lost] == -1).all()
   assert np.linalg.norm(patches.offsets[lost], axis=-1).min() > 0.3 * 0.8
-  again = train_lib.crop_patches(patches, 1.0, 0.3, np.random.default_rng(1))
+  again = crop_patches(patches, 1.0, 0.3, np.random.default_rng(1))
   np.testing.assert_array_equal(again.mask, cut.mask)  # seeded
   with pytest.raises(ValueError, match="crop"):
     config_lib.replace(config_lib.TrainConfig(), crop_p=1.5)
@@ -159,10 +162,11 @@ def test_diverging_run_stops_without_saving_nonfinite_params(tmp_path, capsys):
   assert not (tmp_path / "final_params.msgpack").exists()
   assert not (tmp_path / "best_params.msgpack").exists()
   if any((tmp_path / "checkpoints").glob("[0-9]*")):
-    params, _ = train_lib.restore_params(tmp_path, "latest")
-    assert not train_lib.nonfinite_leaves(params)
+    params, _ = checkpoints.restore_params(tmp_path, "latest")
+    assert not checkpoints.nonfinite_leaves(params)
 
 
+@pytest.mark.slow
 def test_resumed_run_logs_each_step_once(tmp_path, smoke):
   cfg = config_lib.replace(smoke, epochs=2)
   import shutil
@@ -192,17 +196,23 @@ def test_bad_override_is_a_clean_error_naming_the_key(override, key, tmp_path, c
   assert "Traceback" not in err and not any(tmp_path.iterdir())
 
 
-def test_corrupt_latest_checkpoint_falls_back_to_the_previous_one(tmp_path, smoke):
+@pytest.mark.slow
+@pytest.mark.parametrize("damaged", ["_METADATA", "manifest.ocdbt"])
+def test_corrupt_latest_checkpoint_falls_back_to_the_previous_one(tmp_path, smoke, damaged,
+                                                                   capfd):
   cfg = config_lib.replace(smoke, epochs=2)
   train_lib.train_and_evaluate(cfg, tmp_path, progress=False, stop_after_steps=12)
   steps = sorted(int(p.name) for p in (tmp_path / "checkpoints").iterdir() if p.name.isdigit())
   assert steps[-2:] == [8, 12], steps  # the latest two are kept
-  (tmp_path / "checkpoints" / "12" / "state" / "_METADATA").write_bytes(b"")
+  (tmp_path / "checkpoints" / "12" / "state" / damaged).write_bytes(b"")
+  capfd.readouterr()
   with pytest.warns(UserWarning, match=r"checkpoints/12 .*resumed from checkpoints/8"):
     final = train_lib.train_and_evaluate(cfg, tmp_path, progress=False)
+  err = capfd.readouterr().err
+  assert "Traceback" not in err and "Event loop is closed" not in err, err[:2000]
   assert final["step"] == cfg.total_steps
   assert (tmp_path / "checkpoints" / "12.unreadable").is_dir()
-  assert not train_lib.nonfinite_leaves(load_params(tmp_path / "final_params.msgpack"))
+  assert not checkpoints.nonfinite_leaves(load_params(tmp_path / "final_params.msgpack"))
 
 
 def test_no_readable_checkpoint_is_one_clean_error(tmp_path, smoke, capsys):
@@ -217,3 +227,41 @@ def test_no_readable_checkpoint_is_one_clean_error(tmp_path, smoke, capsys):
   rc = train.main(["--config", "smoke", "--workdir", str(tmp_path), "--no-progress", "epochs=2"])
   err = capsys.readouterr().err
   assert rc == 2 and "no readable checkpoint" in err and "start afresh" in err, err
+
+
+def test_validate_traces_its_frames_function_once(smoke, monkeypatch):
+  """The frames function is jitted once per validation set: a second call (same shapes) reuses
+  the compiled code instead of tracing again."""
+  traces = []
+
+  def counting_frames_fn(config):
+    fn = train_step.frames_fn(config)
+
+    def traced(params, patches):
+      traces.append(patches.offsets.shape)  # runs only while tracing
+      return fn(params, patches)
+
+    return traced
+
+  monkeypatch.setattr(train_lib, "frames_fn", counting_frames_fn)
+  cfg = config_lib.replace(smoke, val_pairs=2, val_keypoints=20)
+  val = train_lib.build_validation(data_sources.validation_pairs(cfg), cfg)
+  params = train_step.create_state(cfg).params
+  first = train_lib.validate(params, val)
+  second = train_lib.validate(params, val)
+  assert len(val.names) == 2 and len(traces) == 1, traces  # 2 pairs x 2 sides, one shape
+  assert val.frames._cache_size() == 1
+  assert first == second and np.isfinite(first["val_meancos"])
+
+
+def test_learning_rate_schedule_is_built_once_per_run(tmp_path, smoke, monkeypatch):
+  """The optimiser and the logged lr share the one schedule kept on the state."""
+  built = []
+  real = train_step.learning_rate_schedule
+  monkeypatch.setattr(train_step, "learning_rate_schedule",
+                      lambda config: built.append(config) or real(config))
+  cfg = config_lib.replace(smoke, val_pairs=0, log_every=1)
+  final = train_lib.train_and_evaluate(cfg, tmp_path, progress=False, stop_after_steps=1)
+  assert len(built) == 1
+  state = train_step.create_state(cfg)
+  assert final["lr"] == float(state.lr_schedule(0)) == pytest.approx(cfg.learning_rate)

@@ -1,7 +1,6 @@
 """Beyond the paper: the default schedule with Gaussian noise augmentation on the scene side.
 
-The paper trains on noise-free BR only. Trained that way our weights do not beat uniform weights
-on noisy BR (see the training note), so this preset draws, per batch and cloud, a noise level
+The paper trains on noise-free BR only; this preset draws, per batch and cloud, a noise level
 from {0, 0.1, ..., 0.5} mr and adds it to the scene side (the training vertices of the noise-free
 models, never the stored noisy scenes; the evaluation keypoints stay excluded).
 

@@ -29,6 +29,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from lrf_jax.chunks import map_chunks
 from lrf_jax.descriptors import rops as _rops
 from lrf_jax.descriptors import shot as _shot
 from lrf_jax.descriptors import snapshots as _snapshots
@@ -42,7 +43,7 @@ from lrf_jax.descriptors.snapshots import snapshot_descriptors
 from lrf_jax.descriptors.toldi import toldi_descriptors
 from lrf_jax.neighborhoods import (Patches, SearchIndex, build_patches, validate_cloud,
                                    validate_keypoints, validate_radius)
-from lrf_jax.normals import prepare_normals
+from lrf_jax.frames.normal_based import prepare_normals
 
 
 # Keypoints x neighbour slots per jitted call (bounds the memory of the vmapped descriptors).
@@ -92,7 +93,7 @@ def _toldi_fn(patches, frames, valid, extra, **options):
 
 def _shot_prepare(points, keypoints, patches, *, faces=None, normals=None, radius):
   return {"normals": prepare_normals(points, keypoints, patches, faces=faces, normals=normals,
-                                     radius=radius)["normals"]}
+                                     radius=radius).normals}
 
 
 DESCRIPTORS: dict[str, DescriptorSpec] = {
@@ -181,12 +182,8 @@ def describe_patches(patches: Patches, frames: Any, valid: Any, descriptor: str,
   # decimated model's mr, hold 30k+ points): about MAX_SLOTS x 0.5 kB for RoPS.
   k_max = bucket_k(max(1, int(np.asarray(patches.mask).sum(axis=1).max())))
   chunk = max(1, min(int(chunk_size), n, MAX_SLOTS // k_max))
-  out_d, out_v = [], []
-  for start in range(0, n, chunk):
-    idx = np.arange(start, min(start + chunk, n))
-    n_real = idx.size
-    if n_real < chunk:  # pad to the compiled shape with invalid copies of the first keypoint
-      idx = np.concatenate([idx, np.full(chunk - n_real, idx[0])])
+
+  def run(idx: np.ndarray, n_real: int) -> tuple[jax.Array, jax.Array]:
     part = Patches(*(np.asarray(a)[idx] for a in patches))
     k_eff = max(1, int(np.asarray(part.mask).sum(axis=1).max()))
     order = np.argsort(~np.asarray(part.mask), axis=1, kind="stable")[:, :k_eff]
@@ -195,15 +192,14 @@ def describe_patches(patches: Patches, frames: Any, valid: Any, descriptor: str,
                          indices=np.take_along_axis(np.asarray(part.indices), order, 1))
     part = pad_patches(part, bucket_k(k_eff))
     fr, va = frames[idx], valid[idx].copy()
-    va[n_real:] = False
+    va[n_real:] = False  # the padding: invalid copies of the chunk's first keypoint
     kp = np.asarray(keypoints)[idx]
     extra = None
     if spec.prepare is not None:
       extra = spec.prepare(points, kp, part, faces=faces, normals=normals, radius=radius)
-    d, v = descriptors_from_patches(part, fr, va, descriptor, extra=extra, **options)
-    out_d.append(d[:n_real])
-    out_v.append(v[:n_real])
-  return jnp.concatenate(out_d), jnp.concatenate(out_v)
+    return descriptors_from_patches(part, fr, va, descriptor, extra=extra, **options)
+
+  return map_chunks(run, n, chunk)
 
 
 def compute_descriptors(
@@ -261,21 +257,18 @@ def compute_descriptors(
     return jnp.zeros((0, spec.dim), jnp.float32), jnp.zeros((0,), bool)
   if index is None or index.seed != seed or index.points.shape != points.shape:
     index = SearchIndex(points, seed)
-  chunk = min(int(chunk_size), m)
-  out_d, out_v = [], []
-  for start in range(0, m, chunk):
-    sl = slice(start, start + chunk)
+
+  def run(idx: np.ndarray, n_real: int) -> tuple[jax.Array, jax.Array]:
+    kp = keypoints[idx]
     if k is None:  # the whole ball: one plain radius search
-      patches = ball_patches(index, points, keypoints[sl], radius)
+      patches = ball_patches(index, points, kp, radius)
     else:
-      patches = build_patches(points, keypoints[sl], radius, k, seed=seed, index=index,
-                              validate=False)
-    d, v = describe_patches(patches, frames[sl], valid[sl], descriptor, points=points,
-                            keypoints=keypoints[sl], radius=radius, faces=faces,
-                            normals=normals, chunk_size=chunk, **options)
-    out_d.append(d)
-    out_v.append(v)
-  return jnp.concatenate(out_d), jnp.concatenate(out_v)
+      patches = build_patches(points, kp, radius, k, seed=seed, index=index, validate=False)
+    return describe_patches(patches, frames[idx], valid[idx], descriptor, points=points,
+                            keypoints=kp, radius=radius, faces=faces, normals=normals,
+                            chunk_size=len(idx), **options)
+
+  return map_chunks(run, m, min(int(chunk_size), m), pad=False)
 
 
 __all__ = [

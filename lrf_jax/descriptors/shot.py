@@ -133,7 +133,7 @@ def shot_descriptors(patches: Patches, frames: jax.Array, valid: jax.Array,
     frames: (N, 3, 3) LRFs, rows x, y, z, from any method.
     valid: (N,) bool validity of the frames.
     normals: (N, K, 3) the neighbours' unit normals (NaN where undefined, anything in padding),
-      e.g. from `lrf_jax.normals.prepare_normals`.
+      e.g. from `lrf_jax.frames.normal_based.prepare_normals`.
     align_normals: flip a patch's normals together when Σ n_q · z < 0 (module docstring);
       False = PCL.
 

@@ -1,6 +1,6 @@
 """Local shape description (paper section 3.2.2): descriptors on their original LRF vs LRF-Net.
 
-Protocol per model/scene pair (DESIGN.md section 5, as the repeatability experiment):
+Protocol per model/scene pair (as the repeatability experiment):
 
 * keypoints: the repeatability protocol's 1000 seeded model points and their ground-truth scene
   correspondences (`repeatability.correspondences`: by index for BR, by ground truth plus nearest
@@ -39,9 +39,10 @@ from lrf_jax.api import frames_from_patches
 from lrf_jax.datasets import Pair
 from lrf_jax.descriptors import DESCRIPTORS, describe_patches, match_descriptors
 from lrf_jax.evaluation.repeatability import (EXACT_NETWORK, MethodRun, PatchCache, correspondences,
-                                              group_records, prepare_extra)
+                                              group_records)
 from lrf_jax.frames import METHODS
 from lrf_jax.normals import default_normals
+from lrf_jax.prepare import prepare_extra
 
 RATIO_THRESHOLDS = np.round(np.linspace(0.0, 1.0, 101), 2)
 # What the paper states (its figure `fig_RPC` is missing from our copy).

@@ -26,7 +26,7 @@ AS_NAMED = ("repeatability", "plus_ablation")
 
 
 def plus_ablation_runs() -> list[MethodRun]:
-  """lrf_net_plus with each of its switches off in turn (beyond the paper, issue 10):
+  """lrf_net_plus with each of its switches off in turn (beyond the paper):
   `oriented_sign` (z towards the sensor / the mesh's oriented normals; off = the ball sign only),
   `density` (weights times the area per point), the softmax x with its own weights (off = the
   paper's linear weights with the LRF-Net weights) and its patch size (512; 256 = LRF-Net's).

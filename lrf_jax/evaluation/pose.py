@@ -32,9 +32,10 @@ from lrf_jax.datasets import Pair, transform_points
 from lrf_jax.descriptors import (DESCRIPTORS, describe_patches, match_descriptors,
                                  top_correspondences)
 from lrf_jax.evaluation.repeatability import (PatchCache, correspondences, group_records,
-                                              paper_options, prepare_extra)
+                                              paper_options)
 from lrf_jax.frames import METHODS
 from lrf_jax.normals import default_normals
+from lrf_jax.prepare import prepare_extra
 from lrf_jax.registration import lrf_ransac, pose_errors, ransac_3point
 
 # The paper's table `tabel_pose` (err_t in mr, err_r in degrees).

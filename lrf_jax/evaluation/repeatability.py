@@ -1,4 +1,4 @@
-"""The paper's repeatability protocol (section 3.2.1, DESIGN.md section 5) for any LRF method.
+"""The paper's repeatability protocol (section 3.2.1) for any LRF method.
 
 For a model-scene pair: 1000 seeded model keypoints and their scene correspondences (by index
 for BR; by ground truth plus nearest neighbour within 0.5 mr for partial scans), frames on both
@@ -16,7 +16,7 @@ import dataclasses
 import hashlib
 import time
 from pathlib import Path
-from typing import Any, Callable, Iterable
+from typing import Any, Iterable
 
 import numpy as np
 from scipy.spatial import cKDTree
@@ -27,6 +27,7 @@ from lrf_jax.frames import METHODS
 from lrf_jax.metrics import meancos
 from lrf_jax.neighborhoods import Patches, SearchIndex, build_patches
 from lrf_jax.normals import NORMAL_RADIUS_RATIO, estimate_normals
+from lrf_jax.prepare import prepare_extra
 
 # Default cap on all-neighbour patches in evaluations (see `evaluate_pair`).
 MAX_NEIGHBORS = 4096
@@ -111,25 +112,6 @@ def group_records(records: Iterable[dict[str, Any]], experiment: str) -> dict[tu
     if r.get("experiment") == experiment:
       groups.setdefault((r["dataset"], r["method"]), []).append(r)
   return groups
-
-
-def prepare_extra(spec, points: np.ndarray, keypoints: np.ndarray, patches: Patches, *,
-                  faces: np.ndarray | None, radius: float, viewpoint: np.ndarray | None,
-                  normals: Callable[[], np.ndarray]) -> Any:
-  """What a method's `prepare` hook returns for one side of a pair (None without a hook).
-
-  Normal-based methods get `normals()` (the side's estimated normals: by winding with faces,
-  towards `viewpoint` for a scan); viewpoint-aware methods (lrf_net_plus) get the viewpoint, and
-  the normals only for a mesh side without one (a cloud's propagated normals have no reliable
-  outside). `normals` is a thunk so that sides no method needs normals for never estimate them.
-  """
-  if spec.prepare is None:
-    return None
-  if spec.uses_viewpoint:
-    nrm = normals() if faces is not None and viewpoint is None else None
-    return spec.prepare(points, keypoints, patches, faces=faces, radius=radius, normals=nrm,
-                        viewpoint=viewpoint)
-  return spec.prepare(points, keypoints, patches, faces=faces, radius=radius, normals=normals())
 
 
 def correspondences(pair: Pair, n: int, seed: int, *, scene_first: bool = False,

@@ -58,7 +58,7 @@ def method_runs(methods: list[str] | None = None, *, checkpoint: str | None = No
   runs = [MethodRun(m, m, options=paper_options(m)) for m in (methods or default_methods())]
   notes = []
   if checkpoint:
-    from lrf_jax.train_lib import restore_params
+    from lrf_jax.checkpoints import restore_params
     best, cfg = restore_params(checkpoint, "best")
     final, _ = restore_params(checkpoint, "latest")
     runs = [MethodRun(r.label, r.method, params=best, options=r.options)

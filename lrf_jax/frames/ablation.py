@@ -18,7 +18,9 @@ import jax
 import jax.numpy as jnp
 
 from lrf_jax import geometry
-from lrf_jax.frames.lrf_net import (attributes, frame_from_weights, sanitize, z_axes)
+from lrf_jax.frames.lrf_net import attributes, frame_from_weights, z_axes
+from lrf_jax.frames.spec import MethodSpec
+from lrf_jax.geometry import sanitize
 from lrf_jax.model import (Params, apply_regressor, apply_weights, init_params, init_regressor)
 from lrf_jax.neighborhoods import Patches
 
@@ -76,3 +78,19 @@ def variant_frames(params: dict[str, Params], patches: Patches, *, z_mode: str =
     idx = jnp.argmax(jnp.where(patches.mask, w, -jnp.inf), axis=-1)
     w = jax.nn.one_hot(idx, w.shape[-1], dtype=w.dtype)
   return jax.vmap(frame_from_weights)(patches.offsets, patches.mask, z, z_ok, w)
+
+
+# ------------------------------------------------------------------------------ registry entry
+
+
+def _variant(patches: Patches, extra: None, *, params, z_mode: str = "normal",
+             x_mode: str = "sum1"):
+  del extra
+  if not any(k in params for k in ("weights", "x_reg", "z_reg")):
+    params = {"weights": params}  # plain LRF-Net parameters
+  return variant_frames(params, patches, z_mode=z_mode, x_mode=x_mode)
+
+
+SPEC = MethodSpec(
+    "lrf_net_variant", _variant, default_k=256, needs_params=True,
+    description="LRF-Net ablation variants (options z_mode: normal/dr, x_mode: sum1/sum2/dr/max)")

@@ -12,7 +12,7 @@ PCL's `BOARDLocalReferenceFrameEstimation` with `setRadiusSearch(r_z)`, `setTang
 
 Minimum neighbours: 6 within r_z (PCL's rule). Invalid also when the plane fit is degenerate
 (collinear points), no candidate has a finite normal, the chosen point projects onto p, or an
-input is not finite. Normals come from the `prepare` hook (`normals.prepare_normals`): the
+input is not finite. Normals come from the `prepare` hook (`frames.normal_based.prepare_normals`): the
 caller's, else `normals.estimate_normals`.
 
 Deviations from PCL: the hole-finding variant (`find_holes`, which starts from a random axis) is
@@ -32,7 +32,9 @@ import jax
 import jax.numpy as jnp
 
 from lrf_jax import geometry
-from lrf_jax.frames.lrf_net import sanitize
+from lrf_jax.frames.normal_based import NormalExtra, prepare_normals
+from lrf_jax.frames.spec import MethodSpec
+from lrf_jax.geometry import sanitize
 from lrf_jax.neighborhoods import Patches
 
 Z_RATIO = 1.0 / 3.0
@@ -102,3 +104,14 @@ def board_frames(patches: Patches, normals: jax.Array) -> tuple[jax.Array, jax.A
                                         patches.radius, patches.z_cov, patches.z_count, normals)
   valid = valid & finite
   return geometry.identity_where_invalid(frames, valid), valid
+
+# ------------------------------------------------------------------------------ registry entry
+
+def _board(patches: Patches, extra: NormalExtra):
+  return board_frames(patches, extra.normals)
+
+
+SPEC = MethodSpec(
+    "board", _board, default_k=None, needs_normals=True, z_ratio=Z_RATIO, prepare=prepare_normals, extra=NormalExtra,
+    description="BOARD (Petrelli & Di Stefano 2011): plane-fit z over r/3, x to the most "
+                "inclined margin normal (PCL)")

@@ -32,7 +32,9 @@ import jax.numpy as jnp
 
 from lrf_jax import geometry
 from lrf_jax.frames.board import normals_mean
-from lrf_jax.frames.lrf_net import sanitize
+from lrf_jax.frames.normal_based import NormalExtra, prepare_normals
+from lrf_jax.frames.spec import MethodSpec
+from lrf_jax.geometry import sanitize
 from lrf_jax.neighborhoods import Patches
 
 Z_RATIO = 1.0 / 3.0
@@ -95,3 +97,15 @@ def flare_frames(patches: Patches, normals: jax.Array,
       patches.z_cov, patches.z_count, normals, kp_normal)
   valid = valid & finite
   return geometry.identity_where_invalid(frames, valid), valid
+
+# ------------------------------------------------------------------------------ registry entry
+
+def _flare(patches: Patches, extra: NormalExtra):
+  return flare_frames(patches, extra.normals, extra.kp_normal)
+
+
+SPEC = MethodSpec(
+    "flare", _flare, default_k=None, needs_normals=True, z_ratio=Z_RATIO, prepare=prepare_normals, extra=NormalExtra,
+    shells=(Z_RATIO, MARGIN),
+    description="FLARE / SD (Petrelli & Di Stefano 2012): plane-fit z over r/3, x to the "
+                "highest margin point (PCL)")

@@ -26,27 +26,35 @@ References:
 
 from __future__ import annotations
 
+from typing import NamedTuple
+
 import jax
 import jax.numpy as jnp
 import numpy as np
 
 from lrf_jax import geometry
-from lrf_jax.frames.lrf_net import sanitize
 from lrf_jax.frames.rops import gather_triangles
+from lrf_jax.frames.spec import KEYPOINT, TRIANGLE, TRIANGLE_MASK, MethodSpec
+from lrf_jax.geometry import sanitize
 from lrf_jax.neighborhoods import Patches
 from lrf_jax.normals import default_normals, mean_curvature
 
 X_EPS = 1e-5
 
 
-def prepare_gframes(points, keypoints, patches, *, faces=None, normals=None,
-                    radius: float) -> dict[str, np.ndarray]:
-  """`MethodSpec.prepare` hook of GFrames.
+class GFramesExtra(NamedTuple):
+  """`extra` of GFrames: the support's triangles, their vertices' curvature, the normal."""
 
-  Returns:
-    {"tri": (N, T, 3, 3) float32 vertex offsets, "tri_mask": (N, T) bool,
-     "tri_f": (N, T, 3) float32 mean curvature at the vertices, "kp_normal": (N, 3) float32}.
-  """
+  tri: np.ndarray        # (N, T, 3, 3) float32 vertex offsets from the keypoint
+  tri_mask: np.ndarray   # (N, T) bool, False in padding
+  tri_f: np.ndarray      # (N, T, 3) float32 mean curvature at the vertices
+  kp_normal: np.ndarray  # (N, 3) float32
+  AXES = {"tri": TRIANGLE, "tri_mask": TRIANGLE_MASK, "tri_f": TRIANGLE, "kp_normal": KEYPOINT}
+
+
+def prepare_gframes(points, keypoints, patches, *, faces=None, normals=None,
+                    radius: float) -> GFramesExtra:
+  """`MethodSpec.prepare` hook of GFrames (host, numpy): its `GFramesExtra`."""
   if faces is None:
     raise ValueError("gframes needs a triangle mesh: pass faces=(f, 3) indices")
   tri, mask, ids = gather_triangles(points, keypoints, faces, radius, patches=patches)
@@ -54,8 +62,7 @@ def prepare_gframes(points, keypoints, patches, *, faces=None, normals=None,
   f = np.asarray(faces, np.int64)
   tri_f = np.where(mask[..., None], h[f[np.maximum(ids, 0)]], 0.0).astype(np.float32)
   nrm = default_normals(points, radius, faces, normals)
-  return {"tri": tri, "tri_mask": mask, "tri_f": tri_f,
-          "kp_normal": np.asarray(nrm, np.float32)[np.asarray(keypoints)]}
+  return GFramesExtra(tri, mask, tri_f, np.asarray(nrm, np.float32)[np.asarray(keypoints)])
 
 
 def area_gradient(tri: jax.Array, f: jax.Array) -> jax.Array:
@@ -122,3 +129,15 @@ def gframes_frames(patches: Patches, tri: jax.Array, tri_mask: jax.Array, tri_f:
   frames, valid = jax.vmap(gframes_frame)(tri, tri_mask & ok, tri_f, kp_normal)
   valid = valid & finite
   return geometry.identity_where_invalid(frames, valid), valid
+
+# ------------------------------------------------------------------------------ registry entry
+
+def _gframes(patches: Patches, extra: GFramesExtra):
+  return gframes_frames(patches, extra.tri, extra.tri_mask, extra.tri_f, extra.kp_normal)
+
+
+SPEC = MethodSpec(
+    "gframes", _gframes, default_k=None, needs_normals=True, needs_mesh=True, prepare=prepare_gframes,
+    extra=GFramesExtra,
+    description="GFrames (Melzi et al. 2019): normal z, x = area-weighted mean-curvature "
+                "gradient; needs a mesh")

@@ -23,9 +23,9 @@ from typing import Callable, NamedTuple
 
 import jax
 import jax.numpy as jnp
-import numpy as np
 
-from lrf_jax import engine, geometry
+from lrf_jax import geometry
+from lrf_jax.frames.spec import MethodSpec
 from lrf_jax.model import Params, apply_weights
 from lrf_jax.neighborhoods import Patches
 
@@ -81,27 +81,6 @@ def frame_from_weights(offsets: jax.Array, mask: jax.Array, z: jax.Array, z_ok: 
   return geometry.identity_where_invalid(frame, valid), valid
 
 
-def sanitize(patches: Patches) -> tuple[Patches, jax.Array]:
-  """Zero out non-finite inputs so nothing downstream sees NaN; report which keypoints had any.
-
-  Returns:
-    (patches, finite): finite (N,) is False where a keypoint's offsets or statistics were not finite.
-  """
-  off_ok = jnp.all(jnp.isfinite(patches.offsets), axis=-1)  # (N, K)
-  finite = (jnp.all(off_ok | ~patches.mask, axis=-1)
-            & jnp.all(jnp.isfinite(patches.z_cov), axis=(-1, -2))
-            & jnp.all(jnp.isfinite(patches.z_mean), axis=-1)
-            & jnp.isfinite(patches.radius) & (patches.radius > 0))
-  patches = patches._replace(
-      offsets=jnp.where(off_ok[..., None], patches.offsets, 0.0),
-      mask=patches.mask & off_ok,
-      z_cov=jnp.where(jnp.isfinite(patches.z_cov), patches.z_cov, 0.0),
-      z_mean=jnp.where(jnp.isfinite(patches.z_mean), patches.z_mean, 0.0),
-      radius=jnp.where(jnp.isfinite(patches.radius) & (patches.radius > 0), patches.radius, 1.0),
-  )
-  return patches, finite
-
-
 def z_axes(patches: Patches) -> tuple[jax.Array, jax.Array]:
   """TOLDI/LRF-Net z-axes of every keypoint: (N, 3) unit vectors and (N,) validity."""
   z, ok = jax.vmap(lambda c, m, n: geometry.toldi_normal(c, m, n, MIN_Z_NEIGHBOURS))(
@@ -143,91 +122,6 @@ def view_sign(z: jax.Array, view: jax.Array) -> jax.Array:
   return jnp.where((h < 0)[:, None], -z, z)
 
 
-def prepare_view(points, keypoints, patches, *, faces=None, normals=None, radius=None,
-                 viewpoint=None) -> dict[str, np.ndarray]:
-  """`MethodSpec.prepare` hook of lrf_net_plus: {"view": (N, 3) float32}, a direction z should
-  not point away from, per keypoint (all of them move with the cloud, so z stays equivariant):
-
-  * `viewpoint` given (a single-view scan): sensor position - keypoint;
-  * else `normals` given (oriented by the caller): the sum of the normals of the patch
-    neighbours within r/3 (the z support);
-  * else `faces` given (a mesh): the same with `normals.estimate_normals` (PCA over 0.2 r, outside
-    by the triangles' winding: the normals the normal-based LRFs use). Summed over the z support
-    as FLARE does (PCL's `flipNormalTowardsNormalsMean`): a single oriented normal disagrees
-    between the two sides of a BR pair on 1-7 % of keypoints at 0.5 mr noise, which flips z
-    there; the whole patch is too wide for thin parts (UWAOR models: MeanCos 0.76 -> 0.72);
-  * else zeros (the z sign then comes from `ball_sign`).
-  """
-  from lrf_jax.normals import NORMAL_RADIUS_RATIO, estimate_normals
-  pts = np.asarray(points, np.float64)
-  kp = np.asarray(keypoints)
-  if viewpoint is not None:
-    view = np.asarray(viewpoint, np.float64)[None] - pts[kp]
-  elif normals is not None or (faces is not None and radius is not None):
-    nrm = (np.asarray(normals, np.float64) if normals is not None else
-           estimate_normals(pts, NORMAL_RADIUS_RATIO * float(radius), faces))
-    idx = np.asarray(patches.indices)
-    off = np.asarray(patches.offsets, np.float64)
-    near = (idx >= 0) & (np.einsum("nkc,nkc->nk", off, off) <= (float(radius) / 3.0) ** 2)
-    view = np.where(near[..., None], np.nan_to_num(nrm[np.maximum(idx, 0)]), 0.0).sum(1)
-  else:
-    view = np.zeros((kp.shape[0], 3))
-  return {"view": np.nan_to_num(view).astype(np.float32),
-          "area": patch_areas(pts, patches, faces) if patches is not None else None}
-
-
-AREA_NEIGHBOURS = 8
-
-
-def vertex_areas(points: np.ndarray, faces: np.ndarray) -> np.ndarray:
-  """(n,) barycentric vertex areas of a triangle mesh: a third of the area of every incident
-  triangle (0 for a vertex on no triangle). They sum to the mesh's area."""
-  tri = np.asarray(points, np.float64)[np.asarray(faces)]
-  area = 0.5 * np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
-  out = np.zeros(len(points))
-  for j in range(3):
-    np.add.at(out, np.asarray(faces)[:, j], area / 3.0)
-  return out
-
-
-def patch_areas(points: np.ndarray, patches: Patches,
-                faces: np.ndarray | None = None) -> np.ndarray:
-  """(N, K) float32 surface area each patch neighbour stands for, relative to the patch mean.
-
-  With `faces` (a mesh), a vertex's area is its barycentric share of its triangles
-  (`vertex_areas`), exact for a mesh; vertices on no triangle, and every point of a cloud, get
-  π d² / k with d the distance to its k-th nearest neighbour (k = `AREA_NEIGHBOURS`): the inverse
-  of the local sampling density. Normalised to mean 1 over each patch's neighbours (0 in
-  padding). Rotation and translation invariant. On the UWA3M view-to-model pairs (30 pairs, 300
-  keypoints) the mesh areas give lrf_net_plus 0.8372 MeanCos against 0.8355 with π d₈² / 8 for
-  the model side too.
-  """
-  from lrf_jax.normals import cache_last
-
-  pts = np.asarray(points, np.float64)
-
-  def estimate(which: np.ndarray) -> np.ndarray:
-    kk = min(AREA_NEIGHBOURS + 1, len(pts))
-    d, _ = engine.knn(engine.knn_grid(pts, kk), pts[which], kk)
-    return np.pi * d[:, -1] ** 2 / AREA_NEIGHBOURS
-
-  def compute():
-    if faces is None or len(faces) == 0:
-      return estimate(np.arange(len(pts)))
-    area = vertex_areas(pts, faces)
-    lone = np.flatnonzero(area <= 0)  # vertices on no triangle: the cloud estimate
-    if lone.size:
-      area[lone] = estimate(lone)
-    return area
-
-  key = (pts,) if faces is None else (pts, np.asarray(faces))
-  per_point = cache_last("point_area", key, compute)
-  idx = np.asarray(patches.indices)
-  a = np.where(idx >= 0, per_point[np.maximum(idx, 0)], 0.0)
-  mean = a.sum(1, keepdims=True) / np.maximum((idx >= 0).sum(1, keepdims=True), 1)
-  return (a / np.where(mean > 0, mean, 1.0)).astype(np.float32)
-
-
 def softmax_weights(scores: jax.Array, mask: jax.Array) -> jax.Array:
   """Attention-style x weights (lrf_net_plus, beyond the paper): w_i = exp(s_i - max_j s_j) over
   the real neighbours of each patch, 0 in padding.
@@ -267,7 +161,7 @@ def frames_with_weight_fn(patches: Patches, weight_fn: WeightFn, x_mode: str = "
   Returns:
     (frames (N, 3, 3), valid (N,), weights (N, K)).
   """
-  patches, finite = sanitize(patches)
+  patches, finite = geometry.sanitize(patches)
   z, z_ok = z_axes(patches)
   if z_sign == "ball":
     z = ball_sign(z, patches.offsets, patches.mask)
@@ -377,3 +271,25 @@ def uniform_frames(patches: Patches, z_sign: str = "toldi") -> tuple[jax.Array, 
   """LRF-Net's construction with w_i = 1 (the normalised sum of tangent projections)."""
   frames, valid, _ = frames_with_weight_fn(patches, uniform_weights, z_sign=z_sign)
   return frames, valid
+
+
+# ------------------------------------------------------------------------------ registry entries
+
+
+def _lrf_net(patches: Patches, extra: None, *, params, x_mode: str = "sum", lut: int = 0):
+  del extra
+  return lrf_net_frames(params, patches, x_mode=x_mode, lut=lut)
+
+
+def _uniform(patches: Patches, extra: None, *, z_sign: str = "toldi"):
+  del extra
+  return uniform_frames(patches, z_sign=z_sign)
+
+
+SPEC = MethodSpec(
+    "lrf_net", _lrf_net, default_k=256, needs_params=True, default_options=(("lut", 257),),
+    description="LRF-Net (Zhu et al.): TOLDI z over r/3, learned per-point weights for x, read "
+                "from a 257 x 257 table by default (lut=257; lut=0: the exact network)")
+UNIFORM_SPEC = MethodSpec(
+    "uniform", _uniform, default_k=256,
+    description="LRF-Net's construction with uniform weights (w = 1): the learned weights' baseline")

@@ -16,7 +16,7 @@ MeanCos penalises the flips, which is precisely the weakness the LRF-Net paper p
 
 Minimum neighbours: 5 points within r. Invalid also when two eigenvalues coincide (relative gap
 <= `geometry.DEGENERATE_EPS`: collinear or isotropic supports), the keypoint normal is not finite,
-or an input is not finite. Normals come from the `prepare` hook (`normals.prepare_normals`).
+or an input is not finite. Normals come from the `prepare` hook (`frames.normal_based.prepare_normals`).
 
 References:
   Mian, Bennamoun, Owens, "On the repeatability and quality of keypoints for local feature-based
@@ -29,7 +29,9 @@ import jax
 import jax.numpy as jnp
 
 from lrf_jax import geometry
-from lrf_jax.frames.lrf_net import sanitize
+from lrf_jax.frames.normal_based import NormalExtra, prepare_normals
+from lrf_jax.frames.spec import MethodSpec
+from lrf_jax.geometry import sanitize
 from lrf_jax.neighborhoods import Patches
 
 MIN_NEIGHBOURS = 5
@@ -80,3 +82,14 @@ def mian_frames(patches: Patches, kp_normal: jax.Array, *,
       patches.offsets, patches.mask, kp_normal)
   valid = valid & finite
   return geometry.identity_where_invalid(frames, valid), valid
+
+# ------------------------------------------------------------------------------ registry entry
+
+def _mian(patches: Patches, extra: NormalExtra, *, center: str = "centroid"):
+  return mian_frames(patches, extra.kp_normal, center=center)
+
+
+SPEC = MethodSpec(
+    "mian", _mian, default_k=None, needs_normals=True, prepare=prepare_normals, extra=NormalExtra,
+    description="Mian et al. 2010: covariance eigenvectors, z signed by the normal (x/y sign "
+                "ambiguous)")

@@ -27,7 +27,9 @@ import jax
 import jax.numpy as jnp
 
 from lrf_jax import geometry
-from lrf_jax.frames.lrf_net import sanitize
+from lrf_jax.frames.normal_based import NormalExtra, prepare_normals
+from lrf_jax.frames.spec import MethodSpec
+from lrf_jax.geometry import sanitize
 from lrf_jax.neighborhoods import Patches
 
 CONTOUR_RATIO = 0.85
@@ -76,3 +78,14 @@ def ps_frames(patches: Patches, kp_normal: jax.Array) -> tuple[jax.Array, jax.Ar
                                      patches.radius, kp_normal)
   valid = valid & finite
   return geometry.identity_where_invalid(frames, valid), valid
+
+# ------------------------------------------------------------------------------ registry entry
+
+def _ps(patches: Patches, extra: NormalExtra):
+  return ps_frames(patches, extra.kp_normal)
+
+
+SPEC = MethodSpec(
+    "ps", _ps, default_k=None, needs_normals=True, prepare=prepare_normals, extra=NormalExtra,
+    description="Point signature (Chua & Jarvis 1997): contour-plane z, x to the highest "
+                "contour point")

@@ -32,12 +32,15 @@ References:
 
 from __future__ import annotations
 
+from typing import NamedTuple
+
 import jax
 import jax.numpy as jnp
 import numpy as np
 
 from lrf_jax import engine, geometry
-from lrf_jax.frames.lrf_net import sanitize
+from lrf_jax.frames.spec import TRIANGLE, TRIANGLE_MASK, MethodSpec
+from lrf_jax.geometry import sanitize
 from lrf_jax.neighborhoods import Patches, hash_priority
 from lrf_jax.normals import cache_last
 
@@ -115,14 +118,22 @@ def gather_triangles(points: np.ndarray, keypoints: np.ndarray, faces: np.ndarra
   return engine.fill_triangles(pts, f, pts[kp], rr, slot, tt, width)
 
 
+class TriangleExtra(NamedTuple):
+  """`extra` of RoPS: the triangles of each keypoint's support."""
+
+  tri: np.ndarray       # (N, T, 3, 3) float32 vertex offsets from the keypoint
+  tri_mask: np.ndarray  # (N, T) bool, False in padding
+  AXES = {"tri": TRIANGLE, "tri_mask": TRIANGLE_MASK}
+
+
 def prepare_triangles(points, keypoints, patches, *, faces=None, normals=None,
-                      radius: float) -> dict[str, np.ndarray]:
-  """`MethodSpec.prepare` hook of RoPS: {"tri": (N, T, 3, 3), "tri_mask": (N, T)}."""
+                      radius: float) -> TriangleExtra:
+  """`MethodSpec.prepare` hook of RoPS (host, numpy): its `TriangleExtra`."""
   del normals
   if faces is None:
     raise ValueError("rops needs a triangle mesh: pass faces=(f, 3) indices")
   tri, mask, _ = gather_triangles(points, keypoints, faces, radius, patches=patches)
-  return {"tri": tri, "tri_mask": mask}
+  return TriangleExtra(tri, mask)
 
 
 def rops_frame(tri: jax.Array, tri_mask: jax.Array, radius: jax.Array):
@@ -173,3 +184,15 @@ def rops_frames(patches: Patches, tri: jax.Array,
   frames, valid = jax.vmap(rops_frame)(tri, tri_mask & tri_ok, radius)
   valid = valid & finite
   return geometry.identity_where_invalid(frames, valid), valid
+
+# ------------------------------------------------------------------------------ registry entry
+
+def _rops(patches: Patches, extra: TriangleExtra):
+  return rops_frames(patches, extra.tri, extra.tri_mask)
+
+
+SPEC = MethodSpec(
+    "rops", _rops, default_k=None, needs_mesh=True, prepare=prepare_triangles,
+    extra=TriangleExtra,
+    description="RoPS (Guo et al. 2013): area- and distance-weighted triangle scatter (PCL); "
+                "needs a mesh")

@@ -29,7 +29,8 @@ import jax
 import jax.numpy as jnp
 
 from lrf_jax import geometry
-from lrf_jax.frames.lrf_net import sanitize
+from lrf_jax.frames.spec import MethodSpec
+from lrf_jax.geometry import sanitize
 from lrf_jax.neighborhoods import Patches
 
 MIN_NEIGHBOURS = 5
@@ -129,3 +130,15 @@ def shot_frames(patches: Patches) -> tuple[jax.Array, jax.Array]:
   z = jax.vmap(_apply)(z, bz, keep[:, 1])
   frames, valid = jax.vmap(_assemble)(x, z, ok & finite)
   return geometry.identity_where_invalid(frames, valid), valid
+
+# ------------------------------------------------------------------------------ registry entry
+
+def _shot(patches: Patches, extra: None):
+  del extra
+  return shot_frames(patches)
+
+
+SPEC = MethodSpec(
+    "shot", _shot, default_k=None,
+    description="SHOT (Tombari et al. 2010): (r-d)-weighted covariance about p, majority-vote "
+                "signs (PCL)")

@@ -17,6 +17,7 @@ import jax.numpy as jnp
 
 from lrf_jax import geometry
 from lrf_jax.frames.lrf_net import frames_with_weight_fn
+from lrf_jax.frames.spec import MethodSpec
 from lrf_jax.neighborhoods import Patches
 
 
@@ -48,3 +49,14 @@ def toldi_frames(patches: Patches, *, signed: bool = True) -> tuple[jax.Array, j
   frames, valid, _ = frames_with_weight_fn(
       patches, lambda o, z, r: toldi_weights(o, z, r, signed))
   return frames, valid
+
+# ------------------------------------------------------------------------------ registry entry
+
+def _toldi(patches: Patches, extra: None, *, signed: bool = True):
+  del extra
+  return toldi_frames(patches, signed=signed)
+
+
+SPEC = MethodSpec(
+    "toldi", _toldi, default_k=None,
+    description="TOLDI (Yang et al. 2017): z over r/3, x weights (r-d)^2 sign(h) h^2 (original C++)")

@@ -9,11 +9,12 @@ Every bad input raises ValueError (FileNotFoundError for a missing file) naming 
 field and what was expected versus found.
 """
 
-from lrf_jax.io.cloud import Cloud, read_cloud, read_npy
+from lrf_jax.io.cloud import Cloud, read_npy
 from lrf_jax.io.pcd import read_pcd
 from lrf_jax.io.ply import PlyMesh, read_ply, write_ply
 from lrf_jax.io.poses import (LogEntry, quaternion_to_matrix, read_3dmatch_log,
                               read_stanford_conf, read_xf, write_xf)
+from lrf_jax.io.reader import read_cloud
 from lrf_jax.io.text import read_xyz
 from lrf_jax.io.validation import check_points, check_rigid
 

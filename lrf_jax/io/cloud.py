@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import dataclasses
 import os
+import tokenize
 from pathlib import Path
 
 import numpy as np
@@ -42,14 +43,21 @@ def read_npy(path: str | os.PathLike) -> Cloud:
 
   Raises:
     FileNotFoundError: missing file.
-    ValueError: unreadable file, a header shape larger than the file, a dtype that is not real
-      floating or integer (complex, bool, strings), wrong shape, empty, or non-finite values.
+    ValueError: unreadable file, a header shape that does not match the data stored (larger or
+      smaller), a dtype that is not real floating or integer (complex, bool, strings), wrong
+      shape, empty, or non-finite values.
   """
   p = require_file(path)
   try:  # memory-mapped first: the header's shape is checked against the file before loading
     arr = np.load(p, allow_pickle=False, mmap_mode="r")
-  except (ValueError, OSError, EOFError) as e:
-    raise bad_input(p, "array", "a numeric .npy array", f"an unreadable file ({e})") from e
+  except (ValueError, OSError, EOFError, OverflowError, SyntaxError, tokenize.TokenError) as e:
+    # numpy: SyntaxError/TokenError for a garbled header dict, OverflowError for a negative shape
+    raise bad_input(p, "array", "a numeric .npy array",
+                    f"an unreadable file ({type(e).__name__}: {e})") from e
+  stored = p.stat().st_size - arr.offset
+  if stored != arr.nbytes:  # np.load ignores data after the header's shape
+    raise bad_input(p, "shape", f"{arr.nbytes} bytes of data for shape {arr.shape} and dtype "
+                    f"{arr.dtype} (header)", f"{stored} bytes stored")
   if arr.dtype.kind not in "fiu":
     raise bad_input(p, "dtype", "real floating or integer values", f"dtype {arr.dtype}")
   if arr.ndim != 2 or arr.shape[1] not in (3, 6):
@@ -58,47 +66,3 @@ def read_npy(path: str | os.PathLike) -> Cloud:
   points = check_points(arr[:, :3], p, "x/y/z columns")
   normals = check_points(arr[:, 3:], p, "normal columns") if arr.shape[1] == 6 else None
   return Cloud(points, None, normals, p)
-
-
-_TEXT_SUFFIXES = (".xyz", ".txt", ".pts", ".asc")
-
-
-def read_cloud(path: str | os.PathLike) -> Cloud:
-  """Reads any supported point-cloud or mesh file, choosing the reader by suffix.
-
-  Supported: `.ply` (`read_ply`), `.pcd` (`read_pcd`), `.npy` (`read_npy`) and whitespace text
-  `.xyz/.txt/.pts/.asc`, optionally gzip-compressed with a further `.gz` (`read_xyz`).
-
-  Args:
-    path: the file.
-
-  Returns:
-    A Cloud (faces only for PLY meshes; normals where the file stores them).
-
-  Raises:
-    FileNotFoundError: missing file.
-    ValueError: unsupported suffix, or any error of the chosen reader.
-  """
-  # Local imports: the readers import this module for `Cloud`.
-  from lrf_jax.io.pcd import read_pcd
-  from lrf_jax.io.ply import read_ply
-  from lrf_jax.io.text import read_xyz
-
-  p = require_file(path)
-  suffixes = [s.lower() for s in p.suffixes]
-  last = suffixes[-1] if suffixes else ""
-  if last == ".gz" and len(suffixes) >= 2:
-    last = suffixes[-2]
-    if last not in _TEXT_SUFFIXES:
-      raise bad_input(p, "suffix", "a text cloud when gzip'ed (" + ", ".join(_TEXT_SUFFIXES)
-                      + " + .gz)", f"{suffixes[-2]}.gz")
-  if last == ".ply":
-    return read_ply(p).to_cloud()
-  if last == ".pcd":
-    return read_pcd(p)
-  if last == ".npy":
-    return read_npy(p)
-  if last in _TEXT_SUFFIXES:
-    return read_xyz(p)
-  raise bad_input(p, "suffix", "one of .ply, .pcd, .npy, " + ", ".join(_TEXT_SUFFIXES)
-                  + " (text optionally .gz)", repr("".join(p.suffixes) or "(none)"))

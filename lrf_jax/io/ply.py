@@ -9,6 +9,7 @@ ascii bodies are parsed here with numpy, element by element, under the same rule
 from __future__ import annotations
 
 import dataclasses
+import io
 import os
 import warnings
 from pathlib import Path
@@ -79,13 +80,15 @@ def read_ply(path: str | os.PathLike) -> PlyMesh:
       expected versus found value.
   """
   p = require_file(path)
-  with open(p, "rb") as stream:
+  with _BoundedReader(open(p, "rb", buffering=0), p.stat().st_size) as stream:
     try:
       header = plyfile.PlyData._parse_header(stream)  # header only (the body is not read)
     except plyfile.PlyHeaderParseError as e:
       raise bad_input(p, f"header line {e.line}", "a valid PLY header", e.message) from e
     except UnicodeDecodeError as e:
       raise bad_input(p, "header", "an ascii PLY header", f"undecodable bytes ({e})") from e
+    except ValueError as e:  # plyfile: two elements or properties with the same name
+      raise bad_input(p, "header", "a valid PLY header", str(e)) from e
     if header.text:
       body = stream.read()
       data = _read_ascii_body(header, body, p)
@@ -145,6 +148,21 @@ def write_ply(path: str | os.PathLike, points: np.ndarray, faces: np.ndarray | N
 
 # ----------------------------------------------------------------------------------------------
 # Bodies -> {element: {property: array}}
+
+
+class _BoundedReader(io.BufferedReader):
+  """A binary file whose `read(n)` never asks for more than the bytes left: plyfile reads a
+  list of its declared length in one `read`, which allocates that length first (gigabytes for
+  a corrupt length)."""
+
+  def __init__(self, raw: io.RawIOBase, size: int):
+    super().__init__(raw)
+    self._size = size
+
+  def read(self, n: int | None = -1) -> bytes:
+    if n is not None and n > 1 << 16:  # small reads (the header, rows) allocate little anyway
+      n = min(n, max(self._size - self.tell(), 0))
+    return super().read(n)
 
 
 def _read_binary(stream, header: plyfile.PlyData, p: Path) -> dict[str, dict[str, np.ndarray]]:
@@ -233,7 +251,7 @@ def _parse_ascii_element(elt: plyfile.PlyElement, rows: list[bytes],
   if (counts < 0).any() or not np.array_equal(declared, counts):
     row = int(np.flatnonzero((counts < 0) | (declared != counts))[0])
     raise bad_input(p, f"element '{elt.name}' row {row} property '{prop.name}'",
-                    f"a length followed by that many values ({int(declared[row])})",
+                    f"a length followed by that many values ({declared[row]:g})",
                     f"{max(int(counts[row]), 0)} values")
   values = np.delete(flat, starts).astype(prop.val_dtype)
   if counts.min() == counts.max():
@@ -250,6 +268,8 @@ def _read_ascii_with_plyfile(p: Path) -> dict[str, dict[str, np.ndarray]]:
     ply = plyfile.PlyData.read(str(p))
   except plyfile.PlyElementParseError as e:
     raise _element_error(p, e) from e
+  except UnicodeDecodeError as e:
+    raise bad_input(p, "body", "ascii text", f"undecodable bytes ({e})") from e
   return {e.name: {q.name: np.array(e.data[q.name]) for q in e.properties} for e in ply.elements}
 
 

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import os
 import warnings
+import zlib
 
 import numpy as np
 
@@ -38,7 +39,7 @@ def read_xyz(path: str | os.PathLike) -> Cloud:
     # numpy's message names the line ("... at row 7" / "could not convert ... at row 3").
     raise bad_input(p, "rows", "numeric 'x y z [...]' rows with the same number of columns",
                     str(e)) from e
-  except (OSError, EOFError) as e:  # e.g. a truncated .gz
+  except (OSError, EOFError, zlib.error) as e:  # e.g. a truncated or corrupt .gz
     raise bad_input(p, "file", "readable text (gzip if .gz)", f"{type(e).__name__}: {e}") from e
   if arr.shape[0] == 0:
     raise bad_input(p, "points", "at least one 'x y z' row", "an empty cloud (0 points)")

@@ -43,6 +43,8 @@ def require_file(path: str | os.PathLike) -> Path:
   Raises:
     FileNotFoundError: `path` does not exist or is not a regular file.
   """
+  if not os.fspath(path):  # Path("") is ".", the working directory
+    raise FileNotFoundError("'': an empty path, not a file")
   p = Path(path)
   if not p.is_file():
     what = "is a directory, not a file" if p.is_dir() else "no such file"

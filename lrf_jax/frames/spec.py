@@ -1,0 +1,130 @@
+"""What an LRF method declares (`MethodSpec`), the registry `METHODS`, and `register_method`.
+
+A method is a pure, jittable `fn(patches, extra, **options) -> (frames (N, 3, 3), valid (N,))`
+plus what it needs: a patch size, the radius of its normal support, learned parameters, a mesh,
+and optionally a host-side `prepare` hook (numpy, outside jit) that gathers per-keypoint arrays
+`extra` for it. `extra` is a NamedTuple whose class attribute `AXES` says, for each field, how
+its axes are indexed, so that generic code and tests can permute, pad or slice it:
+
+* `KEYPOINT`: (N, ...) one row per keypoint;
+* `SLOT`: (N, K, ...) indexed like the patch slots (`Patches.indices`);
+* `TRIANGLE`: (N, T, ...) indexed by triangle slot; `TRIANGLE_MASK`: the (N, T) bool mask of
+  those slots (False in padding).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import warnings
+from typing import Any, Callable
+
+KEYPOINT = "keypoint"
+SLOT = "slot"
+TRIANGLE = "triangle"
+TRIANGLE_MASK = "triangle_mask"
+AXIS_KINDS = (KEYPOINT, SLOT, TRIANGLE, TRIANGLE_MASK)
+
+
+@dataclasses.dataclass(frozen=True)
+class MethodSpec:
+  """How to compute one LRF method.
+
+  Attributes:
+    name: registry key.
+    fn: `fn(patches, extra, **options) -> (frames, valid)`, pure and jittable; `extra` is what
+      `prepare` returned (None when there is no `prepare`). For learned methods `options` holds
+      `params`. Its keyword-only arguments are the method's options.
+    default_k: patch size K used when the caller gives none; None = every neighbour in the ball.
+    z_ratio: radius of the normal support as a fraction of r (stored in `Patches.z_*`).
+    needs_params: the method takes learned parameters.
+    needs_mesh: the method needs triangle faces (`faces=` in `compute_frames`).
+    needs_normals: `prepare` reads per-point normals (the caller's, else estimated; see
+      `lrf_jax.prepare.method_normals`).
+    prepare: optional host-side hook `prepare(points, keypoints, patches, faces=..., normals=...,
+      radius=...)` returning an instance of `extra` (per-keypoint arrays) fed to `fn`.
+    extra: the NamedTuple type `prepare` returns, with its `AXES` layout (None: no extra).
+    uses_viewpoint: `prepare` also takes `viewpoint=` (the sensor position of a single-view scan,
+      or None) and handles it itself (methods without it get viewpoint-oriented normals instead).
+    description: one line for `lrf_jax.METHODS` listings.
+    weights: name of the shipped parameter file used when no params are given
+      (`lrf_jax/weights/<weights>.msgpack`).
+    default_options: options applied unless the caller gives them (e.g. lut=257).
+    shells: (a, b) fractions of r when the method reads only the neighbours within a * r or
+      beyond b * r: with every neighbour (k=None), `compute_frames` then gathers only those
+      (`build_patches(shells=)`), which gives the same frames from smaller patches. None: the
+      method reads the whole ball.
+  """
+
+  name: str
+  fn: Callable[..., Any]
+  default_k: int | None = 256
+  z_ratio: float = 1.0 / 3.0
+  needs_params: bool = False
+  needs_mesh: bool = False
+  needs_normals: bool = False
+  prepare: Callable[..., Any] | None = None
+  extra: type | None = None
+  uses_viewpoint: bool = False
+  description: str = ""
+  weights: str = "lrf_net"
+  default_options: tuple[tuple[str, Any], ...] = ()
+  shells: tuple[float, float] | None = None
+
+  def __post_init__(self):
+    if self.needs_normals and (self.prepare is None or self.uses_viewpoint):
+      raise ValueError(f"MethodSpec {self.name!r}: needs_normals is for a prepare hook that is "
+                       "not viewpoint-aware")
+    if (self.prepare is None) != (self.extra is None):
+      raise ValueError(f"MethodSpec {self.name!r}: prepare and extra go together (the hook "
+                       "returns an instance of the extra NamedTuple)")
+    if self.extra is not None:
+      axes = getattr(self.extra, "AXES", None)
+      fields = getattr(self.extra, "_fields", None)
+      if fields is None or not isinstance(axes, dict) or set(axes) != set(fields) or any(
+          kind not in AXIS_KINDS for kind in axes.values()):
+        raise ValueError(f"MethodSpec {self.name!r}: extra must be a NamedTuple with an AXES "
+                         f"dict giving each field one of {AXIS_KINDS}")
+
+
+class MethodRegistry(dict):
+  """`METHODS`: a dict name -> `MethodSpec` that prints as a table, one method per line."""
+
+  def table(self) -> str:
+    """name, kind, needs, default K and weights of every method, aligned columns."""
+    rows = [("name", "kind", "needs", "default K", "weights")]
+    for name, spec in self.items():
+      needs = [w for w, on in (("mesh", spec.needs_mesh), ("params", spec.needs_params),
+                               ("normals", spec.prepare is not None and not spec.needs_mesh
+                                and not spec.needs_params)) if on]
+      rows.append((name, "learned" if spec.needs_params else "hand-crafted",
+                   ", ".join(needs) or "-", "all" if spec.default_k is None else
+                   str(spec.default_k), spec.weights if spec.needs_params else "-"))
+    width = [max(len(r[i]) for r in rows) for i in range(5)]
+    return "\n".join("  ".join(c.ljust(w) for c, w in zip(r, width)).rstrip() for r in rows)
+
+  def __repr__(self) -> str:
+    return self.table()
+
+  __str__ = __repr__
+
+
+METHODS: MethodRegistry = MethodRegistry()
+
+
+def register_method(spec: MethodSpec) -> MethodSpec:
+  """Add a method to `METHODS` under `spec.name` (replacing one of that name) and return it.
+
+  `lrf_jax.compute_frames(..., method=spec.name)` then runs it: the search with `spec.default_k`
+  and `spec.z_ratio`, the `prepare` hook, and `spec.fn` jitted per option set.
+  """
+  if not isinstance(spec, MethodSpec):
+    raise TypeError(f"register_method: expected a MethodSpec, got {type(spec).__name__}")
+  METHODS[spec.name] = spec
+  return spec
+
+
+def register(spec: MethodSpec) -> MethodSpec:
+  """Deprecated alias of `register_method` (kept for one release)."""
+  warnings.warn("lrf_jax.frames.register is deprecated: use lrf_jax.register_method",
+                DeprecationWarning, stacklevel=2)
+  return register_method(spec)

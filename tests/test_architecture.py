@@ -1,0 +1,166 @@
+"""The package's shape: no import cycle (function-level imports included), no dynamic imports
+hiding one, and no function over 80 code lines."""
+
+from __future__ import annotations
+
+import ast
+from pathlib import Path
+
+PACKAGE = Path(__file__).resolve().parents[1] / "lrf_jax"
+MAX_FUNCTION_LINES = 80
+
+
+def _modules() -> dict[str, Path]:
+  out = {}
+  for path in PACKAGE.rglob("*.py"):
+    parts = list(path.relative_to(PACKAGE.parent).with_suffix("").parts)
+    if parts[-1] == "__init__":
+      parts = parts[:-1]
+    out[".".join(parts)] = path
+  return out
+
+
+def _is_type_checking(node: ast.If) -> bool:
+  test = node.test
+  return (isinstance(test, ast.Name) and test.id == "TYPE_CHECKING") or (
+      isinstance(test, ast.Attribute) and test.attr == "TYPE_CHECKING")
+
+
+def _imports(tree: ast.AST, name: str, is_package: bool) -> list[str]:
+  """Every module name an import statement anywhere in `tree` loads (not under TYPE_CHECKING)."""
+  found = []
+
+  def visit(node):
+    for child in ast.iter_child_nodes(node):
+      if isinstance(child, ast.If) and _is_type_checking(child):
+        for sub in child.orelse:
+          visit_one(sub)
+        continue
+      visit_one(child)
+
+  def visit_one(node):
+    if isinstance(node, ast.Import):
+      found.extend(a.name for a in node.names)
+    elif isinstance(node, ast.ImportFrom):
+      if node.level:
+        base = name.split(".") if is_package else name.split(".")[:-1]
+        base = base[:len(base) - node.level + 1]
+        mod = ".".join(base + ([node.module] if node.module else []))
+      else:
+        mod = node.module
+      found.append(mod)
+      found.extend(f"{mod}.{a.name}" for a in node.names)  # submodules, if they are ones
+    visit(node)
+
+  visit(tree)
+  return found
+
+
+def import_graph() -> dict[str, set[str]]:
+  """module -> the lrf_jax modules it makes Python execute (the package `lrf_jax` itself left
+  out: it is the public facade that imports everything; a subpackage counts for modules outside
+  it, since importing `lrf_jax.frames.spec` runs `lrf_jax/frames/__init__.py` first)."""
+  modules = _modules()
+  graph = {}
+  for name, path in modules.items():
+    edges = set()
+    is_package = path.name == "__init__.py"
+    for target in _imports(ast.parse(path.read_text()), name, is_package):
+      if target not in modules:
+        continue
+      parts = target.split(".")
+      for i in range(2, len(parts) + 1):
+        mod = ".".join(parts[:i])
+        if mod != name and not name.startswith(mod + "."):
+          edges.add(mod)
+    graph[name] = edges
+  return graph
+
+
+def find_cycles(graph: dict[str, set[str]]) -> list[list[str]]:
+  """Strongly connected components with more than one module (Tarjan)."""
+  index, low, stack, on, out = {}, {}, [], set(), []
+
+  def strong(v):
+    index[v] = low[v] = len(index)
+    stack.append(v)
+    on.add(v)
+    for w in graph.get(v, ()):
+      if w not in index:
+        strong(w)
+        low[v] = min(low[v], low[w])
+      elif w in on:
+        low[v] = min(low[v], index[w])
+    if low[v] == index[v]:
+      comp = []
+      while True:
+        w = stack.pop()
+        on.discard(w)
+        comp.append(w)
+        if w == v:
+          break
+      if len(comp) > 1:
+        out.append(sorted(comp))
+
+  for v in sorted(graph):
+    if v not in index:
+      strong(v)
+  return out
+
+
+def test_import_graph_has_no_cycle():
+  graph = import_graph()
+  assert len(graph) > 40 and graph["lrf_jax.api"]  # the walk sees the package
+  assert find_cycles(graph) == []
+
+
+def test_cycle_detection_sees_function_level_imports():
+  src = "def f():\n  from lrf_jax.b import g\n"
+  assert "lrf_jax.b" in _imports(ast.parse(src), "lrf_jax.a", False)
+  assert find_cycles({"a": {"b"}, "b": {"a"}, "c": set()}) == [["a", "b"]]
+
+
+def test_no_dynamic_imports():
+  """importlib only loads config files by path; nothing imports a module by a computed name."""
+  for path in PACKAGE.rglob("*.py"):
+    text = path.read_text()
+    assert "__import__(" not in text, path
+    assert "import_module(" not in text, path
+
+
+def _code_lines(node: ast.AST, lines: list[str]) -> int:
+  body = getattr(node, "body", [])
+  doc = set()
+  if body and isinstance(body[0], ast.Expr) and isinstance(body[0].value, ast.Constant) \
+      and isinstance(body[0].value.value, str):
+    doc = set(range(body[0].lineno, body[0].end_lineno + 1))
+  count = 0
+  for i in range(node.lineno, node.end_lineno + 1):
+    text = lines[i - 1].strip()
+    if text and not text.startswith("#") and i not in doc:
+      count += 1
+  return count
+
+
+def longest_functions(n: int = 5) -> list[tuple[int, str]]:
+  """The n longest top-level functions and methods (nested functions count toward theirs)."""
+  found = []
+  for path in PACKAGE.rglob("*.py"):
+    text = path.read_text()
+    lines = text.splitlines()
+
+    def walk(node):
+      for child in ast.iter_child_nodes(node):
+        if isinstance(child, (ast.FunctionDef, ast.AsyncFunctionDef)):
+          found.append((_code_lines(child, lines),
+                        f"{path.relative_to(PACKAGE.parent)}:{child.lineno} {child.name}"))
+        elif isinstance(child, ast.ClassDef):
+          walk(child)
+
+    walk(ast.parse(text))
+  return sorted(found, reverse=True)[:n]
+
+
+def test_no_function_over_80_code_lines():
+  longest = longest_functions()
+  assert longest[0][0] <= MAX_FUNCTION_LINES, longest

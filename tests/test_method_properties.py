@@ -1,0 +1,237 @@
+"""Properties every registered LRF method must have, parameterised over `lrf_jax.METHODS`.
+
+On a synthetic mesh (an irregular height field plus two degenerate far-away parts): orthonormal
+rows and det +1; interior keypoints valid, a one-neighbour and a collinear support invalid with
+an identity frame; frames that depend on the input; invariance to the order of the patch slots
+(and triangle slots) and to extra padding holding garbage; NaN input flagged invalid without
+touching the other keypoints; and every method honouring the declared `extra` layout. A new
+method registered in `lrf_jax/frames/__init__.py` is tested here without edits; the README's
+"Adding an LRF method" example is run as written and put through the same checks.
+"""
+
+from __future__ import annotations
+
+import re
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+import lrf_jax
+from lrf_jax import normals as nm
+from lrf_jax.api import frames_from_patches
+from lrf_jax.frames import KEYPOINT, SLOT, TRIANGLE, TRIANGLE_MASK
+from lrf_jax.neighborhoods import build_patches
+from lrf_jax.prepare import prepare_extra
+from tests.lrf_testing import N_GOOD, assert_frames_orthonormal, synthetic_mesh
+
+SYN = synthetic_mesh()
+README = Path(__file__).resolve().parents[1] / "README.md"
+
+
+def _inputs(method, k="default"):
+  """Patches and `extra` of the synthetic keypoints through the library's own prepare rule."""
+  spec = lrf_jax.METHODS[method]
+  points, faces, keypoints, radius = SYN
+  k = spec.default_k if k == "default" else k
+  patches = build_patches(points, keypoints, radius, k, z_ratio=spec.z_ratio)
+  extra = prepare_extra(spec, points, keypoints, patches, radius=radius, faces=faces)
+  return patches, extra
+
+
+def _run(method, patches, extra):
+  f, v = frames_from_patches(patches, method, extra=extra)
+  return np.asarray(f), np.asarray(v)
+
+
+def _case(method):
+  patches, extra = _inputs(method)
+  frames, valid = _run(method, patches, extra)
+  return patches, extra, frames, valid
+
+
+def _take(a, perm):
+  return np.take_along_axis(np.asarray(a), perm.reshape(perm.shape + (1,) * (a.ndim - 2)), 1)
+
+
+def _permute(patches, extra, seed):
+  """Shuffle each keypoint's patch slots, and its triangle slots, as `extra.AXES` declares."""
+  rng = np.random.default_rng(seed)
+  n, k = patches.mask.shape
+  perm = np.stack([rng.permutation(k) for _ in range(n)])
+  patches = patches._replace(offsets=_take(patches.offsets, perm),
+                             mask=_take(patches.mask, perm), indices=_take(patches.indices, perm))
+  if extra is None:
+    return patches, None
+  fields, tperm = {}, None
+  for name, kind in type(extra).AXES.items():
+    a = getattr(extra, name)
+    if a is None or kind == KEYPOINT:
+      continue
+    if kind == SLOT:
+      fields[name] = _take(a, perm)
+    else:
+      if tperm is None:
+        tperm = np.stack([rng.permutation(a.shape[1]) for _ in range(n)])
+      fields[name] = _take(a, tperm)
+  return patches, extra._replace(**fields)
+
+
+def _pad(patches, extra, more=32, seed=0):
+  """Append `more` masked slots (and triangle slots) holding finite garbage."""
+  rng = np.random.default_rng(seed)
+  n = patches.mask.shape[0]
+  junk = lambda *shape: rng.normal(scale=50.0, size=shape).astype(np.float32)
+  patches = patches._replace(
+      offsets=np.concatenate([patches.offsets, junk(n, more, 3)], 1),
+      mask=np.concatenate([patches.mask, np.zeros((n, more), bool)], 1),
+      indices=np.concatenate([patches.indices, np.full((n, more), -1, np.int32)], 1))
+  if extra is None:
+    return patches, None
+  fields = {}
+  for name, kind in type(extra).AXES.items():
+    a = getattr(extra, name)
+    if a is None or kind == KEYPOINT:
+      continue
+    a = np.asarray(a)
+    tail = (np.zeros((n, more), bool) if kind == TRIANGLE_MASK
+            else junk(n, more, *a.shape[2:]).astype(a.dtype))
+    fields[name] = np.concatenate([a, tail], 1)
+  return patches, extra._replace(**fields)
+
+
+def check_conventions(method):
+  _, _, frames, valid = _case(method)
+  assert_frames_orthonormal(frames, valid)
+  assert valid[:N_GOOD].all(), f"{method}: interior keypoints invalid: {valid[:N_GOOD]}"
+  assert not valid[N_GOOD], f"{method}: a 2-point neighbourhood must be invalid"
+  assert not valid[N_GOOD + 1], f"{method}: a collinear support must be invalid"
+  np.testing.assert_array_equal(frames[~valid], np.broadcast_to(np.eye(3), frames[~valid].shape))
+  cos = np.einsum("ni,mi->nm", frames[:N_GOOD, 0], frames[:N_GOOD, 0])
+  assert (cos < 0.999).sum() > 0, f"{method}: the same x for every keypoint"
+
+
+def check_slot_order_and_padding(method):
+  patches, extra, frames, valid = _case(method)
+  for p2, e2 in (_permute(patches, extra, seed=1), _pad(patches, extra)):
+    f2, v2 = _run(method, p2, e2)
+    np.testing.assert_array_equal(v2, valid)
+    np.testing.assert_allclose(f2, frames, atol=2e-5)
+
+
+def check_nan_input(method):
+  patches, extra, frames, valid = _case(method)
+  bad = 3
+  axes = {} if extra is None else type(extra).AXES
+  tri = next((name for name, kind in axes.items() if kind == TRIANGLE), None)
+  if tri is not None:  # triangle methods read triangles, not offsets
+    mask = next(name for name, kind in axes.items() if kind == TRIANGLE_MASK)
+    t = np.array(getattr(extra, tri))
+    t[bad, int(np.argmax(getattr(extra, mask)[bad])), 1, 2] = np.nan
+    extra = extra._replace(**{tri: t})
+  else:
+    offsets = np.array(patches.offsets)
+    offsets[bad, int(np.argmax(patches.mask[bad])), 0] = np.nan
+    patches = patches._replace(offsets=offsets)
+  f2, v2 = _run(method, patches, extra)
+  assert not v2[bad]
+  np.testing.assert_array_equal(f2[bad], np.eye(3))
+  keep = np.arange(len(v2)) != bad
+  np.testing.assert_array_equal(v2[keep], valid[keep])
+  np.testing.assert_allclose(f2[keep], frames[keep], atol=1e-6)
+
+
+def check_extra_layout(method):
+  spec = lrf_jax.METHODS[method]
+  patches, extra = _inputs(method)
+  if spec.prepare is None:
+    assert extra is None
+    return
+  assert isinstance(extra, spec.extra)
+  n, k = patches.mask.shape
+  for name, kind in spec.extra.AXES.items():
+    a = getattr(extra, name)
+    if a is None:
+      continue
+    assert a.shape[0] == n, (method, name, a.shape)
+    if kind == SLOT:
+      assert a.shape[1] == k, (method, name, a.shape)
+
+
+CHECKS = (check_conventions, check_slot_order_and_padding, check_nan_input, check_extra_layout)
+
+
+@pytest.mark.parametrize("check", CHECKS, ids=lambda c: c.__name__[6:])
+@pytest.mark.parametrize("method", list(lrf_jax.METHODS))
+def test_method_property(method, check):
+  check(method)
+
+
+def _readme_example() -> str:
+  text = README.read_text()
+  section = text[text.index("### Adding an LRF method"):]
+  return re.search(r"```python\n(.*?)```", section, re.S).group(1)
+
+
+def test_adding_a_method_as_the_readme_says():
+  """The README's toy method, registered inside this test only, passes every property check,
+  runs through `compute_frames`, and is equivariant on the synthetic mesh."""
+  assert "centroid" not in lrf_jax.METHODS
+  try:
+    exec(compile(_readme_example(), str(README), "exec"), {})
+    assert "centroid" in lrf_jax.METHODS
+    for check in CHECKS:
+      check("centroid")
+    points, _, keypoints, radius = SYN
+    rot = np.linalg.qr(np.random.default_rng(2).normal(size=(3, 3)))[0]
+    rot *= np.sign(np.linalg.det(rot))
+    f0, v0 = map(np.asarray, lrf_jax.compute_frames(points, keypoints, radius, "centroid"))
+    f1, v1 = map(np.asarray, lrf_jax.compute_frames(points @ rot.T + 3.0, keypoints, radius,
+                                                    "centroid"))
+    np.testing.assert_array_equal(v0, v1)
+    np.testing.assert_allclose(f1[v0], f0[v0] @ rot.T, atol=1e-4)
+  finally:
+    lrf_jax.METHODS.pop("centroid", None)
+  assert "centroid" not in lrf_jax.METHODS
+
+
+def test_register_alias_is_deprecated():
+  from lrf_jax.frames import MethodSpec, register
+  spec = MethodSpec("tmp_alias", lambda patches, extra: None)
+  try:
+    with pytest.warns(DeprecationWarning, match="register_method"):
+      assert register(spec) is spec
+    assert lrf_jax.METHODS["tmp_alias"] is spec
+  finally:
+    lrf_jax.METHODS.pop("tmp_alias", None)
+
+
+def test_method_spec_rejects_an_undeclared_extra():
+  from typing import NamedTuple
+
+  from lrf_jax.frames import MethodSpec
+
+  class NoAxes(NamedTuple):
+    a: np.ndarray
+
+  hook = lambda *args, **kw: None
+  with pytest.raises(ValueError, match="AXES"):
+    MethodSpec("bad", lambda p, e: None, prepare=hook, extra=NoAxes)
+  with pytest.raises(ValueError, match="go together"):
+    MethodSpec("bad", lambda p, e: None, prepare=hook)
+
+
+def test_normal_methods_get_the_same_normals_on_every_path():
+  """compute_frames and the evaluation's thunk of estimated normals feed one rule."""
+  from lrf_jax.prepare import method_normals
+  points, faces, _, radius = SYN
+  est = nm.estimate_normals(points, nm.NORMAL_RADIUS_RATIO * radius, faces)
+  for name in ("board", "gframes", "lrf_net_plus"):
+    spec = lrf_jax.METHODS[name]
+    a = method_normals(spec, points, radius, faces=faces)
+    b = method_normals(spec, points, radius, faces=faces, normals=lambda: est)
+    np.testing.assert_array_equal(a, b)
+  plus = lrf_jax.METHODS["lrf_net_plus"]
+  assert method_normals(plus, points, radius) is None  # a cloud: the ball sign
+  assert method_normals(plus, points, radius, faces=faces, viewpoint=np.zeros(3)) is None
+  assert method_normals(lrf_jax.METHODS["rops"], points, radius, faces=faces) is None

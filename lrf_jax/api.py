@@ -182,6 +182,7 @@ def compute_frames(
     chunk_size: int = 4096,
     progress: bool | None = None,
     search: str = "auto",
+    kernel: str = "auto",
     **options: Any,
 ) -> tuple[jax.Array, jax.Array]:
   """Local reference frames of `keypoints` of a cloud, by any registered method.
@@ -224,6 +225,10 @@ def compute_frames(
       voxel grids on the default device, `lrf_jax.device_search`; integer K only; the same
       patches, keypoints it cannot guarantee are redone on the host), or "auto" (device when the
       default backend is a GPU/TPU and K is an integer, else host).
+    kernel: how the frames are computed: "jit" (patches, then the method's jitted function),
+      "host" (the method's host fast path, `METHODS[method].host_frames`: compiled engine code
+      over every neighbour, float64, no padded patches; for methods that have one, with k=None
+      and no options), or "auto" (host where it applies and the backend is the CPU, else jit).
     **options: method options (e.g. `x_mode`, `signed`).
 
   Returns:
@@ -260,13 +265,17 @@ def compute_frames(
   m = keypoints.shape[0]
   if m == 0:
     return jnp.zeros((0, 3, 3), jnp.float32), jnp.zeros((0,), bool)
-  search_patches = _patch_search(points, spec, radius, k, seed, search)
+  on_host = _use_host_kernel(spec, kernel, k, options, search)
+  search_patches = _patch_search(points, spec, radius, k, seed, "host" if on_host else search)
   _warn_on_ball_size(search_patches.index, points, keypoints, radius)
   normals = method_normals(spec, points, radius, faces=faces, normals=normals,
                            viewpoint=viewpoint)
 
   def run(idx: np.ndarray, n_real: int) -> tuple[jax.Array, jax.Array]:
     kp = keypoints[idx]
+    if on_host:
+      return spec.host_frames(points, kp, radius, search_patches.index, faces=faces,
+                              normals=normals)
     patches = search_patches(kp)
     extra = prepare_extra(spec, points, kp, patches, radius=radius, faces=faces,
                           normals=normals, viewpoint=viewpoint)
@@ -303,6 +312,20 @@ class _PatchSearch:
     return build_patches(self.points, kp, self.radius, k, seed=self.seed, z_ratio=spec.z_ratio,
                          index=self.index, validate=False,
                          shells=spec.shells if k is None else None)
+
+
+def _use_host_kernel(spec: MethodSpec, kernel: str, k: int | None, options: dict,
+                     search: str) -> bool:
+  """Whether `compute_frames(kernel=...)` runs the method's host fast path (validated)."""
+  if kernel not in ("auto", "host", "jit"):
+    raise ValueError(f"kernel: expected 'auto', 'host' or 'jit', got {kernel!r}")
+  applies = spec.host_frames is not None and k is None and not options
+  if kernel == "host" and not applies:
+    raise ValueError(f"kernel='host': method {spec.name!r} has no host fast path for these "
+                     "arguments (it needs METHODS[method].host_frames, k=None and no options); "
+                     "use kernel='jit'")
+  return kernel == "host" or (kernel == "auto" and applies and search != "device"
+                              and jax.default_backend() == "cpu")
 
 
 def _patch_search(points: np.ndarray, spec: MethodSpec, radius: float, k: int | None, seed: int,

@@ -235,3 +235,56 @@ def test_normal_methods_get_the_same_normals_on_every_path():
   assert method_normals(plus, points, radius) is None  # a cloud: the ball sign
   assert method_normals(plus, points, radius, faces=faces, viewpoint=np.zeros(3)) is None
   assert method_normals(lrf_jax.METHODS["rops"], points, radius, faces=faces) is None
+
+
+HOST_METHODS = [m for m, s in lrf_jax.METHODS.items() if s.host_frames is not None]
+
+
+def _both_kernels(method, points, keypoints, radius, faces):
+  out = []
+  for kernel in ("host", "jit"):
+    f, v = lrf_jax.compute_frames(points, keypoints, radius, method, faces=faces, kernel=kernel)
+    out.append((np.asarray(f), np.asarray(v)))
+  return out
+
+
+def _agreement(method, host, jit):
+  (fh, vh), (fj, vj) = host, jit
+  cx = np.sum(fh[:, 0] * fj[:, 0], -1)
+  if method == "mian":  # x is sign-ambiguous by construction
+    cx = np.abs(cx)
+  return 0.5 * (cx + np.sum(fh[:, 2] * fj[:, 2], -1))
+
+
+@pytest.mark.parametrize("method", HOST_METHODS)
+def test_host_fast_path_equals_the_jitted_function(method):
+  """`kernel="host"` (compiled engine code, float64, no padded patches) gives the jitted
+  function's frames and validity on the synthetic mesh, degenerate keypoints included."""
+  points, faces, keypoints, radius = SYN
+  host, jit = _both_kernels(method, points, keypoints, radius, faces)
+  assert_frames_orthonormal(*host)
+  np.testing.assert_array_equal(host[1], jit[1])
+  assert host[1][:N_GOOD].all() and not host[1][N_GOOD:].any()
+  mc = _agreement(method, host, jit)[host[1]]
+  assert mc.min() > 1 - 1e-5, (method, mc.min())
+
+
+@pytest.mark.parametrize("method", HOST_METHODS)
+def test_host_fast_path_equals_the_jitted_function_on_the_bunny(method, br_bunny):
+  points, faces, mr, _ = br_bunny
+  keypoints = np.random.default_rng(4).choice(len(points), 400, replace=False)
+  host, jit = _both_kernels(method, points, keypoints, 15.0 * mr, faces)
+  assert (host[1] == jit[1]).mean() >= 0.995
+  both = host[1] & jit[1]
+  mc = _agreement(method, host, jit)[both]
+  assert (mc > 0.9999).mean() >= 0.99 and both.mean() > 0.9, (method, np.sort(mc)[:5])
+
+
+def test_kernel_argument_is_checked():
+  points, _, keypoints, radius = SYN
+  with pytest.raises(ValueError, match="kernel"):
+    lrf_jax.compute_frames(points, keypoints, radius, "shot", kernel="gpu")
+  with pytest.raises(ValueError, match="no host fast path"):
+    lrf_jax.compute_frames(points, keypoints, radius, "lrf_net", kernel="host")
+  with pytest.raises(ValueError, match="no host fast path"):
+    lrf_jax.compute_frames(points, keypoints, radius, "shot", k=64, kernel="host")

@@ -28,10 +28,15 @@ References:
 
 from __future__ import annotations
 
+from typing import Any
+
 import jax
 import jax.numpy as jnp
+import numba as nb
+import numpy as np
 
 from lrf_jax import geometry
+from lrf_jax.frames import host_geometry as hg
 from lrf_jax.frames.normal_based import NormalExtra, prepare_normals
 from lrf_jax.frames.spec import MethodSpec
 from lrf_jax.geometry import sanitize
@@ -105,6 +110,78 @@ def board_frames(patches: Patches, normals: jax.Array) -> tuple[jax.Array, jax.A
   valid = valid & finite
   return geometry.identity_where_invalid(frames, valid), valid
 
+# ------------------------------------------------------------------------------ host fast path
+# The same frame on the host from the engine's ball lists, in float64, one keypoint per thread
+# (`frames.host_geometry`): `compute_frames`' default on the CPU.
+
+
+@nb.njit(parallel=True, cache=True)
+def _board_host_kernel(points, centers, ptr, ball, normals, r, rz2, eps, frames, valid):
+  margin2 = (MARGIN * r) ** 2
+  for i in nb.prange(centers.shape[0]):
+    hg.set_identity(frames, valid, i)
+    start, stop = ptr[i], ptr[i + 1]
+    mean = np.zeros(3)
+    cov = np.zeros((3, 3))
+    count = hg.inner_stats(points, centers[i], ball, start, stop, rz2, mean, cov)
+    evals, evecs = np.linalg.eigh(cov)
+    if not (hg.smallest_ok(evals, eps) and count >= MIN_Z_NEIGHBOURS):
+      continue
+    z = evecs[:, 0].copy()
+    ref = np.zeros(3)
+    any_margin = False
+    for t in range(start, stop):
+      j = ball[t]
+      ox = points[j, 0] - centers[i, 0]
+      oy = points[j, 1] - centers[i, 1]
+      oz = points[j, 2] - centers[i, 2]
+      d2 = ox * ox + oy * oy + oz * oz
+      any_margin = any_margin or d2 > margin2
+      if d2 <= rz2 and hg.finite_row(normals, j):
+        ref[0] += normals[j, 0]
+        ref[1] += normals[j, 1]
+        ref[2] += normals[j, 2]
+    if z[0] * ref[0] + z[1] * ref[1] + z[2] * ref[2] < 0.0:
+      z = -z
+    best, best_d2, best_j = -np.inf, np.inf, -1
+    for t in range(start, stop):
+      j = ball[t]
+      ox = points[j, 0] - centers[i, 0]
+      oy = points[j, 1] - centers[i, 1]
+      oz = points[j, 2] - centers[i, 2]
+      d2 = ox * ox + oy * oy + oz * oz
+      if (d2 > margin2 if any_margin else d2 > 0.0) and hg.finite_row(normals, j):
+        score = -(normals[j, 0] * z[0] + normals[j, 1] * z[1] + normals[j, 2] * z[2])
+        if best_j < 0 or hg.better(score, d2, j, best, best_d2, best_j):
+          best, best_d2, best_j = score, d2, j
+    if best_j >= 0:
+      hg.write_frame(frames, valid, i, z, points[best_j] - centers[i])
+
+
+def board_frames_host(points: np.ndarray, keypoints: np.ndarray, radius: float, index: Any, *,
+                      faces: Any = None, normals: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+  """BOARD frames (`board_frame`) of `keypoints` on the host, float64.
+
+  Args:
+    points: (n, 3) float64 cloud.
+    keypoints: (N,) indices.
+    radius: support radius r.
+    index: the cloud's `neighborhoods.SearchIndex`.
+    faces: unused.
+    normals: (n, 3) per-point normals (NaN where undefined).
+
+  Returns:
+    (frames (N, 3, 3) float32 rows x, y, z, the identity where invalid; valid (N,) bool).
+  """
+  del faces
+  pts, centers, ptr, ball = hg.ball_lists(points, keypoints, radius, index)
+  frames = np.empty((len(centers), 3, 3))
+  valid = np.empty(len(centers), np.bool_)
+  rz = float(Z_RATIO * radius)
+  _board_host_kernel(pts, centers, ptr, ball, np.ascontiguousarray(normals, np.float64),
+                     float(radius), rz * rz, hg.EPS, frames, valid)
+  return frames.astype(np.float32), valid
+
 # ------------------------------------------------------------------------------ registry entry
 
 def _board(patches: Patches, extra: NormalExtra):
@@ -113,5 +190,6 @@ def _board(patches: Patches, extra: NormalExtra):
 
 SPEC = MethodSpec(
     "board", _board, default_k=None, needs_normals=True, z_ratio=Z_RATIO, prepare=prepare_normals, extra=NormalExtra,
+    host_frames=board_frames_host,
     description="BOARD (Petrelli & Di Stefano 2011): plane-fit z over r/3, x to the most "
                 "inclined margin normal (PCL)")

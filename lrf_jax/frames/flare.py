@@ -27,10 +27,15 @@ References:
 
 from __future__ import annotations
 
+from typing import Any
+
 import jax
 import jax.numpy as jnp
+import numba as nb
+import numpy as np
 
 from lrf_jax import geometry
+from lrf_jax.frames import host_geometry as hg
 from lrf_jax.frames.board import normals_mean
 from lrf_jax.frames.normal_based import NormalExtra, prepare_normals
 from lrf_jax.frames.spec import MethodSpec
@@ -98,6 +103,83 @@ def flare_frames(patches: Patches, normals: jax.Array,
   valid = valid & finite
   return geometry.identity_where_invalid(frames, valid), valid
 
+# ------------------------------------------------------------------------------ host fast path
+# The same frame on the host from the engine's ball lists, in float64, one keypoint per thread
+# (`frames.host_geometry`): `compute_frames`' default on the CPU.
+
+
+@nb.njit(parallel=True, cache=True)
+def _flare_host_kernel(points, centers, kp_ids, ptr, ball, normals, r, rz2, eps, frames, valid):
+  margin2 = (MARGIN * r) ** 2
+  for i in nb.prange(centers.shape[0]):
+    hg.set_identity(frames, valid, i)
+    start, stop = ptr[i], ptr[i + 1]
+    if stop - start < MIN_TANGENT_NEIGHBOURS:
+      continue
+    mean = np.zeros(3)
+    cov = np.zeros((3, 3))
+    count = hg.inner_stats(points, centers[i], ball, start, stop, rz2, mean, cov)
+    if count >= MIN_Z_NEIGHBOURS:
+      evals, evecs = np.linalg.eigh(cov)
+      z = evecs[:, 0].copy()
+      ref = np.zeros(3)
+      for t in range(start, stop):
+        j = ball[t]
+        ox = points[j, 0] - centers[i, 0]
+        oy = points[j, 1] - centers[i, 1]
+        oz = points[j, 2] - centers[i, 2]
+        if ox * ox + oy * oy + oz * oz <= rz2 and hg.finite_row(normals, j):
+          ref[0] += normals[j, 0]
+          ref[1] += normals[j, 1]
+          ref[2] += normals[j, 2]
+      if not (hg.smallest_ok(evals, eps) and (ref != 0.0).any()):
+        continue
+      if z[0] * ref[0] + z[1] * ref[1] + z[2] * ref[2] < 0.0:
+        z = -z
+    else:
+      z, own_ok = hg.unit_or_zero(normals[kp_ids[i]])
+      if not own_ok:
+        continue
+    best, best_d2, best_j = -np.inf, np.inf, -1
+    for t in range(start, stop):
+      j = ball[t]
+      ox = points[j, 0] - centers[i, 0]
+      oy = points[j, 1] - centers[i, 1]
+      oz = points[j, 2] - centers[i, 2]
+      d2 = ox * ox + oy * oy + oz * oz
+      if d2 > margin2:
+        h = ox * z[0] + oy * z[1] + oz * z[2]
+        if best_j < 0 or hg.better(h, d2, j, best, best_d2, best_j):
+          best, best_d2, best_j = h, d2, j
+    if best_j >= 0:
+      hg.write_frame(frames, valid, i, z, points[best_j] - centers[i])
+
+
+def flare_frames_host(points: np.ndarray, keypoints: np.ndarray, radius: float, index: Any, *,
+                      faces: Any = None, normals: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+  """FLARE frames (`flare_frame`) of `keypoints` on the host, float64.
+
+  Args:
+    points: (n, 3) float64 cloud.
+    keypoints: (N,) indices.
+    radius: support radius r.
+    index: the cloud's `neighborhoods.SearchIndex`.
+    faces: unused.
+    normals: (n, 3) per-point normals (NaN where undefined).
+
+  Returns:
+    (frames (N, 3, 3) float32 rows x, y, z, the identity where invalid; valid (N,) bool).
+  """
+  del faces
+  pts, centers, ptr, ball = hg.ball_lists(points, keypoints, radius, index)
+  frames = np.empty((len(centers), 3, 3))
+  valid = np.empty(len(centers), np.bool_)
+  rz = float(Z_RATIO * radius)
+  _flare_host_kernel(pts, centers, np.asarray(keypoints, np.int64), ptr, ball,
+                     np.ascontiguousarray(normals, np.float64), float(radius), rz * rz, hg.EPS,
+                     frames, valid)
+  return frames.astype(np.float32), valid
+
 # ------------------------------------------------------------------------------ registry entry
 
 def _flare(patches: Patches, extra: NormalExtra):
@@ -106,6 +188,6 @@ def _flare(patches: Patches, extra: NormalExtra):
 
 SPEC = MethodSpec(
     "flare", _flare, default_k=None, needs_normals=True, z_ratio=Z_RATIO, prepare=prepare_normals, extra=NormalExtra,
-    shells=(Z_RATIO, MARGIN),
+    shells=(Z_RATIO, MARGIN), host_frames=flare_frames_host,
     description="FLARE / SD (Petrelli & Di Stefano 2012): plane-fit z over r/3, x to the "
                 "highest margin point (PCL)")

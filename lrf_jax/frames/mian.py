@@ -25,10 +25,15 @@ References:
 
 from __future__ import annotations
 
+from typing import Any
+
 import jax
 import jax.numpy as jnp
+import numba as nb
+import numpy as np
 
 from lrf_jax import geometry
+from lrf_jax.frames import host_geometry as hg
 from lrf_jax.frames.normal_based import NormalExtra, prepare_normals
 from lrf_jax.frames.spec import MethodSpec
 from lrf_jax.geometry import sanitize
@@ -83,6 +88,54 @@ def mian_frames(patches: Patches, kp_normal: jax.Array, *,
   valid = valid & finite
   return geometry.identity_where_invalid(frames, valid), valid
 
+# ------------------------------------------------------------------------------ host fast path
+# The same frame on the host from the engine's ball lists, in float64, one keypoint per thread
+# (`frames.host_geometry`): `compute_frames`' default on the CPU.
+
+
+@nb.njit(parallel=True, cache=True)
+def _mian_host_kernel(points, centers, kp_ids, ptr, ball, normals, eps, frames, valid):
+  for i in nb.prange(centers.shape[0]):
+    hg.set_identity(frames, valid, i)
+    start, stop = ptr[i], ptr[i + 1]
+    if stop - start < MIN_NEIGHBOURS:
+      continue
+    mean = np.zeros(3)
+    cov = np.zeros((3, 3))
+    hg.inner_stats(points, centers[i], ball, start, stop, np.inf, mean, cov)
+    evals, evecs = np.linalg.eigh(cov)  # ascending
+    n, n_ok = hg.unit_or_zero(normals[kp_ids[i]])
+    if not (hg.full_spectrum_ok(evals, eps) and n_ok):
+      continue
+    z = evecs[:, 0].copy()
+    if z[0] * n[0] + z[1] * n[1] + z[2] * n[2] < 0.0:
+      z = -z
+    hg.write_frame(frames, valid, i, z, evecs[:, 2].copy())
+
+
+def mian_frames_host(points: np.ndarray, keypoints: np.ndarray, radius: float, index: Any, *,
+                     faces: Any = None, normals: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+  """Mian frames (`mian_frame`, center "centroid") of `keypoints` on the host, float64.
+
+  Args:
+    points: (n, 3) float64 cloud.
+    keypoints: (N,) indices.
+    radius: support radius r.
+    index: the cloud's `neighborhoods.SearchIndex`.
+    faces: unused.
+    normals: (n, 3) per-point normals (NaN where undefined).
+
+  Returns:
+    (frames (N, 3, 3) float32 rows x, y, z, the identity where invalid; valid (N,) bool).
+  """
+  del faces
+  pts, centers, ptr, ball = hg.ball_lists(points, keypoints, radius, index)
+  frames = np.empty((len(centers), 3, 3))
+  valid = np.empty(len(centers), np.bool_)
+  _mian_host_kernel(pts, centers, np.asarray(keypoints, np.int64), ptr, ball,
+                    np.ascontiguousarray(normals, np.float64), hg.EPS, frames, valid)
+  return frames.astype(np.float32), valid
+
 # ------------------------------------------------------------------------------ registry entry
 
 def _mian(patches: Patches, extra: NormalExtra, *, center: str = "centroid"):
@@ -90,6 +143,7 @@ def _mian(patches: Patches, extra: NormalExtra, *, center: str = "centroid"):
 
 
 SPEC = MethodSpec(
-    "mian", _mian, default_k=None, needs_normals=True, prepare=prepare_normals, extra=NormalExtra,
+    "mian", _mian, default_k=None, needs_normals=True, prepare=prepare_normals,
+    host_frames=mian_frames_host, extra=NormalExtra,
     description="Mian et al. 2010: covariance eigenvectors, z signed by the normal (x/y sign "
                 "ambiguous)")

@@ -23,10 +23,15 @@ References:
 
 from __future__ import annotations
 
+from typing import Any
+
 import jax
 import jax.numpy as jnp
+import numba as nb
+import numpy as np
 
 from lrf_jax import geometry
+from lrf_jax.frames import host_geometry as hg
 from lrf_jax.frames.normal_based import NormalExtra, prepare_normals
 from lrf_jax.frames.spec import MethodSpec
 from lrf_jax.geometry import sanitize
@@ -79,6 +84,84 @@ def ps_frames(patches: Patches, kp_normal: jax.Array) -> tuple[jax.Array, jax.Ar
   valid = valid & finite
   return geometry.identity_where_invalid(frames, valid), valid
 
+# ------------------------------------------------------------------------------ host fast path
+# The same frame on the host from the engine's ball lists, in float64, one keypoint per thread
+# (`frames.host_geometry`): `compute_frames`' default on the CPU.
+
+
+@nb.njit(parallel=True, cache=True)
+def _ps_host_kernel(points, centers, kp_ids, ptr, ball, normals, r, eps, frames, valid):
+  rc2 = (CONTOUR_RATIO * r) ** 2
+  for i in nb.prange(centers.shape[0]):
+    hg.set_identity(frames, valid, i)
+    start, stop = ptr[i], ptr[i + 1]
+    c = 0.0
+    s = np.zeros(3)
+    sq = np.zeros((3, 3))
+    for t in range(start, stop):
+      j = ball[t]
+      ox = points[j, 0] - centers[i, 0]
+      oy = points[j, 1] - centers[i, 1]
+      oz = points[j, 2] - centers[i, 2]
+      if ox * ox + oy * oy + oz * oz >= rc2:
+        c += 1.0
+        s[0] += ox
+        s[1] += oy
+        s[2] += oz
+        sq[0, 0] += ox * ox
+        sq[0, 1] += ox * oy
+        sq[0, 2] += ox * oz
+        sq[1, 1] += oy * oy
+        sq[1, 2] += oy * oz
+        sq[2, 2] += oz * oz
+    if c < MIN_CONTOUR:
+      continue
+    sq[1, 0], sq[2, 0], sq[2, 1] = sq[0, 1], sq[0, 2], sq[1, 2]
+    m = s / c
+    evals, evecs = np.linalg.eigh(sq / c - np.outer(m, m))
+    n, n_ok = hg.unit_or_zero(normals[kp_ids[i]])
+    if not (hg.smallest_ok(evals, eps) and n_ok):
+      continue
+    z = evecs[:, 0].copy()
+    if z[0] * n[0] + z[1] * n[1] + z[2] * n[2] < 0.0:
+      z = -z
+    best, best_d2, best_j = -np.inf, np.inf, -1
+    for t in range(start, stop):
+      j = ball[t]
+      ox = points[j, 0] - centers[i, 0]
+      oy = points[j, 1] - centers[i, 1]
+      oz = points[j, 2] - centers[i, 2]
+      d2 = ox * ox + oy * oy + oz * oz
+      if d2 >= rc2:
+        h = ox * z[0] + oy * z[1] + oz * z[2]
+        if best_j < 0 or hg.better(h, d2, j, best, best_d2, best_j):
+          best, best_d2, best_j = h, d2, j
+    hg.write_frame(frames, valid, i, z, points[best_j] - centers[i])
+
+
+def ps_frames_host(points: np.ndarray, keypoints: np.ndarray, radius: float, index: Any, *,
+                   faces: Any = None, normals: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+  """Point-signature frames (`ps_frame`) of `keypoints` on the host, float64.
+
+  Args:
+    points: (n, 3) float64 cloud.
+    keypoints: (N,) indices.
+    radius: support radius r.
+    index: the cloud's `neighborhoods.SearchIndex`.
+    faces: unused.
+    normals: (n, 3) per-point normals (NaN where undefined).
+
+  Returns:
+    (frames (N, 3, 3) float32 rows x, y, z, the identity where invalid; valid (N,) bool).
+  """
+  del faces
+  pts, centers, ptr, ball = hg.ball_lists(points, keypoints, radius, index)
+  frames = np.empty((len(centers), 3, 3))
+  valid = np.empty(len(centers), np.bool_)
+  _ps_host_kernel(pts, centers, np.asarray(keypoints, np.int64), ptr, ball,
+                  np.ascontiguousarray(normals, np.float64), float(radius), hg.EPS, frames, valid)
+  return frames.astype(np.float32), valid
+
 # ------------------------------------------------------------------------------ registry entry
 
 def _ps(patches: Patches, extra: NormalExtra):
@@ -86,6 +169,7 @@ def _ps(patches: Patches, extra: NormalExtra):
 
 
 SPEC = MethodSpec(
-    "ps", _ps, default_k=None, needs_normals=True, prepare=prepare_normals, extra=NormalExtra,
+    "ps", _ps, default_k=None, needs_normals=True, prepare=prepare_normals,
+    host_frames=ps_frames_host, extra=NormalExtra,
     description="Point signature (Chua & Jarvis 1997): contour-plane z, x to the highest "
                 "contour point")

@@ -15,8 +15,9 @@ also when two eigenvalues of C coincide (relative gap <= `geometry.DEGENERATE_EP
 points; PCL returns an arbitrary frame there) or an input is not finite. SHOT uses every point
 of the ball: call it with `k=None` (the registry's default).
 
-Deviations from PCL: float32 instead of double for C; equal distances in the tie rule are ordered
-by cloud index (PCL: the kd-tree's order).
+Deviations from PCL: the jitted `shot_frames` computes C in float32 (the host fast path
+`shot_frames_host`, `compute_frames`' default on the CPU, in double as PCL); equal distances in
+the tie rule are ordered by cloud index (PCL: the kd-tree's order).
 
 References:
   Tombari, Salti, Di Stefano, "Unique signatures of histograms for local surface description",
@@ -25,10 +26,15 @@ References:
 
 from __future__ import annotations
 
+from typing import Any
+
 import jax
 import jax.numpy as jnp
+import numba as nb
+import numpy as np
 
 from lrf_jax import geometry
+from lrf_jax.frames import host_geometry as hg
 from lrf_jax.frames.spec import MethodSpec
 from lrf_jax.geometry import sanitize
 from lrf_jax.neighborhoods import Patches
@@ -131,6 +137,98 @@ def shot_frames(patches: Patches) -> tuple[jax.Array, jax.Array]:
   frames, valid = jax.vmap(_assemble)(x, z, ok & finite)
   return geometry.identity_where_invalid(frames, valid), valid
 
+# ------------------------------------------------------------------------------ host fast path
+# The same frame computed on the host from the engine's ball lists, in float64, one keypoint per
+# thread: no padded patch, no sort but for the tied votes. `compute_frames`' default on the CPU.
+
+
+@nb.njit(inline="always")
+def _host_sign(axis, off, d2, ids, n):
+  """PCL's sign of `axis` over the n offsets `off` (3, n): +1 keep, -1 flip (`_apply`)."""
+  plus = 0
+  for t in range(n):
+    if off[0, t] * axis[0] + off[1, t] * axis[1] + off[2, t] * axis[2] >= 0.0:
+      plus += 1
+  balance = 2 * plus - n
+  if balance != 0:
+    return 1.0 if balance > 0 else -1.0
+  # The tie rule: the neighbours around the median distance vote (equal distances by index).
+  by_id = np.argsort(ids[:n], kind="mergesort")
+  order = by_id[np.argsort(d2[:n][by_id], kind="mergesort")]
+  votes = 0
+  for v in range(n // 2 - TIE_VOTERS // 2, n // 2 + TIE_VOTERS // 2 + 1):
+    j = order[min(max(v, 0), n - 1)]
+    if off[0, j] * axis[0] + off[1, j] * axis[1] + off[2, j] * axis[2] > 0.0:
+      votes += 1
+  return 1.0 if votes >= TIE_VOTERS // 2 + 1 else -1.0
+
+
+@nb.njit(parallel=True, cache=True)
+def _shot_host_kernel(points, centers, ptr, ball, r, eps, frames, valid):
+  for i in nb.prange(centers.shape[0]):
+    start, stop = ptr[i], ptr[i + 1]
+    off = np.empty((3, stop - start))
+    d2 = np.empty(stop - start)
+    ids = np.empty(stop - start, np.int64)
+    n = 0
+    cov = np.zeros((3, 3))
+    wsum = 0.0
+    for t in range(start, stop):
+      j = ball[t]
+      dx = points[j, 0] - centers[i, 0]
+      dy = points[j, 1] - centers[i, 1]
+      dz = points[j, 2] - centers[i, 2]
+      dd = dx * dx + dy * dy + dz * dz
+      if dd <= 0.0:
+        continue  # the keypoint itself (and exact duplicates of it)
+      w = r - np.sqrt(dd)
+      off[0, n], off[1, n], off[2, n] = dx, dy, dz
+      d2[n] = dd
+      ids[n] = j
+      n += 1
+      wsum += w
+      cov[0, 0] += w * dx * dx
+      cov[0, 1] += w * dx * dy
+      cov[0, 2] += w * dx * dz
+      cov[1, 1] += w * dy * dy
+      cov[1, 2] += w * dy * dz
+      cov[2, 2] += w * dz * dz
+    hg.set_identity(frames, valid, i)
+    if n < MIN_NEIGHBOURS or not wsum > 0.0:
+      continue
+    cov[1, 0], cov[2, 0], cov[2, 1] = cov[0, 1], cov[0, 2], cov[1, 2]
+    evals, evecs = np.linalg.eigh(cov / wsum)  # ascending
+    if not hg.full_spectrum_ok(evals, eps):
+      continue
+    x = evecs[:, 2] * _host_sign(evecs[:, 2], off, d2, ids, n)
+    z = evecs[:, 0] * _host_sign(evecs[:, 0], off, d2, ids, n)
+    hg.write_frame(frames, valid, i, z, x)
+
+
+def shot_frames_host(points: np.ndarray, keypoints: np.ndarray, radius: float, index: Any, *,
+                     faces: Any = None, normals: Any = None) -> tuple[np.ndarray, np.ndarray]:
+  """SHOT frames of `keypoints` on the host, from every point within `radius` (float64).
+
+  The rule of `shot_frame` (PCL's), with C, the votes and the tie order in float64 as PCL
+  computes them, from the engine's ball lists without a padded patch.
+
+  Args:
+    points: (n, 3) float64 cloud.
+    keypoints: (N,) indices.
+    radius: support radius r.
+    index: the cloud's `neighborhoods.SearchIndex`.
+    faces, normals: unused (SHOT reads neither).
+
+  Returns:
+    (frames (N, 3, 3) float32 rows x, y, z, the identity where invalid; valid (N,) bool).
+  """
+  del faces, normals
+  pts, centers, ptr, ball = hg.ball_lists(points, keypoints, radius, index)
+  frames = np.empty((len(centers), 3, 3))
+  valid = np.empty(len(centers), np.bool_)
+  _shot_host_kernel(pts, centers, ptr, ball, float(radius), hg.EPS, frames, valid)
+  return frames.astype(np.float32), valid
+
 # ------------------------------------------------------------------------------ registry entry
 
 def _shot(patches: Patches, extra: None):
@@ -139,6 +237,6 @@ def _shot(patches: Patches, extra: None):
 
 
 SPEC = MethodSpec(
-    "shot", _shot, default_k=None,
+    "shot", _shot, default_k=None, host_frames=shot_frames_host,
     description="SHOT (Tombari et al. 2010): (r-d)-weighted covariance about p, majority-vote "
                 "signs (PCL)")

@@ -49,6 +49,11 @@ class MethodSpec:
     weights: name of the shipped parameter file used when no params are given
       (`lrf_jax/weights/<weights>.msgpack`).
     default_options: options applied unless the caller gives them (e.g. lut=257).
+    host_frames: optional host fast path `host_frames(points, keypoints, radius, index, *,
+      faces=, normals=) -> (frames (N, 3, 3) float32, valid (N,) bool)`, numpy and compiled
+      engine code computing the same frames as `fn` on every neighbour (k=None) without padded
+      patches (`normals` as `lrf_jax.prepare.method_normals` gives them); `compute_frames` runs
+      it by default on a CPU backend (`kernel="auto"`).
     shells: (a, b) fractions of r when the method reads only the neighbours within a * r or
       beyond b * r: with every neighbour (k=None), `compute_frames` then gathers only those
       (`build_patches(shells=)`), which gives the same frames from smaller patches. None: the
@@ -69,6 +74,7 @@ class MethodSpec:
   weights: str = "lrf_net"
   default_options: tuple[tuple[str, Any], ...] = ()
   shells: tuple[float, float] | None = None
+  host_frames: Callable[..., Any] | None = None
 
   def __post_init__(self):
     if self.needs_normals and (self.prepare is None or self.uses_viewpoint):

@@ -12,11 +12,16 @@ non-vanishing weighted sum). TOLDI uses every radius neighbour: call it with `k=
 
 from __future__ import annotations
 
+from typing import Any
+
 import jax
 import jax.numpy as jnp
+import numba as nb
+import numpy as np
 
 from lrf_jax import geometry
-from lrf_jax.frames.lrf_net import frames_with_weight_fn
+from lrf_jax.frames import host_geometry as hg
+from lrf_jax.frames.lrf_net import MIN_Z_NEIGHBOURS, X_EPS, frames_with_weight_fn
 from lrf_jax.frames.spec import MethodSpec
 from lrf_jax.neighborhoods import Patches
 
@@ -50,6 +55,73 @@ def toldi_frames(patches: Patches, *, signed: bool = True) -> tuple[jax.Array, j
       patches, lambda o, z, r: toldi_weights(o, z, r, signed))
   return frames, valid
 
+# ------------------------------------------------------------------------------ host fast path
+# The same frame on the host from the engine's ball lists, in float64, one keypoint per thread
+# (`frames.host_geometry`): `compute_frames`' default on the CPU.
+
+
+@nb.njit(parallel=True, cache=True)
+def _toldi_host_kernel(points, centers, ptr, ball, r, rz2, signed, eps, x_eps, frames, valid):
+  for i in nb.prange(centers.shape[0]):
+    hg.set_identity(frames, valid, i)
+    start, stop = ptr[i], ptr[i + 1]
+    mean = np.zeros(3)
+    cov = np.zeros((3, 3))
+    count = hg.inner_stats(points, centers[i], ball, start, stop, rz2, mean, cov)
+    evals, evecs = np.linalg.eigh(cov)
+    if not (hg.smallest_ok(evals, eps) and count >= MIN_Z_NEIGHBOURS):
+      continue
+    z = evecs[:, 0].copy()
+    if mean[0] * z[0] + mean[1] * z[1] + mean[2] * z[2] > 0.0:
+      z = -z
+    s = np.zeros(3)
+    scale = 0.0
+    for t in range(start, stop):
+      j = ball[t]
+      ox = points[j, 0] - centers[i, 0]
+      oy = points[j, 1] - centers[i, 1]
+      oz = points[j, 2] - centers[i, 2]
+      d = np.sqrt(ox * ox + oy * oy + oz * oz) / r
+      dot = ox * z[0] + oy * z[1] + oz * z[2]
+      h = dot / r
+      w = (1.0 - d) ** 2 * h * h
+      if signed:
+        w = w if h > 0.0 else (-w if h < 0.0 else 0.0)
+      vx, vy, vz = ox - dot * z[0], oy - dot * z[1], oz - dot * z[2]
+      s[0] += w * vx
+      s[1] += w * vy
+      s[2] += w * vz
+      scale += abs(w) * np.sqrt(vx * vx + vy * vy + vz * vz)
+    if np.sqrt(s[0] * s[0] + s[1] * s[1] + s[2] * s[2]) > x_eps * scale:
+      hg.write_frame(frames, valid, i, z, s)
+
+
+def toldi_frames_host(points: np.ndarray, keypoints: np.ndarray, radius: float, index: Any, *,
+                      faces: Any = None, normals: Any = None,
+                      signed: bool = True) -> tuple[np.ndarray, np.ndarray]:
+  """TOLDI frames (`toldi_frames`) of `keypoints` on the host, float64: z from the points within
+  r/3, x from every point within r.
+
+  Args:
+    points: (n, 3) float64 cloud.
+    keypoints: (N,) indices.
+    radius: support radius r.
+    index: the cloud's `neighborhoods.SearchIndex`.
+    faces, normals: unused.
+    signed: the original signed height weight (True) or the paper's unsigned one.
+
+  Returns:
+    (frames (N, 3, 3) float32 rows x, y, z, the identity where invalid; valid (N,) bool).
+  """
+  del faces, normals
+  pts, centers, ptr, ball = hg.ball_lists(points, keypoints, radius, index)
+  frames = np.empty((len(centers), 3, 3))
+  valid = np.empty(len(centers), np.bool_)
+  rz = float(SPEC.z_ratio * radius)
+  _toldi_host_kernel(pts, centers, ptr, ball, float(radius), rz * rz, bool(signed), hg.EPS,
+                     X_EPS, frames, valid)
+  return frames.astype(np.float32), valid
+
 # ------------------------------------------------------------------------------ registry entry
 
 def _toldi(patches: Patches, extra: None, *, signed: bool = True):
@@ -58,5 +130,5 @@ def _toldi(patches: Patches, extra: None, *, signed: bool = True):
 
 
 SPEC = MethodSpec(
-    "toldi", _toldi, default_k=None,
+    "toldi", _toldi, default_k=None, host_frames=toldi_frames_host,
     description="TOLDI (Yang et al. 2017): z over r/3, x weights (r-d)^2 sign(h) h^2 (original C++)")

@@ -1,0 +1,135 @@
+"""What the methods' host fast paths share: ball lists per chunk and numba geometry (float64).
+
+A host fast path (`MethodSpec.host_frames`) computes a method's frames on the CPU straight from
+the engine's ball lists (`engine.ball_lists`: every point within r of each keypoint), one
+keypoint per thread, in float64, without padded patches. The helpers below are the numba
+counterparts of the `lrf_jax.geometry` rules the jitted functions use (same tolerances, same
+tie-breaking), so that both paths return the same frames up to float32 rounding.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numba as nb
+import numpy as np
+
+from lrf_jax import engine, geometry
+
+EPS = geometry.DEGENERATE_EPS
+
+
+def ball_lists(points: np.ndarray, keypoints: np.ndarray, radius: float,
+               index: Any) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+  """(points (n, 3) float64, centers (N, 3), ptr (N + 1,), ball (ptr[-1],)) of every point
+  within `radius` of each keypoint, from the cloud's `SearchIndex` (`engine.ball_lists`)."""
+  pts = np.ascontiguousarray(points, np.float64)
+  centers = np.ascontiguousarray(pts[np.asarray(keypoints)])
+  ptr, ball = engine.ball_lists(index.grid(radius), centers, float(radius))
+  return pts, centers, ptr, ball
+
+
+@nb.njit(inline="always")
+def set_identity(frames, valid, i):
+  """Frame i := the identity, flagged invalid."""
+  valid[i] = False
+  for a in range(3):
+    for b in range(3):
+      frames[i, a, b] = 1.0 if a == b else 0.0
+
+
+@nb.njit(inline="always")
+def full_spectrum_ok(evals, eps):
+  """`geometry.eigen_frame`'s test on ascending eigenvalues: both gaps > eps * |largest|."""
+  scale = abs(evals[2])
+  gap = min(evals[2] - evals[1], evals[1] - evals[0])
+  return gap > eps * scale and scale > 0.0
+
+
+@nb.njit(inline="always")
+def smallest_ok(evals, eps):
+  """`geometry.smallest_eigvec`'s test on ascending eigenvalues: the smallest is unique."""
+  scale = max(evals[2], 0.0)
+  return evals[1] - evals[0] > eps * scale and scale > 0.0
+
+
+@nb.njit(inline="always")
+def write_frame(frames, valid, i, z, x):
+  """`geometry.frame_from_zx`: rows (x, y = z × x, z) from a unit z and an unnormalised x.
+
+  Returns False (frame i left as it is) when x has no component off z."""
+  d = x[0] * z[0] + x[1] * z[1] + x[2] * z[2]
+  t0, t1, t2 = x[0] - d * z[0], x[1] - d * z[1], x[2] - d * z[2]
+  nx = np.sqrt(t0 * t0 + t1 * t1 + t2 * t2)
+  if not nx > 0.0:
+    return False
+  t0, t1, t2 = t0 / nx, t1 / nx, t2 / nx
+  frames[i, 0, 0], frames[i, 0, 1], frames[i, 0, 2] = t0, t1, t2
+  frames[i, 1, 0] = z[1] * t2 - z[2] * t1
+  frames[i, 1, 1] = z[2] * t0 - z[0] * t2
+  frames[i, 1, 2] = z[0] * t1 - z[1] * t0
+  frames[i, 2, 0], frames[i, 2, 1], frames[i, 2, 2] = z[0], z[1], z[2]
+  valid[i] = True
+  return True
+
+
+@nb.njit(inline="always")
+def better(score, d2, idx, best_score, best_d2, best_idx):
+  """`geometry.lexicographic_argmax`'s order: a larger score, then nearer, then lower index."""
+  if score != best_score:
+    return score > best_score
+  if d2 != best_d2:
+    return d2 < best_d2
+  return idx < best_idx
+
+
+@nb.njit(inline="always")
+def inner_stats(points, center, ball, start, stop, rz2, mean, cov):
+  """Count, centroid offset and covariance about the centroid of the listed points within
+  sqrt(rz2) of `center`, as the engine's r/3 statistics (`engine.ball_stats`) compute them."""
+  c = 0.0
+  s0 = s1 = s2 = 0.0
+  sxx = sxy = sxz = syy = syz = szz = 0.0
+  for t in range(start, stop):
+    j = ball[t]
+    dx = points[j, 0] - center[0]
+    dy = points[j, 1] - center[1]
+    dz = points[j, 2] - center[2]
+    if dx * dx + dy * dy + dz * dz <= rz2:
+      c += 1.0
+      s0 += dx
+      s1 += dy
+      s2 += dz
+      sxx += dx * dx
+      sxy += dx * dy
+      sxz += dx * dz
+      syy += dy * dy
+      syz += dy * dz
+      szz += dz * dz
+  d = max(c, 1.0)
+  mx, my, mz = s0 / d, s1 / d, s2 / d
+  mean[0], mean[1], mean[2] = mx, my, mz
+  cov[0, 0] = sxx / d - mx * mx
+  cov[0, 1] = cov[1, 0] = sxy / d - mx * my
+  cov[0, 2] = cov[2, 0] = sxz / d - mx * mz
+  cov[1, 1] = syy / d - my * my
+  cov[1, 2] = cov[2, 1] = syz / d - my * mz
+  cov[2, 2] = szz / d - mz * mz
+  return int(c)
+
+
+@nb.njit(inline="always")
+def finite_row(a, j):
+  """a[j] (a row of 3) is finite."""
+  return np.isfinite(a[j, 0]) and np.isfinite(a[j, 1]) and np.isfinite(a[j, 2])
+
+
+@nb.njit(inline="always")
+def unit_or_zero(v):
+  """(v / |v|, True) for a finite non-zero v, else (zeros, False)."""
+  n = np.sqrt(v[0] * v[0] + v[1] * v[1] + v[2] * v[2])
+  out = np.zeros(3)
+  if not (np.isfinite(n) and n > 0.0):
+    return out, False
+  out[0], out[1], out[2] = v[0] / n, v[1] / n, v[2] / n
+  return out, True

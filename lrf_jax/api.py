@@ -266,7 +266,7 @@ def compute_frames(
   if m == 0:
     return jnp.zeros((0, 3, 3), jnp.float32), jnp.zeros((0,), bool)
   on_host = _use_host_kernel(spec, kernel, k, options, search)
-  search_patches = _patch_search(points, spec, radius, k, seed, "host" if on_host else search)
+  search_patches = _patch_search(points, spec, radius, k, seed, search, on_host)
   _warn_on_ball_size(search_patches.index, points, keypoints, radius)
   normals = method_normals(spec, points, radius, faces=faces, normals=normals,
                            viewpoint=viewpoint)
@@ -274,8 +274,8 @@ def compute_frames(
   def run(idx: np.ndarray, n_real: int) -> tuple[jax.Array, jax.Array]:
     kp = keypoints[idx]
     if on_host:
-      return spec.host_frames(points, kp, radius, search_patches.index, faces=faces,
-                              normals=normals)
+      return _host_frames_in_budget(spec, points, kp, radius, search_patches.index, faces,
+                                    normals)
     patches = search_patches(kp)
     extra = prepare_extra(spec, points, kp, patches, radius=radius, faces=faces,
                           normals=normals, viewpoint=viewpoint)
@@ -314,6 +314,23 @@ class _PatchSearch:
                          shells=spec.shells if k is None else None)
 
 
+# Ball-list entries (8 bytes each) a host fast path holds at a time.
+HOST_NEIGHBOUR_BUDGET = 1 << 24
+
+
+def _host_frames_in_budget(spec: MethodSpec, points: np.ndarray, kp: np.ndarray, radius: float,
+                           index: SearchIndex, faces: Any, normals: Any
+                           ) -> tuple[np.ndarray, np.ndarray]:
+  """`spec.host_frames` over `kp` in groups whose balls hold at most `HOST_NEIGHBOUR_BUDGET`
+  points together (one keypoint at least), so memory does not grow with the ball size."""
+  counts = engine.ball_counts(index.grid(radius), points[kp], radius)
+  group = np.cumsum(counts) // HOST_NEIGHBOUR_BUDGET
+  cuts = np.flatnonzero(np.diff(group)) + 1
+  parts = [spec.host_frames(points, part, radius, index, faces=faces, normals=normals)
+           for part in np.split(kp, cuts)]
+  return np.concatenate([f for f, _ in parts]), np.concatenate([v for _, v in parts])
+
+
 def _use_host_kernel(spec: MethodSpec, kernel: str, k: int | None, options: dict,
                      search: str) -> bool:
   """Whether `compute_frames(kernel=...)` runs the method's host fast path (validated)."""
@@ -329,10 +346,13 @@ def _use_host_kernel(spec: MethodSpec, kernel: str, k: int | None, options: dict
 
 
 def _patch_search(points: np.ndarray, spec: MethodSpec, radius: float, k: int | None, seed: int,
-                  search: str) -> _PatchSearch:
-  """The search `compute_frames(search=...)` asks for (validated)."""
+                  search: str, host_kernel: bool = False) -> _PatchSearch:
+  """The search `compute_frames(search=...)` asks for (validated; on the host for a host
+  kernel)."""
   if search not in ("auto", "host", "device"):
     raise ValueError(f"search: expected 'auto', 'host' or 'device', got {search!r}")
+  if host_kernel:
+    return _PatchSearch(points, spec, radius, k, seed, False)
   if search == "device" and k is None:
     raise ValueError(f"search='device' needs an integer patch size; method {spec.name!r} uses "
                      "every neighbour (k=None): use search='host'")

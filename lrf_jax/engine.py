@@ -19,9 +19,10 @@ Design:
   points of smallest rank, sorted by rank (a partition of the in-ball ranks, then a sort of K).
   The subsample is therefore exactly the one of `neighborhoods.hash_priority`: the same indices
   whatever the search order, the thread count or the cloud's pose.
-* Nearest-neighbour queries within a bound (ICP pairs, overlap scores) scan the same 27 cells;
-  unbounded k-NN (mesh areas, the normal-orientation graph) grows the scanned cube of cells ring
-  by ring until the k-th distance found is within the ring's guaranteed radius.
+* Nearest-neighbour queries (ICP pairs, mesh areas, the normal-orientation graph) grow the
+  scanned cube of cells ring by ring around the query's cell until the k-th distance found (or
+  the bound) is within the ring's guaranteed radius; `icp_sums` reduces one ICP step's pairs to
+  their sums in the same pass. "Any point within r" (overlap scores) scans the 27 cells.
 
 Threads: `set_num_threads(n)` or the environment variable `LRF_JAX_NUM_THREADS` (read at import);
 the default is every core numba sees. Results do not depend on the thread count: each query's
@@ -561,51 +562,58 @@ def _knn_cells(pts, slot_index, starts, base, z0, z1, qx, qy, qz, max_d2, bd, bi
       _insert(bd, bi, k, d2, slot_index[j])
 
 
+@nb.njit(inline="always")
+def _knn_query(pts, slot_index, starts, origin, h, dims, qx, qy, qz, k, max_d2, bd, bi):
+  """The k nearest grid points of one query into bd, bi (ascending; inf / n where missing), by
+  growing cubes of cells around the query's cell."""
+  n = pts.shape[1]
+  for t in range(k):
+    bd[t] = np.inf
+    bi[t] = n
+  ix = _cell(qx, origin[0], h)
+  iy = _cell(qy, origin[1], h)
+  iz = _cell(qz, origin[2], h)
+  # Start at the first ring that reaches the grid (a query may lie far outside it).
+  ring = max(_outside(ix, dims[0]), max(_outside(iy, dims[1]), _outside(iz, dims[2])))
+  while True:
+    for a in range(max(ix - ring, 0), min(ix + ring, dims[0] - 1) + 1):
+      for b in range(max(iy - ring, 0), min(iy + ring, dims[1] - 1) + 1):
+        base = (a * dims[1] + b) * dims[2]
+        if abs(a - ix) == ring or abs(b - iy) == ring:  # a side of the shell: whole column
+          _knn_cells(pts, slot_index, starts, base, max(iz - ring, 0),
+                     min(iz + ring, dims[2] - 1), qx, qy, qz, max_d2, bd, bi, k)
+        else:  # inside: only the shell's two z faces
+          if 0 <= iz - ring < dims[2]:
+            _knn_cells(pts, slot_index, starts, base, iz - ring, iz - ring, qx, qy, qz,
+                       max_d2, bd, bi, k)
+          if ring > 0 and 0 <= iz + ring < dims[2]:
+            _knn_cells(pts, slot_index, starts, base, iz + ring, iz + ring, qx, qy, qz,
+                       max_d2, bd, bi, k)
+    # Every point not yet scanned lies outside the cube of cells ix +- ring.
+    g = np.inf
+    g = min(g, qx - (origin[0] + (ix - ring) * h), origin[0] + (ix + ring + 1) * h - qx)
+    g = min(g, qy - (origin[1] + (iy - ring) * h), origin[1] + (iy + ring + 1) * h - qy)
+    g = min(g, qz - (origin[2] + (iz - ring) * h), origin[2] + (iz + ring + 1) * h - qz)
+    g = g * (1.0 - _PRUNE_MARGIN)
+    if g > 0.0 and (g * g >= bd[k - 1] or g * g >= max_d2):
+      break
+    if (ix - ring <= 0 and ix + ring >= dims[0] - 1 and iy - ring <= 0
+        and iy + ring >= dims[1] - 1 and iz - ring <= 0 and iz + ring >= dims[2] - 1):
+      break  # the cube holds the whole grid
+    ring += 1
+
+
 @nb.njit(parallel=True, cache=True)
 def _knn_kernel(pts, slot_index, starts, origin, h, dims, queries, k, max_d2, out_d, out_i):
-  """k nearest grid points of each query, by growing cubes of cells around its cell."""
+  """k nearest grid points of each query (`_knn_query`)."""
   m = queries.shape[0]
-  n = pts.shape[1]
   nblock = (m + _BLOCK - 1) // _BLOCK
   for blk in nb.prange(nblock):
     bd = np.empty(k)
     bi = np.empty(k, np.int64)
     for i in range(blk * _BLOCK, min(m, (blk + 1) * _BLOCK)):
-      qx, qy, qz = queries[i, 0], queries[i, 1], queries[i, 2]
-      for t in range(k):
-        bd[t] = np.inf
-        bi[t] = n
-      ix = _cell(qx, origin[0], h)
-      iy = _cell(qy, origin[1], h)
-      iz = _cell(qz, origin[2], h)
-      # Start at the first ring that reaches the grid (a query may lie far outside it).
-      ring = max(_outside(ix, dims[0]), max(_outside(iy, dims[1]), _outside(iz, dims[2])))
-      while True:
-        for a in range(max(ix - ring, 0), min(ix + ring, dims[0] - 1) + 1):
-          for b in range(max(iy - ring, 0), min(iy + ring, dims[1] - 1) + 1):
-            base = (a * dims[1] + b) * dims[2]
-            if abs(a - ix) == ring or abs(b - iy) == ring:  # a side of the shell: whole column
-              _knn_cells(pts, slot_index, starts, base, max(iz - ring, 0),
-                         min(iz + ring, dims[2] - 1), qx, qy, qz, max_d2, bd, bi, k)
-            else:  # inside: only the shell's two z faces
-              if 0 <= iz - ring < dims[2]:
-                _knn_cells(pts, slot_index, starts, base, iz - ring, iz - ring, qx, qy, qz,
-                           max_d2, bd, bi, k)
-              if ring > 0 and 0 <= iz + ring < dims[2]:
-                _knn_cells(pts, slot_index, starts, base, iz + ring, iz + ring, qx, qy, qz,
-                           max_d2, bd, bi, k)
-        # Every point not yet scanned lies outside the cube of cells ix +- ring.
-        g = np.inf
-        g = min(g, qx - (origin[0] + (ix - ring) * h), origin[0] + (ix + ring + 1) * h - qx)
-        g = min(g, qy - (origin[1] + (iy - ring) * h), origin[1] + (iy + ring + 1) * h - qy)
-        g = min(g, qz - (origin[2] + (iz - ring) * h), origin[2] + (iz + ring + 1) * h - qz)
-        g = g * (1.0 - _PRUNE_MARGIN)
-        if g > 0.0 and (g * g >= bd[k - 1] or g * g >= max_d2):
-          break
-        if (ix - ring <= 0 and ix + ring >= dims[0] - 1 and iy - ring <= 0
-            and iy + ring >= dims[1] - 1 and iz - ring <= 0 and iz + ring >= dims[2] - 1):
-          break  # the cube holds the whole grid
-        ring += 1
+      _knn_query(pts, slot_index, starts, origin, h, dims, queries[i, 0], queries[i, 1],
+                 queries[i, 2], k, max_d2, bd, bi)
       for t in range(k):
         out_d[i, t] = np.sqrt(bd[t])
         out_i[i, t] = bi[t]
@@ -656,6 +664,81 @@ def knn_grid(points: np.ndarray, k: int = 8) -> Grid:
       break
     h /= np.sqrt(per_cell / max(k, 1))
   return grid
+
+
+@nb.njit(parallel=True, cache=True)
+def _icp_sums(pts, slot_index, starts, origin, h, dims, target, source, rot, trans, c0, max_d2,
+              partial):
+  """Per block of source points: the sums of one ICP step over the pairs (moved source point,
+  its nearest target point within sqrt(max_d2), as `knn`), coordinates relative to c0."""
+  m = source.shape[0]
+  n = pts.shape[1]
+  for blk in nb.prange(partial.shape[0]):
+    bd = np.empty(1)
+    bi = np.empty(1, np.int64)
+    acc = partial[blk]
+    acc[:] = 0.0
+    for i in range(blk * _BLOCK, min(m, (blk + 1) * _BLOCK)):
+      sx, sy, sz = source[i, 0], source[i, 1], source[i, 2]
+      qx = rot[0, 0] * sx + rot[0, 1] * sy + rot[0, 2] * sz + trans[0]
+      qy = rot[1, 0] * sx + rot[1, 1] * sy + rot[1, 2] * sz + trans[1]
+      qz = rot[2, 0] * sx + rot[2, 1] * sy + rot[2, 2] * sz + trans[2]
+      _knn_query(pts, slot_index, starts, origin, h, dims, qx, qy, qz, 1, max_d2, bd, bi)
+      j = bi[0]
+      if j >= n:
+        continue
+      a0, a1, a2 = qx - c0[0], qy - c0[1], qz - c0[2]
+      b0, b1, b2 = target[j, 0] - c0[0], target[j, 1] - c0[1], target[j, 2] - c0[2]
+      acc[0] += 1.0
+      acc[1] += bd[0]
+      acc[2] += a0
+      acc[3] += a1
+      acc[4] += a2
+      acc[5] += b0
+      acc[6] += b1
+      acc[7] += b2
+      acc[8] += a0 * b0
+      acc[9] += a0 * b1
+      acc[10] += a0 * b2
+      acc[11] += a1 * b0
+      acc[12] += a1 * b1
+      acc[13] += a1 * b2
+      acc[14] += a2 * b0
+      acc[15] += a2 * b1
+      acc[16] += a2 * b2
+
+
+def icp_sums(grid: Grid, source: np.ndarray, rotation: np.ndarray, translation: np.ndarray,
+             max_distance: float, center: np.ndarray
+             ) -> tuple[int, float, np.ndarray, np.ndarray, np.ndarray]:
+  """One ICP step's statistics without materialising the pairs.
+
+  Each source point s is moved to a = R s + t and paired with its nearest grid point b within
+  `max_distance` (ties: the smaller index, as `knn`); unpaired points are left out.
+
+  Args:
+    grid: `Grid` of the target cloud (any cell size).
+    source: (n, 3) source points.
+    rotation: (3, 3) R.
+    translation: (3,) t.
+    max_distance: pairing distance (cloud units).
+    center: (3,) the sums are taken of a - center and b - center (pick a point near the clouds:
+      it keeps the float64 sums well conditioned).
+
+  Returns:
+    (pairs, sum of squared pair distances, sum_a (3,), sum_b (3,), sum of a bᵀ (3, 3)).
+  """
+  src = _centers(source)
+  r = float(max_distance)
+  nblock = max(1, (len(src) + _BLOCK - 1) // _BLOCK)
+  partial = np.empty((nblock, 17))
+  _icp_sums(grid.xyz, grid.slot_index, grid.starts, grid.origin, grid.h, grid.dims, grid.points,
+            src, np.ascontiguousarray(rotation, np.float64),
+            np.ascontiguousarray(translation, np.float64),
+            np.ascontiguousarray(center, np.float64), r * r if np.isfinite(r) else np.inf,
+            partial)
+  acc = partial.sum(axis=0)
+  return int(acc[0]), float(acc[1]), acc[2:5], acc[5:8], acc[8:17].reshape(3, 3)
 
 
 @nb.njit(parallel=True, cache=True)

@@ -261,3 +261,24 @@ def test_description_protocol_on_a_rigidly_moved_cloud():
     assert r["experiment"] == "description" and r["n_corr"] == 60
     assert r["recall_max"] == 1.0 and r["recall_at_0.1"] == 1.0
     assert len(r["n_match"]) == len(r["thresholds"]) == 101
+
+
+def test_toldi_host_fast_path_equals_the_jitted_descriptor(br_bunny):
+  """compute_descriptors(kernel="host"): the same images as the jitted descriptor (float64
+  coordinates: a point on a pixel border may land in its neighbour)."""
+  points, faces, mr, _ = br_bunny
+  r = 15.0 * mr
+  kp = np.random.default_rng(5).choice(len(points), 300, replace=False)
+  frames, valid = lrf_jax.compute_frames(points, kp, r, "toldi")
+  valid = np.asarray(valid).copy()
+  valid[:5] = False  # invalid frames give invalid, zero descriptors on both paths
+  out = [compute_descriptors(points, kp, r, frames, valid, "toldi", kernel=kernel)
+         for kernel in ("host", "jit")]
+  (dh, vh), (dj, vj) = [(np.asarray(d), np.asarray(v)) for d, v in out]
+  np.testing.assert_array_equal(vh, vj)
+  assert not vh[:5].any() and not dh[:5].any()
+  same = np.isclose(dh, dj, atol=1e-5)
+  assert same.mean() > 0.999, same.mean()
+  assert same[vh].all(axis=1).mean() > 0.9
+  with pytest.raises(ValueError, match="no host fast path"):
+    compute_descriptors(points, kp, r, frames, valid, "shot", kernel="host")

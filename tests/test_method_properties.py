@@ -288,3 +288,14 @@ def test_kernel_argument_is_checked():
     lrf_jax.compute_frames(points, keypoints, radius, "lrf_net", kernel="host")
   with pytest.raises(ValueError, match="no host fast path"):
     lrf_jax.compute_frames(points, keypoints, radius, "shot", k=64, kernel="host")
+
+
+def test_host_fast_path_splits_by_a_neighbour_budget(monkeypatch):
+  """Keypoints are grouped so that their balls' lists stay within a budget: the same frames."""
+  from lrf_jax import api
+  points, faces, keypoints, radius = SYN
+  full = lrf_jax.compute_frames(points, keypoints, radius, "shot", kernel="host")
+  monkeypatch.setattr(api, "HOST_NEIGHBOUR_BUDGET", 50)  # a few keypoints per group
+  split = lrf_jax.compute_frames(points, keypoints, radius, "shot", kernel="host")
+  np.testing.assert_array_equal(np.asarray(full[0]), np.asarray(split[0]))
+  np.testing.assert_array_equal(np.asarray(full[1]), np.asarray(split[1]))

@@ -62,6 +62,9 @@ class DescriptorSpec:
     original_lrf: the LRF method the descriptor was published with (a key of `lrf_jax.METHODS`).
     prepare: optional host hook `prepare(points, keypoints, patches, faces=, normals=, radius=)`.
     description: one line for listings.
+    host_fn: optional host fast path `host_fn(points, keypoints, radius, frames, valid, index,
+      **options) -> (desc, valid)` over every neighbour (k=None), numpy and compiled engine code,
+      the same descriptors as `fn`; `compute_descriptors` runs it by default on a CPU backend.
   """
 
   name: str
@@ -70,6 +73,7 @@ class DescriptorSpec:
   original_lrf: str
   prepare: Callable[..., Any] | None = None
   description: str = ""
+  host_fn: Callable[..., Any] | None = None
 
 
 def _snap(patches, frames, valid, extra, **options):
@@ -108,7 +112,8 @@ DESCRIPTORS: dict[str, DescriptorSpec] = {
         description="RoPS (Guo et al. 2013), PCL's statistics; its own LRF needs a mesh"),
     "toldi": DescriptorSpec(
         "toldi", _toldi_fn, 3 * _toldi.GRID ** 2, "toldi",
-        description="TOLDI (Yang et al. 2017): three-view local depth images"),
+        description="TOLDI (Yang et al. 2017): three-view local depth images",
+        host_fn=_toldi.toldi_descriptors_host),
 }
 
 
@@ -216,6 +221,7 @@ def compute_descriptors(
     seed: int = 0,
     chunk_size: int = 256,
     index: SearchIndex | None = None,
+    kernel: str = "auto",
     **options: Any,
 ) -> tuple[jax.Array, jax.Array]:
   """Descriptors of `keypoints` of a cloud on given frames (from any LRF method).
@@ -237,6 +243,9 @@ def compute_descriptors(
     chunk_size: keypoints per search and jitted call (memory: about chunk_size x K x 60 bytes
       for SHOT, x 250 bytes for RoPS).
     index: optional prebuilt `SearchIndex(points, seed)`.
+    kernel: "jit" (patches, then the jitted descriptor), "host" (the descriptor's host fast path,
+      `DESCRIPTORS[descriptor].host_fn`: every neighbour, float64, no padded patches; needs
+      k=None), or "auto" (host where it applies and the backend is the CPU, else jit).
     **options: static descriptor options (`grid=`, `empty=`, `align_normals=`).
 
   Returns:
@@ -257,6 +266,16 @@ def compute_descriptors(
     return jnp.zeros((0, spec.dim), jnp.float32), jnp.zeros((0,), bool)
   if index is None or index.seed != seed or index.points.shape != points.shape:
     index = SearchIndex(points, seed)
+  if kernel not in ("auto", "host", "jit"):
+    raise ValueError(f"kernel: expected 'auto', 'host' or 'jit', got {kernel!r}")
+  applies = spec.host_fn is not None and k is None
+  if kernel == "host" and not applies:
+    raise ValueError(f"kernel='host': descriptor {descriptor!r} has no host fast path for these "
+                     "arguments (it needs DESCRIPTORS[descriptor].host_fn and k=None)")
+  if kernel == "host" or (kernel == "auto" and applies and jax.default_backend() == "cpu"):
+    run_host = lambda idx, n_real: spec.host_fn(points, keypoints[idx], radius, frames[idx],
+                                                valid[idx], index, **options)
+    return map_chunks(run_host, m, min(int(chunk_size) * 16, m), pad=False)
 
   def run(idx: np.ndarray, n_real: int) -> tuple[jax.Array, jax.Array]:
     kp = keypoints[idx]

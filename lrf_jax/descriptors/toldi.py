@@ -30,10 +30,15 @@ References:
 
 from __future__ import annotations
 
+from typing import Any
+
 import jax
 import jax.numpy as jnp
+import numba as nb
+import numpy as np
 
 from lrf_jax.descriptors.common import local_coordinates, sanitize_inputs
+from lrf_jax.frames import host_geometry as hg
 from lrf_jax.neighborhoods import Patches
 
 GRID = 20
@@ -94,3 +99,71 @@ def toldi_descriptors(patches: Patches, frames: jax.Array, valid: jax.Array, *,
   desc = jax.vmap(one)(local, mask, radius)
   ok = ok & (jnp.sum(mask, axis=-1) >= MIN_POINTS)
   return jnp.where(ok[:, None], desc, 0.0), ok
+
+
+# ------------------------------------------------------------------------------ host fast path
+# The same images on the host from the engine's ball lists, float64 coordinates, one keypoint
+# per thread, no padded patch: `compute_descriptors`' default on the CPU.
+
+
+@nb.njit(parallel=True, cache=True)
+def _toldi_host_kernel(points, centers, ptr, ball, frames, ok, r, grid, empty, out, out_ok):
+  area = grid * grid
+  step = 2.0 * r / grid
+  for i in nb.prange(centers.shape[0]):
+    out[i, :] = 0.0
+    out_ok[i] = False
+    start, stop = ptr[i], ptr[i + 1]
+    if not ok[i] or stop - start < MIN_POINTS:
+      continue
+    img = np.full(3 * area, np.inf)
+    loc = np.empty(3)
+    for t in range(start, stop):
+      j = ball[t]
+      ox = points[j, 0] - centers[i, 0]
+      oy = points[j, 1] - centers[i, 1]
+      oz = points[j, 2] - centers[i, 2]
+      for a in range(3):
+        loc[a] = frames[i, a, 0] * ox + frames[i, a, 1] * oy + frames[i, a, 2] * oz
+      for v in range(3):
+        cu, cv, cd = v, (v + 1) % 3, (v + 2) % 3  # VIEWS
+        col = min(max(int(np.trunc((loc[cu] + r) / step)), 0), grid - 1)
+        row = grid - 1 - min(max(int(np.trunc((loc[cv] + r) / step)), 0), grid - 1)
+        depth = min(max((r - loc[cd]) / (2.0 * r), 0.0), 1.0)
+        k = v * area + row * grid + col
+        if depth < img[k]:
+          img[k] = depth
+    for k in range(3 * area):
+      out[i, k] = empty if np.isinf(img[k]) else img[k]
+    out_ok[i] = True
+
+
+def toldi_descriptors_host(points: np.ndarray, keypoints: np.ndarray, radius: float,
+                           frames: np.ndarray, valid: np.ndarray, index: Any, *,
+                           grid: int = GRID, empty: float = EMPTY_PIXEL
+                           ) -> tuple[np.ndarray, np.ndarray]:
+  """TOLDI descriptors (`toldi_descriptors`) of `keypoints` on the host, from every point within
+  `radius` (float64 coordinates in the LRF).
+
+  Args:
+    points: (n, 3) float64 cloud.
+    keypoints: (N,) indices.
+    radius: support radius r.
+    frames: (N, 3, 3) LRFs, rows x, y, z.
+    valid: (N,) bool validity of the frames.
+    index: the cloud's `neighborhoods.SearchIndex`.
+    grid: pixels per image side L.
+    empty: value of empty pixels.
+
+  Returns:
+    (descriptors (N, 3 * L * L) float32, zeros where invalid; valid (N,) bool).
+  """
+  pts, centers, ptr, ball = hg.ball_lists(points, keypoints, radius, index)
+  f = np.asarray(frames, np.float64)
+  ok = np.asarray(valid, bool) & np.isfinite(f).all(axis=(1, 2))
+  f = np.where(ok[:, None, None], np.nan_to_num(f), np.eye(3))
+  out = np.empty((len(centers), 3 * grid * grid))
+  out_ok = np.empty(len(centers), np.bool_)
+  _toldi_host_kernel(pts, centers, ptr, ball, np.ascontiguousarray(f), ok, float(radius),
+                     int(grid), float(empty), out, out_ok)
+  return out.astype(np.float32), out_ok

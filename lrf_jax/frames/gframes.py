@@ -26,18 +26,20 @@ References:
 
 from __future__ import annotations
 
-from typing import NamedTuple
+from typing import Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
+import numba as nb
 import numpy as np
 
-from lrf_jax import geometry
-from lrf_jax.frames.rops import gather_triangles
+from lrf_jax import engine, geometry
+from lrf_jax.frames import host_geometry as hg
+from lrf_jax.frames.rops import gather_triangles, validate_faces, vertex_faces
 from lrf_jax.frames.spec import KEYPOINT, TRIANGLE, TRIANGLE_MASK, MethodSpec
 from lrf_jax.geometry import sanitize
 from lrf_jax.neighborhoods import Patches
-from lrf_jax.normals import default_normals, mean_curvature
+from lrf_jax.normals import cache_last, default_normals, mean_curvature
 
 X_EPS = 1e-5
 
@@ -130,6 +132,82 @@ def gframes_frames(patches: Patches, tri: jax.Array, tri_mask: jax.Array, tri_f:
   valid = valid & finite
   return geometry.identity_where_invalid(frames, valid), valid
 
+# ------------------------------------------------------------------------------ host fast path
+# A ∇f of a face does not depend on the keypoint (it is built from edge vectors), so the host
+# path computes it once per face and sums it over each keypoint's incident faces (the engine's
+# ball lists and `engine.incident_faces`), float64, without padded triangles and without the
+# `MAX_TRIANGLES` subsample: `compute_frames`' default on the CPU.
+
+
+def face_gradients(points: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+  """(g (f, 3) float64 A ∇f of the mean curvature on every face, as `area_gradient`;
+  ok (f,) bool: f finite at its three vertices)."""
+  pts = np.asarray(points, np.float64)
+  f = np.asarray(faces, np.int64)
+  h = mean_curvature(pts, f)[f]  # (f, 3)
+  ok = np.isfinite(h).all(axis=1)
+  h = np.where(ok[:, None], h, 0.0)
+  tri = pts[f]
+  nrm = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+  length = np.linalg.norm(nrm, axis=1, keepdims=True)
+  nrm = np.where(length > 0, nrm / np.where(length > 0, length, 1.0), 0.0)
+  h = h - h.mean(axis=1, keepdims=True)
+  g = np.zeros_like(nrm)
+  for i in range(3):
+    g += h[:, i:i + 1] * np.cross(nrm, tri[:, (i + 2) % 3] - tri[:, (i + 1) % 3])
+  return 0.5 * g, ok
+
+
+@nb.njit(parallel=True, cache=True)
+def _gframes_host_kernel(kp_normals, face_ptr, face_ids, g, g_ok, x_eps, frames, valid):
+  for i in nb.prange(kp_normals.shape[0]):
+    hg.set_identity(frames, valid, i)
+    z, z_ok = hg.unit_or_zero(kp_normals[i])
+    if not z_ok:
+      continue
+    s = np.zeros(3)
+    scale = 0.0
+    finite = True
+    for t in range(face_ptr[i], face_ptr[i + 1]):
+      k = face_ids[t]
+      finite = finite and g_ok[k]
+      s[0] += g[k, 0]
+      s[1] += g[k, 1]
+      s[2] += g[k, 2]
+      scale += np.sqrt(g[k, 0] ** 2 + g[k, 1] ** 2 + g[k, 2] ** 2)
+    d = s[0] * z[0] + s[1] * z[1] + s[2] * z[2]
+    st = s - d * z
+    if finite and np.sqrt(st[0] ** 2 + st[1] ** 2 + st[2] ** 2) > x_eps * scale:
+      hg.write_frame(frames, valid, i, z, st)
+
+
+def gframes_frames_host(points: np.ndarray, keypoints: np.ndarray, radius: float, index: Any, *,
+                        faces: np.ndarray, normals: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+  """GFrames (`gframes_frame`) of `keypoints` on the host, float64, from every face touching the
+  ball.
+
+  Args:
+    points: (n, 3) float64 vertices.
+    keypoints: (N,) vertex indices.
+    radius: support radius r.
+    index: the cloud's `neighborhoods.SearchIndex`.
+    faces: (f, 3) triangles.
+    normals: (n, 3) per-point normals (NaN where undefined).
+
+  Returns:
+    (frames (N, 3, 3) float32 rows x, y, z, the identity where invalid; valid (N,) bool).
+  """
+  pts, centers, ptr, ball = hg.ball_lists(points, keypoints, radius, index)
+  f = validate_faces(faces, pts.shape[0])
+  g, g_ok = cache_last("gframes_face_gradients", (pts, f), lambda: face_gradients(pts, f))
+  vptr, vf = cache_last("vertex_faces", (f, pts.shape[0]), lambda: vertex_faces(f, pts.shape[0]))
+  face_ptr, face_ids = engine.incident_faces(ptr, ball, vptr, vf, f.shape[0])
+  frames = np.empty((len(centers), 3, 3))
+  valid = np.empty(len(centers), np.bool_)
+  kp_n = np.ascontiguousarray(np.asarray(normals, np.float64)[np.asarray(keypoints)])
+  _gframes_host_kernel(kp_n, face_ptr, face_ids, g, g_ok, X_EPS, frames, valid)
+  return frames.astype(np.float32), valid
+
 # ------------------------------------------------------------------------------ registry entry
 
 def _gframes(patches: Patches, extra: GFramesExtra):
@@ -138,6 +216,6 @@ def _gframes(patches: Patches, extra: GFramesExtra):
 
 SPEC = MethodSpec(
     "gframes", _gframes, default_k=None, needs_normals=True, needs_mesh=True, prepare=prepare_gframes,
-    extra=GFramesExtra,
+    extra=GFramesExtra, host_frames=gframes_frames_host,
     description="GFrames (Melzi et al. 2019): normal z, x = area-weighted mean-curvature "
                 "gradient; needs a mesh")

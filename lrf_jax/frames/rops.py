@@ -48,7 +48,7 @@ MAX_TRIANGLES = 8192
 _T_MULTIPLE = 64
 
 
-def _vertex_faces(faces: np.ndarray, n_points: int) -> tuple[np.ndarray, np.ndarray]:
+def vertex_faces(faces: np.ndarray, n_points: int) -> tuple[np.ndarray, np.ndarray]:
   """CSR map vertex -> incident faces: (ptr (n + 1,), face ids)."""
   flat = faces.reshape(-1)
   order = np.argsort(flat, kind="stable")
@@ -92,7 +92,7 @@ def gather_triangles(points: np.ndarray, keypoints: np.ndarray, faces: np.ndarra
   kp = np.asarray(keypoints, np.int64)
   f = validate_faces(faces, pts.shape[0])
   m = kp.shape[0]
-  ptr, vf = cache_last("vertex_faces", (f, pts.shape[0]), lambda: _vertex_faces(f, pts.shape[0]))
+  ptr, vf = cache_last("vertex_faces", (f, pts.shape[0]), lambda: vertex_faces(f, pts.shape[0]))
   if patches is not None and np.all(np.asarray(patches.count) <= np.asarray(patches.mask).sum(1)):
     idx = np.asarray(patches.indices)
     have = idx >= 0

@@ -33,7 +33,7 @@ import jax.numpy as jnp
 import numba as nb
 import numpy as np
 
-from lrf_jax import engine, geometry
+from lrf_jax import geometry
 from lrf_jax.frames import host_geometry as hg
 from lrf_jax.frames.rops import gather_triangles, validate_faces, vertex_faces
 from lrf_jax.frames.spec import KEYPOINT, TRIANGLE, TRIANGLE_MASK, MethodSpec
@@ -134,9 +134,10 @@ def gframes_frames(patches: Patches, tri: jax.Array, tri_mask: jax.Array, tri_f:
 
 # ------------------------------------------------------------------------------ host fast path
 # A ∇f of a face does not depend on the keypoint (it is built from edge vectors), so the host
-# path computes it once per face and sums it over each keypoint's incident faces (the engine's
-# ball lists and `engine.incident_faces`), float64, without padded triangles and without the
-# `MAX_TRIANGLES` subsample: `compute_frames`' default on the CPU.
+# path computes it once per face and sums it over the faces with a vertex in each keypoint's
+# ball (visited from the engine's ball lists, each once: `host_geometry.owns_face`), float64,
+# without padded triangles and without the `MAX_TRIANGLES` subsample: `compute_frames`' default
+# on the CPU.
 
 
 def face_gradients(points: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -159,24 +160,30 @@ def face_gradients(points: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, n
 
 
 @nb.njit(parallel=True, cache=True)
-def _gframes_host_kernel(kp_normals, face_ptr, face_ids, g, g_ok, x_eps, frames, valid):
+def _gframes_host_kernel(points, faces, vf_ptr, vf, centers, ptr, ball, r, kp_normals, g, g_ok,
+                         x_eps, frames, valid):
+  r2 = r * r
   for i in nb.prange(kp_normals.shape[0]):
     hg.set_identity(frames, valid, i)
     z, z_ok = hg.unit_or_zero(kp_normals[i])
     if not z_ok:
       continue
-    s = np.zeros(3)
+    s0 = s1 = s2 = 0.0
     scale = 0.0
     finite = True
-    for t in range(face_ptr[i], face_ptr[i + 1]):
-      k = face_ids[t]
-      finite = finite and g_ok[k]
-      s[0] += g[k, 0]
-      s[1] += g[k, 1]
-      s[2] += g[k, 2]
-      scale += np.sqrt(g[k, 0] ** 2 + g[k, 1] ** 2 + g[k, 2] ** 2)
-    d = s[0] * z[0] + s[1] * z[1] + s[2] * z[2]
-    st = s - d * z
+    for e in range(ptr[i], ptr[i + 1]):
+      v = ball[e]
+      for q in range(vf_ptr[v], vf_ptr[v + 1]):
+        k = vf[q]
+        if not hg.owns_face(points, faces, k, v, centers[i], r2):
+          continue
+        finite = finite and g_ok[k]
+        s0 += g[k, 0]
+        s1 += g[k, 1]
+        s2 += g[k, 2]
+        scale += np.sqrt(g[k, 0] ** 2 + g[k, 1] ** 2 + g[k, 2] ** 2)
+    d = s0 * z[0] + s1 * z[1] + s2 * z[2]
+    st = np.array([s0 - d * z[0], s1 - d * z[1], s2 - d * z[2]])
     if finite and np.sqrt(st[0] ** 2 + st[1] ** 2 + st[2] ** 2) > x_eps * scale:
       hg.write_frame(frames, valid, i, z, st)
 
@@ -201,11 +208,11 @@ def gframes_frames_host(points: np.ndarray, keypoints: np.ndarray, radius: float
   f = validate_faces(faces, pts.shape[0])
   g, g_ok = cache_last("gframes_face_gradients", (pts, f), lambda: face_gradients(pts, f))
   vptr, vf = cache_last("vertex_faces", (f, pts.shape[0]), lambda: vertex_faces(f, pts.shape[0]))
-  face_ptr, face_ids = engine.incident_faces(ptr, ball, vptr, vf, f.shape[0])
   frames = np.empty((len(centers), 3, 3))
   valid = np.empty(len(centers), np.bool_)
   kp_n = np.ascontiguousarray(np.asarray(normals, np.float64)[np.asarray(keypoints)])
-  _gframes_host_kernel(kp_n, face_ptr, face_ids, g, g_ok, X_EPS, frames, valid)
+  _gframes_host_kernel(pts, np.ascontiguousarray(f), vptr, vf, centers, ptr, ball, float(radius),
+                       kp_n, g, g_ok, X_EPS, frames, valid)
   return frames.astype(np.float32), valid
 
 # ------------------------------------------------------------------------------ registry entry

@@ -133,3 +133,26 @@ def unit_or_zero(v):
     return out, False
   out[0], out[1], out[2] = v[0] / n, v[1] / n, v[2] / n
   return out, True
+
+
+@nb.njit(inline="always")
+def in_ball(points, j, center, r2):
+  """Point j lies within sqrt(r2) of center, by the engine's rule (float64 x, y, z sum, <=)."""
+  dx = points[j, 0] - center[0]
+  dy = points[j, 1] - center[1]
+  dz = points[j, 2] - center[2]
+  return dx * dx + dy * dy + dz * dz <= r2
+
+
+@nb.njit(inline="always")
+def owns_face(points, faces, k, v, center, r2):
+  """Whether ball vertex v is the first of face k's vertices (in the face's order) within the
+  ball: visiting every ball vertex's incident faces and keeping the owned ones visits every face
+  with a vertex in the ball exactly once, without a list of faces."""
+  for c in range(3):
+    u = faces[k, c]
+    if u == v:
+      return True
+    if in_ball(points, u, center, r2):
+      return False
+  return False

@@ -32,13 +32,15 @@ References:
 
 from __future__ import annotations
 
-from typing import NamedTuple
+from typing import Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
+import numba as nb
 import numpy as np
 
 from lrf_jax import engine, geometry
+from lrf_jax.frames import host_geometry as hg
 from lrf_jax.frames.spec import TRIANGLE, TRIANGLE_MASK, MethodSpec
 from lrf_jax.geometry import sanitize
 from lrf_jax.neighborhoods import Patches, hash_priority
@@ -185,6 +187,99 @@ def rops_frames(patches: Patches, tri: jax.Array,
   valid = valid & finite
   return geometry.identity_where_invalid(frames, valid), valid
 
+# ------------------------------------------------------------------------------ host fast path
+# The same frame on the host: the faces with a vertex in each keypoint's ball (visited from the
+# engine's ball lists, each once: `host_geometry.owns_face`), summed in float64 one keypoint per
+# thread, without padded triangles and without the `MAX_TRIANGLES` subsample: `compute_frames`'
+# default on the CPU.
+
+
+@nb.njit(parallel=True, cache=True)
+def _rops_host_kernel(points, faces, vf_ptr, vf, centers, ptr, ball, r, eps, frames, valid):
+  r2 = r * r
+  for i in nb.prange(centers.shape[0]):
+    hg.set_identity(frames, valid, i)
+    cov = np.zeros((3, 3))
+    ssum = np.zeros(3)  # Σ w s, for the signs
+    wsum = 0.0
+    cx, cy, cz = centers[i, 0], centers[i, 1], centers[i, 2]
+    for e in range(ptr[i], ptr[i + 1]):
+      v = ball[e]
+      for q in range(vf_ptr[v], vf_ptr[v + 1]):
+        k = vf[q]
+        if not hg.owns_face(points, faces, k, v, centers[i], r2):
+          continue
+        i0, i1, i2 = faces[k, 0], faces[k, 1], faces[k, 2]
+        a0 = points[i0, 0] - cx
+        a1 = points[i0, 1] - cy
+        a2 = points[i0, 2] - cz
+        b0 = points[i1, 0] - cx
+        b1 = points[i1, 1] - cy
+        b2 = points[i1, 2] - cz
+        c0 = points[i2, 0] - cx
+        c1 = points[i2, 1] - cy
+        c2 = points[i2, 2] - cz
+        e10, e11, e12 = b0 - a0, b1 - a1, b2 - a2
+        e20, e21, e22 = c0 - a0, c1 - a1, c2 - a2
+        nx = e11 * e22 - e12 * e21
+        ny = e12 * e20 - e10 * e22
+        nz = e10 * e21 - e11 * e20
+        w1 = np.sqrt(nx * nx + ny * ny + nz * nz)
+        s0, s1, s2 = a0 + b0 + c0, a1 + b1 + c1, a2 + b2 + c2
+        w = w1 * (r - np.sqrt(s0 * s0 + s1 * s1 + s2 * s2) / 3.0) ** 2
+        if w == 0.0:
+          continue
+        wsum += w
+        ssum[0] += w * s0
+        ssum[1] += w * s1
+        ssum[2] += w * s2
+        cov[0, 0] += w * (s0 * s0 + a0 * a0 + b0 * b0 + c0 * c0)
+        cov[0, 1] += w * (s0 * s1 + a0 * a1 + b0 * b1 + c0 * c1)
+        cov[0, 2] += w * (s0 * s2 + a0 * a2 + b0 * b2 + c0 * c2)
+        cov[1, 1] += w * (s1 * s1 + a1 * a1 + b1 * b1 + c1 * c1)
+        cov[1, 2] += w * (s1 * s2 + a1 * a2 + b1 * b2 + c1 * c2)
+        cov[2, 2] += w * (s2 * s2 + a2 * a2 + b2 * b2 + c2 * c2)
+    if not wsum > 0.0:
+      continue
+    cov[1, 0], cov[2, 0], cov[2, 1] = cov[0, 1], cov[0, 2], cov[1, 2]
+    evals, evecs = np.linalg.eigh(cov / (12.0 * wsum))
+    if not hg.full_spectrum_ok(evals, eps):
+      continue
+    x = evecs[:, 2].copy()
+    z = evecs[:, 0].copy()
+    if ssum[0] * x[0] + ssum[1] * x[1] + ssum[2] * x[2] < 0.0:
+      x = -x
+    if ssum[0] * z[0] + ssum[1] * z[1] + ssum[2] * z[2] < 0.0:
+      z = -z
+    hg.write_frame(frames, valid, i, z, x)
+
+
+def rops_frames_host(points: np.ndarray, keypoints: np.ndarray, radius: float, index: Any, *,
+                     faces: np.ndarray, normals: Any = None) -> tuple[np.ndarray, np.ndarray]:
+  """RoPS frames (`rops_frame`) of `keypoints` on the host, float64, from every triangle with a
+  vertex within `radius`.
+
+  Args:
+    points: (n, 3) float64 vertices.
+    keypoints: (N,) vertex indices.
+    radius: support radius r.
+    index: the cloud's `neighborhoods.SearchIndex`.
+    faces: (f, 3) triangles.
+    normals: unused.
+
+  Returns:
+    (frames (N, 3, 3) float32 rows x, y, z, the identity where invalid; valid (N,) bool).
+  """
+  del normals
+  pts, centers, ptr, ball = hg.ball_lists(points, keypoints, radius, index)
+  f = validate_faces(faces, pts.shape[0])
+  vptr, vf = cache_last("vertex_faces", (f, pts.shape[0]), lambda: vertex_faces(f, pts.shape[0]))
+  frames = np.empty((len(centers), 3, 3))
+  valid = np.empty(len(centers), np.bool_)
+  _rops_host_kernel(pts, np.ascontiguousarray(f), vptr, vf, centers, ptr, ball, float(radius),
+                    hg.EPS, frames, valid)
+  return frames.astype(np.float32), valid
+
 # ------------------------------------------------------------------------------ registry entry
 
 def _rops(patches: Patches, extra: TriangleExtra):
@@ -193,6 +288,6 @@ def _rops(patches: Patches, extra: TriangleExtra):
 
 SPEC = MethodSpec(
     "rops", _rops, default_k=None, needs_mesh=True, prepare=prepare_triangles,
-    extra=TriangleExtra,
+    extra=TriangleExtra, host_frames=rops_frames_host,
     description="RoPS (Guo et al. 2013): area- and distance-weighted triangle scatter (PCL); "
                 "needs a mesh")

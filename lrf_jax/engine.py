@@ -777,7 +777,7 @@ def any_within(grid: Grid, queries: np.ndarray, radius: float) -> np.ndarray:
 
 
 @nb.njit(parallel=True, cache=True)
-def _ball_fill(pts, slot_index, starts, origin, h, dims, centers, r, reach, ptr, out):
+def _ball_fill(pts, slot_index, starts, origin, h, dims, centers, r, reach, kin2, kout2, ptr, out):
   m = centers.shape[0]
   r2 = r * r
   ncol = (2 * reach + 1) ** 2
@@ -794,26 +794,34 @@ def _ball_fill(pts, slot_index, starts, origin, h, dims, centers, r, reach, ptr,
           dx = pts[0, j] - cx
           dy = pts[1, j] - cy
           dz = pts[2, j] - cz
-          if dx * dx + dy * dy + dz * dz <= r2:
+          d2 = dx * dx + dy * dy + dz * dz
+          if d2 <= r2 and (d2 <= kin2 or d2 > kout2):
             out[w] = slot_index[j]
             w += 1
 
 
-def ball_lists(grid: Grid, centers: np.ndarray, radius: float) -> tuple[np.ndarray, np.ndarray]:
+def ball_lists(grid: Grid, centers: np.ndarray, radius: float,
+               shells: tuple[float, float] | None = None) -> tuple[np.ndarray, np.ndarray]:
   """Every grid point within `radius` of each centre, as compressed rows.
+
+  Args:
+    grid: a `Grid` of the cloud.
+    centers: (m, 3) ball centres.
+    radius: r.
+    shells: (a, b): keep only the points within a * r or beyond b * r (as `ball_counts`).
 
   Returns:
     (ptr (m + 1,) int64, indices (ptr[-1],) int64): the point indices of ball i are
     indices[ptr[i]:ptr[i + 1]], in the grid's slot order (cell, then rank).
   """
   c = _centers(centers)
-  counts = ball_counts(grid, c, radius)
+  counts = ball_counts(grid, c, radius, shells)
   ptr = np.zeros(len(c) + 1, np.int64)
   np.cumsum(counts, out=ptr[1:])
   out = np.empty(int(ptr[-1]), np.int64)
   r = float(radius)
   _ball_fill(grid.xyz, grid.slot_index, grid.starts, grid.origin, grid.h, grid.dims, c, r,
-             _reach(grid, r), ptr, out)
+             _reach(grid, r), *_keep(r, shells), ptr, out)
   return ptr, out
 
 

@@ -134,9 +134,9 @@ def vertex_normals(points: np.ndarray, faces: np.ndarray) -> np.ndarray:
   pts = np.asarray(points, np.float64)
   f = np.asarray(faces, np.int64)
   cross = np.cross(pts[f[:, 1]] - pts[f[:, 0]], pts[f[:, 2]] - pts[f[:, 0]])  # 2·area·n
-  acc = np.zeros_like(pts)
-  for c in range(3):
-    np.add.at(acc, f[:, c], cross)
+  rows = f.T.reshape(-1)  # the three corners' faces, corner by corner
+  acc = np.stack([np.bincount(rows, weights=np.tile(cross[:, a], 3), minlength=len(pts))
+                  for a in range(3)], 1)
   norm = np.linalg.norm(acc, axis=1, keepdims=True)
   with np.errstate(invalid="ignore", divide="ignore"):
     out = acc / norm
@@ -269,13 +269,12 @@ def cotangent_laplacian_curvature(points: np.ndarray, faces: np.ndarray) -> np.n
   pts = np.asarray(points, np.float64)
   f = np.asarray(faces, np.int64)
   n = pts.shape[0]
-  lap = np.zeros_like(pts)
-  area = np.zeros(n)
   e1 = pts[f[:, 1]] - pts[f[:, 0]]
   e2 = pts[f[:, 2]] - pts[f[:, 0]]
   tri_area = 0.5 * np.linalg.norm(np.cross(e1, e2), axis=1)
-  for c in range(3):
-    np.add.at(area, f[:, c], tri_area / 3.0)
+  # Scatter-adds as bincounts (np.add.at is an order of magnitude slower).
+  area = np.bincount(f.reshape(-1), weights=np.repeat(tri_area / 3.0, 3), minlength=n)
+  rows, terms = [], []
   for c in range(3):
     i, j, o = f[:, (c + 1) % 3], f[:, (c + 2) % 3], f[:, c]  # edge (i, j) opposite vertex o
     u, v = pts[i] - pts[o], pts[j] - pts[o]
@@ -283,9 +282,11 @@ def cotangent_laplacian_curvature(points: np.ndarray, faces: np.ndarray) -> np.n
     with np.errstate(invalid="ignore", divide="ignore"):
       cot = np.einsum("ij,ij->i", u, v) / cr
     cot = np.clip(np.nan_to_num(cot, nan=0.0, posinf=1e3, neginf=-1e3), -1e3, 1e3)
-    d = pts[j] - pts[i]
-    np.add.at(lap, i, cot[:, None] * d)
-    np.add.at(lap, j, -cot[:, None] * d)
+    d = cot[:, None] * (pts[j] - pts[i])
+    rows += [i, j]
+    terms += [d, -d]
+  rows, terms = np.concatenate(rows), np.concatenate(terms)
+  lap = np.stack([np.bincount(rows, weights=terms[:, a], minlength=n) for a in range(3)], 1)
   with np.errstate(invalid="ignore", divide="ignore"):
     lap = lap / (2.0 * area[:, None])
   vn = vertex_normals(pts, f)

@@ -34,7 +34,7 @@ import jax.numpy as jnp
 import numba as nb
 import numpy as np
 
-from lrf_jax import geometry
+from lrf_jax import engine, geometry
 from lrf_jax.frames import host_geometry as hg
 from lrf_jax.frames.board import normals_mean
 from lrf_jax.frames.normal_based import NormalExtra, prepare_normals
@@ -109,12 +109,13 @@ def flare_frames(patches: Patches, normals: jax.Array,
 
 
 @nb.njit(parallel=True, cache=True)
-def _flare_host_kernel(points, centers, kp_ids, ptr, ball, normals, r, rz2, eps, frames, valid):
+def _flare_host_kernel(points, centers, kp_ids, counts, ptr, ball, normals, r, rz2, eps, frames,
+                       valid):
   margin2 = (MARGIN * r) ** 2
   for i in nb.prange(centers.shape[0]):
     hg.set_identity(frames, valid, i)
     start, stop = ptr[i], ptr[i + 1]
-    if stop - start < MIN_TANGENT_NEIGHBOURS:
+    if counts[i] < MIN_TANGENT_NEIGHBOURS:
       continue
     mean = np.zeros(3)
     cov = np.zeros((3, 3))
@@ -171,11 +172,13 @@ def flare_frames_host(points: np.ndarray, keypoints: np.ndarray, radius: float, 
     (frames (N, 3, 3) float32 rows x, y, z, the identity where invalid; valid (N,) bool).
   """
   del faces
-  pts, centers, ptr, ball = hg.ball_lists(points, keypoints, radius, index)
+  # FLARE reads the r/3 support and the margin ring only (`SPEC.shells`), and counts the ball.
+  pts, centers, ptr, ball = hg.ball_lists(points, keypoints, radius, index, SPEC.shells)
+  counts = engine.ball_counts(index.grid(radius), centers, float(radius))
   frames = np.empty((len(centers), 3, 3))
   valid = np.empty(len(centers), np.bool_)
   rz = float(Z_RATIO * radius)
-  _flare_host_kernel(pts, centers, np.asarray(keypoints, np.int64), ptr, ball,
+  _flare_host_kernel(pts, centers, np.asarray(keypoints, np.int64), counts, ptr, ball,
                      np.ascontiguousarray(normals, np.float64), float(radius), rz * rz, hg.EPS,
                      frames, valid)
   return frames.astype(np.float32), valid

@@ -19,13 +19,15 @@ from lrf_jax import engine, geometry
 EPS = geometry.DEGENERATE_EPS
 
 
-def ball_lists(points: np.ndarray, keypoints: np.ndarray, radius: float,
-               index: Any) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+def ball_lists(points: np.ndarray, keypoints: np.ndarray, radius: float, index: Any,
+               shells: tuple[float, float] | None = None
+               ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
   """(points (n, 3) float64, centers (N, 3), ptr (N + 1,), ball (ptr[-1],)) of every point
-  within `radius` of each keypoint, from the cloud's `SearchIndex` (`engine.ball_lists`)."""
+  within `radius` of each keypoint (only those within a * r or beyond b * r with
+  `shells=(a, b)`, slightly widened), from the cloud's `SearchIndex` (`engine.ball_lists`)."""
   pts = np.ascontiguousarray(points, np.float64)
   centers = np.ascontiguousarray(pts[np.asarray(keypoints)])
-  ptr, ball = engine.ball_lists(index.grid(radius), centers, float(radius))
+  ptr, ball = engine.ball_lists(index.grid(radius), centers, float(radius), shells)
   return pts, centers, ptr, ball
 
 

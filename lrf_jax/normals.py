@@ -33,6 +33,7 @@ from __future__ import annotations
 import hashlib
 from typing import Any
 
+import numba as nb
 import numpy as np
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import breadth_first_order, connected_components, minimum_spanning_tree
@@ -84,6 +85,55 @@ def cache_last(kind: str, key_arrays: tuple, fn):
   return out
 
 
+# Below this relative gap between the two smallest eigenvalues the closed form hands over to
+# LAPACK (`np.linalg.eigh`), whose eigenvectors stay accurate as the gap closes.
+_CLOSED_FORM_GAP = 1e-3
+
+
+@nb.njit(inline="always")
+def _smallest_eigpair(c, out):
+  """Eigenvalues (ascending) and the smallest one's unit eigenvector of the symmetric 3 x 3 `c`
+  in closed form (Smith 1961, the trigonometric solution; the vector from the largest cross
+  product of two rows of c - λ I); LAPACK below `_CLOSED_FORM_GAP`. Returns the eigenvalues."""
+  p1 = c[0, 1] ** 2 + c[0, 2] ** 2 + c[1, 2] ** 2
+  q = (c[0, 0] + c[1, 1] + c[2, 2]) / 3.0
+  p2 = (c[0, 0] - q) ** 2 + (c[1, 1] - q) ** 2 + (c[2, 2] - q) ** 2 + 2.0 * p1
+  p = np.sqrt(p2 / 6.0)
+  evals = np.empty(3)
+  if p > 0.0 and np.isfinite(p):
+    b00, b11, b22 = (c[0, 0] - q) / p, (c[1, 1] - q) / p, (c[2, 2] - q) / p
+    b01, b02, b12 = c[0, 1] / p, c[0, 2] / p, c[1, 2] / p
+    det = b00 * (b11 * b22 - b12 * b12) - b01 * (b01 * b22 - b12 * b02) + b02 * (
+        b01 * b12 - b11 * b02)
+    phi = np.arccos(min(max(det / 2.0, -1.0), 1.0)) / 3.0
+    e_hi = q + 2.0 * p * np.cos(phi)
+    e_lo = q + 2.0 * p * np.cos(phi + 2.0 * np.pi / 3.0)
+    evals[0], evals[1], evals[2] = e_lo, 3.0 * q - e_hi - e_lo, e_hi
+    if evals[1] - evals[0] > _CLOSED_FORM_GAP * max(evals[2], 0.0):
+      r0 = np.array([c[0, 0] - e_lo, c[0, 1], c[0, 2]])
+      r1 = np.array([c[0, 1], c[1, 1] - e_lo, c[1, 2]])
+      r2 = np.array([c[0, 2], c[1, 2], c[2, 2] - e_lo])
+      best = 0.0
+      for u, v in ((r0, r1), (r0, r2), (r1, r2)):
+        w = np.cross(u, v)
+        nw = w[0] * w[0] + w[1] * w[1] + w[2] * w[2]
+        if nw > best:
+          best = nw
+          out[:] = w
+      if best > 0.0:
+        out /= np.sqrt(best)
+        return evals
+  w, v = np.linalg.eigh(c)
+  out[:] = v[:, 0]
+  return w
+
+
+@nb.njit(parallel=True, cache=True)
+def _smallest_eigvecs(cov, evals, vecs):
+  for i in nb.prange(cov.shape[0]):
+    evals[i] = _smallest_eigpair(cov[i], vecs[i])
+
+
 def pca_normals(points: np.ndarray, radius: float, *, grid: engine.Grid | None = None,
                 viewpoint: np.ndarray | None = None, min_neighbors: int = 3) -> np.ndarray:
   """PCL-like PCA normals: smallest eigenvector of the neighbours' covariance about their centroid.
@@ -110,8 +160,9 @@ def pca_normals(points: np.ndarray, radius: float, *, grid: engine.Grid | None =
   # One compiled pass: count, centroid and covariance about the centroid, offsets taken relative
   # to the query point (numerically stable far from the origin).
   counts, mean, cov = engine.ball_stats(grid, pts, radius)
-  evals, evecs = np.linalg.eigh(cov)
-  normals = evecs[:, :, 0]
+  evals = np.empty((len(pts), 3))
+  normals = np.empty((len(pts), 3))
+  _smallest_eigvecs(np.ascontiguousarray(cov), evals, normals)
   scale = np.maximum(evals[:, 2], 0.0)
   ok = (counts >= min_neighbors) & (scale > 0) & (evals[:, 1] - evals[:, 0] > _DEGENERATE * scale)
   if viewpoint is not None:

@@ -134,10 +134,9 @@ def gframes_frames(patches: Patches, tri: jax.Array, tri_mask: jax.Array, tri_f:
 
 # ------------------------------------------------------------------------------ host fast path
 # A ∇f of a face does not depend on the keypoint (it is built from edge vectors), so the host
-# path computes it once per face and sums it over the faces with a vertex in each keypoint's
-# ball (visited from the engine's ball lists, each once: `host_geometry.owns_face`), float64,
-# without padded triangles and without the `MAX_TRIANGLES` subsample: `compute_frames`' default
-# on the CPU.
+# path computes it once per face (and a third of it per vertex) and sums it over the faces with
+# a vertex in each keypoint's ball (from the engine's ball lists), float64, without padded
+# triangles and without the `MAX_TRIANGLES` subsample: `compute_frames`' default on the CPU.
 
 
 def face_gradients(points: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -159,10 +158,40 @@ def face_gradients(points: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, n
   return 0.5 * g, ok
 
 
+def vertex_shares(points: np.ndarray, faces: np.ndarray
+                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+  """Per face: (g (f, 3) its A ∇f, |g| (f,)); per vertex: a third of the g and of the |g| of
+  its faces (n, 3), (n,), whether all its faces' f is finite (n,), and its longest edge (n,)."""
+  pts = np.asarray(points, np.float64)
+  f = np.asarray(faces, np.int64)
+  g, ok = face_gradients(pts, f)
+  gn = np.linalg.norm(g, axis=1)
+  n = len(pts)
+  rows = f.T.reshape(-1)
+  share = np.stack([np.bincount(rows, weights=np.tile(g[:, a], 3), minlength=n)
+                    for a in range(3)], 1) / 3.0
+  share_n = np.bincount(rows, weights=np.tile(gn, 3), minlength=n) / 3.0
+  bad = np.bincount(rows, weights=np.tile((~ok).astype(float), 3), minlength=n)
+  ends = np.concatenate([f[:, [a, b]] for a, b in ((0, 1), (1, 2), (2, 0))])
+  length = np.linalg.norm(pts[ends[:, 0]] - pts[ends[:, 1]], axis=1)
+  who, length = ends.T.reshape(-1), np.tile(length, 2)
+  order = np.argsort(who, kind="stable")
+  who, length = who[order], length[order]
+  first = np.flatnonzero(np.r_[True, who[1:] != who[:-1]])
+  edge = np.zeros(n)
+  if len(who):
+    edge[who[first]] = np.maximum.reduceat(length, first)
+  return g, gn, share, share_n, bad == 0, edge
+
+
 @nb.njit(parallel=True, cache=True)
-def _gframes_host_kernel(points, faces, vf_ptr, vf, centers, ptr, ball, r, kp_normals, g, g_ok,
-                         x_eps, frames, valid):
+def _gframes_host_kernel(points, faces, vf_ptr, vf, centers, ptr, ball, r, kp_normals, g, gn,
+                         share, share_n, v_ok, edge, x_eps, frames, valid):
+  """Σ of A ∇f over the faces touching each ball: every in-ball vertex adds a third of its
+  faces' (`share`), and the vertices whose faces may leave the ball correct the faces with
+  c < 3 vertices inside by (1/c - 1/3) each."""
   r2 = r * r
+  inner = r * (1.0 - 1e-7)
   for i in nb.prange(kp_normals.shape[0]):
     hg.set_identity(frames, valid, i)
     z, z_ok = hg.unit_or_zero(kp_normals[i])
@@ -173,15 +202,27 @@ def _gframes_host_kernel(points, faces, vf_ptr, vf, centers, ptr, ball, r, kp_no
     finite = True
     for e in range(ptr[i], ptr[i + 1]):
       v = ball[e]
+      s0 += share[v, 0]
+      s1 += share[v, 1]
+      s2 += share[v, 2]
+      scale += share_n[v]
+      finite = finite and v_ok[v]
+      dx = points[v, 0] - centers[i, 0]
+      dy = points[v, 1] - centers[i, 1]
+      dz = points[v, 2] - centers[i, 2]
+      if np.sqrt(dx * dx + dy * dy + dz * dz) + edge[v] < inner:
+        continue  # every face of v lies in the ball
       for q in range(vf_ptr[v], vf_ptr[v + 1]):
         k = vf[q]
-        if not hg.owns_face(points, faces, k, v, centers[i], r2):
-          continue
-        finite = finite and g_ok[k]
-        s0 += g[k, 0]
-        s1 += g[k, 1]
-        s2 += g[k, 2]
-        scale += np.sqrt(g[k, 0] ** 2 + g[k, 1] ** 2 + g[k, 2] ** 2)
+        c = 0
+        for a in range(3):
+          c += 1 if hg.in_ball(points, faces[k, a], centers[i], r2) else 0
+        if c < 3:
+          w = 1.0 / c - 1.0 / 3.0
+          s0 += w * g[k, 0]
+          s1 += w * g[k, 1]
+          s2 += w * g[k, 2]
+          scale += w * gn[k]
     d = s0 * z[0] + s1 * z[1] + s2 * z[2]
     st = np.array([s0 - d * z[0], s1 - d * z[1], s2 - d * z[2]])
     if finite and np.sqrt(st[0] ** 2 + st[1] ** 2 + st[2] ** 2) > x_eps * scale:
@@ -206,13 +247,14 @@ def gframes_frames_host(points: np.ndarray, keypoints: np.ndarray, radius: float
   """
   pts, centers, ptr, ball = hg.ball_lists(points, keypoints, radius, index)
   f = validate_faces(faces, pts.shape[0])
-  g, g_ok = cache_last("gframes_face_gradients", (pts, f), lambda: face_gradients(pts, f))
+  g, gn, share, share_n, v_ok, edge = cache_last(
+      "gframes_vertex_shares", (pts, f), lambda: vertex_shares(pts, f))
   vptr, vf = cache_last("vertex_faces", (f, pts.shape[0]), lambda: vertex_faces(f, pts.shape[0]))
   frames = np.empty((len(centers), 3, 3))
   valid = np.empty(len(centers), np.bool_)
   kp_n = np.ascontiguousarray(np.asarray(normals, np.float64)[np.asarray(keypoints)])
   _gframes_host_kernel(pts, np.ascontiguousarray(f), vptr, vf, centers, ptr, ball, float(radius),
-                       kp_n, g, g_ok, X_EPS, frames, valid)
+                       kp_n, g, gn, share, share_n, v_ok, edge, X_EPS, frames, valid)
   return frames.astype(np.float32), valid
 
 # ------------------------------------------------------------------------------ registry entry

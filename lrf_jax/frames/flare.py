@@ -141,17 +141,7 @@ def _flare_host_kernel(points, centers, kp_ids, counts, ptr, ball, normals, r, r
       z, own_ok = hg.unit_or_zero(normals[kp_ids[i]])
       if not own_ok:
         continue
-    best, best_d2, best_j = -np.inf, np.inf, -1
-    for t in range(start, stop):
-      j = ball[t]
-      ox = points[j, 0] - centers[i, 0]
-      oy = points[j, 1] - centers[i, 1]
-      oz = points[j, 2] - centers[i, 2]
-      d2 = ox * ox + oy * oy + oz * oz
-      if d2 > margin2:
-        h = ox * z[0] + oy * z[1] + oz * z[2]
-        if best_j < 0 or hg.better(h, d2, j, best, best_d2, best_j):
-          best, best_d2, best_j = h, d2, j
+    best_j = hg.highest_point(points, centers[i], ball, start, stop, z, margin2, True)
     if best_j >= 0:
       hg.write_frame(frames, valid, i, z, points[best_j] - centers[i])
 

@@ -158,3 +158,22 @@ def owns_face(points, faces, k, v, center, r2):
     if in_ball(points, u, center, r2):
       return False
   return False
+
+
+@nb.njit(inline="always")
+def highest_point(points, center, ball, start, stop, z, ring2, strict):
+  """The listed point farthest above the plane of `z` through `center` (largest (q - c) · z,
+  ties as `better`) among those with |q - c|^2 > ring2 (`strict`) or >= ring2; -1 if none.
+  FLARE's and the point signature's x direction."""
+  best, best_d2, best_j = -np.inf, np.inf, -1
+  for t in range(start, stop):
+    j = ball[t]
+    ox = points[j, 0] - center[0]
+    oy = points[j, 1] - center[1]
+    oz = points[j, 2] - center[2]
+    d2 = ox * ox + oy * oy + oz * oz
+    if d2 > ring2 or (not strict and d2 == ring2):
+      h = ox * z[0] + oy * z[1] + oz * z[2]
+      if best_j < 0 or better(h, d2, j, best, best_d2, best_j):
+        best, best_d2, best_j = h, d2, j
+  return best_j

@@ -125,17 +125,7 @@ def _ps_host_kernel(points, centers, kp_ids, ptr, ball, normals, r, eps, frames,
     z = evecs[:, 0].copy()
     if z[0] * n[0] + z[1] * n[1] + z[2] * n[2] < 0.0:
       z = -z
-    best, best_d2, best_j = -np.inf, np.inf, -1
-    for t in range(start, stop):
-      j = ball[t]
-      ox = points[j, 0] - centers[i, 0]
-      oy = points[j, 1] - centers[i, 1]
-      oz = points[j, 2] - centers[i, 2]
-      d2 = ox * ox + oy * oy + oz * oz
-      if d2 >= rc2:
-        h = ox * z[0] + oy * z[1] + oz * z[2]
-        if best_j < 0 or hg.better(h, d2, j, best, best_d2, best_j):
-          best, best_d2, best_j = h, d2, j
+    best_j = hg.highest_point(points, centers[i], ball, start, stop, z, rc2, False)
     hg.write_frame(frames, valid, i, z, points[best_j] - centers[i])
 
 

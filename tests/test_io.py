@@ -111,6 +111,27 @@ def test_ply_matches_plyfile_and_keeps_extra_elements(tmp_path, text, ragged):
   assert m.comments == ("made by test",) and m.obj_info == ("num_cols 3",)
 
 
+def test_ascii_lists_with_odd_whitespace_match_plyfile(tmp_path):
+  # The vectorised ascii reader counts tokens per row from the bytes; tabs, runs of spaces,
+  # CRLF line ends and lists of 0..4 values must split exactly as plyfile's row-by-row reader.
+  rng = _rng(3)
+  lens = rng.integers(0, 5, 200)
+  seps = [" ", "\t", "  ", " \t "]
+  rows = []
+  for i, k in enumerate(lens):
+    vals = [str(k)] + [str(int(x)) for x in rng.integers(0, 3, k)]
+    rows.append(seps[i % 4].join(vals) + (" " if i % 3 == 0 else "") + ("\r" if i % 5 == 0 else ""))
+  head = ("ply\nformat ascii 1.0\nelement vertex 3\nproperty float x\nproperty float y\n"
+          f"property float z\nelement grid {len(rows)}\nproperty list uchar int idx\nend_header\n")
+  path = tmp_path / "odd.ply"
+  path.write_bytes((head + "0 0 0\n1 0 0\n0 1 0\n" + "\n".join(rows) + "\n").encode())
+  got = io.read_ply(path).elements["grid"]["idx"]
+  want = plyfile.PlyData.read(str(path))["grid"]["idx"]
+  assert len(got) == len(want) == len(rows)
+  for g, w in zip(got, want):
+    np.testing.assert_array_equal(g, w)
+
+
 def test_ply_polygons_are_fan_triangulated(tmp_path):
   path = tmp_path / "quad.ply"
   path.write_text("ply\nformat ascii 1.0\nelement vertex 5\nproperty float x\nproperty float y\n"

@@ -224,12 +224,11 @@ def _parse_ascii_element(elt: plyfile.PlyElement, rows: list[bytes],
   lists = [q for q in props if isinstance(q, plyfile.PlyListProperty)]
   if not rows:
     return {q.name: np.empty((0,) if q not in lists else (0, 0)) for q in props}
-  text = [r.decode("ascii", "replace") for r in rows]
   if not lists:
     try:
       with warnings.catch_warnings():
         warnings.simplefilter("ignore")
-        table = np.loadtxt(text, dtype=np.float64, ndmin=2)
+        table = np.loadtxt(rows, dtype=np.float64, ndmin=2, encoding="latin1")
     except ValueError as e:
       raise bad_input(p, f"element '{elt.name}'", f"{len(props)} numeric values per row "
                       f"({', '.join(q.name for q in props)})", str(e)) from e
@@ -240,14 +239,15 @@ def _parse_ascii_element(elt: plyfile.PlyElement, rows: list[bytes],
   if len(props) != 1:
     return None
   (prop,) = lists
+  text = b"\n".join(rows)
+  counts = _tokens_per_row(text, len(rows)) - 1
   try:
-    counts = np.array([len(t.split()) for t in text]) - 1
-    flat = np.array(" ".join(text).split(), dtype=np.float64)
+    flat = np.array(text.split(), dtype=np.float64)
   except ValueError as e:
     raise bad_input(p, f"element '{elt.name}' property '{prop.name}'", "numeric lists",
                     str(e)) from e
   starts = np.concatenate([[0], np.cumsum(counts + 1)[:-1]])
-  declared = flat[starts]
+  declared = flat[np.minimum(starts, len(flat) - 1)] if len(flat) else counts + 1
   if (counts < 0).any() or not np.array_equal(declared, counts):
     row = int(np.flatnonzero((counts < 0) | (declared != counts))[0])
     raise bad_input(p, f"element '{elt.name}' row {row} property '{prop.name}'",
@@ -257,10 +257,18 @@ def _parse_ascii_element(elt: plyfile.PlyElement, rows: list[bytes],
   if counts.min() == counts.max():
     return {prop.name: values.reshape(len(rows), int(counts[0]))}
   pieces = np.empty(len(rows), dtype=object)
-  ends = np.cumsum(counts)
-  for i, (a, b) in enumerate(zip((ends - counts).tolist(), ends.tolist())):
-    pieces[i] = values[a:b]
+  ends = np.cumsum(counts).tolist()
+  pieces[:] = [values[a:b] for a, b in zip([0] + ends[:-1], ends)]
   return {prop.name: pieces}
+
+
+def _tokens_per_row(text: bytes, n_rows: int) -> np.ndarray:
+  """(n_rows,) int64 whitespace-separated tokens on each of the newline-joined rows of `text`."""
+  buf = np.frombuffer(text, dtype=np.uint8)
+  space = (buf == 32) | (buf == 9) | (buf == 13) | (buf == 10) | (buf == 11) | (buf == 12)
+  first = ~space & np.concatenate([[True], space[:-1]])  # a token's first byte
+  row = np.cumsum(buf == 10)  # a byte's row: newlines seen before it (a newline is a space)
+  return np.bincount(row[first], minlength=n_rows).astype(np.int64)
 
 
 def _read_ascii_with_plyfile(p: Path) -> dict[str, dict[str, np.ndarray]]:

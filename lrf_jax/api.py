@@ -13,7 +13,7 @@ import numpy as np
 
 from lrf_jax import engine
 from lrf_jax.chunks import map_chunks
-from lrf_jax.datasets.resolution import mesh_resolution as _mesh_resolution
+from lrf_jax.resolution import mesh_resolution as _mesh_resolution
 from lrf_jax.frames import METHODS, MethodSpec
 from lrf_jax.inputs import as_cloud
 from lrf_jax.model import default_params

@@ -16,12 +16,12 @@ cleared here.
 from __future__ import annotations
 
 from lrf_jax import api, descriptors, model, normals
-from lrf_jax.datasets import cache as dataset_cache
-from lrf_jax.datasets import synthetic
 
 
 def clear_caches() -> None:
   """Empty every cache listed in this module's docstring."""
+  from lrf_jax.datasets import cache as dataset_cache  # not imported by lrf_jax itself
+  from lrf_jax.datasets import synthetic
   normals._CACHE.clear()
   api._TABLES.clear()
   api._jitted.cache_clear()

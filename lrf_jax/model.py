@@ -1,4 +1,4 @@
-"""The LRF-Net weight network (flax.linen); the only module of lrf_jax that imports flax.
+"""The LRF-Net weight network: its parameters, its forward pass and the shipped weights.
 
 The paper (section 3.1, "a U-Net with MLP layers only") feeds each radius neighbour's two invariant
 attributes (distance / r, cos(z, pq)) through per-point MLP layers and predicts one weight per
@@ -13,6 +13,10 @@ FLOPs per keypoint on the hot path. The
 output is linear (signed weights): TOLDI's own weight (r - d)² sign(h) h² is signed, and a positive
 activation could not express it. The weights only matter up to a positive scale (x is normalised).
 lrf_net_plus reads the same output as a log-weight (`frames.lrf_net.softmax_weights`).
+
+The layers are defined as flax.linen modules in `networks.py`; this module evaluates them from
+the parameter dict in `jax.numpy` and reads parameter files with `msgpack` (flax's format), so
+inference never imports flax; initialising and saving do.
 """
 
 from __future__ import annotations
@@ -21,10 +25,10 @@ import functools
 from pathlib import Path
 from typing import Any, Sequence
 
-import flax.linen as nn
 import jax
 import jax.numpy as jnp
-from flax import serialization
+import msgpack
+import numpy as np
 
 Params = Any
 
@@ -32,32 +36,9 @@ WEIGHTS_DIR = Path(__file__).parent / "weights"
 DEFAULT_WEIGHTS = WEIGHTS_DIR / "lrf_net.msgpack"
 
 
-class WeightNet(nn.Module):
-  """Per-point U-Net of MLP layers: attributes (..., K, A) -> weights (..., K).
-
-  Attributes:
-    widths: encoder widths; the decoder mirrors them with skip connections.
-  """
-
-  widths: Sequence[int] = (16, 32, 64)
-
-  @nn.compact
-  def __call__(self, attrs: jax.Array) -> jax.Array:
-    h = attrs
-    skips = []
-    for i, w in enumerate(self.widths):
-      h = nn.relu(nn.Dense(w, name=f"enc{i}")(h))
-      skips.append(h)
-    skips.pop()  # the bottleneck is not concatenated with itself
-    for i, w in enumerate(reversed(self.widths[:-1])):
-      h = nn.relu(nn.Dense(w, name=f"dec{i}")(h))
-      h = jnp.concatenate([h, skips.pop()], axis=-1)
-    return nn.Dense(1, name="out")(h)[..., 0]
-
-
 def init_params(seed: int = 0, num_attributes: int = 2,
                 widths: Sequence[int] = (16, 32, 64)) -> Params:
-  """Seeded initial parameters of `WeightNet`.
+  """Seeded initial parameters of the weight network (`networks.WeightNet`).
 
   Args:
     seed: PRNG seed (`jax.random.key(seed)`).
@@ -65,16 +46,34 @@ def init_params(seed: int = 0, num_attributes: int = 2,
     widths: encoder widths.
 
   Returns:
-    A flax params pytree.
+    A flax params pytree: {"enc<i>", "dec<i>", "out"} each {"kernel", "bias"}.
   """
-  model = WeightNet(widths=tuple(widths))
-  return model.init(jax.random.key(seed), jnp.zeros((1, num_attributes), jnp.float32))["params"]
+  from lrf_jax.networks import init_weight_net  # flax, only to initialise
+  return init_weight_net(seed, num_attributes, widths)
+
+
+def _dense(layer: Params, h: jax.Array) -> jax.Array:
+  return h @ layer["kernel"] + layer["bias"]
 
 
 def apply_weights(params: Params, attrs: jax.Array) -> jax.Array:
-  """Weights (..., K) for attributes (..., K, A), with the network shape read from `params`."""
-  widths = tuple(params[f"enc{i}"]["kernel"].shape[1] for i in range(_num_enc(params)))
-  return WeightNet(widths=widths).apply({"params": params}, attrs)
+  """Weights (..., K) for attributes (..., K, A): `networks.WeightNet.apply`, written out.
+
+  Encoder Dense+ReLU layers enc0..enc{m-1}, decoder Dense+ReLU layers dec0..dec{m-2} each
+  concatenated with the encoder output of the same width, and a linear Dense "out" to one
+  value; the widths are read from `params`.
+  """
+  n_enc = _num_enc(params)
+  h = attrs
+  skips = []
+  for i in range(n_enc):
+    h = jax.nn.relu(_dense(params[f"enc{i}"], h))
+    skips.append(h)
+  skips.pop()  # the bottleneck is not concatenated with itself
+  for i in range(n_enc - 1):
+    h = jax.nn.relu(_dense(params[f"dec{i}"], h))
+    h = jnp.concatenate([h, skips.pop()], axis=-1)
+  return _dense(params["out"], h)[..., 0]
 
 
 def _num_enc(params: Params) -> int:
@@ -83,6 +82,7 @@ def _num_enc(params: Params) -> int:
 
 def save_params(params: Params, path: str | Path) -> None:
   """Write parameters as flax msgpack (a few KB)."""
+  from flax import serialization  # only to write
   Path(path).parent.mkdir(parents=True, exist_ok=True)
   Path(path).write_bytes(serialization.msgpack_serialize(jax.device_get(params)))
 
@@ -98,7 +98,7 @@ def load_params(path: str | Path) -> Params:
   if not path.exists():
     raise FileNotFoundError(f"{path}: no such parameter file")
   try:
-    params = serialization.msgpack_restore(path.read_bytes())
+    params = msgpack.unpackb(path.read_bytes(), ext_hook=_unpack_array, raw=False)
   except Exception as e:  # msgpack raises several types on garbage
     raise ValueError(f"{path}: not a flax msgpack parameter file ({e})") from e
   weightnet = isinstance(params, dict) and "out" in params and _num_enc(params) > 0
@@ -129,29 +129,10 @@ def default_params(name: str = "lrf_net") -> Params:
   return _default_params_cached(name)
 
 
-class PointRegressor(nn.Module):
-  """PointNet-style direct regressor of one 3-vector from a padded point set (ablation "DR").
-
-  Per-point MLP (in -> 32 -> 64, ReLU), masked max pooling, MLP 64 -> 32 -> 3. The paper's DR
-  figure is lost; this is the smallest common design that can regress a direction.
-  """
-
-  @nn.compact
-  def __call__(self, feats: jax.Array, mask: jax.Array) -> jax.Array:
-    h = nn.relu(nn.Dense(32, name="p0")(feats))
-    h = nn.relu(nn.Dense(64, name="p1")(h))
-    h = jnp.max(jnp.where(mask[..., None], h, -1e9), axis=-2)
-    h = jnp.where(jnp.any(mask, axis=-1, keepdims=True), h, 0.0)
-    h = nn.relu(nn.Dense(32, name="g0")(h))
-    return nn.Dense(3, name="g1")(h)
-
-
-def init_regressor(seed: int, num_features: int) -> Params:
-  """Seeded parameters of `PointRegressor` for inputs with `num_features` per point."""
-  return PointRegressor().init(jax.random.key(seed), jnp.zeros((1, 4, num_features)),
-                               jnp.ones((1, 4), bool))["params"]
-
-
-def apply_regressor(params: Params, feats: jax.Array, mask: jax.Array) -> jax.Array:
-  """(..., K, F), (..., K) -> (..., 3)."""
-  return PointRegressor().apply({"params": params}, feats, mask)
+def _unpack_array(code: int, data: bytes) -> Any:
+  """flax.serialization's msgpack extension types: 1 an ndarray, 3 a numpy scalar."""
+  if code not in (1, 3):
+    raise ValueError(f"msgpack extension type {code} (expected 1, an array, or 3, a scalar)")
+  shape, dtype, buffer = msgpack.unpackb(data, raw=True)
+  arr = np.frombuffer(buffer, dtype=np.dtype(dtype.decode())).reshape(shape)
+  return arr if code == 1 else arr[()]

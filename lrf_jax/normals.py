@@ -35,8 +35,6 @@ from typing import Any
 
 import numba as nb
 import numpy as np
-from scipy.sparse import coo_matrix
-from scipy.sparse.csgraph import breadth_first_order, connected_components, minimum_spanning_tree
 
 from lrf_jax import engine
 from lrf_jax.neighborhoods import validate_viewpoint
@@ -222,6 +220,9 @@ def orient_by_propagation(points: np.ndarray, normals: np.ndarray, *, k: int = P
     Hoppe, DeRose, Duchamp, McDonald, Stuetzle, "Surface reconstruction from unorganized points",
     SIGGRAPH 1992, section 3.3.
   """
+  from scipy.sparse import coo_matrix  # only orientation needs graphs: not imported with lrf_jax
+  from scipy.sparse.csgraph import (breadth_first_order, connected_components,
+                                    minimum_spanning_tree)
   pts = np.asarray(points, np.float64)
   nrm = np.array(normals, np.float64, copy=True)
   n = pts.shape[0]

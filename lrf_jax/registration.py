@@ -40,7 +40,7 @@ import numpy as np
 
 from lrf_jax import engine
 from lrf_jax.api import compute_frames
-from lrf_jax.datasets.resolution import mesh_resolution
+from lrf_jax.resolution import mesh_resolution
 from lrf_jax.descriptors import (DESCRIPTORS, compute_descriptors, match_descriptors,
                                  top_correspondences)
 from lrf_jax.frames import METHODS

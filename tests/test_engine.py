@@ -96,7 +96,7 @@ def test_in_ball_rule_is_ckdtree_squared_distance():
 @pytest.mark.data
 @pytest.mark.parametrize("cloud", ["br_bunny", "bunny_scan", "uwaor_rs1"])
 def test_patches_equal_ckdtree_on_real_clouds(cloud, data_root):
-  from lrf_jax.datasets.resolution import mesh_resolution
+  from lrf_jax.resolution import mesh_resolution
   from lrf_jax.io import read_cloud
   if cloud == "br_bunny":
     c = read_cloud(data_root / "bologna_retrieval" / "models" / "bunny" / "bun_zipper_0.ply")

@@ -72,3 +72,38 @@ def test_lrf_net_plus_beats_lrf_net_and_uniform_on_noisy_br(data_root):
       got[rec["method"]].append(rec["meancos"])
   mean = {k: np.mean(v) for k, v in got.items()}
   assert mean["lrf_net_plus"] > mean["uniform"] > mean["lrf_net"], mean
+
+
+def test_flax_free_forward_and_reader_equal_flax():
+  # model.apply_weights and model.load_params avoid importing flax; they must be the flax
+  # module's forward pass and flax's msgpack reader, on every shipped file and a fresh save.
+  from flax import serialization
+
+  from lrf_jax import model
+  from lrf_jax.networks import WeightNet
+  files = sorted(model.WEIGHTS_DIR.rglob("*.msgpack"))
+  assert files
+  for path in files:
+    ours = model.load_params(path)
+    ref = serialization.msgpack_restore(path.read_bytes())
+    assert jax.tree.structure(ours) == jax.tree.structure(ref), path
+    for a, b in zip(jax.tree.leaves(ours), jax.tree.leaves(ref)):
+      assert a.dtype == b.dtype and a.shape == b.shape
+      np.testing.assert_array_equal(np.asarray(a), b)
+  attrs = jax.random.uniform(jax.random.key(1), (5, 7, 2), minval=-1.0, maxval=1.0)
+  for widths in [(16, 32, 64), (8, 4)]:
+    params = model.init_params(3, 2, widths)
+    want = WeightNet(widths=widths).apply({"params": params}, attrs)
+    np.testing.assert_allclose(model.apply_weights(params, attrs), want, rtol=1e-6, atol=1e-7)
+
+
+def test_inference_imports_neither_flax_nor_the_datasets(tmp_path):
+  # Registering or computing frames in a fresh process must not pay for flax or the dataset
+  # loaders (each a few tenths of a second of import time).
+  import subprocess
+  import sys
+  code = ("import sys, lrf_jax, lrf_jax.registration, lrf_jax.register_cli; "
+          "heavy = sorted(m for m in ('flax', 'optax', 'orbax', 'lrf_jax.datasets', 'pypcd4') "
+          "if m in sys.modules); print(heavy); sys.exit(1 if heavy else 0)")
+  out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
+  assert out.returncode == 0, out.stdout + out.stderr

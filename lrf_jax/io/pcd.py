@@ -6,7 +6,6 @@ import os
 import struct
 
 import numpy as np
-from pypcd4 import PointCloud
 
 from lrf_jax.io.cloud import Cloud
 from lrf_jax.io.validation import bad_input, check_points, require_file
@@ -43,6 +42,7 @@ def read_pcd(path: str | os.PathLike, *, drop_nonfinite: bool = False) -> Cloud:
   p = require_file(path)
   header = _sniff_header(p)
   _check_body_size(p, header)
+  from pypcd4 import PointCloud  # imported on the first PCD read, not with lrf_jax
   try:
     pc = PointCloud.from_path(p)
   except (ValueError, RuntimeError, TypeError, KeyError, IndexError, OverflowError,

@@ -66,7 +66,7 @@ def frames_from_patches(patches: Patches, method: str = "lrf_net_plus", *, param
     patches = jax.device_put(patches, shard)
     extra = None if extra is None else jax.device_put(extra, shard)
     return fn(patches, extra, params)
-  return fn(jax.tree.map(jnp.asarray, patches), extra, params)
+  return fn(jax.device_put(patches), extra, params)
 
 
 _TABLES: list[tuple[Any, int, Any]] = []  # (params, size, WeightTable), most recent last

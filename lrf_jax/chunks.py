@@ -35,5 +35,8 @@ def map_chunks(fn: Callable[[np.ndarray, int], tuple[Any, ...]], n: int, chunk: 
     n_real = idx.size
     if pad and n_real < chunk:
       idx = np.concatenate([idx, np.full(chunk - n_real, idx[0])])
-    parts.append(tuple(out[:n_real] for out in fn(idx, n_real)))
+    outs = fn(idx, n_real)
+    parts.append(tuple(out if len(out) == n_real else out[:n_real] for out in outs))
+  if len(parts) == 1:  # one call: nothing to slice or concatenate (no eager op to compile)
+    return parts[0]
   return tuple(jnp.concatenate(outs) for outs in zip(*parts))

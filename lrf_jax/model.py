@@ -108,7 +108,7 @@ def load_params(path: str | Path) -> Params:
     raise ValueError(f"{path}: expected WeightNet parameters (enc*/dec*/out) or ablation "
                      f"parameters (weights/x_reg/z_reg), got keys "
                      f"{sorted(params) if isinstance(params, dict) else type(params)}")
-  return jax.tree.map(jnp.asarray, params)
+  return jax.device_put(params)
 
 
 @functools.lru_cache(maxsize=8)

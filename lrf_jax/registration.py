@@ -205,10 +205,10 @@ def _finish(r, t, mask, best, count) -> RansacResult:
                       int(best), int(count))
 
 
-def _centred(s: np.ndarray, d: np.ndarray) -> tuple[jax.Array, jax.Array, np.ndarray, np.ndarray]:
+def _centred(s: np.ndarray, d: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
   """float32 coordinates about the source/target centroids (precision away from the origin)."""
   cs, cd = s.mean(axis=0), d.mean(axis=0)
-  return (jnp.asarray(s - cs, jnp.float32), jnp.asarray(d - cd, jnp.float32), cs, cd)
+  return ((s - cs).astype(np.float32), (d - cd).astype(np.float32), cs, cd)
 
 
 def _uncentre(r, t, cs, cd) -> tuple[np.ndarray, np.ndarray]:
@@ -532,6 +532,7 @@ def register(source: Any, target: Any, *, mr: float | None = None, radius_mr: fl
   with timer("hypotheses"):
     src, dst, cs, cd = _centred(p, q)
     rs, ts = _hypotheses(src, dst, f_s[qi], f_t[ri], estimator, iterations, setup.radius, seed)
+    rs, ts = np.asarray(rs), np.asarray(ts)  # host copies: slicing them compiles nothing
     counts = np.asarray(_count_inliers(rs, ts, src, dst, float(threshold)))
     chance = _chance_inliers(src, dst, f_s[qi], f_t[ri], estimator, iterations, setup.radius,
                              seed, float(threshold))
@@ -605,7 +606,7 @@ def _chance_inliers(src, dst, f_src, f_dst, estimator, iterations, radius, seed,
   best = 0
   for _ in range(CHANCE_SHUFFLES):
     perm = rng.permutation(len(src))
-    d, fd = dst[perm], np.asarray(f_dst)[perm]
+    d, fd = np.asarray(dst)[perm], np.asarray(f_dst)[perm]
     rs, ts = _hypotheses(src, d, f_src, fd, estimator, iterations, radius, seed)
     best = max(best, int(np.max(np.asarray(_count_inliers(rs, ts, src, d, threshold)))))
   return best
@@ -756,8 +757,8 @@ def _hypotheses(src, dst, f_src, f_dst, estimator: str, iterations: int, radius:
   """Stage "hypotheses": one pose per correspondence from its LRFs, or `iterations` seeded
   triples (the `ransac_3point` sampler), in the centred float32 coordinates."""
   if estimator == "lrf":
-    return _lrf_hypotheses(src, jnp.asarray(f_src, jnp.float32), dst,
-                           jnp.asarray(f_dst, jnp.float32), float(radius))
+    return _lrf_hypotheses(src, np.asarray(f_src, np.float32), dst,
+                           np.asarray(f_dst, np.float32), float(radius))
   samples = _triples(len(src), iterations, seed)
   return _kabsch_batch(src[samples], dst[samples])
 

@@ -81,14 +81,14 @@ def match_descriptors(query: np.ndarray, reference: np.ndarray, query_valid=None
   if len(r) < 2:  # top_k needs two columns: pad with an invalid reference
     ref = np.concatenate([r, np.zeros((2 - len(r), r.shape[1]), np.float32)])
     rv = np.concatenate([rv, np.zeros(2 - len(r), bool)])
-  ref_j, rv_j = jnp.asarray(ref), jnp.asarray(rv)
+  ref_j, rv_j = jax.device_put(ref), jax.device_put(rv)
   b = min(block, m)
   for s in range(0, m, b):
     qb = q[s:s + b]
     n_real = len(qb)
     if n_real < b:
       qb = np.concatenate([qb, np.zeros((b - n_real, q.shape[1]), np.float32)])
-    d2, idx = (np.asarray(a)[:n_real] for a in _block(jnp.asarray(qb), ref_j, rv_j))
+    d2, idx = (np.asarray(a)[:n_real] for a in _block(qb, ref_j, rv_j))
     d1 = np.sqrt(d2[:, 0])
     d_2 = np.sqrt(d2[:, 1])
     nearest[s:s + n_real] = idx[:, 0]

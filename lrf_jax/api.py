@@ -319,16 +319,45 @@ HOST_NEIGHBOUR_BUDGET = 1 << 24
 
 
 def _host_frames_in_budget(spec: MethodSpec, points: np.ndarray, kp: np.ndarray, radius: float,
-                           index: SearchIndex, faces: Any, normals: Any
-                           ) -> tuple[np.ndarray, np.ndarray]:
+                           index: SearchIndex, faces: Any, normals: Any,
+                           counts: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
   """`spec.host_frames` over `kp` in groups whose balls hold at most `HOST_NEIGHBOUR_BUDGET`
   points together (one keypoint at least), so memory does not grow with the ball size."""
-  counts = engine.ball_counts(index.grid(radius), points[kp], radius)
+  if counts is None:
+    counts = engine.ball_counts(index.grid(radius), points[kp], radius)
   group = np.cumsum(counts) // HOST_NEIGHBOUR_BUDGET
   cuts = np.flatnonzero(np.diff(group)) + 1
   parts = [spec.host_frames(points, part, radius, index, faces=faces, normals=normals)
            for part in np.split(kp, cuts)]
   return np.concatenate([f for f, _ in parts]), np.concatenate([v for _, v in parts])
+
+
+def host_frames(points: np.ndarray, keypoints: np.ndarray, radius: float, method: str, *,
+                index: SearchIndex, faces: np.ndarray | None = None,
+                normals: np.ndarray | None = None, ball_counts: np.ndarray | None = None
+                ) -> tuple[np.ndarray, np.ndarray]:
+  """A method's host fast path over every neighbour (`compute_frames(kernel="host")` without the
+  argument checks, normal estimation or chunking): for callers that already hold the index.
+
+  Args:
+    points: (n, 3) float64 cloud, validated.
+    keypoints: (m,) int64 indices into `points`.
+    radius: support radius r (> 0).
+    method: a key of `METHODS` whose `host_frames` is set.
+    index: `SearchIndex(points, seed)` (the host paths read every neighbour; the seed only
+      orders the grid).
+    faces: (f, 3) triangles for mesh methods.
+    normals: (n, 3) normals as `prepare.method_normals` gives them (None for methods without).
+    ball_counts: (m,) points within `radius` of each keypoint, if already counted.
+
+  Returns:
+    (frames (m, 3, 3) float32 rows x, y, z, valid (m,) bool), as numpy arrays.
+  """
+  spec = _spec(method)
+  if spec.host_frames is None:
+    raise ValueError(f"method {method!r} has no host fast path (METHODS[method].host_frames)")
+  return _host_frames_in_budget(spec, points, np.asarray(keypoints, np.int64), float(radius),
+                                index, faces, normals, ball_counts)
 
 
 def _use_host_kernel(spec: MethodSpec, kernel: str, k: int | None, options: dict,

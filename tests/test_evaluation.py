@@ -55,6 +55,27 @@ def test_partial_scan_keypoints_have_counterparts_within_half_mr():
   assert len(si) == len(np.unique(si)) == 300
 
 
+def test_host_kernels_give_the_jitted_records_and_yield_to_the_cap():
+  """kernel="auto" runs the host fast paths (float64, every neighbour) where no ball exceeds the
+  cap: the same frames as the jitted path on the capped patches, so the same records."""
+  pair = datasets.make_demo_pair(1, seed=0, partial=True, noise_mr=0.3)
+  runs = [MethodRun(m, m) for m, s in lrf_jax.METHODS.items()
+          if s.host_frames is not None and s.default_k is None]
+  assert {"shot", "rops", "gframes", "flare"} <= {r.method for r in runs}
+  auto = evaluate_pair(pair, runs, experiment="t", n_keypoints=150)
+  jit = evaluate_pair(pair, runs, experiment="t", n_keypoints=150, kernel="jit")
+  for a, b in zip(auto, jit):
+    assert a["kernel"] == "host" and b["kernel"] == "jit", a["method"]
+    if a["method"] == "mian":  # x's sign is each eigen-solver's own (mian.py): frames agree up
+      continue                 # to it (test_method_properties), MeanCos need not
+    assert abs(a["meancos"] - b["meancos"]) < 2e-3, (a["method"], a["meancos"], b["meancos"])
+    assert abs(a["n_valid"] - b["n_valid"]) <= 1, a["method"]
+  capped = evaluate_pair(pair, runs[:1], experiment="t", n_keypoints=20, max_neighbors=16)
+  assert capped[0]["kernel"] == "jit"  # the cap binds: the capped patches decide
+  with pytest.raises(ValueError, match="kernel"):
+    evaluate_pair(pair, runs[:1], experiment="t", n_keypoints=5, kernel="host")
+
+
 def test_patch_cache_shares_searches(demo_pair):
   cache = PatchCache()
   runs = [MethodRun("lrf_net", "lrf_net"), MethodRun("uniform", "uniform")]  # both K = 256

@@ -21,13 +21,16 @@ from typing import Any, Iterable
 import numpy as np
 from scipy.spatial import cKDTree
 
-from lrf_jax.api import frames_from_patches
+import jax
+
+from lrf_jax import engine
+from lrf_jax.api import frames_from_patches, host_frames
 from lrf_jax.datasets import Pair, repeatability_keypoints, transform_points
 from lrf_jax.frames import METHODS
 from lrf_jax.metrics import meancos
 from lrf_jax.neighborhoods import Patches, SearchIndex, build_patches
 from lrf_jax.normals import NORMAL_RADIUS_RATIO, estimate_normals
-from lrf_jax.prepare import prepare_extra
+from lrf_jax.prepare import method_normals, prepare_extra
 
 # Default cap on all-neighbour patches in evaluations (see `evaluate_pair`).
 MAX_NEIGHBORS = 4096
@@ -139,7 +142,7 @@ def evaluate_pair(pair: Pair, methods: Iterable[MethodRun], *, experiment: str,
                   setting: dict[str, Any] | None = None, n_keypoints: int = 1000,
                   seed: int = 0, radius_mr: float = 15.0, scene_first: bool = False,
                   cache: PatchCache | None = None, max_neighbors: int | None = MAX_NEIGHBORS,
-                  keep_frames: bool = False) -> list[dict[str, Any]]:
+                  keep_frames: bool = False, kernel: str = "auto") -> list[dict[str, Any]]:
   """Repeatability records of every method on one pair.
 
   Args:
@@ -157,11 +160,16 @@ def evaluate_pair(pair: Pair, methods: Iterable[MethodRun], *, experiment: str,
       dense clouds reach it (UWAOR's full-resolution rs1: 33-50k points per 15 mr ball, from the
       decimated model's mr); None = no cap. Stored in each record as "max_neighbors".
     keep_frames: also return the frames (under "_frames") for figures.
+    kernel: "auto": a method with a host fast path (`MethodSpec.host_frames`), every neighbour
+      (K = None) and no options runs it on a CPU backend when no ball of the side exceeds
+      `max_neighbors` (then the capped patches would hold every neighbour too, so both paths
+      compute the same frames, the host one in float64); otherwise, and with "jit", the jitted
+      function on the (capped) patches. Stored in each record as "kernel".
 
   Returns:
     One record per method with keys experiment, dataset, pair, method, setting, meancos,
-    frac_above_0.97, n_keypoints, n_valid, radius, seconds (search, normals and frames of both
-    sides, compilation included); meancos is None (and "note" says why) for a
+    frac_above_0.97, n_keypoints, n_valid, radius, kernel, seconds (search, normals and frames
+    of both sides, compilation included); meancos is None (and "note" says why) for a
     method the pair cannot feed (a mesh method on a cloud).
   """
   cache = cache or PatchCache()
@@ -174,10 +182,24 @@ def evaluate_pair(pair: Pair, methods: Iterable[MethodRun], *, experiment: str,
   records = []
   side_normals: dict[str, np.ndarray] = {}  # estimated once per side, shared by every method
 
+  side_counts: dict[str, tuple[SearchIndex, np.ndarray]] = {}  # host kernels' index, ball sizes
+  if kernel not in ("auto", "jit"):
+    raise ValueError(f"kernel: expected 'auto' or 'jit', got {kernel!r}")
+  on_cpu = jax.default_backend() == "cpu"
+
   def normals_of(tag, pts, faces, viewpoint):
     if tag not in side_normals:
       side_normals[tag] = estimate_normals(pts, NORMAL_RADIUS_RATIO * radius, faces, viewpoint)
     return side_normals[tag]
+
+  def host_side(tag, pts, idx):
+    """(index, ball counts) of a side when its balls fit `max_neighbors`, else None."""
+    if tag not in side_counts:
+      index = SearchIndex(pts, seed)
+      side_counts[tag] = index, engine.ball_counts(index.grid(radius), pts[idx], radius)
+    index, counts = side_counts[tag]
+    fits = max_neighbors is None or counts.size == 0 or int(counts.max()) <= max_neighbors
+    return (index, counts) if fits else None
 
   for run in methods:
     spec = METHODS[run.method]
@@ -187,16 +209,29 @@ def evaluate_pair(pair: Pair, methods: Iterable[MethodRun], *, experiment: str,
                           n_valid=0, note="n/a: needs a mesh, the pair has a cloud side"))
       continue
     t0 = time.perf_counter()
-    sides = []
+    sides, kernels = [], []
+    may_host = (kernel == "auto" and on_cpu and spec.host_frames is not None
+                and run.patch_k is None and not run.options)
     for tag, pts, faces, idx, vp in (
         ("model", pair.model_points, pair.model_faces, mi, pair.model_viewpoint),
         ("scene", pair.scene_points, pair.scene_faces, si, pair.scene_viewpoint)):
+      normals = lambda: normals_of(tag, pts, faces, vp)  # noqa: E731 (estimated once, if read)
+      host = host_side(tag, pts, idx) if may_host else None
+      if host is not None:
+        sides.append(host_frames(pts, idx, radius, run.method, index=host[0], faces=faces,
+                                 normals=method_normals(spec, pts, radius, faces=faces,
+                                                        normals=normals, viewpoint=vp),
+                                 ball_counts=host[1]))
+        kernels.append("host")
+        continue
       patches = cache.get(pts, idx, radius, run.patch_k, seed, spec.z_ratio, max_k=max_neighbors)
       extra = prepare_extra(spec, pts, idx, patches, faces=faces, radius=radius, viewpoint=vp,
-                            normals=lambda: normals_of(tag, pts, faces, vp))
+                            normals=normals)
       sides.append(frames_from_patches(patches, run.method, params=run.params, extra=extra,
                                        **dict(run.options)))
+      kernels.append("jit")
     (fm, vm), (fs, vs) = sides
+    rec["kernel"] = kernels[0] if kernels[0] == kernels[1] else "+".join(kernels)
     mc = np.asarray(meancos(fm, fs, pair.transform, vm, vs))
     rec.update(meancos=float(mc.mean()) if mc.size else float("nan"),
                **{"frac_above_0.97": float((mc > 0.97).mean()) if mc.size else float("nan")},

@@ -111,6 +111,20 @@ def test_ply_matches_plyfile_and_keeps_extra_elements(tmp_path, text, ragged):
   assert m.comments == ("made by test",) and m.obj_info == ("num_cols 3",)
 
 
+def test_ply_without_elements_reads_the_same_geometry(tmp_path):
+  path = tmp_path / "x.ply"
+  _write_with_plyfile(path, True, ragged=True)
+  full, bare = io.read_ply(path), io.read_ply(path, elements=False)
+  np.testing.assert_array_equal(bare.points, full.points)
+  np.testing.assert_array_equal(bare.faces, full.faces)
+  assert "range_grid" in full.elements and bare.elements == {}
+  np.testing.assert_array_equal(io.read_cloud(path).points, full.points)
+  lines = path.read_text().splitlines()
+  (tmp_path / "short.ply").write_text("\n".join(lines[:-2]) + "\n")  # range_grid rows missing
+  with pytest.raises(ValueError, match="range_grid"):
+    io.read_ply(tmp_path / "short.ply", elements=False)
+
+
 def test_ascii_lists_with_odd_whitespace_match_plyfile(tmp_path):
   # The vectorised ascii reader counts tokens per row from the bytes; tabs, runs of spaces,
   # CRLF line ends and lists of 0..4 values must split exactly as plyfile's row-by-row reader.

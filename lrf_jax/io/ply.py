@@ -61,11 +61,14 @@ class PlyMesh:
     return Cloud(self.points, self.faces, self.normals, self.path)
 
 
-def read_ply(path: str | os.PathLike) -> PlyMesh:
+def read_ply(path: str | os.PathLike, *, elements: bool = True) -> PlyMesh:
   """Reads an ascii or binary PLY file.
 
   Args:
     path: the `.ply` file.
+    elements: parse the elements other than vertex and face into `PlyMesh.elements`. False: an
+      ascii file's other elements are checked for their row count only and `elements` is empty
+      (what `read_cloud` does: e.g. a Stanford bunny scan's 204,800-row `range_grid`).
 
   Returns:
     A PlyMesh: points (n, 3) float64, faces (f, 3) int64 or None, normals or None, the other
@@ -91,7 +94,7 @@ def read_ply(path: str | os.PathLike) -> PlyMesh:
       raise bad_input(p, "header", "a valid PLY header", str(e)) from e
     if header.text:
       body = stream.read()
-      data = _read_ascii_body(header, body, p)
+      data = _read_ascii_body(header, body, p, elements)
     else:
       data = _read_binary(stream, header, p)
   return _assemble(header, data, p)
@@ -192,9 +195,10 @@ def _read_binary(stream, header: plyfile.PlyData, p: Path) -> dict[str, dict[str
   return {e.name: {q.name: np.array(e.data[q.name]) for q in e.properties} for e in ply.elements}
 
 
-def _read_ascii_body(header: plyfile.PlyData, body: bytes,
-                     p: Path) -> dict[str, dict[str, np.ndarray]]:
-  """Ascii body, one element per line, parsed per element with numpy."""
+def _read_ascii_body(header: plyfile.PlyData, body: bytes, p: Path,
+                     elements: bool = True) -> dict[str, dict[str, np.ndarray]]:
+  """Ascii body, one element per line, parsed per element with numpy (with `elements` False,
+  only vertex and face; the others are skipped by their row counts)."""
   lines = body.split(b"\n")
   if lines and not lines[-1].strip():
     lines.pop()  # the final newline
@@ -206,6 +210,8 @@ def _read_ascii_body(header: plyfile.PlyData, body: bytes,
       raise bad_input(p, f"element '{elt.name}'", f"{elt.count} rows (header count)",
                       f"{len(rows)} rows before the end of the file (truncated?)")
     pos += elt.count
+    if not elements and elt.name not in ("vertex", "face"):
+      continue
     parsed = _parse_ascii_element(elt, rows, p)
     if parsed is None:  # a layout the fast path does not handle: plyfile, row by row
       return _read_ascii_with_plyfile(p)

@@ -39,7 +39,7 @@ def read_cloud(path: str | os.PathLike) -> Cloud:
       raise bad_input(p, "suffix", "a text cloud when gzip'ed (" + ", ".join(_TEXT_SUFFIXES)
                       + " + .gz)", f"{suffixes[-2]}.gz")
   if last == ".ply":
-    return read_ply(p).to_cloud()
+    return read_ply(p, elements=False).to_cloud()  # a Cloud keeps no other elements
   if last == ".pcd":
     return read_pcd(p)
   if last == ".npy":

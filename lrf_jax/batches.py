@@ -145,29 +145,36 @@ class BatchMaker:
     if self._epoch == epoch:
       return self._patches
     cfg, kp = self.config, self.clouds.keypoints
+    n, k = len(kp), cfg.patch_k
     sides = []
     for side in (0, 1):
       seed = _mix(cfg.seed, 3, epoch, side)
+      # The large fields are written in place by the search where a cloud's rows are one run
+      # (the usual layout) and nothing rewrites them; the others are scattered below.
+      big = (np.zeros((n, k, 3), np.float32), np.zeros((n, k), bool), np.full((n, k), -1, np.int32))
       parts, rows = [], []
       for c in np.unique(kp[:, 0]):
         sel = np.flatnonzero(kp[:, 0] == c)
+        if sel[-1] - sel[0] + 1 == len(sel):
+          sel = slice(sel[0], sel[-1] + 1)
         pts = self.clouds.models[c] if side == 0 else self.clouds.scenes[c]
         level = self.noise_level(epoch, int(c)) if side == 1 else 0.0
         if level > 0:
           rng = np.random.default_rng(_mix(cfg.seed, 5, epoch, int(c)))
           pts = pts + rng.normal(scale=level * self.clouds.mr[c], size=pts.shape)
-        part = build_patches(pts, kp[sel, 1], float(self.clouds.radii[c]), cfg.patch_k,
-                             seed=seed, validate=False)
+        in_place = isinstance(sel, slice) and cfg.crop_p <= 0
+        part = build_patches(pts, kp[sel, 1], float(self.clouds.radii[c]), k, seed=seed,
+                             validate=False, into=tuple(a[sel] for a in big) if in_place else None)
         if cfg.crop_p > 0:
           crop_rng = np.random.default_rng(_mix(cfg.seed, 6, epoch, side, int(c)))
           part = crop_patches(part, cfg.crop_p, cfg.crop_min, crop_rng)
-        parts.append(part)
+        parts.append((part, in_place))
         rows.append(sel)
-      # Scatter each cloud's rows into place (one copy, instead of concatenate + gather).
-      fields = [np.empty((len(kp),) + a.shape[1:], a.dtype) for a in parts[0]]
-      for part, sel in zip(parts, rows):
-        for out, a in zip(fields, part):
-          out[sel] = a
+      fields = list(big) + [np.empty((n,) + a.shape[1:], a.dtype) for a in parts[0][0][3:]]
+      for (part, in_place), sel in zip(parts, rows):
+        for i, (out, a) in enumerate(zip(fields, part)):
+          if not (in_place and i < 3):
+            out[sel] = a
       sides.append(Patches(*fields))
     self._epoch, self._patches = epoch, (sides[0], sides[1])
     return self._patches

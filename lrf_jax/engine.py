@@ -187,7 +187,7 @@ class Grid:
     self.h = h
     self.slot_index, self.starts = _bin(pts, np.asarray(rank, np.int64), self.origin, h, dims)
     self.slot_rank = np.asarray(rank, np.int64)[self.slot_index]
-    self.xyz = np.ascontiguousarray(pts[self.slot_index].T)  # (3, n): x, y, z rows
+    self.xyz = np.take(pts.T, self.slot_index, axis=1)  # (3, n) contiguous: x, y, z rows
 
 
 # ---------------------------------------------------------------------------------------------
@@ -487,7 +487,9 @@ def ball_stats(grid: Grid, centers: np.ndarray, radius: float
 
 
 def patches(grid: Grid, centers: np.ndarray, radius: float, k: int, inner_radius: float,
-            shells: tuple[float, float] | None = None) -> dict[str, np.ndarray]:
+            shells: tuple[float, float] | None = None,
+            into: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
+            ) -> dict[str, np.ndarray]:
   """The fields of `neighborhoods.Patches` for balls of `radius` around `centers`.
 
   Args:
@@ -498,6 +500,8 @@ def patches(grid: Grid, centers: np.ndarray, radius: float, k: int, inner_radius
     inner_radius: radius of the normal-support statistics.
     shells: (a, b): the patch holds only the in-ball points within a * radius or beyond
       b * radius (a method that reads nothing in between); None: every in-ball point.
+    into: optional (offsets, mask, indices) arrays of the returned shapes and dtypes, holding
+      zeros, False and -1, to write into instead of new ones (e.g. rows of a larger array).
 
   Returns:
     dict with offsets (m, K, 3) float32, mask (m, K) bool, indices (m, K) int32 (-1 padding),
@@ -508,10 +512,17 @@ def patches(grid: Grid, centers: np.ndarray, radius: float, k: int, inner_radius
     raise ValueError(f"points: the engine indexes at most 2**31 - 1 points, got {n}")
   c = _centers(centers)
   m, k = c.shape[0], int(k)
+  if into is None:
+    into = (np.zeros((m, k, 3), np.float32), np.zeros((m, k), bool), np.full((m, k), -1, np.int32))
+  shapes = [a.shape for a in into]
+  if shapes != [(m, k, 3), (m, k), (m, k)] or [a.dtype for a in into] != [np.float32, bool,
+                                                                          np.int32]:
+    raise ValueError(f"into: expected float32 ({m}, {k}, 3), bool ({m}, {k}), int32 ({m}, {k}) "
+                     f"arrays, got {[(a.dtype.name, a.shape) for a in into]}")
   out = dict(
-      offsets=np.zeros((m, k, 3), np.float32),
-      mask=np.zeros((m, k), bool),
-      indices=np.full((m, k), -1, np.int32),
+      offsets=into[0],
+      mask=into[1],
+      indices=into[2],
       count=np.zeros(m, np.int64),
       z_count=np.zeros(m, np.int64),
       z_mean=np.zeros((m, 3)),

@@ -269,6 +269,7 @@ def build_patches(
     validate: bool = True,
     max_k: int | None = None,
     shells: tuple[float, float] | None = None,
+    into: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None,
 ) -> Patches:
   """Radius search around keypoints into fixed-size padded patches.
 
@@ -290,6 +291,9 @@ def build_patches(
     shells: (a, b) fractions of r: the patch holds only the neighbours within a * r or beyond
       b * r, still in priority order (for methods that read nothing in between, e.g. FLARE: its
       r/3 plane support and its 0.85 r margin). `count` still counts every point within r.
+    into: with an integer k, optional (offsets (m, K, 3) float32, mask (m, K) bool, indices
+      (m, K) int32) arrays holding zeros, False and -1 (e.g. row ranges of larger arrays) that
+      receive those fields instead of new arrays; the returned Patches holds them.
 
   Returns:
     `Patches` with N = m; within a patch, neighbours are stored in priority order.
@@ -316,7 +320,7 @@ def build_patches(
     k = _round_up(int(counts.max()) if m else 1)
     if max_k is not None:
       k = min(k, int(max_k))
-  out = engine.patches(grid, centers, radius, int(k), z_ratio * radius, shells)
+  out = engine.patches(grid, centers, radius, int(k), z_ratio * radius, shells, into)
   return Patches(
       offsets=out["offsets"],
       mask=out["mask"],

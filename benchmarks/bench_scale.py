@@ -1,6 +1,7 @@
 """Bounded memory at scale: LRF-Net frames of 100k keypoints of a 1M-point cloud, peak RSS.
 
     LRF_DATA=/path/to/data python benchmarks/bench_scale.py [--points 1000000] [--keypoints 100000]
+        [--method lrf_net] [--rows both|mesh|cloud]
 
 The cloud is sampled uniformly on the BR dragon's triangles (a real surface at about 10x the
 mesh's density); r = 15 mr of the original mesh, so a ball holds about 10x as many points as on
@@ -45,9 +46,11 @@ def _child(n_points: int, n_keypoints: int, data: str | None, method: str, lut: 
     a[flip], b[flip] = 1 - a[flip], 1 - b[flip]
     pts = tri[f, 0] + a[:, None] * (tri[f, 1] - tri[f, 0]) + b[:, None] * (tri[f, 2] - tri[f, 0])
   kp = rng.choice(len(pts), n_keypoints, replace=n_keypoints > len(pts))
+  spec = lrf_jax.METHODS[method]
+  faces = mesh.faces if n_points <= 0 and spec.needs_mesh else None  # mesh methods: the mesh row
   t0 = time.perf_counter()
-  frames, valid = lrf_jax.compute_frames(pts, kp, 15 * mr, method, progress=True,
-                                         **({"lut": lut} if lut else {}))
+  frames, valid = lrf_jax.compute_frames(pts, kp, 15 * mr, method, progress=True, faces=faces,
+                                         **({"lut": lut} if lut and spec.needs_params else {}))
   frames.block_until_ready()
   dt = time.perf_counter() - t0
   print(json.dumps({"points": len(pts), "keypoints": n_keypoints, "seconds": dt,
@@ -62,6 +65,8 @@ def main() -> None:
   ap.add_argument("--keypoints", type=int, default=100_000)
   ap.add_argument("--method", default="lrf_net")
   ap.add_argument("--lut", type=int, default=257)
+  ap.add_argument("--rows", choices=("both", "mesh", "cloud"), default="both",
+                  help="the mesh row, the sampled-cloud row or both (mesh methods: mesh only)")
   ap.add_argument("--child", type=int, default=None, help=argparse.SUPPRESS)
   args = ap.parse_args()
   if args.child is not None:
@@ -69,7 +74,10 @@ def main() -> None:
     return
   print(f"| cloud | points | keypoints | frames/s | seconds | valid | peak RSS MB |")
   print("|---|---:|---:|---:|---:|---:|---:|")
-  for label, n in (("BR dragon vertices (baseline)", 0), ("dragon surface samples", args.points)):
+  rows = [("BR dragon vertices (baseline)", 0), ("dragon surface samples", args.points)]
+  rows = {"both": rows, "mesh": rows[:1], "cloud": rows[1:]}[args.rows]
+  print(f"method {args.method}")
+  for label, n in rows:
     cmd = [sys.executable, __file__, "--child", str(n), "--keypoints", str(args.keypoints),
            "--method", args.method, "--lut", str(args.lut)] + (
                ["--data", args.data] if args.data else [])

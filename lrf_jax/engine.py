@@ -269,6 +269,22 @@ def _ball_counts(pts, starts, origin, h, dims, centers, r, reach, kin2, kout2):
 
 
 @nb.njit(inline="always")
+def store_moments(c, s0, s1, s2, sxx, sxy, sxz, syy, syz, szz, mean, cov):
+  """From a count c and the raw sums of x, y, z and of their products, the centroid into mean
+  (3,) and the covariance about it into cov (3, 3) (zeros for c = 0); returns int(c)."""
+  d = max(c, 1.0)
+  mx, my, mz = s0 / d, s1 / d, s2 / d
+  mean[0], mean[1], mean[2] = mx, my, mz
+  cov[0, 0] = sxx / d - mx * mx
+  cov[0, 1] = cov[1, 0] = sxy / d - mx * my
+  cov[0, 2] = cov[2, 0] = sxz / d - mx * mz
+  cov[1, 1] = syy / d - my * my
+  cov[1, 2] = cov[2, 1] = syz / d - my * mz
+  cov[2, 2] = szz / d - mz * mz
+  return int(c)
+
+
+@nb.njit(inline="always")
 def _stats_one(pts, starts, cx, cy, cz, r2, nr, js, je, mean, cov):
   """Count, centroid and covariance about the centroid of the points within sqrt(r2)."""
   c = 0.0
@@ -291,16 +307,7 @@ def _stats_one(pts, starts, cx, cy, cz, r2, nr, js, je, mean, cov):
       syy += wy * dy
       syz += wy * dz
       szz += wz * dz
-  d = max(c, 1.0)
-  mx, my, mz = s0 / d, s1 / d, s2 / d
-  mean[0], mean[1], mean[2] = mx, my, mz
-  cov[0, 0] = sxx / d - mx * mx
-  cov[0, 1] = cov[1, 0] = sxy / d - mx * my
-  cov[0, 2] = cov[2, 0] = sxz / d - mx * mz
-  cov[1, 1] = syy / d - my * my
-  cov[1, 2] = cov[2, 1] = syz / d - my * mz
-  cov[2, 2] = szz / d - mz * mz
-  return int(c)
+  return store_moments(c, s0, s1, s2, sxx, sxy, sxz, syy, syz, szz, mean, cov)
 
 
 @nb.njit(parallel=True, cache=True)

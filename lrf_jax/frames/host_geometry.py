@@ -108,16 +108,7 @@ def inner_stats(points, center, ball, start, stop, rz2, mean, cov):
       syy += dy * dy
       syz += dy * dz
       szz += dz * dz
-  d = max(c, 1.0)
-  mx, my, mz = s0 / d, s1 / d, s2 / d
-  mean[0], mean[1], mean[2] = mx, my, mz
-  cov[0, 0] = sxx / d - mx * mx
-  cov[0, 1] = cov[1, 0] = sxy / d - mx * my
-  cov[0, 2] = cov[2, 0] = sxz / d - mx * mz
-  cov[1, 1] = syy / d - my * my
-  cov[1, 2] = cov[2, 1] = syz / d - my * mz
-  cov[2, 2] = szz / d - mz * mz
-  return int(c)
+  return engine.store_moments(c, s0, s1, s2, sxx, sxy, sxz, syy, syz, szz, mean, cov)
 
 
 @nb.njit(inline="always")

@@ -175,12 +175,9 @@ def board_frames_host(points: np.ndarray, keypoints: np.ndarray, radius: float, 
   """
   del faces
   pts, centers, ptr, ball = hg.ball_lists(points, keypoints, radius, index)
-  frames = np.empty((len(centers), 3, 3))
-  valid = np.empty(len(centers), np.bool_)
   rz = float(Z_RATIO * radius)
-  _board_host_kernel(pts, centers, ptr, ball, np.ascontiguousarray(normals, np.float64),
-                     float(radius), rz * rz, hg.EPS, frames, valid)
-  return frames.astype(np.float32), valid
+  return hg.run_kernel(_board_host_kernel, len(centers), pts, centers, ptr, ball,
+                       np.ascontiguousarray(normals, np.float64), float(radius), rz * rz, hg.EPS)
 
 # ------------------------------------------------------------------------------ registry entry
 

@@ -165,13 +165,10 @@ def flare_frames_host(points: np.ndarray, keypoints: np.ndarray, radius: float, 
   # FLARE reads the r/3 support and the margin ring only (`SPEC.shells`), and counts the ball.
   pts, centers, ptr, ball = hg.ball_lists(points, keypoints, radius, index, SPEC.shells)
   counts = engine.ball_counts(index.grid(radius), centers, float(radius))
-  frames = np.empty((len(centers), 3, 3))
-  valid = np.empty(len(centers), np.bool_)
   rz = float(Z_RATIO * radius)
-  _flare_host_kernel(pts, centers, np.asarray(keypoints, np.int64), counts, ptr, ball,
-                     np.ascontiguousarray(normals, np.float64), float(radius), rz * rz, hg.EPS,
-                     frames, valid)
-  return frames.astype(np.float32), valid
+  return hg.run_kernel(_flare_host_kernel, len(centers), pts, centers,
+                       np.asarray(keypoints, np.int64), counts, ptr, ball,
+                       np.ascontiguousarray(normals, np.float64), float(radius), rz * rz, hg.EPS)
 
 # ------------------------------------------------------------------------------ registry entry
 

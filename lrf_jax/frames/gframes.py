@@ -250,12 +250,10 @@ def gframes_frames_host(points: np.ndarray, keypoints: np.ndarray, radius: float
   g, gn, share, share_n, v_ok, edge = cache_last(
       "gframes_vertex_shares", (pts, f), lambda: vertex_shares(pts, f))
   vptr, vf = cache_last("vertex_faces", (f, pts.shape[0]), lambda: vertex_faces(f, pts.shape[0]))
-  frames = np.empty((len(centers), 3, 3))
-  valid = np.empty(len(centers), np.bool_)
   kp_n = np.ascontiguousarray(np.asarray(normals, np.float64)[np.asarray(keypoints)])
-  _gframes_host_kernel(pts, np.ascontiguousarray(f), vptr, vf, centers, ptr, ball, float(radius),
-                       kp_n, g, gn, share, share_n, v_ok, edge, X_EPS, frames, valid)
-  return frames.astype(np.float32), valid
+  return hg.run_kernel(_gframes_host_kernel, len(centers), pts, np.ascontiguousarray(f), vptr,
+                       vf, centers, ptr, ball, float(radius), kp_n, g, gn, share, share_n, v_ok,
+                       edge, X_EPS)
 
 # ------------------------------------------------------------------------------ registry entry
 

@@ -19,6 +19,15 @@ from lrf_jax import engine, geometry
 EPS = geometry.DEGENERATE_EPS
 
 
+def run_kernel(kernel: Any, n: int, *args: Any) -> tuple[np.ndarray, np.ndarray]:
+  """`kernel(*args, frames, valid)` into fresh (n, 3, 3) float64 frames and (n,) bool valid,
+  as every host kernel is called; returns (frames as float32, valid)."""
+  frames = np.empty((n, 3, 3))
+  valid = np.empty(n, np.bool_)
+  kernel(*args, frames, valid)
+  return frames.astype(np.float32), valid
+
+
 def ball_lists(points: np.ndarray, keypoints: np.ndarray, radius: float, index: Any,
                shells: tuple[float, float] | None = None
                ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:

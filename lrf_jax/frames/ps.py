@@ -146,11 +146,9 @@ def ps_frames_host(points: np.ndarray, keypoints: np.ndarray, radius: float, ind
   """
   del faces
   pts, centers, ptr, ball = hg.ball_lists(points, keypoints, radius, index)
-  frames = np.empty((len(centers), 3, 3))
-  valid = np.empty(len(centers), np.bool_)
-  _ps_host_kernel(pts, centers, np.asarray(keypoints, np.int64), ptr, ball,
-                  np.ascontiguousarray(normals, np.float64), float(radius), hg.EPS, frames, valid)
-  return frames.astype(np.float32), valid
+  return hg.run_kernel(_ps_host_kernel, len(centers), pts, centers,
+                       np.asarray(keypoints, np.int64), ptr, ball,
+                       np.ascontiguousarray(normals, np.float64), float(radius), hg.EPS)
 
 # ------------------------------------------------------------------------------ registry entry
 

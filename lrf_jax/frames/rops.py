@@ -274,11 +274,8 @@ def rops_frames_host(points: np.ndarray, keypoints: np.ndarray, radius: float, i
   pts, centers, ptr, ball = hg.ball_lists(points, keypoints, radius, index)
   f = validate_faces(faces, pts.shape[0])
   vptr, vf = cache_last("vertex_faces", (f, pts.shape[0]), lambda: vertex_faces(f, pts.shape[0]))
-  frames = np.empty((len(centers), 3, 3))
-  valid = np.empty(len(centers), np.bool_)
-  _rops_host_kernel(pts, np.ascontiguousarray(f), vptr, vf, centers, ptr, ball, float(radius),
-                    hg.EPS, frames, valid)
-  return frames.astype(np.float32), valid
+  return hg.run_kernel(_rops_host_kernel, len(centers), pts, np.ascontiguousarray(f), vptr, vf,
+                       centers, ptr, ball, float(radius), hg.EPS)
 
 # ------------------------------------------------------------------------------ registry entry
 

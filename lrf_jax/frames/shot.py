@@ -224,10 +224,8 @@ def shot_frames_host(points: np.ndarray, keypoints: np.ndarray, radius: float, i
   """
   del faces, normals
   pts, centers, ptr, ball = hg.ball_lists(points, keypoints, radius, index)
-  frames = np.empty((len(centers), 3, 3))
-  valid = np.empty(len(centers), np.bool_)
-  _shot_host_kernel(pts, centers, ptr, ball, float(radius), hg.EPS, frames, valid)
-  return frames.astype(np.float32), valid
+  return hg.run_kernel(_shot_host_kernel, len(centers), pts, centers, ptr, ball, float(radius),
+                       hg.EPS)
 
 # ------------------------------------------------------------------------------ registry entry
 

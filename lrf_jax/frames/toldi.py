@@ -115,12 +115,9 @@ def toldi_frames_host(points: np.ndarray, keypoints: np.ndarray, radius: float, 
   """
   del faces, normals
   pts, centers, ptr, ball = hg.ball_lists(points, keypoints, radius, index)
-  frames = np.empty((len(centers), 3, 3))
-  valid = np.empty(len(centers), np.bool_)
   rz = float(SPEC.z_ratio * radius)
-  _toldi_host_kernel(pts, centers, ptr, ball, float(radius), rz * rz, bool(signed), hg.EPS,
-                     X_EPS, frames, valid)
-  return frames.astype(np.float32), valid
+  return hg.run_kernel(_toldi_host_kernel, len(centers), pts, centers, ptr, ball, float(radius),
+                       rz * rz, bool(signed), hg.EPS, X_EPS)
 
 # ------------------------------------------------------------------------------ registry entry
 

@@ -122,12 +122,9 @@ def _board_host_kernel(points, centers, ptr, ball, normals, r, rz2, eps, frames,
     hg.set_identity(frames, valid, i)
     start, stop = ptr[i], ptr[i + 1]
     mean = np.zeros(3)
-    cov = np.zeros((3, 3))
-    count = hg.inner_stats(points, centers[i], ball, start, stop, rz2, mean, cov)
-    evals, evecs = np.linalg.eigh(cov)
-    if not (hg.smallest_ok(evals, eps) and count >= MIN_Z_NEIGHBOURS):
+    ok, z = hg.plane_z(points, centers[i], ball, start, stop, rz2, eps, MIN_Z_NEIGHBOURS, mean)
+    if not ok:
       continue
-    z = evecs[:, 0].copy()
     ref = np.zeros(3)
     any_margin = False
     for t in range(start, stop):

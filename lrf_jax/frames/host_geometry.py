@@ -121,6 +121,17 @@ def inner_stats(points, center, ball, start, stop, rz2, mean, cov):
 
 
 @nb.njit(inline="always")
+def plane_z(points, center, ball, start, stop, rz2, eps, min_count, mean):
+  """(ok, z): z the least-variance direction of the listed points within sqrt(rz2) of `center`
+  (their centroid offset into `mean`); ok is False for fewer than `min_count` of them or a
+  smallest eigenvalue not separated from the next (`smallest_ok`)."""
+  cov = np.zeros((3, 3))
+  count = inner_stats(points, center, ball, start, stop, rz2, mean, cov)
+  evals, evecs = np.linalg.eigh(cov)
+  return smallest_ok(evals, eps) and count >= min_count, evecs[:, 0].copy()
+
+
+@nb.njit(inline="always")
 def finite_row(a, j):
   """a[j] (a row of 3) is finite."""
   return np.isfinite(a[j, 0]) and np.isfinite(a[j, 1]) and np.isfinite(a[j, 2])

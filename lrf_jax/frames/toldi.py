@@ -66,12 +66,9 @@ def _toldi_host_kernel(points, centers, ptr, ball, r, rz2, signed, eps, x_eps, f
     hg.set_identity(frames, valid, i)
     start, stop = ptr[i], ptr[i + 1]
     mean = np.zeros(3)
-    cov = np.zeros((3, 3))
-    count = hg.inner_stats(points, centers[i], ball, start, stop, rz2, mean, cov)
-    evals, evecs = np.linalg.eigh(cov)
-    if not (hg.smallest_ok(evals, eps) and count >= MIN_Z_NEIGHBOURS):
+    ok, z = hg.plane_z(points, centers[i], ball, start, stop, rz2, eps, MIN_Z_NEIGHBOURS, mean)
+    if not ok:
       continue
-    z = evecs[:, 0].copy()
     if mean[0] * z[0] + mean[1] * z[1] + mean[2] * z[2] > 0.0:
       z = -z
     s = np.zeros(3)

@@ -15,7 +15,7 @@ Normals (`estimate_normals`, used when `compute_frames` is called without `norma
   - with a mesh (`faces`): the sign that agrees with the area-weighted vertex normal of the faces,
     i.e. with the triangles' winding;
   - without: Hoppe et al. (1992) propagation. Over a k-nearest-neighbour graph weighted by
-    1 - |n_i · n_j|, the minimum spanning tree is walked breadth-first from one seed per connected
+    1 - |n_i · n_j|, the minimum spanning tree is grown (Prim) from one seed per connected
     component; each child takes the sign that agrees with its parent. The seed is the component's
     point farthest from the component's centroid, oriented away from that centroid (outward for a
     closed surface). For a single-view scan pass normals oriented towards the sensor instead
@@ -201,12 +201,181 @@ def orient_by_reference(normals: np.ndarray, reference: np.ndarray) -> np.ndarra
   return out
 
 
+@nb.njit(inline="always")
+def _heap_sift_up(hk, hv, pos, i, kv, v):
+  """Move entry (kv, v) up from slot i of the binary min-heap (hk keys, hv nodes, pos[node])."""
+  while i > 0:
+    p = (i - 1) >> 1
+    if hk[p] <= kv:
+      break
+    hk[i] = hk[p]
+    hv[i] = hv[p]
+    pos[hv[i]] = i
+    i = p
+  hk[i] = kv
+  hv[i] = v
+  pos[v] = i
+
+
+@nb.njit(inline="always")
+def _heap_sift_down(hk, hv, pos, size):
+  """Re-insert the heap's last entry (slot `size`) from the root after the root was popped."""
+  kv = hk[size]
+  v = hv[size]
+  i = 0
+  while True:
+    c = 2 * i + 1
+    if c >= size:
+      break
+    if c + 1 < size and hk[c + 1] < hk[c]:
+      c += 1
+    if kv <= hk[c]:
+      break
+    hk[i] = hk[c]
+    hv[i] = hv[c]
+    pos[hv[i]] = i
+    i = c
+  hk[i] = kv
+  hv[i] = v
+  pos[v] = i
+
+
+@nb.njit(cache=True)
+def _knn_graph(nrm, nbr):
+  """CSR adjacency (starts (m + 1,), adj, weights 1 - |n_i · n_j|) of the k-NN lists `nbr`
+  (m, k), every edge in both directions (an edge listed twice is harmless)."""
+  m, kk = nbr.shape
+  starts = np.zeros(m + 1, np.int64)
+  for i in range(m):
+    for t in range(kk):
+      j = nbr[i, t]
+      if j != i:
+        starts[i + 1] += 1
+        starts[j + 1] += 1
+  for i in range(m):
+    starts[i + 1] += starts[i]
+  fill = starts[:-1].copy()
+  adj = np.empty(starts[m], np.int64)
+  wts = np.empty(starts[m])
+  for i in range(m):
+    for t in range(kk):
+      j = nbr[i, t]
+      if j != i:
+        w = 1.0 - abs(nrm[i, 0] * nrm[j, 0] + nrm[i, 1] * nrm[j, 1] + nrm[i, 2] * nrm[j, 2])
+        adj[fill[i]] = j
+        wts[fill[i]] = w
+        fill[i] += 1
+        adj[fill[j]] = i
+        wts[fill[j]] = w
+        fill[j] += 1
+  return starts, adj, wts
+
+
+@nb.njit(inline="always")
+def _component_seed(pts, nrm, starts, adj, s, seen, queue):
+  """Mark the component of s as seen (breadth first into queue); return its seed (the point
+  farthest from the component's centroid, smallest index on a tie) and the seed's sign
+  (+1 where its normal points away from the centroid)."""
+  m = pts.shape[0]
+  seen[s] = True
+  size = 1
+  head = 0
+  queue[0] = s
+  cx = 0.0
+  cy = 0.0
+  cz = 0.0
+  while head < size:
+    v = queue[head]
+    head += 1
+    cx += pts[v, 0]
+    cy += pts[v, 1]
+    cz += pts[v, 2]
+    for e in range(starts[v], starts[v + 1]):
+      u = adj[e]
+      if not seen[u]:
+        seen[u] = True
+        queue[size] = u
+        size += 1
+  cx /= size
+  cy /= size
+  cz /= size
+  best = -1.0
+  seed = m
+  for h in range(size):
+    v = queue[h]
+    d = (pts[v, 0] - cx) ** 2 + (pts[v, 1] - cy) ** 2 + (pts[v, 2] - cz) ** 2
+    if d > best or (d == best and v < seed):
+      best = d
+      seed = v
+  out = (nrm[seed, 0] * (pts[seed, 0] - cx) + nrm[seed, 1] * (pts[seed, 1] - cy)
+         + nrm[seed, 2] * (pts[seed, 2] - cz))
+  return seed, 1.0 if out >= 0 else -1.0
+
+
+@nb.njit(cache=True)
+def _propagate_signs(pts, nrm, nbr, sign):
+  """Hoppe orientation over the symmetrised k-NN graph `nbr` (m, k) of unit normals `nrm`.
+
+  Per connected component: the seed (`_component_seed`) takes the sign that points away from the
+  centroid, then Prim's algorithm grows the minimum spanning tree of the weights 1 - |n_i · n_j|
+  from it (binary heap with decrease-key) and every node takes its tree parent's sign times
+  sign(n_node · n_parent). Writes `sign` (m,) in place.
+  """
+  m = nbr.shape[0]
+  starts, adj, wts = _knn_graph(nrm, nbr)
+  seen = np.zeros(m, np.bool_)
+  queue = np.empty(m, np.int64)
+  key = np.full(m, np.inf)
+  parent = np.full(m, -1, np.int64)
+  pos = np.full(m, -1, np.int64)  # heap slot; -1 never queued, -2 in the tree
+  hk = np.empty(m)
+  hv = np.empty(m, np.int64)
+  for s in range(m):
+    if seen[s]:
+      continue
+    seed, seed_sign = _component_seed(pts, nrm, starts, adj, s, seen, queue)
+    sign[seed] = seed_sign
+    key[seed] = 0.0
+    hk[0] = 0.0
+    hv[0] = seed
+    pos[seed] = 0
+    hs = 1
+    while hs > 0:  # Prim
+      v = hv[0]
+      hs -= 1
+      if hs > 0:
+        _heap_sift_down(hk, hv, pos, hs)
+      pos[v] = -2
+      p = parent[v]
+      if p >= 0:
+        dot = nrm[v, 0] * nrm[p, 0] + nrm[v, 1] * nrm[p, 1] + nrm[v, 2] * nrm[p, 2]
+        sign[v] = sign[p] if dot >= 0 else -sign[p]
+      for e in range(starts[v], starts[v + 1]):
+        u = adj[e]
+        pu = pos[u]
+        if pu == -2:
+          continue
+        w = wts[e]
+        if w < key[u]:
+          key[u] = w
+          parent[u] = v
+          if pu == -1:
+            pu = hs
+            hs += 1
+          _heap_sift_up(hk, hv, pos, pu, w, u)
+
+
 def orient_by_propagation(points: np.ndarray, normals: np.ndarray, *, k: int = PROPAGATION_K
                           ) -> np.ndarray:
   """Consistent orientation by minimum-spanning-tree propagation (Hoppe et al. 1992).
 
-  Equivariant: the graph, the weights 1 - |n_i · n_j| and the seed rule (the point farthest from
-  its component's centroid, oriented away from it) all move with the cloud.
+  The graph joins every point to its k nearest neighbours (both directions), weighted by
+  1 - |n_i · n_j|. Per connected component the seed is the point farthest from the component's
+  centroid (smallest index on a tie), oriented away from the centroid (outward for a closed
+  surface); the minimum spanning tree is grown from it by Prim's algorithm (one compiled pass)
+  and each point takes the sign that agrees with its tree parent. Where several spanning trees
+  are minimal (equal weights) the heap's order picks one, deterministically for a given point
+  order. Equivariant: the graph, the weights and the seed rule all move with the cloud.
 
   Args:
     points: (n, 3) cloud.
@@ -220,46 +389,18 @@ def orient_by_propagation(points: np.ndarray, normals: np.ndarray, *, k: int = P
     Hoppe, DeRose, Duchamp, McDonald, Stuetzle, "Surface reconstruction from unorganized points",
     SIGGRAPH 1992, section 3.3.
   """
-  from scipy.sparse import coo_matrix  # only orientation needs graphs: not imported with lrf_jax
-  from scipy.sparse.csgraph import (breadth_first_order, connected_components,
-                                    minimum_spanning_tree)
   pts = np.asarray(points, np.float64)
   nrm = np.array(normals, np.float64, copy=True)
-  n = pts.shape[0]
   good = np.all(np.isfinite(nrm), axis=1)
   idx = np.flatnonzero(good)
   if idx.size == 0:
     return nrm
-  sub = pts[idx]
-  sub_n = nrm[idx]
+  sub = np.ascontiguousarray(pts[idx])
+  sub_n = np.ascontiguousarray(nrm[idx])
   kk = min(k + 1, idx.size)
-  _, nb = engine.knn(engine.knn_grid(sub, kk), sub, kk)
-  nb = nb.reshape(idx.size, kk)
-  r = np.repeat(np.arange(idx.size), kk)
-  c = nb.reshape(-1)
-  keep = r != c
-  r, c = r[keep], c[keep]
-  w = 1.0 - np.abs(np.einsum("ij,ij->i", sub_n[r], sub_n[c])) + 1e-9  # > 0: zero = no edge
-  graph = coo_matrix((w, (r, c)), shape=(idx.size, idx.size)).tocsr()
-  graph = graph.maximum(graph.T)
-  mst = minimum_spanning_tree(graph)
-  mst = mst + mst.T
-  n_comp, labels = connected_components(mst, directed=False)
+  _, nbr = engine.knn(engine.knn_grid(sub, kk), sub, kk)
   sign = np.ones(idx.size)
-  for comp in range(n_comp):
-    members = np.flatnonzero(labels == comp)
-    cen = sub[members].mean(axis=0)
-    d = np.linalg.norm(sub[members] - cen, axis=1)
-    seed = members[np.argmax(d)]
-    sign[seed] = 1.0 if np.dot(sub_n[seed], sub[seed] - cen) >= 0 else -1.0
-    if members.size == 1:
-      continue
-    order, pred = breadth_first_order(mst, seed, directed=False, return_predecessors=True)
-    dots = np.einsum("ij,ij->i", sub_n[order[1:]], sub_n[pred[order[1:]]])
-    rel = np.where(dots >= 0, 1.0, -1.0)
-    parents = pred[order[1:]]
-    for node, parent, s in zip(order[1:].tolist(), parents.tolist(), rel.tolist()):
-      sign[node] = sign[parent] * s
+  _propagate_signs(sub, sub_n, nbr, sign)
   nrm[idx] = sub_n * sign[:, None]
   return nrm
 

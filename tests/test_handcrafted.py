@@ -122,6 +122,60 @@ def test_normals_equivariant_and_consistent(br_bunny):
     assert (cos > 1 - 1e-6).mean() > 0.999, (faces_arg is None, np.sort(cos)[:5])
 
 
+def _scipy_orientation(points, normals, k=nm.PROPAGATION_K):
+  """Reference: Hoppe propagation with scipy's Kruskal MST walked breadth first."""
+  from scipy.sparse import coo_matrix
+  from scipy.sparse.csgraph import breadth_first_order, connected_components, minimum_spanning_tree
+  from scipy.spatial import cKDTree
+  good = np.all(np.isfinite(normals), 1)
+  idx = np.flatnonzero(good)
+  sub, sub_n = points[idx], normals[idx]
+  _, nbr = cKDTree(sub).query(sub, k + 1)
+  r, c = np.repeat(np.arange(len(idx)), k + 1), nbr.reshape(-1)
+  r, c = r[r != c], c[r != c]
+  w = 1.0 - np.abs(np.einsum("ij,ij->i", sub_n[r], sub_n[c])) + 1e-9
+  graph = coo_matrix((w, (r, c)), shape=(len(idx),) * 2).tocsr()
+  mst = minimum_spanning_tree(graph.maximum(graph.T))
+  mst = mst + mst.T
+  n_comp, labels = connected_components(mst, directed=False)
+  sign = np.ones(len(idx))
+  for comp in range(n_comp):
+    members = np.flatnonzero(labels == comp)
+    cen = sub[members].mean(0)
+    seed = members[np.argmax(np.linalg.norm(sub[members] - cen, axis=1))]
+    sign[seed] = 1.0 if np.dot(sub_n[seed], sub[seed] - cen) >= 0 else -1.0
+    order, pred = breadth_first_order(mst, seed, directed=False, return_predecessors=True)
+    for node in order[1:]:
+      sign[node] = sign[pred[node]] * (1.0 if sub_n[node] @ sub_n[pred[node]] >= 0 else -1.0)
+  out = normals.copy()
+  out[idx] = sub_n * sign[:, None]
+  return out
+
+
+def test_propagation_matches_scipy_mst_reference():
+  # Two noisy spheres far apart (two components) and some NaN normals: Prim's tree from each
+  # component's seed gives the same signs as scipy's Kruskal tree walked breadth first (the
+  # weights are distinct, so the minimum spanning tree is unique). The normals are noisy enough
+  # that the tree matters: a maximum spanning tree flips about 1,400 of the 3,000.
+  rng = np.random.default_rng(3)
+  d = rng.normal(size=(3000, 3))
+  d /= np.linalg.norm(d, axis=1, keepdims=True)
+  pts = np.concatenate([d[:2000] * 1.0, d[2000:] * 0.5 + [10.0, 0.0, 0.0]])
+  pts += rng.normal(scale=0.01, size=pts.shape)
+  nrm = d + rng.normal(scale=0.4, size=d.shape)
+  nrm /= np.linalg.norm(nrm, axis=1, keepdims=True)
+  nrm *= rng.choice([-1.0, 1.0], size=(len(nrm), 1))
+  nrm[rng.choice(len(nrm), 30, replace=False)] = np.nan
+  got = nm.orient_by_propagation(pts, nrm)
+  ref = _scipy_orientation(pts, nrm)
+  np.testing.assert_array_equal(np.isnan(got), np.isnan(nrm))
+  ok = np.isfinite(nrm[:, 0])
+  np.testing.assert_array_equal(got[ok], ref[ok])
+  # Both spheres come out outward (the seeds' rule), up to the noisy normals near 90 degrees.
+  outward = np.einsum("ij,ij->i", got[ok], d[ok]) > 0
+  assert outward.mean() > 0.99, outward.mean()
+
+
 def test_pca_normals_plane_and_viewpoint():
   rng = np.random.default_rng(0)
   pts = np.c_[rng.uniform(-1, 1, (400, 2)), np.zeros(400)]

@@ -243,8 +243,9 @@ def _columns(cx, cy, cz, origin, h, dims, starts, r, reach, js, je):
 
 
 @nb.njit(parallel=True, cache=True)
-def _ball_counts(pts, starts, origin, h, dims, centers, r, reach, kin2, kout2):
-  """Points within r of each centre that also lie within sqrt(kin2) or beyond sqrt(kout2)."""
+def _ball_counts(pts, starts, origin, h, dims, centers, order, r, reach, kin2, kout2):
+  """Points within r of each centre that also lie within sqrt(kin2) or beyond sqrt(kout2)
+  (centres visited in `order`)."""
   m = centers.shape[0]
   out = np.zeros(m, np.int64)
   r2 = r * r
@@ -253,7 +254,8 @@ def _ball_counts(pts, starts, origin, h, dims, centers, r, reach, kin2, kout2):
   for blk in nb.prange(nblock):
     js = np.empty(ncol, np.int64)
     je = np.empty(ncol, np.int64)
-    for i in range(blk * _BLOCK, min(m, (blk + 1) * _BLOCK)):
+    for t in range(blk * _BLOCK, min(m, (blk + 1) * _BLOCK)):
+      i = order[t]
       cx, cy, cz = centers[i, 0], centers[i, 1], centers[i, 2]
       nr = _columns(cx, cy, cz, origin, h, dims, starts, r, reach, js, je)
       c = 0
@@ -342,8 +344,9 @@ def _smallest_sorted(keys, c, k, cnt, out, span):
   """The min(c, k) smallest of keys[:c] into out[:min(c, k)], sorted; returns min(c, k).
 
   keys are rank << 32 | slot with distinct ranks in [0, span). A bucket sort on the rank (the
-  ranks of a ball are a seeded random sample, so the c buckets hold about one key each), then an
-  insertion sort inside each bucket, stopping once k keys are out: O(c), not O(c log c).
+  ranks of a ball are a seeded random sample, so the c buckets hold about one key each), then one
+  insertion sort over the buckets that hold the k smallest: only keys sharing a bucket are out of
+  order, so it is O(c), not O(c log c), with few mispredicted branches.
   """
   if c == 0:
     return 0
@@ -360,30 +363,32 @@ def _smallest_sorted(keys, c, k, cnt, out, span):
     b = min(((keys[e] >> 32) * mult) >> 32, nbk - 1)
     out[cnt[b]] = keys[e]
     cnt[b] += 1
-  # cnt[b] is now the end of bucket b, which starts where bucket b - 1 ends.
+  # cnt[b] is now the end of bucket b; the first bucket end >= want bounds the prefix to sort.
   want = min(c, k)
-  lo = 0
-  for b in range(nbk):
-    hi = cnt[b]
-    for x in range(lo + 1, hi):  # insertion sort of one bucket
-      v = out[x]
-      y = x - 1
-      while y >= lo and out[y] > v:
-        out[y + 1] = out[y]
-        y -= 1
-      out[y + 1] = v
-    lo = hi
-    if lo >= want:
-      break
+  lo, hi = 0, nbk - 1
+  while lo < hi:
+    mid = (lo + hi) >> 1
+    if cnt[mid] >= want:
+      hi = mid
+    else:
+      lo = mid + 1
+  for x in range(1, cnt[lo]):
+    v = out[x]
+    y = x - 1
+    while y >= 0 and out[y] > v:
+      out[y + 1] = out[y]
+      y -= 1
+    out[y + 1] = v
   return want
 
 
 @nb.njit(parallel=True, cache=True)
-def _patch_kernel(pts, slot_index, slot_rank, starts, origin, h, dims, centers, r, rz, k,
+def _patch_kernel(pts, slot_index, slot_rank, starts, origin, h, dims, centers, order, r, rz, k,
                   n_rank, reach, reach_in, kin2, kout2, offsets, mask, indices, count, z_count,
                   z_mean, z_cov):
   """Patches of the K points of smallest rank within r (of those within sqrt(kin2) or beyond
-  sqrt(kout2): all of them when kin2 >= r * r), plus the inner-ball statistics."""
+  sqrt(kout2): all of them when kin2 >= r * r), plus the inner-ball statistics; the centres are
+  visited in the order `order` (`query_order`), each written to its own row."""
   m = centers.shape[0]
   r2 = r * r
   ncol = (2 * reach + 1) ** 2
@@ -395,7 +400,8 @@ def _patch_kernel(pts, slot_index, slot_rank, starts, origin, h, dims, centers, 
     buf = np.empty(cap, np.int64)
     out = np.empty(cap, np.int64)
     cnt = np.empty(_pow2(cap) + 1, np.int64)
-    for i in range(blk * _BLOCK, min(m, (blk + 1) * _BLOCK)):
+    for t in range(blk * _BLOCK, min(m, (blk + 1) * _BLOCK)):
+      i = order[t]
       cx, cy, cz = centers[i, 0], centers[i, 1], centers[i, 2]
       nr = _columns(cx, cy, cz, origin, h, dims, starts, rz, reach_in, js, je)
       z_count[i] = _stats_one(pts, starts, cx, cy, cz, rz * rz, nr, js, je, z_mean[i], z_cov[i])
@@ -450,6 +456,15 @@ def _patch_kernel(pts, slot_index, slot_rank, starts, origin, h, dims, centers, 
         indices[i, s] = slot_index[j]
 
 
+def query_order(grid: Grid, centers: np.ndarray) -> np.ndarray:
+  """A visiting order of `centers` (m, 3) by grid cell (m,) int64: consecutive queries then
+  scan overlapping cells, which stay in the core's caches. Results never depend on it."""
+  cell = np.floor((centers - grid.origin) / grid.h)
+  cell = np.clip(np.nan_to_num(cell), 0, grid.dims - 1).astype(np.int64)
+  return np.argsort((cell[:, 0] * grid.dims[1] + cell[:, 1]) * grid.dims[2] + cell[:, 2],
+                    kind="stable")
+
+
 def _reach(grid: Grid, radius: float) -> int:
   return max(int(np.ceil(float(radius) / grid.h)), 1)
 
@@ -475,8 +490,9 @@ def ball_counts(grid: Grid, centers: np.ndarray, radius: float,
   `shells=(a, b)`, only those within a * radius or beyond b * radius count."""
   r = float(radius)
   kin2, kout2 = _keep(r, shells)
-  return _ball_counts(grid.xyz, grid.starts, grid.origin, grid.h, grid.dims, _centers(centers),
-                      r, _reach(grid, r), kin2, kout2)
+  c = _centers(centers)
+  return _ball_counts(grid.xyz, grid.starts, grid.origin, grid.h, grid.dims, c,
+                      query_order(grid, c), r, _reach(grid, r), kin2, kout2)
 
 
 def ball_stats(grid: Grid, centers: np.ndarray, radius: float
@@ -537,7 +553,7 @@ def patches(grid: Grid, centers: np.ndarray, radius: float, k: int, inner_radius
   )
   r, rz = float(radius), float(inner_radius)
   _patch_kernel(grid.xyz, grid.slot_index, grid.slot_rank, grid.starts, grid.origin, grid.h,
-                grid.dims, c, r, rz, k, n, _reach(grid, r),
+                grid.dims, c, query_order(grid, c), r, rz, k, n, _reach(grid, r),
                 _reach(grid, rz), *_keep(r, shells), out["offsets"], out["mask"], out["indices"], out["count"],
                 out["z_count"], out["z_mean"], out["z_cov"])
   return out
@@ -795,7 +811,10 @@ def any_within(grid: Grid, queries: np.ndarray, radius: float) -> np.ndarray:
 
 
 @nb.njit(parallel=True, cache=True)
-def _ball_fill(pts, slot_index, starts, origin, h, dims, centers, r, reach, kin2, kout2, ptr, out):
+def _ball_fill(pts, slot_index, starts, origin, h, dims, centers, order, r, reach, kin2, kout2,
+               ptr, out):
+  """The in-ball point indices of each centre (as `_ball_counts` counts them) into out[ptr[i]:],
+  centres visited in `order`."""
   m = centers.shape[0]
   r2 = r * r
   ncol = (2 * reach + 1) ** 2
@@ -803,7 +822,8 @@ def _ball_fill(pts, slot_index, starts, origin, h, dims, centers, r, reach, kin2
   for blk in nb.prange(nblock):
     js = np.empty(ncol, np.int64)
     je = np.empty(ncol, np.int64)
-    for i in range(blk * _BLOCK, min(m, (blk + 1) * _BLOCK)):
+    for t in range(blk * _BLOCK, min(m, (blk + 1) * _BLOCK)):
+      i = order[t]
       cx, cy, cz = centers[i, 0], centers[i, 1], centers[i, 2]
       nr = _columns(cx, cy, cz, origin, h, dims, starts, r, reach, js, je)
       w = ptr[i]
@@ -833,13 +853,15 @@ def ball_lists(grid: Grid, centers: np.ndarray, radius: float,
     indices[ptr[i]:ptr[i + 1]], in the grid's slot order (cell, then rank).
   """
   c = _centers(centers)
-  counts = ball_counts(grid, c, radius, shells)
+  r = float(radius)
+  order, reach, keep = query_order(grid, c), _reach(grid, r), _keep(r, shells)
+  counts = _ball_counts(grid.xyz, grid.starts, grid.origin, grid.h, grid.dims, c, order, r, reach,
+                        *keep)
   ptr = np.zeros(len(c) + 1, np.int64)
   np.cumsum(counts, out=ptr[1:])
   out = np.empty(int(ptr[-1]), np.int64)
-  r = float(radius)
-  _ball_fill(grid.xyz, grid.slot_index, grid.starts, grid.origin, grid.h, grid.dims, c, r,
-             _reach(grid, r), *_keep(r, shells), ptr, out)
+  _ball_fill(grid.xyz, grid.slot_index, grid.starts, grid.origin, grid.h, grid.dims, c, order, r,
+             reach, *keep, ptr, out)
   return ptr, out
 
 

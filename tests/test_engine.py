@@ -144,6 +144,29 @@ def test_patches_written_into_given_rows_equal_fresh_ones():
     build_patches(pts, kp, 0.4, 32, into=(big[0][:300], big[1][:300], big[2][:300, :16]))
 
 
+def test_query_order_is_a_cell_sorted_permutation_that_changes_nothing():
+  rng = np.random.default_rng(7)
+  pts = rng.normal(size=(6000, 3)) * [1, 1, 0.1]
+  kp = rng.choice(len(pts), 700, replace=False)
+  grid = SearchIndex(pts, 0).grid(0.3)
+  centers = np.r_[pts[kp], [[50.0, -50.0, 0.0]]]  # one centre far outside the grid
+  order = engine.query_order(grid, centers)
+  np.testing.assert_array_equal(np.sort(order), np.arange(len(centers)))
+  cell = np.clip(np.floor((centers - grid.origin) / grid.h), 0, grid.dims - 1).astype(np.int64)
+  cid = (cell[:, 0] * grid.dims[1] + cell[:, 1]) * grid.dims[2] + cell[:, 2]
+  assert (np.diff(cid[order]) >= 0).all()
+  # Visiting the centres in cell order leaves each row its own: reversed keypoints, reversed rows.
+  fwd = build_patches(pts, kp, 0.3, 48)
+  rev = build_patches(pts, kp[::-1], 0.3, 48)
+  for a, b in zip(fwd, rev):
+    np.testing.assert_array_equal(a, b[::-1])
+  ptr, idx = engine.ball_lists(grid, pts[kp], 0.3)
+  ptr_r, idx_r = engine.ball_lists(grid, pts[kp[::-1]], 0.3)
+  for i in range(len(kp)):
+    j = len(kp) - 1 - i
+    np.testing.assert_array_equal(idx[ptr[i]:ptr[i + 1]], idx_r[ptr_r[j]:ptr_r[j + 1]])
+
+
 def test_set_num_threads_rejects_bad_values():
   for bad in (0, -1, 2.5, True):
     with pytest.raises(ValueError, match="num_threads"):

@@ -127,6 +127,9 @@ class BatchMaker:
     self.config = config
     self._epoch: int | None = None
     self._patches: tuple[Patches, Patches] | None = None
+    # Per (side, cloud): the seed-independent fields (count, r/3 statistics) of the last patches
+    # built on that cloud's unperturbed points, reused by the next epoch's search.
+    self._stats: dict[tuple[int, int], Patches] = {}
 
   def epoch_order(self, epoch: int) -> np.ndarray:
     """(P,) the order in which `epoch` visits the rows of `clouds.keypoints`."""
@@ -163,8 +166,12 @@ class BatchMaker:
           rng = np.random.default_rng(_mix(cfg.seed, 5, epoch, int(c)))
           pts = pts + rng.normal(scale=level * self.clouds.mr[c], size=pts.shape)
         in_place = isinstance(sel, slice) and cfg.crop_p <= 0
+        stats = self._stats.get((side, int(c))) if level == 0 else None
         part = build_patches(pts, kp[sel, 1], float(self.clouds.radii[c]), k, seed=seed,
-                             validate=False, into=tuple(a[sel] for a in big) if in_place else None)
+                             validate=False, into=tuple(a[sel] for a in big) if in_place else None,
+                             stats_from=stats)
+        if level == 0:
+          self._stats[side, int(c)] = part._replace(offsets=None, mask=None, indices=None)
         if cfg.crop_p > 0:
           crop_rng = np.random.default_rng(_mix(cfg.seed, 6, epoch, side, int(c)))
           part = crop_patches(part, cfg.crop_p, cfg.crop_min, crop_rng)

@@ -384,11 +384,12 @@ def _smallest_sorted(keys, c, k, cnt, out, span):
 
 @nb.njit(parallel=True, cache=True)
 def _patch_kernel(pts, slot_index, slot_rank, starts, origin, h, dims, centers, order, r, rz, k,
-                  n_rank, reach, reach_in, kin2, kout2, offsets, mask, indices, count, z_count,
-                  z_mean, z_cov):
+                  n_rank, reach, reach_in, kin2, kout2, known, offsets, mask, indices, count,
+                  z_count, z_mean, z_cov):
   """Patches of the K points of smallest rank within r (of those within sqrt(kin2) or beyond
   sqrt(kout2): all of them when kin2 >= r * r), plus the inner-ball statistics; the centres are
-  visited in the order `order` (`query_order`), each written to its own row."""
+  visited in the order `order` (`query_order`), each written to its own row. With `known`, count
+  holds the in-ball counts already (no shells) and neither they nor the statistics are computed."""
   m = centers.shape[0]
   r2 = r * r
   ncol = (2 * reach + 1) ** 2
@@ -403,21 +404,26 @@ def _patch_kernel(pts, slot_index, slot_rank, starts, origin, h, dims, centers, 
     for t in range(blk * _BLOCK, min(m, (blk + 1) * _BLOCK)):
       i = order[t]
       cx, cy, cz = centers[i, 0], centers[i, 1], centers[i, 2]
-      nr = _columns(cx, cy, cz, origin, h, dims, starts, rz, reach_in, js, je)
-      z_count[i] = _stats_one(pts, starts, cx, cy, cz, rz * rz, nr, js, je, z_mean[i], z_cov[i])
+      if not known:
+        nr = _columns(cx, cy, cz, origin, h, dims, starts, rz, reach_in, js, je)
+        z_count[i] = _stats_one(pts, starts, cx, cy, cz, rz * rz, nr, js, je, z_mean[i],
+                                z_cov[i])
       nr = _columns(cx, cy, cz, origin, h, dims, starts, r, reach, js, je)
-      c = 0
-      ck = 0
-      for q in range(nr):
-        for j in range(starts[js[q]], starts[je[q]]):
-          dx = pts[0, j] - cx
-          dy = pts[1, j] - cy
-          dz = pts[2, j] - cz
-          d2 = dx * dx + dy * dy + dz * dz
-          c += 1 if d2 <= r2 else 0
-          ck += 1 if d2 <= r2 and (d2 <= kin2 or d2 > kout2) else 0
-      count[i] = c
-      c = ck  # the candidates of the patch
+      if known:  # every in-ball point is a candidate (no shells)
+        c = count[i]
+      else:
+        c = 0
+        ck = 0
+        for q in range(nr):
+          for j in range(starts[js[q]], starts[je[q]]):
+            dx = pts[0, j] - cx
+            dy = pts[1, j] - cy
+            dz = pts[2, j] - cz
+            d2 = dx * dx + dy * dy + dz * dz
+            c += 1 if d2 <= r2 else 0
+            ck += 1 if d2 <= r2 and (d2 <= kin2 or d2 > kout2) else 0
+        count[i] = c
+        c = ck  # the candidates of the patch
       # The K smallest of c random ranks lie below about n K / c: collect only the in-ball
       # points under a threshold with a wide margin (each cell's run is sorted by rank, so the
       # scan of a cell stops at the threshold); without enough of them, collect every point.
@@ -511,8 +517,8 @@ def ball_stats(grid: Grid, centers: np.ndarray, radius: float
 
 def patches(grid: Grid, centers: np.ndarray, radius: float, k: int, inner_radius: float,
             shells: tuple[float, float] | None = None,
-            into: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
-            ) -> dict[str, np.ndarray]:
+            into: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None,
+            count: np.ndarray | None = None) -> dict[str, np.ndarray | None]:
   """The fields of `neighborhoods.Patches` for balls of `radius` around `centers`.
 
   Args:
@@ -525,10 +531,14 @@ def patches(grid: Grid, centers: np.ndarray, radius: float, k: int, inner_radius
       b * radius (a method that reads nothing in between); None: every in-ball point.
     into: optional (offsets, mask, indices) arrays of the returned shapes and dtypes, holding
       zeros, False and -1, to write into instead of new ones (e.g. rows of a larger array).
+    count: optional (m,) in-ball counts of these centres and radius, from an earlier call on the
+      same points (counts do not depend on the ranks); the count and inner-statistics passes are
+      then skipped. Not with `shells`.
 
   Returns:
     dict with offsets (m, K, 3) float32, mask (m, K) bool, indices (m, K) int32 (-1 padding),
-    count (m,) int64 (every point within radius, whatever `shells`), z_count (m,) int64, z_mean (m, 3) and z_cov (m, 3, 3) float64.
+    count (m,) int64 (every point within radius, whatever `shells`), z_count (m,) int64, z_mean
+    (m, 3) and z_cov (m, 3, 3) float64 (these three None when `count` is given).
   """
   n = grid.xyz.shape[1]
   if n >= 2**31:
@@ -542,20 +552,29 @@ def patches(grid: Grid, centers: np.ndarray, radius: float, k: int, inner_radius
                                                                           np.int32]:
     raise ValueError(f"into: expected float32 ({m}, {k}, 3), bool ({m}, {k}), int32 ({m}, {k}) "
                      f"arrays, got {[(a.dtype.name, a.shape) for a in into]}")
+  known = count is not None
+  if known:
+    if shells is not None:
+      raise ValueError("count: known counts hold every in-ball point; not with shells")
+    count = np.array(count, np.int64).reshape(-1)
+    if count.shape != (m,):
+      raise ValueError(f"count: expected ({m},) counts, got shape {count.shape}")
   out = dict(
       offsets=into[0],
       mask=into[1],
       indices=into[2],
-      count=np.zeros(m, np.int64),
-      z_count=np.zeros(m, np.int64),
-      z_mean=np.zeros((m, 3)),
-      z_cov=np.zeros((m, 3, 3)),
+      count=count if known else np.zeros(m, np.int64),
+      z_count=None if known else np.zeros(m, np.int64),
+      z_mean=None if known else np.zeros((m, 3)),
+      z_cov=None if known else np.zeros((m, 3, 3)),
   )
+  z = ((np.zeros(0, np.int64), np.zeros((0, 3)), np.zeros((0, 3, 3))) if known else
+       (out["z_count"], out["z_mean"], out["z_cov"]))
   r, rz = float(radius), float(inner_radius)
   _patch_kernel(grid.xyz, grid.slot_index, grid.slot_rank, grid.starts, grid.origin, grid.h,
                 grid.dims, c, query_order(grid, c), r, rz, k, n, _reach(grid, r),
-                _reach(grid, rz), *_keep(r, shells), out["offsets"], out["mask"], out["indices"], out["count"],
-                out["z_count"], out["z_mean"], out["z_cov"])
+                _reach(grid, rz), *_keep(r, shells), known, out["offsets"], out["mask"],
+                out["indices"], out["count"], *z)
   return out
 
 

@@ -270,6 +270,7 @@ def build_patches(
     max_k: int | None = None,
     shells: tuple[float, float] | None = None,
     into: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None,
+    stats_from: Patches | None = None,
 ) -> Patches:
   """Radius search around keypoints into fixed-size padded patches.
 
@@ -294,6 +295,11 @@ def build_patches(
     into: with an integer k, optional (offsets (m, K, 3) float32, mask (m, K) bool, indices
       (m, K) int32) arrays holding zeros, False and -1 (e.g. row ranges of larger arrays) that
       receive those fields instead of new arrays; the returned Patches holds them.
+    stats_from: optional Patches of the same points, keypoints, radius and z_ratio built
+      earlier with any seed and K (e.g. the previous epoch's): `count`, `z_cov`, `z_mean` and
+      `z_count` do not depend on the seed or K, so they are taken from it and the search skips
+      the two passes that compute them (the result is identical). Not with `shells`; its radius
+      must equal `radius`.
 
   Returns:
     `Patches` with N = m; within a patch, neighbours are stored in priority order.
@@ -320,14 +326,27 @@ def build_patches(
     k = _round_up(int(counts.max()) if m else 1)
     if max_k is not None:
       k = min(k, int(max_k))
-  out = engine.patches(grid, centers, radius, int(k), z_ratio * radius, shells, into)
+  known = None
+  if stats_from is not None:
+    if stats_from.count.shape != (m,) or not np.all(stats_from.radius == np.float32(radius)):
+      raise ValueError(f"stats_from: expected Patches of these {m} keypoints at radius "
+                       f"{radius}, got {stats_from.count.shape[0]} at "
+                       f"{np.unique(stats_from.radius)[:3]}")
+    known = stats_from.count
+  out = engine.patches(grid, centers, radius, int(k), z_ratio * radius, shells, into, known)
+  if stats_from is not None:
+    z_cov, z_mean, z_count = stats_from.z_cov, stats_from.z_mean, stats_from.z_count
+  else:
+    z_cov = out["z_cov"].astype(np.float32)
+    z_mean = out["z_mean"].astype(np.float32)
+    z_count = out["z_count"].astype(np.int32)
   return Patches(
       offsets=out["offsets"],
       mask=out["mask"],
       indices=out["indices"],
       count=out["count"].astype(np.int32),
       radius=np.full((m,), radius, np.float32),
-      z_cov=out["z_cov"].astype(np.float32),
-      z_mean=out["z_mean"].astype(np.float32),
-      z_count=out["z_count"].astype(np.int32),
+      z_cov=z_cov,
+      z_mean=z_mean,
+      z_count=z_count,
   )

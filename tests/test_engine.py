@@ -167,6 +167,24 @@ def test_query_order_is_a_cell_sorted_permutation_that_changes_nothing():
     np.testing.assert_array_equal(idx[ptr[i]:ptr[i + 1]], idx_r[ptr_r[j]:ptr_r[j + 1]])
 
 
+def test_patches_reusing_seed_independent_stats_equal_fresh_ones():
+  rng = np.random.default_rng(8)
+  pts = rng.normal(size=(8000, 3)) * [1, 1, 0.2]
+  kp = rng.choice(len(pts), 500, replace=False)
+  earlier = build_patches(pts, kp, 0.4, 16, seed=1)  # another seed and K
+  fresh = build_patches(pts, kp, 0.4, 64, seed=2)
+  reused = build_patches(pts, kp, 0.4, 64, seed=2, stats_from=earlier)
+  assert (fresh.count > 64).any() and (fresh.count < 64).any()  # subsampled and padded rows
+  for a, b in zip(fresh, reused):
+    np.testing.assert_array_equal(a, b)
+  with pytest.raises(ValueError, match="stats_from"):
+    build_patches(pts, kp, 0.5, 64, stats_from=earlier)  # another radius
+  with pytest.raises(ValueError, match="stats_from"):
+    build_patches(pts, kp[:100], 0.4, 64, stats_from=earlier)
+  with pytest.raises(ValueError, match="shells"):
+    build_patches(pts, kp, 0.4, 64, shells=(0.3, 0.8), stats_from=earlier)
+
+
 def test_set_num_threads_rejects_bad_values():
   for bad in (0, -1, 2.5, True):
     with pytest.raises(ValueError, match="num_threads"):

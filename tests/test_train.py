@@ -125,6 +125,27 @@ def test_four_devices_give_the_same_loss_as_one(tmp_path):
   np.testing.assert_allclose([r["loss"] for r in four], [r["loss"] for r in one], rtol=0.2)
 
 
+def test_epoch_patches_reusing_last_epochs_stats_equal_a_fresh_makers(smoke):
+  # A maker that built epoch 0 reuses each unperturbed cloud's counts and r/3 statistics for
+  # later epochs; a fresh maker computes them: the same patches. Noise of 0 or 0.5 mr on the
+  # scene side: clouds drawn with noise are searched afresh, the others reuse.
+  cfg = config_lib.replace(smoke, noise_mr=(0.0, 0.5))
+  clouds = data_sources.training_clouds(cfg)
+  warm = BatchMaker(clouds, cfg)
+  warm.epoch_patches(0)
+  levels = set()
+  for epoch in (1, 2, 3):
+    levels |= {warm.noise_level(epoch, c) for c in range(len(clouds.models))}
+    got = warm.epoch_patches(epoch)
+    ref = BatchMaker(clouds, cfg).epoch_patches(epoch)
+    for side in (0, 1):
+      for a, b in zip(got[side], ref[side]):
+        np.testing.assert_array_equal(a, b)
+  assert levels == {0.0, 0.5}
+  assert {side for side, _ in warm._stats} == {0, 1}
+  assert all(s.offsets is None for s in warm._stats.values())
+
+
 def test_crop_augmentation_cuts_by_a_plane():
   from lrf_jax.neighborhoods import build_patches
 

@@ -244,9 +244,10 @@ def _columns(cx, cy, cz, origin, h, dims, starts, r, reach, js, je):
 
 @nb.njit(parallel=True, cache=True)
 def _ball_counts(pts, starts, origin, h, dims, centers, order, r, reach, kin2, kout2):
-  """Points within r of each centre that also lie within sqrt(kin2) or beyond sqrt(kout2)
-  (centres visited in `order`)."""
+  """(points within r of each centre, those of them within sqrt(kin2) or beyond sqrt(kout2)),
+  centres visited in `order`."""
   m = centers.shape[0]
+  full = np.zeros(m, np.int64)
   out = np.zeros(m, np.int64)
   r2 = r * r
   ncol = (2 * reach + 1) ** 2
@@ -259,15 +260,18 @@ def _ball_counts(pts, starts, origin, h, dims, centers, order, r, reach, kin2, k
       cx, cy, cz = centers[i, 0], centers[i, 1], centers[i, 2]
       nr = _columns(cx, cy, cz, origin, h, dims, starts, r, reach, js, je)
       c = 0
+      ck = 0
       for q in range(nr):
         for j in range(starts[js[q]], starts[je[q]]):
           dx = pts[0, j] - cx
           dy = pts[1, j] - cy
           dz = pts[2, j] - cz
           d2 = dx * dx + dy * dy + dz * dz
-          c += 1 if d2 <= r2 and (d2 <= kin2 or d2 > kout2) else 0
-      out[i] = c
-  return out
+          c += 1 if d2 <= r2 else 0
+          ck += 1 if d2 <= r2 and (d2 <= kin2 or d2 > kout2) else 0
+      full[i] = c
+      out[i] = ck
+  return full, out
 
 
 @nb.njit(inline="always")
@@ -498,7 +502,7 @@ def ball_counts(grid: Grid, centers: np.ndarray, radius: float,
   kin2, kout2 = _keep(r, shells)
   c = _centers(centers)
   return _ball_counts(grid.xyz, grid.starts, grid.origin, grid.h, grid.dims, c,
-                      query_order(grid, c), r, _reach(grid, r), kin2, kout2)
+                      query_order(grid, c), r, _reach(grid, r), kin2, kout2)[1]
 
 
 def ball_stats(grid: Grid, centers: np.ndarray, radius: float
@@ -858,7 +862,8 @@ def _ball_fill(pts, slot_index, starts, origin, h, dims, centers, order, r, reac
 
 
 def ball_lists(grid: Grid, centers: np.ndarray, radius: float,
-               shells: tuple[float, float] | None = None) -> tuple[np.ndarray, np.ndarray]:
+               shells: tuple[float, float] | None = None, with_counts: bool = False
+               ) -> tuple[np.ndarray, ...]:
   """Every grid point within `radius` of each centre, as compressed rows.
 
   Args:
@@ -866,22 +871,25 @@ def ball_lists(grid: Grid, centers: np.ndarray, radius: float,
     centers: (m, 3) ball centres.
     radius: r.
     shells: (a, b): keep only the points within a * r or beyond b * r (as `ball_counts`).
+    with_counts: also return the number of points within `radius` of each centre (all of them,
+      whatever `shells`), counted in the same pass.
 
   Returns:
     (ptr (m + 1,) int64, indices (ptr[-1],) int64): the point indices of ball i are
-    indices[ptr[i]:ptr[i + 1]], in the grid's slot order (cell, then rank).
+    indices[ptr[i]:ptr[i + 1]], in the grid's slot order (cell, then rank); with `with_counts`,
+    (ptr, indices, counts (m,) int64).
   """
   c = _centers(centers)
   r = float(radius)
   order, reach, keep = query_order(grid, c), _reach(grid, r), _keep(r, shells)
-  counts = _ball_counts(grid.xyz, grid.starts, grid.origin, grid.h, grid.dims, c, order, r, reach,
-                        *keep)
+  full, counts = _ball_counts(grid.xyz, grid.starts, grid.origin, grid.h, grid.dims, c, order, r,
+                              reach, *keep)
   ptr = np.zeros(len(c) + 1, np.int64)
   np.cumsum(counts, out=ptr[1:])
   out = np.empty(int(ptr[-1]), np.int64)
   _ball_fill(grid.xyz, grid.slot_index, grid.starts, grid.origin, grid.h, grid.dims, c, order, r,
              reach, *keep, ptr, out)
-  return ptr, out
+  return (ptr, out, full) if with_counts else (ptr, out)
 
 
 # ---------------------------------------------------------------------------------------------

@@ -238,6 +238,12 @@ def test_ball_lists_and_stats_match_ckdtree():
     off = pts[ref] - pts[i]
     np.testing.assert_allclose(mean[i], off.mean(0), atol=1e-12)
     np.testing.assert_allclose(cov[i], np.cov(off.T, bias=True), atol=1e-12)
+  # The shell lists count every in-ball point on the side (with_counts), in the same pass.
+  ptr_s, idx_s, full = engine.ball_lists(grid, pts[:300], 0.4, (0.3, 0.8), with_counts=True)
+  np.testing.assert_array_equal(full, count)
+  assert (np.diff(ptr_s) <= count).all() and (np.diff(ptr_s) < count).any()
+  np.testing.assert_array_equal(np.diff(ptr_s), engine.ball_counts(grid, pts[:300], 0.4,
+                                                                   (0.3, 0.8)))
 
 
 def test_shell_patches_hold_exactly_the_inner_and_outer_neighbours():

@@ -34,7 +34,7 @@ import jax.numpy as jnp
 import numba as nb
 import numpy as np
 
-from lrf_jax import engine, geometry
+from lrf_jax import geometry
 from lrf_jax.frames import host_geometry as hg
 from lrf_jax.frames.board import normals_mean
 from lrf_jax.frames.normal_based import NormalExtra, prepare_normals
@@ -163,8 +163,8 @@ def flare_frames_host(points: np.ndarray, keypoints: np.ndarray, radius: float, 
   """
   del faces
   # FLARE reads the r/3 support and the margin ring only (`SPEC.shells`), and counts the ball.
-  pts, centers, ptr, ball = hg.ball_lists(points, keypoints, radius, index, SPEC.shells)
-  counts = engine.ball_counts(index.grid(radius), centers, float(radius))
+  pts, centers, ptr, ball, counts = hg.ball_lists(points, keypoints, radius, index, SPEC.shells,
+                                                  with_counts=True)
   rz = float(Z_RATIO * radius)
   return hg.run_kernel(_flare_host_kernel, len(centers), pts, centers,
                        np.asarray(keypoints, np.int64), counts, ptr, ball,

@@ -29,15 +29,16 @@ def run_kernel(kernel: Any, n: int, *args: Any) -> tuple[np.ndarray, np.ndarray]
 
 
 def ball_lists(points: np.ndarray, keypoints: np.ndarray, radius: float, index: Any,
-               shells: tuple[float, float] | None = None
-               ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+               shells: tuple[float, float] | None = None, with_counts: bool = False
+               ) -> tuple[np.ndarray, ...]:
   """(points (n, 3) float64, centers (N, 3), ptr (N + 1,), ball (ptr[-1],)) of every point
   within `radius` of each keypoint (only those within a * r or beyond b * r with
-  `shells=(a, b)`, slightly widened), from the cloud's `SearchIndex` (`engine.ball_lists`)."""
+  `shells=(a, b)`, slightly widened), from the cloud's `SearchIndex` (`engine.ball_lists`);
+  with `with_counts`, also (N,) the number of points within `radius` (whatever `shells`)."""
   pts = np.ascontiguousarray(points, np.float64)
   centers = np.ascontiguousarray(pts[np.asarray(keypoints)])
-  ptr, ball = engine.ball_lists(index.grid(radius), centers, float(radius), shells)
-  return pts, centers, ptr, ball
+  lists = engine.ball_lists(index.grid(radius), centers, float(radius), shells, with_counts)
+  return (pts, centers) + lists
 
 
 @nb.njit(inline="always")

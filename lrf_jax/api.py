@@ -188,10 +188,10 @@ def compute_frames(
   """Local reference frames of `keypoints` of a cloud, by any registered method.
 
   The radius search runs on the host (the compiled engine, `lrf_jax.engine`, all cores) or on the
-  accelerator (`search`),
-  keypoints are processed in
-  fixed-size chunks (the last one padded) so that memory is bounded and one compiled function
-  serves every chunk; everything after the search is jitted.
+  accelerator (`search`), keypoints are processed in fixed-size chunks (the last one padded) so
+  that memory is bounded and one compiled function serves every chunk; the frames are computed
+  by the method's jitted function, or on a CPU backend by its compiled host kernel where it has
+  one (`kernel`).
 
   Args:
     points: the cloud: an (n, 3) array of finite floats (any units), an `lrf_jax.io.Cloud`, a
@@ -227,8 +227,11 @@ def compute_frames(
       default backend is a GPU/TPU and K is an integer, else host).
     kernel: how the frames are computed: "jit" (patches, then the method's jitted function),
       "host" (the method's host fast path, `METHODS[method].host_frames`: compiled engine code
-      over every neighbour, float64, no padded patches; for methods that have one, with k=None
-      and no options), or "auto" (host where it applies and the backend is the CPU, else jit).
+      over every neighbour, float64, no padded patches, for methods that have one, with k=None
+      and no options; or, for lrf_net, lrf_net_plus and uniform with table weights (`lut` > 1,
+      x_mode "sum" or "softmax"), the same patches' frames in compiled float64 code,
+      `METHODS[method].host_patch_frames`), or "auto" (host where it applies and the backend
+      is the CPU, else jit).
     **options: method options (e.g. `x_mode`, `signed`).
 
   Returns:
@@ -266,10 +269,14 @@ def compute_frames(
   if m == 0:
     return jnp.zeros((0, 3, 3), jnp.float32), jnp.zeros((0,), bool)
   on_host = _use_host_kernel(spec, kernel, k, options, search)
-  search_patches = _patch_search(points, spec, radius, k, seed, search, on_host)
+  host_patches = _use_host_patch_kernel(spec, kernel, options, search)
+  search_patches = _patch_search(points, spec, radius, k, seed, search, on_host or host_patches)
   _warn_on_ball_size(search_patches.index, points, keypoints, radius)
   normals = method_normals(spec, points, radius, faces=faces, normals=normals,
                            viewpoint=viewpoint)
+  host_options = dict(spec.default_options) | options
+  if host_patches and spec.needs_params and int(host_options.get("lut", 0) or 0) > 1:
+    params = _weight_table(params, int(host_options["lut"]))
 
   def run(idx: np.ndarray, n_real: int) -> tuple[jax.Array, jax.Array]:
     kp = keypoints[idx]
@@ -279,6 +286,8 @@ def compute_frames(
     patches = search_patches(kp)
     extra = prepare_extra(spec, points, kp, patches, radius=radius, faces=faces,
                           normals=normals, viewpoint=viewpoint)
+    if host_patches:
+      return spec.host_patch_frames(patches, extra, params, host_options)
     return frames_from_patches(patches, method, params=params, extra=extra, **options)
 
   n_dev = jax.local_device_count()
@@ -366,12 +375,24 @@ def _use_host_kernel(spec: MethodSpec, kernel: str, k: int | None, options: dict
   if kernel not in ("auto", "host", "jit"):
     raise ValueError(f"kernel: expected 'auto', 'host' or 'jit', got {kernel!r}")
   applies = spec.host_frames is not None and k is None and not options
-  if kernel == "host" and not applies:
+  if kernel == "host" and not applies and spec.host_patch_frames is None:
     raise ValueError(f"kernel='host': method {spec.name!r} has no host fast path for these "
                      "arguments (it needs METHODS[method].host_frames, k=None and no options); "
                      "use kernel='jit'")
-  return kernel == "host" or (kernel == "auto" and applies and search != "device"
-                              and jax.default_backend() == "cpu")
+  return applies and (kernel == "host" or (kernel == "auto" and search != "device"
+                                           and jax.default_backend() == "cpu"))
+
+
+def _use_host_patch_kernel(spec: MethodSpec, kernel: str, options: dict, search: str) -> bool:
+  """Whether `compute_frames(kernel=...)` computes the frames from the patches on the host
+  (`METHODS[method].host_patch_frames`, for these options) instead of the jitted function."""
+  host = spec.host_patch_frames
+  applies = host is not None and host.supports(dict(spec.default_options) | options)
+  if kernel == "host" and spec.host_frames is None and not applies:
+    raise ValueError(f"kernel='host': method {spec.name!r} has no host kernel for the options "
+                     f"{options} (METHODS[method].host_patch_frames); use kernel='jit'")
+  return applies and (kernel == "host" or (kernel == "auto" and search != "device"
+                                           and jax.default_backend() == "cpu"))
 
 
 def _patch_search(points: np.ndarray, spec: MethodSpec, radius: float, k: int | None, seed: int,

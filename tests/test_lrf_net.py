@@ -466,3 +466,49 @@ def test_lrf_net_plus_default_lut_is_close_to_the_exact_network(bunny):
   cos_x = np.sum(exact[:, 0] * fast[:, 0], axis=-1)[v]
   assert (1 - cos_x).max() < 1e-3 and (1 - cos_x).mean() < 1e-5
   assert (1 - cos_x).max() > 0  # the two paths really differ
+
+
+def _noisy_height_field():
+  from tests.lrf_testing import synthetic_mesh
+  points, faces, keypoints, radius = synthetic_mesh()
+  rng = np.random.default_rng(11)
+  noisy = points.copy()
+  noisy[:41 * 41] += rng.normal(scale=0.05, size=(41 * 41, 3))  # the degenerate parts stay so
+  grid_kp = rng.choice(41 * 41, 400, replace=False)
+  return noisy, np.r_[grid_kp, keypoints[-2:]], radius  # with the two degenerate keypoints
+
+
+@pytest.mark.parametrize("method,options", [
+    ("lrf_net", {}), ("lrf_net", {"x_mode": "softmax"}), ("lrf_net_plus", {}),
+    ("lrf_net_plus", {"density": False, "oriented_sign": False}), ("uniform", {}),
+    ("uniform", {"z_sign": "ball"})])
+def test_host_patch_kernel_gives_the_jitted_frames(method, options):
+  # The CPU default of the learned methods (numba, float64) against their jitted float32
+  # function on the same patches: the same validity, axes equal to float32 rounding.
+  pts, kp, r = _noisy_height_field()
+  view = {"viewpoint": np.array([20.0, 20.0, 40.0])} if method == "lrf_net_plus" else {}
+  fj, vj = lrf_jax.compute_frames(pts, kp, r, method, kernel="jit", **options, **view)
+  fh, vh = lrf_jax.compute_frames(pts, kp, r, method, kernel="host", **options, **view)
+  fj, vj, fh, vh = map(np.asarray, (fj, vj, fh, vh))
+  np.testing.assert_array_equal(vj, vh)
+  assert vj[:-2].all() and not vj[-2:].any()
+  # float32 sums of K terms in the jitted function: about 1e-6 typically, 1e-4 at worst.
+  np.testing.assert_allclose(fh, fj, atol=1e-4)
+  assert np.median(np.abs(fh - fj)) < 1e-6
+  assert_frames_orthonormal(fh, vh)
+
+
+def test_compute_frames_picks_the_host_patch_kernel_on_the_cpu(monkeypatch):
+  from lrf_jax.frames import lrf_net_host
+  calls = []
+  real = lrf_net_host.lrf_net_frames_host
+  monkeypatch.setattr(lrf_net_host, "lrf_net_frames_host",
+                      lambda *a, **kw: calls.append(kw.get("x_mode")) or real(*a, **kw))
+  pts, kp, r = _noisy_height_field()
+  lrf_jax.compute_frames(pts, kp, r, "lrf_net")  # default lut=257 on the CPU: host
+  lrf_jax.compute_frames(pts, kp, r, "lrf_net", lut=0)  # the exact network: jitted
+  lrf_jax.compute_frames(pts, kp, r, "lrf_net", x_mode="max")  # the ablation's max: jitted
+  lrf_jax.compute_frames(pts, kp, r, "lrf_net", kernel="jit")
+  assert calls == ["sum"]
+  with pytest.raises(ValueError, match="no host kernel for the options"):
+    lrf_jax.compute_frames(pts, kp, r, "lrf_net", lut=0, kernel="host")

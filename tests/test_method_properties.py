@@ -285,7 +285,7 @@ def test_kernel_argument_is_checked():
   with pytest.raises(ValueError, match="kernel"):
     lrf_jax.compute_frames(points, keypoints, radius, "shot", kernel="gpu")
   with pytest.raises(ValueError, match="no host fast path"):
-    lrf_jax.compute_frames(points, keypoints, radius, "lrf_net", kernel="host")
+    lrf_jax.compute_frames(points, keypoints, radius, "lrf_net_variant", kernel="host")
   with pytest.raises(ValueError, match="no host fast path"):
     lrf_jax.compute_frames(points, keypoints, radius, "shot", k=64, kernel="host")
 

@@ -25,7 +25,7 @@ import jax
 import jax.numpy as jnp
 
 from lrf_jax import geometry
-from lrf_jax.frames.spec import MethodSpec
+from lrf_jax.frames.spec import HostPatchKernel, MethodSpec
 from lrf_jax.model import Params, apply_weights
 from lrf_jax.neighborhoods import Patches
 
@@ -286,10 +286,32 @@ def _uniform(patches: Patches, extra: None, *, z_sign: str = "toldi"):
   return uniform_frames(patches, z_sign=z_sign)
 
 
+def table_host_supports(options: dict) -> bool:
+  """Whether `lrf_net_host` computes these options' frames: table weights (lut > 1) with the x
+  weights summed or softmaxed (not the ablation's "max")."""
+  return int(options.get("lut", 0) or 0) > 1 and options.get("x_mode", "sum") in ("sum", "softmax")
+
+
+def _lrf_net_host(patches: Patches, extra: None, table: WeightTable, options: dict):
+  from lrf_jax.frames.lrf_net_host import lrf_net_frames_host
+  del extra
+  return lrf_net_frames_host(patches, table.values, x_mode=options.get("x_mode", "sum"),
+                             x_eps=X_EPS, min_count=MIN_Z_NEIGHBOURS)
+
+
+def _uniform_host(patches: Patches, extra: None, params: None, options: dict):
+  from lrf_jax.frames.lrf_net_host import lrf_net_frames_host
+  del extra, params
+  return lrf_net_frames_host(patches, None, z_sign=options.get("z_sign", "toldi"), x_eps=X_EPS,
+                             min_count=MIN_Z_NEIGHBOURS)
+
+
 SPEC = MethodSpec(
     "lrf_net", _lrf_net, default_k=256, needs_params=True, default_options=(("lut", 257),),
+    host_patch_frames=HostPatchKernel(_lrf_net_host, table_host_supports),
     description="LRF-Net (Zhu et al.): TOLDI z over r/3, learned per-point weights for x, read "
                 "from a 257 x 257 table by default (lut=257; lut=0: the exact network)")
 UNIFORM_SPEC = MethodSpec(
     "uniform", _uniform, default_k=256,
+    host_patch_frames=HostPatchKernel(_uniform_host, lambda options: True),
     description="LRF-Net's construction with uniform weights (w = 1): the learned weights' baseline")

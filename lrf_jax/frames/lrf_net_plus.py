@@ -20,8 +20,9 @@ from typing import NamedTuple
 import numpy as np
 
 from lrf_jax import engine
-from lrf_jax.frames.lrf_net import lrf_net_frames
-from lrf_jax.frames.spec import KEYPOINT, SLOT, MethodSpec
+from lrf_jax.frames.lrf_net import (MIN_Z_NEIGHBOURS, X_EPS, lrf_net_frames,
+                                   table_host_supports)
+from lrf_jax.frames.spec import KEYPOINT, SLOT, HostPatchKernel, MethodSpec
 from lrf_jax.neighborhoods import Patches
 
 
@@ -129,8 +130,18 @@ def _lrf_net_plus(patches: Patches, extra: ViewExtra | None, *, params, x_mode: 
                         area=None if extra is None or not density else extra.area)
 
 
+def _lrf_net_plus_host(patches: Patches, extra: ViewExtra | None, table, options: dict):
+  from lrf_jax.frames.lrf_net_host import lrf_net_frames_host
+  return lrf_net_frames_host(
+      patches, table.values, x_mode=options.get("x_mode", "softmax"), z_sign="ball",
+      view=None if extra is None or not options.get("oriented_sign", True) else extra.view,
+      area=None if extra is None or not options.get("density", True) else extra.area,
+      x_eps=X_EPS, min_count=MIN_Z_NEIGHBOURS)
+
+
 SPEC = MethodSpec(
     "lrf_net_plus", _lrf_net_plus, default_k=512, needs_params=True, weights="lrf_net_plus",
+    host_patch_frames=HostPatchKernel(_lrf_net_plus_host, table_host_supports),
     prepare=prepare_view, extra=ViewExtra, uses_viewpoint=True, default_options=(("lut", 257),),
     description="Beyond the paper: LRF-Net with the z sign towards the sensor of a scan "
                 "(viewpoint=), else from the mesh's oriented normals, else over the whole "

@@ -26,6 +26,26 @@ AXIS_KINDS = (KEYPOINT, SLOT, TRIANGLE, TRIANGLE_MASK)
 
 
 @dataclasses.dataclass(frozen=True)
+class HostPatchKernel:
+  """A method's frames from prepared patches on the host (numba, float64), for the option sets
+  it supports.
+
+  Attributes:
+    fn: `fn(patches, extra, params, options) -> (frames (N, 3, 3) float32, valid (N,) bool)`;
+      `params` is the weight table (`lrf_net.WeightTable`) where the options read one, and
+      `options` holds every option (the method's defaults filled in).
+    supports: `supports(options) -> bool`: whether `fn` computes what `MethodSpec.fn` would
+      for these options.
+  """
+
+  fn: Callable[..., Any]
+  supports: Callable[[dict], bool]
+
+  def __call__(self, patches: Any, extra: Any, params: Any, options: dict) -> Any:
+    return self.fn(patches, extra, params, options)
+
+
+@dataclasses.dataclass(frozen=True)
 class MethodSpec:
   """How to compute one LRF method.
 
@@ -54,6 +74,9 @@ class MethodSpec:
       engine code computing the same frames as `fn` on every neighbour (k=None) without padded
       patches (`normals` as `lrf_jax.prepare.method_normals` gives them); `compute_frames` runs
       it by default on a CPU backend (`kernel="auto"`).
+    host_patch_frames: optional `HostPatchKernel` computing the same frames as `fn` from the
+      same (padded, subsampled) patches on the host; `compute_frames` runs it by default on a
+      CPU backend where it supports the options (`kernel="auto"`).
     shells: (a, b) fractions of r when the method reads only the neighbours within a * r or
       beyond b * r: with every neighbour (k=None), `compute_frames` then gathers only those
       (`build_patches(shells=)`), which gives the same frames from smaller patches. None: the
@@ -75,6 +98,7 @@ class MethodSpec:
   default_options: tuple[tuple[str, Any], ...] = ()
   shells: tuple[float, float] | None = None
   host_frames: Callable[..., Any] | None = None
+  host_patch_frames: HostPatchKernel | None = None
 
   def __post_init__(self):
     if self.needs_normals and (self.prepare is None or self.uses_viewpoint):

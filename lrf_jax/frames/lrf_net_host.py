@@ -1,0 +1,145 @@
+"""LRF-Net's frames from prepared patches on the CPU (numba, float64): the host counterpart of
+`lrf_net.frames_with_weight_fn` for the table-read weights (`lut_weights`).
+
+`compute_frames` runs it by default on a CPU backend for lrf_net, lrf_net_plus and uniform
+(`MethodSpec.host_patch_frames`): one keypoint per thread, the same rules as the jitted function
+(TOLDI z over r/3 with its sign, `ball_sign`, `view_sign`, the bilinear weight table, softmax and
+area weights, the x-sum test `X_EPS`, `geometry.frame_from_zx`), in float64 instead of float32.
+Frames then agree with the jitted ones to float32 rounding, except at keypoints whose sign tests
+sit on a tie (a patch height Σ (q_i - p)·z or a view product of about 0).
+"""
+
+from __future__ import annotations
+
+import numba as nb
+import numpy as np
+
+from lrf_jax.frames import host_geometry as hg
+
+# Weight modes of the kernel.
+UNIFORM, TABLE_SUM, TABLE_SOFTMAX = 0, 1, 2
+
+
+@nb.njit(inline="always")
+def _table_weight(table, dist_r, cos):
+  """`lrf_net.lut_weights` for one neighbour: bilinear read of the size x size table at
+  (clip(|pq|/r, 0, 1), clip(cos, -1, 1))."""
+  n = table.shape[0] - 1
+  u = min(max(dist_r, 0.0), 1.0) * n
+  v = (min(max(cos, -1.0), 1.0) + 1.0) * 0.5 * n
+  i0 = min(max(int(np.floor(u)), 0), n - 1)
+  j0 = min(max(int(np.floor(v)), 0), n - 1)
+  fu, fv = u - i0, v - j0
+  return ((1.0 - fu) * ((1.0 - fv) * table[i0, j0] + fv * table[i0, j0 + 1])
+          + fu * ((1.0 - fv) * table[i0 + 1, j0] + fv * table[i0 + 1, j0 + 1]))
+
+
+@nb.njit(inline="always")
+def _z_axis(cov, mean, count, eps, min_count):
+  """`lrf_net.z_axes` of one keypoint: (ok, z) with TOLDI's sign (mean · z <= 0)."""
+  evals, evecs = np.linalg.eigh(cov)
+  z = evecs[:, 0].copy()
+  if mean[0] * z[0] + mean[1] * z[1] + mean[2] * z[2] > 0.0:
+    z = -z
+  return hg.smallest_ok(evals, eps) and count >= min_count, z
+
+
+@nb.njit(parallel=True, cache=True)
+def _lrf_net_host_kernel(offsets, mask, z_cov, z_mean, z_count, radius, table, mode, ball, view,
+                         area, eps, x_eps, min_count, frames, valid):
+  """Frames of every patch (see the module docstring); view (N, 3) and area (N, K) are used
+  when their first axis is N (zero-length arrays: none)."""
+  n, k = mask.shape
+  has_view = view.shape[0] == n
+  has_area = area.shape[0] == n
+  for i in nb.prange(n):
+    hg.set_identity(frames, valid, i)
+    r = float(radius[i])
+    cov = z_cov[i].astype(np.float64)
+    mean = z_mean[i].astype(np.float64)
+    if not (np.isfinite(r) and r > 0.0 and np.all(np.isfinite(cov)) and np.all(np.isfinite(mean))):
+      continue
+    ok, z = _z_axis(cov, mean, z_count[i], eps, min_count)
+    if not ok:
+      continue
+    finite = True
+    h = 0.0
+    for s in range(k):
+      if mask[i, s]:
+        o0, o1, o2 = offsets[i, s, 0], offsets[i, s, 1], offsets[i, s, 2]
+        finite = finite and np.isfinite(o0) and np.isfinite(o1) and np.isfinite(o2)
+        h += o0 * z[0] + o1 * z[1] + o2 * z[2]
+    if not finite:
+      continue
+    if ball and h > 0.0:
+      z = -z
+    if has_view and view[i, 0] * z[0] + view[i, 1] * z[1] + view[i, 2] * z[2] < 0.0:
+      z = -z
+    w = np.zeros(k)
+    top = -np.inf
+    for s in range(k):
+      if not mask[i, s]:
+        continue
+      if mode == UNIFORM:
+        w[s] = 1.0
+        continue
+      o0, o1, o2 = float(offsets[i, s, 0]), float(offsets[i, s, 1]), float(offsets[i, s, 2])
+      d = np.sqrt(o0 * o0 + o1 * o1 + o2 * o2)
+      cos = (o0 * z[0] + o1 * z[1] + o2 * z[2]) / d if d > 0.0 else 0.0
+      w[s] = _table_weight(table, d / r, cos)
+      top = max(top, w[s])
+    sx = sy = sz = 0.0
+    scale = 0.0
+    for s in range(k):
+      if not mask[i, s]:
+        continue
+      ws = w[s]
+      if mode == TABLE_SOFTMAX:
+        ws = np.exp(ws - top)
+      if has_area:
+        ws *= area[i, s]
+      o0, o1, o2 = float(offsets[i, s, 0]), float(offsets[i, s, 1]), float(offsets[i, s, 2])
+      dot = o0 * z[0] + o1 * z[1] + o2 * z[2]
+      v0, v1, v2 = o0 - dot * z[0], o1 - dot * z[1], o2 - dot * z[2]
+      sx += ws * v0
+      sy += ws * v1
+      sz += ws * v2
+      scale += abs(ws) * np.sqrt(v0 * v0 + v1 * v1 + v2 * v2)
+    if np.sqrt(sx * sx + sy * sy + sz * sz) > x_eps * scale:
+      hg.write_frame(frames, valid, i, z, np.array([sx, sy, sz]))
+
+
+def lrf_net_frames_host(patches, table: np.ndarray | None, *, x_eps: float, min_count: int,
+                        x_mode: str = "sum", z_sign: str = "toldi",
+                        view: np.ndarray | None = None, area: np.ndarray | None = None
+                        ) -> tuple[np.ndarray, np.ndarray]:
+  """`lrf_net.lrf_net_frames` with table weights (or uniform ones) on the host, float64.
+
+  Args:
+    patches: host `Patches` (N keypoints, K neighbours).
+    table: (size, size) weight table (`lrf_net.weight_table(...).values`), or None for uniform
+      weights (w = 1, `lrf_net.uniform_frames`).
+    x_mode: "sum" or "softmax" (`lrf_net.softmax_weights`).
+    z_sign: "toldi" or "ball" (`lrf_net.ball_sign`).
+    view: optional (N, 3) sensor position minus keypoint (`lrf_net.view_sign`).
+    area: optional (N, K) area per neighbour multiplying the weights.
+    x_eps: the x-sum test (`lrf_net.X_EPS`): |Σ w v| must exceed x_eps Σ |w| |v|.
+    min_count: fewer neighbours within r/3 make z invalid (`lrf_net.MIN_Z_NEIGHBOURS`).
+
+  Returns:
+    (frames (N, 3, 3) float32 rows x, y, z, the identity where invalid; valid (N,) bool).
+  """
+  if x_mode not in ("sum", "softmax"):
+    raise ValueError(f"x_mode: the host kernel takes 'sum' or 'softmax', got {x_mode!r}")
+  if z_sign not in ("toldi", "ball"):
+    raise ValueError(f"z_sign: expected 'toldi' or 'ball', got {z_sign!r}")
+  mode = UNIFORM if table is None else (TABLE_SOFTMAX if x_mode == "softmax" else TABLE_SUM)
+  tab = np.zeros((2, 2)) if table is None else np.ascontiguousarray(table, np.float64)
+  n = patches.mask.shape[0]
+  return hg.run_kernel(
+      _lrf_net_host_kernel, n, np.asarray(patches.offsets), np.asarray(patches.mask),
+      np.asarray(patches.z_cov), np.asarray(patches.z_mean), np.asarray(patches.z_count),
+      np.asarray(patches.radius), tab, mode, z_sign == "ball",
+      np.zeros((0, 3), np.float32) if view is None else np.asarray(view, np.float32),
+      np.zeros((0, 1), np.float32) if area is None else np.asarray(area, np.float32),
+      hg.EPS, float(x_eps), int(min_count))

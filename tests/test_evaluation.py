@@ -177,9 +177,10 @@ def test_plus_with_switches_off_is_the_ball_sign_construction(demo_pair):
   pts = demo_pair.scene_points
   kp = np.arange(0, len(pts), 37)
   r = 15 * demo_pair.mr
+  # The jitted function on both sides (test_lrf_net holds the host kernel to it).
   f, v = lrf_jax.compute_frames(pts, kp, r, "lrf_net_plus", faces=demo_pair.scene_faces,
                                 viewpoint=demo_pair.scene_viewpoint, density=False,
-                                oriented_sign=False)
+                                oriented_sign=False, kernel="jit")
   k = lrf_jax.METHODS["lrf_net_plus"].default_k
   g, w = lrf_net_frames(default_params("lrf_net_plus"), build_patches(pts, kp, r, k),
                         z_sign="ball", x_mode="softmax", lut=257)

@@ -148,6 +148,24 @@ def test_register_cli_on_demo_files(tmp_path):
   assert main([str(tmp_path / "missing.ply"), str(dst)]) == 2
 
 
+def test_console_entry_flushes_its_output_and_keeps_the_exit_code(tmp_path):
+  """`lrf-register` / `lrf-frames` end with os._exit after flushing (no interpreter teardown):
+  what main printed arrives, its return code is the process's, argparse's exits too."""
+  import subprocess
+  import sys
+  code = ("import sys; from lrf_jax.console import run; "
+          "run(lambda: (print('out'), print('err', file=sys.stderr), 3)[2])")
+  done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
+  assert (done.returncode, done.stdout, done.stderr) == (3, "out\n", "err\n")
+  bad = subprocess.run([sys.executable, "-c", "from lrf_jax.console import register; register()",
+                        str(tmp_path / "missing.ply"), str(tmp_path / "b.ply")],
+                       capture_output=True, text=True)
+  assert bad.returncode == 2 and "no such file" in bad.stderr
+  usage = subprocess.run([sys.executable, "-c", "from lrf_jax.console import frames; frames()",
+                          "--no-such-flag"], capture_output=True, text=True)
+  assert usage.returncode == 2 and "usage: lrf-frames" in usage.stderr
+
+
 def test_register_cli_rejects_bad_paths_before_any_work(tmp_path, capsys):
   from lrf_jax.register_cli import build_parser, main
   a = tmp_path / "a.ply"

@@ -242,6 +242,23 @@ def _columns(cx, cy, cz, origin, h, dims, starts, r, reach, js, je):
   return n
 
 
+@nb.njit(inline="always")
+def _count_ball(pts, starts, cx, cy, cz, r2, kin2, kout2, nr, js, je):
+  """(points within sqrt(r2) of (cx, cy, cz) in the slot ranges js..je, those of them within
+  sqrt(kin2) or beyond sqrt(kout2)): the ball's size and its candidates."""
+  c = 0
+  ck = 0
+  for q in range(nr):
+    for j in range(starts[js[q]], starts[je[q]]):
+      dx = pts[0, j] - cx
+      dy = pts[1, j] - cy
+      dz = pts[2, j] - cz
+      d2 = dx * dx + dy * dy + dz * dz
+      c += 1 if d2 <= r2 else 0
+      ck += 1 if d2 <= r2 and (d2 <= kin2 or d2 > kout2) else 0
+  return c, ck
+
+
 @nb.njit(parallel=True, cache=True)
 def _ball_counts(pts, starts, origin, h, dims, centers, order, r, reach, kin2, kout2):
   """(points within r of each centre, those of them within sqrt(kin2) or beyond sqrt(kout2)),
@@ -259,18 +276,7 @@ def _ball_counts(pts, starts, origin, h, dims, centers, order, r, reach, kin2, k
       i = order[t]
       cx, cy, cz = centers[i, 0], centers[i, 1], centers[i, 2]
       nr = _columns(cx, cy, cz, origin, h, dims, starts, r, reach, js, je)
-      c = 0
-      ck = 0
-      for q in range(nr):
-        for j in range(starts[js[q]], starts[je[q]]):
-          dx = pts[0, j] - cx
-          dy = pts[1, j] - cy
-          dz = pts[2, j] - cz
-          d2 = dx * dx + dy * dy + dz * dz
-          c += 1 if d2 <= r2 else 0
-          ck += 1 if d2 <= r2 and (d2 <= kin2 or d2 > kout2) else 0
-      full[i] = c
-      out[i] = ck
+      full[i], out[i] = _count_ball(pts, starts, cx, cy, cz, r2, kin2, kout2, nr, js, je)
   return full, out
 
 
@@ -416,18 +422,7 @@ def _patch_kernel(pts, slot_index, slot_rank, starts, origin, h, dims, centers, 
       if known:  # every in-ball point is a candidate (no shells)
         c = count[i]
       else:
-        c = 0
-        ck = 0
-        for q in range(nr):
-          for j in range(starts[js[q]], starts[je[q]]):
-            dx = pts[0, j] - cx
-            dy = pts[1, j] - cy
-            dz = pts[2, j] - cz
-            d2 = dx * dx + dy * dy + dz * dz
-            c += 1 if d2 <= r2 else 0
-            ck += 1 if d2 <= r2 and (d2 <= kin2 or d2 > kout2) else 0
-        count[i] = c
-        c = ck  # the candidates of the patch
+        count[i], c = _count_ball(pts, starts, cx, cy, cz, r2, kin2, kout2, nr, js, je)
       # The K smallest of c random ranks lie below about n K / c: collect only the in-ball
       # points under a threshold with a wide margin (each cell's run is sorted by rank, so the
       # scan of a cell stops at the threshold); without enough of them, collect every point.

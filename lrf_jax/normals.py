@@ -202,19 +202,23 @@ def orient_by_reference(normals: np.ndarray, reference: np.ndarray) -> np.ndarra
 
 
 @nb.njit(inline="always")
+def _heap_put(hk, hv, pos, i, kv, v):
+  """Slot i of the binary min-heap (keys hk, nodes hv, pos[node] = slot) := (kv, v)."""
+  hk[i] = kv
+  hv[i] = v
+  pos[v] = i
+
+
+@nb.njit(inline="always")
 def _heap_sift_up(hk, hv, pos, i, kv, v):
-  """Move entry (kv, v) up from slot i of the binary min-heap (hk keys, hv nodes, pos[node])."""
+  """Insert (kv, v) at slot i (a free slot or v's own) and move it up to its place."""
   while i > 0:
     p = (i - 1) >> 1
     if hk[p] <= kv:
       break
-    hk[i] = hk[p]
-    hv[i] = hv[p]
-    pos[hv[i]] = i
+    _heap_put(hk, hv, pos, i, hk[p], hv[p])
     i = p
-  hk[i] = kv
-  hv[i] = v
-  pos[v] = i
+  _heap_put(hk, hv, pos, i, kv, v)
 
 
 @nb.njit(inline="always")
@@ -231,13 +235,9 @@ def _heap_sift_down(hk, hv, pos, size):
       c += 1
     if kv <= hk[c]:
       break
-    hk[i] = hk[c]
-    hv[i] = hv[c]
-    pos[hv[i]] = i
+    _heap_put(hk, hv, pos, i, hk[c], hv[c])
     i = c
-  hk[i] = kv
-  hv[i] = v
-  pos[v] = i
+  _heap_put(hk, hv, pos, i, kv, v)
 
 
 @nb.njit(cache=True)

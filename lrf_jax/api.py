@@ -379,8 +379,14 @@ def _use_host_kernel(spec: MethodSpec, kernel: str, k: int | None, options: dict
     raise ValueError(f"kernel='host': method {spec.name!r} has no host fast path for these "
                      "arguments (it needs METHODS[method].host_frames, k=None and no options); "
                      "use kernel='jit'")
-  return applies and (kernel == "host" or (kernel == "auto" and search != "device"
-                                           and jax.default_backend() == "cpu"))
+  return applies and _host_requested(kernel, search)
+
+
+def _host_requested(kernel: str, search: str) -> bool:
+  """A host kernel that applies runs: always with kernel="host", with "auto" on a CPU backend
+  unless the search runs on the device."""
+  return kernel == "host" or (kernel == "auto" and search != "device"
+                              and jax.default_backend() == "cpu")
 
 
 def _use_host_patch_kernel(spec: MethodSpec, kernel: str, options: dict, search: str) -> bool:
@@ -391,8 +397,7 @@ def _use_host_patch_kernel(spec: MethodSpec, kernel: str, options: dict, search:
   if kernel == "host" and spec.host_frames is None and not applies:
     raise ValueError(f"kernel='host': method {spec.name!r} has no host kernel for the options "
                      f"{options} (METHODS[method].host_patch_frames); use kernel='jit'")
-  return applies and (kernel == "host" or (kernel == "auto" and search != "device"
-                                           and jax.default_backend() == "cpu"))
+  return applies and _host_requested(kernel, search)
 
 
 def _patch_search(points: np.ndarray, spec: MethodSpec, radius: float, k: int | None, seed: int,

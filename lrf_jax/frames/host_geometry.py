@@ -128,6 +128,14 @@ def plane_z(points, center, ball, start, stop, rz2, eps, min_count, mean):
   smallest eigenvalue not separated from the next (`smallest_ok`)."""
   cov = np.zeros((3, 3))
   count = inner_stats(points, center, ball, start, stop, rz2, mean, cov)
+  return smallest_z(cov, count, eps, min_count)
+
+
+@nb.njit(inline="always")
+def smallest_z(cov, count, eps, min_count):
+  """(ok, z): z the eigenvector of the smallest eigenvalue of the float64 (3, 3) `cov` (sign
+  arbitrary); ok is False for fewer than `min_count` points or a degenerate spectrum
+  (`smallest_ok`)."""
   evals, evecs = np.linalg.eigh(cov)
   return smallest_ok(evals, eps) and count >= min_count, evecs[:, 0].copy()
 

@@ -34,16 +34,6 @@ def _table_weight(table, dist_r, cos):
           + fu * ((1.0 - fv) * table[i0 + 1, j0] + fv * table[i0 + 1, j0 + 1]))
 
 
-@nb.njit(inline="always")
-def _z_axis(cov, mean, count, eps, min_count):
-  """`lrf_net.z_axes` of one keypoint: (ok, z) with TOLDI's sign (mean · z <= 0)."""
-  evals, evecs = np.linalg.eigh(cov)
-  z = evecs[:, 0].copy()
-  if mean[0] * z[0] + mean[1] * z[1] + mean[2] * z[2] > 0.0:
-    z = -z
-  return hg.smallest_ok(evals, eps) and count >= min_count, z
-
-
 @nb.njit(parallel=True, cache=True)
 def _lrf_net_host_kernel(offsets, mask, z_cov, z_mean, z_count, radius, table, mode, ball, view,
                          area, eps, x_eps, min_count, frames, valid):
@@ -59,22 +49,31 @@ def _lrf_net_host_kernel(offsets, mask, z_cov, z_mean, z_count, radius, table, m
     mean = z_mean[i].astype(np.float64)
     if not (np.isfinite(r) and r > 0.0 and np.all(np.isfinite(cov)) and np.all(np.isfinite(mean))):
       continue
-    ok, z = _z_axis(cov, mean, z_count[i], eps, min_count)
+    ok, z = hg.smallest_z(cov, z_count[i], eps, min_count)
     if not ok:
       continue
+    if mean[0] * z[0] + mean[1] * z[1] + mean[2] * z[2] > 0.0:  # TOLDI's sign: mean · z <= 0
+      z = -z
     finite = True
+    dot = np.zeros(k)  # pq_s · z, for the signs, the attributes and the tangent projections
     h = 0.0
     for s in range(k):
       if mask[i, s]:
         o0, o1, o2 = offsets[i, s, 0], offsets[i, s, 1], offsets[i, s, 2]
         finite = finite and np.isfinite(o0) and np.isfinite(o1) and np.isfinite(o2)
-        h += o0 * z[0] + o1 * z[1] + o2 * z[2]
+        dot[s] = o0 * z[0] + o1 * z[1] + o2 * z[2]
+        h += dot[s]
     if not finite:
       continue
+    sign = 1.0
     if ball and h > 0.0:
       z = -z
+      sign = -sign
     if has_view and view[i, 0] * z[0] + view[i, 1] * z[1] + view[i, 2] * z[2] < 0.0:
       z = -z
+      sign = -sign
+    if sign < 0.0:
+      dot = -dot
     w = np.zeros(k)
     top = -np.inf
     for s in range(k):
@@ -85,8 +84,7 @@ def _lrf_net_host_kernel(offsets, mask, z_cov, z_mean, z_count, radius, table, m
         continue
       o0, o1, o2 = float(offsets[i, s, 0]), float(offsets[i, s, 1]), float(offsets[i, s, 2])
       d = np.sqrt(o0 * o0 + o1 * o1 + o2 * o2)
-      cos = (o0 * z[0] + o1 * z[1] + o2 * z[2]) / d if d > 0.0 else 0.0
-      w[s] = _table_weight(table, d / r, cos)
+      w[s] = _table_weight(table, d / r, dot[s] / d if d > 0.0 else 0.0)
       top = max(top, w[s])
     sx = sy = sz = 0.0
     scale = 0.0
@@ -98,9 +96,9 @@ def _lrf_net_host_kernel(offsets, mask, z_cov, z_mean, z_count, radius, table, m
         ws = np.exp(ws - top)
       if has_area:
         ws *= area[i, s]
-      o0, o1, o2 = float(offsets[i, s, 0]), float(offsets[i, s, 1]), float(offsets[i, s, 2])
-      dot = o0 * z[0] + o1 * z[1] + o2 * z[2]
-      v0, v1, v2 = o0 - dot * z[0], o1 - dot * z[1], o2 - dot * z[2]
+      v0 = offsets[i, s, 0] - dot[s] * z[0]
+      v1 = offsets[i, s, 1] - dot[s] * z[1]
+      v2 = offsets[i, s, 2] - dot[s] * z[2]
       sx += ws * v0
       sy += ws * v1
       sz += ws * v2

@@ -402,7 +402,7 @@ def _patch_kernel(pts, slot_index, slot_rank, starts, origin, h, dims, centers, 
   holds the in-ball counts already (no shells) and neither they nor the statistics are computed."""
   m = centers.shape[0]
   r2 = r * r
-  ncol = (2 * reach + 1) ** 2
+  ncol = (2 * max(reach, reach_in) + 1) ** 2  # the inner radius may exceed r
   nblock = (m + _BLOCK - 1) // _BLOCK
   for blk in nb.prange(nblock):
     js = np.empty(ncol, np.int64)

@@ -311,6 +311,7 @@ def build_patches(
     points = validate_cloud(points)
     keypoints = validate_keypoints(keypoints, points.shape[0])
     radius = validate_radius(radius)
+    z_ratio = validate_radius(z_ratio, "z_ratio")
     if k is not None and (int(k) != k or k < 1):
       raise ValueError(f"k: expected a positive integer patch size or None, got {k!r}")
   else:

@@ -41,10 +41,11 @@ def reference_patches(points, keypoints, radius, k, seed=0, z_ratio=1.0 / 3.0):
   return idx, count, z_count, z_mean, z_cov
 
 
-def assert_matches_reference(points, keypoints, radius, k, seed=0):
+def assert_matches_reference(points, keypoints, radius, k, seed=0, z_ratio=1.0 / 3.0):
   got = engine.patches(SearchIndex(points, seed).grid(radius), np.asarray(points)[keypoints],
-                       radius, k, radius / 3)
-  idx, count, z_count, z_mean, z_cov = reference_patches(points, keypoints, radius, k, seed)
+                       radius, k, z_ratio * radius)
+  idx, count, z_count, z_mean, z_cov = reference_patches(points, keypoints, radius, k, seed,
+                                                         z_ratio)
   np.testing.assert_array_equal(got["indices"], idx)
   np.testing.assert_array_equal(got["mask"], idx >= 0)
   np.testing.assert_array_equal(got["count"], count)
@@ -80,6 +81,21 @@ def test_patches_equal_ckdtree_on_adversarial_clouds(name, k):
   points, radius = _adversarial()[name]
   kp = np.random.default_rng(0).choice(len(points), min(200, len(points)), replace=False)
   assert_matches_reference(points, kp, radius, k)
+
+
+@pytest.mark.parametrize("z_ratio", [1.0, 1.7])
+def test_inner_statistics_of_a_support_as_large_as_or_larger_than_the_ball(z_ratio):
+  """The normal support may reach beyond r (more cells than the patch's ball scans)."""
+  points, radius = _adversarial()["dense_strip"]
+  kp = np.random.default_rng(2).choice(len(points), 300, replace=False)
+  assert_matches_reference(points, kp, radius, 64, z_ratio=z_ratio)
+
+
+@pytest.mark.parametrize("z_ratio", [0.0, -0.5, float("nan")])
+def test_build_patches_rejects_a_bad_support_ratio(z_ratio):
+  pts = np.random.default_rng(0).normal(size=(100, 3))
+  with pytest.raises(ValueError, match="z_ratio"):
+    build_patches(pts, np.arange(10), 0.5, 16, z_ratio=z_ratio)
 
 
 def test_in_ball_rule_is_ckdtree_squared_distance():

@@ -39,6 +39,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from lrf_jax import engine
+from lrf_jax import registration_host as host
 from lrf_jax.api import compute_frames
 from lrf_jax.resolution import mesh_resolution
 from lrf_jax.descriptors import (DESCRIPTORS, compute_descriptors, match_descriptors,
@@ -532,8 +533,7 @@ def register(source: Any, target: Any, *, mr: float | None = None, radius_mr: fl
   with timer("hypotheses"):
     src, dst, cs, cd = _centred(p, q)
     rs, ts = _hypotheses(src, dst, f_s[qi], f_t[ri], estimator, iterations, setup.radius, seed)
-    rs, ts = np.asarray(rs), np.asarray(ts)  # host copies: slicing them compiles nothing
-    counts = np.asarray(_count_inliers(rs, ts, src, dst, float(threshold)))
+    counts = host.count_inliers(rs, ts, src, dst, threshold)
     chance = _chance_inliers(src, dst, f_s[qi], f_t[ri], estimator, iterations, setup.radius,
                              seed, float(threshold))
   with timer("verification"):
@@ -541,8 +541,7 @@ def register(source: Any, target: Any, *, mr: float | None = None, radius_mr: fl
     target_grid = engine.Grid(dst_pts, overlap_distance)
     best, fits = _verify(rs, ts, counts, cs, cd, src_pts, target_grid, overlap_distance, verify,
                          setup.rng)
-    r, t, mask, _, _ = _select_and_refine(rs[best:best + 1], ts[best:best + 1], src, dst,
-                                          float(threshold), True)
+    r, t, mask = host.select_and_refine(rs[best], ts[best], src, dst, threshold)
     res = _finish(*_uncentre(r, t, cs, cd), mask, best, counts[best])
   with timer("icp"):
     icp_src = src_pts
@@ -608,7 +607,7 @@ def _chance_inliers(src, dst, f_src, f_dst, estimator, iterations, radius, seed,
     perm = rng.permutation(len(src))
     d, fd = np.asarray(dst)[perm], np.asarray(f_dst)[perm]
     rs, ts = _hypotheses(src, d, f_src, fd, estimator, iterations, radius, seed)
-    best = max(best, int(np.max(np.asarray(_count_inliers(rs, ts, src, d, threshold)))))
+    best = max(best, int(np.max(host.count_inliers(rs, ts, src, d, threshold))))
   return best
 
 
@@ -753,14 +752,14 @@ def _match(frames, descs, estimator: str, n_correspondences: int, radius_mr: flo
 
 
 def _hypotheses(src, dst, f_src, f_dst, estimator: str, iterations: int, radius: float,
-                seed: int) -> tuple[jax.Array, jax.Array]:
+                seed: int) -> tuple[np.ndarray, np.ndarray]:
   """Stage "hypotheses": one pose per correspondence from its LRFs, or `iterations` seeded
-  triples (the `ransac_3point` sampler), in the centred float32 coordinates."""
+  triples (the `ransac_3point` sampler), from the centred float32 coordinates; host float64
+  (`registration_host`), (H, 3, 3) and (H, 3)."""
   if estimator == "lrf":
-    return _lrf_hypotheses(src, np.asarray(f_src, np.float32), dst,
-                           np.asarray(f_dst, np.float32), float(radius))
-  samples = _triples(len(src), iterations, seed)
-  return _kabsch_batch(src[samples], dst[samples])
+    return host.lrf_hypotheses(src, f_src, dst, f_dst, float(radius))
+  samples = np.asarray(_triples(len(src), iterations, seed))
+  return host.kabsch_batch(src[samples], dst[samples])
 
 
 def _triples(m: int, iterations: int, seed: int) -> jax.Array:
@@ -784,11 +783,6 @@ def _verify(rs, ts, counts, cs, cd, src_pts, target_grid, distance, verify, rng
     fits = overlap_scores(r_c, t_c, sub, target_grid, distance)
     best = int(cand[int(np.argmax(fits))])  # first maximum: the higher inlier count
   return best, fits
-
-
-@jax.jit
-def _count_inliers(rs, ts, src, dst, threshold):
-  return jax.vmap(lambda r, t: jnp.sum(_inlier_mask(r, t, src, dst, threshold)))(rs, ts)
 
 
 __all__ = [

@@ -83,6 +83,38 @@ def test_both_estimators_recover_a_pose_among_outliers_deterministically():
   assert c.hypothesis_inliers == c.n_inliers
 
 
+def test_host_hypotheses_and_scores_agree_with_the_jitted_ones():
+  """register's host steps (registration_host) against the jitted vmap programs of lrf_ransac
+  and ransac_3point on the same centred float32 correspondences."""
+  import jax
+  from lrf_jax import registration_host as host
+  src, dst, f_src, f_dst, _, _ = _synthetic_correspondences(5, m=300)
+  s, d, _, _ = registration._centred(src, dst)
+  rs, ts = host.lrf_hypotheses(s, f_src, d, f_dst, 0.2)
+  rj, tj = registration._lrf_hypotheses(s, f_src.astype(np.float32), d,
+                                        f_dst.astype(np.float32), 0.2)
+  np.testing.assert_allclose(rs, np.asarray(rj), atol=2e-5)
+  np.testing.assert_allclose(ts, np.asarray(tj), atol=2e-5)
+  np.testing.assert_allclose(np.linalg.det(rs), 1.0, atol=1e-12)
+  triples = np.random.default_rng(0).integers(0, 300, (200, 3))
+  rk, tk = host.kabsch_batch(s[triples], d[triples])
+  rkj, tkj = registration._kabsch_batch(s[triples], d[triples])
+  ok = np.linalg.svd(s[triples] - s[triples].mean(1, keepdims=True))[1][:, 1] > 0.05
+  np.testing.assert_allclose(rk[ok], np.asarray(rkj)[ok], atol=1e-4)  # well-posed triples
+  thr = 0.02
+  counts = host.count_inliers(rs, ts, s, d, thr)
+  cj = np.asarray(jax.vmap(lambda r, t: registration._inlier_mask(r, t, s, d, thr).sum())(
+      rj, tj))
+  assert counts.max() > 50 and np.abs(counts - cj).max() <= 1  # float32 rounding at the edge
+  best = int(np.argmax(counts))
+  r, t, mask = host.select_and_refine(rs[best], ts[best], s, d, thr)
+  r2, t2, mask2, _, _ = registration._select_and_refine(rj[best:best + 1], tj[best:best + 1],
+                                                        s, d, thr, True)
+  np.testing.assert_allclose(r, np.asarray(r2), atol=1e-5)
+  np.testing.assert_allclose(t, np.asarray(t2), atol=1e-5)
+  np.testing.assert_array_equal(mask, np.asarray(mask2))
+
+
 @pytest.mark.data
 def test_noise_free_br_one_correspondence_is_exact(br_bunny):
   """BR bunny model vs the model under its ground truth: LRF-Net frames of corresponding

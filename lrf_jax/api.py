@@ -69,7 +69,7 @@ def frames_from_patches(patches: Patches, method: str = "lrf_net_plus", *, param
   return fn(jax.device_put(patches), extra, params)
 
 
-_TABLES: list[tuple[Any, int, Any]] = []  # (params, size, WeightTable), most recent last
+_TABLES: list[tuple[Any, int, bool, Any]] = []  # (params, size, host, table), newest last
 
 
 @functools.partial(jax.jit, static_argnums=1)
@@ -78,17 +78,18 @@ def _jit_weight_table(params: Any, size: int) -> Any:
   return weight_table(params, size)
 
 
-def _weight_table(params: Any, size: int) -> Any:
+def _weight_table(params: Any, size: int, host: bool = False) -> Any:
   """The `WeightTable` of `params` for `lut=size`, built once per parameter set (by identity:
-  the entry holds the parameters, so their id is not reused while cached)."""
-  from lrf_jax.frames.lrf_net import WeightTable
+  the entry holds the parameters, so their id is not reused while cached): jitted, or with
+  `host` in numpy (`weight_table_numpy`, for the host frame kernels)."""
+  from lrf_jax.frames.lrf_net import WeightTable, weight_table_numpy
   if isinstance(params, WeightTable):
     return params
-  for p, n, table in _TABLES:
-    if p is params and n == size:
+  for p, n, h, table in _TABLES:
+    if p is params and n == size and h == host:
       return table
-  table = _jit_weight_table(params, size)
-  _TABLES.append((params, size, table))
+  table = weight_table_numpy(params, size) if host else _jit_weight_table(params, size)
+  _TABLES.append((params, size, host, table))
   del _TABLES[:-4]
   return table
 
@@ -276,7 +277,7 @@ def compute_frames(
                            viewpoint=viewpoint)
   host_options = dict(spec.default_options) | options
   if host_patches and spec.needs_params and int(host_options.get("lut", 0) or 0) > 1:
-    params = _weight_table(params, int(host_options["lut"]))
+    params = _weight_table(params, int(host_options["lut"]), host=True)
 
   def run(idx: np.ndarray, n_real: int) -> tuple[jax.Array, jax.Array]:
     kp = keypoints[idx]

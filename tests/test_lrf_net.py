@@ -347,9 +347,9 @@ def test_weight_table_is_cached_and_equals_the_parameters_path(bunny):
     _lrf_net_frames(table, p, lut=33)
   api._TABLES.clear()
   f1, _ = _frames(pts, kp[:40], r, lut=65)
-  cached = api._TABLES[-1][2]
+  cached = api._TABLES[-1][-1]
   f2, _ = _frames(pts, kp[:40], r, lut=65)
-  assert len(api._TABLES) == 1 and api._TABLES[-1][2] is cached
+  assert len(api._TABLES) == 1 and api._TABLES[-1][-1] is cached
   np.testing.assert_array_equal(f1, f2)
 
 
@@ -476,6 +476,16 @@ def _noisy_height_field():
   noisy[:41 * 41] += rng.normal(scale=0.05, size=(41 * 41, 3))  # the degenerate parts stay so
   grid_kp = rng.choice(41 * 41, 400, replace=False)
   return noisy, np.r_[grid_kp, keypoints[-2:]], radius  # with the two degenerate keypoints
+
+
+def test_numpy_weight_table_equals_the_jitted_one():
+  """The host kernels' table (numpy float32) is the jitted table up to float32 rounding."""
+  from lrf_jax.frames.lrf_net import weight_table, weight_table_numpy
+  a = np.asarray(weight_table(PARAMS, 129).values)
+  b = weight_table_numpy(PARAMS, 129).values
+  assert isinstance(b, np.ndarray) and b.dtype == np.float32 and b.shape == (129, 129)
+  np.testing.assert_allclose(b, a, rtol=1e-5, atol=1e-5 * np.abs(a).max())
+  assert np.abs(a).max() > 0.1  # a table that could differ
 
 
 @pytest.mark.parametrize("method,options", [

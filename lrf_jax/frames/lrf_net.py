@@ -23,10 +23,11 @@ from typing import Callable, NamedTuple
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from lrf_jax import geometry
 from lrf_jax.frames.spec import HostPatchKernel, MethodSpec
-from lrf_jax.model import Params, apply_weights
+from lrf_jax.model import Params, apply_weights, apply_weights_numpy
 from lrf_jax.neighborhoods import Patches
 
 # |Σ w v| must exceed this fraction of Σ |w| |v| for x to be defined (symmetric patches fail).
@@ -206,6 +207,16 @@ def weight_table(params: Params, size: int = 257) -> WeightTable:
   grid = jnp.linspace(0.0, 1.0, size)
   cgrid = jnp.linspace(-1.0, 1.0, size)
   return WeightTable(apply_weights(params, jnp.stack(jnp.meshgrid(grid, cgrid, indexing="ij"), -1)))
+
+
+def weight_table_numpy(params: Params, size: int = 257) -> WeightTable:
+  """`weight_table` evaluated in numpy float32 (`model.apply_weights_numpy`), for the host
+  frame kernels: no JAX program to trace and load in a fresh process; equal to `weight_table` up
+  to float32 rounding. values: (size, size) float32 numpy."""
+  grid = np.linspace(0.0, 1.0, size, dtype=np.float32)
+  cgrid = np.linspace(-1.0, 1.0, size, dtype=np.float32)
+  return WeightTable(apply_weights_numpy(params, np.stack(np.meshgrid(grid, cgrid, indexing="ij"),
+                                                          -1)))
 
 
 def lut_weights(params: Params | WeightTable, size: int = 257) -> WeightFn:

@@ -212,14 +212,31 @@ def _columns(cx, cy, cz, origin, h, dims, starts, r, reach, js, je):
   the z cells that the ball's slice through that column can reach; the slots of cells js..je-1
   are starts[js]..starts[je]. Returns the number of ranges.
   """
+  return _column_runs(cx, cy, cz, origin, h, dims, starts, r, reach, js, je, False, js, je)
+
+
+@nb.njit(inline="always")
+def _far(c, lo, h, e):
+  """The largest distance from c to the interval [lo - e, lo + h + e]."""
+  return max(c - lo + e, lo + h + e - c)
+
+
+@nb.njit(inline="always")
+def _column_runs(cx, cy, cz, origin, h, dims, starts, r, reach, js, je, inner, ji, jk):
+  """`_columns`; with `inner`, also the cells [ji, jk) of each range whose whole box lies inside
+  the ball, with a margin (relative 1e-9 of r, and of the coordinates' size) that keeps every
+  point binned to them within r by cKDTree's float64 rule (ji = jk: none)."""
   rp = r * (1.0 + _PRUNE_MARGIN)
   rp2 = rp * rp
+  e = 1e-9 * h + 1e-12 * (abs(cx) + abs(cy) + abs(cz) + abs(origin[0]) + abs(origin[1])
+                          + abs(origin[2]))
+  ri2 = (r * (1.0 - 1e-9)) ** 2
   ix = _cell(cx, origin[0], h)
   iy = _cell(cy, origin[1], h)
   n = 0
   for a in range(max(ix - reach, 0), min(ix + reach, dims[0] - 1) + 1):
-    lo = origin[0] + a * h
-    ddx = lo - cx if cx < lo else (cx - lo - h if cx > lo + h else 0.0)
+    lox = origin[0] + a * h
+    ddx = lox - cx if cx < lox else (cx - lox - h if cx > lox + h else 0.0)
     rx = rp2 - ddx * ddx
     if rx < 0.0:
       continue
@@ -238,8 +255,38 @@ def _columns(cx, cy, cz, origin, h, dims, starts, r, reach, js, je):
       if starts[base + z1 + 1] > starts[base + z0]:
         js[n] = base + z0
         je[n] = base + z1 + 1
+        if inner:
+          ji[n] = jk[n] = base + z0
+          fx, fy = _far(cx, lox, h, e), _far(cy, lo, h, e)
+          rin = ri2 - fx * fx - fy * fy
+          if rin > 0.0:  # the z cells whose box (+- 2e) lies within the slice cz +- sqrt(rin)
+            tin = np.sqrt(rin)
+            i0 = max(int(np.ceil((cz - tin + 2.0 * e - origin[2]) / h)), z0)
+            i1 = min(int(np.floor((cz + tin - 2.0 * e - origin[2]) / h)) - 1, z1)
+            if i0 <= i1:
+              ji[n], jk[n] = base + i0, base + i1 + 1
         n += 1
   return n
+
+
+@nb.njit(inline="always")
+def _count_runs(pts, starts, cx, cy, cz, r2, nr, js, je, ji, jk):
+  """Points within sqrt(r2) of (cx, cy, cz) in the ranges js..je whose cells ji..jk are inside
+  the ball (`_column_runs`): those cells count whole, the others point by point."""
+  c = 0
+  for q in range(nr):
+    c += starts[jk[q]] - starts[ji[q]]
+    for j in range(starts[js[q]], starts[ji[q]]):
+      dx = pts[0, j] - cx
+      dy = pts[1, j] - cy
+      dz = pts[2, j] - cz
+      c += (dx * dx + dy * dy + dz * dz) <= r2
+    for j in range(starts[jk[q]], starts[je[q]]):
+      dx = pts[0, j] - cx
+      dy = pts[1, j] - cy
+      dz = pts[2, j] - cz
+      c += (dx * dx + dy * dy + dz * dz) <= r2
+  return c
 
 
 @nb.njit(inline="always")
@@ -463,6 +510,8 @@ def _patch_kernel(pts, slot_index, slot_rank, starts, origin, h, dims, centers, 
   for blk in nb.prange(nblock):
     js = np.empty(ncol, np.int64)
     je = np.empty(ncol, np.int64)
+    ji = np.empty(ncol, np.int64)
+    jk = np.empty(ncol, np.int64)
     off = np.empty((3, 256))
     cap = 1024
     buf = np.empty(cap, np.int64)
@@ -476,9 +525,12 @@ def _patch_kernel(pts, slot_index, slot_rank, starts, origin, h, dims, centers, 
         off = _room(off, _scanned(starts, nr, js, je))
         z_count[i] = _stats_one(pts, starts, cx, cy, cz, rz * rz, nr, js, je, z_mean[i],
                                 z_cov[i], off)
-      nr = _columns(cx, cy, cz, origin, h, dims, starts, r, reach, js, je)
+      whole = not known and kin2 >= r2  # no shells: cells inside the ball count whole
+      nr = _column_runs(cx, cy, cz, origin, h, dims, starts, r, reach, js, je, whole, ji, jk)
       if known:  # every in-ball point is a candidate (no shells)
         c = count[i]
+      elif whole:
+        c = count[i] = _count_runs(pts, starts, cx, cy, cz, r2, nr, js, je, ji, jk)
       else:
         count[i], c = _count_ball(pts, starts, cx, cy, cz, r2, kin2, kout2, nr, js, je)
       if c >= cap:  # room for the c in-ball keys and one overwritten trailing write

@@ -19,7 +19,9 @@ in degrees, err_t = |t_gt - t| / mr.
 
 `register(source, target)` is the user-facing pipeline: mr from the source, seeded random
 keypoints on both clouds, LRF-Net frames, TOLDI descriptors, ratio matching, one hypothesis per
-correspondence from its LRFs, the best few verified by overlap, then point-to-point ICP.
+correspondence from its LRFs, the best few verified by overlap, then point-to-point ICP; it
+generates and scores its hypotheses on the host (`lrf_jax.registration_host`), the same
+arithmetic as the jitted estimators without a JAX program to load in every fresh process.
 
 References:
   Fischler & Bolles, "Random sample consensus", CACM 1981. Kabsch, Acta Cryst. A32, 1976.

@@ -98,6 +98,43 @@ def test_build_patches_rejects_a_bad_support_ratio(z_ratio):
     build_patches(pts, np.arange(10), 0.5, 16, z_ratio=z_ratio)
 
 
+@pytest.mark.parametrize("offset", [0.0, 1e6])
+def test_cells_counted_whole_lie_inside_the_ball(offset):
+  """The patch count takes cells whose box lies inside the ball without testing their points
+  (`engine._column_runs`): every point of such a cell is within r by cKDTree's rule, also far
+  from the origin, and the shortcut covers a good part of a dense ball."""
+  import numba as nb
+  rng = np.random.default_rng(4)
+  pts = rng.uniform(size=(20000, 3)) + offset
+  r = 0.1
+  grid = engine.Grid(pts, r / 3)
+  centers = pts[rng.choice(len(pts), 300, replace=False)]
+  reach = engine._reach(grid, r)
+
+  @nb.njit
+  def check(xyz, starts, origin, h, dims, centers, r, reach):
+    n = (2 * reach + 1) ** 2
+    js, je = np.empty(n, np.int64), np.empty(n, np.int64)
+    ji, jk = np.empty(n, np.int64), np.empty(n, np.int64)
+    whole = 0
+    bad = 0
+    for i in range(centers.shape[0]):
+      cx, cy, cz = centers[i, 0], centers[i, 1], centers[i, 2]
+      nr = engine._column_runs(cx, cy, cz, origin, h, dims, starts, r, reach, js, je, True, ji,
+                               jk)
+      for q in range(nr):
+        bad += not (js[q] <= ji[q] <= jk[q] <= je[q])
+        for j in range(starts[ji[q]], starts[jk[q]]):
+          dx, dy, dz = xyz[0, j] - cx, xyz[1, j] - cy, xyz[2, j] - cz
+          whole += 1
+          bad += (dx * dx + dy * dy + dz * dz) > r * r
+    return whole, bad
+
+  whole, bad = check(grid.xyz, grid.starts, grid.origin, grid.h, grid.dims, centers, r, reach)
+  counts = engine.ball_counts(grid, centers, r)
+  assert bad == 0 and whole > 0.1 * counts.sum()
+
+
 def test_in_ball_rule_is_ckdtree_squared_distance():
   """Points at distance exactly r are in; one ulp beyond is out; (0.1, 0.2, 0.2), at distance
   0.3 in exact arithmetic, is out because its float64 squared distance rounds above 0.3 * 0.3."""

@@ -154,7 +154,8 @@ class BatchMaker:
       seed = _mix(cfg.seed, 3, epoch, side)
       # The large fields are written in place by the search where a cloud's rows are one run
       # (the usual layout) and nothing rewrites them; the others are scattered below.
-      big = (np.zeros((n, k, 3), np.float32), np.zeros((n, k), bool), np.full((n, k), -1, np.int32))
+      # Uninitialised: build_patches (or the copy below) writes every row whole.
+      big = (np.empty((n, k, 3), np.float32), np.empty((n, k), bool), np.empty((n, k), np.int32))
       parts, rows = [], []
       for c in np.unique(kp[:, 0]):
         sel = np.flatnonzero(kp[:, 0] == c)

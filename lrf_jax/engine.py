@@ -501,7 +501,8 @@ def _patch_kernel(pts, slot_index, slot_rank, starts, origin, h, dims, centers, 
                   z_count, z_mean, z_cov):
   """Patches of the K points of smallest rank within r (of those within sqrt(kin2) or beyond
   sqrt(kout2): all of them when kin2 >= r * r), plus the inner-ball statistics; the centres are
-  visited in the order `order` (`query_order`), each written to its own row. With `known`, count
+  visited in the order `order` (`query_order`), each written whole to its own row (padding
+  included: the outputs may start uninitialised). With `known`, count
   holds the in-ball counts already (no shells) and neither they nor the statistics are computed."""
   m = centers.shape[0]
   r2 = r * r
@@ -552,6 +553,10 @@ def _patch_kernel(pts, slot_index, slot_rank, starts, origin, h, dims, centers, 
         offsets[i, s, 2] = pts[2, j] - cz
         mask[i, s] = True
         indices[i, s] = slot_index[j]
+      for s in range(kept, k):  # the padding: every element of the row is written
+        offsets[i, s, 0] = offsets[i, s, 1] = offsets[i, s, 2] = 0.0
+        mask[i, s] = False
+        indices[i, s] = -1
 
 
 def query_order(grid: Grid, centers: np.ndarray) -> np.ndarray:
@@ -621,8 +626,9 @@ def patches(grid: Grid, centers: np.ndarray, radius: float, k: int, inner_radius
     inner_radius: radius of the normal-support statistics.
     shells: (a, b): the patch holds only the in-ball points within a * radius or beyond
       b * radius (a method that reads nothing in between); None: every in-ball point.
-    into: optional (offsets, mask, indices) arrays of the returned shapes and dtypes, holding
-      zeros, False and -1, to write into instead of new ones (e.g. rows of a larger array).
+    into: optional (offsets, mask, indices) arrays of the returned shapes and dtypes to write
+      into instead of new ones (e.g. rows of a larger array); every element is written (the
+      padding as zeros, False and -1), so their contents on entry do not matter.
     count: optional (m,) in-ball counts of these centres and radius, from an earlier call on the
       same points (counts do not depend on the ranks); the count and inner-statistics passes are
       then skipped. Not with `shells`.
@@ -638,7 +644,8 @@ def patches(grid: Grid, centers: np.ndarray, radius: float, k: int, inner_radius
   c = _centers(centers)
   m, k = c.shape[0], int(k)
   if into is None:
-    into = (np.zeros((m, k, 3), np.float32), np.zeros((m, k), bool), np.full((m, k), -1, np.int32))
+    # Uninitialised: the kernel writes every element, and the threads fault the pages in.
+    into = (np.empty((m, k, 3), np.float32), np.empty((m, k), bool), np.empty((m, k), np.int32))
   shapes = [a.shape for a in into]
   if shapes != [(m, k, 3), (m, k), (m, k)] or [a.dtype for a in into] != [np.float32, bool,
                                                                           np.int32]:

@@ -293,8 +293,8 @@ def build_patches(
       b * r, still in priority order (for methods that read nothing in between, e.g. FLARE: its
       r/3 plane support and its 0.85 r margin). `count` still counts every point within r.
     into: with an integer k, optional (offsets (m, K, 3) float32, mask (m, K) bool, indices
-      (m, K) int32) arrays holding zeros, False and -1 (e.g. row ranges of larger arrays) that
-      receive those fields instead of new arrays; the returned Patches holds them.
+      (m, K) int32) arrays (e.g. row ranges of larger arrays, any contents: every element is
+      written) that receive those fields instead of new arrays; the returned Patches holds them.
     stats_from: optional Patches of the same points, keypoints, radius and z_ratio built
       earlier with any seed and K (e.g. the previous epoch's): `count`, `z_cov`, `z_mean` and
       `z_count` do not depend on the seed or K, so they are taken from it and the search skips

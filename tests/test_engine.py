@@ -184,15 +184,17 @@ def test_patches_written_into_given_rows_equal_fresh_ones():
   pts = rng.normal(size=(5000, 3))
   kp = rng.choice(len(pts), 300, replace=False)
   fresh = build_patches(pts, kp, 0.4, 32)
-  big = (np.zeros((500, 32, 3), np.float32), np.zeros((500, 32), bool),
-         np.full((500, 32), -1, np.int32))
+  assert not fresh.mask.all()  # some padding to write
+  # Whatever the arrays hold, every element of the given rows is written (padding included).
+  big = (np.full((500, 32, 3), np.nan, np.float32), np.ones((500, 32), bool),
+         np.full((500, 32), 7, np.int32))
   rows = slice(100, 400)
   got = build_patches(pts, kp, 0.4, 32, into=tuple(a[rows] for a in big))
   for a, b in zip(fresh, got):
     np.testing.assert_array_equal(a, b)
   np.testing.assert_array_equal(big[0][rows], fresh.offsets)  # written in place
   np.testing.assert_array_equal(big[2][rows], fresh.indices)
-  assert not big[1][:100].any() and (big[2][400:] == -1).all()  # other rows untouched
+  assert big[1][:100].all() and (big[2][400:] == 7).all()  # other rows untouched
   with pytest.raises(ValueError, match="into"):
     build_patches(pts, kp, 0.4, 32, into=(big[0][:300], big[1][:300], big[2][:300, :16]))
 

@@ -468,11 +468,12 @@ def _smallest_sorted(keys, c, k, cnt, out, span):
 
 @nb.njit(inline="always")
 def _rank_limit(k, c, n_rank):
-  """A rank below which the K smallest of c random ranks out of n_rank lie, with a wide margin
-  (the K-th is about n_rank K / c, give or take n_rank sqrt(K) / c); no limit for c <= K."""
+  """A rank below which the K smallest of c random ranks out of n_rank lie but for about one
+  ball in 10^4 (the K-th is about n_rank K / c, give or take n_rank sqrt(K) / c: a margin of
+  3.5 sqrt(K) + 8; a ball it misses is collected again without a limit); none for c <= K."""
   if c <= k:
     return np.int64(1) << 62
-  return np.int64((k + 6.0 * np.sqrt(k) + 16.0) / c * n_rank) + 1
+  return np.int64((k + 3.5 * np.sqrt(k) + 8.0) / c * n_rank) + 1
 
 
 @nb.njit(inline="always")

@@ -199,6 +199,28 @@ def test_patches_written_into_given_rows_equal_fresh_ones():
     build_patches(pts, kp, 0.4, 32, into=(big[0][:300], big[1][:300], big[2][:300, :16]))
 
 
+def test_balls_missed_by_the_rank_limit_are_collected_again():
+  """The kernel guesses a rank limit from the ball's count; when fewer than K candidates lie
+  under it, it collects again without one. A rank range of 1 makes every guess miss."""
+  rng = np.random.default_rng(8)
+  pts = rng.normal(size=(4000, 3))
+  centers = pts[rng.choice(len(pts), 200, replace=False)]
+  grid = SearchIndex(pts, 0).grid(0.5)
+  want = engine.patches(grid, centers, 0.5, 16, 0.5 / 3)
+  m, k = len(centers), 16
+  got = dict(offsets=np.empty((m, k, 3), np.float32), mask=np.empty((m, k), bool),
+             indices=np.empty((m, k), np.int32), count=np.zeros(m, np.int64),
+             z_count=np.zeros(m, np.int64), z_mean=np.zeros((m, 3)), z_cov=np.zeros((m, 3, 3)))
+  r, rz = 0.5, 0.5 / 3
+  engine._patch_kernel(grid.xyz, grid.slot_index, grid.slot_rank, grid.starts, grid.origin,
+                       grid.h, grid.dims, centers, engine.query_order(grid, centers), r, rz, k,
+                       1, engine._reach(grid, r), engine._reach(grid, rz), *engine._keep(r, None),
+                       False, *got.values())
+  assert (want["count"] > 2 * k).mean() > 0.5  # balls the limit would have cut
+  for name in got:
+    np.testing.assert_array_equal(got[name], want[name])
+
+
 def test_query_order_is_a_cell_sorted_permutation_that_changes_nothing():
   rng = np.random.default_rng(7)
   pts = rng.normal(size=(6000, 3)) * [1, 1, 0.1]

@@ -328,20 +328,31 @@ def _ball_counts(pts, starts, origin, h, dims, centers, order, r, reach, kin2, k
   return full, out
 
 
+# Running moment sums of a ball's offsets: (count, x, y, z, xx, xy, xz, yy, yz, zz).
+NO_MOMENTS = (0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
+
+
 @nb.njit(inline="always")
-def store_moments(c, s0, s1, s2, sxx, sxy, sxz, syy, syz, szz, mean, cov):
-  """From a count c and the raw sums of x, y, z and of their products, the centroid into mean
-  (3,) and the covariance about it into cov (3, 3) (zeros for c = 0); returns int(c)."""
-  d = max(c, 1.0)
-  mx, my, mz = s0 / d, s1 / d, s2 / d
+def add_moment(s, dx, dy, dz):
+  """The running sums s (`NO_MOMENTS` to start) with the offset (dx, dy, dz) added."""
+  return (s[0] + 1.0, s[1] + dx, s[2] + dy, s[3] + dz, s[4] + dx * dx, s[5] + dx * dy,
+          s[6] + dx * dz, s[7] + dy * dy, s[8] + dy * dz, s[9] + dz * dz)
+
+
+@nb.njit(inline="always")
+def store_moments(s, mean, cov):
+  """From the running sums s (`add_moment`), the centroid into mean (3,) and the covariance
+  about it into cov (3, 3) (zeros for no point); returns the count."""
+  d = max(s[0], 1.0)
+  mx, my, mz = s[1] / d, s[2] / d, s[3] / d
   mean[0], mean[1], mean[2] = mx, my, mz
-  cov[0, 0] = sxx / d - mx * mx
-  cov[0, 1] = cov[1, 0] = sxy / d - mx * my
-  cov[0, 2] = cov[2, 0] = sxz / d - mx * mz
-  cov[1, 1] = syy / d - my * my
-  cov[1, 2] = cov[2, 1] = syz / d - my * mz
-  cov[2, 2] = szz / d - mz * mz
-  return int(c)
+  cov[0, 0] = s[4] / d - mx * mx
+  cov[0, 1] = cov[1, 0] = s[5] / d - mx * my
+  cov[0, 2] = cov[2, 0] = s[6] / d - mx * mz
+  cov[1, 1] = s[7] / d - my * my
+  cov[1, 2] = cov[2, 1] = s[8] / d - my * mz
+  cov[2, 2] = s[9] / d - mz * mz
+  return int(s[0])
 
 
 @nb.njit(inline="always")
@@ -370,20 +381,10 @@ def _stats_one(pts, starts, cx, cy, cz, r2, nr, js, je, mean, cov, off):
       off[1, n] = dy
       off[2, n] = dz
       n += 1 if dx * dx + dy * dy + dz * dz <= r2 else 0
-  s0 = s1 = s2 = 0.0
-  sxx = sxy = sxz = syy = syz = szz = 0.0
+  s = NO_MOMENTS
   for e in range(n):
-    dx, dy, dz = off[0, e], off[1, e], off[2, e]
-    s0 += dx
-    s1 += dy
-    s2 += dz
-    sxx += dx * dx
-    sxy += dx * dy
-    sxz += dx * dz
-    syy += dy * dy
-    syz += dy * dz
-    szz += dz * dz
-  return store_moments(float(n), s0, s1, s2, sxx, sxy, sxz, syy, syz, szz, mean, cov)
+    s = add_moment(s, off[0, e], off[1, e], off[2, e])
+  return store_moments(s, mean, cov)
 
 
 @nb.njit(inline="always")

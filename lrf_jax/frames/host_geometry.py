@@ -99,26 +99,15 @@ def better(score, d2, idx, best_score, best_d2, best_idx):
 def inner_stats(points, center, ball, start, stop, rz2, mean, cov):
   """Count, centroid offset and covariance about the centroid of the listed points within
   sqrt(rz2) of `center`, as the engine's r/3 statistics (`engine.ball_stats`) compute them."""
-  c = 0.0
-  s0 = s1 = s2 = 0.0
-  sxx = sxy = sxz = syy = syz = szz = 0.0
+  s = engine.NO_MOMENTS
   for t in range(start, stop):
     j = ball[t]
     dx = points[j, 0] - center[0]
     dy = points[j, 1] - center[1]
     dz = points[j, 2] - center[2]
     if dx * dx + dy * dy + dz * dz <= rz2:
-      c += 1.0
-      s0 += dx
-      s1 += dy
-      s2 += dz
-      sxx += dx * dx
-      sxy += dx * dy
-      sxz += dx * dz
-      syy += dy * dy
-      syz += dy * dz
-      szz += dz * dz
-  return engine.store_moments(c, s0, s1, s2, sxx, sxy, sxz, syy, syz, szz, mean, cov)
+      s = engine.add_moment(s, dx, dy, dz)
+  return engine.store_moments(s, mean, cov)
 
 
 @nb.njit(inline="always")

@@ -270,22 +270,26 @@ def _column_runs(cx, cy, cz, origin, h, dims, starts, r, reach, js, je, inner, j
 
 
 @nb.njit(inline="always")
+def _count_slots(pts, a, b, cx, cy, cz, r2):
+  """Points of slots a..b-1 within sqrt(r2) of (cx, cy, cz)."""
+  c = 0
+  for j in range(a, b):
+    dx = pts[0, j] - cx
+    dy = pts[1, j] - cy
+    dz = pts[2, j] - cz
+    c += (dx * dx + dy * dy + dz * dz) <= r2
+  return c
+
+
+@nb.njit(inline="always")
 def _count_runs(pts, starts, cx, cy, cz, r2, nr, js, je, ji, jk):
   """Points within sqrt(r2) of (cx, cy, cz) in the ranges js..je whose cells ji..jk are inside
   the ball (`_column_runs`): those cells count whole, the others point by point."""
   c = 0
   for q in range(nr):
     c += starts[jk[q]] - starts[ji[q]]
-    for j in range(starts[js[q]], starts[ji[q]]):
-      dx = pts[0, j] - cx
-      dy = pts[1, j] - cy
-      dz = pts[2, j] - cz
-      c += (dx * dx + dy * dy + dz * dz) <= r2
-    for j in range(starts[jk[q]], starts[je[q]]):
-      dx = pts[0, j] - cx
-      dy = pts[1, j] - cy
-      dz = pts[2, j] - cz
-      c += (dx * dx + dy * dy + dz * dz) <= r2
+    c += _count_slots(pts, starts[js[q]], starts[ji[q]], cx, cy, cz, r2)
+    c += _count_slots(pts, starts[jk[q]], starts[je[q]], cx, cy, cz, r2)
   return c
 
 

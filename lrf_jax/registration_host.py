@@ -70,7 +70,9 @@ def lrf_hypotheses(src: np.ndarray, src_frames: np.ndarray, dst: np.ndarray,
 
 
 @nb.njit(parallel=True, cache=True)
-def _count_inliers(rs, ts, src, dst, t2):
+def _inliers(rs, ts, src, dst, t2, masks):
+  """Per pose h, the count of the m with |R_h src[m] + t_h - dst[m]|^2 <= t2; for the first
+  masks.shape[0] poses also which m (into masks[h])."""
   out = np.zeros(rs.shape[0], np.int64)
   for h in nb.prange(rs.shape[0]):
     r = rs[h]
@@ -80,9 +82,21 @@ def _count_inliers(rs, ts, src, dst, t2):
       ex = r[0, 0] * x + r[0, 1] * y + r[0, 2] * z + ts[h, 0] - dst[m, 0]
       ey = r[1, 0] * x + r[1, 1] * y + r[1, 2] * z + ts[h, 1] - dst[m, 1]
       ez = r[2, 0] * x + r[2, 1] * y + r[2, 2] * z + ts[h, 2] - dst[m, 2]
-      c += (ex * ex + ey * ey + ez * ez) <= t2
+      inside = (ex * ex + ey * ey + ez * ez) <= t2
+      c += inside
+      if h < masks.shape[0]:
+        masks[h, m] = inside
     out[h] = c
   return out
+
+
+def _run_inliers(rotations, translations, src, dst, threshold, n_masks):
+  masks = np.zeros((n_masks, len(src)), bool)
+  counts = _inliers(np.ascontiguousarray(rotations, np.float64).reshape(-1, 3, 3),
+                    np.ascontiguousarray(translations, np.float64).reshape(-1, 3),
+                    np.ascontiguousarray(src, np.float64), np.ascontiguousarray(dst, np.float64),
+                    float(threshold) ** 2, masks)
+  return counts, masks
 
 
 def count_inliers(rotations: np.ndarray, translations: np.ndarray, src: np.ndarray,
@@ -94,17 +108,14 @@ def count_inliers(rotations: np.ndarray, translations: np.ndarray, src: np.ndarr
     src, dst: (M, 3) corresponding points.
     threshold: inlier distance (cloud units).
   """
-  return _count_inliers(np.ascontiguousarray(rotations, np.float64),
-                        np.ascontiguousarray(translations, np.float64),
-                        np.ascontiguousarray(src, np.float64),
-                        np.ascontiguousarray(dst, np.float64), float(threshold) ** 2)
+  return _run_inliers(rotations, translations, src, dst, threshold, 0)[0]
 
 
 def inlier_mask(rotation: np.ndarray, translation: np.ndarray, src: np.ndarray, dst: np.ndarray,
                 threshold: float) -> np.ndarray:
-  """(M,) bool: |R src + t - dst| <= threshold for one pose (R (3, 3), t (3,))."""
-  res = np.asarray(src, np.float64) @ np.asarray(rotation).T + translation - dst
-  return np.einsum("mi,mi->m", res, res) <= float(threshold) ** 2
+  """(M,) bool: |R src + t - dst| <= threshold for one pose (R (3, 3), t (3,)), the test
+  `count_inliers` counts."""
+  return _run_inliers(rotation, translation, src, dst, threshold, 1)[1][0]
 
 
 def select_and_refine(rotation: np.ndarray, translation: np.ndarray, src: np.ndarray,

@@ -1,8 +1,8 @@
 """Radius search on the accelerator: fixed-shape voxel grids, the same patches as the host search.
 
-On a GPU the host cKDTree search is the whole cost of `compute_frames` (benchmarks/README.md: the
-jitted frames run at millions per second, the host search at thousands). This module builds the
-same `Patches` as `neighborhoods.build_patches` (for an integer K) inside one jitted function:
+On an accelerator the jitted frames are cheap next to the host search that feeds them; this
+module builds the same `Patches` as `neighborhoods.build_patches` (for an integer K) inside one
+jitted function, so that the patches never leave the device:
 
 * Host, once per cloud (numpy, O(n log n)): the cloud in seeded priority order (as `SearchIndex`),
   and two uniform grids, of cell edge r (the patch) and z_ratio * r (the normal support). Each

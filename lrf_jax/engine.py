@@ -7,22 +7,27 @@ multi-threaded over query points (`parallel=True`).
 
 Design:
 
-* A `Grid` bins the cloud into cubic cells of side h >= the largest query radius and stores the
-  points sorted by (cell, rank) with a counting sort, O(n). `rank` is any permutation of the
-  point indices; the patch search uses the seeded priority order of `hash_priority`, so that
-  within every cell the points come in priority order.
-* A ball query scans the 3 x 3 x 3 cells around the query's cell (h >= r makes them cover the
-  ball) and tests every point with cKDTree's rule: float64 squared distance, summed over x, y, z
-  in that order, `<= r * r`.
+* A `Grid` bins the cloud into cubic cells of side h (the patch search uses h = r / 3) and
+  stores the points sorted by (cell, rank) with a counting sort, O(n), one row per coordinate.
+  `rank` is any permutation of the point indices; the patch search uses the seeded priority
+  order of `hash_priority`, so that within every cell the points come in priority order.
+* A ball query of radius r visits the columns (x cell, y cell) within ceil(r / h) cells whose
+  box comes within r of the centre, and in each column only the run of consecutive z cells the
+  ball's slice can reach (`_columns`); every point there is tested with cKDTree's rule: float64
+  squared distance, summed over x, y, z in that order, `<= r * r`. Cells whose box lies inside
+  the ball (with a margin) count whole without a test (`_column_runs`).
 * The patch kernel writes `Patches` directly: the ball's count, the float64 statistics of the
   inner ball (z_ratio * r: count, centroid, covariance about the centroid) and the K in-ball
-  points of smallest rank, sorted by rank (a partition of the in-ball ranks, then a sort of K).
-  The subsample is therefore exactly the one of `neighborhoods.hash_priority`: the same indices
-  whatever the search order, the thread count or the cloud's pose.
+  points of smallest rank, sorted by rank. Only the ranks below a limit that the K smallest lie
+  under but for about one ball in 10^4 are collected (a cell's scan stops there; a ball the
+  limit misses is collected again without it), then bucket-sorted by rank. The subsample is
+  therefore exactly the one of `neighborhoods.hash_priority`: the same indices whatever the
+  search order, the thread count or the cloud's pose.
 * Nearest-neighbour queries (ICP pairs, mesh areas, the normal-orientation graph) grow the
   scanned cube of cells ring by ring around the query's cell until the k-th distance found (or
   the bound) is within the ring's guaranteed radius; `icp_sums` reduces one ICP step's pairs to
-  their sums in the same pass. "Any point within r" (overlap scores) scans the 27 cells.
+  their sums in the same pass. "Any point within r" (overlap scores) visits the ball's columns
+  and stops at the first point found.
 
 Threads: `set_num_threads(n)` or the environment variable `LRF_JAX_NUM_THREADS` (read at import);
 the default is every core numba sees. Results do not depend on the thread count: each query's
@@ -41,8 +46,8 @@ import numba as nb
 import numpy as np
 
 _ENV_THREADS = "LRF_JAX_NUM_THREADS"
-# Cells of h = r * (1 + _CELL_MARGIN): the 27 cells cover the ball even when the floor of
-# (p - origin) / h rounds across a cell boundary.
+# Cells are enlarged by this factor over the requested side (a cell side is a speed setting:
+# ball queries prune columns with their own margin, `_PRUNE_MARGIN`).
 _CELL_MARGIN = 1e-6
 _BLOCK = 32  # queries per parallel task
 _SHELL_SLACK = 1e-5
@@ -146,8 +151,9 @@ class Grid:
 
   Args:
     points: (n, 3) float64 cloud (finite; not checked here).
-    cell: cell side h (cloud units), at least the largest radius that will be queried; it is
-      enlarged when the cloud's bounding box would need more than max(8 n, 4096) cells.
+    cell: cell side h (cloud units); any radius can be queried (a ball of radius r visits
+      ceil(r / h) cells each way), the side only sets the speed. It is enlarged when the
+      cloud's bounding box would need more than max(8 n, 4096) cells.
     rank: (n,) permutation of 0..n-1; within a cell, points are stored by increasing rank
       (default: the point index).
 

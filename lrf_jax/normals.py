@@ -170,8 +170,40 @@ def pca_normals(points: np.ndarray, radius: float, *, grid: engine.Grid | None =
   return normals
 
 
+@nb.njit(inline="always")
+def face_cross(pts, f, k):
+  """(p1 - p0) × (p2 - p0) of face k (pts (n, 3) float64, f (f, 3) int64): twice its area
+  times its unit normal, as a tuple of three floats (numba, inline)."""
+  i0, i1, i2 = f[k, 0], f[k, 1], f[k, 2]
+  ux, uy, uz = pts[i1, 0] - pts[i0, 0], pts[i1, 1] - pts[i0, 1], pts[i1, 2] - pts[i0, 2]
+  vx, vy, vz = pts[i2, 0] - pts[i0, 0], pts[i2, 1] - pts[i0, 1], pts[i2, 2] - pts[i0, 2]
+  return uy * vz - uz * vy, uz * vx - ux * vz, ux * vy - uy * vx
+
+
+@nb.njit(cache=True, error_model="numpy")  # x / 0 -> inf or nan, as numpy
+def _vertex_normals(pts, f):
+  n = pts.shape[0]
+  acc = np.zeros((n, 3))
+  for c in range(3):  # corner by corner, each corner's faces in order
+    for k in range(f.shape[0]):
+      x, y, z = face_cross(pts, f, k)
+      v = f[k, c]
+      acc[v, 0] += x
+      acc[v, 1] += y
+      acc[v, 2] += z
+  out = np.empty((n, 3))
+  for v in range(n):
+    norm = np.sqrt(acc[v, 0] * acc[v, 0] + acc[v, 1] * acc[v, 1] + acc[v, 2] * acc[v, 2])
+    for a in range(3):
+      out[v, a] = acc[v, a] / norm if norm != 0.0 else np.nan
+  return out
+
+
 def vertex_normals(points: np.ndarray, faces: np.ndarray) -> np.ndarray:
   """Area-weighted vertex normals of a triangle mesh (orientation from the faces' winding).
+
+  Each vertex sums (p1 - p0) × (p2 - p0) (twice the area times the unit normal) of its faces
+  and normalises the sum.
 
   Args:
     points: (n, 3) vertices.
@@ -180,17 +212,9 @@ def vertex_normals(points: np.ndarray, faces: np.ndarray) -> np.ndarray:
   Returns:
     (n, 3) float64 unit normals; NaN for vertices without (non-degenerate) faces.
   """
-  pts = np.asarray(points, np.float64)
-  f = np.asarray(faces, np.int64)
-  cross = np.cross(pts[f[:, 1]] - pts[f[:, 0]], pts[f[:, 2]] - pts[f[:, 0]])  # 2·area·n
-  rows = f.T.reshape(-1)  # the three corners' faces, corner by corner
-  acc = np.stack([np.bincount(rows, weights=np.tile(cross[:, a], 3), minlength=len(pts))
-                  for a in range(3)], 1)
-  norm = np.linalg.norm(acc, axis=1, keepdims=True)
-  with np.errstate(invalid="ignore", divide="ignore"):
-    out = acc / norm
-  out[norm[:, 0] == 0] = np.nan
-  return out
+  pts = np.ascontiguousarray(points, np.float64)
+  f = np.ascontiguousarray(faces, np.int64)
+  return _vertex_normals(pts, f)
 
 
 def orient_by_reference(normals: np.ndarray, reference: np.ndarray) -> np.ndarray:
@@ -440,6 +464,42 @@ def estimate_normals(points: np.ndarray, normal_radius: float,
   return cache_last("normals", (pts, float(normal_radius), faces, viewpoint), compute)
 
 
+@nb.njit(inline="always")
+def _cot(pts, o, i, j):
+  """cot of the angle at vertex o of the triangle (o, i, j), clipped to +-1e3 (0 if undefined)."""
+  ux, uy, uz = pts[i, 0] - pts[o, 0], pts[i, 1] - pts[o, 1], pts[i, 2] - pts[o, 2]
+  vx, vy, vz = pts[j, 0] - pts[o, 0], pts[j, 1] - pts[o, 1], pts[j, 2] - pts[o, 2]
+  cx, cy, cz = uy * vz - uz * vy, uz * vx - ux * vz, ux * vy - uy * vx
+  cr = np.sqrt(cx * cx + cy * cy + cz * cz)
+  cot = (ux * vx + uy * vy + uz * vz) / cr
+  if np.isnan(cot):
+    return 0.0
+  return min(max(cot, -1e3), 1e3)
+
+
+@nb.njit(cache=True, error_model="numpy")  # x / 0 -> inf or nan, as numpy
+def _cotangent_laplacian(pts, f):
+  """(barycentric area (n,), the cotangent Laplacian's sum Σ_j w_ij (x_j - x_i) (n, 3))."""
+  n = pts.shape[0]
+  area = np.zeros(n)
+  for k in range(f.shape[0]):
+    x, y, z = face_cross(pts, f, k)
+    third = 0.5 * np.sqrt(x * x + y * y + z * z) / 3.0
+    for c in range(3):
+      area[f[k, c]] += third
+  lap = np.zeros((n, 3))
+  for c in range(3):  # the edge (i, j) opposite corner c of every face
+    for side in range(2):
+      for k in range(f.shape[0]):
+        i, j, o = f[k, (c + 1) % 3], f[k, (c + 2) % 3], f[k, c]
+        w = _cot(pts, o, i, j)
+        v = i if side == 0 else j
+        sgn = 1.0 if side == 0 else -1.0
+        for a in range(3):
+          lap[v, a] += sgn * (w * (pts[j, a] - pts[i, a]))
+  return area, lap
+
+
 def cotangent_laplacian_curvature(points: np.ndarray, faces: np.ndarray) -> np.ndarray:
   """Signed mean curvature per vertex from the cotangent Laplacian (uncached; see mean_curvature).
 
@@ -459,30 +519,12 @@ def cotangent_laplacian_curvature(points: np.ndarray, faces: np.ndarray) -> np.n
     Meyer, Desbrun, Schröder, Barr, "Discrete differential-geometry operators for triangulated
     2-manifolds", 2003.
   """
-  pts = np.asarray(points, np.float64)
-  f = np.asarray(faces, np.int64)
-  n = pts.shape[0]
-  e1 = pts[f[:, 1]] - pts[f[:, 0]]
-  e2 = pts[f[:, 2]] - pts[f[:, 0]]
-  tri_area = 0.5 * np.linalg.norm(np.cross(e1, e2), axis=1)
-  # Scatter-adds as bincounts (np.add.at is an order of magnitude slower).
-  area = np.bincount(f.reshape(-1), weights=np.repeat(tri_area / 3.0, 3), minlength=n)
-  rows, terms = [], []
-  for c in range(3):
-    i, j, o = f[:, (c + 1) % 3], f[:, (c + 2) % 3], f[:, c]  # edge (i, j) opposite vertex o
-    u, v = pts[i] - pts[o], pts[j] - pts[o]
-    cr = np.linalg.norm(np.cross(u, v), axis=1)
-    with np.errstate(invalid="ignore", divide="ignore"):
-      cot = np.einsum("ij,ij->i", u, v) / cr
-    cot = np.clip(np.nan_to_num(cot, nan=0.0, posinf=1e3, neginf=-1e3), -1e3, 1e3)
-    d = cot[:, None] * (pts[j] - pts[i])
-    rows += [i, j]
-    terms += [d, -d]
-  rows, terms = np.concatenate(rows), np.concatenate(terms)
-  lap = np.stack([np.bincount(rows, weights=terms[:, a], minlength=n) for a in range(3)], 1)
+  pts = np.ascontiguousarray(points, np.float64)
+  f = np.ascontiguousarray(faces, np.int64)
+  area, lap = _cotangent_laplacian(pts, f)
   with np.errstate(invalid="ignore", divide="ignore"):
     lap = lap / (2.0 * area[:, None])
-  vn = vertex_normals(pts, f)
+  vn = _vertex_normals(pts, f)
   h = -0.5 * np.einsum("ij,ij->i", np.nan_to_num(lap), np.nan_to_num(vn))
   return np.where(area > 0, h, 0.0)
 

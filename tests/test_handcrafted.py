@@ -202,6 +202,74 @@ def test_mean_curvature_sphere():
   np.testing.assert_allclose(h[interior], 0.5, rtol=0.05)
 
 
+def _numpy_mesh_reference(pts, faces):
+  """Vertex normals, cotangent curvature and GFrames' per-face A ∇f and vertex shares, written
+  with whole-array numpy ops (the formulas the numba kernels implement)."""
+  f = faces
+  n = len(pts)
+  rows = f.T.reshape(-1)
+  cross = np.cross(pts[f[:, 1]] - pts[f[:, 0]], pts[f[:, 2]] - pts[f[:, 0]])
+  acc = np.stack([np.bincount(rows, weights=np.tile(cross[:, a], 3), minlength=n)
+                  for a in range(3)], 1)
+  norm = np.linalg.norm(acc, axis=1, keepdims=True)
+  with np.errstate(invalid="ignore", divide="ignore"):
+    vn = acc / norm
+  vn[norm[:, 0] == 0] = np.nan
+  area = np.bincount(f.reshape(-1), weights=np.repeat(0.5 * np.linalg.norm(cross, axis=1) / 3, 3),
+                     minlength=n)
+  lap = np.zeros((n, 3))
+  for c in range(3):
+    i, j, o = f[:, (c + 1) % 3], f[:, (c + 2) % 3], f[:, c]
+    u, v = pts[i] - pts[o], pts[j] - pts[o]
+    with np.errstate(invalid="ignore", divide="ignore"):
+      cot = (u * v).sum(1) / np.linalg.norm(np.cross(u, v), axis=1)
+    cot = np.clip(np.nan_to_num(cot, nan=0.0, posinf=1e3, neginf=-1e3), -1e3, 1e3)
+    np.add.at(lap, i, cot[:, None] * (pts[j] - pts[i]))
+    np.add.at(lap, j, -cot[:, None] * (pts[j] - pts[i]))
+  with np.errstate(invalid="ignore", divide="ignore"):
+    lap = lap / (2 * area[:, None])
+  h = np.where(area > 0, -0.5 * (np.nan_to_num(lap) * np.nan_to_num(vn)).sum(1), 0.0)
+  hf = h[f] - h[f].mean(1, keepdims=True)
+  length = np.linalg.norm(cross, axis=1, keepdims=True)
+  nrm = np.where(length > 0, cross / np.where(length > 0, length, 1.0), 0.0)
+  tri = pts[f]
+  g = 0.5 * sum(hf[:, i:i + 1] * np.cross(nrm, tri[:, (i + 2) % 3] - tri[:, (i + 1) % 3])
+                for i in range(3))
+  share = np.stack([np.bincount(rows, weights=np.tile(g[:, a], 3), minlength=n)
+                    for a in range(3)], 1) / 3
+  edge = np.zeros(n)
+  for a, b in ((0, 1), (1, 2), (2, 0)):
+    length = np.linalg.norm(pts[f[:, a]] - pts[f[:, b]], axis=1)
+    np.maximum.at(edge, f[:, a], length)
+    np.maximum.at(edge, f[:, b], length)
+  return vn, h, g, share, edge
+
+
+def test_mesh_kernels_match_the_numpy_formulas(br_bunny):
+  """The numba mesh quantities (vertex normals, cotangent curvature, GFrames' face gradients and
+  vertex shares) equal whole-array numpy formulas on a real mesh with a zero-area face, a face
+  that repeats a vertex and an isolated vertex added."""
+  from lrf_jax.frames import gframes as gf
+  pts, faces = br_bunny[0][:3000], np.asarray(br_bunny[1], np.int64)
+  faces = faces[(faces < 3000).all(1)]
+  pts = np.vstack([pts, pts[:2].mean(0), [[1e3, 1e3, 1e3]]])  # a collinear and an isolated vertex
+  n = len(pts)
+  faces = np.vstack([faces, [[0, 1, n - 2], [5, 5, 6]]])
+  vn, h, g, share, edge = _numpy_mesh_reference(pts, faces)
+  np.testing.assert_array_equal(nm.vertex_normals(pts, faces), vn)
+  got_h = nm.cotangent_laplacian_curvature(pts, faces)
+  np.testing.assert_allclose(got_h, h, rtol=1e-12, atol=1e-12 * np.abs(h).max())
+  assert got_h[n - 1] == 0.0 and np.isnan(nm.vertex_normals(pts, faces)[n - 1]).all()
+  nm._CACHE.clear()
+  g2, gn2, share2, share_n2, ok2, edge2 = gf.vertex_shares(pts, faces)
+  scale = np.abs(g).max()
+  np.testing.assert_allclose(g2, g, atol=1e-9 * scale)
+  np.testing.assert_allclose(gn2, np.linalg.norm(g2, axis=1), rtol=1e-15)
+  np.testing.assert_allclose(share2, share, atol=1e-9 * scale)
+  np.testing.assert_array_equal(edge2, edge)
+  assert ok2.all()
+
+
 # ----------------------------------------------------------------------------------------------
 # TOLDI: the original signed weight vs the paper's unsigned one.
 # ----------------------------------------------------------------------------------------------

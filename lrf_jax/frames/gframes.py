@@ -39,7 +39,7 @@ from lrf_jax.frames.rops import gather_triangles, validate_faces, vertex_faces
 from lrf_jax.frames.spec import KEYPOINT, TRIANGLE, TRIANGLE_MASK, MethodSpec
 from lrf_jax.geometry import sanitize
 from lrf_jax.neighborhoods import Patches
-from lrf_jax.normals import cache_last, default_normals, mean_curvature
+from lrf_jax.normals import cache_last, default_normals, face_cross, mean_curvature
 
 X_EPS = 1e-5
 
@@ -139,49 +139,80 @@ def gframes_frames(patches: Patches, tri: jax.Array, tri_mask: jax.Array, tri_f:
 # triangles and without the `MAX_TRIANGLES` subsample: `compute_frames`' default on the CPU.
 
 
+@nb.njit(cache=True, error_model="numpy")  # x / 0 -> inf or nan, as numpy
+def _face_gradients(pts, f, hv):
+  """A ∇f (f, 3) of the vertex function hv on every face, and whether hv is finite at its
+  three vertices (f,) (zero f on the others); as `area_gradient`, float64."""
+  m = f.shape[0]
+  g = np.zeros((m, 3))
+  ok = np.empty(m, np.bool_)
+  for k in range(m):
+    h0, h1, h2 = hv[f[k, 0]], hv[f[k, 1]], hv[f[k, 2]]
+    ok[k] = np.isfinite(h0) and np.isfinite(h1) and np.isfinite(h2)
+    if not ok[k]:
+      h0 = h1 = h2 = 0.0
+    x, y, z = face_cross(pts, f, k)
+    length = np.sqrt(x * x + y * y + z * z)
+    nx, ny, nz = (x / length, y / length, z / length) if length > 0 else (0.0, 0.0, 0.0)
+    mean = (h0 + h1 + h2) / 3.0
+    hs = (h0 - mean, h1 - mean, h2 - mean)
+    for i in range(3):
+      a, b = f[k, (i + 2) % 3], f[k, (i + 1) % 3]
+      ex, ey, ez = pts[a, 0] - pts[b, 0], pts[a, 1] - pts[b, 1], pts[a, 2] - pts[b, 2]
+      hi = hs[i]
+      g[k, 0] += hi * (ny * ez - nz * ey)
+      g[k, 1] += hi * (nz * ex - nx * ez)
+      g[k, 2] += hi * (nx * ey - ny * ex)
+    for a in range(3):
+      g[k, a] = 0.5 * g[k, a]
+  return g, ok
+
+
 def face_gradients(points: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
   """(g (f, 3) float64 A ∇f of the mean curvature on every face, as `area_gradient`;
   ok (f,) bool: f finite at its three vertices)."""
-  pts = np.asarray(points, np.float64)
-  f = np.asarray(faces, np.int64)
-  h = mean_curvature(pts, f)[f]  # (f, 3)
-  ok = np.isfinite(h).all(axis=1)
-  h = np.where(ok[:, None], h, 0.0)
-  tri = pts[f]
-  nrm = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
-  length = np.linalg.norm(nrm, axis=1, keepdims=True)
-  nrm = np.where(length > 0, nrm / np.where(length > 0, length, 1.0), 0.0)
-  h = h - h.mean(axis=1, keepdims=True)
-  g = np.zeros_like(nrm)
-  for i in range(3):
-    g += h[:, i:i + 1] * np.cross(nrm, tri[:, (i + 2) % 3] - tri[:, (i + 1) % 3])
-  return 0.5 * g, ok
+  pts = np.ascontiguousarray(points, np.float64)
+  f = np.ascontiguousarray(faces, np.int64)
+  return _face_gradients(pts, f, np.ascontiguousarray(mean_curvature(pts, f)))
+
+
+@nb.njit(cache=True, error_model="numpy")  # x / 0 -> inf or nan, as numpy
+def _vertex_shares(pts, f, g, ok):
+  n = pts.shape[0]
+  gn = np.empty(f.shape[0])
+  for k in range(f.shape[0]):
+    gn[k] = np.sqrt(g[k, 0] * g[k, 0] + g[k, 1] * g[k, 1] + g[k, 2] * g[k, 2])
+  share = np.zeros((n, 3))
+  share_n = np.zeros(n)
+  bad = np.zeros(n)
+  edge = np.zeros(n)
+  for c in range(3):  # corner by corner, each corner's faces in order
+    for k in range(f.shape[0]):
+      v = f[k, c]
+      for a in range(3):
+        share[v, a] += g[k, a]
+      share_n[v] += gn[k]
+      bad[v] += 0.0 if ok[k] else 1.0
+      u = f[k, (c + 1) % 3]
+      dx, dy, dz = pts[v, 0] - pts[u, 0], pts[v, 1] - pts[u, 1], pts[v, 2] - pts[u, 2]
+      length = np.sqrt(dx * dx + dy * dy + dz * dz)
+      edge[v] = max(edge[v], length)
+      edge[u] = max(edge[u], length)
+  for v in range(n):
+    for a in range(3):
+      share[v, a] /= 3.0
+    share_n[v] /= 3.0
+  return gn, share, share_n, bad == 0.0, edge
 
 
 def vertex_shares(points: np.ndarray, faces: np.ndarray
                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
   """Per face: (g (f, 3) its A ∇f, |g| (f,)); per vertex: a third of the g and of the |g| of
   its faces (n, 3), (n,), whether all its faces' f is finite (n,), and its longest edge (n,)."""
-  pts = np.asarray(points, np.float64)
-  f = np.asarray(faces, np.int64)
+  pts = np.ascontiguousarray(points, np.float64)
+  f = np.ascontiguousarray(faces, np.int64)
   g, ok = face_gradients(pts, f)
-  gn = np.linalg.norm(g, axis=1)
-  n = len(pts)
-  rows = f.T.reshape(-1)
-  share = np.stack([np.bincount(rows, weights=np.tile(g[:, a], 3), minlength=n)
-                    for a in range(3)], 1) / 3.0
-  share_n = np.bincount(rows, weights=np.tile(gn, 3), minlength=n) / 3.0
-  bad = np.bincount(rows, weights=np.tile((~ok).astype(float), 3), minlength=n)
-  ends = np.concatenate([f[:, [a, b]] for a, b in ((0, 1), (1, 2), (2, 0))])
-  length = np.linalg.norm(pts[ends[:, 0]] - pts[ends[:, 1]], axis=1)
-  who, length = ends.T.reshape(-1), np.tile(length, 2)
-  order = np.argsort(who, kind="stable")
-  who, length = who[order], length[order]
-  first = np.flatnonzero(np.r_[True, who[1:] != who[:-1]])
-  edge = np.zeros(n)
-  if len(who):
-    edge[who[first]] = np.maximum.reduceat(length, first)
-  return g, gn, share, share_n, bad == 0, edge
+  return (g,) + _vertex_shares(pts, f, g, ok)
 
 
 @nb.njit(parallel=True, cache=True)

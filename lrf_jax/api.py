@@ -189,10 +189,10 @@ def compute_frames(
   """Local reference frames of `keypoints` of a cloud, by any registered method.
 
   The radius search runs on the host (the compiled engine, `lrf_jax.engine`, all cores) or on the
-  accelerator (`search`), keypoints are processed in fixed-size chunks (the last one padded) so
-  that memory is bounded and one compiled function serves every chunk; the frames are computed
-  by the method's jitted function, or on a CPU backend by its compiled host kernel where it has
-  one (`kernel`).
+  accelerator (`search`), keypoints are processed in fixed-size chunks (for the jitted functions
+  the last one padded) so that memory is bounded and one compiled function serves every chunk;
+  the frames are computed by the method's jitted function, or on a CPU backend by its compiled
+  host kernel where it has one (`kernel`; these visit the keypoints in grid-cell order).
 
   Args:
     points: the cloud: an (n, 3) array of finite floats (any units), an `lrf_jax.io.Cloud`, a
@@ -279,8 +279,15 @@ def compute_frames(
   if host_patches and spec.needs_params and int(host_options.get("lut", 0) or 0) > 1:
     params = _weight_table(params, int(host_options["lut"]), host=True)
 
+  # The host kernels compile no shapes: no padded chunk, and the keypoints visited in grid-cell
+  # order, so that a chunk's balls share their points in the caches (frames depend on their
+  # keypoint alone; they are returned in the caller's order).
+  host = on_host or host_patches
+  visit = (engine.query_order(search_patches.index.grid(radius), points[keypoints]) if host
+           else np.arange(m))
+
   def run(idx: np.ndarray, n_real: int) -> tuple[jax.Array, jax.Array]:
-    kp = keypoints[idx]
+    kp = keypoints[visit[idx]]
     if on_host:
       return _host_frames_in_budget(spec, points, kp, radius, search_patches.index, faces,
                                     normals)
@@ -294,7 +301,13 @@ def compute_frames(
   n_dev = jax.local_device_count()
   chunk = min(int(chunk_size), -(-m // n_dev) * n_dev)  # a multiple of the devices: shardable
   show = bool(progress) or (progress is None and -(-m // chunk) > 4)
-  return map_chunks(run, m, chunk, progress=show, desc=f"{method} frames")
+  frames, valid = map_chunks(run, m, chunk, pad=not host, progress=show,
+                             desc=f"{method} frames")
+  if not host:
+    return frames, valid
+  back = np.empty(m, np.int64)
+  back[visit] = np.arange(m)
+  return jnp.asarray(np.asarray(frames)[back]), jnp.asarray(np.asarray(valid)[back])
 
 
 class _PatchSearch:
@@ -332,14 +345,24 @@ def _host_frames_in_budget(spec: MethodSpec, points: np.ndarray, kp: np.ndarray,
                            index: SearchIndex, faces: Any, normals: Any,
                            counts: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
   """`spec.host_frames` over `kp` in groups whose balls hold at most `HOST_NEIGHBOUR_BUDGET`
-  points together (one keypoint at least), so memory does not grow with the ball size."""
+  points together (one keypoint at least), so memory does not grow with the ball size.
+
+  The keypoints are visited in grid-cell order (`engine.query_order`), so that consecutive
+  balls share their points in the cores' caches; each frame depends on its keypoint alone, so
+  the results (returned in the order of `kp`) do not depend on it."""
+  grid = index.grid(radius)
   if counts is None:
-    counts = engine.ball_counts(index.grid(radius), points[kp], radius)
-  group = np.cumsum(counts) // HOST_NEIGHBOUR_BUDGET
+    counts = engine.ball_counts(grid, points[kp], radius)
+  order = engine.query_order(grid, points[kp])
+  group = np.cumsum(counts[order]) // HOST_NEIGHBOUR_BUDGET
   cuts = np.flatnonzero(np.diff(group)) + 1
   parts = [spec.host_frames(points, part, radius, index, faces=faces, normals=normals)
-           for part in np.split(kp, cuts)]
-  return np.concatenate([f for f, _ in parts]), np.concatenate([v for _, v in parts])
+           for part in np.split(kp[order], cuts)]
+  frames = np.empty((len(kp), 3, 3), np.float32)
+  valid = np.empty(len(kp), bool)
+  frames[order] = np.concatenate([f for f, _ in parts])
+  valid[order] = np.concatenate([v for _, v in parts])
+  return frames, valid
 
 
 def host_frames(points: np.ndarray, keypoints: np.ndarray, radius: float, method: str, *,

@@ -299,3 +299,18 @@ def test_host_fast_path_splits_by_a_neighbour_budget(monkeypatch):
   split = lrf_jax.compute_frames(points, keypoints, radius, "shot", kernel="host")
   np.testing.assert_array_equal(np.asarray(full[0]), np.asarray(split[0]))
   np.testing.assert_array_equal(np.asarray(full[1]), np.asarray(split[1]))
+
+
+@pytest.mark.parametrize("method", ["shot", "gframes", "lrf_net_plus"])
+def test_host_paths_return_frames_in_the_callers_order(method):
+  """The host paths visit keypoints in grid-cell order and pad no chunk: shuffled keypoints in
+  chunks that do not divide them give the same frames, row for row, as one call in order."""
+  points, faces, keypoints, radius = SYN
+  kp = np.concatenate([keypoints, keypoints[::-1]])  # repeats, and more than one chunk below
+  perm = np.random.default_rng(5).permutation(len(kp))
+  kw = dict(faces=faces) if lrf_jax.METHODS[method].needs_mesh else {}
+  f0, v0 = lrf_jax.compute_frames(points, kp, radius, method, **kw)
+  f1, v1 = lrf_jax.compute_frames(points, kp[perm], radius, method, chunk_size=7, **kw)
+  assert f1.shape == (len(kp), 3, 3) and v1.shape == (len(kp),)
+  np.testing.assert_array_equal(np.asarray(f1), np.asarray(f0)[perm])
+  np.testing.assert_array_equal(np.asarray(v1), np.asarray(v0)[perm])

@@ -278,9 +278,9 @@ def gframes_frames_host(points: np.ndarray, keypoints: np.ndarray, radius: float
   """
   pts, centers, ptr, ball = hg.ball_lists(points, keypoints, radius, index)
   f = validate_faces(faces, pts.shape[0])
-  g, gn, share, share_n, v_ok, edge = cache_last(
-      "gframes_vertex_shares", (pts, f), lambda: vertex_shares(pts, f))
-  vptr, vf = cache_last("vertex_faces", (f, pts.shape[0]), lambda: vertex_faces(f, pts.shape[0]))
+  # One cache entry (one digest of the mesh per call) for everything the kernel reads of it.
+  g, gn, share, share_n, v_ok, edge, vptr, vf = cache_last(
+      "gframes_mesh", (pts, f), lambda: vertex_shares(pts, f) + vertex_faces(f, pts.shape[0]))
   kp_n = np.ascontiguousarray(np.asarray(normals, np.float64)[np.asarray(keypoints)])
   return hg.run_kernel(_gframes_host_kernel, len(centers), pts, np.ascontiguousarray(f), vptr,
                        vf, centers, ptr, ball, float(radius), kp_n, g, gn, share, share_n, v_ok,

@@ -14,6 +14,7 @@ from __future__ import annotations
 import re
 from pathlib import Path
 
+import jax
 import numpy as np
 import pytest
 
@@ -312,5 +313,6 @@ def test_host_paths_return_frames_in_the_callers_order(method):
   f0, v0 = lrf_jax.compute_frames(points, kp, radius, method, **kw)
   f1, v1 = lrf_jax.compute_frames(points, kp[perm], radius, method, chunk_size=7, **kw)
   assert f1.shape == (len(kp), 3, 3) and v1.shape == (len(kp),)
+  assert all(isinstance(a, jax.Array) for a in (f0, v0, f1, v1))  # one chunk or several
   np.testing.assert_array_equal(np.asarray(f1), np.asarray(f0)[perm])
   np.testing.assert_array_equal(np.asarray(v1), np.asarray(v0)[perm])

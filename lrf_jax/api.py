@@ -305,9 +305,15 @@ def compute_frames(
                              desc=f"{method} frames")
   if not host:
     return frames, valid
-  back = np.empty(m, np.int64)
-  back[visit] = np.arange(m)
-  return jnp.asarray(np.asarray(frames)[back]), jnp.asarray(np.asarray(valid)[back])
+  frames, valid = _in_callers_order(visit, frames, valid)
+  return jnp.asarray(frames), jnp.asarray(valid)
+
+
+def _in_callers_order(order: np.ndarray, frames: Any, valid: Any) -> tuple[np.ndarray, np.ndarray]:
+  """Frames and validity computed for kp[order], as numpy arrays in the order of kp."""
+  back = np.empty_like(order)
+  back[order] = np.arange(len(order))
+  return np.asarray(frames)[back], np.asarray(valid)[back]
 
 
 class _PatchSearch:
@@ -345,24 +351,14 @@ def _host_frames_in_budget(spec: MethodSpec, points: np.ndarray, kp: np.ndarray,
                            index: SearchIndex, faces: Any, normals: Any,
                            counts: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
   """`spec.host_frames` over `kp` in groups whose balls hold at most `HOST_NEIGHBOUR_BUDGET`
-  points together (one keypoint at least), so memory does not grow with the ball size.
-
-  The keypoints are visited in grid-cell order (`engine.query_order`), so that consecutive
-  balls share their points in the cores' caches; each frame depends on its keypoint alone, so
-  the results (returned in the order of `kp`) do not depend on it."""
-  grid = index.grid(radius)
+  points together (one keypoint at least), so memory does not grow with the ball size."""
   if counts is None:
-    counts = engine.ball_counts(grid, points[kp], radius)
-  order = engine.query_order(grid, points[kp])
-  group = np.cumsum(counts[order]) // HOST_NEIGHBOUR_BUDGET
+    counts = engine.ball_counts(index.grid(radius), points[kp], radius)
+  group = np.cumsum(counts) // HOST_NEIGHBOUR_BUDGET
   cuts = np.flatnonzero(np.diff(group)) + 1
   parts = [spec.host_frames(points, part, radius, index, faces=faces, normals=normals)
-           for part in np.split(kp[order], cuts)]
-  frames = np.empty((len(kp), 3, 3), np.float32)
-  valid = np.empty(len(kp), bool)
-  frames[order] = np.concatenate([f for f, _ in parts])
-  valid[order] = np.concatenate([v for _, v in parts])
-  return frames, valid
+           for part in np.split(kp, cuts)]
+  return np.concatenate([f for f, _ in parts]), np.concatenate([v for _, v in parts])
 
 
 def host_frames(points: np.ndarray, keypoints: np.ndarray, radius: float, method: str, *,
@@ -371,6 +367,7 @@ def host_frames(points: np.ndarray, keypoints: np.ndarray, radius: float, method
                 ) -> tuple[np.ndarray, np.ndarray]:
   """A method's host fast path over every neighbour (`compute_frames(kernel="host")` without the
   argument checks, normal estimation or chunking): for callers that already hold the index.
+  Keypoints are visited in grid-cell order; the results come back in the order given.
 
   Args:
     points: (n, 3) float64 cloud, validated.
@@ -389,8 +386,12 @@ def host_frames(points: np.ndarray, keypoints: np.ndarray, radius: float, method
   spec = _spec(method)
   if spec.host_frames is None:
     raise ValueError(f"method {method!r} has no host fast path (METHODS[method].host_frames)")
-  return _host_frames_in_budget(spec, points, np.asarray(keypoints, np.int64), float(radius),
-                                index, faces, normals, ball_counts)
+  kp = np.asarray(keypoints, np.int64)
+  order = engine.query_order(index.grid(radius), points[kp])  # cache-friendly, as compute_frames
+  counts = None if ball_counts is None else np.asarray(ball_counts)[order]
+  frames, valid = _host_frames_in_budget(spec, points, kp[order], float(radius), index, faces,
+                                         normals, counts)
+  return _in_callers_order(order, frames, valid)
 
 
 def _use_host_kernel(spec: MethodSpec, kernel: str, k: int | None, options: dict,

@@ -183,14 +183,14 @@ def face_cross(pts, f, k):
 @nb.njit(cache=True, error_model="numpy")  # x / 0 -> inf or nan, as numpy
 def _vertex_normals(pts, f):
   n = pts.shape[0]
+  cross = np.empty((f.shape[0], 3))
+  for k in range(f.shape[0]):
+    cross[k, 0], cross[k, 1], cross[k, 2] = face_cross(pts, f, k)
   acc = np.zeros((n, 3))
   for c in range(3):  # corner by corner, each corner's faces in order
     for k in range(f.shape[0]):
-      x, y, z = face_cross(pts, f, k)
-      v = f[k, c]
-      acc[v, 0] += x
-      acc[v, 1] += y
-      acc[v, 2] += z
+      for a in range(3):
+        acc[f[k, c], a] += cross[k, a]
   out = np.empty((n, 3))
   for v in range(n):
     norm = np.sqrt(acc[v, 0] * acc[v, 0] + acc[v, 1] * acc[v, 1] + acc[v, 2] * acc[v, 2])
@@ -488,15 +488,17 @@ def _cotangent_laplacian(pts, f):
     for c in range(3):
       area[f[k, c]] += third
   lap = np.zeros((n, 3))
-  for c in range(3):  # the edge (i, j) opposite corner c of every face
+  w = np.empty(f.shape[0])
+  for c in range(3):  # the edge (i, j) opposite corner c of every face: + at i, then - at j
+    for k in range(f.shape[0]):
+      w[k] = _cot(pts, f[k, c], f[k, (c + 1) % 3], f[k, (c + 2) % 3])
     for side in range(2):
       for k in range(f.shape[0]):
-        i, j, o = f[k, (c + 1) % 3], f[k, (c + 2) % 3], f[k, c]
-        w = _cot(pts, o, i, j)
+        i, j = f[k, (c + 1) % 3], f[k, (c + 2) % 3]
         v = i if side == 0 else j
         sgn = 1.0 if side == 0 else -1.0
         for a in range(3):
-          lap[v, a] += sgn * (w * (pts[j, a] - pts[i, a]))
+          lap[v, a] += sgn * (w[k] * (pts[j, a] - pts[i, a]))
   return area, lap
 
 

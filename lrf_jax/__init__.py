@@ -13,6 +13,7 @@ from lrf_jax.caches import clear_caches
 from lrf_jax.engine import set_num_threads
 from lrf_jax.frames import METHODS, MethodSpec, register_method
 from lrf_jax.frames.lrf_net import lrf_net_frames
+from lrf_jax.keypoints import iss_keypoints
 from lrf_jax.losses import batched_chamfer, chamfer, siamese_loss
 from lrf_jax.metrics import meancos, repeatability_summary
 from lrf_jax.model import default_params, init_params, load_params, save_params
@@ -34,6 +35,7 @@ __all__ = [
     "engine",
     "frames_from_patches",
     "init_params",
+    "iss_keypoints",
     "load_params",
     "lrf_net_frames",
     "meancos",

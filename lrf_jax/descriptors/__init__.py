@@ -36,7 +36,8 @@ from lrf_jax.descriptors import snapshots as _snapshots
 from lrf_jax.descriptors import toldi as _toldi
 from lrf_jax.descriptors.common import (ball_patches, bucket_k, local_coordinates, pad_patches,
                                        validate_frames)
-from lrf_jax.descriptors.matching import Matches, match_descriptors, top_correspondences
+from lrf_jax.descriptors.matching import (Matches, match_descriptors, select_correspondences,
+                                          top_correspondences)
 from lrf_jax.descriptors.rops import rops_descriptors
 from lrf_jax.descriptors.shot import shot_descriptors
 from lrf_jax.descriptors.snapshots import snapshot_descriptors
@@ -291,6 +292,7 @@ def compute_descriptors(
 
 
 __all__ = [
+    "select_correspondences",
     "DESCRIPTORS", "DescriptorSpec", "Matches", "compute_descriptors", "describe_patches",
     "descriptors_from_patches",
     "local_coordinates", "match_descriptors", "pad_patches", "rops_descriptors",

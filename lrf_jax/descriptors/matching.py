@@ -5,6 +5,11 @@ are found; the match is (query, nearest) with the score ratio = d1 / d2 in [0, 1
 distinctive). Recall vs 1-precision curves threshold this ratio (`lrf_jax.evaluation.description`),
 correspondence selection keeps the matches of smallest ratio (`lrf_jax.registration`).
 
+`select_correspondences` is the general selection: each query's k nearest references, mutual
+nearest neighbours, Lowe's ratio test, capped at n, best first. Every search is exact, blocked
+over the queries in one jitted call per block (the mutual check's reverse nearest queries come
+from the same distance block).
+
 References:
   Lowe, "Distinctive image features from scale-invariant keypoints", IJCV 2004 (the ratio test);
   Tombari et al. 2010 and Guo et al. 2016 (its use for recall vs 1-precision).
@@ -12,6 +17,7 @@ References:
 
 from __future__ import annotations
 
+import functools
 from typing import NamedTuple
 
 import jax
@@ -34,14 +40,94 @@ class Matches(NamedTuple):
   ratio: np.ndarray
 
 
-@jax.jit
-def _block(query: jax.Array, ref: jax.Array, ref_ok: jax.Array) -> tuple[jax.Array, jax.Array]:
+def _d2(query: jax.Array, ref: jax.Array, ref_ok: jax.Array) -> jax.Array:
+  """(b, n) squared L2 distances, inf where the reference is invalid."""
   q2 = jnp.sum(query * query, axis=1)
   r2 = jnp.sum(ref * ref, axis=1)
   d2 = q2[:, None] + r2[None, :] - 2.0 * query @ ref.T
-  d2 = jnp.where(ref_ok[None, :], jnp.maximum(d2, 0.0), jnp.inf)
-  neg, idx = jax.lax.top_k(-d2, 2)
+  return jnp.where(ref_ok[None, :], jnp.maximum(d2, 0.0), jnp.inf)
+
+
+@functools.partial(jax.jit, static_argnames="k")
+def _block(query: jax.Array, ref: jax.Array, ref_ok: jax.Array, k: int = 2
+           ) -> tuple[jax.Array, jax.Array]:
+  """The k nearest references of each query: squared distances (b, k) and indices (b, k),
+  nearest first (equal distances: lower index first, `lax.top_k`'s order)."""
+  neg, idx = jax.lax.top_k(-_d2(query, ref, ref_ok), k)
   return -neg, idx
+
+
+@functools.partial(jax.jit, static_argnames=("k", "kc"))
+def _block_both(query: jax.Array, query_ok: jax.Array, ref: jax.Array, ref_ok: jax.Array, k: int,
+                kc: int) -> tuple[jax.Array, ...]:
+  """`_block`'s k nearest references of each query, and the kc nearest valid queries of the
+  block for each reference: squared distances (n, kc) and block-local indices (n, kc)."""
+  d2 = _d2(query, ref, ref_ok)
+  neg, idx = jax.lax.top_k(-d2, k)
+  neg_c, idx_c = jax.lax.top_k(-jnp.where(query_ok[:, None], d2, jnp.inf).T, kc)
+  return -neg, idx, -neg_c, idx_c
+
+
+def _check_inputs(query, reference, query_valid, reference_valid):
+  q = np.asarray(query, np.float32)
+  r = np.asarray(reference, np.float32)
+  if q.ndim != 2 or r.ndim != 2 or q.shape[1] != r.shape[1]:
+    raise ValueError(f"descriptors: expected (m, D) queries and (n, D) references with the same "
+                     f"D, got {q.shape} and {r.shape}")
+  qv = np.ones(len(q), bool) if query_valid is None else np.asarray(query_valid, bool)
+  rv = np.ones(len(r), bool) if reference_valid is None else np.asarray(reference_valid, bool)
+  if qv.shape != (len(q),) or rv.shape != (len(r),):
+    raise ValueError(f"valid flags: expected shapes ({len(q)},) and ({len(r)},), got {qv.shape} "
+                     f"and {rv.shape}")
+  return q, r, qv, rv
+
+
+def _pad_rows(a: np.ndarray, rows: int) -> np.ndarray:
+  if len(a) >= rows:
+    return a
+  return np.concatenate([a, np.zeros((rows - len(a),) + a.shape[1:], a.dtype)])
+
+
+def _nearest(q: np.ndarray, r: np.ndarray, qv: np.ndarray, rv: np.ndarray, k: int, kc: int,
+             block: int) -> tuple[np.ndarray, ...]:
+  """Blocked exact search, m >= 1 queries and at least one valid reference.
+
+  Returns:
+    (d2 (m, k) float32, idx (m, k) int32): the k nearest valid references of every query
+    (inf and an arbitrary index past the valid ones); with kc > 0 also (d2c (n, kc), idxc
+    (n, kc) int64): the kc nearest valid queries of every reference, equal distances by lower
+    query index.
+  """
+  m = len(q)
+  ref = _pad_rows(r, k)  # top_k needs k columns: pad with invalid references
+  rv_pad = _pad_rows(rv, k)
+  ref_j, rv_j = jax.device_put(ref), jax.device_put(rv_pad)
+  b = max(min(block, m), kc)
+  d2 = np.empty((m, k), np.float32)
+  idx = np.empty((m, k), np.int32)
+  cols_d, cols_i = [], []
+  for s in range(0, m, b):
+    qb, n_real = _pad_rows(q[s:s + b], b), min(b, m - s)
+    if kc:
+      qok = _pad_rows(qv[s:s + b], b)
+      out = [np.asarray(a) for a in _block_both(qb, qok, ref_j, rv_j, k=k, kc=kc)]
+      cols_d.append(out[2][:len(r)])
+      cols_i.append(out[3][:len(r)].astype(np.int64) + s)
+    else:
+      out = [np.asarray(a) for a in _block(qb, ref_j, rv_j, k=k)]
+    d2[s:s + n_real], idx[s:s + n_real] = out[0][:n_real], out[1][:n_real]
+  if not kc:
+    return d2, idx
+  # Merge the blocks' candidates: a stable sort keeps equal distances in query order.
+  cd, ci = np.concatenate(cols_d, axis=1), np.concatenate(cols_i, axis=1)
+  order = np.argsort(cd, axis=1, kind="stable")[:, :kc]
+  return d2, idx, np.take_along_axis(cd, order, 1), np.take_along_axis(ci, order, 1)
+
+
+def _ratio(d1: np.ndarray, d_2: np.ndarray) -> np.ndarray:
+  """d1 / d2, 1 where there is no second reference (d2 inf) or d2 is 0."""
+  with np.errstate(divide="ignore", invalid="ignore"):
+    return np.where(np.isinf(d_2), 1.0, np.where(d_2 > 0, d1 / d_2, 1.0))
 
 
 def match_descriptors(query: np.ndarray, reference: np.ndarray, query_valid=None,
@@ -61,41 +147,17 @@ def match_descriptors(query: np.ndarray, reference: np.ndarray, query_valid=None
   Raises:
     ValueError: non-2-D inputs or different descriptor lengths.
   """
-  q = np.asarray(query, np.float32)
-  r = np.asarray(reference, np.float32)
-  if q.ndim != 2 or r.ndim != 2 or q.shape[1] != r.shape[1]:
-    raise ValueError(f"descriptors: expected (m, D) queries and (n, D) references with the same "
-                     f"D, got {q.shape} and {r.shape}")
-  qv = np.ones(len(q), bool) if query_valid is None else np.asarray(query_valid, bool)
-  rv = np.ones(len(r), bool) if reference_valid is None else np.asarray(reference_valid, bool)
-  if qv.shape != (len(q),) or rv.shape != (len(r),):
-    raise ValueError(f"valid flags: expected shapes ({len(q)},) and ({len(r)},), got {qv.shape} "
-                     f"and {rv.shape}")
+  q, r, qv, rv = _check_inputs(query, reference, query_valid, reference_valid)
   m = len(q)
   nearest = np.full(m, -1, np.int32)
   dist = np.full(m, np.inf, np.float32)
   ratio = np.full(m, np.inf, np.float32)
   if m == 0 or not rv.any():
     return Matches(nearest, dist, ratio)
-  ref = r
-  if len(r) < 2:  # top_k needs two columns: pad with an invalid reference
-    ref = np.concatenate([r, np.zeros((2 - len(r), r.shape[1]), np.float32)])
-    rv = np.concatenate([rv, np.zeros(2 - len(r), bool)])
-  ref_j, rv_j = jax.device_put(ref), jax.device_put(rv)
-  b = min(block, m)
-  for s in range(0, m, b):
-    qb = q[s:s + b]
-    n_real = len(qb)
-    if n_real < b:
-      qb = np.concatenate([qb, np.zeros((b - n_real, q.shape[1]), np.float32)])
-    d2, idx = (np.asarray(a)[:n_real] for a in _block(qb, ref_j, rv_j))
-    d1 = np.sqrt(d2[:, 0])
-    d_2 = np.sqrt(d2[:, 1])
-    nearest[s:s + n_real] = idx[:, 0]
-    dist[s:s + n_real] = d1
-    with np.errstate(divide="ignore", invalid="ignore"):
-      rt = np.where(np.isinf(d_2), 1.0, np.where(d_2 > 0, d1 / d_2, 1.0))
-    ratio[s:s + n_real] = rt
+  d2, idx = _nearest(q, r, qv, rv, 2, 0, block)
+  nearest[:] = idx[:, 0]
+  dist[:] = np.sqrt(d2[:, 0])
+  ratio[:] = _ratio(dist, np.sqrt(d2[:, 1]))
   nearest[~qv] = -1
   dist[~qv] = np.inf
   ratio[~qv] = np.inf
@@ -116,3 +178,96 @@ def top_correspondences(matches: Matches, n: int) -> tuple[np.ndarray, np.ndarra
   order = np.lexsort((ok, matches.distance[ok], matches.ratio[ok]))
   keep = ok[order[:max(0, int(n))]]
   return keep.astype(np.int64), matches.nearest[keep].astype(np.int64)
+
+
+def _option_int(value, name: str, least: int) -> int:
+  if isinstance(value, (bool, np.bool_)) or not isinstance(value, (int, np.integer)) \
+      or value < least:
+    raise ValueError(f"{name}: expected an integer >= {least}, got {value!r}")
+  return int(value)
+
+
+def _check_options(n, mutual, ratio, k, block) -> tuple[int | None, float | None, int]:
+  k = _option_int(k, "k", 1)
+  _option_int(block, "block", 1)
+  n = None if n is None else _option_int(n, "n", 0)
+  if not isinstance(mutual, (bool, np.bool_)):
+    raise ValueError(f"mutual: expected True or False, got {mutual!r}")
+  if ratio is not None:
+    try:
+      ratio = float(ratio)
+    except (TypeError, ValueError):
+      raise ValueError(f"ratio: expected a number in (0, 1] or None, got {ratio!r}") from None
+    if not 0.0 < ratio <= 1.0:  # NaN fails too
+      raise ValueError(f"ratio: expected a number in (0, 1] or None, got {ratio!r}")
+    if k != 1:
+      raise ValueError(f"ratio: Lowe's ratio test keeps one match per query and needs k=1, got "
+                       f"k={k}")
+  return n, ratio, k
+
+
+def select_correspondences(query: np.ndarray, reference: np.ndarray, query_valid=None,
+                           reference_valid=None, *, n: int | None = None, mutual: bool = False,
+                           ratio: float | None = None, k: int = 1, block: int = 1024
+                           ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+  """Correspondences between two descriptor sets (L2), best first.
+
+  Every valid query proposes its k nearest valid references (equal distances: lower reference
+  index first). Options filter the proposals:
+
+  * `mutual=True`: keep (i, j) only when i is also among the k nearest valid queries of
+    reference j (equal distances: lower query index first); for k=1, the mutual nearest
+    neighbours.
+  * `ratio=t` (k=1 only): Lowe's ratio test, keep (i, j) when d1 / d2 < t, d1 and d2 the
+    distances to the nearest and second-nearest valid references (d1 / d2 = 1 when there is a
+    single valid reference or d2 = 0, so such a query never passes).
+
+  With k=1 the correspondences are ordered by ratio d1 / d2, then distance, then query index
+  (`top_correspondences`'s order: `select_correspondences(q, r, n=N)` is
+  `top_correspondences(match_descriptors(q, r), N)`); with k > 1 by distance, then query
+  index, then reference index.
+
+  Args:
+    query: (m, D) descriptors.
+    reference: (r, D) descriptors.
+    query_valid: (m,) bool (None: all valid); invalid queries propose nothing.
+    reference_valid: (r,) bool (None: all valid); invalid references are never matched.
+    n: keep at most this many, the best (None: all).
+    mutual: keep mutual nearest neighbours only.
+    ratio: the ratio-test threshold in (0, 1] (None: no test).
+    k: proposals per query (fewer where fewer valid references exist).
+    block: queries per jitted call (memory: block x r floats).
+
+  Returns:
+    (query_idx (c,) int64, reference_idx (c,) int64, score (c,) float32), best first: score is
+    the ratio d1 / d2 for k=1, the L2 distance for k > 1.
+
+  Raises:
+    ValueError: inputs as `match_descriptors`; k, n or block not integers (k, block >= 1,
+      n >= 0), a ratio outside (0, 1], a ratio with k > 1, or a non-boolean `mutual`.
+  """
+  q, r, qv, rv = _check_inputs(query, reference, query_valid, reference_valid)
+  n, ratio, k = _check_options(n, mutual, ratio, k, block)
+  if len(q) == 0 or not rv.any() or not qv.any():
+    return np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0, np.float32)
+  found = _nearest(q, r, qv, rv, max(k, 2), k if mutual else 0, block)
+  d2, idx = found[0][:, :k], found[1][:, :k].astype(np.int64)
+  ok = np.isfinite(d2) & qv[:, None]
+  if mutual:  # i among the k nearest queries of its reference
+    back = found[3][np.where(ok, idx, 0)]  # (m, k, k)
+    ok &= (back == np.arange(len(q))[:, None, None]).any(axis=2)
+  dist = np.sqrt(d2)
+  if k == 1:
+    score = _ratio(dist, np.sqrt(found[0][:, 1:2])).astype(np.float32)
+    if ratio is not None:
+      ok &= score < ratio
+  qi, slot = np.nonzero(ok)
+  ri = idx[qi, slot]
+  if k == 1:
+    score, dist = score[qi, 0], dist[qi, 0]
+    order = np.lexsort((qi, dist, score))
+  else:
+    score = dist[qi, slot]
+    order = np.lexsort((ri, qi, d2[qi, slot]))
+  order = order if n is None else order[:n]
+  return qi[order].astype(np.int64), ri[order], score[order].astype(np.float32)

@@ -1,0 +1,169 @@
+"""Correspondence selection (`select_correspondences`): top-k, mutual nearest neighbours and
+Lowe's ratio test against a brute-force numpy reference."""
+
+from __future__ import annotations
+
+import itertools
+
+import numpy as np
+import pytest
+
+from lrf_jax.descriptors.matching import (match_descriptors, select_correspondences,
+                                          top_correspondences)
+
+
+def reference_select(q, r, qv=None, rv=None, *, n=None, mutual=False, ratio=None, k=1):
+  """The definition, brute force in float64 with stable sorts (lower index first on ties)."""
+  q, r = np.asarray(q, np.float64), np.asarray(r, np.float64)
+  qv = np.ones(len(q), bool) if qv is None else np.asarray(qv, bool)
+  rv = np.ones(len(r), bool) if rv is None else np.asarray(rv, bool)
+  d2 = ((q[:, None, :] - r[None, :, :]) ** 2).sum(-1)
+  d2[:, ~rv] = np.inf
+  d2_back = d2.copy()
+  d2_back[~qv, :] = np.inf
+
+  def nearest(row, kk):
+    order = np.argsort(row, kind="stable")[:kk]
+    return [int(j) for j in order if np.isfinite(row[j])]
+
+  rows = []
+  for i in np.flatnonzero(qv):
+    near = nearest(d2[i], max(k, 2))
+    if not near:
+      continue
+    d1 = np.sqrt(d2[i, near[0]])
+    if len(near) < 2:
+      rt = 1.0
+    else:
+      dd = np.sqrt(d2[i, near[1]])
+      rt = d1 / dd if dd > 0 else 1.0
+    if ratio is not None and not rt < ratio:
+      continue
+    for j in near[:k]:
+      if mutual and i not in nearest(d2_back[:, j], k):
+        continue
+      dist = np.sqrt(d2[i, j])
+      key = (rt, dist, i) if k == 1 else (dist, i, j)
+      rows.append((key, i, j, rt if k == 1 else dist))
+  rows.sort(key=lambda t: t[0])
+  rows = rows if n is None else rows[:n]
+  return (np.array([t[1] for t in rows], np.int64), np.array([t[2] for t in rows], np.int64),
+          np.array([t[3] for t in rows], np.float64))
+
+
+def _check(q, r, qv=None, rv=None, block=1024, rtol=1e-5, **opts):
+  qi, ri, score = select_correspondences(q, r, qv, rv, block=block, **opts)
+  eqi, eri, escore = reference_select(q, r, qv, rv, **opts)
+  assert qi.dtype == np.int64 and ri.dtype == np.int64 and score.dtype == np.float32
+  np.testing.assert_array_equal(qi, eqi, err_msg=str(opts))
+  np.testing.assert_array_equal(ri, eri, err_msg=str(opts))
+  np.testing.assert_allclose(score, escore, rtol=rtol, atol=1e-6, err_msg=str(opts))
+  return qi
+
+
+OPTIONS = [dict(mutual=m, ratio=t, k=1, n=n) for m, t, n in
+           itertools.product([False, True], [None, 0.9], [None, 25])]
+OPTIONS += [dict(mutual=m, k=kk, n=n) for m, kk, n in
+            itertools.product([False, True], [2, 5], [None, 40])]
+
+
+@pytest.mark.parametrize("opts", OPTIONS, ids=str)
+def test_random_descriptors_with_invalid_rows(opts):
+  rng = np.random.default_rng(0)
+  q, r = rng.normal(size=(150, 12)), rng.normal(size=(190, 12))
+  qv, rv = rng.random(150) > 0.15, rng.random(190) > 0.15
+  assert len(_check(q, r, qv, rv, **opts)) > 0
+  assert len(_check(q, r, qv, rv, block=37, **opts)) > 0  # several blocks, a ragged last one
+
+
+@pytest.mark.parametrize("opts", OPTIONS, ids=str)
+def test_ties_between_equal_descriptors(opts):
+  """Small integer descriptors: exact float32 distances, many exact ties, duplicate rows."""
+  rng = np.random.default_rng(1)
+  q = rng.integers(0, 3, (90, 5)).astype(np.float32)
+  r = rng.integers(0, 3, (70, 5)).astype(np.float32)
+  r[10:20] = r[0]  # duplicated references
+  q[30:40] = q[5]  # duplicated queries
+  qv, rv = rng.random(90) > 0.1, rng.random(70) > 0.1
+  _check(q, r, qv, rv, **opts)
+  _check(q, r, qv, rv, block=8, **opts)  # ties across blocks of the mutual search
+
+
+def test_k_larger_than_the_valid_references():
+  rng = np.random.default_rng(2)
+  q, r = rng.normal(size=(20, 6)), rng.normal(size=(7, 6))
+  rv = np.array([True, False, True, True, False, False, True])
+  qi, ri, _ = select_correspondences(q, r, None, rv, k=10)
+  assert len(qi) == 20 * 4 and set(ri.tolist()) <= {0, 2, 3, 6}
+  _check(q, r, None, rv, k=10)
+  _check(q, r, None, rv, k=10, mutual=True)
+  _check(q[:3], r, None, rv, k=6, mutual=True)  # fewer queries than k
+  _check(q, r[:1], k=1)  # a single reference: ratio 1
+  assert len(select_correspondences(q, r[:1], ratio=1.0)[0]) == 0
+
+
+def test_n_caps_and_larger_n_keeps_all():
+  rng = np.random.default_rng(3)
+  q, r = rng.normal(size=(60, 8)), rng.normal(size=(80, 8))
+  every = select_correspondences(q, r, k=3)
+  assert len(every[0]) == 180
+  for a, b in zip(select_correspondences(q, r, k=3, n=10 ** 6), every):
+    np.testing.assert_array_equal(a, b)
+  for a, b in zip(select_correspondences(q, r, k=3, n=17), every):
+    np.testing.assert_array_equal(a, b[:17])
+  assert all(len(a) == 0 for a in select_correspondences(q, r, n=0))
+
+
+def test_k1_equals_top_correspondences():
+  rng = np.random.default_rng(4)
+  q, r = rng.normal(size=(300, 16)), rng.normal(size=(250, 16))
+  qv, rv = rng.random(300) > 0.2, rng.random(250) > 0.2
+  m = match_descriptors(q, r, qv, rv)
+  for n in (1, 50, 1000):
+    qi, ri, score = select_correspondences(q, r, qv, rv, n=n)
+    eqi, eri = top_correspondences(m, n)
+    np.testing.assert_array_equal(qi, eqi)
+    np.testing.assert_array_equal(ri, eri)
+    np.testing.assert_array_equal(score, m.ratio[qi])
+
+
+def test_filters_are_subsets():
+  rng = np.random.default_rng(5)
+  q, r = rng.normal(size=(200, 10)), rng.normal(size=(200, 10))
+  r[:100] = q[:100] + 0.05 * rng.normal(size=(100, 10))  # 100 true matches
+  pairs = lambda out: set(zip(out[0].tolist(), out[1].tolist()))
+  every = pairs(select_correspondences(q, r))
+  mutual = pairs(select_correspondences(q, r, mutual=True))
+  lowe = pairs(select_correspondences(q, r, ratio=0.8))
+  assert mutual < every and lowe < every
+  assert {(i, i) for i in range(100)} <= mutual & lowe
+  assert pairs(select_correspondences(q, r, mutual=True, ratio=0.8)) == mutual & lowe
+
+
+def test_nothing_to_match():
+  q = np.zeros((4, 3))
+  for out in (select_correspondences(q, q, None, np.zeros(4, bool)),
+              select_correspondences(q, q, np.zeros(4, bool), None, mutual=True),
+              select_correspondences(np.zeros((0, 3)), q, k=3)):
+    assert [len(a) for a in out] == [0, 0, 0]
+    assert out[0].dtype == np.int64 and out[2].dtype == np.float32
+
+
+@pytest.mark.parametrize("kwargs, match", [
+    (dict(k=0), "k"), (dict(k=1.5), "k"), (dict(k=True), "k"),
+    (dict(n=-1), "n"), (dict(n=2.0), "n"),
+    (dict(ratio=0.0), "ratio"), (dict(ratio=1.5), "ratio"), (dict(ratio=float("nan")), "ratio"),
+    (dict(ratio="low"), "ratio"), (dict(ratio=0.8, k=2), "ratio.*k=1"),
+    (dict(mutual="yes"), "mutual"), (dict(block=0), "block"),
+])
+def test_bad_options_raise(kwargs, match):
+  q = np.zeros((5, 4))
+  with pytest.raises(ValueError, match=match):
+    select_correspondences(q, q, **kwargs)
+
+
+def test_bad_inputs_raise():
+  with pytest.raises(ValueError, match="same D"):
+    select_correspondences(np.zeros((3, 4)), np.zeros((3, 5)))
+  with pytest.raises(ValueError, match="valid flags"):
+    select_correspondences(np.zeros((3, 4)), np.zeros((3, 4)), np.ones(2, bool))

@@ -13,12 +13,12 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 import numpy as np  # noqa: E402
 from lrf_jax import datasets  # noqa: E402
 from lrf_jax.registration import register, rotation_error_deg  # noqa: E402
-print("| pair | expected | inliers | chance | overlap contrast | fitness | err_r deg | success |")
-print("|---|---|---:|---:|---:|---:|---:|---|")
+print("| pair | expected | inliers | chance | rival | fitness | err_r deg | success | reason |")
+print("|---|---|---:|---:|---:|---:|---:|---|---|")
 def run(name, a, b, expect, gt=None, **kw):
   r = register(a, b, **kw)
   e = f"{rotation_error_deg(r.transform[:3,:3], gt[:3,:3]):.2f}" if gt is not None else "-"
-  print(f"| {name} | {expect} | {r.n_inliers} | {r.chance_inliers} | {r.overlap_contrast:.2f} | {r.fitness:.3f} | {e} | {r.success} |", flush=True)
+  print(f"| {name} | {expect} | {r.n_inliers} | {r.chance_inliers} | {r.rival_inliers} | {r.fitness:.3f} | {e} | {r.success} | {r.reason} |", flush=True)
 pairs = datasets.load_bunny_pairs(None)
 for p in pairs: run("bunny " + p.name, p.model_points, p.scene_points, "success", p.transform)
 for p in datasets.load_br(None, 0.3)[:6]: run("BR " + p.name, p.model_points, p.scene_points, "success", p.transform)

@@ -3,9 +3,13 @@
 Prints the 4 x 4 transform that maps SRC onto TGT (rows, 9 significant digits), the inlier count
 of the coarse estimate, the final overlap (fitness) and RMSE and the verdict
 (`Registration.success`; exit code 3 when it failed, 2 for bad input); `--out` also writes the matrix as
-text (`numpy.loadtxt` reads it back). Inputs: any cloud or mesh `lrf_jax.io.read_cloud` reads
-(PLY, PCD, XYZ/TXT(.gz), NPY). Every length is in mesh resolutions of SRC unless `--mr` is given.
-This file is intentionally thin; the pipeline is `lrf_jax.registration.register`.
+text (`numpy.loadtxt` reads it back), atomically, and may not be one of the inputs. `--init`
+gives an initial source->target transform (a 4x4 text file as `lrf_jax.io.read_xf` reads, or
+a (4, 4) .npy) that `register` then only refines. Inputs: any cloud or mesh
+`lrf_jax.io.read_cloud` reads (PLY, PCD, XYZ/TXT(.gz), NPY). Every length is in mesh
+resolutions of SRC unless `--mr` is given. Every bad argument, unreadable input or unwritable
+output is one `error:` line and exit code 2. This file is intentionally thin; the pipeline is
+`lrf_jax.registration.register`.
 
     python -m lrf_jax.register_cli bun000.ply bun045.ply --out bun000_to_bun045.txt
 """
@@ -21,8 +25,9 @@ import numpy as np
 def build_parser() -> argparse.ArgumentParser:
   ap = argparse.ArgumentParser(prog="lrf-register",
                                description="Rigid registration of two scans with learned LRFs "
-                                           "(LRF-Net frames, TOLDI matching, one-point RANSAC, "
-                                           "ICP).")
+                                           "(LRF-Net frames, TOLDI matching, a compatibility "
+                                           "graph of correspondences and their LRF poses, "
+                                           "point-to-plane ICP).")
   ap.add_argument("source", help="the cloud to move (PLY, PCD, XYZ/TXT(.gz), NPY)")
   ap.add_argument("target", help="the cloud to align it to")
   ap.add_argument("--out", default=None, help="write the 4x4 source->target matrix here")
@@ -33,8 +38,17 @@ def build_parser() -> argparse.ArgumentParser:
   ap.add_argument("--correspondences", type=int, default=1000,
                   help="correspondences kept after matching (1000)")
   ap.add_argument("--inlier-mr", type=float, default=5.0, help="inlier distance in mr (5)")
-  ap.add_argument("--estimator", choices=("lrf", "3point"), default="lrf",
-                  help="one correspondence per hypothesis (lrf) or classic 3-point RANSAC")
+  ap.add_argument("--estimator", choices=("graph", "lrf", "3point"), default="graph",
+                  help="compatibility graph (graph, default), one correspondence per hypothesis "
+                       "(lrf) or classic 3-point RANSAC")
+  ap.add_argument("--detector", choices=("random", "iss"), default="random",
+                  help="keypoints: seeded random points (default) or ISS keypoints, at most "
+                       "--keypoints of them")
+  ap.add_argument("--mutual", action="store_true", help="keep mutual nearest matches only")
+  ap.add_argument("--ratio", type=float, default=None,
+                  help="Lowe's ratio test threshold in (0, 1] (default: none)")
+  ap.add_argument("--icp", choices=("point_to_plane", "point_to_point"),
+                  default="point_to_plane", help="ICP variant (point_to_plane)")
   ap.add_argument("--iterations", type=int, default=1000, help="3-point RANSAC hypotheses")
   ap.add_argument("--icp-iterations", type=int, default=50, help="ICP iterations (0: none)")
   ap.add_argument("--checkpoint", default=None,
@@ -47,21 +61,61 @@ def build_parser() -> argparse.ArgumentParser:
                   help="sensor position of a single-view SOURCE scan (orients its normals)")
   ap.add_argument("--target-viewpoint", type=float, nargs=3, default=None, metavar=("X", "Y", "Z"),
                   help="sensor position of a single-view TARGET scan")
+  ap.add_argument("--init", default=None, metavar="FILE",
+                  help="initial source->target transform to refine: a 4x4 text file (.xf, "
+                       ".txt) or a (4, 4) .npy")
   ap.add_argument("--seed", type=int, default=0)
   return ap
 
 
 def _check_paths(args: argparse.Namespace) -> str | None:
-  """What is wrong with --out or --checkpoint, checked before any work is done (None: fine)."""
+  """What is wrong with --out, --checkpoint, --init, --seed or --keypoints, checked before any
+  work is done (None: fine)."""
   from pathlib import Path
+
+  from lrf_jax.io.atomic import output_problem
+  if not 0 <= args.seed < 2**32:
+    return f"--seed: expected an integer in [0, 2**32), got {args.seed}"
+  if args.keypoints < 1:
+    return f"--keypoints: expected a positive integer, got {args.keypoints}"
   if args.out:
-    parent = Path(args.out).expanduser().resolve().parent
-    if not parent.is_dir():
-      return f"--out: the folder {parent} does not exist (create it, or pick another path)"
-  if args.checkpoint and not Path(args.checkpoint).expanduser().is_dir():
-    return (f"--checkpoint: {args.checkpoint} is not a folder; expected a train.py workdir "
-            "(the one passed to train.py --workdir)")
+    inputs = [("SOURCE", args.source), ("TARGET", args.target), ("--init", args.init)]
+    problem = output_problem(args.out, "--out", inputs)
+    if problem:
+      return problem
+  if args.checkpoint:
+    workdir = Path(args.checkpoint).expanduser()
+    if not workdir.is_dir():
+      return (f"--checkpoint: {args.checkpoint} is not a folder; expected a train.py workdir "
+              "(the one passed to train.py --workdir)")
+    if not (workdir / "checkpoints").is_dir():
+      return (f"--checkpoint: {args.checkpoint} has no checkpoints/ folder; expected a train.py "
+              "workdir (the one passed to train.py --workdir)")
+  if args.init is not None and not Path(args.init).expanduser().is_file():
+    return f"--init: {args.init} is not a file; expected a 4x4 text file or a (4, 4) .npy"
   return None
+
+
+def read_init(path: str) -> np.ndarray:
+  """The (4, 4) rigid transform of `--init`: a .npy holding one, else a text file of 4 rows of
+  4 numbers (`lrf_jax.io.read_xf`).
+
+  Raises:
+    ValueError: not a readable (4, 4) rigid matrix; the message names the file.
+  """
+  from lrf_jax.io import check_rigid, read_xf
+  if path.lower().endswith(".npy"):
+    try:
+      t = np.load(path, allow_pickle=False)
+    except (ValueError, OSError, EOFError) as e:
+      raise ValueError(f"--init {path}: not a readable .npy file ({e})") from None
+    if not np.issubdtype(t.dtype, np.number):
+      raise ValueError(f"--init {path}: expected a numeric (4, 4) array, got dtype {t.dtype}")
+    return check_rigid(t, path, "--init matrix")
+  try:
+    return read_xf(path)
+  except ValueError as e:
+    raise ValueError(f"--init: {e}") from None
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -74,31 +128,47 @@ def main(argv: list[str] | None = None) -> int:
   compilation_cache.enable()  # a second run loads the compiled functions instead of recompiling
   from lrf_jax.registration import register
 
-  params = None
-  if args.checkpoint:
-    from lrf_jax.checkpoints import restore_params
-    params, _ = restore_params(args.checkpoint, "best")
+  params, extra = None, {}
   try:
+    if args.init is not None:
+      extra["init"] = read_init(args.init)  # passed only when given
+    if args.checkpoint:
+      from lrf_jax.checkpoints import restore_params
+      try:
+        params, _ = restore_params(args.checkpoint, "best")
+      except (ValueError, FileNotFoundError) as e:
+        raise ValueError(f"--checkpoint: {e}") from None
     reg = register(args.source, args.target, mr=args.mr, radius_mr=args.radius_mr,
                    n_keypoints=args.keypoints, n_correspondences=args.correspondences,
                    inlier_mr=args.inlier_mr, estimator=args.estimator,
                    iterations=args.iterations, icp_iterations=args.icp_iterations,
                    params=params, seed=args.seed, method=args.method,
                    source_viewpoint=args.source_viewpoint,
-                   target_viewpoint=args.target_viewpoint)
+                   target_viewpoint=args.target_viewpoint, keypoints=args.detector,
+                   mutual=args.mutual, ratio=args.ratio, icp_mode=args.icp, **extra)
   except (ValueError, FileNotFoundError) as e:
     print(f"error: {e}", file=sys.stderr)
+    return 2
+  except OSError as e:  # an unreadable input (permissions, an I/O error)
+    print(f"error: could not read {e.filename or 'an input'}: {e.strerror or e}",
+          file=sys.stderr)
     return 2
   text = "\n".join(" ".join(f"{v:.9g}" for v in row) for row in reg.transform)
   print(text)
   print(f"# inliers {reg.n_inliers}/{len(reg.correspondences)} (coarse; chance level "
-        f"{reg.chance_inliers}), overlap contrast {reg.overlap_contrast:.2f}, fitness "
-        f"{reg.fitness:.3f}, rmse {reg.rmse / reg.mr:.3f} mr, mr {reg.mr:.6g}, "
+        f"{reg.chance_inliers}, best distinct pose {reg.rival_inliers}), estimated overlap "
+        f"{reg.overlap:.1%}, rmse {reg.rmse / reg.mr:.3f} mr, mr {reg.mr:.6g}, "
         f"{reg.seconds:.1f} s", file=sys.stderr)
-  print(f"# verdict: {'success' if reg.success else 'FAILED (do not trust this transform)'}",
-        file=sys.stderr)
+  print(f"# verdict: {'success' if reg.success else 'NOT SURE (do not trust this transform)'}: "
+        f"{reg.reason}", file=sys.stderr)
   if args.out:
-    np.savetxt(args.out, reg.transform, fmt="%.9g")
+    from lrf_jax.io.atomic import WriteError, atomic_write
+    try:
+      with atomic_write(args.out, "w") as f:
+        f.write(text + "\n")
+    except WriteError as e:
+      print(f"error: {e}", file=sys.stderr)
+      return 2
   return 0 if reg.success else 3
 
 

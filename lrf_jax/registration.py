@@ -17,15 +17,22 @@ The best hypothesis (most inliers; ties: the earliest) is refitted by Kabsch on 
 Errors (paper eqs. `eq_err_r`, `eq_err_t`): err_r = arccos(clip((trace(R_gtᵀ R) - 1) / 2))
 in degrees, err_t = |t_gt - t| / mr.
 
-`register(source, target)` is the user-facing pipeline: mr from the source, seeded random
-keypoints on both clouds, LRF-Net frames, TOLDI descriptors, ratio matching, one hypothesis per
-correspondence from its LRFs, the best few verified by overlap, then point-to-point ICP; it
-generates and scores its hypotheses on the host (`lrf_jax.registration_host`), the same
-arithmetic as the jitted estimators without a JAX program to load in every fresh process.
+`register(source, target)` is the user-facing pipeline: mr from the source, seeded random (or
+ISS) keypoints on both clouds, LRF-Net frames, TOLDI descriptors, ratio matching, hypotheses from
+the compatibility graph of the correspondences (`lrf_jax.registration_graph`: distances
+preserved and one-correspondence LRF poses in agreement), then point-to-plane ICP
+(`lrf_jax.icp_host`) and a verdict that claims success only when the winner's support is far
+above chance and above every distinct pose's. It generates and scores its hypotheses on the host
+(`lrf_jax.registration_host`), the same arithmetic as the jitted estimators without a JAX
+program to load in every fresh process.
 
 References:
   Fischler & Bolles, "Random sample consensus", CACM 1981. Kabsch, Acta Cryst. A32, 1976.
   Besl & McKay, "A method for registration of 3-D shapes", TPAMI 1992 (ICP).
+  Chen & Medioni, "Object modelling by registration of multiple range images", IVC 1992
+  (point-to-plane ICP).
+  Leordeanu & Hebert, "A spectral technique for correspondence problems", ICCV 2005; Chen et
+  al., "SC2-PCR", CVPR 2022 (compatibility graphs).
 """
 
 from __future__ import annotations
@@ -41,14 +48,16 @@ import jax.numpy as jnp
 import numpy as np
 
 from lrf_jax import engine
+from lrf_jax import icp_host
+from lrf_jax import registration_graph as graph
 from lrf_jax import registration_host as host
 from lrf_jax.api import compute_frames
 from lrf_jax.resolution import mesh_resolution
-from lrf_jax.descriptors import (DESCRIPTORS, compute_descriptors, match_descriptors,
-                                 top_correspondences)
+from lrf_jax.descriptors import DESCRIPTORS, compute_descriptors, select_correspondences
 from lrf_jax.frames import METHODS
 from lrf_jax.geometry import kabsch
 from lrf_jax.inputs import as_cloud
+from lrf_jax.keypoints import iss_keypoints
 from lrf_jax.neighborhoods import validate_seed, validate_viewpoint
 from lrf_jax.normals import NORMAL_RADIUS_RATIO, estimate_normals
 
@@ -319,12 +328,16 @@ def ransac_3point(src_points: Any, dst_points: Any, *, inlier_threshold: float,
 
 def icp(source: np.ndarray, target: np.ndarray, init: np.ndarray, *, max_distance: float,
         iterations: int = 30, tolerance: float = 1e-7,
-        target_grid: engine.Grid | None = None) -> tuple[np.ndarray, float, float]:
-  """Point-to-point ICP from an initial pose (host, float64, deterministic).
+        target_grid: engine.Grid | None = None, target_normals: np.ndarray | None = None,
+        mode: str = "point_to_plane") -> tuple[np.ndarray, float, float]:
+  """Point-to-plane or point-to-point ICP from an initial pose (host, float64, deterministic).
 
-  Each iteration pairs every source point with its nearest target point, keeps the pairs closer
-  than `max_distance` and solves Kabsch; it stops when the pose changes by less than `tolerance`
-  (rotation in radians plus translation over `max_distance`).
+  Each iteration pairs every source point with its nearest target point and keeps the pairs
+  closer than `max_distance`. "point_to_plane" (Chen & Medioni) takes one damped Gauss-Newton
+  step of sum ((R p + t - q) · n_q)^2 (`lrf_jax.icp_host`; pairs whose normal is zero or
+  non-finite are left out of the step); "point_to_point" (Besl & McKay) solves Kabsch. It stops
+  when the pose changes by less than `tolerance` (rotation in radians plus translation over
+  `max_distance`).
 
   Args:
     source: (n, 3) points.
@@ -334,12 +347,35 @@ def icp(source: np.ndarray, target: np.ndarray, init: np.ndarray, *, max_distanc
     iterations: at most this many iterations.
     tolerance: convergence threshold.
     target_grid: optional `engine.Grid(target, max_distance)` to reuse.
+    target_normals: (m, 3) target normals for "point_to_plane" (any length, any sign; zero or
+      non-finite rows are skipped). None: unsigned PCA normals
+      (`icp_host.estimate_target_normals`: radius min(max_distance, 4 x the target's mean
+      nearest-neighbour spacing)). Ignored by "point_to_point".
+    mode: "point_to_plane" or "point_to_point".
 
   Returns:
-    (transform (4, 4), fitness = fraction of source points paired, rmse of the pairs).
+    (transform (4, 4), fitness = fraction of source points paired, rmse of the pairs' point
+    distances), both modes alike.
+
+  Raises:
+    ValueError: an unknown `mode`, `target_normals` not of shape (m, 3), or `max_distance` not
+      a positive number (finite when normals are estimated).
   """
+
+  if mode not in ("point_to_point", "point_to_plane"):
+    raise ValueError(f"mode: expected 'point_to_point' or 'point_to_plane', got {mode!r}")
+  try:
+    positive = float(max_distance) > 0
+  except (TypeError, ValueError):
+    positive = False
+  if not positive:
+    raise ValueError(f"max_distance: expected a positive distance, got {max_distance!r}")
   target = np.asarray(target, np.float64)
   source = np.asarray(source, np.float64)
+  if mode == "point_to_plane":
+    return icp_host.point_to_plane_icp(source, target, init, max_distance=float(max_distance),
+                                       iterations=iterations, tolerance=tolerance,
+                                       target_grid=target_grid, target_normals=target_normals)
   grid = target_grid if target_grid is not None else engine.Grid(target, max_distance)
   center = target.mean(axis=0) if len(target) else np.zeros(3)
 
@@ -388,14 +424,20 @@ class Registration:
     seconds: wall time of the whole call.
     timings: wall seconds per stage of `register`, keyed "prepare", "frames", "descriptors",
       "matching", "hypotheses", "verification", "icp".
-    success: the verdict (a Python bool, `verdict`): fitness >= 0.2 and either n_inliers >=
-      2 x chance_inliers + 3 or overlap_contrast >= 1.6. False means the result should not be
-      trusted: no overlap found, a mirror image, two different objects.
+    success: the verdict (a Python bool, `verdict`): True only when the evidence excludes a
+      wrong pose (the winner's support far above chance and above every distinct pose's, and
+      the aligned clouds overlap). False means "not sure": no overlap found, a mirror image,
+      two different objects, or a pose the correspondences cannot tell from another.
     inlier_ratio: n_inliers / number of correspondences.
     chance_inliers: the most inliers a hypothesis reaches on the same correspondences shuffled
       (the chance level of this pair of clouds; `_chance_inliers`).
     overlap_contrast: the chosen hypothesis's overlap over the 99th percentile of all
       hypotheses' (`overlap_contrast`; 0 when verification is off).
+    reason: why `success` is what it is, one short sentence (`verdict`).
+    overlap: the estimated overlap: the fraction of the ICP's source points within icp_mr mr of
+      the target under `transform` (the same number as `fitness`).
+    rival_inliers: the most inliers outside the winner's of a hypothesis distinct from the winner
+    (`_rival_inliers`).
   """
 
   transform: np.ndarray
@@ -412,6 +454,9 @@ class Registration:
   inlier_ratio: float = 0.0
   chance_inliers: int = 0
   overlap_contrast: float = 0.0
+  reason: str = ""
+  overlap: float = 0.0
+  rival_inliers: int = 0
 
 
 def _as_cloud(x: Any, name: str) -> tuple[np.ndarray, np.ndarray | None]:
@@ -451,27 +496,40 @@ def overlap_scores(rotations: np.ndarray, translations: np.ndarray, points: np.n
 
 def register(source: Any, target: Any, *, mr: float | None = None, radius_mr: float = 15.0,
              n_keypoints: int = 3000, n_correspondences: int = 1000, iterations: int = 1000,
-             inlier_mr: float = 5.0, verify: int | None = None, estimator: str = "lrf",
+             inlier_mr: float = 5.0, verify: int | None = None, estimator: str = "graph",
              icp_iterations: int = 50, icp_mr: float = 3.0, method: str = "lrf_net_plus",
              descriptor: str = "toldi", params: Any = None, seed: int = 0,
-             source_viewpoint: Any = None, target_viewpoint: Any = None) -> Registration:
-  """Rigidly register `source` onto `target` with learned LRFs (one-point RANSAC on their frames).
+             source_viewpoint: Any = None, target_viewpoint: Any = None,
+             init: Any = None, keypoints: str = "random", mutual: bool = False,
+             ratio: float | None = None, icp_mode: str = "point_to_plane") -> Registration:
+  """Rigidly register `source` onto `target` with learned LRFs and a compatibility graph.
 
   Pipeline (every length in mr: the source's mean edge length for a mesh, mean nearest-neighbour
   distance for a cloud, `datasets.mesh_resolution`):
 
-  1. `n_keypoints` seeded random points per cloud; LRFs (`method`, default lrf_net_plus) and
-     descriptors (`descriptor`, default TOLDI) at r = radius_mr mr;
-  2. each source keypoint matched to its nearest target descriptor; the `n_correspondences` of
-     smallest ratio d1/d2 are kept;
-  3. hypotheses: with `estimator="lrf"` ONE per correspondence (the pose from its two LRFs, all
-     of them: no sampling needed), with `"3point"` `iterations` seeded triples; each is scored by
-     its inlier count (correspondences within inlier_mr mr), as in `lrf_ransac`;
-  4. verification: the `verify` best-scoring hypotheses (None: all) are re-ranked by their
-     overlap, the fraction of (up to 1000 seeded) source points that land within icp_mr mr of the
-     target (ties: more inliers); with verify=0 the inlier count alone decides, as in
-     `lrf_ransac`. The winner is refitted by Kabsch on its inliers;
-  5. point-to-point ICP (pairs within icp_mr mr) on up to `ICP_POINTS` seeded source points.
+  1. `n_keypoints` per cloud (`keypoints="random"`: seeded random points; `"iss"`: ISS
+     keypoints, `lrf_jax.iss_keypoints`, at most `n_keypoints`); LRFs (`method`, default
+     lrf_net_plus) and descriptors (`descriptor`, default TOLDI) at r = radius_mr mr;
+  2. each source keypoint matched to its nearest target descriptor (`mutual`: mutual nearest
+     neighbours only; `ratio`: Lowe's ratio test), the `n_correspondences` of smallest ratio
+     d1/d2 kept (`lrf_jax.descriptors.select_correspondences`);
+  3. hypotheses: with `estimator="graph"` (default) one per seed of the correspondences'
+     compatibility graph (distances preserved within inlier_mr mr AND one-correspondence LRF
+     rotations within `GRAPH_ANGLE_DEG`; `registration_graph`), with `"lrf"` ONE per
+     correspondence (the pose from its two LRFs), with `"3point"` `iterations` seeded triples;
+     each is scored by its inlier count (correspondences within inlier_mr mr);
+  4. selection: "graph" takes the most inliers; "lrf" and "3point" re-rank the `verify`
+     best-scoring hypotheses (None: all) by their overlap (the fraction of up to 1000 seeded
+     source points within icp_mr mr of the target). The winner is refitted by Kabsch on its
+     inliers;
+  5. point-to-plane ICP (pairs within icp_mr mr, target normals by PCA) on up to `ICP_POINTS`
+     seeded source points;
+  6. the verdict (`verdict`): "graph" claims success when the winner's inliers are at least
+     `VERDICT_GRAPH_FACTOR` times (+ `VERDICT_GRAPH_MARGIN`) both what chance alignment reaches
+     on the correspondences shuffled and what the best distinct pose explains outside them.
+
+  With `init` (a (4, 4) rigid transform) steps 1-4 are skipped: ICP refines `init`, as Open3D's
+  `registration_icp` does, and `success` is False (nothing checks `init`; `reason` says so).
 
   The same inputs and seed give the same transform.
 
@@ -487,7 +545,8 @@ def register(source: Any, target: Any, *, mr: float | None = None, radius_mr: fl
     iterations: hypotheses of the 3-point estimator.
     inlier_mr: inlier distance of the hypothesis score, in mr.
     verify: hypotheses re-ranked by overlap (None: all of them; 0: none).
-    estimator: "lrf" (one correspondence per hypothesis) or "3point" (classic).
+    estimator: "graph" (compatibility graph, default), "lrf" (one correspondence per
+      hypothesis) or "3point" (classic).
     icp_iterations: ICP iterations (0: no ICP, `transform` = the RANSAC estimate).
     icp_mr: ICP pairing and overlap distance, in mr.
     method: LRF method (a key of `lrf_jax.METHODS`; default "lrf_net_plus", the most repeatable
@@ -499,6 +558,11 @@ def register(source: Any, target: Any, *, mr: float | None = None, radius_mr: fl
       each cloud's own coordinates: estimated normals (and `method="lrf_net_plus"`'s z) are
       oriented towards them (see `compute_frames`). Without them a scan's normals are oriented
       by propagation, which cannot know which side of an open scan is out.
+    init: optional (4, 4) initial source -> target transform: refine it by ICP only.
+    keypoints: "random" or "iss".
+    mutual: keep mutual nearest-neighbour matches only.
+    ratio: optional ratio-test threshold in (0, 1].
+    icp_mode: "point_to_plane" (default) or "point_to_point" (`icp`).
 
   Returns:
     `Registration`; `transform` maps source points into the target's frame.
@@ -506,7 +570,8 @@ def register(source: Any, target: Any, *, mr: float | None = None, radius_mr: fl
   Raises:
     ValueError: a cloud that is not a non-empty (n, 3) array of finite floats, fewer than 10
       points, a non-positive count or distance, a seed that is not a non-negative integer, or
-      an unknown estimator/method/descriptor.
+      an unknown estimator/method/descriptor/keypoints, an `init` that is not a (4, 4) rigid
+      transform, or a ratio outside (0, 1].
     FileNotFoundError: a path that does not exist.
 
   Example:
@@ -514,68 +579,168 @@ def register(source: Any, target: Any, *, mr: float | None = None, radius_mr: fl
     >>> aligned = points_a @ reg.transform[:3, :3].T + reg.transform[:3, 3]
   """
   timer = _StageTimer()
+  if init is not None:
+    return _refine_only(source, target, init, mr=mr, icp_iterations=icp_iterations,
+                        icp_mr=icp_mr, seed=seed, timer=timer, icp_mode=icp_mode)
   with timer("prepare"):
     setup = _prepare(source, target, mr=mr, radius_mr=radius_mr, n_keypoints=n_keypoints,
                      n_correspondences=n_correspondences, iterations=iterations,
                      inlier_mr=inlier_mr, verify=verify, estimator=estimator,
                      icp_iterations=icp_iterations, icp_mr=icp_mr, method=method,
                      descriptor=descriptor, seed=seed, views=(source_viewpoint,
-                                                              target_viewpoint))
+                                                              target_viewpoint),
+                     keypoints=keypoints, mutual=mutual, ratio=ratio, icp_mode=icp_mode)
   with timer("frames"):
     frames = [_side_frames(side, setup, method, params, seed) for side in setup.sides]
   with timer("descriptors"):
     descs = [_side_descriptors(side, f, setup, descriptor, seed)
              for side, f in zip(setup.sides, frames)]
   with timer("matching"):
-    qi, ri = _match(frames, descs, estimator, n_correspondences, radius_mr)
+    qi, ri = _match(frames, descs, estimator, n_correspondences, radius_mr, mutual, ratio)
   (kp_s, (f_s, v_s)), (kp_t, (f_t, v_t)) = zip((s.keypoints for s in setup.sides), frames)
   src_pts, dst_pts = setup.sides[0].points, setup.sides[1].points
   p, q = src_pts[kp_s[qi]], dst_pts[kp_t[ri]]
   threshold = inlier_mr * setup.mr
   with timer("hypotheses"):
     src, dst, cs, cd = _centred(p, q)
-    rs, ts = _hypotheses(src, dst, f_s[qi], f_t[ri], estimator, iterations, setup.radius, seed)
+    rs, ts = _hypotheses(src, dst, f_s[qi], f_t[ri], estimator, iterations, setup.radius, seed,
+                         float(threshold))
     counts = host.count_inliers(rs, ts, src, dst, threshold)
     chance = _chance_inliers(src, dst, f_s[qi], f_t[ri], estimator, iterations, setup.radius,
                              seed, float(threshold))
   with timer("verification"):
     overlap_distance = icp_mr * setup.mr
     target_grid = engine.Grid(dst_pts, overlap_distance)
-    best, fits = _verify(rs, ts, counts, cs, cd, src_pts, target_grid, overlap_distance, verify,
-                         setup.rng)
+    best, fits = _verify(rs, ts, counts, cs, cd, src_pts, target_grid, overlap_distance,
+                         0 if estimator == "graph" else verify, setup.rng)
     r, t, mask = host.select_and_refine(rs[best], ts[best], src, dst, threshold)
     res = _finish(*_uncentre(r, t, cs, cd), mask, best, counts[best])
+    rival = _rival_inliers(rs, ts, src, dst, threshold, r, t, mask, setup.radius)
   with timer("icp"):
     icp_src = src_pts
     if len(src_pts) > ICP_POINTS:
       icp_src = src_pts[np.sort(setup.rng.choice(len(src_pts), ICP_POINTS, replace=False))]
     final, fitness, rmse = icp(icp_src, dst_pts, res.transform, max_distance=overlap_distance,
-                               iterations=icp_iterations, target_grid=target_grid)
+                               iterations=icp_iterations, target_grid=target_grid,
+                               mode=icp_mode)
   n_corr = len(qi)
   contrast = overlap_contrast(fits)
-  success = verdict(res.n_inliers, chance, fitness, contrast)
+  evidence = Evidence(n_inliers=res.n_inliers, chance_inliers=chance, rival_inliers=rival,
+                      fitness=fitness, contrast=contrast, estimator=estimator)
+  success, reason = verdict(evidence)
   return Registration(transform=final, coarse_transform=res.transform, inliers=res.inliers,
                       n_inliers=res.n_inliers,
                       correspondences=np.stack([kp_s[qi], kp_t[ri]], axis=1).astype(np.int64),
                       fitness=fitness, rmse=rmse, mr=float(setup.mr), seconds=timer.total(),
                       timings=dict(timer.seconds), success=success,
                       inlier_ratio=res.n_inliers / max(n_corr, 1), chance_inliers=chance,
-                      overlap_contrast=contrast)
+                      overlap_contrast=contrast, reason=reason, overlap=fitness,
+                      rival_inliers=rival)
 
+
+ESTIMATORS = ("graph", "lrf", "3point")
+KEYPOINTS = ("random", "iss")
+
+
+def _check_rigid(t: Any, name: str) -> np.ndarray:
+  """A (4, 4) finite rigid transform: rotation block orthonormal with det +1 (to 1e-4), last
+  row (0, 0, 0, 1)."""
+  try:
+    a = np.asarray(t, np.float64)
+  except (TypeError, ValueError):
+    raise ValueError(f"{name}: expected a (4, 4) rigid transform, got {type(t).__name__}") from None
+  a = _check_transform(a, name)
+  r = a[:3, :3]
+  if (np.abs(r @ r.T - np.eye(3)).max() > 1e-4 or abs(np.linalg.det(r) - 1.0) > 1e-4
+      or np.abs(a[3] - [0, 0, 0, 1]).max() > 1e-9):
+    raise ValueError(f"{name}: expected a rigid transform (orthonormal rotation with det +1, "
+                     f"last row 0 0 0 1), got\n{a}")
+  return a
+
+
+def _refine_only(source, target, init, *, mr, icp_iterations, icp_mr, seed, timer, icp_mode
+                 ) -> Registration:
+  """`register(..., init=T)`: ICP from T and nothing else (no keypoints, frames or matching).
+
+  The verdict is False with a reason that says so: ICP converges to the nearest local
+  optimum, and nothing here can exclude a wrong `init`.
+  """
+  with timer("prepare"):
+    init = _check_rigid(init, "init")
+    src_pts, src_faces = _as_cloud(source, "source")
+    dst_pts, _ = _as_cloud(target, "target")
+    for name, pts in (("source", src_pts), ("target", dst_pts)):
+      if len(pts) < 10:
+        raise ValueError(f"{name}: expected a cloud of at least 10 points, got {len(pts)}")
+    if not _is_positive(icp_mr):
+      raise ValueError(f"icp_mr: expected a positive number of mesh resolutions, got {icp_mr!r}")
+    if not _is_count(icp_iterations, 0):
+      raise ValueError(f"icp_iterations: expected a non-negative integer, got {icp_iterations!r}")
+    seed = validate_seed(seed)
+    if mr is None:
+      mr, _ = mesh_resolution(src_pts, src_faces)
+    elif not _is_positive(mr):
+      raise ValueError(f"mr: expected a positive mesh resolution, got {mr!r}")
+    rng = np.random.default_rng(seed)
+  with timer("icp"):
+    distance = icp_mr * mr
+    icp_src = src_pts
+    if len(src_pts) > ICP_POINTS:
+      icp_src = src_pts[np.sort(rng.choice(len(src_pts), ICP_POINTS, replace=False))]
+    final, fitness, rmse = icp(icp_src, dst_pts, init, max_distance=distance,
+                               iterations=icp_iterations, mode=icp_mode)
+  return Registration(transform=final, coarse_transform=init, inliers=np.zeros(0, bool),
+                      n_inliers=0, correspondences=np.zeros((0, 2), np.int64), fitness=fitness,
+                      rmse=rmse, mr=float(mr), seconds=timer.total(),
+                      timings=dict(timer.seconds), success=False,
+                      reason=("not verified: refined from init only (ICP keeps the nearest "
+                              f"optimum); {fitness:.0%} of the source lies on the target"),
+                      overlap=fitness)
 
 # Source points ICP pairs per iteration (a seeded subset of larger clouds); fitness and rmse are
 # measured on them.
 ICP_POINTS = 5000
 
 
-# The verdict (`verdict`): the coarse estimate's inliers beat what chance alignment reaches on
-# the same correspondences by VERDICT_FACTOR and VERDICT_MARGIN, or its overlap stands out from
-# the other hypotheses' by VERDICT_CONTRAST; and ICP pairs at least VERDICT_FITNESS of the source.
+# The verdict (`verdict`). ICP pairs at least VERDICT_FITNESS of the source (VERDICT_GRAPH_FITNESS
+# for estimator="graph", whose evidence does not need the overlap to be large).
+# estimator="graph": the winner's inliers reach VERDICT_GRAPH_FACTOR times the best of what
+# chance alignment reaches on the same correspondences shuffled and what any distinct pose
+# reaches on the real ones, plus VERDICT_GRAPH_MARGIN. "lrf" and "3point": the inliers beat
+# chance by VERDICT_FACTOR and VERDICT_MARGIN, or the overlap stands out from the other
+# hypotheses' by VERDICT_CONTRAST.
 VERDICT_FACTOR = 2.0
 VERDICT_MARGIN = 3
 VERDICT_CONTRAST = 1.6
 VERDICT_FITNESS = 0.2
+VERDICT_GRAPH_FACTOR = 3.0
+VERDICT_GRAPH_MARGIN = 3
+VERDICT_GRAPH_FITNESS = 0.05
 CHANCE_SHUFFLES = 4
+# A hypothesis is distinct from the winner (a rival) when their rotations differ by more than
+# RIVAL_DEG degrees or their translations (at the source centroid) by more than the support
+# radius.
+RIVAL_DEG = 10.0
+
+
+class Evidence(NamedTuple):
+  """What `verdict` decides on (all counts are correspondences within the inlier distance).
+
+  n_inliers: inliers of the refitted winner.
+  chance_inliers: the most inliers any hypothesis reaches on the correspondences shuffled.
+  rival_inliers: the most inliers outside the winner's of a hypothesis distinct from the winner
+    (`_rival_inliers`).
+  fitness: fraction of the ICP's source points within icp_mr mr of the target after ICP.
+  contrast: `overlap_contrast` of the verified hypotheses (0 when none were verified).
+  estimator: the estimator that produced them.
+  """
+
+  n_inliers: int
+  chance_inliers: int
+  rival_inliers: int
+  fitness: float
+  contrast: float
+  estimator: str
 
 
 def overlap_contrast(fits: np.ndarray) -> float:
@@ -588,11 +753,49 @@ def overlap_contrast(fits: np.ndarray) -> float:
   return float(fits.max() / max(np.percentile(fits, 99), 1e-12))
 
 
-def verdict(n_inliers: int, chance_inliers: int, fitness: float, contrast: float) -> bool:
-  """`Registration.success`: fitness >= VERDICT_FITNESS and (n_inliers >= VERDICT_FACTOR *
-  chance_inliers + VERDICT_MARGIN or contrast >= VERDICT_CONTRAST)."""
-  by_inliers = n_inliers >= VERDICT_FACTOR * chance_inliers + VERDICT_MARGIN
-  return bool(fitness >= VERDICT_FITNESS and (by_inliers or contrast >= VERDICT_CONTRAST))
+def verdict(evidence: Evidence) -> tuple[bool, str]:
+  """`Registration.success` and `.reason` from the evidence (module constants `VERDICT_*`).
+
+  Returns:
+    (success, reason): reason is a short sentence saying what decided.
+  """
+  e = evidence
+  floor = VERDICT_GRAPH_FITNESS if e.estimator == "graph" else VERDICT_FITNESS
+  if e.fitness < floor:
+    return False, (f"not sure: only {e.fitness:.0%} of the source lies on the target after "
+                   f"ICP (needs {floor:.0%})")
+  if e.estimator == "graph":
+    level = max(e.chance_inliers, e.rival_inliers)
+    need = VERDICT_GRAPH_FACTOR * level + VERDICT_GRAPH_MARGIN
+    if e.n_inliers >= need:
+      return True, (f"{e.n_inliers} consistent correspondences; chance gives "
+                    f"{e.chance_inliers}, the best distinct pose {e.rival_inliers}")
+    which = "a distinct pose" if e.rival_inliers >= e.chance_inliers else "chance"
+    return False, (f"not sure: {e.n_inliers} consistent correspondences, {which} gives {level} "
+                   f"(needs {need:g})")
+  if e.n_inliers >= VERDICT_FACTOR * e.chance_inliers + VERDICT_MARGIN:
+    return True, f"{e.n_inliers} inliers; chance gives {e.chance_inliers}"
+  if e.contrast >= VERDICT_CONTRAST:
+    return True, f"the overlap stands out from the other hypotheses' ({e.contrast:.2f}x)"
+  return False, (f"not sure: {e.n_inliers} inliers, chance gives {e.chance_inliers}, overlap "
+                 f"contrast {e.contrast:.2f}")
+
+
+def _rival_inliers(rs, ts, src, dst, threshold, r, t, winner_mask, radius) -> int:
+  """The support of the best alternative explanation: over the hypotheses (centred
+  coordinates) distinct from the pose (r, t) (rotation apart by more than RIVAL_DEG or
+  translation at the centroid by more than `radius`), the most inliers that are NOT inliers of
+  the winner (`winner_mask`). A pose that merely re-uses the winner's correspondences (a rotation
+  about their cluster) adds no evidence against it; one that explains other correspondences
+  does."""
+  rs = np.asarray(rs, np.float64)
+  cos = (np.einsum("hij,ij->h", rs, np.asarray(r, np.float64)) - 1.0) / 2.0
+  far = (cos < np.cos(np.radians(RIVAL_DEG))) | (
+      np.linalg.norm(np.asarray(ts, np.float64) - t, axis=1) > radius)
+  if not far.any():
+    return 0
+  masks = host.inlier_masks(rs[far], np.asarray(ts, np.float64)[far], src, dst, threshold)
+  return int(np.max(np.sum(masks & ~np.asarray(winner_mask, bool), axis=1)))
 
 
 def _chance_inliers(src, dst, f_src, f_dst, estimator, iterations, radius, seed,
@@ -608,8 +811,9 @@ def _chance_inliers(src, dst, f_src, f_dst, estimator, iterations, radius, seed,
   for _ in range(CHANCE_SHUFFLES):
     perm = rng.permutation(len(src))
     d, fd = np.asarray(dst)[perm], np.asarray(f_dst)[perm]
-    rs, ts = _hypotheses(src, d, f_src, fd, estimator, iterations, radius, seed)
-    best = max(best, int(np.max(host.count_inliers(rs, ts, src, d, threshold))))
+    rs, ts = _hypotheses(src, d, f_src, fd, estimator, iterations, radius, seed, threshold)
+    if len(rs):
+      best = max(best, int(np.max(host.count_inliers(rs, ts, src, d, threshold))))
   return best
 
 
@@ -649,7 +853,8 @@ class _Setup(NamedTuple):
 
 def _prepare(source: Any, target: Any, *, mr, radius_mr, n_keypoints, n_correspondences,
              iterations, inlier_mr, verify, estimator, icp_iterations, icp_mr, method,
-             descriptor, seed, views) -> _Setup:
+             descriptor, seed, views, keypoints="random", mutual=False, ratio=None,
+             icp_mode="point_to_plane") -> _Setup:
   """Stage "prepare": read and check the inputs, measure mr, pick keypoints, estimate normals."""
 
   src_pts, src_faces = _as_cloud(source, "source")
@@ -668,13 +873,21 @@ def _prepare(source: Any, target: Any, *, mr, radius_mr, n_keypoints, n_correspo
     if not ((val is None and name == "verify") or _is_count(val, 0)):
       raise ValueError(f"{name}: expected a non-negative integer, got {val!r}")
   seed = validate_seed(seed)
-  if estimator not in ("lrf", "3point"):
-    raise ValueError(f"estimator: expected 'lrf' or '3point', got {estimator!r}")
+  if estimator not in ESTIMATORS:
+    raise ValueError(f"estimator: expected one of {ESTIMATORS}, got {estimator!r}")
   if not isinstance(method, str) or method not in METHODS:
     raise ValueError(f"method: unknown LRF method {method!r}; expected one of {sorted(METHODS)}")
   if not isinstance(descriptor, str) or descriptor not in DESCRIPTORS:
     raise ValueError(f"descriptor: unknown descriptor {descriptor!r}; expected one of "
                      f"{sorted(DESCRIPTORS)}")
+  if icp_mode not in ("point_to_plane", "point_to_point"):
+    raise ValueError(f"icp_mode: expected 'point_to_plane' or 'point_to_point', got {icp_mode!r}")
+  if keypoints not in KEYPOINTS:
+    raise ValueError(f"keypoints: expected one of {KEYPOINTS}, got {keypoints!r}")
+  if not isinstance(mutual, (bool, np.bool_)):
+    raise ValueError(f"mutual: expected True or False, got {mutual!r}")
+  if ratio is not None and not (_is_positive(ratio) and ratio <= 1):
+    raise ValueError(f"ratio: expected None or a ratio-test threshold in (0, 1], got {ratio!r}")
   spec = METHODS[method]
   if spec.needs_mesh and (src_faces is None or dst_faces is None):
     raise ValueError(f"method {method!r} needs triangle meshes on both sides")
@@ -688,7 +901,10 @@ def _prepare(source: Any, target: Any, *, mr, radius_mr, n_keypoints, n_correspo
   rng = np.random.default_rng(seed)
   sides = []
   for pts, faces, vp in ((src_pts, src_faces, checked[0]), (dst_pts, dst_faces, checked[1])):
-    kp = np.sort(rng.choice(len(pts), min(int(n_keypoints), len(pts)), replace=False))
+    if keypoints == "iss":
+      kp = iss_keypoints(pts, mr=mr, max_keypoints=int(n_keypoints))
+    else:
+      kp = np.sort(rng.choice(len(pts), min(int(n_keypoints), len(pts)), replace=False))
     normals = None
     if vp is not None and (spec.needs_normals or descriptor == "shot"):
       normals = estimate_normals(pts, NORMAL_RADIUS_RATIO * radius, faces, vp)
@@ -737,15 +953,17 @@ def _side_descriptors(side: _Side, frames: tuple[np.ndarray, np.ndarray], setup:
   return np.asarray(desc), np.asarray(ok)
 
 
-def _match(frames, descs, estimator: str, n_correspondences: int, radius_mr: float
-           ) -> tuple[np.ndarray, np.ndarray]:
-  """Stage "matching": nearest descriptors, the `n_correspondences` of smallest ratio."""
+def _match(frames, descs, estimator: str, n_correspondences: int, radius_mr: float,
+           mutual: bool = False, ratio: float | None = None) -> tuple[np.ndarray, np.ndarray]:
+  """Stage "matching": nearest descriptors (mutual ones only with `mutual`, those passing the
+  ratio test with `ratio`), the `n_correspondences` of smallest ratio d1/d2."""
 
   (_, v_s), (_, v_t) = frames
   (d_s, ok_s), (d_t, ok_t) = descs
-  need_frames = estimator == "lrf"
-  matches = match_descriptors(d_s, d_t, ok_s & (v_s | ~need_frames), ok_t & (v_t | ~need_frames))
-  qi, ri = top_correspondences(matches, n_correspondences)
+  need_frames = estimator != "3point"
+  qi, ri, _ = select_correspondences(d_s, d_t, ok_s & (v_s | ~need_frames),
+                                     ok_t & (v_t | ~need_frames), n=n_correspondences,
+                                     mutual=mutual, ratio=ratio)
   if len(qi) < (1 if need_frames else 3):
     raise ValueError(f"register: only {len(qi)} descriptor matches (valid frames: source "
                      f"{int(v_s.sum())}, target {int(v_t.sum())}); the clouds are too small or "
@@ -754,14 +972,30 @@ def _match(frames, descs, estimator: str, n_correspondences: int, radius_mr: flo
 
 
 def _hypotheses(src, dst, f_src, f_dst, estimator: str, iterations: int, radius: float,
-                seed: int) -> tuple[np.ndarray, np.ndarray]:
-  """Stage "hypotheses": one pose per correspondence from its LRFs, or `iterations` seeded
-  triples (the `ransac_3point` sampler), from the centred float32 coordinates; host float64
-  (`registration_host`), (H, 3, 3) and (H, 3)."""
+                seed: int, threshold: float) -> tuple[np.ndarray, np.ndarray]:
+  """Stage "hypotheses" from the centred float32 coordinates, host float64
+  (`registration_host`, `registration_graph`), (H, 3, 3) and (H, 3): "lrf" one pose per
+  correspondence from its LRFs; "3point" `iterations` seeded triples (the `ransac_3point`
+  sampler); "graph" one per seed of the compatibility graph (distances within `threshold`,
+  LRF rotations within `GRAPH_ANGLE_DEG`), followed by the seeds' own LRF poses."""
+  if estimator == "3point":
+    samples = np.asarray(_triples(len(src), iterations, seed))
+    return host.kabsch_batch(src[samples], dst[samples])
+  rs, ts = host.lrf_hypotheses(src, f_src, dst, f_dst, float(radius))
   if estimator == "lrf":
-    return host.lrf_hypotheses(src, f_src, dst, f_dst, float(radius))
-  samples = np.asarray(_triples(len(src), iterations, seed))
-  return host.kabsch_batch(src[samples], dst[samples])
+    return rs, ts
+  gr, gt, seeds, _ = graph.graph_hypotheses(
+      src, dst, rs, distance=threshold, angle_deg=GRAPH_ANGLE_DEG, n_seeds=GRAPH_SEEDS,
+      consensus=GRAPH_CONSENSUS, nms=GRAPH_NMS_RADII * radius)
+  return np.concatenate([gr, rs[seeds]]), np.concatenate([gt, ts[seeds]])
+
+
+# estimator="graph" (`registration_graph.graph_hypotheses`): the LRF rotation agreement bound, the
+# seeds, the consensus set of each and the seeds' suppression radius in support radii.
+GRAPH_ANGLE_DEG = 45.0
+GRAPH_SEEDS = 100
+GRAPH_CONSENSUS = 30
+GRAPH_NMS_RADII = 0.25
 
 
 def _triples(m: int, iterations: int, seed: int) -> jax.Array:

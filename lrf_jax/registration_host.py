@@ -118,6 +118,12 @@ def inlier_mask(rotation: np.ndarray, translation: np.ndarray, src: np.ndarray, 
   return _run_inliers(rotation, translation, src, dst, threshold, 1)[1][0]
 
 
+def inlier_masks(rotations: np.ndarray, translations: np.ndarray, src: np.ndarray,
+                 dst: np.ndarray, threshold: float) -> np.ndarray:
+  """(H, M) bool: the `count_inliers` test of each of H poses, as masks."""
+  return _run_inliers(rotations, translations, src, dst, threshold, len(rotations))[1]
+
+
 def select_and_refine(rotation: np.ndarray, translation: np.ndarray, src: np.ndarray,
                       dst: np.ndarray, threshold: float
                       ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

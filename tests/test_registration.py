@@ -287,13 +287,16 @@ def test_pose_protocol_on_a_rigidly_moved_cloud():
   assert "| demo | lrf_ransac | 1 |" in pose_report(recs)
 
 
-def test_verdict_rule():
-  from lrf_jax.registration import verdict
-  assert verdict(40, 5, 0.6, 1.0)            # far above the chance level
-  assert verdict(7, 7, 0.42, 2.1)            # few inliers, but the overlap stands out
-  assert not verdict(54, 36, 0.98, 1.0)      # blobs: chance reaches nearly as many inliers
-  assert not verdict(9, 5, 0.37, 1.3)        # a mirror image
-  assert not verdict(400, 5, 0.1, 3.0)       # ICP pairs almost nothing
+def test_verdict_rule_of_the_one_point_estimator():
+  from lrf_jax.registration import Evidence, verdict
+
+  def ok(n, chance, fitness, contrast):
+    return verdict(Evidence(n, chance, 0, fitness, contrast, "lrf"))[0]
+  assert ok(40, 5, 0.6, 1.0)            # far above the chance level
+  assert ok(7, 7, 0.42, 2.1)            # few inliers, but the overlap stands out
+  assert not ok(54, 36, 0.98, 1.0)      # blobs: chance reaches nearly as many inliers
+  assert not ok(9, 5, 0.37, 1.3)        # a mirror image
+  assert not ok(400, 5, 0.1, 3.0)       # ICP pairs almost nothing
 
 
 def test_register_verdict_on_a_real_pair_and_on_unrelated_blobs(tmp_path, capsys):
@@ -311,4 +314,4 @@ def test_register_verdict_on_a_real_pair_and_on_unrelated_blobs(tmp_path, capsys
   io.write_ply(tmp_path / "b.ply", b, dtype="float64")
   assert main([str(tmp_path / "a.ply"), str(tmp_path / "b.ply"), "--keypoints", "800",
                "--correspondences", "200"]) == 3
-  assert "verdict: FAILED" in capsys.readouterr().err
+  assert "verdict: NOT SURE" in capsys.readouterr().err

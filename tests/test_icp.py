@@ -1,0 +1,272 @@
+"""ICP refinement: point-to-plane (lrf_jax.icp_host) against numpy references, and the
+point-to-point mode held to the original algorithm bit for bit."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from scipy.spatial import cKDTree
+from scipy.spatial.transform import Rotation
+
+from lrf_jax import datasets, engine, icp_host
+from lrf_jax.registration import icp, pose_errors, to_transform
+
+
+def _height_field(n: int, seed: int) -> tuple[np.ndarray, np.ndarray]:
+  """A bumpy, irregularly sampled height field and its exact unit normals."""
+  rng = np.random.default_rng(seed)
+  x, y = rng.uniform(-1, 1, (2, n))
+  z = 0.3 * np.sin(3 * x) * np.cos(2 * y) + 0.2 * x ** 2
+  dzdx = 0.9 * np.cos(3 * x) * np.cos(2 * y) + 0.4 * x
+  dzdy = -0.6 * np.sin(3 * x) * np.sin(2 * y)
+  nrm = np.stack([-dzdx, -dzdy, np.ones(n)], axis=1)
+  return np.stack([x, y, z], axis=1), nrm / np.linalg.norm(nrm, axis=1, keepdims=True)
+
+
+def _corner(n: int, seed: int, noise: float) -> np.ndarray:
+  """A room corner: the floor z = 0 and the walls y = 0, x = 0, each 1 x 1, n // 3 random
+  points per plane with Gaussian noise of `noise`."""
+  rng = np.random.default_rng(seed)
+  k = n // 3
+  u = rng.uniform(0, 1, (3, k, 2))
+  zero = np.zeros(k)
+  pts = np.concatenate([np.c_[u[0], zero], np.c_[u[1][:, 0], zero, u[1][:, 1]],
+                        np.c_[zero, u[2]]])
+  return pts + rng.normal(0, noise, pts.shape)
+
+
+def _pose(axis, deg: float, t) -> np.ndarray:
+  return to_transform(datasets.rotation_matrix(np.asarray(axis, np.float64), deg), t)
+
+
+# ------------------------------------------------------------------------------------------------
+# point_to_point: the original algorithm
+
+
+def _old_icp_numpy(source, target, init, max_distance, iterations=30, tolerance=1e-7):
+  """The point-to-point ICP `icp` had before the point-to-plane mode, in numpy: cKDTree pairs,
+  the engine's per-block sums (same arithmetic in the same order), Kabsch on the sums."""
+  target = np.asarray(target, np.float64)
+  source = np.asarray(source, np.float64)
+  tree = cKDTree(target)
+  center = target.mean(axis=0)
+  r2 = max_distance * max_distance
+  nblock = max(1, -(-len(source) // engine._BLOCK))
+
+  def step(tr):
+    rot, trans = tr[:3, :3], tr[:3, 3]
+    sx, sy, sz = source[:, 0], source[:, 1], source[:, 2]
+    q = np.stack([rot[k, 0] * sx + rot[k, 1] * sy + rot[k, 2] * sz + trans[k] for k in range(3)],
+                 axis=1)
+    _, j = tree.query(q, distance_upper_bound=max_distance * (1 + 1e-6))
+    ok = j < len(target)
+    tj = target[np.where(ok, j, 0)]
+    dx, dy, dz = (tj[:, k] - q[:, k] for k in range(3))
+    d2 = dx * dx + dy * dy + dz * dz
+    ok &= d2 <= r2
+    a, b = q - center, tj - center
+    terms = np.concatenate([np.ones((len(q), 1)), d2[:, None], a, b,
+                            (a[:, :, None] * b[:, None, :]).reshape(-1, 9)], axis=1)
+    terms[~ok] = 0.0
+    padded = np.zeros((nblock * engine._BLOCK, 17))
+    padded[:len(q)] = terms
+    padded = padded.reshape(nblock, engine._BLOCK, 17)
+    partial = np.zeros((nblock, 17))
+    for k in range(engine._BLOCK):  # each block's sums in point order, as the kernel adds them
+      partial += padded[:, k]
+    acc = partial.sum(axis=0)
+    n = int(acc[0])
+    return n, (np.sqrt(acc[1] / n) if n else float("inf")), acc[2:5], acc[5:8], \
+        acc[8:17].reshape(3, 3)
+
+  tr = np.array(init, np.float64)
+  for _ in range(int(iterations)):
+    n, _, sa, sb, sab = step(tr)
+    if n < 3:
+      break
+    ca, cb = sa / n, sb / n
+    u, _, vt = np.linalg.svd(sab - n * np.outer(ca, cb))
+    dd = np.sign(np.linalg.det(vt.T @ u.T)) or 1.0
+    r = vt.T @ np.diag([1.0, 1.0, dd]) @ u.T
+    move = to_transform(r, (cb + center) - r @ (ca + center))
+    tr = move @ tr
+    angle = np.arccos(np.clip((np.trace(r) - 1) / 2, -1, 1))
+    if angle + np.linalg.norm(move[:3, 3]) / max_distance < tolerance:
+      break
+  n, rmse, *_ = step(tr)
+  return tr, (n / len(source) if len(source) else 0.0), float(rmse)
+
+
+def test_point_to_point_mode_is_bit_identical_to_the_original_algorithm():
+  pts, _ = _height_field(3000, 0)
+  gt = _pose([0.3, 1.0, 0.2], 3.0, [0.01, -0.02, 0.005])
+  target = datasets.transform_points(gt, pts)
+  for iterations in (1, 4, 12):
+    want = _old_icp_numpy(pts[::3], target, np.eye(4), 0.1, iterations)
+    got = icp(pts[::3], target, np.eye(4), max_distance=0.1, iterations=iterations,
+              mode="point_to_point")
+    assert np.array_equal(got[0], want[0])
+    assert got[1] == want[1] and got[2] == want[2]
+  assert pose_errors(got[0], gt, mr=0.01)[0] < 0.5  # it did move towards gt
+
+
+# ------------------------------------------------------------------------------------------------
+# point_to_plane: one step against numpy
+
+
+def _reference_step(source, target, normals, init, max_distance):
+  """One point-to-plane Gauss-Newton step in numpy: cKDTree pairs, rows a = [(p - c) x n, n],
+  b = (q - p) . n (pairs with unusable normals left out), the rescaled damped solve of
+  icp_host's docstring, the exact rotation from scipy. Returns (new pose, A^T A, A^T b, pairs,
+  plane pairs)."""
+  c = target.mean(axis=0)
+  p = source @ init[:3, :3].T + init[:3, 3]
+  d, j = cKDTree(target).query(p, distance_upper_bound=max_distance)
+  paired = j < len(target)
+  lengths = np.linalg.norm(normals, axis=1)
+  usable = np.isfinite(lengths) & (lengths > 0)
+  keep = paired.copy()
+  keep[paired] = usable[j[paired]]
+  n = normals[j[keep]] / lengths[j[keep], None]
+  pk, qk = p[keep], target[j[keep]]
+  a = np.concatenate([np.cross(pk - c, n), n], axis=1)
+  b = np.einsum("ij,ij->i", qk - pk, n)
+  h, g = a.T @ a, a.T @ b
+  lever = np.sqrt(np.trace(h[:3, :3]) / np.trace(h[3:, 3:]))
+  s = np.r_[np.full(3, 1 / lever), np.ones(3)]
+  hs = h * np.outer(s, s)
+  x = np.linalg.solve(hs + icp_host.DAMPING * np.trace(hs) / 6 * np.eye(6), g * s) * s
+  r = Rotation.from_rotvec(x[:3]).as_matrix()
+  move = to_transform(r, c + x[3:] - r @ c)
+  return move @ init, h, g, int(paired.sum()), int(keep.sum())
+
+
+def test_one_step_matches_a_numpy_reference():
+  pts, nrm = _height_field(4000, 1)
+  gt = _pose([1.0, -0.4, 0.5], 4.0, [0.03, 0.01, -0.02])
+  source = datasets.transform_points(np.linalg.inv(gt), pts[::2] + 0.002)  # a bit off the surface
+  nrm = nrm * np.random.default_rng(2).uniform(0.5, 2.0, (len(nrm), 1))   # any length, any sign
+  nrm[::7] *= -1.0
+  nrm[3::11] = 0.0  # unusable normals: their pairs are skipped
+  nrm[5::13] = np.nan
+  init = _pose([0.2, 0.3, 1.0], 1.0, [0.01, 0.0, 0.0])
+  want, h, g, pairs, plane_pairs = _reference_step(source, pts, nrm, init, 0.08)
+  grid = engine.Grid(pts, 0.08)
+  sums = icp_host.plane_sums(grid, icp_host.unit_normals(nrm), source, init[:3, :3], init[:3, 3],
+                             0.08, pts.mean(axis=0))
+  assert (sums.pairs, sums.plane_pairs) == (pairs, plane_pairs) and plane_pairs < pairs
+  np.testing.assert_allclose(sums.hessian, h, rtol=1e-10, atol=1e-10 * np.abs(h).max())
+  np.testing.assert_allclose(sums.gradient, g, rtol=1e-10, atol=1e-10 * np.abs(g).max())
+  got, fitness, rmse = icp(source, pts, init, max_distance=0.08, iterations=1, target_normals=nrm)
+  np.testing.assert_allclose(got, want, rtol=0, atol=1e-12)
+  assert not np.allclose(got, init, atol=1e-4)  # the step is not trivially zero
+  # fitness and rmse are point-to-point statistics at the returned pose, as in point_to_point.
+  n, d2, *_ = engine.icp_sums(grid, source, got[:3, :3], got[:3, 3], 0.08, pts.mean(axis=0))
+  assert fitness == n / len(source)
+  assert rmse == pytest.approx(np.sqrt(d2 / n), rel=1e-12)
+
+
+def test_the_normals_sign_and_length_do_not_change_the_result():
+  pts, nrm = _height_field(3000, 3)
+  gt = _pose([0.0, 1.0, 0.3], 5.0, [0.02, 0.02, 0.0])
+  source = datasets.transform_points(np.linalg.inv(gt), pts[::3])
+  flipped = nrm * np.where(np.arange(len(nrm)) % 2, -1.0, 1.0)[:, None]
+  a = icp(source, pts, np.eye(4), max_distance=0.1, target_normals=nrm)
+  b = icp(source, pts, np.eye(4), max_distance=0.1, target_normals=flipped)
+  assert np.array_equal(a[0], b[0]) and a[1:] == b[1:]
+  assert pose_errors(a[0], gt, mr=0.01)[0] < 1e-4  # noise-free with exact normals: exact
+
+
+# ------------------------------------------------------------------------------------------------
+# point_to_plane: convergence, determinism, degenerate scenes
+
+
+def test_point_to_plane_converges_on_a_room_corner_in_fewer_iterations():
+  """Independent samples of the same noisy room corner, 7 deg and 5 cm apart: point-to-plane
+  (estimated normals) is within 0.05 deg after 5 iterations, point-to-point is not after 10."""
+  source, target = _corner(3000, 0, 0.001), _corner(3000, 1, 0.001)
+  init = _pose([1.0, -0.5, 0.3], 7.0, [0.04, -0.03, 0.02])
+  plane, fit, _ = icp(source, target, init, max_distance=0.2, iterations=5)
+  point, *_ = icp(source, target, init, max_distance=0.2, iterations=10, mode="point_to_point")
+  err_plane, err_t = pose_errors(plane, np.eye(4), mr=1.0)
+  err_point, _ = pose_errors(point, np.eye(4), mr=1.0)
+  assert err_plane < 0.05 and err_t < 0.002 and fit == 1.0
+  assert err_point > 0.05
+
+
+def test_point_to_plane_does_not_depend_on_the_thread_count():
+  source, target = _corner(3000, 2, 0.002), _corner(3000, 3, 0.002)
+  init = _pose([0.3, 1.0, -0.2], 6.0, [0.02, 0.05, -0.03])
+  before = engine.num_threads()
+  try:
+    results = []
+    for n in (1, engine.set_num_threads(None)):
+      engine.set_num_threads(n)
+      results.append(icp(source, target, init, max_distance=0.2, iterations=6))
+  finally:
+    engine.set_num_threads(before)
+  (a, fa, ra), (b, fb, rb) = results
+  assert np.array_equal(a, b) and fa == fb and ra == rb
+
+
+def test_a_single_plane_neither_blows_up_nor_slides():
+  """z = 0 constrains t_z and the two tilts only: the 6 x 6 system is singular. The damped step
+  levels the source onto the plane and leaves the unconstrained in-plane motion alone."""
+  rng = np.random.default_rng(4)
+  plane = np.c_[rng.uniform(0, 1, (3000, 2)), np.zeros(3000)]
+  source = np.c_[rng.uniform(0.2, 0.8, (1000, 2)), np.zeros(1000)]
+  init = _pose([1.0, 0.0, 0.0], 3.0, [0.0, 0.0, 0.02])
+  with np.errstate(all="raise"):
+    est, fit, rmse = icp(source, plane, init, max_distance=0.1,
+                         target_normals=np.tile([0.0, 0.0, 1.0], (3000, 1)))
+  assert np.all(np.isfinite(est)) and np.isfinite(rmse) and fit == 1.0
+  moved = datasets.transform_points(est, source)
+  assert np.abs(moved[:, 2]).max() < 1e-9  # levelled onto the plane
+  # The tilt about x is undone, and nothing moves along the null directions: no rotation about
+  # z, no shift along x (y shifts by the lever of the tilt about the rotation centre, < 5 mm).
+  assert np.abs(est[:3, :3] - np.eye(3)).max() < 1e-9
+  start = datasets.transform_points(init, source)
+  assert np.abs(moved[:, 0] - start[:, 0]).max() < 1e-9
+  assert np.abs(moved[:, 1] - start[:, 1]).max() < 5e-3
+  # Noisy, with estimated normals: still finite and on the plane.
+  noisy = plane + rng.normal(0, 0.001, plane.shape)
+  est, fit, rmse = icp(source, noisy, init, max_distance=0.1)
+  moved = datasets.transform_points(est, source)
+  assert np.all(np.isfinite(est)) and fit == 1.0 and np.abs(moved[:, 2]).mean() < 1e-3
+
+
+def test_the_damped_solve_of_a_singular_system_is_finite_and_zero_off_the_data():
+  rng = np.random.default_rng(5)
+  p = np.c_[rng.uniform(-1, 1, (50, 2)), np.zeros(50)]
+  n = np.tile([0.0, 0.0, 1.0], (50, 1))
+  a = np.concatenate([np.cross(p, n), n], axis=1)   # columns of ω_z, t_x, t_y are zero
+  b = rng.normal(size=50)
+  x = icp_host.solve_step(a.T @ a, a.T @ b)
+  assert np.linalg.matrix_rank(a.T @ a) == 3 and np.all(np.isfinite(x))
+  assert np.array_equal(x[[2, 3, 4]], np.zeros(3))
+  np.testing.assert_allclose(a @ x, a @ np.linalg.lstsq(a, b, rcond=None)[0], atol=1e-5)
+  assert np.array_equal(icp_host.solve_step(np.zeros((6, 6)), np.zeros(6)), np.zeros(6))
+
+
+def test_no_pairs_leaves_the_pose_alone():
+  target = _corner(600, 6, 0.0)
+  init = _pose([0.0, 0.0, 1.0], 10.0, [5.0, 0.0, 0.0])  # far away from the target
+  est, fit, rmse = icp(target, target, init, max_distance=0.05)
+  assert np.array_equal(est, init) and fit == 0.0 and rmse == float("inf")
+
+
+def test_bad_arguments_name_the_argument():
+  pts = _corner(300, 7, 0.0)
+  with pytest.raises(ValueError, match="mode"):
+    icp(pts, pts, np.eye(4), max_distance=0.1, mode="plane")
+  with pytest.raises(ValueError, match=r"target_normals: expected shape \(300, 3\)"):
+    icp(pts, pts, np.eye(4), max_distance=0.1, target_normals=np.zeros((300, 2)))
+  with pytest.raises(ValueError, match="target_normals"):
+    icp(pts, pts, np.eye(4), max_distance=0.1, target_normals=np.zeros((299, 3)))
+  with pytest.raises(ValueError, match="target_normals"):
+    icp(pts, pts, np.eye(4), max_distance=0.1, target_normals=[["a", "b", "c"]] * 300)
+  for bad in (0.0, -1.0, float("nan"), "5cm"):
+    with pytest.raises(ValueError, match="max_distance"):
+      icp(pts, pts, np.eye(4), max_distance=bad)
+  with pytest.raises(ValueError, match="max_distance: expected a finite"):
+    icp(pts, pts, np.eye(4), max_distance=float("inf"), target_grid=engine.Grid(pts, 0.1))

@@ -5,11 +5,15 @@
     python evaluate.py --checkpoint runs/default --methods lrf_net toldi shot --out out/
 
 With no data (no --data, LRF_DATA unset, nothing under data/) it runs on the procedural demo set.
-Writes results.json, report.md and PNG figures to --out and prints the summary table. This file
-is intentionally kept short; the logic lives in lrf_jax/evaluation/.
+Writes results.json, report.md and PNG figures to --out (each atomically) and prints the summary
+table. Every bad argument (checked before any work), missing parameter file or checkpoint and
+unwritable output is one `error:` line and exit code 2. This file is intentionally kept short;
+the logic lives in lrf_jax/evaluation/.
 """
 
 import argparse
+import math
+import os
 import sys
 import time
 from pathlib import Path
@@ -46,6 +50,10 @@ def main(argv=None) -> int:
   ap.add_argument("--cache-dir", default=None, help="keep neighbourhoods on disk here")
   ap.add_argument("--out", default="out/eval", help="output folder")
   args = ap.parse_args(argv)
+  problem = _check(args)
+  if problem:
+    print(f"error: {problem}", file=sys.stderr)
+    return 2
 
   t0 = time.perf_counter()
   names = args.datasets or REAL
@@ -71,10 +79,55 @@ def main(argv=None) -> int:
   plan = runner.EvalPlan(ok, args.experiments, runs, opts, notes=missing + notes,
                          cache_dir=args.cache_dir, meta={"args": vars(args)})
   out = Path(args.out)
-  print(runner.evaluate(plan, out))
+  try:
+    text = runner.evaluate(plan, out)
+  except OSError as e:  # a WriteError (full disk, read-only --out): earlier files are intact
+    print(f"error: {e}", file=sys.stderr)
+    return 2
+  print(text)
   print(f"wrote {out / 'results.json'}, {out / 'report.md'} and figures "
         f"({time.perf_counter() - t0:.0f} s)")
   return 0
+
+
+# Files evaluate.py writes in --out besides figures (*.png).
+OUTPUT_FILES = ("results.json", "report.md", "partial_records.jsonl",
+                "results_description_pose.json")
+
+
+def _check(args: argparse.Namespace) -> str | None:
+  """What is wrong with the arguments, before any work (None: fine)."""
+  from lrf_jax.io.atomic import same_file
+  unknown = [m for m in (args.methods or []) if m not in METHODS]
+  if unknown:
+    return f"--methods: unknown method(s) {unknown}; expected any of {sorted(METHODS)}"
+  if args.keypoints < 1:
+    return f"--keypoints: expected a positive integer, got {args.keypoints}"
+  if args.max_pairs is not None and args.max_pairs < 1:
+    return f"--max-pairs: expected a positive integer (omit it for every pair), got {args.max_pairs}"
+  if args.max_neighbors < 0:
+    return f"--max-neighbors: expected a non-negative integer (0: no cap), got {args.max_neighbors}"
+  if not (math.isfinite(args.radius_mr) and args.radius_mr > 0):
+    return f"--radius-mr: expected a positive finite number of mr, got {args.radius_mr}"
+  if not 0 <= args.seed < 2**32:
+    return f"--seed: expected an integer in [0, 2**32), got {args.seed}"
+  out = Path(args.out).expanduser()
+  if out.exists() and not out.is_dir():
+    return f"--out: {args.out} is a file; expected a folder (it is created if missing)"
+  existing = next(p for p in [out, *out.absolute().parents] if p.exists())
+  if not os.access(existing, os.W_OK | os.X_OK):
+    return f"--out: {existing} is not writable"
+  if args.checkpoint:
+    ckpt = Path(args.checkpoint).expanduser()
+    if not (ckpt / "checkpoints").is_dir():
+      return (f"--checkpoint: {args.checkpoint} is not a train.py workdir (no checkpoints/ "
+              "folder in it)")
+  for item in args.params:
+    path = item.partition("=")[2].partition("@")[0]
+    if path and (Path(path).suffix.lower() == ".png" and same_file(Path(path).parent, out)
+                 or any(same_file(out / name, path) for name in OUTPUT_FILES)):
+      return f"--params {item!r}: {path} is in --out under the name of an output; move it"
+  return None
 
 
 if __name__ == "__main__":

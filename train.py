@@ -7,14 +7,19 @@
         --coordinator HOST0:1234 --num-processes N --process-id I     # on each of N hosts
 
 Overrides are `key=value` fields of `lrf_jax.config.TrainConfig`. A run restarted with the same
---workdir resumes from its latest checkpoint. With --coordinator, the processes join one
+--workdir resumes from its latest checkpoint, under the same config: another config is an
+error naming the fields that differ, unless --replace-config (config.json is kept, the new
+config is written as config.<n>.json and noted in metrics.jsonl). Every bad argument, config or
+unwritable file is one `error:` line and exit code 2 (1: the run diverged). With --coordinator, the processes join one
 `jax.distributed` job (gloo collectives on CPU), the batch is split over the devices of all of
 them, the workdir must be shared, and only process 0 prints and writes files besides the
 checkpoints. This file is intentionally kept short; the loop lives in lrf_jax/train_lib.py.
 """
 
 import argparse
+import os
 import sys
+from pathlib import Path
 
 from lrf_jax import checkpoints
 from lrf_jax import config as config_lib
@@ -26,6 +31,9 @@ def main(argv=None) -> int:
   ap.add_argument("--config", default="default", help="preset name or path (.py / .json)")
   ap.add_argument("--workdir", default=None, help="output folder (default: runs/<config name>)")
   ap.add_argument("--no-progress", action="store_true", help="no progress bar")
+  ap.add_argument("--replace-config", action="store_true",
+                  help="resume a run started under another config: keep its config.json, "
+                       "record the new one as config.<n>.json and continue")
   ap.add_argument("--coordinator", default=None,
                   help="multi-host: coordinator address host:port (jax.distributed)")
   ap.add_argument("--num-processes", type=int, default=None,
@@ -50,17 +58,42 @@ def main(argv=None) -> int:
     jax.config.update("jax_cpu_collectives_implementation", "gloo")
     jax.distributed.initialize(args.coordinator, args.num_processes, args.process_id)
   workdir = args.workdir or f"runs/{config.name}"
+  problem = _check_workdir(Path(workdir), args.config)
+  if problem:
+    print(f"error: {problem}", file=sys.stderr)
+    return 2
   try:
-    final = train_lib.train_and_evaluate(config, workdir, progress=not args.no_progress)
+    final = train_lib.train_and_evaluate(config, workdir, progress=not args.no_progress,
+                                         replace_config=args.replace_config)
   except FloatingPointError as e:  # diverged: nothing non-finite was saved
     print(f"error: {e}", file=sys.stderr)
     return 1
   except (ValueError, FileNotFoundError) as e:  # bad data path, incompatible or no checkpoint
     print(f"error: {e}", file=sys.stderr)
     return 2
+  except OSError as e:  # a WriteError (full disk, read-only workdir): the old files are intact
+    print(f"error: {e}", file=sys.stderr)
+    return 2
   if checkpoints.is_primary():
     print({k: v for k, v in final.items() if k != "val_per_pair"})
   return 0
+
+
+def _check_workdir(workdir: Path, config_arg: str) -> str | None:
+  """What is wrong with --workdir, before any work (None: fine): a file, not creatable or not
+  writable, or holding the --config file under the name of an output."""
+  from lrf_jax.io.atomic import same_file
+  if workdir.exists() and not workdir.is_dir():
+    return f"--workdir: {workdir} is a file; expected a folder (new, or a run's to resume)"
+  existing = next((p for p in [workdir, *workdir.absolute().parents] if p.exists()), None)
+  if existing is not None and not os.access(existing, os.W_OK | os.X_OK):
+    return f"--workdir: {existing} is not writable"
+  if Path(config_arg).is_file():
+    for name in train_lib.OUTPUT_FILES:
+      if same_file(workdir / name, config_arg):
+        return (f"--config {config_arg}: is the run's output {name}; refusing to overwrite it "
+                "(copy it elsewhere)")
+  return None
 
 
 if __name__ == "__main__":

@@ -17,8 +17,9 @@ from lrf_jax.resolution import mesh_resolution as _mesh_resolution
 from lrf_jax.frames import METHODS, MethodSpec
 from lrf_jax.inputs import as_cloud
 from lrf_jax.model import default_params
-from lrf_jax.neighborhoods import (Patches, SearchIndex, build_patches, validate_keypoints,
-                                   validate_radius, validate_seed, validate_viewpoint)
+from lrf_jax.neighborhoods import (Patches, SearchIndex, build_patches, unit_scaled,
+                                   validate_keypoints, validate_radius, validate_seed,
+                                   validate_viewpoint)
 from lrf_jax.prepare import method_normals, prepare_extra
 
 # Ball sizes outside these bounds (median over a sample of keypoints) draw a warning.
@@ -89,6 +90,8 @@ def _weight_table(params: Any, size: int, host: bool = False) -> Any:
     if p is params and n == size and h == host:
       return table
   table = weight_table_numpy(params, size) if host else _jit_weight_table(params, size)
+  if host:  # shared by every later call: read-only, so no caller can write into the cache
+    table.values.flags.writeable = False
   _TABLES.append((params, size, host, table))
   del _TABLES[:-4]
   return table
@@ -142,19 +145,20 @@ def _resolve_radius(points: np.ndarray, faces: Any, radius: Any, radius_mr: Any)
 
 
 def _warn_on_ball_size(index: SearchIndex, points: np.ndarray, keypoints: np.ndarray,
-                       radius: float) -> None:
+                       radius: float, unit: float = 1.0) -> None:
   """Warn when the median ball (over up to 256 of the keypoints) holds fewer than
-  `MIN_MEDIAN_BALL` points or more than `MAX_BALL_FRACTION` of the cloud."""
+  `MIN_MEDIAN_BALL` points or more than `MAX_BALL_FRACTION` of the cloud. `unit`: the cloud
+  units of one unit of `points` (lengths are reported in the caller's units)."""
   sample = keypoints[:: max(1, len(keypoints) // 256)]
   med = float(np.median(engine.ball_counts(index.grid(radius), points[sample], radius)))
   n = len(points)
   if med < MIN_MEDIAN_BALL:
-    warnings.warn(f"radius {radius:.6g}: the median ball holds {med:.0f} points (fewer than "
-                  f"{MIN_MEDIAN_BALL}); most frames will be invalid. The paper uses 15 mesh "
+    warnings.warn(f"radius {radius * unit:.6g}: the median ball holds {med:.0f} points (fewer "
+                  f"than {MIN_MEDIAN_BALL}); most frames will be invalid. The paper uses 15 mesh "
                   f"resolutions: radius_mr=15 (this cloud's mr is "
-                  f"{_mesh_resolution(points)[0]:.6g})", stacklevel=3)
+                  f"{_mesh_resolution(points)[0] * unit:.6g})", stacklevel=3)
   elif med > MAX_BALL_FRACTION * n:
-    warnings.warn(f"radius {radius:.6g}: the median ball holds {med:.0f} of the cloud's {n} "
+    warnings.warn(f"radius {radius * unit:.6g}: the median ball holds {med:.0f} of the cloud's {n} "
                   f"points (more than {MAX_BALL_FRACTION:.0%}); the frames are not local. The "
                   "paper uses 15 mesh resolutions: radius_mr=15", stacklevel=3)
 
@@ -165,6 +169,27 @@ def _validate_k(k: Any) -> None:
   if isinstance(k, (bool, np.bool_)) or not isinstance(k, (int, np.integer)) or k < 1:
     raise ValueError(f"k: expected a positive integer patch size, None (every neighbour) or "
                      f"'default', got {k!r}")
+
+
+def patch_size_cap(n_points: int) -> int:
+  """The largest patch size K `compute_frames` allocates for a cloud of `n_points`: the smallest
+  power of two >= n_points. A ball holds at most the whole cloud, so a larger K would only add
+  padding (which never changes a frame) and memory (m x K x 21 bytes of patches)."""
+  return 1 << max(int(n_points) - 1, 0).bit_length()
+
+
+def _check_index(index: Any, points: np.ndarray) -> None:
+  """Raise unless `index` is a `SearchIndex` of exactly these points (same object, or the same
+  shape and values): an index of another cloud would silently answer with its points."""
+  if not isinstance(index, SearchIndex):
+    raise ValueError(f"index: expected a SearchIndex of the points, got {type(index).__name__}")
+  own = index.points
+  if own is points:
+    return
+  if own.shape != points.shape or not np.array_equal(own, points):
+    raise ValueError(f"index: a SearchIndex of a different cloud ({own.shape[0]} points, "
+                     f"not equal to the {points.shape[0]} points given); build it with "
+                     "SearchIndex(points, seed) from these points")
 
 
 def compute_frames(
@@ -210,7 +235,8 @@ def compute_frames(
     params: learned parameters for learned methods; None = the shipped default weights
       (`lrf_jax.default_params()`).
     k: patch size K; "default" = the method's own (`METHODS[method].default_k`); None = every
-      neighbour in the ball.
+      neighbour in the ball. A K above the cloud's size is capped at `patch_size_cap(n)` (the
+      power of two >= n): a ball cannot hold more points, and padding never changes a frame.
     seed: seed of the neighbour subsample when a ball holds more than K points.
     faces: (f, 3) triangle indices, for mesh methods.
     normals: (n, 3) per-point normals, for methods that use them; None = estimated
@@ -263,7 +289,13 @@ def compute_frames(
   seed = validate_seed(seed)
   _check_options(method, options)
   viewpoint = validate_viewpoint(viewpoint)
+  # Every method works in units of the radius (frames are directions): the same arithmetic at
+  # any scale of cloud and radius, a ValueError outside 1e-30..1e30 (`unit_scaled`).
+  unit = radius
+  points, radius, viewpoint = unit_scaled(points, radius, viewpoint)
   k = spec.default_k if k == "default" else k
+  if k is not None:
+    k = min(int(k), patch_size_cap(points.shape[0]))
   if spec.needs_params and params is None:
     params = default_params(spec.weights)
   m = keypoints.shape[0]
@@ -272,7 +304,7 @@ def compute_frames(
   on_host = _use_host_kernel(spec, kernel, k, options, search)
   host_patches = _use_host_patch_kernel(spec, kernel, options, search)
   search_patches = _patch_search(points, spec, radius, k, seed, search, on_host or host_patches)
-  _warn_on_ball_size(search_patches.index, points, keypoints, radius)
+  _warn_on_ball_size(search_patches.index, points, keypoints, radius, unit)
   normals = method_normals(spec, points, radius, faces=faces, normals=normals,
                            viewpoint=viewpoint)
   host_options = dict(spec.default_options) | options
@@ -382,10 +414,14 @@ def host_frames(points: np.ndarray, keypoints: np.ndarray, radius: float, method
 
   Returns:
     (frames (m, 3, 3) float32 rows x, y, z, valid (m,) bool), as numpy arrays.
+
+  Raises:
+    ValueError: a method without a host fast path, or an `index` not built from `points`.
   """
   spec = _spec(method)
   if spec.host_frames is None:
     raise ValueError(f"method {method!r} has no host fast path (METHODS[method].host_frames)")
+  _check_index(index, points)
   kp = np.asarray(keypoints, np.int64)
   order = engine.query_order(index.grid(radius), points[kp])  # cache-friendly, as compute_frames
   counts = None if ball_counts is None else np.asarray(ball_counts)[order]

@@ -56,11 +56,20 @@ def check_compatible(saved: dict[str, Any], config: TrainConfig, where: Path) ->
 
 
 def restore_params(workdir: str | Path, which: str = "best") -> tuple[Any, TrainConfig]:
-  """Parameters and config of a training run's best (or latest) checkpoint (for evaluate.py)."""
+  """Parameters and config of a training run's best (or latest) checkpoint (for evaluate.py).
+
+  Raises:
+    FileNotFoundError: `workdir` has no checkpoints/ folder, or no checkpoint (for "best": none
+      ranked by validation) in it.
+  """
+  root = Path(workdir) / "checkpoints"
+  if not root.is_dir():
+    raise FileNotFoundError(f"{workdir}: not a train.py workdir (no checkpoints/ folder)")
   mngr = checkpoint_manager(Path(workdir), create=False)
   step = mngr.best_step() if which == "best" else mngr.latest_step()
   if step is None:
-    raise FileNotFoundError(f"{Path(workdir) / 'checkpoints'}: no checkpoint found")
+    what = "ranked by validation (val_pairs=0?)" if which == "best" else "found"
+    raise FileNotFoundError(f"{root}: no checkpoint {what}")
   cfg_dict = mngr.restore(step, args=ocp.args.Composite(config=ocp.args.JsonRestore()))["config"]
   config = TrainConfig.from_dict({k: tuple(v) if isinstance(v, list) else v
                                   for k, v in cfg_dict.items()})

@@ -90,7 +90,8 @@ class TrainConfig:
       raise ValueError(f"config.z_sign: expected 'toldi' or 'ball', got {self.z_sign!r}")
     if self.z_mode not in ("normal", "dr"):
       raise ValueError(f"config.z_mode: expected 'normal' or 'dr', got {self.z_mode!r}")
-    if not (0.0 <= self.crop_p <= 1.0 and 0.0 <= self.crop_min < 1.0):
+    if not (_is_number(self.crop_p) and _is_number(self.crop_min)
+            and 0.0 <= self.crop_p <= 1.0 and 0.0 <= self.crop_min < 1.0):
       raise ValueError(f"config.crop_p / crop_min: expected crop_p in [0, 1] and crop_min in "
                        f"[0, 1), got {self.crop_p!r} / {self.crop_min!r}")
     for f in ("num_train_keypoints", "patch_k", "batch_size", "epochs", "val_keypoints",
@@ -104,12 +105,27 @@ class TrainConfig:
         raise ValueError(f"config.{f}: expected a non-negative integer, got {v!r}")
     for f in ("radius_mr", "learning_rate"):
       v = getattr(self, f)
-      if not isinstance(v, (int, float)) or not math.isfinite(v) or v <= 0:
+      if not _is_number(v) or not math.isfinite(v) or v <= 0:
         raise ValueError(f"config.{f}: expected a positive finite number, got {v!r}")
-    if not (isinstance(self.lr_decay, (int, float)) and 0 < self.lr_decay <= 1):
+    if not (_is_number(self.lr_decay) and 0 < self.lr_decay <= 1):
       raise ValueError(f"config.lr_decay: expected a number in (0, 1], got {self.lr_decay!r}")
-    if any(not (isinstance(v, (int, float)) and math.isfinite(v) and v >= 0)
-           for v in self.noise_mr):
+    if self.batch_size > self.num_train_keypoints:
+      raise ValueError(f"config.batch_size: {self.batch_size} pairs per step is more than the "
+                       f"{self.num_train_keypoints} training keypoints (num_train_keypoints; one "
+                       "epoch is one pass over them): lower batch_size or raise "
+                       "num_train_keypoints")
+    for f in ("name", "data", "loss_reduction", "z_mode", "z_sign", "x_mode"):
+      if not isinstance(getattr(self, f), str):
+        raise ValueError(f"config.{f}: expected a string, got {getattr(self, f)!r}")
+    if self.data_root is not None and not isinstance(self.data_root, str):
+      raise ValueError(f"config.data_root: expected a path (string) or null, got "
+                       f"{self.data_root!r}")
+    for f in ("noise_mr", "widths"):
+      if isinstance(getattr(self, f), list):
+        object.__setattr__(self, f, tuple(getattr(self, f)))
+      if not isinstance(getattr(self, f), tuple):
+        raise ValueError(f"config.{f}: expected a list, got {getattr(self, f)!r}")
+    if any(not (_is_number(v) and math.isfinite(v) and v >= 0) for v in self.noise_mr):
       raise ValueError(f"config.noise_mr: expected non-negative noise levels in mr, got "
                        f"{self.noise_mr!r}")
     if not self.widths or any(isinstance(v, bool) or not isinstance(v, int) or v < 1
@@ -131,11 +147,25 @@ class TrainConfig:
 
   @classmethod
   def from_dict(cls, d: dict[str, Any]) -> TrainConfig:
+    """A config from a mapping of field values (a JSON config's object).
+
+    Raises:
+      ValueError: `d` is not a mapping, names unknown fields or holds a bad value.
+    """
+    if not isinstance(d, dict):
+      raise ValueError(f"config: expected an object of field: value pairs, got "
+                       f"{type(d).__name__}")
     return replace(cls(), **d)
 
 
+def _is_number(v: Any) -> bool:
+  """An int or float, not a bool (JSON's true is not a number)."""
+  return isinstance(v, (int, float)) and not isinstance(v, bool)
+
+
 def _coerce(field: dataclasses.Field, value: Any) -> Any:
-  """Parse a CLI string into the type of `field`'s default."""
+  """Parse a CLI string into the type of `field`'s default; a JSON list becomes a tuple. Other
+  values are checked by `TrainConfig.__post_init__`."""
   if not isinstance(value, str):
     if isinstance(field.default, tuple) and isinstance(value, list):
       return tuple(value)
@@ -193,11 +223,24 @@ def load_config(name_or_path: str) -> TrainConfig:
   or .json).
 
   Raises:
-    ValueError: no such preset or file.
+    ValueError: no such preset or file, a folder, a file that does not parse, a .py without a
+      `get_config()` returning a `TrainConfig`, or a bad value (each message names the file).
   """
   path = Path(name_or_path)
+  if path.suffix in (".json", ".py") and path.exists() and not path.is_file():
+    raise ValueError(f"--config {name_or_path!r}: is a folder; expected a preset name or a .py "
+                     "or .json file")
   if path.suffix == ".json" and path.exists():
-    return TrainConfig.from_dict(json.loads(path.read_text()))
+    try:
+      d = json.loads(path.read_text())
+    except UnicodeDecodeError as e:
+      raise ValueError(f"--config {path}: not UTF-8 text ({e})") from None
+    except json.JSONDecodeError as e:
+      raise ValueError(f"--config {path}: not valid JSON: {e}") from None
+    try:
+      return TrainConfig.from_dict(d)
+    except ValueError as e:
+      raise ValueError(f"--config {path}: {e}") from None
   presets = Path(__file__).parent / "configs"
   if not (path.suffix == ".py" and path.exists()):
     path = presets / f"{name_or_path}.py"
@@ -207,5 +250,21 @@ def load_config(name_or_path: str) -> TrainConfig:
                        f"{names}, or give a path to a .py (with get_config()) or .json")
   spec = importlib.util.spec_from_file_location(f"lrf_jax_config_{path.stem}", path)
   module = importlib.util.module_from_spec(spec)
-  spec.loader.exec_module(module)
-  return module.get_config()
+  try:
+    spec.loader.exec_module(module)
+  except Exception as e:  # a user's file: any error in it is theirs to see, named
+    raise ValueError(f"--config {path}: failed to run ({type(e).__name__}: {e})") from None
+  get_config = getattr(module, "get_config", None)
+  if not callable(get_config):
+    raise ValueError(f"--config {path}: defines no get_config() function (expected one "
+                     "returning a lrf_jax.config.TrainConfig)")
+  try:
+    config = get_config()
+  except ValueError as e:
+    raise ValueError(f"--config {path}: get_config(): {e}") from None
+  except Exception as e:
+    raise ValueError(f"--config {path}: get_config() failed ({type(e).__name__}: {e})") from None
+  if not isinstance(config, TrainConfig):
+    raise ValueError(f"--config {path}: get_config() returned a {type(config).__name__}; "
+                     "expected a lrf_jax.config.TrainConfig (TrainConfig(**fields))")
+  return config

@@ -35,7 +35,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from lrf_jax.neighborhoods import Patches, SearchIndex, build_patches
+from lrf_jax.neighborhoods import Patches, SearchIndex, build_patches, validate_scale
 
 _OFFS = np.stack(np.meshgrid(*[np.arange(-1, 2)] * 3, indexing="ij"), -1).reshape(-1, 3)
 
@@ -95,6 +95,7 @@ class DeviceIndex:
   def __init__(self, points: np.ndarray, radius: float, k: int, seed: int = 0,
                z_ratio: float = 1.0 / 3.0, cap: int | None = None):
     self.host = SearchIndex(points, seed)
+    validate_scale(self.host.max_abs, float(radius))
     self.radius, self.k, self.seed, self.z_ratio = float(radius), int(k), int(seed), z_ratio
     pts = self.host.data  # priority order
     self.lo = pts.min(axis=0)

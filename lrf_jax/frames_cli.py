@@ -1,11 +1,15 @@
 """`lrf-frames CLOUD --out F.npz`: local reference frames for the keypoints of one's own file.
 
 Reads any cloud or mesh `lrf_jax.io.read_cloud` reads (PLY, PCD, XYZ/TXT(.gz), NPY), picks
-keypoints (N seeded random points, all points, or one point per voxel of S mr), computes their
-frames (and optionally a descriptor) and writes an .npz with `keypoints` (indices), `positions`,
+keypoints (N seeded random points, all points, ISS keypoints, or with --voxel-mr one point per
+voxel of S mr; --voxel-mr and --keypoints exclude each other), computes their frames (and
+optionally a descriptor) and writes an .npz with `keypoints` (indices), `positions`,
 `frames` (m, 3, 3, rows x, y, z), `valid` (m,), `radius`, `mr`, `method`, `weights` and
-`descriptors` when asked; `--png` draws the frames on the cloud. This file is intentionally thin:
-the work is `lrf_jax.compute_frames`.
+`descriptors` when asked; `--png` draws the frames on the cloud. `--out` gets the suffix .npz
+when it has none (the path printed is the one written). Outputs are written atomically (a
+failed write leaves the previous file) and may not be the input file; every bad argument or
+unwritable output is one `error:` line and exit code 2, checked before any work where it can
+be. This file is intentionally thin: the work is `lrf_jax.compute_frames`.
 
     lrf-frames scan.ply --out scan_frames.npz --keypoints 2000 --viewpoint 0 0 0 --png f.png
 """
@@ -19,16 +23,22 @@ from pathlib import Path
 import numpy as np
 
 
+# Smallest --voxel-mr: voxels of a tenth of the point spacing already hold one point each.
+MIN_VOXEL_MR = 0.1
+FIGURE_SUFFIXES = (".png", ".pdf", ".svg", ".jpg", ".jpeg")
+_ASCII_DIGITS = frozenset("0123456789")
+
+
 def build_parser() -> argparse.ArgumentParser:
   ap = argparse.ArgumentParser(prog="lrf-frames", description="Local reference frames of the "
                                "keypoints of a cloud or mesh file, written to an .npz.")
   ap.add_argument("cloud", help="PLY, PCD, XYZ/TXT(.gz) or NPY file")
   ap.add_argument("--out", required=True, help="the .npz to write")
-  ap.add_argument("--keypoints", default="1000",
-                  help="N seeded random points, or 'all' (default 1000)")
+  ap.add_argument("--keypoints", default=None,
+                  help="N seeded random points, 'all', or 'iss' (ISS keypoints) (default 1000)")
   ap.add_argument("--voxel-mr", type=float, default=None,
-                  help="keypoints: the point nearest each voxel centre, voxels of S mr "
-                       "(instead of --keypoints)")
+                  help=f"keypoints: the point nearest each voxel centre, voxels of S mr, "
+                       f"S >= {MIN_VOXEL_MR:g} (instead of --keypoints)")
   ap.add_argument("--method", default="lrf_net_plus",
                   help="a key of lrf_jax.METHODS (default lrf_net_plus)")
   ap.add_argument("--radius-mr", type=float, default=15.0,
@@ -42,33 +52,68 @@ def build_parser() -> argparse.ArgumentParser:
   return ap
 
 
+def npz_path(out: str) -> str:
+  """The file `--out` names: `out`, with ".npz" appended when it has another suffix or none
+  (as `numpy.savez` does)."""
+  return out if out.endswith(".npz") else out + ".npz"
+
+
 def _check(args: argparse.Namespace) -> str | None:
   """What is wrong with the arguments, before any work (None: fine)."""
   from lrf_jax.descriptors import DESCRIPTORS
   from lrf_jax.frames import METHODS
+  from lrf_jax.io.atomic import output_problem, same_file
   if args.method not in METHODS:
     return f"--method: unknown method {args.method!r}; expected one of {sorted(METHODS)}"
   if args.descriptor is not None and args.descriptor not in DESCRIPTORS:
     return f"--descriptor: unknown {args.descriptor!r}; expected one of {sorted(DESCRIPTORS)}"
-  if args.keypoints != "all" and (not args.keypoints.isdigit() or int(args.keypoints) < 1):
-    return f"--keypoints: expected a positive integer or 'all', got {args.keypoints!r}"
+  if args.voxel_mr is not None and args.keypoints is not None:
+    return ("--voxel-mr and --keypoints: give one of them (--voxel-mr picks one keypoint per "
+            "voxel, --keypoints a number, 'all' or 'iss')")
+  kp = args.keypoints
+  if kp is not None and kp not in ("all", "iss") and (
+      not kp or not set(kp) <= _ASCII_DIGITS or int(kp) < 1):
+    return f"--keypoints: expected a positive integer, 'all' or 'iss', got {kp!r}"
   for name in ("radius_mr", "voxel_mr"):
     v = getattr(args, name)
     if v is not None and not (np.isfinite(v) and v > 0):
       return f"--{name.replace('_', '-')}: expected a positive number, got {v!r}"
-  for name in ("out", "png"):
-    v = getattr(args, name)
-    if v is not None and not Path(v).expanduser().resolve().parent.is_dir():
-      return f"--{name}: the folder {Path(v).expanduser().resolve().parent} does not exist"
-  return None
+  if args.voxel_mr is not None and args.voxel_mr < MIN_VOXEL_MR:
+    return (f"--voxel-mr: {args.voxel_mr:g} mr is below {MIN_VOXEL_MR:g} mr (voxels that small "
+            "hold one point each; use --keypoints all)")
+  if not 0 <= args.seed < 2**32:
+    return f"--seed: expected an integer in [0, 2**32), got {args.seed}"
+  if args.png is not None and Path(args.png).suffix.lower() not in FIGURE_SUFFIXES:
+    return (f"--png: {args.png!r} has no figure suffix; expected one of "
+            f"{', '.join(FIGURE_SUFFIXES)}")
+  inputs = [("cloud", args.cloud)]
+  if Path(args.out).expanduser().is_dir():
+    return f"--out: {args.out} is a folder; expected a file path (e.g. {Path(args.out) / 'frames.npz'})"
+  problem = output_problem(npz_path(args.out), "--out", inputs)
+  if problem is None and args.png is not None:
+    problem = output_problem(args.png, "--png", inputs)
+    if problem is None and same_file(args.png, npz_path(args.out)):
+      problem = f"--png: {args.png} is also the --out file; pick two paths"
+  return problem
 
 
-def select_keypoints(points: np.ndarray, how: str, voxel: float | None, seed: int) -> np.ndarray:
-  """Sorted keypoint indices: every point ('all'), N seeded random ones, or with `voxel` (cloud
-  units) the point nearest the centre of each occupied voxel."""
+def select_keypoints(points: np.ndarray, how: str, voxel: float | None, seed: int,
+                     mr: float | None = None) -> np.ndarray:
+  """Sorted keypoint indices: every point ('all'), ISS keypoints ('iss', at resolution `mr`),
+  N seeded random ones, or with `voxel` (cloud units) the point nearest the centre of each
+  occupied voxel.
+
+  Raises:
+    ValueError: `voxel` too small for the cloud's extent; 'iss' where this version has no ISS
+      detector."""
   n = len(points)
   if voxel is not None:
-    cells = np.floor((points - points.min(0)) / voxel).astype(np.int64)
+    cells = np.floor((points - points.min(0)) / voxel)
+    if not (np.isfinite(voxel) and voxel > 0 and np.all(np.isfinite(cells))
+            and cells.max(initial=0) < 2**40):
+      raise ValueError(f"--voxel-mr: a voxel of {voxel:g} (cloud units) is too small for a "
+                       f"cloud of extent {np.ptp(points, axis=0).max():g}")
+    cells = cells.astype(np.int64)
     centre = (cells + 0.5) * voxel + points.min(0)
     d = np.linalg.norm(points - centre, axis=1)
     _, inv = np.unique(cells, axis=0, return_inverse=True)
@@ -77,6 +122,13 @@ def select_keypoints(points: np.ndarray, how: str, voxel: float | None, seed: in
     return np.sort(order[first])
   if how == "all":
     return np.arange(n)
+  if how == "iss":
+    try:
+      from lrf_jax.keypoints import iss_keypoints
+    except ImportError:
+      raise ValueError("--keypoints iss: this version of lrf_jax has no ISS detector "
+                       "(lrf_jax.keypoints.iss_keypoints)") from None
+    return np.sort(np.asarray(iss_keypoints(points, mr=mr), np.int64))
   m = min(int(how), n)
   return np.sort(np.random.default_rng(seed).choice(n, m, replace=False))
 
@@ -91,11 +143,13 @@ def main(argv: list[str] | None = None) -> int:
   compilation_cache.enable()
   import lrf_jax
   from lrf_jax.inputs import as_cloud
+  from lrf_jax.io.atomic import WriteError, atomic_write
+  out_path = npz_path(args.out)
   try:
     cloud = as_cloud(args.cloud, "cloud")
     mr = lrf_jax.mesh_resolution(cloud.points, cloud.faces)
-    kp = select_keypoints(cloud.points, args.keypoints,
-                          None if args.voxel_mr is None else args.voxel_mr * mr, args.seed)
+    kp = select_keypoints(cloud.points, args.keypoints or "1000",
+                          None if args.voxel_mr is None else args.voxel_mr * mr, args.seed, mr)
     radius = args.radius_mr * mr
     frames, valid = lrf_jax.compute_frames(cloud, kp, radius, args.method, seed=args.seed,
                                            viewpoint=args.viewpoint, progress=len(kp) > 20000)
@@ -111,13 +165,23 @@ def main(argv: list[str] | None = None) -> int:
   except (ValueError, FileNotFoundError) as e:
     print(f"error: {e}", file=sys.stderr)
     return 2
-  np.savez(args.out, **out)
-  if args.png:
-    from lrf_jax import plot
-    plot.frames(cloud.points, kp, out["frames"], args.png, valid=out["valid"],
-                title=f"{Path(args.cloud).name}: {args.method} frames at {args.radius_mr:g} mr")
+  except OSError as e:  # unreadable input (permissions, a folder, an I/O error)
+    print(f"error: cloud: could not read {e.filename or args.cloud}: "
+          f"{e.strerror or e}", file=sys.stderr)
+    return 2
+  try:
+    with atomic_write(out_path) as f:
+      np.savez(f, **out)
+    if args.png:
+      from lrf_jax import plot
+      plot.frames(cloud.points, kp, out["frames"], args.png, valid=out["valid"],
+                  title=f"{Path(args.cloud).name}: {args.method} frames at {args.radius_mr:g} mr")
+  except WriteError as e:
+    print(f"error: {e}", file=sys.stderr)
+    return 2
   print(f"{len(kp)} keypoints, {int(out['valid'].sum())} valid frames ({args.method}, r = "
-        f"{args.radius_mr:g} mr = {radius:.6g}) -> {args.out}", file=sys.stderr)
+        f"{args.radius_mr:g} mr = {radius:.6g}) -> {out_path}"
+        + (f", {args.png}" if args.png else ""), file=sys.stderr)
   return 0
 
 

@@ -103,7 +103,8 @@ def save_params(params: Params, path: str | Path) -> None:
   """Write parameters as flax msgpack (a few KB)."""
   from flax import serialization  # only to write
   Path(path).parent.mkdir(parents=True, exist_ok=True)
-  Path(path).write_bytes(serialization.msgpack_serialize(jax.device_get(params)))
+  from lrf_jax.io import atomic  # pylint: disable=import-outside-toplevel
+  atomic.write_bytes(path, serialization.msgpack_serialize(jax.device_get(params)))
 
 
 def load_params(path: str | Path) -> Params:

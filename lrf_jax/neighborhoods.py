@@ -32,6 +32,12 @@ _MIX2 = np.uint64(0x94D049BB133111EB)
 _GOLDEN = np.uint64(0x9E3779B97F4A7C15)
 # Grid cells per support radius (cell side r / 3).
 CELLS_PER_RADIUS = 3.0
+# The support radii the frames' arithmetic supports (cloud units), and how far from the origin,
+# in support radii, a cloud may reach (float64 offsets q - p keep ~4 significant digits more
+# than the float32 frames need up to there).
+MIN_SCALE = 1e-30
+MAX_SCALE = 1e30
+MAX_RADII_FROM_ORIGIN = 1e12
 
 
 class Patches(NamedTuple):
@@ -104,13 +110,13 @@ def validate_keypoints(keypoints: np.ndarray, n_points: int, name: str = "keypoi
     raise ValueError(f"{name}: expected a 1-D array of point indices, got shape {kp.shape}")
   if kp.size and kp.dtype.kind not in "iu":
     raise ValueError(f"{name}: expected integer point indices, got dtype {kp.dtype}")
-  kp = kp.astype(np.int64)
+  # the range is checked in the input's own dtype: a uint64 above 2**63 must not wrap negative
   if kp.size and (kp.min() < 0 or kp.max() >= n_points):
     bad = kp[(kp < 0) | (kp >= n_points)][0]
     raise ValueError(
         f"{name}: index {int(bad)} is out of range; expected indices in [0, {n_points}) "
         f"for a cloud of {n_points} points")
-  return kp
+  return kp.astype(np.int64)
 
 
 def validate_radius(radius: float, name: str = "radius") -> float:
@@ -123,7 +129,52 @@ def validate_radius(radius: float, name: str = "radius") -> float:
     raise ValueError(f"{name}: expected a positive number, got {radius!r}") from None
   if not np.isfinite(r) or r <= 0:
     raise ValueError(f"{name}: expected a positive finite number (cloud units), got {radius!r}")
+  if not MIN_SCALE <= r <= MAX_SCALE:
+    raise ValueError(f"{name}: {r:.6g} is outside the supported scale {MIN_SCALE:g} .. "
+                     f"{MAX_SCALE:g}; rescale the cloud (frames do not depend on its unit)")
   return r
+
+
+def validate_scale(max_abs: float, radius: float, name: str = "points") -> None:
+  """Check that a cloud whose largest absolute coordinate is `max_abs` can be searched at
+  `radius`: the radius within `MIN_SCALE` .. `MAX_SCALE` and the cloud within
+  `MAX_RADII_FROM_ORIGIN` radii of the origin (beyond, offsets lose their precision and grid
+  cell indices overflow).
+
+  Raises:
+    ValueError: naming `name` and the scale.
+  """
+  validate_radius(radius)
+  if not max_abs <= MAX_RADII_FROM_ORIGIN * radius:
+    raise ValueError(f"{name}: coordinates reach {max_abs:.6g}, more than "
+                     f"{MAX_RADII_FROM_ORIGIN:g} support radii ({radius:.6g}) from the origin: "
+                     "outside the supported scale; centre the cloud or use a larger radius")
+
+
+def unit_scaled(points: np.ndarray, radius: float, viewpoint: np.ndarray | None = None
+                ) -> tuple[np.ndarray, float, np.ndarray | None]:
+  """A cloud, its support radius and sensor position in units of the radius (radius 1).
+
+  Every LRF method is invariant to a common scale of cloud and radius (frames are directions),
+  so the frames of the result are those of the input; normals and faces need no change. In
+  these units float32 patches, squared distances and the methods' small tolerances behave
+  alike at every scale, and two clouds that differ by a scale factor give the same patches up
+  to float64 rounding. One pass over the cloud.
+
+  Args:
+    points: (n, 3) float64 cloud, validated.
+    radius: support radius r (cloud units).
+    viewpoint: optional (3,) sensor position (cloud units).
+
+  Returns:
+    (points / r (n, 3) float64, 1.0, viewpoint / r or None).
+
+  Raises:
+    ValueError: a radius outside `MIN_SCALE` .. `MAX_SCALE` (`validate_radius`).
+  """
+  r = validate_radius(radius)
+  vp = None if viewpoint is None else np.asarray(viewpoint, np.float64) / r
+  return np.asarray(points, np.float64) / r, 1.0, vp
 
 
 def validate_faces(faces: object, n_points: int, name: str = "faces") -> np.ndarray:
@@ -228,7 +279,13 @@ class SearchIndex:
     self.order = np.argsort(hash_priority(self.seed, np.arange(n)))
     self.rank = np.empty(n, np.int64)
     self.rank[self.order] = np.arange(n)
+    self.max_abs = float(np.abs(self.points).max()) if n else 0.0
     self._grids: dict[float, engine.Grid] = {}
+
+  def matches(self, points: np.ndarray) -> bool:
+    """Whether this index was built from `points` (the same array, or equal values)."""
+    return points is self.points or (np.shape(points) == self.points.shape
+                                     and np.array_equal(points, self.points))
 
   @property
   def data(self) -> np.ndarray:
@@ -236,10 +293,15 @@ class SearchIndex:
     return self.points[self.order]
 
   def grid(self, radius: float) -> engine.Grid:
-    """The grid for balls of `radius` (cells of radius / 3), built on first use."""
+    """The grid for balls of `radius` (cells of radius / 3), built on first use.
+
+    Raises:
+      ValueError: a radius or cloud outside the supported scale (`validate_scale`).
+    """
     cell = float(radius) / CELLS_PER_RADIUS
     g = self._grids.get(cell)
     if g is None:
+      validate_scale(self.max_abs, float(radius))
       if len(self._grids) >= 4:
         self._grids.clear()
       g = self._grids[cell] = engine.Grid(self.points, cell, self.rank)
@@ -317,6 +379,9 @@ def build_patches(
   else:
     points = np.asarray(points, np.float64)
     keypoints = np.asarray(keypoints, np.int64)
+  if validate and index is not None and not index.matches(points):
+    raise ValueError("index: a SearchIndex of a different cloud (its points differ from "
+                     "`points`); build it with SearchIndex(points, seed)")
   if index is None or index.seed != seed or index.points.shape != points.shape:
     index = SearchIndex(points, seed)
   m = keypoints.shape[0]

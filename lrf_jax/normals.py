@@ -25,7 +25,8 @@ Mesh quantities: `vertex_normals` (area-weighted face normals) and `mean_curvatu
 Laplacian, Meyer et al. 2003), the scalar function of GFrames.
 
 Results for the last cloud are cached (one entry, keyed by a digest of the arrays' bytes), so
-`compute_frames`, which calls `prepare` once per chunk of keypoints, computes them once.
+`compute_frames`, which calls `prepare` once per chunk of keypoints, computes them once. The cache
+hands out copies of its arrays: writing into a result never changes a later one.
 """
 
 from __future__ import annotations
@@ -63,8 +64,24 @@ def _digest(*arrays: Any) -> str:
   return h.hexdigest()
 
 
+def _handed_out(value: Any) -> Any:
+  """What the cache gives a caller: numpy arrays (also inside tuples and lists, recursively) as
+  fresh writable copies, anything else (e.g. an `engine.Grid`) shared as it is."""
+  if isinstance(value, np.ndarray):
+    return value.copy()
+  if isinstance(value, tuple) and hasattr(value, "_fields"):  # a NamedTuple
+    return type(value)(*(_handed_out(v) for v in value))
+  if isinstance(value, (tuple, list)):
+    return type(value)(_handed_out(v) for v in value)
+  return value
+
+
 def cache_last(kind: str, key_arrays: tuple, fn):
   """One cached result per `kind`: `fn()` is recomputed only when the inputs' digest changes.
+
+  Every call, the first included, returns copies of the stored arrays (directly or inside
+  tuples/lists): a caller may write into what it gets without changing what a later call
+  returns. Other objects (e.g. an `engine.Grid`) are shared; callers must not modify them.
 
   Args:
     kind: cache slot name.
@@ -72,15 +89,13 @@ def cache_last(kind: str, key_arrays: tuple, fn):
     fn: zero-argument function computing the result.
 
   Returns:
-    `fn()`, or the stored result for identical inputs.
+    `fn()`, or the stored result for identical inputs (arrays copied).
   """
   key = _digest(kind, *key_arrays)
   hit = _CACHE.get(kind)
-  if hit is not None and hit[0] == key:
-    return hit[1]
-  out = fn()
-  _CACHE[kind] = (key, out)
-  return out
+  if hit is None or hit[0] != key:
+    hit = _CACHE[kind] = (key, fn())
+  return _handed_out(hit[1])
 
 
 # Below this relative gap between the two smallest eigenvalues the closed form hands over to
@@ -439,7 +454,7 @@ def estimate_normals(points: np.ndarray, normal_radius: float,
   is equivariant too); MST propagation otherwise (see the module docstring). Propagation has no
   reliable global sign on an open scan: on the bunny scan bun000 it orients 94 % of the normals
   inwards, which flips every normal-based LRF on that scan. Cached for the last
-  (points, radius, faces, viewpoint).
+  (points, radius, faces, viewpoint); each call returns its own copy.
 
   Args:
     points: (n, 3) cloud.
@@ -532,7 +547,7 @@ def cotangent_laplacian_curvature(points: np.ndarray, faces: np.ndarray) -> np.n
 
 
 def mean_curvature(points: np.ndarray, faces: np.ndarray) -> np.ndarray:
-  """`cotangent_laplacian_curvature`, cached for the last mesh."""
+  """`cotangent_laplacian_curvature`, cached for the last mesh (each call returns a copy)."""
   pts = np.asarray(points, np.float64)
   f = np.asarray(faces, np.int64)
   return cache_last("mean_curvature", (pts, f), lambda: cotangent_laplacian_curvature(pts, f))

@@ -7,6 +7,8 @@ from pathlib import Path
 
 import numpy as np
 
+from lrf_jax.io import atomic
+
 AXIS_COLOURS = ("tab:red", "tab:green", "tab:blue")  # x, y, z
 
 
@@ -22,7 +24,7 @@ def frames(points: np.ndarray, keypoints: np.ndarray, frames: np.ndarray,
     points: (n, 3) cloud.
     keypoints: (m,) indices of the frames' keypoints.
     frames: (m, 3, 3) frames, rows x, y, z.
-    path: the PNG to write.
+    path: the figure to write (PNG, or the format of its suffix), atomically.
     valid: (m,) validity (default: every frame).
     sample: at most this many keypoints are drawn (seeded choice).
     length: arrow length in cloud units.
@@ -74,6 +76,8 @@ def frames(points: np.ndarray, keypoints: np.ndarray, frames: np.ndarray,
   fig.suptitle(title or f"{len(idx)} of {len(kp)} frames ({int(ok.sum())} valid)")
   out = Path(path)
   out.parent.mkdir(parents=True, exist_ok=True)
-  fig.savefig(out, dpi=110)
-  plt.close(fig)
+  try:
+    atomic.save_figure(fig, out, dpi=110)  # a failed write leaves the previous file
+  finally:
+    plt.close(fig)
   return out

@@ -15,7 +15,14 @@ the state, optimiser and step in `lrf_jax.train_step`, checkpoints in `lrf_jax.c
 * Validation: at the end of every epoch, MeanCos on fixed patches of validation pairs (by
   default Stanford bunny scans), with the config's frames function jitted once per run.
 * Checkpoints: at the end of every epoch, every `checkpoint_every` steps and at the last step; a
-  restarted run resumes from the latest readable one.
+  restarted run resumes from the latest readable one, under the config it was started with
+  (config.json): a different config is an error naming the fields, unless `replace_config`,
+  which keeps config.json, writes the new config as config.<n>.json and notes the change in
+  metrics.jsonl.
+* Files: every file is written atomically (`lrf_jax.io.atomic`): a failed write (a full disk)
+  leaves the previous file and raises `WriteError`. metrics.jsonl is appended one record at a
+  time (one write, flush and fsync; a failed append is truncated away); a torn last line left
+  by a killed process is dropped when the run resumes.
 """
 
 from __future__ import annotations
@@ -35,11 +42,13 @@ from jax.sharding import Mesh, NamedSharding, PartitionSpec as P
 
 from lrf_jax import data_sources
 from lrf_jax import metrics as metrics_lib
-from lrf_jax.batches import BatchMaker, TrainingClouds, global_batch
+from lrf_jax.batches import Batch, BatchMaker, TrainingClouds, global_batch
 from lrf_jax.checkpoints import (is_primary, nonfinite_leaves, restore_params, resume,
                                  save_checkpoint)
 from lrf_jax.config import TrainConfig
 from lrf_jax.datasets import repeatability_keypoints
+from lrf_jax.frames.lrf_net import MIN_Z_NEIGHBOURS
+from lrf_jax.io import atomic
 from lrf_jax.model import save_params
 from lrf_jax.neighborhoods import Patches, build_patches
 from lrf_jax.train_step import TrainState, create_state, frames_fn, make_train_step
@@ -98,10 +107,14 @@ def validate(params, val: ValidationSet) -> dict[str, float]:
 
 # ----------------------------------------------------------------------------- the loop
 
+# The files a run writes in its workdir besides checkpoints/ and config.json / config.<n>.json.
+OUTPUT_FILES = ("metrics.jsonl", "curves.png", "final_params.msgpack", "best_params.msgpack")
+
 
 def train_and_evaluate(config: TrainConfig, workdir: str | Path, *,
                        clouds: TrainingClouds | None = None, val_pairs: list[Any] | None = None,
-                       stop_after_steps: int | None = None, progress: bool = True) -> dict:
+                       stop_after_steps: int | None = None, progress: bool = True,
+                       replace_config: bool = False) -> dict:
   """Train (or resume) a run in `workdir`; returns the final metrics.
 
   In a multi-process run every process calls this with the same arguments and the same
@@ -114,12 +127,22 @@ def train_and_evaluate(config: TrainConfig, workdir: str | Path, *,
     val_pairs: validation pairs; the first `config.val_pairs` bunny scan pairs when None.
     stop_after_steps: stop (as if killed) after this global step; for tests of resumption.
     progress: show a progress bar (in process 0 only).
+    replace_config: resume a run started under another config (see `resume_config`).
 
   Returns:
     {"step", "loss", "val_meancos", ...} of the last step.
+
+  Raises:
+    ValueError: `workdir` is a file, its run was started under another config (without
+      `replace_config`), or its checkpoints are incompatible or unreadable.
+    FloatingPointError: the run diverged (see `check_finite`).
+    WriteError: a file of the workdir could not be written (e.g. a full disk).
   """
   workdir = Path(workdir)
+  if workdir.exists() and not workdir.is_dir():
+    raise ValueError(f"--workdir: {workdir} is a file; expected a folder (new or a run's)")
   workdir.mkdir(parents=True, exist_ok=True)
+  replaced = resume_config(workdir, config, replace_config)
   maker, val = _training_data(config, clouds, val_pairs)
   mesh = _mesh(config)
   replicated, data_sharding = NamedSharding(mesh, P()), NamedSharding(mesh, P("data"))
@@ -130,16 +153,17 @@ def train_and_evaluate(config: TrainConfig, workdir: str | Path, *,
                     out_shardings=(replicated, replicated))
   total = config.total_steps if stop_after_steps is None else min(config.total_steps,
                                                                    stop_after_steps)
-  log = _Log(workdir, config, start, total, progress)
+  log = _Log(workdir, config, start, total, progress, replaced)
   for step in range(start, total):
     epoch, in_epoch = divmod(step, config.steps_per_epoch)
-    state, m = step_fn(state, global_batch(maker.batch(epoch, in_epoch), data_sharding))
+    batch = maker.batch(epoch, in_epoch)
+    state, m = step_fn(state, global_batch(batch, data_sharding))
     log.count(config.batch_size)
     done = step + 1
     due = _due(config, done, total)
     if due.check:
       m = {k: float(v) for k, v in jax.device_get(m).items()}
-      check_finite(m, state.params, done, epoch)  # before anything is logged or saved
+      check_finite(m, state.params, done, epoch, batch)  # before anything is logged or saved
     if due.log:
       m = log.stamp(m, done, done / config.steps_per_epoch)
       if due.end_of_epoch and val is not None:
@@ -210,25 +234,40 @@ def _write_results(state: TrainState, mngr: ocp.CheckpointManager, workdir: Path
   any was ranked) and curves.png. Every process restores; process 0 writes."""
   primary = is_primary()
   if primary:
-    save_params(state.params, workdir / "final_params.msgpack")
+    _save_params(state.params, workdir / "final_params.msgpack")
   if mngr.best_step() is not None:
     params, _ = restore_params(workdir, "best")  # every process: orbax restores collectively
     if primary:
-      save_params(params, workdir / "best_params.msgpack")
+      _save_params(params, workdir / "best_params.msgpack")
   if primary:
     plot_curves(workdir / "metrics.jsonl", workdir / "curves.png")
 
 
-def check_finite(metrics: dict, params: Any, step: int, epoch: int) -> None:
+def _save_params(params: Any, path: Path) -> None:
+  """`model.save_params` into a temporary file renamed to `path` (atomic)."""
+  with atomic.atomic_path(path) as tmp:
+    save_params(params, tmp)
+
+
+def check_finite(metrics: dict, params: Any, step: int, epoch: int,
+                 batch: Batch | None = None) -> None:
   """Raise FloatingPointError naming the step and what went wrong: a non-finite loss or gradient
   norm, a batch whose frames were all invalid (valid fraction 0: the loss is then 0 and means
-  nothing), or non-finite parameters."""
+  nothing), or non-finite parameters.
+
+  With the step's host `batch`, a batch of invalid frames whose patches mostly hold fewer than
+  the z axis's `MIN_Z_NEIGHBOURS` points within r/3 is blamed on the support (radius_mr too
+  small for the data's resolution), not on the learning rate."""
   for key in ("loss", "grad_norm"):
     if key in metrics and not math.isfinite(metrics[key]):
       raise FloatingPointError(
           f"step {step} (epoch {epoch}): non-finite {key} {metrics[key]}; metrics {metrics}. "
           "Lower the learning rate or check the data for degenerate patches.")
   if metrics.get("valid_fraction", 1.0) <= 0.0:
+    support = _support_problem(batch)
+    if support:
+      raise FloatingPointError(f"step {step} (epoch {epoch}): valid fraction 0 (every frame of "
+                               f"the batch is invalid): {support}")
     raise FloatingPointError(
         f"step {step} (epoch {epoch}): valid fraction 0 (every frame of the batch is invalid); "
         f"metrics {metrics}. The parameters have probably diverged: lower the learning rate.")
@@ -243,18 +282,24 @@ def check_finite(metrics: dict, params: Any, step: int, epoch: int) -> None:
 class _Log:
   """metrics.jsonl, config.json, the progress bar and the throughput of a run.
 
-  Only process 0 writes files and shows the bar. On creation config.json is written and the
-  records after `start` (steps a resumed run replays) are dropped from metrics.jsonl.
+  Only process 0 writes files and shows the bar. On creation the records after `start` (steps a
+  resumed run replays) are dropped from metrics.jsonl and config.json is written if missing
+  (`replaced`: the new config goes to that file instead, with a note record in the log).
   `last` is the latest record (`{"step": start}` before the first).
   """
 
   def __init__(self, workdir: Path, config: TrainConfig, start: int, total: int,
-               progress: bool):
+               progress: bool, replaced: str | None = None):
     self.path = workdir / "metrics.jsonl"
     self.primary = is_primary()
     if self.primary:
-      (workdir / "config.json").write_text(config.to_json())
       _trim_log(self.path, start)  # steps after the checkpoint are replayed: log them once
+      if replaced:  # the old config stays; the new one beside it, and a note in the log
+        atomic.write_text(workdir / replaced, config.to_json())
+        _append_jsonl(self.path, {"step": start, "note": f"config replaced by {replaced} at "
+                                                          f"step {start}"})
+      elif not (workdir / "config.json").exists():
+        atomic.write_text(workdir / "config.json", config.to_json())
     self.last: dict[str, Any] = {"step": start}
     self._bar = _progress(total, start, progress and self.primary)
     self._since, self._pairs = time.perf_counter(), 0
@@ -285,18 +330,103 @@ class _Log:
     self._bar.close()
 
 
+def _support_problem(batch: Batch | None) -> str | None:
+  """Why the patches of `batch` cannot give frames (None: they can, or no batch): most of them
+  hold fewer than `MIN_Z_NEIGHBOURS` points within r/3, where the z axis (the normal) is fitted."""
+  if batch is None:
+    return None
+  z_count = np.concatenate([np.asarray(batch.model.z_count), np.asarray(batch.scene.z_count)])
+  count = np.concatenate([np.asarray(batch.model.count), np.asarray(batch.scene.count)])
+  short = float(np.mean(z_count < MIN_Z_NEIGHBOURS))
+  if short < 0.5:
+    return None
+  return (f"{100 * short:.0f}% of its patches hold fewer than {MIN_Z_NEIGHBOURS} points within "
+          f"r/3 (median {np.median(z_count):g} there, {np.median(count):g} within r), too few "
+          "for the z axis: the support is too small for the data's resolution; raise radius_mr")
+
+
+def resume_config(workdir: Path, config: TrainConfig, replace: bool = False) -> str | None:
+  """Check `config` against the one `workdir`'s run was started (or last replaced) under.
+
+  The run's config is the newest of config.json, config.1.json, ...; none: a new run.
+
+  Args:
+    workdir: the run's folder.
+    config: the requested config.
+    replace: on a difference, continue under `config` instead of refusing.
+
+  Returns:
+    None (a new run, or the same config); with `replace` and a different config, the name of
+    the file to record `config` in (config.<n>.json, n one more than the newest).
+
+  Raises:
+    ValueError: the configs differ and not `replace` (the message names every differing field),
+      a parameter-shape field differs while checkpoints exist (never resumable), or the saved
+      config is not readable JSON.
+  """
+  saved_path, n = _latest_config(workdir)
+  if saved_path is None:
+    return None
+  try:
+    saved = json.loads(saved_path.read_text())
+    if not isinstance(saved, dict):
+      raise ValueError("expected a JSON object")
+  except (ValueError, UnicodeDecodeError) as e:
+    raise ValueError(f"{saved_path}: the run's saved config is not readable ({e}); restore it "
+                     "or choose another --workdir") from None
+  wanted = json.loads(config.to_json())
+  diffs = [k for k in sorted(set(saved) | set(wanted)) if saved.get(k) != wanted.get(k)]
+  if not diffs:
+    return None
+  if any(f in diffs for f in TrainConfig.MODEL_FIELDS) and any(
+      p.name.isdigit() for p in (workdir / "checkpoints").glob("*")):
+    from lrf_jax.checkpoints import check_compatible
+    check_compatible(saved, config, workdir)
+  detail = ", ".join(f"{k}: saved {saved.get(k)!r} vs requested {wanted.get(k)!r}"
+                     for k in diffs)
+  if not replace:
+    raise ValueError(f"{workdir}: this run was started under another config ({saved_path.name}; "
+                     f"{detail}); resume it with the same config, choose another --workdir, or "
+                     "pass --replace-config to continue under the new one (both are kept)")
+  return f"config.{n + 1}.json"
+
+
+def _latest_config(workdir: Path) -> tuple[Path | None, int]:
+  """The newest recorded config of a run and its number (config.json: 0; none: (None, 0))."""
+  numbered = sorted((int(p.name.split(".")[1]), p) for p in workdir.glob("config.*.json")
+                    if p.name.split(".")[1].isdigit() and p.name.count(".") == 2)
+  if numbered:
+    return numbered[-1][1], numbered[-1][0]
+  plain = workdir / "config.json"
+  return (plain, 0) if plain.is_file() else (None, 0)
+
+
+def _read_jsonl(path: Path) -> list[tuple[str, dict]]:
+  """(line, record) of a metrics.jsonl; lines that do not parse (a torn last line) are skipped."""
+  rows = []
+  for line in path.read_text(errors="replace").splitlines():
+    try:
+      row = json.loads(line)
+    except ValueError:
+      continue
+    if isinstance(row, dict):
+      rows.append((line, row))
+  return rows
+
+
 def _trim_log(path: Path, step: int) -> None:
-  """Drop the records of `metrics.jsonl` after `step` (a resumed run logs them again)."""
+  """Drop the records of `metrics.jsonl` after `step` (a resumed run logs them again), and any
+  torn line; the file is rewritten atomically (when anything is dropped)."""
   if not path.exists():
     return
-  keep = [line for line in path.read_text().splitlines()
-          if line.strip() and json.loads(line).get("step", 0) <= step]
-  path.write_text("".join(line + "\n" for line in keep))
+  text = path.read_text(errors="replace")
+  keep = "".join(line + "\n" for line, row in _read_jsonl(path) if row.get("step", 0) <= step)
+  if keep != text:
+    atomic.write_text(path, keep)
 
 
 def _append_jsonl(path: Path, record: dict) -> None:
-  with path.open("a") as f:
-    f.write(json.dumps(record) + "\n")
+  atomic.append_line(path, json.dumps(record))
 
 
 class _NoBar:
@@ -318,7 +448,7 @@ def plot_curves(log_path: Path, out: Path) -> None:
   matplotlib.use("Agg")
   import matplotlib.pyplot as plt
 
-  rows = [json.loads(l) for l in log_path.read_text().splitlines() if l.strip()]
+  rows = [r for _, r in _read_jsonl(log_path) if "loss" in r]  # not the notes
   fig, ax = plt.subplots(1, 2, figsize=(10, 3.5))
   ax[0].plot([r["step"] for r in rows], [r["loss"] for r in rows])
   ax[0].set(xlabel="step", ylabel="Chamfer loss", title="training loss")
@@ -326,5 +456,5 @@ def plot_curves(log_path: Path, out: Path) -> None:
   ax[1].plot([r["epoch"] for r in val], [r["val_meancos"] for r in val], marker="o")
   ax[1].set(xlabel="epoch", ylabel="MeanCos", title="validation (bunny scans)")
   fig.tight_layout()
-  fig.savefig(out, dpi=120)
+  atomic.save_figure(fig, out, dpi=120)
   plt.close(fig)

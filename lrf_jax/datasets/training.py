@@ -24,7 +24,6 @@ import dataclasses
 import hashlib
 import json
 import os
-import tempfile
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -34,6 +33,7 @@ from lrf_jax.datasets.bologna import (BR_MODELS, BR_SCENE_MODELS, FOLDER, br_mod
                                       load_br)
 from lrf_jax.datasets.pair import repeatability_keypoints, transform_points
 from lrf_jax.datasets.root import dataset_dir
+from lrf_jax.io import atomic
 
 _CACHE_VERSION = 1
 
@@ -160,9 +160,8 @@ def build_training_set(root: str | os.PathLike | None = None, *, n_keypoints: in
   arrays = _build_arrays(folder.parent, params)
   if cache_file is not None:
     cache_file.parent.mkdir(parents=True, exist_ok=True)
-    with tempfile.NamedTemporaryFile(dir=cache_file.parent, suffix=".npz", delete=False) as f:
+    with atomic.atomic_write(cache_file) as f:  # a concurrent reader never sees half a file
       np.savez(f, **arrays)
-    os.replace(f.name, cache_file)  # atomic: a concurrent reader never sees half a file
   return _from_arrays(arrays, params)
 
 

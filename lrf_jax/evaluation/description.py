@@ -41,6 +41,7 @@ from lrf_jax.descriptors import DESCRIPTORS, describe_patches, match_descriptors
 from lrf_jax.evaluation.repeatability import (EXACT_NETWORK, MethodRun, PatchCache, correspondences,
                                               group_records)
 from lrf_jax.frames import METHODS
+from lrf_jax.io import atomic
 from lrf_jax.normals import default_normals
 from lrf_jax.prepare import prepare_extra
 
@@ -332,7 +333,7 @@ def plot_rpc(records: list[dict[str, Any]], out: Path) -> list[Path]:
     fig.tight_layout()
     safe = "".join(c if c.isalnum() or c in "-_." else "_" for c in ds)
     path = out / f"rpc_{safe}.png"
-    fig.savefig(path, dpi=120)
+    atomic.save_figure(fig, path, dpi=120)
     plt.close(fig)
     written.append(path)
   return written

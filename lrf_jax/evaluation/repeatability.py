@@ -27,6 +27,7 @@ from lrf_jax import engine
 from lrf_jax.api import frames_from_patches, host_frames
 from lrf_jax.datasets import Pair, repeatability_keypoints, transform_points
 from lrf_jax.frames import METHODS
+from lrf_jax.io import atomic
 from lrf_jax.metrics import meancos
 from lrf_jax.neighborhoods import Patches, SearchIndex, build_patches
 from lrf_jax.normals import NORMAL_RADIUS_RATIO, estimate_normals
@@ -101,7 +102,8 @@ class PatchCache:
                               index=SearchIndex(points, seed), max_k=max_k)
       if path is not None:
         path.parent.mkdir(parents=True, exist_ok=True)
-        np.savez(path, **patches._asdict())
+        with atomic.atomic_write(path) as f:
+          np.savez(f, **patches._asdict())
     if len(self._mem) >= self.max_items:
       self._mem.pop(next(iter(self._mem)))
     self._mem[key] = patches

@@ -9,6 +9,8 @@ from typing import Any, Iterable
 
 import numpy as np
 
+from lrf_jax.io import atomic
+
 # What the paper states in its text and tables (its figures are missing from our copy).
 PAPER_STATED = {
     "repeatability": "LRF-Net: best on UWA3M (MeanCos 0.686, stated in the text) and UWAOR; "
@@ -131,9 +133,9 @@ def write_results(records: list[dict[str, Any]], out: Path, *, notes: list[str] 
   """results.json ({"records": [...], "meta": ...}), report.md and the PNG figures."""
   out.mkdir(parents=True, exist_ok=True)
   clean = [{k: v for k, v in r.items() if not k.startswith("_")} for r in records]
-  (out / "results.json").write_text(json.dumps({"records": clean, "meta": meta or {}},
-                                               indent=1))
-  (out / "report.md").write_text(markdown_report(clean, notes=notes))
+  atomic.write_text(out / "results.json", json.dumps({"records": clean, "meta": meta or {}},
+                                                    indent=1))
+  atomic.write_text(out / "report.md", markdown_report(clean, notes=notes))
   plot_figures(clean, out)
 
 
@@ -182,7 +184,7 @@ def plot_figures(records: list[dict[str, Any]], out: Path) -> list[Path]:
     ax.legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.01, 1.0), title="method")
     fig.tight_layout()
     path = out / f"{bar_exp}.png"
-    fig.savefig(path, dpi=120)
+    atomic.save_figure(fig, path, dpi=120)
     plt.close(fig)
     written.append(path)
   for exp, key in (("noise", "noise_mr"), ("decimation", "decimation"), ("radius", "radius_mr"),
@@ -210,7 +212,7 @@ def plot_figures(records: list[dict[str, Any]], out: Path) -> list[Path]:
     fig.suptitle(f"Robustness: {exp}")
     fig.tight_layout()
     path = out / f"{exp}.png"
-    fig.savefig(path, dpi=120)
+    atomic.save_figure(fig, path, dpi=120)
     plt.close(fig)
     written.append(path)
   return written
@@ -239,7 +241,7 @@ def plot_weights(patches_xyz: list[np.ndarray], weights: list[np.ndarray], frame
   fig.colorbar(sc, ax=list(axes[0]), shrink=0.8, label="learned weight (shared scale)")
   fig.suptitle("LRF-Net weights per neighbour (seen from +z, x axis drawn)")
   path = out / "weights.png"
-  fig.savefig(path, dpi=120)
+  atomic.save_figure(fig, path, dpi=120)
   plt.close(fig)
   return path
 
@@ -306,6 +308,6 @@ def weight_maps_figure(out: Path, maps: dict[str, tuple[Any, str]] | None = None
   fig.suptitle("Learned x-axis weight per neighbour over the attribute plane")
   fig.tight_layout()
   path = Path(out) / "weight_maps.png"
-  fig.savefig(path, dpi=110)
+  atomic.save_figure(fig, path, dpi=110)
   plt.close(fig)
   return path

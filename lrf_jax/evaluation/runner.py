@@ -2,7 +2,8 @@
 
 `evaluate(plan, out)` runs every experiment of an `EvalPlan` with one progress bar (its total is
 the number of records, so it shows an ETA), keeps what is done in `partial_records.jsonl` every
-50 records, and writes results.json, report.md and the figures; `evaluate.py` only parses
+50 records, and writes results.json, report.md and the figures, each atomically
+(`lrf_jax.io.atomic`: a failed write leaves the previous file); `evaluate.py` only parses
 arguments into a plan.
 """
 
@@ -24,6 +25,7 @@ from lrf_jax.evaluation.experiments import (ABLATION_X, ABLATION_Z, AS_NAMED, CL
 from lrf_jax.evaluation.repeatability import (EXACT_NETWORK, MethodRun, PatchCache,
                                               paper_options)
 from lrf_jax.frames import METHODS
+from lrf_jax.io import atomic
 from lrf_jax.model import load_params
 
 # Experiments that sweep one nuisance: the number of settings per clean pair.
@@ -53,26 +55,46 @@ def method_runs(methods: list[str] | None = None, *, checkpoint: str | None = No
     (runs, notes).
 
   Raises:
-    ValueError: a `params` item not of the form LABEL=PATH[@METHOD].
+    ValueError: an unknown method (in `methods` or after a `params` item's @), a `params` item
+      not of the form LABEL=PATH[@METHOD] or whose file does not exist, a `checkpoint` that is
+      not a train.py workdir with a checkpoint. Each message names the option.
   """
+  unknown = [m for m in (methods or []) if m not in METHODS]
+  if unknown:
+    raise ValueError(f"--methods: unknown method(s) {unknown}; expected any of {sorted(METHODS)}")
+  parsed = []
+  for item in params:
+    label, sep, path = item.partition("=")
+    path, _, method = path.partition("@")
+    method = method or "lrf_net"
+    if not sep or not label or not path:
+      raise ValueError(f"--params: expected LABEL=PATH[@METHOD], got {item!r}")
+    if method not in METHODS:
+      raise ValueError(f"--params {item!r}: unknown method {method!r}; expected one of "
+                       f"{sorted(METHODS)}")
+    if not Path(path).expanduser().is_file():
+      raise ValueError(f"--params {item!r}: no such parameter file {path}")
+    parsed.append((label, path, method))
   runs = [MethodRun(m, m, options=paper_options(m)) for m in (methods or default_methods())]
   notes = []
   if checkpoint:
     from lrf_jax.checkpoints import restore_params
-    best, cfg = restore_params(checkpoint, "best")
-    final, _ = restore_params(checkpoint, "latest")
+    try:
+      best, cfg = restore_params(checkpoint, "best")
+      final, _ = restore_params(checkpoint, "latest")
+    except (FileNotFoundError, ValueError) as e:
+      raise ValueError(f"--checkpoint: {e}") from None
     runs = [MethodRun(r.label, r.method, params=best, options=r.options)
             if r.method == "lrf_net" else r for r in runs]
     runs.append(MethodRun("lrf_net[final]", "lrf_net", params=final, options=EXACT_NETWORK))
     notes.append(f"lrf_net: best checkpoint of {checkpoint} (config {cfg.name}); "
                  "lrf_net[final]: its latest")
-  for item in params:
-    label, sep, path = item.partition("=")
-    path, _, method = path.partition("@")
-    if not sep:
-      raise ValueError(f"--params: expected LABEL=PATH[@METHOD], got {item!r}")
-    method = method or "lrf_net"
-    runs.append(MethodRun(label, method, params=load_params(path), options=paper_options(method)))
+  for label, path, method in parsed:
+    try:
+      loaded = load_params(path)
+    except (FileNotFoundError, ValueError) as e:
+      raise ValueError(f"--params {label}={path}: {e}") from None
+    runs.append(MethodRun(label, method, params=loaded, options=paper_options(method)))
   return runs, notes
 
 
@@ -149,8 +171,8 @@ def evaluate(plan: EvalPlan, out: Path, *, progress: bool = True) -> str:
         (other if exp in ("description", "pose") else records).append(rec)
         if exp not in ("description", "pose") and len(records) % PARTIAL_EVERY == 0:
           out.mkdir(parents=True, exist_ok=True)  # keep what is done if the run is stopped
-          (out / "partial_records.jsonl").write_text(
-              "\n".join(json.dumps(r) for r in _clean(records)))
+          atomic.write_text(out / "partial_records.jsonl",
+                            "\n".join(json.dumps(r) for r in _clean(records)))
         bar.set_postfix(exp=exp, ds=rec["dataset"], pair=str(rec.get("pair", ""))[:18])
         bar.update(1)
   meta = dict(plan.meta, seconds=time.perf_counter() - t0,
@@ -160,7 +182,7 @@ def evaluate(plan: EvalPlan, out: Path, *, progress: bool = True) -> str:
   text = report.markdown_report(records, notes=plan.notes)
   extra_md = _description_pose_outputs(other, out)
   if extra_md:
-    (out / "report.md").write_text(text + "\n" + "\n".join(extra_md))
+    atomic.write_text(out / "report.md", text + "\n" + "\n".join(extra_md))
   return "\n".join([text] + extra_md)
 
 
@@ -185,6 +207,6 @@ def _description_pose_outputs(other: list[dict[str, Any]], out: Path) -> list[st
   if poses:
     extra_md.append(pose.pose_report(poses))
   if other:
-    (out / "results_description_pose.json").write_text(
-        json.dumps(_clean(other), indent=1, default=float))
+    atomic.write_text(out / "results_description_pose.json",
+                      json.dumps(_clean(other), indent=1, default=float))
   return extra_md

@@ -11,9 +11,10 @@ PCL's `BOARDLocalReferenceFrameEstimation` with `setRadiusSearch(r_z)`, `setTang
   unit projection of its offset on the tangent plane, y = z × x.
 
 Minimum neighbours: 6 within r_z (PCL's rule). Invalid also when the plane fit is degenerate
-(collinear points), no candidate has a finite normal, the chosen point projects onto p, or an
-input is not finite. Normals come from the `prepare` hook (`frames.normal_based.prepare_normals`): the
-caller's, else `normals.estimate_normals`.
+(collinear points), no candidate has a usable normal (finite and not all zero: zero rows, the
+placeholder of files without normals, count as missing, `normal_based.usable_normals`), the
+chosen point projects onto p, or an input is not finite. Normals come from the `prepare` hook
+(`frames.normal_based.prepare_normals`): the caller's, else `normals.estimate_normals`.
 
 Deviations from PCL: the hole-finding variant (`find_holes`, which starts from a random axis) is
 not implemented; non-finite normals are skipped in the mean (PCL would propagate NaN); ties of
@@ -37,7 +38,7 @@ import numpy as np
 
 from lrf_jax import geometry
 from lrf_jax.frames import host_geometry as hg
-from lrf_jax.frames.normal_based import NormalExtra, prepare_normals
+from lrf_jax.frames.normal_based import NormalExtra, prepare_normals, usable_normals
 from lrf_jax.frames.spec import MethodSpec
 from lrf_jax.geometry import sanitize
 from lrf_jax.neighborhoods import Patches
@@ -174,7 +175,7 @@ def board_frames_host(points: np.ndarray, keypoints: np.ndarray, radius: float, 
   pts, centers, ptr, ball = hg.ball_lists(points, keypoints, radius, index)
   rz = float(Z_RATIO * radius)
   return hg.run_kernel(_board_host_kernel, len(centers), pts, centers, ptr, ball,
-                       np.ascontiguousarray(normals, np.float64), float(radius), rz * rz, hg.EPS)
+                       usable_normals(normals), float(radius), rz * rz, hg.EPS)
 
 # ------------------------------------------------------------------------------ registry entry
 

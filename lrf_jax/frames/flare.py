@@ -37,7 +37,7 @@ import numpy as np
 from lrf_jax import geometry
 from lrf_jax.frames import host_geometry as hg
 from lrf_jax.frames.board import normals_mean
-from lrf_jax.frames.normal_based import NormalExtra, prepare_normals
+from lrf_jax.frames.normal_based import NormalExtra, prepare_normals, usable_normals
 from lrf_jax.frames.spec import MethodSpec
 from lrf_jax.geometry import sanitize
 from lrf_jax.neighborhoods import Patches
@@ -168,7 +168,7 @@ def flare_frames_host(points: np.ndarray, keypoints: np.ndarray, radius: float, 
   rz = float(Z_RATIO * radius)
   return hg.run_kernel(_flare_host_kernel, len(centers), pts, centers,
                        np.asarray(keypoints, np.int64), counts, ptr, ball,
-                       np.ascontiguousarray(normals, np.float64), float(radius), rz * rz, hg.EPS)
+                       usable_normals(normals), float(radius), rz * rz, hg.EPS)
 
 # ------------------------------------------------------------------------------ registry entry
 

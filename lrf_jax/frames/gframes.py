@@ -10,14 +10,16 @@ the triangles within r of the keypoint, projected on the tangent plane and norma
 * the triangles "within distance r" are those with at least one vertex within r (as RoPS,
   `rops.gather_triangles`, same cap);
 * on a triangle with vertices q_1, q_2, q_3, unit normal n and area A, f is linear and
-  A ∇f = ½ Σ_i f_i n × (q_{i+2} - q_{i+1}) (indices mod 3): no division by the area, so slivers
-  contribute ~0 and never NaN; the result does not depend on the vertex order or winding;
+  A ∇f = ½ Σ_i f_i n × (q_{i+2} - q_{i+1}) (indices mod 3): no division by the area, never
+  NaN; the result does not depend on the vertex order or winding. A sliver (height at most
+  `SLIVER_EPS` of its longest edge: its n is rounding noise) contributes nothing, so a
+  support of collinear points gives no x;
 * z = the keypoint normal from the `prepare` hook (the caller's `normals=`, else
   `normals.estimate_normals`: PCA over 0.2 r oriented by the faces' winding).
 
-Invalid (identity, `valid = False`) when the keypoint normal is not finite, the projected sum
-vanishes (|Σ A ∇f| <= 1e-5 Σ |A ∇f|: e.g. a plane or a sphere, where H is constant), or an input
-is not finite.
+Invalid (identity, `valid = False`) when the keypoint normal is not finite or zero, the
+projected sum vanishes (|Σ A ∇f| <= 1e-5 Σ |A ∇f|: e.g. a plane or a sphere, where H is
+constant, or a support of slivers only), or an input is not finite.
 
 References:
   Melzi et al., "GFrames: Gradient-based local reference frame for 3D shape matching", CVPR 2019,
@@ -36,12 +38,17 @@ import numpy as np
 from lrf_jax import geometry
 from lrf_jax.frames import host_geometry as hg
 from lrf_jax.frames.rops import gather_triangles, validate_faces, vertex_faces
+from lrf_jax.frames.normal_based import usable_normals
 from lrf_jax.frames.spec import KEYPOINT, TRIANGLE, TRIANGLE_MASK, MethodSpec
 from lrf_jax.geometry import sanitize
 from lrf_jax.neighborhoods import Patches
 from lrf_jax.normals import cache_last, default_normals, face_cross, mean_curvature
 
 X_EPS = 1e-5
+# A triangle whose height is at most this fraction of its longest edge (|cross| <= SLIVER_EPS ·
+# longest edge²) has no reliable normal (float32 rounding alone gives collinear points a
+# cross product ~1e-7 of it): it contributes no gradient, on both paths.
+SLIVER_EPS = 1e-5
 
 
 class GFramesExtra(NamedTuple):
@@ -64,7 +71,8 @@ def prepare_gframes(points, keypoints, patches, *, faces=None, normals=None,
   f = np.asarray(faces, np.int64)
   tri_f = np.where(mask[..., None], h[f[np.maximum(ids, 0)]], 0.0).astype(np.float32)
   nrm = default_normals(points, radius, faces, normals)
-  return GFramesExtra(tri, mask, tri_f, np.asarray(nrm, np.float32)[np.asarray(keypoints)])
+  return GFramesExtra(tri, mask, tri_f,
+                      usable_normals(np.asarray(nrm)[np.asarray(keypoints)], np.float32))
 
 
 def area_gradient(tri: jax.Array, f: jax.Array) -> jax.Array:
@@ -77,7 +85,11 @@ def area_gradient(tri: jax.Array, f: jax.Array) -> jax.Array:
   Returns:
     (T, 3) area times gradient (0 for degenerate triangles).
   """
-  n, _ = geometry.safe_normalize(jnp.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]))
+  cross = jnp.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+  longest2 = jnp.max(jnp.stack([jnp.sum((tri[:, (i + 1) % 3] - tri[:, i]) ** 2, axis=-1)
+                                for i in range(3)]), axis=0)
+  n, _ = geometry.safe_normalize(cross)
+  n = jnp.where((geometry.safe_norm(cross) > SLIVER_EPS * longest2)[:, None], n, 0.0)
   f = f - jnp.mean(f, axis=-1, keepdims=True)  # constants have no gradient; better rounding
   out = jnp.zeros_like(tri[:, 0])
   for i in range(3):
@@ -153,7 +165,14 @@ def _face_gradients(pts, f, hv):
       h0 = h1 = h2 = 0.0
     x, y, z = face_cross(pts, f, k)
     length = np.sqrt(x * x + y * y + z * z)
-    nx, ny, nz = (x / length, y / length, z / length) if length > 0 else (0.0, 0.0, 0.0)
+    longest2 = 0.0
+    for i in range(3):
+      a, b = f[k, i], f[k, (i + 1) % 3]
+      e2 = ((pts[a, 0] - pts[b, 0]) ** 2 + (pts[a, 1] - pts[b, 1]) ** 2
+            + (pts[a, 2] - pts[b, 2]) ** 2)
+      longest2 = max(longest2, e2)
+    sliver = not length > SLIVER_EPS * longest2
+    nx, ny, nz = (0.0, 0.0, 0.0) if sliver else (x / length, y / length, z / length)
     mean = (h0 + h1 + h2) / 3.0
     hs = (h0 - mean, h1 - mean, h2 - mean)
     for i in range(3):
@@ -281,7 +300,7 @@ def gframes_frames_host(points: np.ndarray, keypoints: np.ndarray, radius: float
   # One cache entry (one digest of the mesh per call) for everything the kernel reads of it.
   g, gn, share, share_n, v_ok, edge, vptr, vf = cache_last(
       "gframes_mesh", (pts, f), lambda: vertex_shares(pts, f) + vertex_faces(f, pts.shape[0]))
-  kp_n = np.ascontiguousarray(np.asarray(normals, np.float64)[np.asarray(keypoints)])
+  kp_n = usable_normals(np.asarray(normals)[np.asarray(keypoints)])
   return hg.run_kernel(_gframes_host_kernel, len(centers), pts, np.ascontiguousarray(f), vptr,
                        vf, centers, ptr, ball, float(radius), kp_n, g, gn, share, share_n, v_ok,
                        edge, X_EPS)

@@ -34,7 +34,7 @@ import numpy as np
 
 from lrf_jax import geometry
 from lrf_jax.frames import host_geometry as hg
-from lrf_jax.frames.normal_based import NormalExtra, prepare_normals
+from lrf_jax.frames.normal_based import NormalExtra, prepare_normals, usable_normals
 from lrf_jax.frames.spec import MethodSpec
 from lrf_jax.geometry import sanitize
 from lrf_jax.neighborhoods import Patches
@@ -132,7 +132,7 @@ def mian_frames_host(points: np.ndarray, keypoints: np.ndarray, radius: float, i
   pts, centers, ptr, ball = hg.ball_lists(points, keypoints, radius, index)
   return hg.run_kernel(_mian_host_kernel, len(centers), pts, centers,
                        np.asarray(keypoints, np.int64), ptr, ball,
-                       np.ascontiguousarray(normals, np.float64), hg.EPS)
+                       usable_normals(normals), hg.EPS)
 
 # ------------------------------------------------------------------------------ registry entry
 

@@ -22,6 +22,27 @@ class NormalExtra(NamedTuple):
   AXES = {"normals": SLOT, "kp_normal": KEYPOINT}
 
 
+def usable_normals(normals: np.ndarray, dtype: type = np.float64) -> np.ndarray:
+  """Normals with the rows that carry no direction marked missing: a row that is all zero (the
+  usual placeholder of files without normals) or not finite becomes NaN, which every
+  normal-based method skips (a frame whose normals are all missing is invalid).
+
+  Args:
+    normals: (n, 3) per-point normals.
+    dtype: the returned dtype.
+
+  Returns:
+    (n, 3) C-contiguous array of `dtype` (the input itself when nothing is missing and it already
+    has that layout).
+  """
+  nrm = np.ascontiguousarray(normals, dtype)
+  missing = ~(np.isfinite(nrm).all(axis=1) & (nrm != 0).any(axis=1))
+  if missing.any():
+    nrm = nrm.copy()
+    nrm[missing] = np.nan
+  return nrm
+
+
 def prepare_normals(points: np.ndarray, keypoints: np.ndarray, patches, *,
                     faces: np.ndarray | None = None, normals: np.ndarray | None = None,
                     radius: float) -> NormalExtra:
@@ -37,9 +58,10 @@ def prepare_normals(points: np.ndarray, keypoints: np.ndarray, patches, *,
 
   Returns:
     `NormalExtra`: (N, K, 3) float32 normals of the patch slots (0 in padding, NaN where
-    undefined) and the (N, 3) float32 normal of each keypoint.
+    undefined: not finite or all zero, `usable_normals`) and the (N, 3) float32 normal of each
+    keypoint.
   """
-  nrm = default_normals(points, radius, faces, normals).astype(np.float32)
+  nrm = usable_normals(default_normals(points, radius, faces, normals), np.float32)
   idx = np.asarray(patches.indices)
   gathered = nrm[np.maximum(idx, 0)]
   gathered[idx < 0] = 0.0

@@ -6,7 +6,9 @@
     poses = io.read_stanford_conf("bun.conf")     # {scan: world-from-scan (4, 4)}
 
 Every bad input raises ValueError (FileNotFoundError for a missing file) naming the file, the
-field and what was expected versus found.
+field and what was expected versus found; so does a file that cannot be opened for reading (e.g.
+no read permission). A normal that is not finite (NaN/inf) is read as a NaN row, a missing
+normal, and keeps its point (`check_normals`).
 """
 
 from lrf_jax.io.cloud import Cloud, read_npy
@@ -16,12 +18,13 @@ from lrf_jax.io.poses import (LogEntry, quaternion_to_matrix, read_3dmatch_log,
                               read_stanford_conf, read_xf, write_xf)
 from lrf_jax.io.reader import read_cloud
 from lrf_jax.io.text import read_xyz
-from lrf_jax.io.validation import check_points, check_rigid
+from lrf_jax.io.validation import check_normals, check_points, check_rigid
 
 __all__ = [
     "Cloud",
     "LogEntry",
     "PlyMesh",
+    "check_normals",
     "check_points",
     "check_rigid",
     "quaternion_to_matrix",

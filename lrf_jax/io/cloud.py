@@ -9,7 +9,7 @@ from pathlib import Path
 
 import numpy as np
 
-from lrf_jax.io.validation import bad_input, check_points, require_file
+from lrf_jax.io.validation import bad_input, check_normals, check_points, require_file
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
@@ -39,13 +39,14 @@ def read_npy(path: str | os.PathLike) -> Cloud:
     path: the `.npy` file (no pickles are loaded).
 
   Returns:
-    A Cloud with float64 points (and normals for 6 columns).
+    A Cloud with float64 points (and normals for 6 columns; a row with a NaN/inf normal is
+    kept with a NaN normal row).
 
   Raises:
     FileNotFoundError: missing file.
-    ValueError: unreadable file, a header shape that does not match the data stored (larger or
-      smaller), a dtype that is not real floating or integer (complex, bool, strings), wrong
-      shape, empty, or non-finite values.
+    ValueError: unreadable file (e.g. no read permission), a header shape that does not match
+      the data stored (larger or smaller), a dtype that is not real floating or integer
+      (complex, bool, strings), wrong shape, empty, or non-finite coordinates.
   """
   p = require_file(path)
   try:  # memory-mapped first: the header's shape is checked against the file before loading
@@ -64,5 +65,5 @@ def read_npy(path: str | os.PathLike) -> Cloud:
     raise bad_input(p, "array", "shape (n, 3) or (n, 6)", f"shape {arr.shape}")
   arr = np.asarray(arr)
   points = check_points(arr[:, :3], p, "x/y/z columns")
-  normals = check_points(arr[:, 3:], p, "normal columns") if arr.shape[1] == 6 else None
+  normals = check_normals(arr[:, 3:], p, "normal columns") if arr.shape[1] == 6 else None
   return Cloud(points, None, normals, p)

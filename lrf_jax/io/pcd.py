@@ -8,7 +8,7 @@ import struct
 import numpy as np
 
 from lrf_jax.io.cloud import Cloud
-from lrf_jax.io.validation import bad_input, check_points, require_file
+from lrf_jax.io.validation import bad_input, check_normals, check_points, require_file, unreadable
 
 _NORMALS = ("normal_x", "normal_y", "normal_z")
 # pypcd4 reads at most this many header lines (comments and blank lines aside), DATA the last.
@@ -25,19 +25,21 @@ def read_pcd(path: str | os.PathLike, *, drop_nonfinite: bool = False) -> Cloud:
 
   Args:
     path: the `.pcd` file.
-    drop_nonfinite: organised PCL clouds mark missing pixels with NaN. If True, such points are
-      dropped (normals with them); if False (default) they are an error like in every reader.
+    drop_nonfinite: organised PCL clouds mark missing pixels with NaN coordinates. If True,
+      the points whose x/y/z are not all finite are dropped (their normals with them); if
+      False (default) they are an error like in every reader. Only the coordinates decide.
 
   Returns:
     A Cloud with (n, 3) float64 points (fields x y z, units as stored) and normals when the
-    file has normal_x/normal_y/normal_z.
+    file has normal_x/normal_y/normal_z. A point whose normal is not finite (PCL writes NaN
+    where it could not estimate one) is kept, with a NaN normal row (`check_normals`).
 
   Raises:
     FileNotFoundError: missing file.
-    ValueError: a corrupt header or body, a stored point count that differs from the header's
-      POINTS (more or fewer; for DATA binary and ascii this is checked against the file size
-      before anything is allocated), no x/y/z field, an empty cloud, or NaN/inf coordinates
-      (unless dropped).
+    ValueError: an unreadable file (e.g. no read permission), a corrupt header or body, a stored
+      point count that differs from the header's POINTS (more or fewer; for DATA binary and
+      ascii this is checked against the file size before anything is allocated), no x/y/z
+      field, an empty cloud, or NaN/inf coordinates (unless dropped).
   """
   p = require_file(path)
   header = _sniff_header(p)
@@ -45,6 +47,8 @@ def read_pcd(path: str | os.PathLike, *, drop_nonfinite: bool = False) -> Cloud:
   from pypcd4 import PointCloud  # imported on the first PCD read, not with lrf_jax
   try:
     pc = PointCloud.from_path(p)
+  except OSError as e:  # e.g. permissions changed since `require_file`
+    raise unreadable(p, e) from e
   except (ValueError, RuntimeError, TypeError, KeyError, IndexError, OverflowError,
           struct.error) as e:
     # pypcd4 raises pydantic ValidationError (a ValueError) for a bad header, ValueError from
@@ -64,15 +68,13 @@ def read_pcd(path: str | os.PathLike, *, drop_nonfinite: bool = False) -> Cloud:
   normals = None
   if all(a in fields for a in _NORMALS):
     normals = np.stack([data[a] for a in _NORMALS], axis=1).astype(np.float64)
-  if drop_nonfinite:
+  if drop_nonfinite:  # the coordinates alone decide: a NaN normal is a missing normal
     keep = np.isfinite(points).all(axis=1)
-    if normals is not None:
-      keep &= np.isfinite(normals).all(axis=1)
     points = points[keep]
     normals = normals[keep] if normals is not None else None
   points = check_points(points, p, "fields x/y/z")
   if normals is not None:
-    normals = check_points(normals, p, "fields normal_x/normal_y/normal_z")
+    normals = check_normals(normals, p, "fields normal_x/normal_y/normal_z")
   return Cloud(points, None, normals, p)
 
 

@@ -1,9 +1,15 @@
 """PLY meshes and clouds (ascii and binary) on top of `plyfile`.
 
-`plyfile` parses the header and binary bodies. Its ascii body reader converts row by row in
-Python (about 2 s for one Stanford bunny scan, whose `range_grid` element has 204,800 rows), so
-ascii bodies are parsed here with numpy, element by element, under the same rule as plyfile's
-(one element per line); any layout this fast path does not handle goes back to plyfile.
+`plyfile` parses the header lines and binary bodies. The header is read here, at most
+`MAX_HEADER_BYTES` of it, and split into lines in one pass (plyfile reads it one byte at a time);
+plyfile then interprets those lines. Its ascii body reader converts row by row in Python (about
+2 s for one Stanford bunny scan, whose `range_grid` element has 204,800 rows), so ascii bodies are
+parsed here with numpy, element by element, under the same rule as plyfile's (one element per
+line); any layout this fast path does not handle goes back to plyfile.
+
+Names: vertex normals are `nx ny nz` or, as PCL writes them, `normal_x normal_y normal_z`; the
+triangles are the element `face` or `triangle`, with a list property `vertex_indices` or
+`vertex_index`.
 """
 
 from __future__ import annotations
@@ -19,11 +25,17 @@ import numpy as np
 import plyfile
 
 from lrf_jax.io.cloud import Cloud
-from lrf_jax.io.validation import bad_input, check_points, require_file
+from lrf_jax.io.validation import (bad_input, check_normals, check_points, require_file,
+                                   unreadable)
 
-# Names of the face element's list property used by common writers.
+# Names of the face element and of its list property used by common writers.
+_FACE_ELEMENTS = ("face", "triangle")
 _FACE_LISTS = ("vertex_indices", "vertex_index")
-_NORMALS = ("nx", "ny", "nz")
+_NORMALS = ("nx", "ny", "nz")  # what write_ply writes
+_NORMAL_NAMES = (_NORMALS, ("normal_x", "normal_y", "normal_z"))  # read: the first one present
+# The longest header read, in bytes ("ply" to "end_header" and its newline included): real
+# headers take a few hundred bytes; a file without "end_header" is rejected after this many.
+MAX_HEADER_BYTES = 1 << 20
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
@@ -34,9 +46,11 @@ class PlyMesh:
     points: (n, 3) float64 vertex coordinates (units as stored).
     faces: (f, 3) int64 triangles, or None when the file has no (or an empty) face element.
       Polygons with more than 3 vertices are fan-triangulated.
-    normals: (n, 3) float64 vertex normals (nx ny nz) as stored (not renormalised), or None.
+    normals: (n, 3) float64 vertex normals (nx ny nz, or normal_x normal_y normal_z) as stored
+      (not renormalised; a row with a NaN/inf value is a NaN row, a missing normal), or None.
     vertex_attributes: other vertex properties by name, each (n,) (e.g. colours, confidence).
-    elements: every element other than vertex and face, as {element: {property: array}}.
+    elements: every element other than vertex and the one read as faces, as
+      {element: {property: array}}.
       Scalar properties are (count,) arrays; a list property is a (count, k) array when all
       its lists have length k, else an object array of 1-D arrays (e.g. the Stanford bunny
       scans' `range_grid`, whose rows hold zero or one vertex index).
@@ -76,28 +90,75 @@ def read_ply(path: str | os.PathLike, *, elements: bool = True) -> PlyMesh:
 
   Raises:
     FileNotFoundError: missing file.
-    ValueError: a corrupt header, a truncated body, rows that do not match the header
+    ValueError: an unreadable file (e.g. no read permission), a corrupt header, no
+      `end_header` within `MAX_HEADER_BYTES`, a truncated body, rows that do not match the header
       (wrong element counts, wrong number of values), data after the last element, no
       `vertex` element or no x/y/z property, an empty cloud, NaN/inf coordinates, or face
       indices outside [0, n). The message names the file, the element/property and the
       expected versus found value.
   """
   p = require_file(path)
-  with _BoundedReader(open(p, "rb", buffering=0), p.stat().st_size) as stream:
-    try:
-      header = plyfile.PlyData._parse_header(stream)  # header only (the body is not read)
-    except plyfile.PlyHeaderParseError as e:
-      raise bad_input(p, f"header line {e.line}", "a valid PLY header", e.message) from e
-    except UnicodeDecodeError as e:
-      raise bad_input(p, "header", "an ascii PLY header", f"undecodable bytes ({e})") from e
-    except ValueError as e:  # plyfile: two elements or properties with the same name
-      raise bad_input(p, "header", "a valid PLY header", str(e)) from e
+  try:
+    raw = open(p, "rb", buffering=0)
+  except OSError as e:  # e.g. permissions changed since `require_file`
+    raise unreadable(p, e) from e
+  with _BoundedReader(raw, p.stat().st_size) as stream:
+    lines, body_start = _header_lines(stream, p)
+    header = _parse_header(lines, p)
+    stream.seek(body_start)
     if header.text:
       body = stream.read()
-      data = _read_ascii_body(header, body, p, elements)
+      data = _read_ascii_body(header, body, p, elements, lines, body_start)
     else:
-      data = _read_binary(stream, header, p)
+      data = _read_binary(stream, lines, body_start, p)
   return _assemble(header, data, p)
+
+
+def _header_lines(stream, p: Path) -> tuple[list[str], int]:
+  """The header's lines after "ply" up to "end_header" (newline removed; plyfile's rule: the
+  newline is the one after "ply", LF, CR or CRLF) and the body's byte offset, from one read of
+  at most `MAX_HEADER_BYTES` and one search (linear in the header's length).
+
+  Raises:
+    ValueError: no "ply" magic, undecodable bytes, or a file longer than `MAX_HEADER_BYTES`
+      without an "end_header" line within them. A shorter file without one gives all its lines
+      (the parser then reports the error).
+  """
+  cap = int(MAX_HEADER_BYTES)
+  head = stream.read(cap)
+  if head[:3] != b"ply":
+    raise bad_input(p, "header line 1", "a valid PLY header", "expected 'ply'")
+  nl = b"\r\n" if head[3:5] == b"\r\n" else head[3:4]
+  if nl not in (b"\n", b"\r", b"\r\n"):
+    raise bad_input(p, "header line 1", "a valid PLY header", "unexpected characters after 'ply'")
+  start = 3 + len(nl)  # the first line after "ply"
+  marker = nl + b"end_header" + nl
+  end = head.find(marker, 3)
+  if end < 0 and len(head) >= cap:
+    raise bad_input(p, "header", "a PLY header ending with an 'end_header' line",
+                    f"no end_header within {cap} bytes (MAX_HEADER_BYTES)")
+  text = head[start:end] if end >= 0 else head[start:]
+  try:
+    lines = text.decode("ascii").split(nl.decode("ascii")) if end != 3 else []
+  except UnicodeDecodeError as e:
+    raise bad_input(p, "header", "an ascii PLY header", f"undecodable bytes ({e})") from e
+  if end < 0:
+    return lines, len(head)
+  return lines + ["end_header"], end + len(marker)
+
+
+def _parse_header(lines: list[str], p: Path) -> plyfile.PlyData:
+  """A fresh header-only `PlyData` (elements without data) from `_header_lines`' lines,
+  interpreted by plyfile's header parser."""
+  try:
+    parser = plyfile._PlyHeaderParser(lines)
+    return plyfile.PlyData([plyfile.PlyElement(*e) for e in parser.elements],
+                           parser.format == "ascii", plyfile._byte_order_map[parser.format],
+                           parser.comments, parser.obj_info)
+  except plyfile.PlyHeaderParseError as e:
+    raise bad_input(p, f"header line {e.line}", "a valid PLY header", e.message) from e
+  except ValueError as e:  # plyfile: two elements or properties with the same name
+    raise bad_input(p, "header", "a valid PLY header", str(e)) from e
 
 
 def write_ply(path: str | os.PathLike, points: np.ndarray, faces: np.ndarray | None = None,
@@ -168,18 +229,32 @@ class _BoundedReader(io.BufferedReader):
     return super().read(n)
 
 
-def _read_binary(stream, header: plyfile.PlyData, p: Path) -> dict[str, dict[str, np.ndarray]]:
+def _read_elements(stream, header: plyfile.PlyData, known_list_len: dict) -> None:
+  """plyfile's body reader (`PlyData.read` after its header parse), from the stream's position:
+  fills every element of `header` in place."""
+  data_stream = io.TextIOWrapper(stream, "ascii") if header.text else stream
+  for elt in header.elements:
+    elt._read(data_stream, header.text, header.byte_order, "c",
+              known_list_len=known_list_len.get(elt.name, {}))
+  if header.text:
+    data_stream.detach()  # leave the binary stream open for its owner
+
+
+def _read_binary(stream, lines: list[str], body_start: int,
+                 p: Path) -> dict[str, dict[str, np.ndarray]]:
   """Binary body via plyfile; triangles are memory-mapped when every face has 3 vertices."""
+  header = _parse_header(lines, p)
   known = {e.name: {e.properties[0].name: 3} for e in header.elements
-           if e.name == "face" and len(e.properties) == 1
+           if e.name in _FACE_ELEMENTS and len(e.properties) == 1
            and isinstance(e.properties[0], plyfile.PlyListProperty)}
   size = p.stat().st_size
   ply = None
   for known_len in (known, {}) if known else ({},):
-    stream.seek(0)
+    stream.seek(body_start)
+    ply = _parse_header(lines, p)  # fresh elements: a failed attempt leaves partial data
     try:
       # Scalar-only elements and fixed-length lists are memory-mapped; others read row by row.
-      ply = plyfile.PlyData.read(stream, mmap="c", known_list_len=known_len)
+      _read_elements(stream, ply, known_len)
       break
     except plyfile.PlyElementParseError as e:
       if e.message == "unexpected list length" and known_len:
@@ -195,10 +270,12 @@ def _read_binary(stream, header: plyfile.PlyData, p: Path) -> dict[str, dict[str
   return {e.name: {q.name: np.array(e.data[q.name]) for q in e.properties} for e in ply.elements}
 
 
-def _read_ascii_body(header: plyfile.PlyData, body: bytes, p: Path,
-                     elements: bool = True) -> dict[str, dict[str, np.ndarray]]:
+def _read_ascii_body(header: plyfile.PlyData, body: bytes, p: Path, elements: bool,
+                     header_lines: list[str], body_start: int
+                     ) -> dict[str, dict[str, np.ndarray]]:
   """Ascii body, one element per line, parsed per element with numpy (with `elements` False,
-  only vertex and face; the others are skipped by their row counts)."""
+  only vertex and faces; the others are skipped by their row counts). `header_lines` and
+  `body_start` (`_header_lines`) serve the plyfile fallback."""
   lines = body.split(b"\n")
   if lines and not lines[-1].strip():
     lines.pop()  # the final newline
@@ -210,11 +287,11 @@ def _read_ascii_body(header: plyfile.PlyData, body: bytes, p: Path,
       raise bad_input(p, f"element '{elt.name}'", f"{elt.count} rows (header count)",
                       f"{len(rows)} rows before the end of the file (truncated?)")
     pos += elt.count
-    if not elements and elt.name not in ("vertex", "face"):
+    if not elements and elt.name not in ("vertex",) + _FACE_ELEMENTS:
       continue
     parsed = _parse_ascii_element(elt, rows, p)
     if parsed is None:  # a layout the fast path does not handle: plyfile, row by row
-      return _read_ascii_with_plyfile(p)
+      return _read_ascii_with_plyfile(p, header_lines, body_start)
     out[elt.name] = parsed
   extra = [i for i, line in enumerate(lines[pos:]) if line.strip()]
   if extra:
@@ -277,9 +354,15 @@ def _tokens_per_row(text: bytes, n_rows: int) -> np.ndarray:
   return np.bincount(row[first], minlength=n_rows).astype(np.int64)
 
 
-def _read_ascii_with_plyfile(p: Path) -> dict[str, dict[str, np.ndarray]]:
+def _read_ascii_with_plyfile(p: Path, lines: list[str],
+                             body_start: int) -> dict[str, dict[str, np.ndarray]]:
+  ply = _parse_header(lines, p)
   try:
-    ply = plyfile.PlyData.read(str(p))
+    with open(p, "rb") as stream:
+      stream.seek(body_start)
+      _read_elements(stream, ply, {})
+  except OSError as e:
+    raise unreadable(p, e) from e
   except plyfile.PlyElementParseError as e:
     raise _element_error(p, e) from e
   except UnicodeDecodeError as e:
@@ -315,27 +398,34 @@ def _assemble(header: plyfile.PlyData, data: dict[str, dict[str, np.ndarray]],
     raise bad_input(p, "element 'vertex'", "at least one vertex", "an empty cloud (0 vertices)")
   points = check_points(np.stack([vertex[a] for a in "xyz"], axis=1), p,
                         "element 'vertex' x/y/z")
-  normals = None
-  if all(a in vertex for a in _NORMALS):
-    normals = check_points(np.stack([vertex[a] for a in _NORMALS], axis=1), p,
-                           "element 'vertex' nx/ny/nz")
-  skip = set("xyz") | (set(_NORMALS) if normals is not None else set())
-  attributes = {k: v for k, v in vertex.items() if k not in skip}
+  normals, names = None, next((q for q in _NORMAL_NAMES if all(a in vertex for a in q)), ())
+  if names:
+    normals = check_normals(np.stack([vertex[a] for a in names], axis=1), p,
+                            f"element 'vertex' {'/'.join(names)}")
+  attributes = {k: v for k, v in vertex.items() if k not in set("xyz") | set(names)}
   faces = None
-  if "face" in data:
-    face = data["face"]
+  # `face`, else a `triangle` element with a face list (one of another layout stays an element).
+  present = [e for e in _FACE_ELEMENTS
+             if e in data and (e == "face" or any(k in data[e] for k in _FACE_LISTS))]
+  nonempty = [e for e in present if header[e].count]
+  if len(nonempty) > 1:
+    raise bad_input(p, "elements", "one face element (" + " or ".join(_FACE_ELEMENTS) + ")",
+                    f"both, non-empty: {nonempty}")
+  face_name = (nonempty or present or [None])[0]
+  if face_name is not None:
+    face = data[face_name]
     key = next((k for k in _FACE_LISTS if k in face), None)
     if key is None:
-      raise bad_input(p, "element 'face'", "a list property " + " or ".join(_FACE_LISTS),
+      raise bad_input(p, f"element '{face_name}'", "a list property " + " or ".join(_FACE_LISTS),
                       f"properties {list(face)}")
     if len(face[key]):
-      faces = _check_faces(_triangulate(face[key], p), n, p)
-  elements = {k: v for k, v in data.items() if k not in ("vertex", "face")}
+      faces = _check_faces(_triangulate(face[key], p, face_name), n, p, face_name)
+  elements = {k: v for k, v in data.items() if k not in ("vertex", face_name)}
   return PlyMesh(points, faces, normals, attributes, elements, tuple(header.comments),
                  tuple(header.obj_info), bool(header.text), p)
 
 
-def _triangulate(lists: np.ndarray, source: Any) -> np.ndarray:
+def _triangulate(lists: np.ndarray, source: Any, element: str = "face") -> np.ndarray:
   """(f, k) or ragged polygon lists -> (t, 3) triangles (fan from each polygon's first vertex)."""
   if lists.dtype != object:
     polys = [np.asarray(lists)]
@@ -346,20 +436,20 @@ def _triangulate(lists: np.ndarray, source: Any) -> np.ndarray:
   for poly in polys:
     k = poly.shape[1]
     if k < 3:
-      raise bad_input(source, "element 'face'", "polygons with at least 3 vertices",
+      raise bad_input(source, f"element '{element}'", "polygons with at least 3 vertices",
                       f"{len(poly)} faces with {k} vertices")
     for j in range(1, k - 1):
       tris.append(poly[:, [0, j, j + 1]])
   return np.concatenate(tris).astype(np.int64)
 
 
-def _check_faces(faces: np.ndarray, n: int, source: Any) -> np.ndarray:
+def _check_faces(faces: np.ndarray, n: int, source: Any, element: str = "face") -> np.ndarray:
   if faces.ndim != 2 or faces.shape[1] != 3:
-    raise bad_input(source, "element 'face'", "an (f, 3) array of triangles",
+    raise bad_input(source, f"element '{element}'", "an (f, 3) array of triangles",
                     f"shape {faces.shape}")
   faces = faces.astype(np.int64, copy=False)
   if faces.size and (faces.min() < 0 or faces.max() >= n):
     bad = int(faces.min() if faces.min() < 0 else faces.max())
-    raise bad_input(source, "element 'face' vertex_indices", f"indices in [0, {n})",
+    raise bad_input(source, f"element '{element}' vertex_indices", f"indices in [0, {n})",
                     f"index {bad}")
   return faces

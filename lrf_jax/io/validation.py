@@ -42,6 +42,7 @@ def require_file(path: str | os.PathLike) -> Path:
 
   Raises:
     FileNotFoundError: `path` does not exist or is not a regular file.
+    ValueError: the file exists but cannot be opened for reading (e.g. no read permission).
   """
   if not os.fspath(path):  # Path("") is ".", the working directory
     raise FileNotFoundError("'': an empty path, not a file")
@@ -49,7 +50,18 @@ def require_file(path: str | os.PathLike) -> Path:
   if not p.is_file():
     what = "is a directory, not a file" if p.is_dir() else "no such file"
     raise FileNotFoundError(f"{p}: {what}")
+  try:  # permissions and the like: a ValueError naming the file, as for any bad file
+    with open(p, "rb"):
+      pass
+  except OSError as e:
+    raise unreadable(p, e) from e
   return p
+
+
+def unreadable(p: object, error: OSError) -> ValueError:
+  """The ValueError of a file that exists but cannot be read (`error` from the OS)."""
+  return bad_input(p, "file", "a readable file",
+                   f"{type(error).__name__}: {error.strerror or error}")
 
 
 def check_points(points: np.ndarray, source: object, field: str = "points",
@@ -118,3 +130,34 @@ def check_rigid(transform: np.ndarray, source: object, field: str = "transform",
     raise bad_input(source, field, f"det R = +1 (within {atol:g})",
                     f"det R = {det:.6g}" + (" (a reflection)" if det < 0 else ""))
   return t
+
+
+def check_normals(normals: np.ndarray, source: object, field: str = "normals",
+                  n_points: int | None = None) -> np.ndarray:
+  """Validates an (n, 3) normal array; a row with any NaN/inf becomes a NaN row.
+
+  Files mark normals that could not be estimated with NaN (PCL does); such a row is a missing
+  normal, not a bad point: it is kept, as a whole NaN row (the frames that need it come out
+  invalid).
+
+  Args:
+    normals: array-like, expected shape (n, 3).
+    source: the file or input the array came from (used in messages).
+    field: what the array is, e.g. ``"element 'vertex' nx/ny/nz"``.
+    n_points: the expected number of rows (the points'), if known.
+
+  Returns:
+    A C-contiguous (n, 3) float64 array: the values as stored, NaN rows where any entry was not
+    finite.
+
+  Raises:
+    ValueError: wrong shape or (with `n_points`) a row count other than the points'.
+  """
+  arr = np.asarray(normals)
+  if arr.ndim != 2 or arr.shape[1] != 3:
+    raise bad_input(source, field, "an (n, 3) array", f"shape {arr.shape}")
+  if n_points is not None and arr.shape[0] != n_points:
+    raise bad_input(source, field, f"{n_points} rows (one per point)", f"{arr.shape[0]} rows")
+  arr = np.array(arr, dtype=np.float64, order="C")  # a copy: rows are overwritten below
+  arr[~np.isfinite(arr).all(axis=1)] = np.nan
+  return arr

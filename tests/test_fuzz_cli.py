@@ -1,0 +1,383 @@
+"""Bad arguments and configs of lrf-frames, lrf-register, evaluate.py and train.py: each is one
+`error:` line naming the option or field, exit code 2, no traceback and nothing written.
+
+The programs are driven in-process (their `main(argv)`); every case here fails before any
+real work (no frames, no registration, no training), so the whole file runs in seconds.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from lrf_jax import config as config_lib
+from lrf_jax import datasets
+from lrf_jax import frames_cli, register_cli
+from lrf_jax import train_lib
+
+REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO))
+import evaluate  # noqa: E402
+import train  # noqa: E402
+
+
+@pytest.fixture(scope="module")
+def cloud_npy(tmp_path_factory) -> Path:
+  """A small demo cloud as an .npy (points only)."""
+  path = tmp_path_factory.mktemp("cloud") / "scan.npy"
+  np.save(path, datasets.make_demo_pair(0).model_points[::16])
+  return path
+
+
+def _error(capsys) -> str:
+  err = capsys.readouterr().err
+  assert err.startswith("error: ") and "Traceback" not in err, err
+  return err
+
+
+def _listing(folder: Path) -> list[str]:
+  return sorted(p.name for p in folder.iterdir())
+
+
+# ----------------------------------------------------------------------------- lrf-frames
+
+
+@pytest.mark.parametrize("extra,fragment", [
+    (["--keypoints", "²"], "--keypoints"),          # str.isdigit() is True, int() fails
+    (["--keypoints", "-3"], "--keypoints"),
+    (["--seed", "-1"], "--seed"),
+    (["--seed", str(2**40)], "--seed"),
+    (["--voxel-mr", "1e-20"], "--voxel-mr"),       # 23 keypoints of 3,000 before
+    (["--voxel-mr", "5", "--keypoints", "10"], "--voxel-mr and --keypoints"),
+    (["--png", "PNG/x.xyz"], "--png"),             # failed after the npz was written before
+    (["--png", "PNG/x"], "--png"),
+    (["--png", "PNG/same.npz"], "--png"),
+])
+def test_frames_bad_argument_before_any_work(cloud_npy, tmp_path, capsys, extra, fragment):
+  extra = [a.replace("PNG", str(tmp_path)) for a in extra]
+  out = tmp_path / "same.npz"
+  assert frames_cli.main([str(cloud_npy), "--out", str(out)] + extra) == 2
+  assert fragment in _error(capsys)
+  assert _listing(tmp_path) == []
+
+
+def test_frames_out_is_a_folder_or_the_input(cloud_npy, tmp_path, capsys):
+  assert frames_cli.main([str(cloud_npy), "--out", str(tmp_path)]) == 2
+  err = _error(capsys)
+  assert "--out" in err and "folder" in err
+  link = tmp_path / "scan.npz"  # a hard link to the input, as the --out file
+  os.link(cloud_npy, link)
+  before = cloud_npy.read_bytes()
+  for out in (str(link), str(link)[:-4]):  # --out "scan" writes scan.npz too
+    assert frames_cli.main([str(cloud_npy), "--out", out]) == 2
+    err = _error(capsys)
+    assert "--out" in err and "input" in err, err
+  assert cloud_npy.read_bytes() == before
+
+
+def test_frames_out_in_a_read_only_folder(cloud_npy, tmp_path, capsys, monkeypatch):
+  ro = tmp_path / "ro"
+  ro.mkdir()
+  ro.chmod(0o555)
+  if os.geteuid() == 0:  # root writes anywhere: pretend the folder is read-only
+    from lrf_jax.io import atomic
+    monkeypatch.setattr(atomic.os, "access", lambda p, mode: Path(p) != ro)
+  try:
+    assert frames_cli.main([str(cloud_npy), "--out", str(ro / "f.npz")]) == 2
+    err = _error(capsys)
+    assert "--out" in err and "not writable" in err
+  finally:
+    ro.chmod(0o755)
+
+
+def test_frames_unreadable_input(cloud_npy, tmp_path, capsys, monkeypatch):
+  bad = tmp_path / "locked.ply"
+  bad.write_bytes(b"ply\n")
+  from lrf_jax import inputs
+
+  def denied(source, name):
+    raise PermissionError(13, "Permission denied", str(bad))
+  monkeypatch.setattr(inputs, "as_cloud", denied)
+  assert frames_cli.main([str(bad), "--out", str(tmp_path / "f.npz")]) == 2
+  err = _error(capsys)
+  assert str(bad) in err and "Permission denied" in err
+  assert not (tmp_path / "f.npz").exists()
+
+
+@pytest.mark.skipif(os.geteuid() == 0, reason="root reads files without read permission")
+@pytest.mark.parametrize("suffix", [".ply", ".pcd"])
+def test_frames_unreadable_file_on_disk(cloud_npy, tmp_path, capsys, suffix):
+  bad = tmp_path / f"locked{suffix}"
+  bad.write_bytes(b"x")
+  bad.chmod(0)
+  assert frames_cli.main([str(bad), "--out", str(tmp_path / "f.npz")]) == 2
+  assert "locked" in _error(capsys)
+
+
+# ----------------------------------------------------------------------------- lrf-register
+
+
+@pytest.mark.parametrize("extra,fragment", [
+    (["--seed", "-1"], "--seed"), (["--keypoints", "0"], "--keypoints"),
+    (["--init", "MISSING"], "--init")])
+def test_register_bad_argument_before_any_work(cloud_npy, tmp_path, capsys, extra, fragment):
+  extra = [a.replace("MISSING", str(tmp_path / "none.txt")) for a in extra]
+  assert register_cli.main([str(cloud_npy), str(cloud_npy)] + extra) == 2
+  assert fragment in _error(capsys)
+
+
+def test_register_refuses_to_overwrite_an_input(cloud_npy, tmp_path, capsys):
+  """`lrf-register a b --out a` wrote the 4x4 matrix over the scan a."""
+  src, tgt = tmp_path / "a.npy", tmp_path / "b.npy"
+  src.write_bytes(cloud_npy.read_bytes())
+  tgt.write_bytes(cloud_npy.read_bytes())
+  before = src.read_bytes()
+  for out in (src, tgt, tmp_path / "." / "a.npy"):
+    assert register_cli.main([str(src), str(tgt), "--out", str(out)]) == 2
+    err = _error(capsys)
+    assert "--out" in err and "input" in err
+  assert register_cli.main([str(src), str(tgt), "--out", str(tmp_path)]) == 2
+  assert "folder" in _error(capsys)
+  assert src.read_bytes() == before
+
+
+def test_register_checkpoint_without_checkpoints(cloud_npy, tmp_path, capsys):
+  empty = tmp_path / "empty"
+  empty.mkdir()
+  assert register_cli.main([str(cloud_npy), str(cloud_npy), "--checkpoint", str(empty)]) == 2
+  assert "--checkpoint" in _error(capsys)
+
+
+@pytest.mark.parametrize("content,name", [("1 0 0 0\n0 1 0 0\n0 0 1 0\n", "m.txt"),
+                                          ("a b c d\n" * 4, "m.xf"),
+                                          (np.eye(3), "m.npy"), (np.eye(4) * 2, "s.npy"),
+                                          (np.array(["x"] * 16).reshape(4, 4), "t.npy")])
+def test_register_bad_init_names_the_file(cloud_npy, tmp_path, capsys, monkeypatch, content,
+                                          name):
+  from lrf_jax import registration
+  monkeypatch.setattr(registration, "register", lambda *a, **k: pytest.fail("register ran"))
+  path = tmp_path / name
+  if isinstance(content, str):
+    path.write_text(content)
+  else:
+    np.save(path, content)
+  assert register_cli.main([str(cloud_npy), str(cloud_npy), "--init", str(path)]) == 2
+  err = _error(capsys)
+  assert "--init" in err and name in err, err
+
+
+class _FakeRegistration:
+  transform = np.eye(4)
+  n_inliers, correspondences, chance_inliers = 10, [0] * 20, 1.0
+  overlap_contrast, fitness, rmse, mr, seconds, success = 3.0, 0.9, 0.1, 1.0, 0.1, True
+  rival_inliers, overlap, reason = 1, 0.9, "a fake"
+
+
+def test_register_passes_init_only_when_given(cloud_npy, tmp_path, monkeypatch, capsys):
+  from lrf_jax import registration
+  seen = []
+  monkeypatch.setattr(registration, "register",
+                      lambda *a, **k: seen.append(k) or _FakeRegistration())
+  t = np.eye(4)
+  t[:3, 3] = (1.0, 2.0, 3.0)
+  np.savetxt(tmp_path / "init.txt", t)
+  np.save(tmp_path / "init.npy", t)
+  assert register_cli.main([str(cloud_npy), str(cloud_npy)]) == 0
+  assert "init" not in seen[-1]
+  for f in ("init.txt", "init.npy"):
+    assert register_cli.main([str(cloud_npy), str(cloud_npy), "--init", str(tmp_path / f)]) == 0
+    np.testing.assert_array_equal(seen[-1]["init"], t)
+
+
+def test_register_unreadable_input(cloud_npy, tmp_path, monkeypatch, capsys):
+  from lrf_jax import registration
+
+  def denied(*a, **k):
+    raise PermissionError(13, "Permission denied", "/x/locked.pcd")
+  monkeypatch.setattr(registration, "register", denied)
+  assert register_cli.main([str(cloud_npy), str(cloud_npy)]) == 2
+  err = _error(capsys)
+  assert "/x/locked.pcd" in err and "Permission denied" in err
+
+
+# ----------------------------------------------------------------------------- evaluate.py
+
+
+@pytest.mark.parametrize("extra,fragment", [
+    (["--methods", "nosuch"], "--methods"),
+    (["--keypoints", "-5"], "--keypoints"), (["--keypoints", "0"], "--keypoints"),
+    (["--radius-mr", "nan"], "--radius-mr"), (["--radius-mr", "0"], "--radius-mr"),
+    (["--max-neighbors", "-1"], "--max-neighbors"), (["--max-pairs", "-1"], "--max-pairs"),
+    (["--max-pairs", "0"], "--max-pairs"), (["--seed", "-2"], "--seed"),
+    (["--params", "x=MISSING.msgpack"], "--params"),
+    (["--params", "x=MISSING.msgpack@nosuch"], "--params"),
+    (["--checkpoint", "EMPTY"], "--checkpoint"),
+])
+def test_evaluate_bad_argument(tmp_path, capsys, extra, fragment):
+  (tmp_path / "empty").mkdir()
+  extra = [a.replace("MISSING", str(tmp_path / "none")).replace("EMPTY", str(tmp_path / "empty"))
+           for a in extra]
+  out = tmp_path / "out"
+  assert evaluate.main(["--datasets", "demo", "--out", str(out)] + extra) == 2
+  assert fragment in _error(capsys)
+  assert not out.exists()
+
+
+def test_evaluate_out_is_a_file(tmp_path, capsys):
+  out = tmp_path / "results"
+  out.write_text("mine")
+  assert evaluate.main(["--datasets", "demo", "--methods", "toldi", "--out", str(out)]) == 2
+  assert "--out" in _error(capsys)
+  assert out.read_text() == "mine"
+
+
+def test_evaluate_params_file_where_an_output_goes(tmp_path, capsys):
+  out = tmp_path / "out"
+  out.mkdir()
+  (out / "report.md").write_text("not parameters")
+  assert evaluate.main(["--datasets", "demo", "--methods", "toldi", "--out", str(out),
+                        "--params", f"x={out / 'report.md'}"]) == 2
+  assert "--params" in _error(capsys)
+
+
+# ----------------------------------------------------------------------------- train.py
+
+
+@pytest.mark.parametrize("name,text,fragment", [
+    ("noise.json", '{"noise_mr": 0.1}', "config.noise_mr"),
+    ("widths.json", '{"widths": 16}', "config.widths"),
+    ("list.json", "[1, 2]", "expected an object"),
+    ("lr.json", '{"learning_rate": true}', "config.learning_rate"),
+    ("radius.json", '{"radius_mr": true}', "config.radius_mr"),
+    ("decay.json", '{"lr_decay": true}', "config.lr_decay"),
+    ("crop.json", '{"crop_p": true}', "config.crop_p"),
+    ("name.json", '{"name": 3}', "config.name"),
+    ("syntax.json", '{"epochs": 2,', "syntax.json"),
+    ("nofn.py", "x = 1\n", "get_config"),
+    ("dict.py", "def get_config():\n  return {'epochs': 1}\n", "TrainConfig"),
+    ("raises.py", "import nosuchmodule\n", "raises.py"),
+])
+def test_train_bad_config_file(tmp_path, capsys, name, text, fragment):
+  path = tmp_path / name
+  path.write_text(text)
+  work = tmp_path / "run"
+  assert train.main(["--config", str(path), "--workdir", str(work), "--no-progress"]) == 2
+  err = _error(capsys)
+  assert fragment in err, err
+  assert not work.exists()
+
+
+def test_train_config_folder_and_workdir_file(tmp_path, capsys):
+  (tmp_path / "dir.json").mkdir()
+  assert train.main(["--config", str(tmp_path / "dir.json"), "--workdir",
+                     str(tmp_path / "run")]) == 2
+  assert "dir.json" in _error(capsys)
+  (tmp_path / "afile").write_text("mine")
+  assert train.main(["--config", "smoke", "--workdir", str(tmp_path / "afile")]) == 2
+  assert "--workdir" in _error(capsys)
+  assert (tmp_path / "afile").read_text() == "mine"
+
+
+def test_train_batch_larger_than_the_training_set(tmp_path, capsys):
+  """batch_size=2048 with 1,024 training keypoints trained on batches of 1,024 before."""
+  assert train.main(["--config", "smoke", "--workdir", str(tmp_path / "run"),
+                     "batch_size=2048"]) == 2
+  err = _error(capsys)
+  assert "config.batch_size" in err and "1024" in err
+  with pytest.raises(ValueError, match="config.batch_size"):
+    config_lib.TrainConfig(num_train_keypoints=100, batch_size=101)
+
+
+def test_train_resume_under_another_config_is_refused(tmp_path, capsys):
+  """A finished run resumed with other values ran with rc 0 and overwrote config.json."""
+  smoke = config_lib.load_config("smoke")
+  work = tmp_path / "run"
+  work.mkdir()
+  (work / "config.json").write_text(smoke.to_json())
+  (work / "metrics.jsonl").write_text('{"step": 48, "loss": 0.1}\n')
+  before = {p: p.read_bytes() for p in work.iterdir()}
+  assert train.main(["--config", "smoke", "--workdir", str(work), "--no-progress", "epochs=3",
+                     "batch_size=16", "learning_rate=0.1", "seed=5"]) == 2
+  err = _error(capsys)
+  for field in ("batch_size", "learning_rate", "seed"):
+    assert field in err, err
+  assert "--replace-config" in err
+  assert {p: p.read_bytes() for p in work.iterdir()} == before
+
+
+def test_train_replace_config_keeps_both(tmp_path):
+  smoke = config_lib.load_config("smoke")
+  other = config_lib.replace(smoke, learning_rate=0.1)
+  work = tmp_path / "run"
+  work.mkdir()
+  (work / "config.json").write_text(smoke.to_json())
+  (work / "metrics.jsonl").write_text('{"step": 8, "loss": 0.1}\n{"step": 12, "loss"')  # torn
+  assert train_lib.resume_config(work, smoke) is None  # the same config: resume
+  with pytest.raises(ValueError, match="learning_rate: saved 0.003 vs requested 0.1"):
+    train_lib.resume_config(work, other)
+  name = train_lib.resume_config(work, other, replace=True)
+  assert name == "config.1.json"
+  train_lib._Log(work, other, 8, other.total_steps, False, name).close()
+  assert config_lib.TrainConfig.from_dict(json.loads((work / "config.json").read_text())) == smoke
+  assert json.loads((work / "config.1.json").read_text())["learning_rate"] == 0.1
+  rows = [json.loads(line) for line in (work / "metrics.jsonl").read_text().splitlines()]
+  assert rows[0] == {"step": 8, "loss": 0.1} and "config.1.json" in rows[1]["note"]
+  assert len(rows) == 2  # the torn line is gone
+  assert train_lib.resume_config(work, other) is None  # now compared with config.1.json
+  with pytest.raises(ValueError, match="config.1.json"):
+    train_lib.resume_config(work, smoke)
+
+
+def test_train_resume_with_other_model_fields_is_incompatible(tmp_path):
+  smoke = config_lib.load_config("smoke")
+  work = tmp_path / "run"
+  (work / "checkpoints" / "8").mkdir(parents=True)
+  (work / "config.json").write_text(smoke.to_json())
+  with pytest.raises(ValueError, match="incompatible.*widths"):
+    train_lib.resume_config(work, config_lib.replace(smoke, widths=(8,)), replace=True)
+
+
+def _batch(z_count: int, count: int):
+  from lrf_jax.batches import Batch
+  from lrf_jax.neighborhoods import Patches
+  n, k = 8, 4
+  p = Patches(np.zeros((n, k, 3), np.float32), np.ones((n, k), bool), np.zeros((n, k), np.int32),
+              np.full(n, count, np.int32), np.ones(n, np.float32), np.zeros((n, 3, 3), np.float32),
+              np.zeros((n, 3), np.float32), np.full(n, z_count, np.int32))
+  return Batch(p, p)
+
+
+def test_all_invalid_frames_blame_the_support_when_patches_are_too_small():
+  """radius_mr=1: every frame invalid was blamed on the learning rate ("diverged"); the patches
+  hold a median of 1 point within r/3, where the z axis needs 3."""
+  m = {"loss": 0.0, "grad_norm": 0.0, "valid_fraction": 0.0}
+  with pytest.raises(FloatingPointError, match="support is too small.*raise radius_mr") as e:
+    train_lib.check_finite(m, {}, 4, 0, _batch(z_count=1, count=4))
+  assert "learning rate" not in str(e.value)
+  with pytest.raises(FloatingPointError, match="lower the learning rate"):
+    train_lib.check_finite(m, {}, 4, 0, _batch(z_count=40, count=200))
+
+
+def test_frames_iss_keypoints(cloud_npy, tmp_path, monkeypatch):
+  """`--keypoints iss` takes lrf_jax.keypoints.iss_keypoints at the cloud's mr (sorted int64)."""
+  import lrf_jax
+  from lrf_jax import keypoints
+  seen = {}
+
+  def iss(points, mr=None, **kw):
+    seen["mr"] = mr
+    return np.array([7, 3, 5])
+  monkeypatch.setattr(keypoints, "iss_keypoints", iss)
+  monkeypatch.setattr(lrf_jax, "compute_frames", lambda cloud, kp, *a, **k: (
+      np.tile(np.eye(3), (len(kp), 1, 1)), np.ones(len(kp), bool)))
+  out = tmp_path / "iss.npz"
+  assert frames_cli.main([str(cloud_npy), "--out", str(out), "--keypoints", "iss",
+                          "--method", "toldi"]) == 0
+  z = np.load(out)
+  assert z["keypoints"].tolist() == [3, 5, 7] and z["keypoints"].dtype == np.int64
+  assert seen["mr"] == pytest.approx(float(z["mr"]))

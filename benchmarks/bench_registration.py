@@ -14,9 +14,11 @@ rs1, the Stanford bunny's consecutive scans):
    with Open3D's FPFH + RANSAC (`registration_ransac_based_on_feature_matching`, the settings of
    Open3D's global registration tutorial with the voxel size `--voxel-mr` mr), each followed by
    ICP (ours: `registration.icp`; Open3D: point-to-point `registration_icp`, the same pairing
-   distance), accuracy (err_r deg, err_t mr, before and after ICP) and wall time per pair (after
-   a warm-up pair, so JAX compilation is excluded; Open3D's time includes its voxel downsampling,
-   normals and FPFH; ours includes the radius searches, frames and descriptors).
+   distance, and the tutorial's own point-to-plane refinement within 0.4 voxel, both from
+   `benchmarks/_open3d_pipeline.py`), accuracy (err_r deg, err_t mr, before and after ICP) and
+   wall time per pair (after a warm-up pair, so JAX compilation is excluded; Open3D's time
+   includes its voxel downsampling, normals and FPFH; ours includes the radius searches, frames
+   and descriptors).
 
 Open3D comes from benchmarks/requirements-bench.txt; without it part 3 runs ours only and says so.
 Writes results.json and report.md to --out and prints the report.
@@ -31,6 +33,7 @@ import platform
 import sys
 import time
 from pathlib import Path
+from typing import Literal
 
 import numpy as np
 
@@ -46,48 +49,24 @@ from lrf_jax.evaluation.description import (description_report, plot_rpc,  # noq
 from lrf_jax.evaluation.pose import pose_report, run_pose  # noqa: E402
 from lrf_jax.registration import icp, pose_errors, register  # noqa: E402
 
+from benchmarks._open3d_pipeline import global_registration, have_open3d  # noqa: E402
+
 
 def open3d_register(src: np.ndarray, dst: np.ndarray, mr: float, *, voxel: float,
-                    icp_mr: float, seed: int) -> dict:
-  """Open3D FPFH + RANSAC (tutorial settings, voxel size `voxel` in cloud units) then
-  point-to-point ICP; returns transforms/time."""
-  import open3d as o3d
-
-  o3d.utility.random.seed(seed)
-  t0 = time.perf_counter()
-  feats = []
-  for pts in (src, dst):
-    pc = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.array(pts, np.float64)))
-    down = pc.voxel_down_sample(voxel)
-    down.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=2 * voxel, max_nn=30))
-    fpfh = o3d.pipelines.registration.compute_fpfh_feature(
-        down, o3d.geometry.KDTreeSearchParamHybrid(radius=5 * voxel, max_nn=100))
-    feats.append((pc, down, fpfh))
-  (pc_s, down_s, f_s), (pc_t, down_t, f_t) = feats
-  dist = 1.5 * voxel
-  reg = o3d.pipelines.registration
-  res = reg.registration_ransac_based_on_feature_matching(
-      down_s, down_t, f_s, f_t, True, dist,
-      reg.TransformationEstimationPointToPoint(False), 3,
-      [reg.CorrespondenceCheckerBasedOnEdgeLength(0.9),
-       reg.CorrespondenceCheckerBasedOnDistance(dist)],
-      reg.RANSACConvergenceCriteria(100000, 0.999))
-  t_coarse = time.perf_counter() - t0
-  fine = reg.registration_icp(pc_s, pc_t, icp_mr * mr, res.transformation,
-                              reg.TransformationEstimationPointToPoint(),
-                              reg.ICPConvergenceCriteria(max_iteration=50))
-  return {"coarse": np.asarray(res.transformation), "final": np.asarray(fine.transformation),
-          "seconds_coarse": t_coarse, "seconds": time.perf_counter() - t0,
-          "n_points": (len(down_s.points), len(down_t.points))}
+                    icp_mr: float, seed: int,
+                    refine: Literal["point_to_point", "point_to_plane"] = "point_to_point") -> dict:
+  """Open3D FPFH + RANSAC (tutorial settings, voxel size `voxel` in cloud units) then ICP:
+  point-to-point within icp_mr mr, or the tutorial's point-to-plane within 0.4 voxel
+  (`_open3d_pipeline.global_registration`); returns transforms/time."""
+  return global_registration(src, dst, voxel=voxel, seed=seed, refine=refine,
+                             icp_distance=icp_mr * mr if refine == "point_to_point" else None,
+                             icp_iterations=50)
 
 
 def bunny_registration(root, args) -> tuple[list[dict], list[str]]:
   notes = []
-  try:
-    import open3d  # noqa: F401
-    have_o3d = True
-  except ImportError:
-    have_o3d = False
+  have_o3d = have_open3d()
+  if not have_o3d:
     notes.append("open3d is not installed (pip install -r benchmarks/requirements-bench.txt): "
                  "the Open3D baseline was skipped")
   pairs = datasets.load_bunny_pairs(root)
@@ -110,6 +89,11 @@ def bunny_registration(root, args) -> tuple[list[dict], list[str]]:
       row["o3d"] = pose_errors(o3["final"], pair.transform, pair.mr)
       row["o3d_seconds"] = o3["seconds"]
       row["o3d_points"] = o3["n_points"]
+      p2l = open3d_register(pair.model_points, pair.scene_points, pair.mr, voxel=voxel,
+                            icp_mr=3.0, seed=args.seed, refine="point_to_plane")
+      row["o3d_p2l_coarse"] = pose_errors(p2l["coarse"], pair.transform, pair.mr)
+      row["o3d_p2l"] = pose_errors(p2l["final"], pair.transform, pair.mr)
+      row["o3d_p2l_seconds"] = p2l["seconds"]
     rows.append(row)
     print(json.dumps(row), flush=True)
   return rows, notes
@@ -118,17 +102,20 @@ def bunny_registration(root, args) -> tuple[list[dict], list[str]]:
 def registration_report(rows: list[dict]) -> str:
   have = "o3d" in rows[0] if rows else False
   head = ("| pair | ours coarse err_r / err_t | ours + ICP err_r / err_t | ours s |"
-          + (" Open3D coarse | Open3D + ICP | Open3D s |" if have else ""))
+          + (" Open3D coarse | Open3D + ICP | Open3D s | Open3D + point-to-plane ICP |"
+             " Open3D p2l s |" if have else ""))
   lines = ["## registration of consecutive bunny scans (err_r deg / err_t mr)", "", head,
-           "|---|---:|---:|---:|" + ("---:|---:|---:|" if have else "")]
+           "|---|---:|---:|---:|" + ("---:|---:|---:|---:|---:|" if have else "")]
   fmt = lambda e: f"{e[0]:.2f} / {e[1]:.2f}"  # noqa: E731
   for r in rows:
     line = (f"| {r['pair']} | {fmt(r['ours_coarse'])} | {fmt(r['ours'])} | "
             f"{r['ours_seconds']:.1f} |")
     if have:
       line += f" {fmt(r['o3d_coarse'])} | {fmt(r['o3d'])} | {r['o3d_seconds']:.1f} |"
+      line += f" {fmt(r['o3d_p2l'])} | {r['o3d_p2l_seconds']:.1f} |"
     lines.append(line)
-  for key, name in (("ours", "ours"), ("o3d", "Open3D")):
+  for key, name in (("ours", "ours"), ("o3d", "Open3D"),
+                    ("o3d_p2l", "Open3D point-to-plane")):
     if rows and key in rows[0]:
       er = np.array([r[key][0] for r in rows])
       et = np.array([r[key][1] for r in rows])

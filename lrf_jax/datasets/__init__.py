@@ -4,6 +4,7 @@
     pairs = datasets.load_br(noise=0.3)                 # 18 Pairs, exact correspondences
     model_idx, scene_idx = datasets.repeatability_keypoints(pairs[0], n=1000, seed=0)
     demo = datasets.load_demo(4, seed=0)                # synthetic, no download
+    rooms = datasets.load_threedmatch_scenes()          # 3DMatch fragment pairs (metres)
 
 Real data is found under an explicit root, else $LRF_DATA, else `<repo>/data`
 (`find_data_root`); see data/README.md for where to obtain each set.
@@ -22,6 +23,7 @@ from lrf_jax.datasets.root import (DATASETS, ENV_VAR, DataNotFoundError, dataset
 from lrf_jax.datasets.stanford import BUNNY_SCAN_ORDER, bunny_poses, load_bunny_pairs
 from lrf_jax.datasets.synthetic import hidden_point_removal, load_demo, make_demo_mesh, \
     make_demo_pair
+from lrf_jax.datasets.threedmatch import load_threedmatch_scenes, read_pairs_tsv
 from lrf_jax.datasets.training import TrainingSet, build_training_set, default_cache_dir
 from lrf_jax.datasets.uwa3m import UWA3M_OBJECTS, load_uwa3m, read_pseudo_gt
 from lrf_jax.datasets.uwaor import (UWAOR_OBJECTS, load_uwaor, load_uwaor_model,
@@ -58,6 +60,7 @@ __all__ = [
     "load_bunny_pairs",
     "load_demo",
     "load_mesh",
+    "load_threedmatch_scenes",
     "load_uwa3m",
     "load_uwaor",
     "load_uwaor_model",
@@ -65,6 +68,7 @@ __all__ = [
     "make_demo_mesh",
     "make_demo_pair",
     "mesh_resolution",
+    "read_pairs_tsv",
     "read_pseudo_gt",
     "repeatability_keypoints",
     "rotate_about_axis",

@@ -20,7 +20,7 @@ from lrf_jax.model import default_params, init_params, load_params, save_params
 from lrf_jax.neighborhoods import Patches, build_patches
 from lrf_jax.registration import register
 
-__version__ = "0.5.2"
+__version__ = "0.6.0"
 
 __all__ = [
     "METHODS",

@@ -426,8 +426,9 @@ class Registration:
       "matching", "hypotheses", "verification", "icp".
     success: the verdict (a Python bool, `verdict`): True only when the evidence excludes a
       wrong pose (the winner's support far above chance and above every distinct pose's, and
-      the aligned clouds overlap). False means "not sure": no overlap found, a mirror image,
-      two different objects, or a pose the correspondences cannot tell from another.
+      the aligned clouds overlap). False means "not sure": the correspondences do not single
+      out one pose (too few of them agree, or as many agree by chance or with another pose).
+      A mirrored or nearly symmetric object may still have a rigid overlap that passes.
     inlier_ratio: n_inliers / number of correspondences.
     chance_inliers: the most inliers a hypothesis reaches on the same correspondences shuffled
       (the chance level of this pair of clouds; `_chance_inliers`).

@@ -182,7 +182,8 @@ def test_plus_with_switches_off_is_the_ball_sign_construction(demo_pair):
                                 viewpoint=demo_pair.scene_viewpoint, density=False,
                                 oriented_sign=False, kernel="jit")
   k = lrf_jax.METHODS["lrf_net_plus"].default_k
-  g, w = lrf_net_frames(default_params("lrf_net_plus"), build_patches(pts, kp, r, k),
+  # compute_frames works in units of the radius (`neighborhoods.unit_scaled`): the same patches
+  g, w = lrf_net_frames(default_params("lrf_net_plus"), build_patches(pts / r, kp, 1.0, k),
                         z_sign="ball", x_mode="softmax", lut=257)
   np.testing.assert_array_equal(np.asarray(v), np.asarray(w))
   np.testing.assert_allclose(np.asarray(f), np.asarray(g), atol=1e-5)

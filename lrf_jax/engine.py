@@ -830,6 +830,18 @@ def knn_grid(points: np.ndarray, k: int = 8) -> Grid:
   return grid
 
 
+@nb.njit(inline="always")
+def nearest_moved(pts, slot_index, starts, origin, h, dims, p, rot, trans, max_d2, bd, bi):
+  """The point p moved by (rot, trans) and the index of its nearest grid point within
+  sqrt(max_d2) (`knn` with k = 1; the number of points when there is none), its squared
+  distance in bd[0]: the pairing step of every ICP kernel."""
+  qx = rot[0, 0] * p[0] + rot[0, 1] * p[1] + rot[0, 2] * p[2] + trans[0]
+  qy = rot[1, 0] * p[0] + rot[1, 1] * p[1] + rot[1, 2] * p[2] + trans[1]
+  qz = rot[2, 0] * p[0] + rot[2, 1] * p[1] + rot[2, 2] * p[2] + trans[2]
+  _knn_query(pts, slot_index, starts, origin, h, dims, qx, qy, qz, 1, max_d2, bd, bi)
+  return qx, qy, qz, bi[0]
+
+
 @nb.njit(parallel=True, cache=True)
 def _icp_sums(pts, slot_index, starts, origin, h, dims, target, source, rot, trans, c0, max_d2,
               partial):
@@ -843,12 +855,8 @@ def _icp_sums(pts, slot_index, starts, origin, h, dims, target, source, rot, tra
     acc = partial[blk]
     acc[:] = 0.0
     for i in range(blk * _BLOCK, min(m, (blk + 1) * _BLOCK)):
-      sx, sy, sz = source[i, 0], source[i, 1], source[i, 2]
-      qx = rot[0, 0] * sx + rot[0, 1] * sy + rot[0, 2] * sz + trans[0]
-      qy = rot[1, 0] * sx + rot[1, 1] * sy + rot[1, 2] * sz + trans[1]
-      qz = rot[2, 0] * sx + rot[2, 1] * sy + rot[2, 2] * sz + trans[2]
-      _knn_query(pts, slot_index, starts, origin, h, dims, qx, qy, qz, 1, max_d2, bd, bi)
-      j = bi[0]
+      qx, qy, qz, j = nearest_moved(pts, slot_index, starts, origin, h, dims, source[i], rot,
+                                    trans, max_d2, bd, bi)
       if j >= n:
         continue
       a0, a1, a2 = qx - c0[0], qy - c0[1], qz - c0[2]

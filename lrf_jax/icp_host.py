@@ -44,7 +44,7 @@ import numba as nb
 import numpy as np
 
 from lrf_jax import engine
-from lrf_jax.engine import _knn_query  # the engine's nearest-neighbour query (inlined)
+from lrf_jax.engine import nearest_moved  # the engine's ICP pairing step (inlined)
 from lrf_jax.normals import pca_normals
 
 # Source points per parallel task of the sums kernel (a fixed partition: deterministic sums).
@@ -96,12 +96,8 @@ def _plane_sums(pts, slot_index, starts, origin, h, dims, target, normals, sourc
     acc = partial[blk]
     acc[:] = 0.0
     for i in range(blk * _BLOCK, min(m, (blk + 1) * _BLOCK)):
-      sx, sy, sz = source[i, 0], source[i, 1], source[i, 2]
-      qx = rot[0, 0] * sx + rot[0, 1] * sy + rot[0, 2] * sz + trans[0]
-      qy = rot[1, 0] * sx + rot[1, 1] * sy + rot[1, 2] * sz + trans[1]
-      qz = rot[2, 0] * sx + rot[2, 1] * sy + rot[2, 2] * sz + trans[2]
-      _knn_query(pts, slot_index, starts, origin, h, dims, qx, qy, qz, 1, max_d2, bd, bi)
-      j = bi[0]
+      qx, qy, qz, j = nearest_moved(pts, slot_index, starts, origin, h, dims, source[i], rot,
+                                    trans, max_d2, bd, bi)
       if j >= n:
         continue
       acc[0] += 1.0

@@ -19,6 +19,7 @@ import time
 from pathlib import Path
 
 from lrf_jax import evaluation
+from lrf_jax.cli_help import DefaultsHelpFormatter
 from lrf_jax.evaluation import runner
 from lrf_jax.evaluation.experiments import DATASETS, EXPERIMENTS
 from lrf_jax.frames import METHODS
@@ -26,13 +27,16 @@ from lrf_jax.frames import METHODS
 REAL = ["BR@0.1", "BR@0.3", "BR@0.5", "UWA3M", "UWAOR", "bunny"]
 
 
-def main(argv=None) -> int:
-  ap = argparse.ArgumentParser(description="LRF repeatability experiments (MeanCos).")
+def build_parser() -> argparse.ArgumentParser:
+  """evaluate.py's options (each default shown by --help)."""
+  ap = argparse.ArgumentParser(description="LRF repeatability experiments (MeanCos). Writes "
+                               "results.json, report.md and PNG figures to --out.",
+                               formatter_class=DefaultsHelpFormatter)
   ap.add_argument("--data", default=None, help="data root (default: $LRF_DATA, then data/)")
   ap.add_argument("--datasets", nargs="+", default=None, choices=sorted(DATASETS),
                   help="default: every real dataset found, else demo")
   ap.add_argument("--experiments", nargs="+", default=["repeatability"],
-                  choices=EXPERIMENTS + ("description", "pose"))
+                  choices=EXPERIMENTS + ("description", "pose"), help="experiments to run")
   ap.add_argument("--methods", nargs="+", default=None,
                   help=f"default: all of {sorted(METHODS)}")
   ap.add_argument("--checkpoint", default=None,
@@ -41,15 +45,20 @@ def main(argv=None) -> int:
   ap.add_argument("--params", nargs="+", default=[], metavar="LABEL=PATH",
                   help="extra learned columns from parameter files: LABEL=PATH[@METHOD] (METHOD "
                        "defaults to lrf_net), e.g. mine=w.msgpack or p=w.msgpack@lrf_net_plus")
-  ap.add_argument("--keypoints", type=int, default=1000, help="keypoints per pair (paper: 1000)")
+  ap.add_argument("--keypoints", type=int, default=1000, help="keypoints per pair (the paper's: 1000)")
   ap.add_argument("--max-pairs", type=int, default=None, help="at most N pairs per dataset")
-  ap.add_argument("--radius-mr", type=float, default=15.0)
-  ap.add_argument("--seed", type=int, default=0)
+  ap.add_argument("--radius-mr", type=float, default=15.0,
+                  help="support radius in mesh resolutions")
+  ap.add_argument("--seed", type=int, default=0, help="seed of keypoints and subsamples")
   ap.add_argument("--max-neighbors", type=int, default=evaluation.MAX_NEIGHBORS,
                   help="cap on all-neighbour patches (dense scans); 0 = no cap")
   ap.add_argument("--cache-dir", default=None, help="keep neighbourhoods on disk here")
   ap.add_argument("--out", default="out/eval", help="output folder")
-  args = ap.parse_args(argv)
+  return ap
+
+
+def main(argv=None) -> int:
+  args = build_parser().parse_args(argv)
   problem = _check(args)
   if problem:
     print(f"error: {problem}", file=sys.stderr)

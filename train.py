@@ -24,11 +24,20 @@ from pathlib import Path
 from lrf_jax import checkpoints
 from lrf_jax import config as config_lib
 from lrf_jax import train_lib
+from lrf_jax.cli_help import DefaultsHelpFormatter
 
 
-def main(argv=None) -> int:
-  ap = argparse.ArgumentParser(description="Train LRF-Net (weakly supervised, Chamfer loss).")
-  ap.add_argument("--config", default="default", help="preset name or path (.py / .json)")
+def build_parser() -> argparse.ArgumentParser:
+  """train.py's options (each default shown by --help, the presets listed)."""
+  presets = ", ".join(config_lib.preset_names())
+  ap = argparse.ArgumentParser(
+      description="Train LRF-Net (weakly supervised, Chamfer loss). Writes checkpoints/, "
+                  "config.json, metrics.jsonl, curves.png, final_params.msgpack and "
+                  "best_params.msgpack to --workdir.",
+      epilog=f"config presets (lrf_jax/configs/NAME.py): {presets}",
+      formatter_class=DefaultsHelpFormatter)
+  ap.add_argument("--config", default="default",
+                  help=f"preset name ({presets}) or path (.py / .json)")
   ap.add_argument("--workdir", default=None, help="output folder (default: runs/<config name>)")
   ap.add_argument("--no-progress", action="store_true", help="no progress bar")
   ap.add_argument("--replace-config", action="store_true",
@@ -41,7 +50,11 @@ def main(argv=None) -> int:
   ap.add_argument("--process-id", type=int, default=None,
                   help="multi-host: this process's index in [0, N) (with --coordinator)")
   ap.add_argument("overrides", nargs="*", help="key=value config overrides")
-  args = ap.parse_args(argv)
+  return ap
+
+
+def main(argv=None) -> int:
+  args = build_parser().parse_args(argv)
   try:
     config = config_lib.replace(config_lib.load_config(args.config),
                                 **config_lib.parse_overrides(args.overrides))
@@ -75,7 +88,11 @@ def main(argv=None) -> int:
     print(f"error: {e}", file=sys.stderr)
     return 2
   if checkpoints.is_primary():
-    print({k: v for k, v in final.items() if k != "val_per_pair"})
+    val = final.get("val_meancos")
+    loss = final.get("loss", float("nan"))
+    print(f"step {final.get('step')} of {config.total_steps}: loss {loss:.4g}"
+          + (f", validation MeanCos {val:.3f}" if val is not None else ""))
+    print("wrote " + ", ".join(str(p) for p in train_lib.written_files(workdir)))
   return 0
 
 

@@ -18,7 +18,9 @@ from lrf_jax.losses import batched_chamfer, chamfer, siamese_loss
 from lrf_jax.metrics import meancos, repeatability_summary
 from lrf_jax.model import default_params, init_params, load_params, save_params
 from lrf_jax.neighborhoods import Patches, build_patches
+from lrf_jax.multiway import register_all
 from lrf_jax.registration import register
+from lrf_jax.sampling import voxel_downsample
 
 __version__ = "0.6.0"
 
@@ -41,9 +43,11 @@ __all__ = [
     "meancos",
     "mesh_resolution",
     "register",
+    "register_all",
     "register_method",
     "repeatability_summary",
     "save_params",
     "set_num_threads",
     "siamese_loss",
+    "voxel_downsample",
 ]

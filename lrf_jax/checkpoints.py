@@ -11,6 +11,7 @@ restore (orbax works collectively); only process 0 (`is_primary`) renames files 
 from __future__ import annotations
 
 import json
+import logging
 import warnings
 from pathlib import Path
 from typing import Any
@@ -23,6 +24,19 @@ from jax.experimental import multihost_utils
 
 from lrf_jax.config import TrainConfig
 from lrf_jax.train_step import TrainState, create_state
+
+
+class _QuietOrbax(logging.Filter):
+  """Drops orbax's "Requested `tracked_metric`; did not provide metrics." warning: a checkpoint
+  saved between validations has no metric by design (it is kept as one of the latest, not
+  ranked), so the warning says nothing a user can act on."""
+
+  def filter(self, record: logging.LogRecord) -> bool:
+    return "Requested `tracked_metric`" not in record.getMessage()
+
+
+_QUIET = _QuietOrbax()
+logging.getLogger("absl").addFilter(_QUIET)  # orbax logs through absl's logger
 
 
 def is_primary() -> bool:

@@ -218,6 +218,12 @@ def parse_overrides(tokens: list[str]) -> dict[str, str]:
   return out
 
 
+def preset_names() -> list[str]:
+  """The names `load_config` takes as presets (`lrf_jax/configs/NAME.py`), sorted."""
+  presets = Path(__file__).parent / "configs"
+  return sorted(p.stem for p in presets.glob("*.py") if not p.stem.startswith("_"))
+
+
 def load_config(name_or_path: str) -> TrainConfig:
   """A preset by name (`lrf_jax/configs/NAME.py`) or a config file (.py with `get_config()`,
   or .json).
@@ -245,7 +251,7 @@ def load_config(name_or_path: str) -> TrainConfig:
   if not (path.suffix == ".py" and path.exists()):
     path = presets / f"{name_or_path}.py"
     if name_or_path.startswith("_") or "/" in name_or_path or not path.exists():
-      names = sorted(p.stem for p in presets.glob("*.py") if not p.stem.startswith("_"))
+      names = preset_names()
       raise ValueError(f"--config {name_or_path!r}: no such preset or file; presets are "
                        f"{names}, or give a path to a .py (with get_config()) or .json")
   spec = importlib.util.spec_from_file_location(f"lrf_jax_config_{path.stem}", path)

@@ -41,6 +41,15 @@ def training_clouds(config: TrainConfig) -> TrainingClouds:
                         keypoints=keypoints, names=names)
 
 
+def validation_label(config: TrainConfig) -> str:
+  """What `validation_pairs(config)` validates on, in words (figure titles, messages)."""
+  if config.val_pairs <= 0:
+    return "nothing (val_pairs=0)"
+  if config.data == "br":
+    return f"{config.val_pairs} Stanford bunny scan pair(s)"
+  return f"{config.val_pairs} procedural demo pair(s)"
+
+
 def validation_pairs(config: TrainConfig) -> list[datasets.Pair]:
   """The first `config.val_pairs` consecutive Stanford bunny scan pairs (real partial scans;
   BR holds no held-out data), or partial, noisy demo pairs for `data="demo"` or when the bunny

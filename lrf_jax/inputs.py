@@ -47,7 +47,7 @@ def as_cloud(x: Any, name: str = "points", *, faces: Any = None,
   own_faces = own_normals = None
   if isinstance(x, (str, os.PathLike)):
     x = read_cloud(x)
-  if isinstance(x, Cloud):
+  if isinstance(x, (Cloud, CloudInput)):  # CloudInput: an already validated cloud, kept whole
     pts, own_faces, own_normals = x.points, x.faces, x.normals
   elif hasattr(x, "vertices") and hasattr(x, "triangles"):  # a mesh object (Open3D TriangleMesh)
     pts = validate_cloud(x.vertices, name)

@@ -8,7 +8,9 @@ gives an initial source->target transform (a 4x4 text file as `lrf_jax.io.read_x
 a (4, 4) .npy) that `register` then only refines. Inputs: any cloud or mesh
 `lrf_jax.io.read_cloud` reads (PLY, PCD, XYZ/TXT(.gz), NPY). Every length is in mesh
 resolutions of SRC unless `--mr` is given. Every bad argument, unreadable input or unwritable
-output is one `error:` line and exit code 2. This file is intentionally thin; the pipeline is
+output is one `error:` line and exit code 2. `--png` draws the correspondences the estimate
+used (inliers and outliers joining the two clouds side by side). This file is intentionally
+thin; the pipeline is
 `lrf_jax.registration.register`.
 
     python -m lrf_jax.register_cli bun000.ply bun045.ply --out bun000_to_bun045.txt
@@ -21,41 +23,44 @@ import sys
 
 import numpy as np
 
+from lrf_jax.cli_help import DefaultsHelpFormatter
+
 
 def build_parser() -> argparse.ArgumentParser:
   ap = argparse.ArgumentParser(prog="lrf-register",
                                description="Rigid registration of two scans with learned LRFs "
                                            "(LRF-Net frames, TOLDI matching, a compatibility "
                                            "graph of correspondences and their LRF poses, "
-                                           "point-to-plane ICP).")
+                                           "point-to-plane ICP).",
+                               formatter_class=DefaultsHelpFormatter)
   ap.add_argument("source", help="the cloud to move (PLY, PCD, XYZ/TXT(.gz), NPY)")
   ap.add_argument("target", help="the cloud to align it to")
   ap.add_argument("--out", default=None, help="write the 4x4 source->target matrix here")
   ap.add_argument("--mr", type=float, default=None,
                   help="mesh resolution in the clouds' units (default: measured on SOURCE)")
-  ap.add_argument("--radius-mr", type=float, default=15.0, help="support radius in mr (15)")
-  ap.add_argument("--keypoints", type=int, default=3000, help="keypoints per cloud (3000)")
+  ap.add_argument("--radius-mr", type=float, default=15.0, help="support radius in mr")
+  ap.add_argument("--keypoints", type=int, default=3000, help="keypoints per cloud")
   ap.add_argument("--correspondences", type=int, default=1000,
-                  help="correspondences kept after matching (1000)")
-  ap.add_argument("--inlier-mr", type=float, default=5.0, help="inlier distance in mr (5)")
+                  help="correspondences kept after matching")
+  ap.add_argument("--inlier-mr", type=float, default=5.0, help="inlier distance in mr")
   ap.add_argument("--estimator", choices=("graph", "lrf", "3point"), default="graph",
-                  help="compatibility graph (graph, default), one correspondence per hypothesis "
+                  help="compatibility graph (graph), one correspondence per hypothesis "
                        "(lrf) or classic 3-point RANSAC")
   ap.add_argument("--detector", choices=("random", "iss"), default="random",
-                  help="keypoints: seeded random points (default) or ISS keypoints, at most "
+                  help="keypoints: seeded random points (random) or ISS keypoints, at most "
                        "--keypoints of them")
   ap.add_argument("--mutual", action="store_true", help="keep mutual nearest matches only")
   ap.add_argument("--ratio", type=float, default=None,
                   help="Lowe's ratio test threshold in (0, 1] (default: none)")
   ap.add_argument("--icp", choices=("point_to_plane", "point_to_point"),
-                  default="point_to_plane", help="ICP variant (point_to_plane)")
+                  default="point_to_plane", help="ICP variant")
   ap.add_argument("--iterations", type=int, default=1000, help="3-point RANSAC hypotheses")
   ap.add_argument("--icp-iterations", type=int, default=50, help="ICP iterations (0: none)")
   ap.add_argument("--checkpoint", default=None,
                   help="a train.py workdir whose best LRF-Net parameters to use "
                        "(default: the shipped weights)")
   ap.add_argument("--method", default="lrf_net_plus",
-                  help="LRF method, a key of lrf_jax.METHODS (default lrf_net_plus, the most "
+                  help="LRF method, a key of lrf_jax.METHODS (lrf_net_plus: the most "
                        "repeatable; lrf_net is the paper's LRF-Net)")
   ap.add_argument("--source-viewpoint", type=float, nargs=3, default=None, metavar=("X", "Y", "Z"),
                   help="sensor position of a single-view SOURCE scan (orients its normals)")
@@ -64,7 +69,10 @@ def build_parser() -> argparse.ArgumentParser:
   ap.add_argument("--init", default=None, metavar="FILE",
                   help="initial source->target transform to refine: a 4x4 text file (.xf, "
                        ".txt) or a (4, 4) .npy")
-  ap.add_argument("--seed", type=int, default=0)
+  ap.add_argument("--seed", type=int, default=0, help="seed of keypoints and sampling")
+  ap.add_argument("--png", default=None, metavar="FILE",
+                  help="also draw the correspondences here: inliers and outliers joining the "
+                       "two clouds side by side")
   return ap
 
 
@@ -81,6 +89,14 @@ def _check_paths(args: argparse.Namespace) -> str | None:
   if args.out:
     inputs = [("SOURCE", args.source), ("TARGET", args.target), ("--init", args.init)]
     problem = output_problem(args.out, "--out", inputs)
+    if problem:
+      return problem
+  if args.png:
+    if Path(args.png).suffix.lower() not in (".png", ".pdf", ".svg", ".jpg", ".jpeg"):
+      return f"--png: {args.png!r} has no figure suffix (.png, .pdf, .svg, .jpg)"
+    problem = output_problem(args.png, "--png",
+                             [("SOURCE", args.source), ("TARGET", args.target),
+                              ("--init", args.init), ("--out", args.out)])
     if problem:
       return problem
   if args.checkpoint:
@@ -119,6 +135,9 @@ def read_init(path: str) -> np.ndarray:
 
 
 def main(argv: list[str] | None = None) -> int:
+  from lrf_jax import multiway_cli
+  if multiway_cli.wanted(build_parser(), argv):  # more than two scans, or --out-dir
+    return multiway_cli.main(argv)
   args = build_parser().parse_args(argv)
   problem = _check_paths(args)
   if problem:
@@ -155,12 +174,12 @@ def main(argv: list[str] | None = None) -> int:
     return 2
   text = "\n".join(" ".join(f"{v:.9g}" for v in row) for row in reg.transform)
   print(text)
-  print(f"# inliers {reg.n_inliers}/{len(reg.correspondences)} (coarse; chance level "
-        f"{reg.chance_inliers}, best distinct pose {reg.rival_inliers}), estimated overlap "
-        f"{reg.overlap:.1%}, rmse {reg.rmse / reg.mr:.3f} mr, mr {reg.mr:.6g}, "
-        f"{reg.seconds:.1f} s", file=sys.stderr)
-  print(f"# verdict: {'success' if reg.success else 'NOT SURE (do not trust this transform)'}: "
-        f"{reg.reason}", file=sys.stderr)
+  print("\n".join(f"# {line}" for line in reg.summary().splitlines()), file=sys.stderr)
+  if args.png:
+    problem = correspondence_figure(args, reg)
+    if problem:
+      print(f"error: {problem}", file=sys.stderr)
+      return 2
   if args.out:
     from lrf_jax.io.atomic import WriteError, atomic_write
     try:
@@ -170,6 +189,29 @@ def main(argv: list[str] | None = None) -> int:
       print(f"error: {e}", file=sys.stderr)
       return 2
   return 0 if reg.success else 3
+
+
+def correspondence_figure(args: argparse.Namespace, reg) -> str | None:
+  """`--png`: the correspondences of `reg` (a `Registration`) joining the two clouds side by
+  side, inliers green, outliers red (`lrf_jax.plot.correspondences`); None, or the error."""
+  from pathlib import Path
+
+  from lrf_jax import plot
+  from lrf_jax.inputs import as_cloud
+  from lrf_jax.io.atomic import WriteError
+  src, dst = as_cloud(args.source, "SOURCE").points, as_cloud(args.target, "TARGET").points
+  verdict = "success" if reg.success else "not sure"
+  title = (f"{Path(args.source).name} -> {Path(args.target).name}: {verdict}, estimated "
+           f"overlap {reg.overlap:.0%}, {reg.n_inliers} of {len(reg.correspondences)} "
+           "correspondences are inliers")
+  try:
+    plot.correspondences(src, dst, reg.correspondences, reg.inliers, reg.transform, args.png,
+                         seed=args.seed, title=title,
+                         names=(Path(args.source).name, Path(args.target).name))
+  except WriteError as e:
+    return str(e)
+  print(f"# correspondences figure: {args.png}", file=sys.stderr)
+  return None
 
 
 if __name__ == "__main__":

@@ -30,6 +30,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import math
+import sys
 import time
 from pathlib import Path
 from typing import Any, Callable, NamedTuple
@@ -153,6 +154,8 @@ def train_and_evaluate(config: TrainConfig, workdir: str | Path, *,
                     out_shardings=(replicated, replicated))
   total = config.total_steps if stop_after_steps is None else min(config.total_steps,
                                                                    stop_after_steps)
+  if start and is_primary():
+    print(f"resuming from step {start} of {config.total_steps} ({workdir})", file=sys.stderr)
   log = _Log(workdir, config, start, total, progress, replaced)
   for step in range(start, total):
     epoch, in_epoch = divmod(step, config.steps_per_epoch)
@@ -175,7 +178,7 @@ def train_and_evaluate(config: TrainConfig, workdir: str | Path, *,
   log.close()
   mngr.wait_until_finished()
   if int(jax.device_get(state.step)) >= config.total_steps:
-    _write_results(state, mngr, workdir)
+    _write_results(state, mngr, workdir, config)
   mngr.close()
   return log.last
 
@@ -229,7 +232,8 @@ def _ranking(last: dict[str, Any], done: int, end_of_epoch: bool) -> dict[str, f
   return None
 
 
-def _write_results(state: TrainState, mngr: ocp.CheckpointManager, workdir: Path) -> None:
+def _write_results(state: TrainState, mngr: ocp.CheckpointManager, workdir: Path,
+                   config: TrainConfig) -> None:
   """At the end of a run: final_params.msgpack, best_params.msgpack (the best checkpoint's, if
   any was ranked) and curves.png. Every process restores; process 0 writes."""
   primary = is_primary()
@@ -240,7 +244,9 @@ def _write_results(state: TrainState, mngr: ocp.CheckpointManager, workdir: Path
     if primary:
       _save_params(params, workdir / "best_params.msgpack")
   if primary:
-    plot_curves(workdir / "metrics.jsonl", workdir / "curves.png")
+    plot_curves(workdir / "metrics.jsonl", workdir / "curves.png",
+                title=f"{config.name}: validation on "
+                      f"{data_sources.validation_label(config)}")
 
 
 def _save_params(params: Any, path: Path) -> None:
@@ -301,6 +307,7 @@ class _Log:
       elif not (workdir / "config.json").exists():
         atomic.write_text(workdir / "config.json", config.to_json())
     self.last: dict[str, Any] = {"step": start}
+    self._val: float | None = None  # the latest validation MeanCos shown on the bar
     self._bar = _progress(total, start, progress and self.primary)
     self._since, self._pairs = time.perf_counter(), 0
 
@@ -320,8 +327,12 @@ class _Log:
     if self.primary:
       _append_jsonl(self.path, m)
     self.last = m
-    self._bar.set_postfix(loss=f"{m['loss']:.4g}",
-                          val=f"{m.get('val_meancos', float('nan')):.3f}")
+    if "val_meancos" in m:
+      self._val = m["val_meancos"]
+    shown = {"loss": f"{m['loss']:.4g}"}
+    if self._val is not None:  # nothing before the first validation (no "nan")
+      shown["val"] = f"{self._val:.3f}"
+    self._bar.set_postfix(**shown)
 
   def advance(self) -> None:
     self._bar.update(1)
@@ -442,8 +453,18 @@ def _progress(total: int, start: int, enabled: bool):
   return tqdm(total=total, initial=start, unit="step", desc="train", dynamic_ncols=True)
 
 
-def plot_curves(log_path: Path, out: Path) -> None:
-  """Loss and validation MeanCos against the step, as a PNG."""
+def written_files(workdir: str | Path) -> list[Path]:
+  """The outputs of a run that exist in `workdir`: checkpoints/, the config files and
+  `OUTPUT_FILES` (what train.py lists at the end of a run)."""
+  workdir = Path(workdir)
+  names = ["checkpoints", "config.json"] + sorted(
+      p.name for p in workdir.glob("config.*.json")) + list(OUTPUT_FILES)
+  return [workdir / n for n in names if (workdir / n).exists()]
+
+
+def plot_curves(log_path: Path, out: Path, title: str = "validation") -> None:
+  """Loss and validation MeanCos against the step, as a PNG; `title` heads the validation
+  panel (say what was validated on: `data_sources.validation_label`)."""
   import matplotlib
   matplotlib.use("Agg")
   import matplotlib.pyplot as plt
@@ -454,7 +475,7 @@ def plot_curves(log_path: Path, out: Path) -> None:
   ax[0].set(xlabel="step", ylabel="Chamfer loss", title="training loss")
   val = [r for r in rows if "val_meancos" in r]
   ax[1].plot([r["epoch"] for r in val], [r["val_meancos"] for r in val], marker="o")
-  ax[1].set(xlabel="epoch", ylabel="MeanCos", title="validation (bunny scans)")
+  ax[1].set(xlabel="epoch", ylabel="MeanCos", title=title)
   fig.tight_layout()
   atomic.save_figure(fig, out, dpi=120)
   plt.close(fig)

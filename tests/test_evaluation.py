@@ -1,6 +1,7 @@
 """The repeatability protocol, MeanCos, and the report/figures."""
 
 import json
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -231,6 +232,24 @@ def test_evaluate_progress_total_is_the_number_of_records(tmp_path):
   text = runner.evaluate(plan, tmp_path, progress=False)
   assert "shot" in text and (tmp_path / "results.json").exists()
   assert len(json.loads((tmp_path / "results.json").read_text())["records"]) == 2
+
+
+@pytest.mark.slow
+def test_complete_evaluation_removes_its_partial_records(tmp_path, monkeypatch):
+  """partial_records.jsonl is written while the run goes and gone after it completes."""
+  from lrf_jax.evaluation import runner
+  monkeypatch.setattr(runner, "PARTIAL_EVERY", 1)
+  written = []
+  real = runner.atomic.write_text
+  monkeypatch.setattr(runner.atomic, "write_text",
+                      lambda path, text: written.append(Path(path).name) or real(path, text))
+  runs, _ = runner.method_runs(["shot"])
+  plan = runner.EvalPlan(["demo"], ["repeatability"], runs,
+                         evaluation.EvalOptions(n_keypoints=30, max_pairs=1))
+  runner.evaluate(plan, tmp_path, progress=False)
+  assert "partial_records.jsonl" in written
+  assert (tmp_path / "results.json").exists()
+  assert not (tmp_path / "partial_records.jsonl").exists()
 
 
 def test_evaluate_rejects_a_malformed_params_item():

@@ -67,3 +67,64 @@ def test_missing_file_and_out_folder(tmp_path, capsys):
 
 def test_help_names_the_program():
   assert build_parser().format_usage().startswith("usage: lrf-frames")
+
+
+@pytest.mark.parametrize("method", ["rops", "gframes"])
+def test_mesh_methods_get_the_faces_of_a_ply_mesh(demo_ply, tmp_path, method):
+  """A PLY with faces works for the methods that need a mesh (the faces reach compute_frames)."""
+  path, pair = demo_ply
+  out = tmp_path / "m.npz"
+  assert main([str(path), "--out", str(out), "--keypoints", "50", "--method", method]) == 0
+  z = np.load(out)
+  assert str(z["method"]) == method and z["valid"].mean() > 0.9
+
+
+@pytest.fixture(scope="module")
+def demo_scans(tmp_path_factory):
+  """Two partial, noisy scans of one demo object and the ground truth between them, as files."""
+  pair = datasets.make_demo_pair(0, noise_mr=0.1, partial=True)
+  folder = tmp_path_factory.mktemp("pair")
+  a, b, gt = folder / "a.ply", folder / "b.ply", folder / "a_to_b.txt"
+  io.write_ply(a, pair.model_points, pair.model_faces)
+  io.write_ply(b, pair.scene_points, pair.scene_faces)
+  np.savetxt(gt, pair.transform)
+  return a, b, gt, pair
+
+
+def test_pair_gives_meancos_and_the_repeatability_figure(demo_scans, tmp_path, capsys):
+  a, b, gt, pair = demo_scans
+  out, png = tmp_path / "ab.npz", tmp_path / "ab.png"
+  assert main([str(a), "--pair", str(b), "--gt", str(gt), "--out", str(out), "--keypoints",
+               "150", "--png", str(png)]) == 0
+  z = np.load(out)
+  kp, kb = z["keypoints"], z["pair_keypoints"]
+  assert len(kp) == len(kb) == 150 and z["meancos"].shape == (150,)
+  # the corresponding points are where the ground truth puts the keypoints (within 0.5 mr)
+  moved = datasets.transform_points(pair.transform, pair.model_points[kp])
+  assert np.linalg.norm(moved - pair.scene_points[kb], axis=1).max() <= 0.5 * float(z["mr"])
+  import lrf_jax
+  want = np.asarray(lrf_jax.meancos(z["frames"], z["pair_frames"], pair.transform, z["valid"],
+                                    z["pair_valid"]))
+  np.testing.assert_allclose(z["meancos"], want, atol=1e-6)
+  assert z["meancos"].mean() > 0.8  # lrf_net_plus repeats on this easy pair
+  err = capsys.readouterr().err
+  assert f"mean MeanCos {z['meancos'].mean():.3f}" in err
+  assert png.stat().st_size > 20_000
+
+
+def test_pair_and_gt_go_together(demo_scans, tmp_path, capsys):
+  a, b, gt, _ = demo_scans
+  assert main([str(a), "--pair", str(b), "--out", str(tmp_path / "x.npz")]) == 2
+  assert "--pair and --gt" in capsys.readouterr().err
+  far = tmp_path / "far.txt"
+  t = np.eye(4)
+  t[:3, 3] = 1e3
+  np.savetxt(far, t)
+  assert main([str(a), "--pair", str(b), "--gt", str(far), "--out", str(tmp_path / "x.npz")]) == 2
+  assert "--gt" in capsys.readouterr().err
+  assert not (tmp_path / "x.npz").exists()
+
+
+def test_help_shows_the_defaults():
+  text = " ".join(build_parser().format_help().split())
+  assert "(default: 15.0)" in text and "(default: lrf_net_plus)" in text

@@ -177,6 +177,9 @@ class _FakeRegistration:
   overlap_contrast, fitness, rmse, mr, seconds, success = 3.0, 0.9, 0.1, 1.0, 0.1, True
   rival_inliers, overlap, reason = 1, 0.9, "a fake"
 
+  def summary(self, gt=None):
+    return "verdict: success: a fake"
+
 
 def test_register_passes_init_only_when_given(cloud_npy, tmp_path, monkeypatch, capsys):
   from lrf_jax import registration

@@ -270,3 +270,46 @@ def test_bad_arguments_name_the_argument():
       icp(pts, pts, np.eye(4), max_distance=bad)
   with pytest.raises(ValueError, match="max_distance: expected a finite"):
     icp(pts, pts, np.eye(4), max_distance=float("inf"), target_grid=engine.Grid(pts, 0.1))
+
+
+def test_the_fine_gate_is_the_clipped_median_residual():
+  """`registration.fine_distance` against cKDTree: 1.5 x the median nearest distance of the moved
+  source over the pairs within the first gate, clipped to [1 mr, first gate]."""
+  from lrf_jax.registration import ICP_FINE_FACTOR, ICP_FINE_MIN_MR, fine_distance
+  source, _ = _height_field(3000, 0)
+  target, _ = _height_field(4000, 1)
+  mr = float(cKDTree(source).query(source, 2)[0][:, 1].mean())
+  grid = engine.Grid(target, 3 * mr)
+  tree = cKDTree(target)
+  for shift, noise in ((0.0, 0.0), (0.5, 0.3), (2.0, 1.0)):
+    pose = _pose([0.2, 1.0, 0.1], 0.5, [0.0, 0.0, shift * mr])
+    src = source + np.random.default_rng(2).normal(0, noise * mr, source.shape)
+    d = tree.query(src @ pose[:3, :3].T + pose[:3, 3])[0]
+    want = np.clip(ICP_FINE_FACTOR * np.median(d[d < 3 * mr]), ICP_FINE_MIN_MR * mr, 3 * mr)
+    got = fine_distance(src, grid, pose, 3 * mr, mr)
+    assert got == pytest.approx(want, rel=1e-9)
+  far = _pose([0.0, 0.0, 1.0], 0.0, [10.0, 0.0, 0.0])   # no pair: the first gate stays
+  assert fine_distance(source, grid, far, 3 * mr, mr) == 3 * mr
+
+
+def test_register_without_the_fine_pass_is_one_icp_pass():
+  """`register(icp_fine=False)` refines the coarse pose by a single ICP pass at icp_mr mr; the
+  default adds the second pass and reports fitness at icp_mr mr either way."""
+  from lrf_jax import register
+  from lrf_jax.registration import ICP_POINTS
+  cloud, _ = _height_field(4000, 3)
+  gt = _pose([0.3, -1.0, 0.4], 20.0, [0.1, 0.2, -0.1])
+  target = datasets.transform_points(gt, cloud[::-1])
+  one = register(cloud, target, n_keypoints=500, n_correspondences=300, icp_fine=False)
+  two = register(cloud, target, n_keypoints=500, n_correspondences=300)
+  assert len(cloud) <= ICP_POINTS
+  np.testing.assert_array_equal(one.coarse_transform, two.coarse_transform)
+  ref, fit, _ = icp(cloud, target, one.coarse_transform, max_distance=3.0 * one.mr,
+                    iterations=50)
+  np.testing.assert_allclose(one.transform, ref, atol=1e-12)
+  assert one.fitness == pytest.approx(fit)
+  for reg in (one, two):
+    err_r, err_t = pose_errors(reg.transform, gt, mr=reg.mr)
+    assert err_r < 0.05 and err_t < 0.05
+  with pytest.raises(ValueError, match="icp_fine"):
+    register(cloud, target, icp_fine="yes")

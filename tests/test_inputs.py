@@ -82,13 +82,33 @@ def test_radius_warnings_both_ways(demo):
     lrf_jax.compute_frames(pts, kp, 15 * mr, "toldi")
 
 
-def test_methods_print_as_a_table():
+def test_methods_print_as_a_table_with_descriptions_and_the_default_marked():
   lines = str(lrf_jax.METHODS).splitlines()
-  assert lines[0].split() == ["name", "kind", "needs", "default", "K", "weights"]
-  assert len(lines) == len(lrf_jax.METHODS) + 1
-  row = next(line for line in lines if line.startswith("lrf_net_plus "))
-  assert row.split() == ["lrf_net_plus", "learned", "params", "512", "lrf_net_plus"]
+  assert lines[0].split() == ["name", "kind", "needs", "default", "K", "weights", "description"]
+  assert len(lines) == len(lrf_jax.METHODS) + 2  # a header and a footer naming the default
+  row = next(line for line in lines if line.split()[:2] == ["*", "lrf_net_plus"])
+  assert row.split()[1:6] == ["lrf_net_plus", "learned", "params", "512", "lrf_net_plus"]
+  assert "Beyond the paper" in row
+  assert [line.split()[0] for line in lines[1:-1]].count("*") == 1  # one default
+  toldi = next(line for line in lines if line.split()[0] == "toldi")
+  assert lrf_jax.METHODS["toldi"].description in toldi  # short enough to be whole
+  assert all(len(line) < 200 for line in lines)
+  assert "default" in lines[-1] and "lrf_net_plus" in lines[-1]
   assert repr(lrf_jax.METHODS) == str(lrf_jax.METHODS)
+  assert lrf_jax.METHODS.describe("rops").startswith("rops: RoPS")
+  assert "(the default)" in lrf_jax.METHODS.describe("lrf_net_plus")
+  with pytest.raises(KeyError, match="nope"):
+    lrf_jax.METHODS.describe("nope")
+
+
+def test_default_method_is_the_one_the_entry_points_use():
+  from lrf_jax.frames import DEFAULT_METHOD
+  from lrf_jax.frames_cli import build_parser as frames_parser
+  from lrf_jax.register_cli import build_parser as register_parser
+  for fn in (lrf_jax.compute_frames, lrf_jax.register):
+    assert inspect.signature(fn).parameters["method"].default == DEFAULT_METHOD
+  for parser in (frames_parser(), register_parser()):
+    assert parser.get_default("method") == DEFAULT_METHOD
 
 
 def test_clear_caches_empties_them(demo):

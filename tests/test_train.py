@@ -286,3 +286,37 @@ def test_learning_rate_schedule_is_built_once_per_run(tmp_path, smoke, monkeypat
   assert len(built) == 1
   state = train_step.create_state(cfg)
   assert final["lr"] == float(state.lr_schedule(0)) == pytest.approx(cfg.learning_rate)
+
+
+@pytest.mark.slow
+def test_smoke_run_tells_the_user_what_it_does_and_hides_orbax_noise(tmp_path, smoke, capfd,
+                                                                     caplog, monkeypatch):
+  """A stopped and restarted smoke run: the bar never shows "nan" (no validation yet), the
+  restart says where it resumes, orbax's tracked_metric warning is not shown, curves.png is
+  titled from the config, and train.py ends with the paths it wrote."""
+  import logging
+
+  import train
+  cfg = config_lib.replace(smoke, epochs=1)
+  caplog.set_level(logging.WARNING)
+  titles = []
+  real_plot = train_lib.plot_curves
+  monkeypatch.setattr(train_lib, "plot_curves",
+                      lambda log, out, title="": titles.append(title) or real_plot(log, out,
+                                                                                    title))
+  train_lib.train_and_evaluate(cfg, tmp_path, progress=True, stop_after_steps=9)
+  first = capfd.readouterr().err
+  assert "loss=" in first and "nan" not in first  # checkpoint 8 has no validation metric
+  assert train.main(["--config", "smoke", "--workdir", str(tmp_path), "epochs=1"]) == 0
+  out = capfd.readouterr()
+  assert f"resuming from step 9 of {cfg.total_steps} ({tmp_path})" in out.err
+  assert "nan" not in out.err.split("val=")[0]
+  for text in (first, out.err, out.out, caplog.text):
+    assert "tracked_metric" not in text
+  assert titles and "demo" in titles[-1] and "smoke" in titles[-1]
+  wrote = out.out.strip().splitlines()[-1]
+  assert wrote.startswith("wrote ")
+  for name in ("checkpoints", "config.json", "metrics.jsonl", "curves.png",
+               "final_params.msgpack", "best_params.msgpack"):
+    assert str(tmp_path / name) in wrote
+  assert "{" not in out.out  # no raw dict

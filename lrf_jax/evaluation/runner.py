@@ -1,7 +1,8 @@
 """The whole evaluation job behind `evaluate.py`: which runs, the loop over experiments, the outputs.
 
 `evaluate(plan, out)` runs every experiment of an `EvalPlan` with one progress bar (its total is
-the number of records, so it shows an ETA), keeps what is done in `partial_records.jsonl` every
+the number of records, so it shows an ETA, timed from the end of the first record: a first run
+spends that one compiling), keeps what is done in `partial_records.jsonl` every
 50 records, and writes results.json, report.md and the figures, each atomically
 (`lrf_jax.io.atomic`: a failed write leaves the previous file); `evaluate.py` only parses
 arguments into a plan.
@@ -151,13 +152,23 @@ def _clean(records: list[dict[str, Any]]) -> list[dict[str, Any]]:
   return [{k: v for k, v in r.items() if not k.startswith("_")} for r in records]
 
 
+def restart_clock(bar: Any) -> None:
+  """Time a tqdm bar's rate and ETA from now on, keeping its count: called after the first
+  record, whose time (a first run compiles the kernels) says nothing about the others'."""
+  n = bar.n
+  bar.reset()
+  bar.n = bar.last_print_n = bar.initial = n
+  bar.refresh()
+
+
 def evaluate(plan: EvalPlan, out: Path, *, progress: bool = True) -> str:
   """Run `plan`, write its outputs to `out` and return the markdown report.
 
   Writes results.json (the repeatability records and `meta`), report.md, the figures of
   `report.plot_figures`, LRF-Net's weight figures when a learned method ran, and for the
   description / pose experiments results_description_pose.json and their sections of report.md
-  (with the RPC figure). `partial_records.jsonl` holds the records done so far while it runs.
+  (with the RPC figure). `partial_records.jsonl` holds the records done so far while it runs
+  and is removed once every output is written.
   """
   out = Path(out)
   cache = PatchCache(plan.cache_dir)
@@ -175,6 +186,8 @@ def evaluate(plan: EvalPlan, out: Path, *, progress: bool = True) -> str:
                             "\n".join(json.dumps(r) for r in _clean(records)))
         bar.set_postfix(exp=exp, ds=rec["dataset"], pair=str(rec.get("pair", ""))[:18])
         bar.update(1)
+        if bar.n == 1:
+          restart_clock(bar)
   meta = dict(plan.meta, seconds=time.perf_counter() - t0,
               patch_cache={"hits": cache.hits, "misses": cache.misses})
   report.write_results(records, out, notes=plan.notes, meta=meta)
@@ -183,6 +196,7 @@ def evaluate(plan: EvalPlan, out: Path, *, progress: bool = True) -> str:
   extra_md = _description_pose_outputs(other, out)
   if extra_md:
     atomic.write_text(out / "report.md", text + "\n" + "\n".join(extra_md))
+  (out / "partial_records.jsonl").unlink(missing_ok=True)  # complete: results.json has them
   return "\n".join([text] + extra_md)
 
 

@@ -116,21 +116,55 @@ class MethodSpec:
                          f"dict giving each field one of {AXIS_KINDS}")
 
 
+# The method `compute_frames`, `register`, lrf-frames and lrf-register use when none is given.
+DEFAULT_METHOD = "lrf_net_plus"
+# Longest description shown in a `METHODS` listing (the whole one: `METHODS[name].description`).
+DESCRIPTION_WIDTH = 100
+
+
+def _one_line(text: str, width: int = DESCRIPTION_WIDTH) -> str:
+  """`text` on one line, cut at a word boundary to at most `width` characters ("..." added)."""
+  text = " ".join(text.split())
+  if len(text) <= width:
+    return text
+  return text[:width - 3].rsplit(" ", 1)[0].rstrip(",;:") + "..."
+
+
 class MethodRegistry(dict):
-  """`METHODS`: a dict name -> `MethodSpec` that prints as a table, one method per line."""
+  """`METHODS`: a dict name -> `MethodSpec` that prints as a table, one method per line: what
+  it needs and what it is (its description, shortened), the default marked with `*`."""
 
   def table(self) -> str:
-    """name, kind, needs, default K and weights of every method, aligned columns."""
-    rows = [("name", "kind", "needs", "default K", "weights")]
+    """One line per method: name (`*` before the default), kind, needs, default K, weights
+    and description (cut to `DESCRIPTION_WIDTH` characters), in aligned columns; a header
+    line first and a footer line naming the default last."""
+    rows = [("", "name", "kind", "needs", "default K", "weights", "description")]
     for name, spec in self.items():
       needs = [w for w, on in (("mesh", spec.needs_mesh), ("params", spec.needs_params),
                                ("normals", spec.prepare is not None and not spec.needs_mesh
                                 and not spec.needs_params)) if on]
-      rows.append((name, "learned" if spec.needs_params else "hand-crafted",
+      rows.append(("*" if name == DEFAULT_METHOD else "", name,
+                   "learned" if spec.needs_params else "hand-crafted",
                    ", ".join(needs) or "-", "all" if spec.default_k is None else
-                   str(spec.default_k), spec.weights if spec.needs_params else "-"))
-    width = [max(len(r[i]) for r in rows) for i in range(5)]
-    return "\n".join("  ".join(c.ljust(w) for c, w in zip(r, width)).rstrip() for r in rows)
+                   str(spec.default_k), spec.weights if spec.needs_params else "-",
+                   _one_line(spec.description) or "-"))
+    width = [max(len(r[i]) for r in rows) for i in range(len(rows[0]))]
+    lines = ["  ".join(c.ljust(w) for c, w in zip(r, width)).rstrip() for r in rows]
+    return "\n".join(lines + [f"* the default ({DEFAULT_METHOD}: compute_frames, register, "
+                               "lrf-frames, lrf-register); full text: "
+                               "METHODS[name].description"])
+
+  def describe(self, name: str) -> str:
+    """"NAME: DESCRIPTION" of method `name` (its whole description; "(the default)" after the
+    default's name).
+
+    Raises:
+      KeyError: no such method (the message lists the registered ones).
+    """
+    if name not in self:
+      raise KeyError(f"unknown method {name!r}; expected one of {sorted(self)}")
+    return (f"{name}{' (the default)' if name == DEFAULT_METHOD else ''}: "
+            f"{self[name].description}")
 
   def __repr__(self) -> str:
     return self.table()

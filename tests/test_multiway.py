@@ -1,0 +1,300 @@
+"""Multiway registration: the pose graph against brute-force references on synthetic poses, the
+joint ICP, determinism, the outputs and the `lrf-register a b c --out-dir D` command."""
+
+from __future__ import annotations
+
+import functools
+import itertools
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+from scipy.optimize import minimize
+from scipy.spatial.transform import Rotation
+
+from lrf_jax import multiway, pose_graph
+from lrf_jax.datasets.synthetic import hidden_point_removal, make_demo_mesh, vertex_normals
+
+
+def _poses(n: int, seed: int) -> np.ndarray:
+  rng = np.random.default_rng(seed)
+  x = np.tile(np.eye(4), (n, 1, 1))
+  x[1:, :3, :3] = Rotation.random(n - 1, random_state=seed).as_matrix()
+  x[1:, :3, 3] = rng.normal(size=(n - 1, 3))
+  return x
+
+
+def _edges(x: np.ndarray, pairs, seed: int, noise: float = 0.0) -> list[pose_graph.PoseEdge]:
+  rng = np.random.default_rng(seed)
+  out = []
+  for i, j in pairs:
+    t = np.linalg.inv(x[j]) @ x[i]
+    if noise:
+      d = np.eye(4)
+      d[:3, :3] = Rotation.from_rotvec(rng.normal(0, noise, 3)).as_matrix()
+      d[:3, 3] = rng.normal(0, noise, 3)
+      t = d @ t
+    out.append(pose_graph.PoseEdge(i, j, t, rng.normal(size=(16, 3)), 1.0))
+  return out
+
+
+def _wrong(e: pose_graph.PoseEdge) -> pose_graph.PoseEdge:
+  bad = np.eye(4)
+  bad[:3, :3] = Rotation.from_rotvec([0.3, -1.2, 0.8]).as_matrix()
+  bad[:3, 3] = [0.7, 0.1, -0.4]
+  return pose_graph.PoseEdge(e.i, e.j, bad @ e.transform, e.points, 1e3)  # heaviest: tree 0
+
+
+def _gauge(p: np.ndarray) -> np.ndarray:
+  return np.linalg.inv(p[0]) @ p
+
+
+def test_exact_recovery_without_noise():
+  x = _poses(6, 0)
+  edges = _edges(x, itertools.combinations(range(6), 2), 1)
+  res = pose_graph.solve(6, edges, scale=0.01)
+  np.testing.assert_allclose(res.poses, x, atol=1e-9)
+  assert res.accepted.all() and res.errors.max() < 1e-6
+  assert (res.component == 0).all()
+
+
+def test_wrong_loop_closure_is_rejected_as_brute_force_finds_it():
+  """One wrong edge (the heaviest, so the first spanning tree contains it) among a cycle-rich
+  graph. Brute force: for every single edge left out, the plain least-squares cost of the rest;
+  the edge whose removal leaves a consistent graph is the wrong one. The robust solve rejects
+  exactly it and recovers the poses."""
+  x = _poses(5, 3)
+  pairs = [(0, 1), (1, 2), (2, 3), (3, 4), (0, 2), (1, 3), (2, 4), (0, 4)]
+  edges = _edges(x, pairs, 4)
+  edges[4] = _wrong(edges[4])
+  costs = []
+  for drop in range(len(edges)):
+    rest = [e for k, e in enumerate(edges) if k != drop]
+    start = pose_graph._tree_poses(5, rest, np.arange(len(rest)))
+    p = pose_graph.least_squares_poses(start, [pose_graph.edge_pairs(e) for e in rest],
+                                       [1, 2, 3, 4], scale=0.01, robust=None)
+    costs.append(float(np.sum(pose_graph.edge_errors(p, rest, 0.01) ** 2)))
+  assert int(np.argmin(costs)) == 4 and min(costs) < 1e-12 < sorted(costs)[1]
+  res = pose_graph.solve(5, edges, scale=0.01)
+  assert np.flatnonzero(~res.accepted).tolist() == [4]
+  np.testing.assert_allclose(res.poses, x, atol=1e-9)
+
+
+def test_noisy_solution_matches_a_generic_minimiser():
+  """With noise (and no outlier) the solve reaches the plain least-squares optimum that a
+  generic minimiser (BFGS over all rotation vectors and translations) finds."""
+  x = _poses(4, 5)
+  edges = _edges(x, itertools.combinations(range(4), 2), 6, noise=0.003)
+  res = pose_graph.solve(4, edges, scale=1.0, robust=None)
+
+  def cost(v):
+    p = np.tile(np.eye(4), (4, 1, 1))
+    p[1:, :3, :3] = Rotation.from_rotvec(v.reshape(3, 6)[:, :3]).as_matrix()
+    p[1:, :3, 3] = v.reshape(3, 6)[:, 3:]
+    return float(np.sum(pose_graph.edge_errors(p, edges, 1.0) ** 2))
+
+  v0 = np.concatenate([np.concatenate([Rotation.from_matrix(x[k, :3, :3]).as_rotvec(),
+                                       x[k, :3, 3]]) for k in range(1, 4)])
+  ref = minimize(cost, v0, method="BFGS", options={"gtol": 1e-12})
+  assert cost(np.concatenate([np.concatenate([Rotation.from_matrix(res.poses[k, :3, :3])
+                                                .as_rotvec(), res.poses[k, :3, 3]])
+                              for k in range(1, 4)])) <= ref.fun * (1 + 1e-6) + 1e-15
+
+
+def test_weak_edges_join_components_only_when_two_agree():
+  """Scans {0, 1} and {2, 3} joined by trusted edges inside; between them weak edges. One weak
+  edge alone never joins them; two agreeing ones do; a wrong weak edge stays out."""
+  x = _poses(4, 7)
+  inside = _edges(x, [(0, 1), (2, 3)], 8)
+  weak_good = _edges(x, [(1, 2), (0, 3)], 9)
+  one = pose_graph.solve(4, inside + weak_good[:1], trusted=[True, True, False], scale=0.01)
+  assert one.component.tolist() == [0, 0, 2, 2] and not one.accepted[2]
+  edges = inside + weak_good + [_wrong(_edges(x, [(0, 2)], 10)[0])]
+  res = pose_graph.solve(4, edges, trusted=[True, True, False, False, False], scale=0.01)
+  assert res.accepted.tolist() == [True, True, True, True, False]
+  np.testing.assert_allclose(res.poses, x, atol=1e-9)
+
+
+def test_solve_is_deterministic_given_a_seed():
+  x = _poses(6, 11)
+  edges = _edges(x, itertools.combinations(range(6), 2), 12, noise=0.01)
+  edges[3] = _wrong(edges[3])
+  a = pose_graph.solve(6, edges, scale=0.05, seed=3)
+  b = pose_graph.solve(6, edges, scale=0.05, seed=3)
+  np.testing.assert_array_equal(a.poses, b.poses)
+  np.testing.assert_array_equal(a.accepted, b.accepted)
+  assert not a.accepted[3]
+
+
+def test_point_to_plane_jacobian_matches_finite_differences():
+  rng = np.random.default_rng(0)
+  x = _poses(4, 1)
+  nrm = rng.normal(size=(10, 3))
+  blocks = [pose_graph.PointPairs(1, 2, rng.normal(size=(10, 3)), rng.normal(size=(10, 3)),
+                                  nrm / np.linalg.norm(nrm, axis=1, keepdims=True)),
+            pose_graph.PointPairs(0, 3, rng.normal(size=(10, 3)), rng.normal(size=(10, 3)),
+                                  nrm / np.linalg.norm(nrm, axis=1, keepdims=True))]
+  for b in (blocks, [pose_graph.PointPairs(b.i, b.j, b.source, b.target) for b in blocks]):
+    problem = pose_graph._Problem(x, b, [1, 2, 3], 0.1)
+    v = rng.normal(size=18) * 0.5
+    num = np.stack([(problem.residuals(v + d) - problem.residuals(v - d)) / 2e-6
+                    for d in np.eye(18) * 1e-6], axis=1)
+    np.testing.assert_allclose(problem.jacobian(v).toarray(), num, atol=1e-5)
+
+
+@functools.lru_cache(maxsize=None)
+def _views(n: int, seed: int = 0, step_deg: float = 60.0):
+  """n partial views of the demo blob from viewpoints `step_deg` apart around z, each moved by
+  a random rigid motion; (clouds, world-from-view poses, mr)."""
+  points, faces = make_demo_mesh("blob", seed)
+  normals = vertex_normals(points, faces)
+  from lrf_jax.resolution import mesh_resolution
+  mr = mesh_resolution(points, faces)[0]
+  poses = _poses(n, seed + 100)
+  clouds = []
+  for k in range(n):
+    a = np.radians(step_deg * k)
+    vp = 4.0 * np.array([np.cos(a), np.sin(a), 0.3])
+    vis = hidden_point_removal(points, vp) & (np.einsum("ij,ij->i", normals, vp - points) > 0)
+    view = points[vis]
+    inv = np.linalg.inv(poses[k])
+    clouds.append(view @ inv[:3, :3].T + inv[:3, 3])  # view k in its own frame
+  return tuple(clouds), poses, mr
+
+
+def _oracle(clouds, poses):
+  """A pairwise registration that knows the truth except for the pair (0, 2) it gets wrong,
+  while claiming success: a wrong loop closure the verdict let through."""
+  def run(src, dst, **_):
+    i = next(k for k, c in enumerate(clouds) if c.shape == src.points.shape)
+    j = next(k for k, c in enumerate(clouds) if c.shape == dst.points.shape)
+    t = np.linalg.inv(poses[j]) @ poses[i]
+    if (i, j) == (0, 2):
+      t = _wrong(pose_graph.PoseEdge(0, 2, t, np.zeros((1, 3)))).transform
+    return SimpleNamespace(transform=t, success=True, reason="oracle", n_inliers=100,
+                           overlap=0.5, rmse=0.0)
+  return run
+
+
+def test_register_all_rejects_a_wrong_edge_and_refines():
+  """Exact pairwise transforms but one wrong loop closure claimed as success: it is rejected,
+  the pose graph recovers the poses exactly, and the joint ICP keeps them (it pairs nearest
+  points, so boundary pairs move them by a fraction of a mesh resolution)."""
+  clouds, poses, mr = _views(4)
+  gt = np.linalg.inv(poses[0]) @ poses
+  for refine, tol_deg, tol_mr in ((False, 1e-6, 1e-6), (True, 0.5, 0.5)):
+    res = multiway.register_all(clouds, mr=mr, pairwise=_oracle(clouds, poses), seed=0,
+                                refine=refine)
+    wrong = [e for e in res.edges if (e.i, e.j) == (0, 2)][0]
+    assert not wrong.accepted and all(e.accepted for e in res.edges if (e.i, e.j) != (0, 2))
+    assert res.in_model.all() and res.reference == 0
+    for k in range(4):
+      err_r = np.degrees(Rotation.from_matrix(res.poses[k, :3, :3] @ gt[k, :3, :3].T)
+                         .magnitude())
+      assert err_r < tol_deg and np.linalg.norm(res.poses[k, :3, 3] - gt[k, :3, 3]) < tol_mr * mr
+  assert set(res.timings) == {"load", "pairwise", "graph", "refine"}
+
+
+def test_unconnected_scan_is_left_out_and_the_reference_moves_if_it_is_first():
+  clouds, poses, mr = _views(3)
+  intruder = np.random.default_rng(0).normal(size=(3000, 3))
+
+  def run(src, dst, **kw):
+    if src.points.shape == intruder.shape or dst.points.shape == intruder.shape:
+      return SimpleNamespace(transform=np.eye(4), success=False, reason="not sure",
+                             n_inliers=3, overlap=0.01, rmse=1.0)
+    return _oracle([c for c in clouds], poses)(src, dst)
+
+  res = multiway.register_all([intruder, *clouds], mr=mr, pairwise=run, names=list("xabc"))
+  assert res.left_out == ["x"] and res.reference == 1
+  assert np.isnan(res.poses[0]).all()
+  points, scan = multiway.merged_cloud([intruder, *clouds], res)
+  assert len(points) == sum(len(c) for c in clouds) and 0 not in scan
+  down, scan_down = multiway.merged_cloud([intruder, *clouds], res, voxel=4 * mr)
+  assert len(down) < len(points) and set(np.unique(scan_down)) <= {1, 2, 3}
+
+
+def test_candidate_rule_for_large_sets():
+  rng = np.random.default_rng(0)
+  clouds = [rng.normal(size=(500, 3)) * (1 + 0.1 * k) for k in range(15)]
+  pairs = multiway.candidate_pairs(clouds, loop_candidates=2)
+  assert all((k, k + 1) in pairs for k in range(14))
+  assert len(pairs) < 15 * 14 // 2 and pairs == sorted(set(pairs))
+  assert len(multiway.candidate_pairs(clouds[:5])) == 10
+
+
+def test_scan_names_and_bad_input_names_the_file(tmp_path):
+  assert multiway.scan_names(["a/x.txt.gz", "b/x.ply", "c.ply", np.zeros((3, 3))]) == [
+      "x", "x_2", "c", "scan3"]
+  bad = tmp_path / "broken.ply"
+  bad.write_text("not a ply\n")
+  with pytest.raises(ValueError, match="broken.ply"):
+    multiway.register_all([np.zeros((20, 3)), str(bad)])
+  with pytest.raises(ValueError, match="at least 2 scans"):
+    multiway.register_all([np.zeros((20, 3))])
+
+
+def test_cli_end_to_end_into_a_tmp_dir(tmp_path, capsys):
+  """`lrf-register a b c --out-dir D` with the real pairwise registration on three small views
+  of the demo blob: poses right, every output written, refusing an input as an output."""
+  from lrf_jax import io
+  from lrf_jax.register_cli import main
+  clouds, poses, mr = _views(3, step_deg=50.0)
+  paths = []
+  for k, c in enumerate(clouds):
+    sub = c[np.random.default_rng(k).choice(len(c), min(len(c), 6000), replace=False)]
+    paths.append(tmp_path / f"view{k}.ply")
+    io.write_ply(paths[-1], sub, dtype="float64")
+  out = tmp_path / "model"
+  rc = main([*map(str, paths), "--out-dir", str(out), "--keypoints", "600", "--quiet",
+             "--no-figures"])
+  captured = capsys.readouterr()
+  assert rc == 0, captured.err
+  assert captured.out.startswith("source\ttarget\tverdict")
+  for k in range(3):
+    est = np.loadtxt(out / f"view{k}.txt")
+    gt = np.linalg.inv(poses[0]) @ poses[k]
+    err_r = np.degrees(Rotation.from_matrix(est[:3, :3] @ gt[:3, :3].T).magnitude())
+    assert err_r < 2.0 and np.linalg.norm(est[:3, 3] - gt[:3, 3]) < 5 * mr, (k, est, gt)
+  assert (out / "merged.ply").is_file() and (out / "edges.tsv").read_text().count("\n") == 4
+  assert io.read_cloud(out / "merged.ply").points.shape[1] == 3
+  # An input inside the output folder, named as an output: refused before any work.
+  clash = out / "view0.txt"
+  np.savetxt(clash, clouds[0][:100])
+  assert main([str(clash), *map(str, paths[1:]), "--out-dir", str(out)]) == 2
+  assert "refusing to overwrite" in capsys.readouterr().err
+
+
+def test_cli_hand_over_rule():
+  from lrf_jax.multiway_cli import wanted
+  from lrf_jax.register_cli import build_parser
+  ap = build_parser()
+  assert wanted(ap, ["a.ply", "b.ply", "c.ply"])
+  assert wanted(ap, ["a.ply", "b.ply", "--out-dir", "D"])
+  assert not wanted(ap, ["a.ply", "b.ply", "--mr", "0.5", "--out", "T.txt"])
+  assert not wanted(ap, ["a.ply", "b.ply", "--init", "T.txt"])
+
+
+def test_figures_are_written(tmp_path):
+  clouds, poses, mr = _views(3)
+  res = multiway.register_all(clouds, mr=mr, pairwise=_oracle(clouds, poses), refine=False)
+  written = multiway.write_outputs(res, clouds, tmp_path / "d", voxel=3 * mr)
+  names = {p.name for p in written}
+  assert {"merged.png", "graph.png", "merged.ply", "edges.tsv", "scan0.txt"} <= names
+  assert (tmp_path / "d" / "graph.png").stat().st_size > 10_000
+
+
+@pytest.mark.data
+def test_bunny_scans_within_a_degree_and_two_mm(data_root):
+  """The 10 real bunny scans (all 45 pairs): every pose within 1 deg and 2 mm of bun.conf."""
+  from lrf_jax.datasets.stanford import bunny_poses
+  from lrf_jax.registration import pose_errors
+  folder = data_root / "stanford_bunny_scans"
+  names = ["bun000", "bun045", "bun090", "bun180", "bun270", "bun315", "chin", "ear_back",
+           "top2", "top3"]
+  res = multiway.register_all([str(folder / f"{n}.ply") for n in names], refine=False)
+  world = bunny_poses(data_root)
+  assert res.in_model.all()
+  for k, n in enumerate(names):
+    err_r, err_t = pose_errors(res.poses[k], np.linalg.inv(world["bun000"]) @ world[n], 1e-3)
+    assert err_r < 1.0 and err_t < 2.0, (n, err_r, err_t)

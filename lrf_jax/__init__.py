@@ -5,49 +5,133 @@
 
 Conventions: frames are (..., 3, 3) with rows x, y, z (they map world vectors into the LRF),
 right-handed, det +1; invalid frames are the identity with `valid == False`.
+
+`import lrf_jax` is light (no JAX, flax, orbax, matplotlib or numba): every public name and
+subpackage below is loaded on first use (module `__getattr__`), so a program pays only for the
+parts it calls. Before numba is first imported, its on-disk cache is pointed at a per-user
+directory (`lrf_jax.compilation_cache.numba_cache_dir()`, beside JAX's) unless `NUMBA_CACHE_DIR`
+is set, so that compiled kernels are kept even for a read-only install.
 """
 
-from lrf_jax import engine
-from lrf_jax.api import compute_frames, frames_from_patches, mesh_resolution
-from lrf_jax.caches import clear_caches
-from lrf_jax.engine import set_num_threads
-from lrf_jax.frames import METHODS, MethodSpec, register_method
-from lrf_jax.frames.lrf_net import lrf_net_frames
-from lrf_jax.keypoints import iss_keypoints
-from lrf_jax.losses import batched_chamfer, chamfer, siamese_loss
-from lrf_jax.metrics import meancos, repeatability_summary
-from lrf_jax.model import default_params, init_params, load_params, save_params
-from lrf_jax.neighborhoods import Patches, build_patches
-from lrf_jax.multiway import register_all
-from lrf_jax.registration import register
-from lrf_jax.sampling import voxel_downsample
+from __future__ import annotations
+
+from typing import TYPE_CHECKING, Any
+
+from lrf_jax import compilation_cache as _compilation_cache
+
+_compilation_cache.configure_numba_cache()
 
 __version__ = "0.6.0"
 
-__all__ = [
-    "METHODS",
-    "MethodSpec",
-    "Patches",
-    "batched_chamfer",
-    "build_patches",
-    "chamfer",
-    "clear_caches",
-    "compute_frames",
-    "default_params",
-    "engine",
-    "frames_from_patches",
-    "init_params",
-    "iss_keypoints",
-    "load_params",
-    "lrf_net_frames",
-    "meancos",
-    "mesh_resolution",
-    "register",
-    "register_all",
-    "register_method",
-    "repeatability_summary",
-    "save_params",
-    "set_num_threads",
-    "siamese_loss",
-    "voxel_downsample",
-]
+# public name -> the module (under lrf_jax) that defines it; loaded on first access.
+_EXPORTS: dict[str, str] = {
+    "compute_frames": "api",
+    "frames_from_patches": "api",
+    "mesh_resolution": "api",
+    "clear_caches": "caches",
+    "set_num_threads": "engine",
+    "METHODS": "frames",
+    "MethodSpec": "frames",
+    "register_method": "frames",
+    "lrf_net_frames": "frames.lrf_net",
+    "iss_keypoints": "keypoints",
+    "batched_chamfer": "losses",
+    "chamfer": "losses",
+    "siamese_loss": "losses",
+    "meancos": "metrics",
+    "repeatability_summary": "metrics",
+    "default_params": "model",
+    "init_params": "model",
+    "load_params": "model",
+    "save_params": "model",
+    "Patches": "neighborhoods",
+    "build_patches": "neighborhoods",
+    "register": "registration",
+    "register_all": "multiway",
+    "voxel_downsample": "sampling",
+}
+
+# subpackages and modules reachable as attributes after a bare `import lrf_jax`.
+_SUBMODULES = frozenset({"datasets", "descriptors", "engine", "evaluation", "frames", "io"})
+
+__all__ = sorted([*_EXPORTS, "engine"])
+
+
+def _load(module: str) -> Any:
+  """The lrf_jax module `module` (a key of `_EXPORTS` or `_SUBMODULES`), imported now.
+
+  Every import is written out (no computed module names), so the package's import graph stays
+  visible to static checks. `import lrf_jax.x as m`, not `from lrf_jax import x`: the latter
+  would look the name up on this package first and so call `__getattr__` again."""
+  match module:
+    case "api":
+      import lrf_jax.api as m
+    case "caches":
+      import lrf_jax.caches as m
+    case "engine":
+      import lrf_jax.engine as m
+    case "frames":
+      import lrf_jax.frames as m
+    case "frames.lrf_net":
+      import lrf_jax.frames.lrf_net as m
+    case "keypoints":
+      import lrf_jax.keypoints as m
+    case "losses":
+      import lrf_jax.losses as m
+    case "metrics":
+      import lrf_jax.metrics as m
+    case "model":
+      import lrf_jax.model as m
+    case "neighborhoods":
+      import lrf_jax.neighborhoods as m
+    case "registration":
+      import lrf_jax.registration as m
+    case "multiway":
+      import lrf_jax.multiway as m
+    case "sampling":
+      import lrf_jax.sampling as m
+    case "datasets":
+      import lrf_jax.datasets as m
+    case "descriptors":
+      import lrf_jax.descriptors as m
+    case "evaluation":
+      import lrf_jax.evaluation as m
+    case "io":
+      import lrf_jax.io as m
+    case _:
+      raise KeyError(module)
+  return m
+
+
+def __getattr__(name: str) -> Any:
+  """A public name or subpackage of lrf_jax, imported on first access (then cached here)."""
+  if name in _EXPORTS:
+    value = getattr(_load(_EXPORTS[name]), name)
+  elif name in _SUBMODULES:
+    value = _load(name)
+  else:
+    raise AttributeError(f"module 'lrf_jax' has no attribute {name!r}")
+  globals()[name] = value
+  return value
+
+
+def __dir__() -> list[str]:
+  """The module's names, the lazily loaded ones included."""
+  return sorted({*globals(), *_EXPORTS, *_SUBMODULES})
+
+
+if TYPE_CHECKING:  # for type checkers and IDEs; at run time these come from __getattr__
+  from lrf_jax import datasets, descriptors, engine, evaluation, frames, io  # noqa: F401
+  from lrf_jax.api import compute_frames, frames_from_patches, mesh_resolution  # noqa: F401
+  from lrf_jax.caches import clear_caches  # noqa: F401
+  from lrf_jax.engine import set_num_threads  # noqa: F401
+  from lrf_jax.frames import METHODS, MethodSpec, register_method  # noqa: F401
+  from lrf_jax.frames.lrf_net import lrf_net_frames  # noqa: F401
+  from lrf_jax.keypoints import iss_keypoints  # noqa: F401
+  from lrf_jax.losses import batched_chamfer, chamfer, siamese_loss  # noqa: F401
+  from lrf_jax.metrics import meancos, repeatability_summary  # noqa: F401
+  from lrf_jax.model import default_params, init_params, load_params, save_params  # noqa: F401
+  from lrf_jax.neighborhoods import Patches, build_patches  # noqa: F401
+  from lrf_jax.multiway import register_all  # noqa: F401
+  from lrf_jax.registration import register  # noqa: F401
+  from lrf_jax.sampling import voxel_downsample  # noqa: F401

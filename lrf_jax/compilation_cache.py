@@ -1,40 +1,99 @@
-"""JAX's persistent compilation cache for the command-line programs.
+"""Where compiled code is kept between processes, and a one-time note when code is compiled.
 
-A fresh `lrf-register` or `lrf-frames` process would otherwise recompile every jitted function
-it calls (seconds per function). `enable()` points JAX's own on-disk cache
-(`jax_compilation_cache_dir`) at a per-user directory, so a second run loads the compiled code
-instead. The numba kernels of `lrf_jax.engine` have their own cache (`cache=True`).
+Two caches share one per-user root, `cache_root()` (`$XDG_CACHE_HOME/lrf_jax`, else
+`~/.cache/lrf_jax`):
+
+* numba's kernels (`cache=True`) in `cache_root()/numba`: `configure_numba_cache()` (run by
+  `import lrf_jax`, before numba is imported) sets `NUMBA_CACHE_DIR` there unless the user has
+  set it. numba would otherwise write next to the package's sources, which fails for a read-only
+  install (it then falls back to its own per-user directory); numba keys the entries by the
+  sources' path and time stamps, so each install has its own.
+* JAX's persistent compilation cache in `cache_root()/jax` (or `$LRF_JAX_CACHE_DIR`):
+  `enable()`, called by the command-line programs. A fresh `lrf-register` or `lrf-frames` would
+  otherwise recompile every jitted function it calls.
+
+`announce_compiles()` prints one line on stderr the first time a process actually compiles an
+lrf_jax kernel (a numba cache miss) or a JAX program (a persistent-cache miss, or a compile over
+a second when that cache is off), so that a first run's wait is not a silent one.
+
+Nothing here imports numba or JAX at module level: `import lrf_jax` stays light.
 """
 
 from __future__ import annotations
 
 import os
+import sys
 from pathlib import Path
-
-import jax
+from typing import Any, TextIO
 
 ENV_VAR = "LRF_JAX_CACHE_DIR"
+NUMBA_ENV_VAR = "NUMBA_CACHE_DIR"
+NOTICE = ("lrf_jax: compiling kernels for this machine (first run only, up to a minute; later "
+          "runs load them from {where}) ...")
+_JAX_COMPILE_NOTICE_SECS = 1.0  # with JAX's cache off, a compile this long is worth the note
+
+_state: dict[str, Any] = {"announced": False, "numba": None, "jax": False, "stream": None}
+
+
+def cache_root() -> Path:
+  """The per-user cache root: `$XDG_CACHE_HOME/lrf_jax`, else `~/.cache/lrf_jax`."""
+  base = os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache"
+  return Path(base).expanduser() / "lrf_jax"
 
 
 def cache_dir() -> Path:
-  """The cache directory: `$LRF_JAX_CACHE_DIR`, else `$XDG_CACHE_HOME/lrf_jax/jax`, else
-  `~/.cache/lrf_jax/jax`."""
+  """JAX's cache directory: `$LRF_JAX_CACHE_DIR`, else `cache_root()/jax`."""
   explicit = os.environ.get(ENV_VAR)
   if explicit:
     return Path(explicit).expanduser()
-  base = os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache"
-  return Path(base).expanduser() / "lrf_jax" / "jax"
+  return cache_root() / "jax"
+
+
+def numba_cache_dir() -> Path:
+  """numba's cache directory: `$NUMBA_CACHE_DIR` when set, else `cache_root()/numba`."""
+  explicit = os.environ.get(NUMBA_ENV_VAR)
+  if explicit:
+    return Path(explicit).expanduser()
+  return cache_root() / "numba"
+
+
+def configure_numba_cache() -> str | None:
+  """Point numba's on-disk cache at `numba_cache_dir()` unless `NUMBA_CACHE_DIR` is set.
+
+  Sets the environment variable only (numba reads it when it is imported; if numba was imported
+  already, its configuration is reloaded). A directory that cannot be created is left alone:
+  numba then uses its own fallbacks.
+
+  Returns:
+    The directory now set, or None when the user's setting (or numba's default) stays.
+  """
+  if os.environ.get(NUMBA_ENV_VAR):
+    return None
+  path = numba_cache_dir()
+  try:
+    path.mkdir(parents=True, exist_ok=True)
+  except OSError:
+    return None
+  os.environ[NUMBA_ENV_VAR] = str(path)
+  if "numba" in sys.modules:
+    from numba.core import config
+    config.reload_config()
+  return str(path)
 
 
 def enable(directory: str | os.PathLike | None = None) -> Path | None:
   """Turn on JAX's persistent compilation cache in `directory` (default: `cache_dir()`).
 
   Every compiled function is stored, however short its compilation. A directory that cannot be
-  created leaves the cache off (the program still runs, only slower to start).
+  created leaves the cache off (the program still runs, only slower to start). Also turns on
+  `announce_compiles()`.
 
   Returns:
     The directory in use, or None when the cache stays off.
   """
+  import jax
+
+  announce_compiles()
   path = Path(directory).expanduser() if directory is not None else cache_dir()
   try:
     path.mkdir(parents=True, exist_ok=True)
@@ -44,3 +103,60 @@ def enable(directory: str | os.PathLike | None = None) -> Path | None:
   jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
   jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
   return path
+
+
+def _announce(stream: TextIO | None = None) -> None:
+  if _state["announced"]:
+    return
+  _state["announced"] = True
+  out = stream or _state["stream"] or sys.stderr
+  print(NOTICE.format(where=cache_root()), file=out, flush=True)
+
+
+def _numba_listener() -> Any:
+  from numba.core import event
+
+  class _CompileNotice(event.Listener):
+    """Announces the first compile of an lrf_jax kernel (numba fires "numba:compile" only on
+    a cache miss)."""
+
+    def on_start(self, ev: Any) -> None:
+      dispatcher = ev.data.get("dispatcher") if isinstance(ev.data, dict) else None
+      module = getattr(getattr(dispatcher, "py_func", None), "__module__", "") or ""
+      if module.startswith("lrf_jax"):
+        _announce()
+
+    def on_end(self, ev: Any) -> None:
+      pass
+
+  return _CompileNotice()
+
+
+def _on_jax_event(event: str, **kwargs: Any) -> None:
+  if event == "/jax/compilation_cache/cache_misses":
+    _announce()
+
+
+def _on_jax_duration(event: str, duration: float, **kwargs: Any) -> None:
+  if event == "/jax/core/compile/backend_compile_duration" and \
+      duration >= _JAX_COMPILE_NOTICE_SECS:
+    _announce()
+
+
+def announce_compiles(stream: TextIO | None = None) -> None:
+  """Say once per process, on stderr (or `stream`), when lrf_jax code is being compiled.
+
+  Hooks numba's compile event (fired on a cache miss only) when numba is imported, and JAX's
+  monitoring events when JAX is imported; idempotent, cheap, and it imports neither library.
+  """
+  if stream is not None:
+    _state["stream"] = stream
+  if _state["numba"] is None and "numba" in sys.modules:
+    from numba.core import event
+    _state["numba"] = _numba_listener()
+    event.register("numba:compile", _state["numba"])
+  if not _state["jax"] and "jax" in sys.modules:
+    from jax import monitoring
+    monitoring.register_event_listener(_on_jax_event)
+    monitoring.register_event_duration_secs_listener(_on_jax_duration)
+    _state["jax"] = True

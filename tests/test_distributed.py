@@ -88,7 +88,8 @@ def test_two_processes_train_like_one_process_with_two_devices(tmp_path):
   for i, (rc, out) in enumerate(results):
     assert rc == 0, f"process {i} exited {rc}:\n{out}"
   # Only process 0 prints the final metrics.
-  assert "'step': 16" in results[0][1] and "'step'" not in results[1][1], results
+  assert "step 16 of 16" in results[0][1] and "step 16 of" not in results[1][1], results
+  assert "wrote " in results[0][1] and "wrote " not in results[1][1], results
 
   single = tmp_path / "one_process"
   ((rc, out),) = _run_all([_train_cmd(single)], _env(2))

@@ -1,0 +1,121 @@
+"""The first run: a light `import lrf_jax` (lazy exports), numba's cache in the per-user cache
+root, one stderr note when a kernel is actually compiled, and an ETA timed after the first
+record."""
+
+from __future__ import annotations
+
+import io
+import os
+import subprocess
+import sys
+import textwrap
+import time
+from pathlib import Path
+
+import pytest
+
+import lrf_jax
+from lrf_jax import compilation_cache
+
+HEAVY = ("jax", "numba", "flax", "orbax", "matplotlib", "optax", "scipy")
+
+
+def _python(code: str, env: dict[str, str], cwd: Path | None = None) -> subprocess.CompletedProcess:
+  full = {k: v for k, v in os.environ.items() if k not in ("NUMBA_CACHE_DIR", "XDG_CACHE_HOME")}
+  full.update(env)
+  return subprocess.run([sys.executable, "-c", textwrap.dedent(code)], capture_output=True,
+                        text=True, env=full, cwd=cwd, timeout=120)
+
+
+def test_import_is_light_and_exports_are_lazy(tmp_path):
+  out = _python(f"""
+      import sys, time
+      t = time.perf_counter()
+      import lrf_jax
+      seconds = time.perf_counter() - t
+      heavy = [m for m in {HEAVY!r} if m in sys.modules]
+      assert not heavy, heavy
+      assert "lrf_jax.datasets" not in sys.modules
+      assert lrf_jax.datasets.__name__ == "lrf_jax.datasets"   # reachable after a bare import
+      assert "jax" not in sys.modules                          # the datasets do not need JAX
+      print(seconds)
+      """, {"XDG_CACHE_HOME": str(tmp_path)})
+  assert out.returncode == 0, out.stderr
+  assert float(out.stdout) < 1.0
+
+
+def test_every_export_resolves():
+  for name in lrf_jax.__all__:
+    assert getattr(lrf_jax, name) is not None, name
+  assert set(lrf_jax.__all__) <= set(dir(lrf_jax))
+  assert lrf_jax.compute_frames.__module__ == "lrf_jax.api"
+  assert callable(lrf_jax.voxel_downsample)
+  with pytest.raises(AttributeError):
+    lrf_jax.no_such_name  # noqa: B018
+
+
+def test_numba_cache_under_the_cache_root(tmp_path):
+  code = "import os, lrf_jax; print(os.environ.get('NUMBA_CACHE_DIR'))"
+  out = _python(code, {"XDG_CACHE_HOME": str(tmp_path)})
+  assert out.stdout.strip() == str(tmp_path / "lrf_jax" / "numba"), out.stderr
+  assert (tmp_path / "lrf_jax" / "numba").is_dir()
+  assert compilation_cache.cache_dir().parent == compilation_cache.cache_root()
+  mine = tmp_path / "mine"
+  out = _python(code, {"XDG_CACHE_HOME": str(tmp_path), "NUMBA_CACHE_DIR": str(mine)})
+  assert out.stdout.strip() == str(mine)  # the user's setting stays
+  blocked = tmp_path / "a_file"
+  blocked.write_text("")
+  out = _python(code, {"XDG_CACHE_HOME": str(blocked)})  # cannot be created: numba's defaults
+  assert out.returncode == 0 and out.stdout.strip() == "None", out.stderr
+
+
+def test_compile_notice_once_and_only_on_a_cache_miss(tmp_path):
+  code = """
+      import sys, numpy as np, numba, lrf_jax.engine as engine
+      assert numba.config.CACHE_DIR.endswith("/lrf_jax/numba"), numba.config.CACHE_DIR
+      print("imported", file=sys.stderr, flush=True)
+      for shape in ((2, 3), (3, 3), (2, 3)):  # one compile (one signature), three calls
+        assert engine._bounds(np.zeros(shape)) is not None
+      assert engine._bounds(np.zeros((2, 3), np.float32)) is not None  # a second signature
+      """
+  env = {"XDG_CACHE_HOME": str(tmp_path / "cache")}
+  first = _python(code, env, cwd=tmp_path)
+  assert first.returncode == 0, first.stderr
+  note = "lrf_jax: compiling kernels"
+  assert first.stderr.count(note) == 1, first.stderr
+  assert first.stderr.index("imported") < first.stderr.index(note)  # nothing compiled at import
+  second = _python(code, env, cwd=tmp_path)  # the kernels come from numba's cache
+  assert second.returncode == 0, second.stderr
+  assert note not in second.stderr, second.stderr
+
+
+def test_jax_compile_notice(monkeypatch):
+  stream = io.StringIO()
+  monkeypatch.setattr(compilation_cache, "_state", dict(compilation_cache._state,
+                                                        announced=False, stream=stream))
+  compilation_cache._on_jax_duration("/jax/core/compile/backend_compile_duration", 0.01)
+  compilation_cache._on_jax_event("/jax/compilation_cache/cache_hits")
+  assert stream.getvalue() == ""  # a cache load or a short compile says nothing
+  compilation_cache._on_jax_event("/jax/compilation_cache/cache_misses")
+  compilation_cache._on_jax_duration("/jax/core/compile/backend_compile_duration", 5.0)
+  assert stream.getvalue().count("lrf_jax: compiling kernels") == 1
+
+
+def test_eta_is_timed_after_the_first_record():
+  from tqdm import tqdm
+
+  from lrf_jax.evaluation.runner import restart_clock
+  bar = tqdm(total=100, file=io.StringIO(), mininterval=0)
+  time.sleep(0.3)  # the first record: compiling
+  bar.update(1)
+  restart_clock(bar)
+  assert bar.n == 1 and bar.format_dict["elapsed"] < 0.1
+  time.sleep(0.02)
+  bar.update(1)
+  fmt = bar.format_dict
+  assert fmt["n"] == 2
+  rate = fmt["rate"] or (fmt["n"] - fmt["initial"]) / fmt["elapsed"]
+  assert rate > 10  # one record per ~0.02 s, not 2 per 0.32 s
+  remaining = (fmt["total"] - fmt["n"]) / rate
+  assert remaining < 98 * 0.3 / 3
+  bar.close()

@@ -127,8 +127,12 @@ def _smallest_eigpair(c, out):
       r1 = np.array([c[0, 1], c[1, 1] - e_lo, c[1, 2]])
       r2 = np.array([c[0, 2], c[1, 2], c[2, 2] - e_lo])
       best = 0.0
+      w = np.empty(3)
       for u, v in ((r0, r1), (r0, r2), (r1, r2)):
-        w = np.cross(u, v)
+        # u x v written out: numba's np.cross compiles its shape checks and their messages, a
+        # tenth of a first registration's compile
+        w[0], w[1], w[2] = u[1] * v[2] - u[2] * v[1], u[2] * v[0] - u[0] * v[2], \
+            u[0] * v[1] - u[1] * v[0]
         nw = w[0] * w[0] + w[1] * w[1] + w[2] * w[2]
         if nw > best:
           best = nw
@@ -141,9 +145,9 @@ def _smallest_eigpair(c, out):
   return w
 
 
-@nb.njit(parallel=True, cache=True)
+@nb.njit(cache=True)  # serial: a few ms for 100k points, and parallel=True doubled its compile
 def _smallest_eigvecs(cov, evals, vecs):
-  for i in nb.prange(cov.shape[0]):
+  for i in range(cov.shape[0]):
     evals[i] = _smallest_eigpair(cov[i], vecs[i])
 
 

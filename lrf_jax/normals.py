@@ -444,8 +444,10 @@ def orient_by_propagation(points: np.ndarray, normals: np.ndarray, *, k: int = P
   return nrm
 
 
-# Points per connected component whose convexity votes fix its sign (`orient_by_vote`).
+# Points per connected component whose convexity votes fix its sign (`orient_by_vote`), and the
+# vote (a centroid height in units of the vote radius) below which a vote counts as undecided.
 VOTE_SAMPLES = 256
+VOTE_EPS = 1e-3
 
 
 def knn_components(points: np.ndarray, k: int = PROPAGATION_K) -> np.ndarray:
@@ -499,8 +501,8 @@ def orient_by_vote(points: np.ndarray, normals: np.ndarray, vote_radius: float, 
 
   Returns:
     (normals (n, 3) float64, trust (n,) float64): trust is the component's vote margin
-    |Σ v_i| / Σ |v_i| in [0, 1] (0: the votes cancel, e.g. a plane; 1: unanimous), 0 where the
-    normal is NaN.
+    |Σ v_i| / (Σ |v_i| + VOTE_EPS · n_votes) in [0, 1] (0: the votes cancel or vanish, e.g. a
+    plane; 1: unanimous and decisive), 0 where the normal is NaN.
   """
   from lrf_jax.neighborhoods import SearchIndex, hash_priority
   pts = np.asarray(points, np.float64)
@@ -522,7 +524,8 @@ def orient_by_vote(points: np.ndarray, normals: np.ndarray, vote_radius: float, 
   size = np.bincount(labels[voters], np.abs(votes), labels.max() + 1)
   flip = np.where(total < 0, -1.0, 1.0)
   nrm[good] *= flip[labels][:, None]
-  trust[good] = np.where(size > 0, np.abs(total) / np.where(size > 0, size, 1.0), 0.0)[labels]
+  count = np.bincount(labels[voters], None, labels.max() + 1)
+  trust[good] = (np.abs(total) / (size + VOTE_EPS * count))[labels]
   return nrm, trust
 
 

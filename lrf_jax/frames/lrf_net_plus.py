@@ -35,6 +35,8 @@ from lrf_jax.neighborhoods import Patches
 # fragments, where convex furniture and concave room corners cancel, with 0.00-0.19, and
 # there the global sign is a coin toss per fragment (all of a pair's keypoints flipped or none).
 MIN_VOTE_TRUST = 0.25
+# Heights below this fraction of the neighbours' distances count as flat (`sign_confidence`).
+FLAT_EPS = 1e-3
 
 
 class ViewExtra(NamedTuple):
@@ -172,8 +174,9 @@ def sign_confidence(frames: jax.Array, valid: jax.Array, patches: Patches,
     `normals.orient_by_vote` for normals oriented from the points alone) times how far z is
     from the plane where the two signs tie (a grazing view or normals across an edge);
   * z by `ball_sign` (no view direction): the patch height's share of its absolute heights,
-    |Σ_i pq_i · z| / Σ_i |pq_i · z| over the real neighbours (0 for a flat or symmetric patch,
-    1 when the whole patch lies on one side of the tangent plane);
+    |Σ_i h_i| / (Σ_i |h_i| + FLAT_EPS Σ_i |pq_i|), h_i = pq_i · z, over the real neighbours (0
+    for a flat or symmetric patch, about 1 when the whole patch lies on one side of the tangent
+    plane);
   * 0 for an invalid frame.
 
   Rotation and translation invariant (every term is a dot product of vectors that move with
@@ -198,7 +201,8 @@ def sign_confidence(frames: jax.Array, valid: jax.Array, patches: Patches,
   offsets = jnp.nan_to_num(jnp.asarray(patches.offsets, jnp.float32))
   mask = jnp.asarray(patches.mask)
   h = jnp.where(mask, jnp.einsum("nkc,nc->nk", offsets, z), 0.0)
-  ball = ratio(jnp.abs(jnp.sum(h, -1)), jnp.sum(jnp.abs(h), -1))
+  dist = jnp.where(mask, geometry.safe_norm(offsets), 0.0)
+  ball = ratio(jnp.abs(jnp.sum(h, -1)), jnp.sum(jnp.abs(h), -1) + FLAT_EPS * jnp.sum(dist, -1))
   if extra is None or not oriented_sign:
     conf = ball
   else:

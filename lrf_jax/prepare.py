@@ -28,8 +28,8 @@ def method_normals(spec: MethodSpec, points: np.ndarray, radius: float, *,
   * a viewpoint-aware method (`uses_viewpoint`, lrf_net_plus) orients its z by the viewpoint
     when there is one; without one it reads the caller's normals, else, on a mesh, normals
     estimated and oriented by the faces' winding; a cloud without either gets None (its hook
-    then falls back to the sign over the whole support: a cloud's propagated normals have no
-    reliable outside);
+    then orients normals from the points itself, `normals.voted_normals`: propagation alone has
+    no reliable outside on a cloud, the per-component vote gives it one);
   * a hook with `needs_normals` (the normal-based methods, GFrames) gets the caller's normals, else
     `estimate_normals` (PCA over `NORMAL_RADIUS_RATIO` · r, oriented by the faces, else towards
     the viewpoint, else by propagation).

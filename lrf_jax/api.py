@@ -192,6 +192,24 @@ def _check_index(index: Any, points: np.ndarray) -> None:
                      "SearchIndex(points, seed) from these points")
 
 
+def _check_call(spec: MethodSpec, faces: Any, chunk_size: Any, k: Any, options: dict,
+                return_confidence: bool) -> None:
+  """`compute_frames`' checks of the method's needs and of chunk_size, k, the options and
+  return_confidence (a ValueError naming the argument)."""
+  method = spec.name
+  if spec.needs_mesh and faces is None:
+    raise ValueError(f"method {method!r} needs a triangle mesh: pass faces=(f, 3) indices "
+                     "(a cloud without faces is not supported by this method)")
+  if (isinstance(chunk_size, (bool, np.bool_)) or not isinstance(chunk_size, (int, np.integer))
+      or chunk_size < 1):
+    raise ValueError(f"chunk_size: expected a positive integer, got {chunk_size!r}")
+  _validate_k(k)
+  _check_options(method, options)
+  if return_confidence and spec.confidence is None:
+    raise ValueError(f"return_confidence: method {method!r} defines no sign confidence; methods "
+                     f"that do: {sorted(n for n, s in METHODS.items() if s.confidence)}")
+
+
 def compute_frames(
     points: Any,
     keypoints: np.ndarray,
@@ -287,19 +305,9 @@ def compute_frames(
   points, faces, normals = as_cloud(points, "points", faces=faces, normals=normals)
   keypoints = validate_keypoints(keypoints, points.shape[0])
   radius = _resolve_radius(points, faces, radius, radius_mr)
-  if spec.needs_mesh and faces is None:
-    raise ValueError(f"method {method!r} needs a triangle mesh: pass faces=(f, 3) indices "
-                     "(a cloud without faces is not supported by this method)")
-  if (isinstance(chunk_size, (bool, np.bool_)) or not isinstance(chunk_size, (int, np.integer))
-      or chunk_size < 1):
-    raise ValueError(f"chunk_size: expected a positive integer, got {chunk_size!r}")
-  _validate_k(k)
+  _check_call(spec, faces, chunk_size, k, options, return_confidence)
   seed = validate_seed(seed)
-  _check_options(method, options)
   viewpoint = validate_viewpoint(viewpoint)
-  if return_confidence and spec.confidence is None:
-    raise ValueError(f"return_confidence: method {method!r} defines no sign confidence; methods "
-                     f"that do: {sorted(n for n, s in METHODS.items() if s.confidence)}")
   # Every method works in units of the radius (frames are directions): the same arithmetic at
   # any scale of cloud and radius, a ValueError outside 1e-30..1e30 (`unit_scaled`).
   unit = radius

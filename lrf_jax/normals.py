@@ -486,9 +486,9 @@ def orient_by_vote(points: np.ndarray, normals: np.ndarray, vote_radius: float, 
   `vote_radius` of p_i; positive where the surface around p_i lies behind its normal (the
   normal points out of a convex patch: TOLDI's sign rule, Σ (p - q)·n >= 0). The component is
   flipped where Σ v_i < 0. A single patch's convexity is a weak cue (saddles, flat parts, the
-  cut edges of a partial scan flip it on 5-25 % of keypoints); thousands of patches tied
-  together by the propagation are a strong one. Equivariant: the graph, the propagation, the
-  subsample and the votes all move with the cloud.
+  cut edges of a partial scan flip it); thousands of patches tied together by the propagation
+  are a strong one. Equivariant: the graph, the propagation, the subsample and the votes all
+  move with the cloud.
 
   Args:
     points: (n, 3) cloud.
@@ -503,6 +503,11 @@ def orient_by_vote(points: np.ndarray, normals: np.ndarray, vote_radius: float, 
     (normals (n, 3) float64, trust (n,) float64): trust is the component's vote margin
     |Σ v_i| / (Σ |v_i| + VOTE_EPS · n_votes) in [0, 1] (0: the votes cancel or vanish, e.g. a
     plane; 1: unanimous and decisive), 0 where the normal is NaN.
+
+  References:
+    Hoppe, DeRose, Duchamp, McDonald, Stuetzle, "Surface reconstruction from unorganized points",
+    SIGGRAPH 1992, section 3.3 (the propagation); Yang et al., "TOLDI", Pattern
+    Recognition 2017 (the sign rule of one patch).
   """
   from lrf_jax.neighborhoods import SearchIndex, hash_priority
   pts = np.asarray(points, np.float64)

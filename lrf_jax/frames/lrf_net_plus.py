@@ -31,9 +31,9 @@ from lrf_jax.neighborhoods import Patches
 
 
 # Below this vote margin (`normals.orient_by_vote`) a component's sign is not used and z falls
-# back to `ball_sign`: object scans (UWA3M, UWAOR, bunny) vote with margins of 0.38-0.98, indoor
-# fragments, where convex furniture and concave room corners cancel, with 0.00-0.19, and
-# there the global sign is a coin toss per fragment (all of a pair's keypoints flipped or none).
+# back to `ball_sign`: scans of objects vote decisively, indoor rooms (convex furniture and
+# concave corners cancel) do not, and there the component's sign would be a coin toss per
+# fragment (every keypoint of a pair flipped or none); benchmarks/README.md has the margins.
 MIN_VOTE_TRUST = 0.25
 # Heights below this fraction of the neighbours' distances count as flat (`sign_confidence`).
 FLAT_EPS = 1e-3
@@ -180,9 +180,7 @@ def sign_confidence(frames: jax.Array, valid: jax.Array, patches: Patches,
   * 0 for an invalid frame.
 
   Rotation and translation invariant (every term is a dot product of vectors that move with
-  the cloud). A matcher can weight correspondences by it or skip frames below a threshold:
-  on the evaluation's scans, frames of low confidence are those whose z flips most often
-  between two views.
+  the cloud). A matcher can weight correspondences by it or skip frames below a threshold.
 
   Args:
     frames: (N, 3, 3) frames (rows x, y, z) of these patches.

@@ -297,14 +297,17 @@ def test_lrf_net_plus_viewpoint_sign():
 
 
 def test_lrf_net_plus_equivariant_and_ball_sign_rule(bunny):
-  """lrf_net_plus: rotation equivariant; z oriented so that Σ (p - q_i)·z >= 0 over the patch."""
+  """lrf_net_plus: rotation equivariant (z from the points alone by default on a cloud); with
+  oriented_sign=False z is oriented so that Σ (p - q_i)·z >= 0 over the patch."""
   pts, kp, r, _ = bunny
   rot = random_rotation(11)
-  f, v = lrf_jax.compute_frames(pts, kp, r, "lrf_net_plus", params=PARAMS)
-  g, w = lrf_jax.compute_frames(pts @ rot.T - 2.0, kp, r, "lrf_net_plus", params=PARAMS)
-  f, v, g, w = map(np.asarray, (f, v, g, w))
-  assert equivariance_deficit(f, g, rot, v, w).mean() < 1e-4
-  assert_frames_orthonormal(f, v)
+  for opts in ({}, {"oriented_sign": False}):
+    f, v = lrf_jax.compute_frames(pts, kp, r, "lrf_net_plus", params=PARAMS, **opts)
+    g, w = lrf_jax.compute_frames(pts @ rot.T - 2.0, kp, r, "lrf_net_plus", params=PARAMS,
+                                  **opts)
+    f, v, g, w = map(np.asarray, (f, v, g, w))
+    assert equivariance_deficit(f, g, rot, v, w).mean() < 1e-4
+    assert_frames_orthonormal(f, v)
   p = build_patches(pts, kp, r, lrf_jax.METHODS["lrf_net_plus"].default_k)
   for n in np.flatnonzero(v):
     off = p.offsets[n][p.mask[n]]

@@ -188,3 +188,23 @@ def test_points_only_experiment_records_table_and_figure(tmp_path):
   text = (tmp_path / "report.md").read_text()
   assert "## points_only" in text and "%)" in text
   assert (tmp_path / "points_only.png").stat().st_size > 5000
+
+
+def test_evaluate_points_only_defaults(tmp_path):
+  # evaluate.py --experiments points_only: at most POINTS_ONLY_PAIRS pairs a dataset without
+  # --max-pairs, the hand-crafted methods --methods names (the defaults when it names none:
+  # `test_points_only_experiment_records_table_and_figure`), no LRF-Net weight figures.
+  import json
+
+  import evaluate
+  from lrf_jax.evaluation.experiments import POINTS_ONLY_HANDCRAFTED, POINTS_ONLY_PAIRS
+  assert evaluate.main(["--experiments", "points_only", "--datasets", "demo", "--keypoints",
+                        "30", "--methods", "lrf_net_plus", "toldi", "--out",
+                        str(tmp_path)]) == 0
+  recs = json.loads((tmp_path / "results.json").read_text())["records"]
+  assert len({r["pair"] for r in recs}) == POINTS_ONLY_PAIRS
+  assert {r["method"] for r in recs} == {"lrf_net_plus (viewpoint)", "lrf_net_plus (points only)",
+                                         "lrf_net_plus (points only, ball sign)",
+                                         "toldi (points only)"}
+  assert (tmp_path / "points_only.png").exists() and not (tmp_path / "weights.png").exists()
+  assert "shot" in POINTS_ONLY_HANDCRAFTED

@@ -204,7 +204,8 @@ def evaluate(plan: EvalPlan, out: Path, *, progress: bool = True) -> str:
   meta = dict(plan.meta, seconds=time.perf_counter() - t0,
               patch_cache={"hits": cache.hits, "misses": cache.misses})
   report.write_results(records, out, notes=plan.notes, meta=meta)
-  _learned_figures(plan, out)
+  if set(plan.experiments) - {"points_only"}:  # points_only runs its own columns only
+    _learned_figures(plan, out)
   text = report.markdown_report(records, notes=plan.notes)
   extra_md = _description_pose_outputs(other, out)
   if extra_md:

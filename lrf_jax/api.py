@@ -345,7 +345,8 @@ def compute_frames(
                                     normals)
     patches = search_patches(kp)
     extra = prepare_extra(spec, points, kp, patches, radius=radius, faces=faces,
-                          normals=normals, viewpoint=viewpoint)
+                          normals=normals, viewpoint=viewpoint,
+                          oriented=bool(host_options.get("oriented_sign", True)))
     if host_patches:
       out = spec.host_patch_frames(patches, extra, params, host_options)
     else:

@@ -208,3 +208,20 @@ def test_evaluate_points_only_defaults(tmp_path):
                                          "toldi (points only)"}
   assert (tmp_path / "points_only.png").exists() and not (tmp_path / "weights.png").exists()
   assert "shot" in POINTS_ONLY_HANDCRAFTED
+
+
+def test_register_keeps_the_patch_sign_on_a_bare_cloud(scan, monkeypatch):
+  # register() passes oriented_sign=False for a cloud without viewpoint or mesh: the frames are
+  # those of the patch sign, and prepare_view orients no normals for them.
+  from lrf_jax import normals as normals_module
+  pts, kp, r = scan
+  calls = []
+  real = normals_module.voted_normals
+  monkeypatch.setattr(normals_module, "voted_normals",
+                      lambda *a, **k: calls.append(1) or real(*a, **k))
+  f0, v0 = map(np.asarray, lrf_jax.compute_frames(pts, kp, r, oriented_sign=False))
+  assert not calls
+  extra = prepare_view(pts, kp, build_patches(pts, kp, r, 512), radius=r, oriented=False)
+  assert not calls and not np.asarray(extra.view).any()
+  f1, v1 = map(np.asarray, lrf_jax.compute_frames(pts, kp, r))
+  assert calls  # the default does orient them

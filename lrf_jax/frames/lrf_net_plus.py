@@ -55,7 +55,7 @@ class ViewExtra(NamedTuple):
 
 
 def prepare_view(points, keypoints, patches, *, faces=None, normals=None, radius=None,
-                 viewpoint=None) -> ViewExtra:
+                 viewpoint=None, oriented: bool = True) -> ViewExtra:
   """`MethodSpec.prepare` hook of lrf_net_plus: its `ViewExtra`. `view` is a direction z should
   not point away from, per keypoint (all of them move with the cloud, so z stays equivariant):
 
@@ -72,7 +72,8 @@ def prepare_view(points, keypoints, patches, *, faces=None, normals=None, radius
     connected component's sign by the majority of convexity votes over r), trusted as far as
     that vote's margin (its `trust` averaged over the z support); where that margin is below
     `MIN_VOTE_TRUST` the view is zero;
-  * else zeros (the z sign then comes from `ball_sign`).
+  * else zeros (the z sign then comes from `ball_sign`); also for the points alone when
+    `oriented` is False (the frames will not read the view: `oriented_sign=False`).
 
   `trust` (see `ViewExtra`) is 1 for the first three and the vote margin for the fourth; 0 where
   `view` is 0.
@@ -83,7 +84,8 @@ def prepare_view(points, keypoints, patches, *, faces=None, normals=None, radius
   trust = None
   if viewpoint is not None:
     view = np.asarray(viewpoint, np.float64)[None] - pts[kp]
-  elif patches is not None and radius is not None:
+  elif patches is not None and radius is not None and (
+      oriented or normals is not None or faces is not None):
     if normals is not None or faces is not None:
       nrm = (np.asarray(normals, np.float64) if normals is not None else
              estimate_normals(pts, NORMAL_RADIUS_RATIO * float(radius), faces))

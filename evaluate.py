@@ -3,6 +3,7 @@
     python evaluate.py                                   # main experiment on the data it finds
     python evaluate.py --data /path/to/data --experiments repeatability noise decimation
     python evaluate.py --checkpoint runs/default --methods lrf_net toldi shot --out out/
+    python evaluate.py --experiments points_only         # frames from the points alone
 
 With no data (no --data, LRF_DATA unset, nothing under data/) it runs on the procedural demo set.
 Writes results.json, report.md and PNG figures to --out (each atomically) and prints the summary
@@ -21,7 +22,8 @@ from pathlib import Path
 from lrf_jax import evaluation
 from lrf_jax.cli_help import DefaultsHelpFormatter
 from lrf_jax.evaluation import runner
-from lrf_jax.evaluation.experiments import DATASETS, EXPERIMENTS
+from lrf_jax.evaluation.experiments import (DATASETS, EXPERIMENTS, POINTS_ONLY_DATASETS,
+                                            POINTS_ONLY_HANDCRAFTED, POINTS_ONLY_PAIRS)
 from lrf_jax.frames import METHODS
 
 REAL = ["BR@0.1", "BR@0.3", "BR@0.5", "UWA3M", "UWAOR", "bunny"]
@@ -34,11 +36,17 @@ def build_parser() -> argparse.ArgumentParser:
                                formatter_class=DefaultsHelpFormatter)
   ap.add_argument("--data", default=None, help="data root (default: $LRF_DATA, then data/)")
   ap.add_argument("--datasets", nargs="+", default=None, choices=sorted(DATASETS),
-                  help="default: every real dataset found, else demo")
+                  help="default: every real dataset found, else demo (points_only: "
+                       f"{' '.join(POINTS_ONLY_DATASETS)})")
   ap.add_argument("--experiments", nargs="+", default=["repeatability"],
-                  choices=EXPERIMENTS + ("description", "pose"), help="experiments to run")
+                  choices=EXPERIMENTS + ("description", "pose"),
+                  help="experiments to run; points_only: every cloud moved by a seeded random "
+                       "rigid motion, lrf_net_plus with its sensor position and from the points "
+                       "alone, the hand-crafted methods from the points alone, MeanCos and the "
+                       "z flip rate")
   ap.add_argument("--methods", nargs="+", default=None,
-                  help=f"default: all of {sorted(METHODS)}")
+                  help=f"default: all of {sorted(METHODS)} (points_only: lrf_net_plus and "
+                       f"{' '.join(POINTS_ONLY_HANDCRAFTED)})")
   ap.add_argument("--checkpoint", default=None,
                   help="a train.py workdir: its best checkpoint is 'lrf_net', its final "
                        "parameters 'lrf_net[final]' (default: the shipped weights)")
@@ -46,7 +54,9 @@ def build_parser() -> argparse.ArgumentParser:
                   help="extra learned columns from parameter files: LABEL=PATH[@METHOD] (METHOD "
                        "defaults to lrf_net), e.g. mine=w.msgpack or p=w.msgpack@lrf_net_plus")
   ap.add_argument("--keypoints", type=int, default=1000, help="keypoints per pair (the paper's: 1000)")
-  ap.add_argument("--max-pairs", type=int, default=None, help="at most N pairs per dataset")
+  ap.add_argument("--max-pairs", type=int, default=None,
+                  help=f"at most N pairs per dataset (default: all; {POINTS_ONLY_PAIRS} with "
+                       "points_only)")
   ap.add_argument("--radius-mr", type=float, default=15.0,
                   help="support radius in mesh resolutions")
   ap.add_argument("--seed", type=int, default=0, help="seed of keypoints and subsamples")
@@ -65,7 +75,11 @@ def main(argv=None) -> int:
     return 2
 
   t0 = time.perf_counter()
-  names = args.datasets or REAL
+  points_only = "points_only" in args.experiments
+  names = args.datasets or (
+      list(dict.fromkeys(([] if args.experiments == ["points_only"] else REAL)
+                         + list(POINTS_ONLY_DATASETS))) if points_only else REAL)
+  max_pairs = args.max_pairs or (POINTS_ONLY_PAIRS if points_only else None)
   ok, missing = evaluation.available(names, args.data, DATASETS)
   if missing:  # the whole message (where we looked, how to get the data) before any work
     _, full = evaluation.available(names, args.data, DATASETS, full=True)
@@ -83,10 +97,11 @@ def main(argv=None) -> int:
     print(f"error: {e}", file=sys.stderr)
     return 2
   opts = evaluation.EvalOptions(data_root=args.data, n_keypoints=args.keypoints, seed=args.seed,
-                                radius_mr=args.radius_mr, max_pairs=args.max_pairs,
+                                radius_mr=args.radius_mr, max_pairs=max_pairs,
                                 max_neighbors=args.max_neighbors or None)
   plan = runner.EvalPlan(ok, args.experiments, runs, opts, notes=missing + notes,
-                         cache_dir=args.cache_dir, meta={"args": vars(args)})
+                         cache_dir=args.cache_dir, meta={"args": vars(args)},
+                         methods_named=args.methods is not None)
   out = Path(args.out)
   try:
     text = runner.evaluate(plan, out)

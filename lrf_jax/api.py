@@ -192,6 +192,24 @@ def _check_index(index: Any, points: np.ndarray) -> None:
                      "SearchIndex(points, seed) from these points")
 
 
+def _check_call(spec: MethodSpec, faces: Any, chunk_size: Any, k: Any, options: dict,
+                return_confidence: bool) -> None:
+  """`compute_frames`' checks of the method's needs and of chunk_size, k, the options and
+  return_confidence (a ValueError naming the argument)."""
+  method = spec.name
+  if spec.needs_mesh and faces is None:
+    raise ValueError(f"method {method!r} needs a triangle mesh: pass faces=(f, 3) indices "
+                     "(a cloud without faces is not supported by this method)")
+  if (isinstance(chunk_size, (bool, np.bool_)) or not isinstance(chunk_size, (int, np.integer))
+      or chunk_size < 1):
+    raise ValueError(f"chunk_size: expected a positive integer, got {chunk_size!r}")
+  _validate_k(k)
+  _check_options(method, options)
+  if return_confidence and spec.confidence is None:
+    raise ValueError(f"return_confidence: method {method!r} defines no sign confidence; methods "
+                     f"that do: {sorted(n for n, s in METHODS.items() if s.confidence)}")
+
+
 def compute_frames(
     points: Any,
     keypoints: np.ndarray,
@@ -209,8 +227,9 @@ def compute_frames(
     progress: bool | None = None,
     search: str = "auto",
     kernel: str = "auto",
+    return_confidence: bool = False,
     **options: Any,
-) -> tuple[jax.Array, jax.Array]:
+) -> tuple[jax.Array, jax.Array] | tuple[jax.Array, jax.Array, jax.Array]:
   """Local reference frames of `keypoints` of a cloud, by any registered method.
 
   The radius search runs on the host (the compiled engine, `lrf_jax.engine`, all cores) or on the
@@ -244,7 +263,9 @@ def compute_frames(
       else by propagation).
     viewpoint: (3,) sensor position, for a single-view scan without faces: estimated normals are
       oriented towards it (PCL's convention), and so is lrf_net_plus's z. Pass it for range
-      scans: propagation cannot know which side of an open scan is out.
+      scans where it is known. Without it (and without faces or normals) lrf_net_plus orients
+      z from the points alone (`lrf_jax.normals.orient_by_vote`); the other methods' estimated
+      normals are oriented by propagation, which cannot know which side of an open scan is out.
     chunk_size: keypoints per jitted call (bounds memory: about chunk_size x K x 16 bytes of
       patches at a time). With several local devices, each chunk is sharded over them.
     progress: show a progress bar over chunks (default: when there are more than 4 chunks).
@@ -259,18 +280,23 @@ def compute_frames(
       x_mode "sum" or "softmax"), the same patches' frames in compiled float64 code,
       `METHODS[method].host_patch_frames`), or "auto" (host where it applies and the backend
       is the CPU, else jit).
+    return_confidence: also return the confidence of each frame's z sign, for methods that
+      define one (`METHODS[method].confidence`: lrf_net_plus, `sign_confidence`).
     **options: method options (e.g. `x_mode`, `signed`).
 
   Returns:
     (frames, valid): frames (m, 3, 3) float32, rows x, y, z, det +1 (the identity where invalid);
-    valid (m,) bool.
+    valid (m,) bool. With `return_confidence`, (frames, valid, confidence): confidence (m,)
+    float32 in [0, 1], dimensionless (0: the sign is a guess, e.g. a flat patch of a cloud
+    without a viewpoint, or an invalid frame; 1: certain, e.g. z facing a given sensor).
 
   Raises:
     ValueError: a cloud that is not a non-empty (n, 3) array of finite floats, an out-of-range or
       non-integer keypoint, a non-positive radius, an unknown method, a missing mesh, a `k` that
       is not a positive integer, None or "default", a non-positive `chunk_size`, a `seed` that is
-      not a non-negative integer, a viewpoint that is not a finite (3,) position, or an option the
-      method does not take (the message lists its options).
+      not a non-negative integer, a viewpoint that is not a finite (3,) position, an option the
+      method does not take (the message lists its options), or `return_confidence` for a
+      method without a confidence.
 
   Example:
     >>> frames, valid = compute_frames(points, np.arange(100), radius=0.02)
@@ -279,15 +305,8 @@ def compute_frames(
   points, faces, normals = as_cloud(points, "points", faces=faces, normals=normals)
   keypoints = validate_keypoints(keypoints, points.shape[0])
   radius = _resolve_radius(points, faces, radius, radius_mr)
-  if spec.needs_mesh and faces is None:
-    raise ValueError(f"method {method!r} needs a triangle mesh: pass faces=(f, 3) indices "
-                     "(a cloud without faces is not supported by this method)")
-  if (isinstance(chunk_size, (bool, np.bool_)) or not isinstance(chunk_size, (int, np.integer))
-      or chunk_size < 1):
-    raise ValueError(f"chunk_size: expected a positive integer, got {chunk_size!r}")
-  _validate_k(k)
+  _check_call(spec, faces, chunk_size, k, options, return_confidence)
   seed = validate_seed(seed)
-  _check_options(method, options)
   viewpoint = validate_viewpoint(viewpoint)
   # Every method works in units of the radius (frames are directions): the same arithmetic at
   # any scale of cloud and radius, a ValueError outside 1e-30..1e30 (`unit_scaled`).
@@ -300,8 +319,9 @@ def compute_frames(
     params = default_params(spec.weights)
   m = keypoints.shape[0]
   if m == 0:
-    return jnp.zeros((0, 3, 3), jnp.float32), jnp.zeros((0,), bool)
-  on_host = _use_host_kernel(spec, kernel, k, options, search)
+    empty = jnp.zeros((0, 3, 3), jnp.float32), jnp.zeros((0,), bool)
+    return (*empty, jnp.zeros((0,), jnp.float32)) if return_confidence else empty
+  on_host = _use_host_kernel(spec, kernel, k, options, search) and not return_confidence
   host_patches = _use_host_patch_kernel(spec, kernel, options, search)
   search_patches = _patch_search(points, spec, radius, k, seed, search, on_host or host_patches)
   _warn_on_ball_size(search_patches.index, points, keypoints, radius, unit)
@@ -318,27 +338,33 @@ def compute_frames(
   visit = (engine.query_order(search_patches.index.grid(radius), points[keypoints]) if host
            else np.arange(m))
 
-  def run(idx: np.ndarray, n_real: int) -> tuple[jax.Array, jax.Array]:
+  def run(idx: np.ndarray, n_real: int) -> tuple[jax.Array, ...]:
     kp = keypoints[visit[idx]]
     if on_host:
       return _host_frames_in_budget(spec, points, kp, radius, search_patches.index, faces,
                                     normals)
     patches = search_patches(kp)
     extra = prepare_extra(spec, points, kp, patches, radius=radius, faces=faces,
-                          normals=normals, viewpoint=viewpoint)
+                          normals=normals, viewpoint=viewpoint,
+                          oriented=bool(host_options.get("oriented_sign", True)))
     if host_patches:
-      return spec.host_patch_frames(patches, extra, params, host_options)
-    return frames_from_patches(patches, method, params=params, extra=extra, **options)
+      out = spec.host_patch_frames(patches, extra, params, host_options)
+    else:
+      out = frames_from_patches(patches, method, params=params, extra=extra, **options)
+    if return_confidence:
+      conf = spec.confidence(patches, extra, out[0], out[1], host_options)
+      return (*out, np.asarray(conf) if host_patches else conf)
+    return out
 
   n_dev = jax.local_device_count()
   chunk = min(int(chunk_size), -(-m // n_dev) * n_dev)  # a multiple of the devices: shardable
   show = bool(progress) or (progress is None and -(-m // chunk) > 4)
-  frames, valid = map_chunks(run, m, chunk, pad=not host, progress=show,
-                             desc=f"{method} frames")
+  out = map_chunks(run, m, chunk, pad=not host, progress=show, desc=f"{method} frames")
   if not host:
-    return frames, valid
-  frames, valid = _in_callers_order(visit, frames, valid)
-  return jnp.asarray(frames), jnp.asarray(valid)
+    return out
+  back = np.empty_like(visit)
+  back[visit] = np.arange(m)
+  return tuple(jnp.asarray(np.asarray(a)[back]) for a in out)
 
 
 def _in_callers_order(order: np.ndarray, frames: Any, valid: Any) -> tuple[np.ndarray, np.ndarray]:

@@ -4,13 +4,14 @@ Reads any cloud or mesh `lrf_jax.io.read_cloud` reads (PLY, PCD, XYZ/TXT(.gz), N
 keypoints (N seeded random points, all points, ISS keypoints, or with --voxel-mr one point per
 voxel of S mr; --voxel-mr and --keypoints exclude each other), computes their frames (and
 optionally a descriptor) and writes an .npz with `keypoints` (indices), `positions`,
-`frames` (m, 3, 3, rows x, y, z), `valid` (m,), `radius`, `mr`, `method`, `weights` and
-`descriptors` when asked; `--png` draws the frames on the cloud. With `--pair B --gt T` (T the
+`frames` (m, 3, 3, rows x, y, z), `valid` (m,), `radius`, `mr`, `method`, `weights`,
+`confidence` (m,) for a method that defines one (lrf_net_plus: how sure each z sign is, in
+[0, 1], `compute_frames(..., return_confidence=True)`) and `descriptors` when asked; `--png` draws the frames on the cloud. With `--pair B --gt T` (T the
 4x4 ground truth mapping the cloud onto B: a text file as `lrf_jax.io.read_xf` reads, or a
 (4, 4) .npy) the keypoints are drawn among the points whose image under T has a point of B
 within 0.5 mr, their frames are also computed on B at the corresponding points (same radius),
-the .npz also holds `pair_keypoints`, `pair_frames`, `pair_valid`, `meancos` (per keypoint) and
-`gt`, the mean MeanCos is printed, and `--png` draws the repeatability figure
+the .npz also holds `pair_keypoints`, `pair_frames`, `pair_valid`, `pair_confidence` (where
+`confidence` is), `meancos` (per keypoint) and `gt`, the mean MeanCos is printed, and `--png` draws the repeatability figure
 (`lrf_jax.plot.repeatability`). `--out` gets the suffix .npz
 when it has none (the path printed is the one written). Outputs are written atomically (a
 failed write leaves the previous file) and may not be the input file; every bad argument or
@@ -44,7 +45,13 @@ def build_parser() -> argparse.ArgumentParser:
                                "--pair and --gt, also their repeatability on a second scan.",
                                formatter_class=DefaultsHelpFormatter)
   ap.add_argument("cloud", help="PLY, PCD, XYZ/TXT(.gz) or NPY file")
-  ap.add_argument("--out", required=True, help="the .npz to write")
+  ap.add_argument("--out", required=True,
+                  help="the .npz to write: keypoints, positions, frames (m, 3, 3; rows x, y, "
+                       "z), valid, radius, mr, method, weights; confidence (m,) in [0, 1] for "
+                       "methods that define one (lrf_net_plus: how sure each z sign is; 0: a "
+                       "guess, e.g. a flat patch without --viewpoint); descriptors with "
+                       "--descriptor; with --pair also pair_keypoints, pair_frames, pair_valid, "
+                       "pair_confidence, meancos, gt")
   ap.add_argument("--keypoints", default=None,
                   help="N seeded random points, 'all', or 'iss' (ISS keypoints); none given: "
                        "1000")
@@ -232,19 +239,26 @@ def _frames_and_outputs(args: argparse.Namespace) -> tuple[dict, object, object]
     kp = select_keypoints(cloud.points, how, voxel, args.seed, mr)
   radius = args.radius_mr * mr
   spec = lrf_jax.METHODS[args.method]
-  frames, valid = lrf_jax.compute_frames(cloud, kp, radius, args.method, seed=args.seed,
-                                         viewpoint=args.viewpoint, progress=len(kp) > 20000)
+  conf = spec.confidence is not None
+  frames, valid, *confidence = lrf_jax.compute_frames(
+      cloud, kp, radius, args.method, seed=args.seed, viewpoint=args.viewpoint,
+      progress=len(kp) > 20000, return_confidence=conf)
   out = dict(keypoints=kp, positions=cloud.points[kp], frames=np.asarray(frames),
              valid=np.asarray(valid), radius=radius, mr=mr, method=args.method,
              weights=spec.weights if spec.needs_params else "")
+  if conf:
+    out["confidence"] = np.asarray(confidence[0])
   if args.descriptor:
     from lrf_jax.descriptors import compute_descriptors
     desc, _ = compute_descriptors(cloud.points, kp, radius, frames, valid, args.descriptor,
                                   faces=cloud.faces, seed=args.seed)
     out["descriptors"] = np.asarray(desc)
   if other is not None:
-    fb, vb = lrf_jax.compute_frames(other, kp_b, radius, args.method, seed=args.seed,
-                                    viewpoint=args.pair_viewpoint, progress=len(kp) > 20000)
+    fb, vb, *conf_b = lrf_jax.compute_frames(
+        other, kp_b, radius, args.method, seed=args.seed, viewpoint=args.pair_viewpoint,
+        progress=len(kp) > 20000, return_confidence=conf)
+    if conf:
+      out["pair_confidence"] = np.asarray(conf_b[0])
     out.update(pair_keypoints=kp_b, pair_frames=np.asarray(fb), pair_valid=np.asarray(vb),
                gt=gt, meancos=np.asarray(lrf_jax.meancos(frames, fb, gt, valid, vb)))
   return out, cloud, other

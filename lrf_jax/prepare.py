@@ -28,8 +28,8 @@ def method_normals(spec: MethodSpec, points: np.ndarray, radius: float, *,
   * a viewpoint-aware method (`uses_viewpoint`, lrf_net_plus) orients its z by the viewpoint
     when there is one; without one it reads the caller's normals, else, on a mesh, normals
     estimated and oriented by the faces' winding; a cloud without either gets None (its hook
-    then falls back to the sign over the whole support: a cloud's propagated normals have no
-    reliable outside);
+    then orients normals from the points itself, `normals.voted_normals`: propagation alone has
+    no reliable outside on a cloud, the per-component vote gives it one);
   * a hook with `needs_normals` (the normal-based methods, GFrames) gets the caller's normals, else
     `estimate_normals` (PCA over `NORMAL_RADIUS_RATIO` · r, oriented by the faces, else towards
     the viewpoint, else by propagation).
@@ -64,7 +64,7 @@ def method_normals(spec: MethodSpec, points: np.ndarray, radius: float, *,
 
 def prepare_extra(spec: MethodSpec, points: np.ndarray, keypoints: np.ndarray, patches: Any, *,
                   radius: float, faces: np.ndarray | None = None, normals: NormalsArg = None,
-                  viewpoint: np.ndarray | None = None) -> Any:
+                  viewpoint: np.ndarray | None = None, oriented: bool = True) -> Any:
   """What `spec.prepare` returns for these keypoints' patches (None without a hook).
 
   Args:
@@ -76,6 +76,8 @@ def prepare_extra(spec: MethodSpec, points: np.ndarray, keypoints: np.ndarray, p
     faces: optional (f, 3) triangles.
     normals: the caller's normals, a thunk returning them, or None (see `method_normals`).
     viewpoint: optional (3,) sensor position (viewpoint-aware methods read it themselves).
+    oriented: for viewpoint-aware methods, whether their frames will read an orientation at all
+      (the method's `oriented_sign` option); False spares orienting the normals of a bare cloud.
 
   Returns:
     An instance of `spec.extra`, or None.
@@ -83,5 +85,5 @@ def prepare_extra(spec: MethodSpec, points: np.ndarray, keypoints: np.ndarray, p
   if spec.prepare is None:
     return None
   nrm = method_normals(spec, points, radius, faces=faces, normals=normals, viewpoint=viewpoint)
-  vp = {"viewpoint": viewpoint} if spec.uses_viewpoint else {}
+  vp = {"viewpoint": viewpoint, "oriented": bool(oriented)} if spec.uses_viewpoint else {}
   return spec.prepare(points, keypoints, patches, faces=faces, normals=nrm, radius=radius, **vp)

@@ -23,8 +23,11 @@ def test_writes_frames_npz_and_png(demo_ply, tmp_path):
                "--descriptor", "toldi"]) == 0
   z = np.load(out)
   assert set(z.files) >= {"keypoints", "positions", "frames", "valid", "radius", "mr", "method",
-                          "weights", "descriptors"}
+                          "weights", "descriptors", "confidence"}
   m = len(z["keypoints"])
+  conf = z["confidence"]  # lrf_net_plus's sign confidence, 0 where the frame is invalid
+  assert conf.shape == (m,) and (conf >= 0).all() and (conf <= 1).all()
+  assert (conf[~z["valid"]] == 0).all()
   assert m == 200 and z["frames"].shape == (m, 3, 3) and z["valid"].shape == (m,)
   np.testing.assert_allclose(z["positions"], pair.model_points[z["keypoints"]])
   assert str(z["method"]) == "lrf_net_plus" and str(z["weights"]) == "lrf_net_plus"
@@ -99,6 +102,7 @@ def test_pair_gives_meancos_and_the_repeatability_figure(demo_scans, tmp_path, c
   z = np.load(out)
   kp, kb = z["keypoints"], z["pair_keypoints"]
   assert len(kp) == len(kb) == 150 and z["meancos"].shape == (150,)
+  assert z["confidence"].shape == z["pair_confidence"].shape == (150,)
   # the corresponding points are where the ground truth puts the keypoints (within 0.5 mr)
   moved = datasets.transform_points(pair.transform, pair.model_points[kp])
   assert np.linalg.norm(moved - pair.scene_points[kb], axis=1).max() <= 0.5 * float(z["mr"])
@@ -128,3 +132,4 @@ def test_pair_and_gt_go_together(demo_scans, tmp_path, capsys):
 def test_help_shows_the_defaults():
   text = " ".join(build_parser().format_help().split())
   assert "(default: 15.0)" in text and "(default: lrf_net_plus)" in text
+  assert "confidence (m,) in [0, 1]" in text  # the .npz field is documented

@@ -297,14 +297,17 @@ def test_lrf_net_plus_viewpoint_sign():
 
 
 def test_lrf_net_plus_equivariant_and_ball_sign_rule(bunny):
-  """lrf_net_plus: rotation equivariant; z oriented so that Σ (p - q_i)·z >= 0 over the patch."""
+  """lrf_net_plus: rotation equivariant (z from the points alone by default on a cloud); with
+  oriented_sign=False z is oriented so that Σ (p - q_i)·z >= 0 over the patch."""
   pts, kp, r, _ = bunny
   rot = random_rotation(11)
-  f, v = lrf_jax.compute_frames(pts, kp, r, "lrf_net_plus", params=PARAMS)
-  g, w = lrf_jax.compute_frames(pts @ rot.T - 2.0, kp, r, "lrf_net_plus", params=PARAMS)
-  f, v, g, w = map(np.asarray, (f, v, g, w))
-  assert equivariance_deficit(f, g, rot, v, w).mean() < 1e-4
-  assert_frames_orthonormal(f, v)
+  for opts in ({}, {"oriented_sign": False}):
+    f, v = lrf_jax.compute_frames(pts, kp, r, "lrf_net_plus", params=PARAMS, **opts)
+    g, w = lrf_jax.compute_frames(pts @ rot.T - 2.0, kp, r, "lrf_net_plus", params=PARAMS,
+                                  **opts)
+    f, v, g, w = map(np.asarray, (f, v, g, w))
+    assert equivariance_deficit(f, g, rot, v, w).mean() < 1e-4
+    assert_frames_orthonormal(f, v)
   p = build_patches(pts, kp, r, lrf_jax.METHODS["lrf_net_plus"].default_k)
   for n in np.flatnonzero(v):
     off = p.offsets[n][p.mask[n]]
@@ -374,7 +377,18 @@ def test_prepare_view_precedence(br_bunny):
   want = np.stack([np.nansum(est[i[m]], 0) for i, m in zip(patches.indices, near)])
   np.testing.assert_allclose(prepare_view(points, kp, patches, faces=faces, radius=r).view,
                              want, rtol=1e-5, atol=1e-4)
-  assert not prepare_view(points, kp, patches, radius=r).view.any()  # nothing: ball sign
+  # Nothing but the points: normals oriented from the cloud (`voted_normals`), summed over the z
+  # support where the vote is trusted, else zero (the ball sign).
+  from lrf_jax.frames.lrf_net_plus import MIN_VOTE_TRUST
+  from lrf_jax.normals import voted_normals
+  alone = prepare_view(points, kp, patches, radius=r)
+  voted, trust = voted_normals(points, NORMAL_RADIUS_RATIO * r, r)
+  want = np.stack([np.nansum(voted[i[m]], 0) for i, m in zip(patches.indices, near)])
+  ok = alone.trust >= MIN_VOTE_TRUST
+  assert ok.mean() > 0.9 and (alone.trust <= 1).all()
+  np.testing.assert_allclose(alone.view[ok], want[ok], rtol=1e-5, atol=1e-4)
+  assert not alone.view[~ok].any() and not alone.trust[~ok].any()
+  assert not prepare_view(points, kp, None).view.any()  # no patches: the ball sign
   f, v = lrf_jax.compute_frames(points, kp, r, "lrf_net_plus", params=PARAMS, faces=faces)
   assert (np.einsum("nc,nc->n", np.asarray(f)[:, 2], want) >= 0).all()
 
@@ -491,12 +505,16 @@ def test_numpy_weight_table_equals_the_jitted_one():
 @pytest.mark.parametrize("method,options", [
     ("lrf_net", {}), ("lrf_net", {"x_mode": "softmax"}), ("lrf_net_plus", {}),
     ("lrf_net_plus", {"density": False, "oriented_sign": False}), ("uniform", {}),
-    ("uniform", {"z_sign": "ball"})])
+    ("uniform", {"z_sign": "ball"}), ("lrf_net_plus", {"points_only": True})])
 def test_host_patch_kernel_gives_the_jitted_frames(method, options):
   # The CPU default of the learned methods (numba, float64) against their jitted float32
   # function on the same patches: the same validity, axes equal to float32 rounding.
+  # "points_only": lrf_net_plus without a viewpoint (z oriented from the points alone).
   pts, kp, r = _noisy_height_field()
-  view = {"viewpoint": np.array([20.0, 20.0, 40.0])} if method == "lrf_net_plus" else {}
+  options = dict(options)
+  alone = options.pop("points_only", False)
+  view = ({"viewpoint": np.array([20.0, 20.0, 40.0])}
+          if method == "lrf_net_plus" and not alone else {})
   fj, vj = lrf_jax.compute_frames(pts, kp, r, method, kernel="jit", **options, **view)
   fh, vh = lrf_jax.compute_frames(pts, kp, r, method, kernel="host", **options, **view)
   fj, vj, fh, vh = map(np.asarray, (fj, vj, fh, vh))

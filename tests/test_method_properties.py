@@ -233,7 +233,7 @@ def test_normal_methods_get_the_same_normals_on_every_path():
     b = method_normals(spec, points, radius, faces=faces, normals=lambda: est)
     np.testing.assert_array_equal(a, b)
   plus = lrf_jax.METHODS["lrf_net_plus"]
-  assert method_normals(plus, points, radius) is None  # a cloud: the ball sign
+  assert method_normals(plus, points, radius) is None  # a cloud: prepare_view orients it
   assert method_normals(plus, points, radius, faces=faces, viewpoint=np.zeros(3)) is None
   assert method_normals(lrf_jax.METHODS["rops"], points, radius, faces=faces) is None
 

@@ -13,9 +13,10 @@ Real data is found under an explicit root, else $LRF_DATA, else `<repo>/data`
 from lrf_jax.datasets.bologna import (BR_MODELS, BR_NOISE_LEVELS, BR_SCENE_MODELS,
                                       br_ground_truth, load_br, load_br_model, load_br_pair)
 from lrf_jax.datasets.cache import Mesh, cache_info, clear_cache, load_mesh
-from lrf_jax.datasets.nuisances import (Decimation, add_gaussian_noise, decimate,
-                                        rotate_about_axis, rotation_matrix, with_decimation,
-                                        with_noise, with_rotation)
+from lrf_jax.datasets.nuisances import (Decimation, add_gaussian_noise, decimate, points_only,
+                                        random_rigid_motion, rotate_about_axis, rotation_matrix,
+                                        with_decimation, with_noise, with_random_motion,
+                                        with_rotation)
 from lrf_jax.datasets.pair import Pair, repeatability_keypoints, transform_points
 from lrf_jax.resolution import mesh_resolution, unique_edges
 from lrf_jax.datasets.root import (DATASETS, ENV_VAR, DataNotFoundError, dataset_dir,
@@ -68,6 +69,8 @@ __all__ = [
     "make_demo_mesh",
     "make_demo_pair",
     "mesh_resolution",
+    "points_only",
+    "random_rigid_motion",
     "read_pairs_tsv",
     "read_pseudo_gt",
     "repeatability_keypoints",
@@ -78,5 +81,6 @@ __all__ = [
     "uwaor_ground_truth",
     "with_decimation",
     "with_noise",
+    "with_random_motion",
     "with_rotation",
 ]

@@ -189,3 +189,61 @@ def with_rotation(pair: Pair, angle_deg: float, axis: str | np.ndarray = "z") ->
                       name=f"{pair.name}+rot{angle_deg:g}{axis if isinstance(axis, str) else ''}",
                       scene_points=rotated, transform=t @ pair.transform,
                       meta={"rotation_deg": angle_deg})
+
+
+def random_rigid_motion(seed: Seed, scale: float = 1.0) -> np.ndarray:
+  """A seeded random rigid motion: a rotation uniform on SO(3) (a normalised Gaussian
+  quaternion) and a translation with per-axis sigma `scale`.
+
+  Args:
+    seed: int seed or Generator.
+    scale: standard deviation of each translation component (cloud units).
+
+  Returns:
+    (4, 4) float64 [R t; 0 0 0 1], det R = +1.
+  """
+  rng = _rng(seed)
+  q = rng.normal(size=4)
+  w, x, y, z = q / np.linalg.norm(q)
+  t = np.eye(4)
+  t[:3, :3] = [[1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+               [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+               [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)]]
+  t[:3, 3] = rng.normal(size=3) * scale
+  return t
+
+
+def with_random_motion(pair: Pair, seed: Seed) -> Pair:
+  """The pair with its model and its scene each moved by its own seeded random rigid motion
+  (`random_rigid_motion`, translations on the scale of the cloud's extent), so that nothing can
+  lean on a sensor position hidden in a file's origin or axes (range scans are stored in scanner
+  coordinates). Viewpoints move with their clouds; the ground truth becomes
+  T_scene · transform · T_model⁻¹; mr, faces and correspondences are unchanged.
+
+  Args:
+    pair: a pair.
+    seed: int seed or Generator (two motions are drawn from it: model, then scene).
+
+  Returns:
+    A new Pair; meta records the two motions under "motion".
+  """
+  rng = _rng(seed)
+  extent = float(np.ptp(pair.model_points, axis=0).max()) if len(pair.model_points) else 1.0
+  tm, ts = random_rigid_motion(rng, extent), random_rigid_motion(rng, extent)
+
+  def moved(t, vp):
+    return None if vp is None else transform_points(t, vp[None])[0]
+
+  return pair.replace(model_points=transform_points(tm, pair.model_points),
+                      scene_points=transform_points(ts, pair.scene_points),
+                      transform=ts @ pair.transform @ np.linalg.inv(tm),
+                      model_viewpoint=moved(tm, pair.model_viewpoint),
+                      scene_viewpoint=moved(ts, pair.scene_viewpoint),
+                      meta={"motion": {"model": tm.tolist(), "scene": ts.tolist()}})
+
+
+def points_only(pair: Pair) -> Pair:
+  """The pair as bare clouds: faces and sensor positions dropped (mr, the ground truth and the
+  correspondences kept), what a user holding only the points has."""
+  return pair.replace(model_faces=None, scene_faces=None, model_viewpoint=None,
+                      scene_viewpoint=None, meta={"points_only": True})

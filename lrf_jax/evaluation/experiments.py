@@ -8,6 +8,7 @@ absent is skipped with a message, never silently.
 from __future__ import annotations
 
 import dataclasses
+import zlib
 from typing import Any, Callable, Iterable, Iterator
 
 from lrf_jax import datasets
@@ -20,9 +21,18 @@ DECIMATIONS = (1 / 2, 1 / 4, 1 / 8, 1 / 16)
 RADII_MR = (5.0, 7.5, 10.0, 12.5, 15.0, 20.0, 25.0)
 ROTATIONS_DEG = (30.0, 60.0, 90.0, 120.0)
 EXPERIMENTS = ("repeatability", "noise", "decimation", "radius", "rotation", "ablation",
-               "plus_ablation")
+               "plus_ablation", "points_only")
 # Experiments run on the named datasets as they are (the others on their noise-free versions).
-AS_NAMED = ("repeatability", "plus_ablation")
+AS_NAMED = ("repeatability", "plus_ablation", "points_only")
+# The points_only experiment: its datasets when none are named, the pairs per dataset when no
+# cap is given (a run of a few minutes on 2 CPU cores), the hand-crafted methods it runs when
+# none are named, and the labels of lrf_net_plus's two columns.
+POINTS_ONLY_DATASETS = ("UWA3M", "UWAOR", "bunny", "3DMatch")
+POINTS_ONLY_PAIRS = 2
+POINTS_ONLY_HANDCRAFTED = ("toldi", "shot", "flare", "board")
+WITH_VIEWPOINT = "lrf_net_plus (viewpoint)"
+POINTS_ALONE = "lrf_net_plus (points only)"
+BALL_SIGN = "lrf_net_plus (points only, ball sign)"
 
 
 def plus_ablation_runs() -> list[MethodRun]:
@@ -42,6 +52,61 @@ def plus_ablation_runs() -> list[MethodRun]:
           MethodRun("plus: linear x, LRF-Net weights", "lrf_net_plus", **paper_x),
           MethodRun("plus: K = 256", "lrf_net_plus", k=256),
           MethodRun("lrf_net_plus (shipped)", "lrf_net_plus")]
+
+
+def points_only_runs(methods: Iterable[MethodRun] = ()) -> list[MethodRun]:
+  """The columns of the points_only experiment: lrf_net_plus with the sensor position (and the
+  faces, where the dataset has them), lrf_net_plus from the points alone, the same with the
+  sign of the patch alone (`oriented_sign=False`: `lrf_net.ball_sign`, the rule used before z
+  was oriented from the whole cloud), and the hand-crafted methods among `methods` that take a
+  bare cloud (`POINTS_ONLY_HANDCRAFTED` when `methods` names none), from the points alone."""
+  from lrf_jax.frames import METHODS
+  plus = [r for r in methods if r.method == "lrf_net_plus"]
+  base = plus[0] if plus else MethodRun("lrf_net_plus", "lrf_net_plus")
+  hand = [r for r in methods if not METHODS[r.method].needs_params
+          and not METHODS[r.method].needs_mesh]
+  if not hand:
+    hand = [MethodRun(m, m) for m in POINTS_ONLY_HANDCRAFTED]
+  ball = dataclasses.replace(base, label=BALL_SIGN,
+                             options=tuple(dict(base.options, oriented_sign=False).items()))
+  return ([dataclasses.replace(base, label=WITH_VIEWPOINT),
+           dataclasses.replace(base, label=POINTS_ALONE), ball]
+          + [dataclasses.replace(r, label=f"{r.label} (points only)") for r in hand])
+
+
+def motion_seed(seed: int, pair_name: str) -> int:
+  """The seed of a pair's random rigid motions: the run's seed mixed with the pair's name (the
+  same pair moves the same way in every run with that seed)."""
+  return (zlib.crc32(pair_name.encode()) ^ (int(seed) * 0x9E3779B1)) & 0xFFFFFFFF
+
+
+def points_only_pair(pair: Pair, runs: list[MethodRun], *, setting: dict[str, Any],
+                     opts: EvalOptions, cache: PatchCache) -> list[dict[str, Any]]:
+  """Records of one pair of the points_only experiment (beyond the paper).
+
+  Both clouds are first moved by their own seeded random rigid motions
+  (`datasets.with_random_motion`, seed `motion_seed`), so that no rule can lean on a sensor
+  position hidden in the files' coordinates. The first run (`WITH_VIEWPOINT`) sees the moved
+  pair as the dataset gives it (sensor positions moved with their clouds, faces where there
+  are); every other run sees the bare clouds (`datasets.points_only`: no faces, no sensor
+  position). A pair without a sensor position on either side has no viewpoint column (a record
+  with meancos None). Records carry MeanCos and z_flip (`repeatability.z_flip_rate`).
+  """
+  moved = datasets.with_random_motion(pair, motion_seed(opts.seed, pair.name))
+  common = dict(experiment="points_only", n_keypoints=opts.n_keypoints, seed=opts.seed,
+                radius_mr=opts.radius_mr, cache=cache, max_neighbors=opts.max_neighbors)
+  setting = dict(setting, motion_seed=motion_seed(opts.seed, pair.name))
+  records = []
+  view_run, rest = runs[0], runs[1:]
+  if moved.model_viewpoint is None and moved.scene_viewpoint is None:
+    records.append({"experiment": "points_only", "dataset": pair.dataset, "pair": pair.name,
+                    "setting": setting, "method": view_run.label, "meancos": None,
+                    "frac_above_0.97": None, "z_flip": None, "n_keypoints": 0, "n_valid": 0,
+                    "note": "n/a: the pair records no sensor position"})
+  else:
+    records += evaluate_pair(moved, [view_run], setting=setting, **common)
+  records += evaluate_pair(datasets.points_only(moved), rest, setting=setting, **common)
+  return records
 
 
 ABLATION_Z = ("Normal", "DR")
@@ -99,6 +164,7 @@ DATASETS: dict[str, tuple[Callable[..., list[Pair]], dict[str, Any]]] = {
                     {"model_stand_in": "UWAOR model"}),
     "UWAOR": (lambda root, seed: datasets.load_uwaor(root, scene="rs1"), {"scene": "rs1"}),
     "bunny": (lambda root, seed: datasets.load_bunny_pairs(root), {}),
+    "3DMatch": (lambda root, seed: datasets.load_threedmatch_scenes(root), {}),
     "demo": (lambda root, seed: datasets.load_demo(4, seed=seed, noise_mr=0.3, partial=True),
              {"noise_mr": 0.3, "synthetic": True}),
 }
@@ -113,7 +179,8 @@ CLEAN = {
 
 
 FOLDERS = {"BR": "bologna_retrieval", "UWA3M": "uwa_3d_modeling_views",
-           "UWAOR": "uwa_object_recognition", "bunny": "stanford_bunny_scans"}
+           "UWAOR": "uwa_object_recognition", "bunny": "stanford_bunny_scans",
+           "3DMatch": "threedmatch_scenes"}
 
 
 def available(names: Iterable[str], root: str | None, table: dict, *,
@@ -132,7 +199,10 @@ def available(names: Iterable[str], root: str | None, table: dict, *,
       ok.append(name)
       continue
     try:
-      datasets.find_data_root(root, FOLDERS[base])
+      if base == "3DMatch":  # its own finder (the folder holds no other data set's layout)
+        datasets.threedmatch.threedmatch_dir(root)
+      else:
+        datasets.find_data_root(root, FOLDERS[base])
       ok.append(name)
     except datasets.DataNotFoundError as e:
       if not full:
@@ -162,6 +232,12 @@ def run_experiment(name: str, dataset_names: list[str], methods: list[MethodRun]
   """Yield the records of one experiment over the given datasets (see module doc)."""
   common = dict(n_keypoints=opts.n_keypoints, seed=opts.seed, cache=cache,
                 max_neighbors=opts.max_neighbors)
+  if name == "points_only":
+    runs = points_only_runs(methods)
+    for ds, setting, pair in iter_pairs(dataset_names, opts):
+      yield from _tagged(points_only_pair(pair, runs, setting=setting, opts=opts, cache=cache),
+                         ds)
+    return
   if name in AS_NAMED:
     runs = methods if name == "repeatability" else plus_ablation_runs()
     for ds, setting, pair in iter_pairs(dataset_names, opts):

@@ -140,6 +140,24 @@ def correspondences(pair: Pair, n: int, seed: int, *, scene_first: bool = False,
   return nearest[chosen].astype(np.int64), chosen.astype(np.int64)
 
 
+def z_flip_rate(frames_a: Any, frames_b: Any, transform: np.ndarray, valid_a: Any,
+                valid_b: Any) -> float:
+  """The share of keypoints valid on both sides whose z axes, the scene's mapped back by the
+  ground-truth rotation, point to opposite sides (negative cosine): how often the z sign is not
+  repeatable. NaN when no keypoint is valid on both sides.
+
+  Args:
+    frames_a: (N, 3, 3) model frames (rows x, y, z). frames_b: (N, 3, 3) scene frames.
+    transform: (4, 4) ground truth model -> scene (or its (3, 3) rotation).
+    valid_a, valid_b: (N,) bool.
+  """
+  rot = np.asarray(transform, np.float64)[:3, :3]
+  cos_z = np.einsum("nc,nc->n", np.asarray(frames_a, np.float64)[:, 2],
+                    np.asarray(frames_b, np.float64)[:, 2] @ rot)
+  ok = np.asarray(valid_a, bool) & np.asarray(valid_b, bool)
+  return float(np.sum((cos_z < 0) & ok) / ok.sum()) if ok.any() else float("nan")
+
+
 def evaluate_pair(pair: Pair, methods: Iterable[MethodRun], *, experiment: str,
                   setting: dict[str, Any] | None = None, n_keypoints: int = 1000,
                   seed: int = 0, radius_mr: float = 15.0, scene_first: bool = False,
@@ -170,7 +188,7 @@ def evaluate_pair(pair: Pair, methods: Iterable[MethodRun], *, experiment: str,
 
   Returns:
     One record per method with keys experiment, dataset, pair, method, setting, meancos,
-    frac_above_0.97, n_keypoints, n_valid, radius, kernel, seconds (search, normals and frames
+    frac_above_0.97, n_keypoints, n_valid, z_flip (`z_flip_rate`), radius, kernel, seconds (search, normals and frames
     of both sides, compilation included); meancos is None (and "note" says why) for a
     method the pair cannot feed (a mesh method on a cloud).
   """
@@ -238,6 +256,7 @@ def evaluate_pair(pair: Pair, methods: Iterable[MethodRun], *, experiment: str,
     rec.update(meancos=float(mc.mean()) if mc.size else float("nan"),
                **{"frac_above_0.97": float((mc > 0.97).mean()) if mc.size else float("nan")},
                n_keypoints=int(mc.size), n_valid=int(np.sum(np.asarray(vm) & np.asarray(vs))),
+               z_flip=z_flip_rate(fm, fs, pair.transform, vm, vs),
                seconds=time.perf_counter() - t0)
     if keep_frames:
       rec["_frames"] = (np.asarray(fm), np.asarray(fs), mc, mi, si)

@@ -21,6 +21,10 @@ PAPER_STATED = {
     "radius": "LRF-Net stable on BR; best on UWA3M/UWAOR above 7.5 mr (figure only).",
     "rotation": "LRF-Net, Normal+Max and Normal+Sum2 stable under 30-120 deg about z (figure).",
     "plus_ablation": "(not in the paper) lrf_net_plus, beyond the paper: each switch on and off.",
+    "points_only": "(not in the paper) every cloud moved by a seeded random rigid motion; "
+                   "lrf_net_plus with the sensor position vs from the points alone. In "
+                   "parentheses the z flip rate: the share of keypoints valid on both sides "
+                   "whose z axes, mapped by the ground truth, have a negative cosine.",
 }
 PAPER_ABLATION = {  # MeanCos, z-axis x x-axis (tables analyse_BR / _UWA3M / _UWAOR)
     "BR": {"Normal": {"Sum1": 0.999, "Sum2": 0.999, "DR": 0.775, "Max": 0.720},
@@ -33,14 +37,15 @@ PAPER_ABLATION = {  # MeanCos, z-axis x x-axis (tables analyse_BR / _UWA3M / _UW
 
 
 def _setting_key(setting: dict[str, Any]) -> str:
-  keys = [k for k in setting if k not in ("synthetic", "model_stand_in", "scene")]
+  keys = [k for k in setting if k not in ("synthetic", "model_stand_in", "scene", "motion_seed")]
   return ", ".join(f"{k}={setting[k]:g}" if isinstance(setting[k], float) else
                    f"{k}={setting[k]}" for k in keys) or "-"
 
 
 def summarise(records: Iterable[dict[str, Any]]) -> dict[tuple, dict[str, dict[str, float]]]:
   """{(experiment, dataset, setting): {method: {"meancos", "frac_above_0.97", "n_pairs",
-  "n_valid_frac"}}}: per-pair values averaged per dataset (the paper's averaging)."""
+  "n_valid_frac", "z_flip"}}}: per-pair values averaged per dataset (the paper's averaging);
+  z_flip is None for records without it."""
   groups: dict[tuple, dict[str, list[dict]]] = defaultdict(lambda: defaultdict(list))
   for r in records:
     groups[(r["experiment"], r["dataset"], _setting_key(r["setting"]))][r["method"]].append(r)
@@ -53,12 +58,14 @@ def summarise(records: Iterable[dict[str, Any]]) -> dict[tuple, dict[str, dict[s
         out[key][method] = {"meancos": None, "n_pairs": len(rs)}
         continue
       ok = [r for r in rs if r["meancos"] is not None]
+      flips = [r["z_flip"] for r in ok if r.get("z_flip") is not None]
       out[key][method] = {
           "meancos": float(np.mean(vals)),
           "frac_above_0.97": float(np.mean([r["frac_above_0.97"] for r in ok])),
           "n_pairs": len(ok),
           "n_valid_frac": float(np.sum([r["n_valid"] for r in ok]) /
                                 max(1, np.sum([r["n_keypoints"] for r in ok]))),
+          "z_flip": float(np.nanmean(flips)) if flips else None,
       }
   return out
 
@@ -78,6 +85,11 @@ def markdown_report(records: list[dict[str, Any]], *, title: str = "lrf_jax eval
     lines += [f"## {exp}", ""]
     if exp in PAPER_STATED:
       lines += [f"Paper (stated): {PAPER_STATED[exp]}", ""]
+    if exp == "points_only":  # its own columns only
+      methods = list(dict.fromkeys(r["method"] for r in records if r["experiment"] == exp))
+    else:
+      methods = list(dict.fromkeys(r["method"] for r in records
+                                   if r["experiment"] != "points_only"))
     lines.append("| dataset | setting | pairs | " + " | ".join(methods) + " |")
     lines.append("|---|---|---:|" + "---:|" * len(methods))
     for (e, ds, setting), by_method in summary.items():
@@ -92,6 +104,10 @@ def markdown_report(records: list[dict[str, Any]], *, title: str = "lrf_jax eval
           cells.append("")
         elif v["meancos"] is None:
           cells.append("n/a")
+        elif exp == "points_only":
+          flip = "-" if v.get("z_flip") is None else f"{v['z_flip']:.1%}"
+          txt = f"{v['meancos']:.3f} ({flip})"
+          cells.append(f"**{txt}**" if v["meancos"] == best else txt)
         else:
           txt = f"{v['meancos']:.3f} ({v['frac_above_0.97']:.2f})"
           cells.append(f"**{txt}**" if v["meancos"] == best else txt)
@@ -114,8 +130,8 @@ def markdown_report(records: list[dict[str, Any]], *, title: str = "lrf_jax eval
         lines.append(f"| {ds} | {z} | " + " | ".join(cells) + " |")
     lines.append("")
   lines += ["MeanCos = (cos x + cos z) / 2 averaged over keypoints per pair, then over pairs; "
-            "invalid frames count as 0; in parentheses the fraction of keypoints above 0.97. "
-            "Bold: best in the row.", ""]
+            "invalid frames count as 0; in parentheses the fraction of keypoints above 0.97 "
+            "(points_only: the z flip rate). Bold: best in the row.", ""]
   return "\n".join(lines)
 
 
@@ -165,23 +181,31 @@ def plot_figures(records: list[dict[str, Any]], out: Path) -> list[Path]:
   style = method_styles(methods)
   written = []
   for bar_exp, title in (("repeatability", "Repeatability (r = 15 mr)"),
-                         ("plus_ablation", "lrf_net_plus: each switch (r = 15 mr)")):
+                         ("plus_ablation", "lrf_net_plus: each switch (r = 15 mr)"),
+                         ("points_only", "From the points alone (clouds moved at random)")):
     rep = {k: v for k, v in summary.items() if k[0] == bar_exp}
     if not rep:
       continue
     exp_methods = list(dict.fromkeys(r["method"] for r in records if r["experiment"] == bar_exp))
     keys = list(rep)
-    fig, ax = plt.subplots(figsize=(max(6, 1.4 * len(keys)) + 2.5, 4))
+    panels = [("meancos", "MeanCos (1: identical frames)", (0, 1))]
+    if bar_exp == "points_only":
+      panels.append(("z_flip", "z flip rate (0: every z repeatable)", None))
+    fig, axes = plt.subplots(len(panels), 1, squeeze=False,
+                             figsize=(max(6, 1.4 * len(keys)) + 2.5, 4 * len(panels)))
     width = 0.8 / max(1, len(exp_methods))
     bar_style = method_styles(exp_methods)
-    for i, m in enumerate(exp_methods):
-      vals = [rep[k].get(m, {}).get("meancos") or 0.0 for k in keys]
-      colour, hatch = bar_style[m]
-      ax.bar(np.arange(len(keys)) + i * width, vals, width, label=m, color=colour, hatch=hatch,
-             edgecolor="0.25", linewidth=0.4)
-    ax.set_xticks(np.arange(len(keys)) + 0.4 - width / 2, [k[1] for k in keys], rotation=20)
-    ax.set(xlabel="dataset", ylabel="MeanCos (1: identical frames)", ylim=(0, 1), title=title)
-    ax.legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.01, 1.0), title="method")
+    for ax, (field, ylabel, ylim) in zip(axes[:, 0], panels):
+      for i, m in enumerate(exp_methods):
+        vals = [rep[k].get(m, {}).get(field) or 0.0 for k in keys]
+        colour, hatch = bar_style[m]
+        ax.bar(np.arange(len(keys)) + i * width, vals, width, label=m, color=colour,
+               hatch=hatch, edgecolor="0.25", linewidth=0.4)
+      ax.set_xticks(np.arange(len(keys)) + 0.4 - width / 2, [k[1] for k in keys], rotation=20)
+      ax.set(xlabel="dataset", ylabel=ylabel, title=title if field == "meancos" else None)
+      if ylim:
+        ax.set_ylim(*ylim)
+    axes[0, 0].legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.01, 1.0), title="method")
     fig.tight_layout()
     path = out / f"{bar_exp}.png"
     atomic.save_figure(fig, path, dpi=120)

@@ -22,7 +22,7 @@ from lrf_jax.evaluation import description, pose, report
 from lrf_jax.evaluation.experiments import (ABLATION_X, ABLATION_Z, AS_NAMED, CLEAN, DATASETS,
                                             DECIMATIONS, NOISE_LEVELS, RADII_MR, ROTATIONS_DEG,
                                             EvalOptions, _clean_name, _limit, iter_pairs,
-                                            plus_ablation_runs, run_experiment)
+                                            plus_ablation_runs, points_only_runs, run_experiment)
 from lrf_jax.evaluation.repeatability import (EXACT_NETWORK, MethodRun, PatchCache,
                                               paper_options)
 from lrf_jax.frames import METHODS
@@ -111,6 +111,8 @@ class EvalPlan:
     notes: lines for the report (skipped data, where parameters came from).
     cache_dir: keep neighbourhoods on disk here (None: in memory only).
     meta: extra fields for results.json's "meta".
+    methods_named: the runs were named by the caller (--methods); else the points_only
+      experiment runs its own default hand-crafted methods (`POINTS_ONLY_HANDCRAFTED`).
   """
 
   datasets: list[str]
@@ -120,6 +122,14 @@ class EvalPlan:
   notes: list[str] = dataclasses.field(default_factory=list)
   cache_dir: str | None = None
   meta: dict[str, Any] = dataclasses.field(default_factory=dict)
+  methods_named: bool = True
+
+
+def _experiment_runs(experiment: str, plan: EvalPlan) -> list[MethodRun]:
+  """The method columns `experiment` runs under `plan`."""
+  if experiment == "points_only":
+    return points_only_runs(plan.runs if plan.methods_named else ())
+  return plan.runs if experiment == "repeatability" else plus_ablation_runs()
 
 
 def count_records(experiment: str, plan: EvalPlan) -> int:
@@ -130,8 +140,8 @@ def count_records(experiment: str, plan: EvalPlan) -> int:
                 else len(pose.ESTIMATORS))
     return per_pair * sum(1 for _ in iter_pairs(plan.datasets, opts))
   if experiment in AS_NAMED:
-    runs = plan.runs if experiment == "repeatability" else plus_ablation_runs()
-    return len(runs) * sum(1 for _ in iter_pairs(plan.datasets, opts))
+    return (len(_experiment_runs(experiment, plan))
+            * sum(1 for _ in iter_pairs(plan.datasets, opts)))
   clean = sorted({_clean_name(ds) for ds in plan.datasets} - {None})
   pairs = sum(len(_limit(CLEAN[ds](opts.data_root, opts.seed), opts)) for ds in clean)
   per_pair = (len(ABLATION_Z) * len(ABLATION_X) if experiment == "ablation"
@@ -145,7 +155,10 @@ def _records(experiment: str, plan: EvalPlan, cache: PatchCache) -> Iterator[dic
     return description.run_description(plan.datasets, plan.options, cache, params=lrf_params)
   if experiment == "pose":
     return pose.run_pose(plan.datasets, plan.options, cache, params=lrf_params)
-  return run_experiment(experiment, plan.datasets, plan.runs, plan.options, cache)
+  runs = plan.runs
+  if experiment == "points_only" and not plan.methods_named:
+    runs = []
+  return run_experiment(experiment, plan.datasets, runs, plan.options, cache)
 
 
 def _clean(records: list[dict[str, Any]]) -> list[dict[str, Any]]:
@@ -191,7 +204,8 @@ def evaluate(plan: EvalPlan, out: Path, *, progress: bool = True) -> str:
   meta = dict(plan.meta, seconds=time.perf_counter() - t0,
               patch_cache={"hits": cache.hits, "misses": cache.misses})
   report.write_results(records, out, notes=plan.notes, meta=meta)
-  _learned_figures(plan, out)
+  if set(plan.experiments) - {"points_only"}:  # points_only runs its own columns only
+    _learned_figures(plan, out)
   text = report.markdown_report(records, notes=plan.notes)
   extra_md = _description_pose_outputs(other, out)
   if extra_md:

@@ -5,25 +5,38 @@ The jitted math is `lrf_net.lrf_net_frames` (with `z_sign="ball"`, `x_mode="soft
 and `area=`); this module holds the host side (numpy, outside jit) that gathers its inputs:
 
 * `prepare_view`: per keypoint, the direction z must not point away from (towards the sensor
-  of a scan, along the mesh's oriented normals, or none);
+  of a scan, along the mesh's or the caller's oriented normals, else along normals oriented from
+  the points alone, `normals.orient_by_vote`) and how far that direction's sign is trusted;
 * `patch_areas`: the surface area each neighbour stands for (barycentric vertex areas on a mesh,
   the inverse sampling density on a cloud), so that x does not depend on the sampling;
 
-and its registry entry (`SPEC`, shipped weights `lrf_net_plus`, trained with
-`configs/plus_soft.py`).
+and `sign_confidence`, the per-keypoint confidence of the z sign (`compute_frames(...,
+return_confidence=True)`), and its registry entry (`SPEC`, shipped weights `lrf_net_plus`,
+trained with `configs/plus_soft.py`).
 """
 
 from __future__ import annotations
 
 from typing import NamedTuple
 
+import jax
+import jax.numpy as jnp
 import numpy as np
 
-from lrf_jax import engine
+from lrf_jax import engine, geometry
 from lrf_jax.frames.lrf_net import (MIN_Z_NEIGHBOURS, X_EPS, lrf_net_frames,
                                    table_host_supports)
 from lrf_jax.frames.spec import KEYPOINT, SLOT, HostPatchKernel, MethodSpec
 from lrf_jax.neighborhoods import Patches
+
+
+# Below this vote margin (`normals.orient_by_vote`) a component's sign is not used and z falls
+# back to `ball_sign`: scans of objects vote decisively, indoor rooms (convex furniture and
+# concave corners cancel) do not, and there the component's sign would be a coin toss per
+# fragment (every keypoint of a pair flipped or none); benchmarks/README.md has the margins.
+MIN_VOTE_TRUST = 0.25
+# Heights below this fraction of the neighbours' distances count as flat (`sign_confidence`).
+FLAT_EPS = 1e-3
 
 
 class ViewExtra(NamedTuple):
@@ -31,14 +44,18 @@ class ViewExtra(NamedTuple):
 
   view: np.ndarray         # (N, 3) float32 direction z should not point away from (0: none)
   area: np.ndarray | None  # (N, K) float32 area per patch slot, mean 1 over a patch; 0 in padding
-  AXES = {"view": KEYPOINT, "area": SLOT}
+  # (N,) float32 in [0, 1]: how far the sign of `view` is trusted (1: a sensor position, the
+  # caller's or the mesh's oriented normals; the vote margin of `orient_by_vote` for normals
+  # oriented from the points alone; 0 where view = 0). None: 1 wherever view is non-zero.
+  trust: np.ndarray | None = None
+  AXES = {"view": KEYPOINT, "area": SLOT, "trust": KEYPOINT}
 
 
 # ------------------------------------------------------------------------------ host hooks
 
 
 def prepare_view(points, keypoints, patches, *, faces=None, normals=None, radius=None,
-                 viewpoint=None) -> ViewExtra:
+                 viewpoint=None, oriented: bool = True) -> ViewExtra:
   """`MethodSpec.prepare` hook of lrf_net_plus: its `ViewExtra`. `view` is a direction z should
   not point away from, per keypoint (all of them move with the cloud, so z stays equivariant):
 
@@ -50,24 +67,50 @@ def prepare_view(points, keypoints, patches, *, faces=None, normals=None, radius
     as FLARE does (PCL's `flipNormalTowardsNormalsMean`): a single oriented normal disagrees
     between the two sides of a BR pair on 1-7 % of keypoints at 0.5 mr noise, which flips z
     there; the whole patch is too wide for thin parts;
-  * else zeros (the z sign then comes from `ball_sign`).
+  * else (the points alone, with a radius and patches) the same sum with normals oriented from
+    the points (`normals.voted_normals`: PCA over 0.2 r, Hoppe propagation over the cloud, each
+    connected component's sign by the majority of convexity votes over r), trusted as far as
+    that vote's margin (its `trust` averaged over the z support); where that margin is below
+    `MIN_VOTE_TRUST` the view is zero;
+  * else zeros (the z sign then comes from `ball_sign`); also for the points alone when
+    `oriented` is False (the frames will not read the view: `oriented_sign=False`).
+
+  `trust` (see `ViewExtra`) is 1 for the first three and the vote margin for the fourth; 0 where
+  `view` is 0.
   """
-  from lrf_jax.normals import NORMAL_RADIUS_RATIO, estimate_normals
+  from lrf_jax.normals import NORMAL_RADIUS_RATIO, estimate_normals, voted_normals
   pts = np.asarray(points, np.float64)
   kp = np.asarray(keypoints)
+  trust = None
   if viewpoint is not None:
     view = np.asarray(viewpoint, np.float64)[None] - pts[kp]
-  elif normals is not None or (faces is not None and radius is not None):
-    nrm = (np.asarray(normals, np.float64) if normals is not None else
-           estimate_normals(pts, NORMAL_RADIUS_RATIO * float(radius), faces))
+  elif patches is not None and radius is not None and (
+      oriented or normals is not None or faces is not None):
+    if normals is not None or faces is not None:
+      nrm = (np.asarray(normals, np.float64) if normals is not None else
+             estimate_normals(pts, NORMAL_RADIUS_RATIO * float(radius), faces))
+      per_point = None
+    else:
+      nrm, per_point = voted_normals(pts, NORMAL_RADIUS_RATIO * float(radius), float(radius))
     idx = np.asarray(patches.indices)
     off = np.asarray(patches.offsets, np.float64)
     near = (idx >= 0) & (np.einsum("nkc,nkc->nk", off, off) <= (float(radius) / 3.0) ** 2)
-    view = np.where(near[..., None], np.nan_to_num(nrm[np.maximum(idx, 0)]), 0.0).sum(1)
+    near &= np.all(np.isfinite(nrm[np.maximum(idx, 0)]), axis=-1)
+    view = np.where(near[..., None], nrm[np.maximum(idx, 0)], 0.0).sum(1)
+    if per_point is not None:
+      trust = (np.where(near, per_point[np.maximum(idx, 0)], 0.0).sum(1)
+               / np.maximum(near.sum(1), 1))
+      view = np.where((trust >= MIN_VOTE_TRUST)[:, None], view, 0.0)  # else: ball_sign
+  elif normals is not None:
+    raise ValueError("prepare_view: normals need the patches and the radius")
   else:
     view = np.zeros((kp.shape[0], 3))
-  return ViewExtra(np.nan_to_num(view).astype(np.float32),
-                   patch_areas(pts, patches, faces) if patches is not None else None)
+  view = np.nan_to_num(view)
+  given = np.any(view != 0, axis=1)
+  trust = np.where(given, 1.0 if trust is None else trust, 0.0)
+  return ViewExtra(view.astype(np.float32),
+                   patch_areas(pts, patches, faces) if patches is not None else None,
+                   trust.astype(np.float32))
 
 
 AREA_NEIGHBOURS = 8
@@ -120,6 +163,62 @@ def patch_areas(points: np.ndarray, patches: Patches,
   return (a / np.where(mean > 0, mean, 1.0)).astype(np.float32)
 
 
+# ------------------------------------------------------------------------------ sign confidence
+
+
+def sign_confidence(frames: jax.Array, valid: jax.Array, patches: Patches,
+                    extra: ViewExtra | None, oriented_sign: bool = True) -> jax.Array:
+  """How sure each keypoint's z sign is, in [0, 1] (pure jnp; beyond the paper).
+
+  * z oriented by a view direction (`view_sign`; `extra.view` non-zero and `oriented_sign`):
+    trust · |cos(z, view)|: the trust of the direction's own sign (`ViewExtra.trust`: 1 for a
+    sensor position or the caller's / the mesh's oriented normals, the vote margin of
+    `normals.orient_by_vote` for normals oriented from the points alone) times how far z is
+    from the plane where the two signs tie (a grazing view or normals across an edge);
+  * z by `ball_sign` (no view direction): the patch height's share of its absolute heights,
+    |Σ_i h_i| / (Σ_i |h_i| + FLAT_EPS Σ_i |pq_i|), h_i = pq_i · z, over the real neighbours (0
+    for a flat or symmetric patch, about 1 when the whole patch lies on one side of the tangent
+    plane);
+  * 0 for an invalid frame.
+
+  Rotation and translation invariant (every term is a dot product of vectors that move with
+  the cloud). A matcher can weight correspondences by it or skip frames below a threshold.
+
+  Args:
+    frames: (N, 3, 3) frames (rows x, y, z) of these patches.
+    valid: (N,) bool.
+    patches: their `Patches`.
+    extra: their `ViewExtra` (None: the ball sign everywhere).
+    oriented_sign: the method's option of that name (False: the ball sign everywhere).
+
+  Returns:
+    (N,) float32 confidence (dimensionless).
+  """
+  def ratio(a, b):
+    return jnp.where(b > 0, a / jnp.where(b > 0, b, 1.0), 0.0)
+
+  z = jnp.asarray(frames, jnp.float32)[:, 2]
+  offsets = jnp.nan_to_num(jnp.asarray(patches.offsets, jnp.float32))
+  mask = jnp.asarray(patches.mask)
+  h = jnp.where(mask, jnp.einsum("nkc,nc->nk", offsets, z), 0.0)
+  dist = jnp.where(mask, geometry.safe_norm(offsets), 0.0)
+  ball = ratio(jnp.abs(jnp.sum(h, -1)), jnp.sum(jnp.abs(h), -1) + FLAT_EPS * jnp.sum(dist, -1))
+  if extra is None or not oriented_sign:
+    conf = ball
+  else:
+    view = jnp.asarray(extra.view, jnp.float32)
+    norm = geometry.safe_norm(view)
+    trust = (jnp.where(norm > 0, 1.0, 0.0) if extra.trust is None
+             else jnp.asarray(extra.trust, jnp.float32))
+    cos = ratio(jnp.abs(jnp.einsum("nc,nc->n", view, z)), norm)
+    conf = jnp.where(norm > 0, trust * cos, ball)
+  return jnp.where(jnp.asarray(valid), jnp.clip(conf, 0.0, 1.0), 0.0).astype(jnp.float32)
+
+
+def _confidence(patches: Patches, extra: ViewExtra | None, frames, valid, options: dict):
+  return sign_confidence(frames, valid, patches, extra, bool(options.get("oriented_sign", True)))
+
+
 # ------------------------------------------------------------------------------ registry entry
 
 
@@ -143,11 +242,13 @@ SPEC = MethodSpec(
     "lrf_net_plus", _lrf_net_plus, default_k=512, needs_params=True, weights="lrf_net_plus",
     host_patch_frames=HostPatchKernel(_lrf_net_plus_host, table_host_supports),
     prepare=prepare_view, extra=ViewExtra, uses_viewpoint=True, default_options=(("lut", 257),),
+    confidence=_confidence,
     description="Beyond the paper: LRF-Net with the z sign towards the sensor of a scan "
-                "(viewpoint=), else from the mesh's oriented normals, else over the whole "
-                "support (ball_sign); the network's outputs read as log-weights "
-                "(x_mode='softmax': x can follow a few rim points, as FLARE's does), trained "
-                "with noise augmentation (configs/plus_soft.py); weights times the area each "
-                "point stands for (density=True: sampling-invariant x); K = 512 (less "
-                "subsampling noise); the network read from a 257 x 257 table (lut=257, "
+                "(viewpoint=), else from the mesh's or the caller's oriented normals, else from "
+                "normals oriented from the points alone (propagation, each component's sign by a "
+                "majority of convexity votes), with a per-keypoint sign confidence; the network's "
+                "outputs read as log-weights (x_mode='softmax': x can follow a few rim points, as "
+                "FLARE's does), trained with noise augmentation (configs/plus_soft.py); weights "
+                "times the area each point stands for (density=True: sampling-invariant x); K = 512"
+                " (less subsampling noise); the network read from a 257 x 257 table (lut=257, "
                 "lut=0: exact)")

@@ -77,6 +77,9 @@ class MethodSpec:
     host_patch_frames: optional `HostPatchKernel` computing the same frames as `fn` from the
       same (padded, subsampled) patches on the host; `compute_frames` runs it by default on a
       CPU backend where it supports the options (`kernel="auto"`).
+    confidence: optional `confidence(patches, extra, frames, valid, options) -> (N,)` in
+      [0, 1]: how sure each frame's z sign is (`compute_frames(..., return_confidence=True)`);
+      `options` holds every option (the method's defaults filled in).
     shells: (a, b) fractions of r when the method reads only the neighbours within a * r or
       beyond b * r: with every neighbour (k=None), `compute_frames` then gathers only those
       (`build_patches(shells=)`), which gives the same frames from smaller patches. None: the
@@ -99,6 +102,7 @@ class MethodSpec:
   shells: tuple[float, float] | None = None
   host_frames: Callable[..., Any] | None = None
   host_patch_frames: HostPatchKernel | None = None
+  confidence: Callable[..., Any] | None = None
 
   def __post_init__(self):
     if self.needs_normals and (self.prepare is None or self.uses_viewpoint):

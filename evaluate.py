@@ -19,7 +19,7 @@ import time
 from pathlib import Path
 
 from lrf_jax import evaluation
-from lrf_jax.cli_help import DefaultsHelpFormatter
+from lrf_jax.cli.help import DefaultsHelpFormatter
 from lrf_jax.evaluation import runner
 from lrf_jax.evaluation.experiments import DATASETS, EXPERIMENTS
 from lrf_jax.frames import METHODS

@@ -4,8 +4,8 @@ import numpy as np
 import pytest
 from scipy.spatial import cKDTree
 
-from lrf_jax import engine
-from lrf_jax.neighborhoods import SearchIndex, build_patches, hash_priority
+from lrf_jax.search import engine
+from lrf_jax.search.neighborhoods import SearchIndex, build_patches, hash_priority
 
 # Float64 statistics are summed in another order than the reference's: they agree to this
 # relative tolerance (of the ball's squared radius for covariances, its radius for centroids).
@@ -149,7 +149,7 @@ def test_in_ball_rule_is_ckdtree_squared_distance():
 @pytest.mark.data
 @pytest.mark.parametrize("cloud", ["br_bunny", "bunny_scan", "uwaor_rs1"])
 def test_patches_equal_ckdtree_on_real_clouds(cloud, data_root):
-  from lrf_jax.resolution import mesh_resolution
+  from lrf_jax.geometry.resolution import mesh_resolution
   from lrf_jax.io import read_cloud
   if cloud == "br_bunny":
     c = read_cloud(data_root / "bologna_retrieval" / "models" / "bunny" / "bun_zipper_0.ply")

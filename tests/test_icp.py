@@ -1,4 +1,4 @@
-"""ICP refinement: point-to-plane (lrf_jax.icp_host) against numpy references, and the
+"""ICP refinement: point-to-plane (lrf_jax.registration.icp_host) against numpy references, and the
 point-to-point mode held to the original algorithm bit for bit."""
 
 from __future__ import annotations
@@ -8,7 +8,9 @@ import pytest
 from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
-from lrf_jax import datasets, engine, icp_host
+from lrf_jax import datasets
+from lrf_jax.search import engine
+from lrf_jax.registration import icp_host
 from lrf_jax.registration import icp, pose_errors, to_transform
 
 
@@ -275,7 +277,7 @@ def test_bad_arguments_name_the_argument():
 def test_the_fine_gate_is_the_clipped_median_residual():
   """`registration.fine_distance` against cKDTree: 1.5 x the median nearest distance of the moved
   source over the pairs within the first gate, clipped to [1 mr, first gate]."""
-  from lrf_jax.registration import ICP_FINE_FACTOR, ICP_FINE_MIN_MR, fine_distance
+  from lrf_jax.registration.pipeline import ICP_FINE_FACTOR, ICP_FINE_MIN_MR, fine_distance
   source, _ = _height_field(3000, 0)
   target, _ = _height_field(4000, 1)
   mr = float(cKDTree(source).query(source, 2)[0][:, 1].mean())
@@ -296,7 +298,7 @@ def test_register_without_the_fine_pass_is_one_icp_pass():
   """`register(icp_fine=False)` refines the coarse pose by a single ICP pass at icp_mr mr; the
   default adds the second pass and reports fitness at icp_mr mr either way."""
   from lrf_jax import register
-  from lrf_jax.registration import ICP_POINTS
+  from lrf_jax.registration.pipeline import ICP_POINTS
   cloud, _ = _height_field(4000, 3)
   gt = _pose([0.3, -1.0, 0.4], 20.0, [0.1, 0.2, -0.1])
   target = datasets.transform_points(gt, cloud[::-1])

@@ -57,18 +57,18 @@ def _project_command(cmd: list[str]) -> tuple[str, list[str]] | None:
   if cmd[0] in ("python", "python3") and len(cmd) > 1:
     if cmd[1] in ("train.py", "evaluate.py"):
       return cmd[1], cmd[2:]
-    if cmd[1:3] == ["-m", "lrf_jax.register_cli"]:
+    if cmd[1:3] == ["-m", "lrf_jax.cli.register"]:
       return "lrf-register", cmd[3:]
   return None
 
 
 def _parse(program: str, args: list[str]) -> None:
   if program == "lrf-frames":
-    from lrf_jax.frames_cli import build_parser
+    from lrf_jax.cli.frames import build_parser
     build_parser().parse_args(args)
   elif program == "lrf-register":
-    from lrf_jax import multiway_cli
-    from lrf_jax.register_cli import build_parser
+    from lrf_jax.cli import multiway as multiway_cli
+    from lrf_jax.cli.register import build_parser
     if multiway_cli.wanted(build_parser(), args):  # more than two scans: the multiway command
       multiway_cli.build_parser().parse_args(args)
     else:
@@ -78,7 +78,7 @@ def _parse(program: str, args: list[str]) -> None:
     evaluate.build_parser().parse_args(args)
   else:
     import train
-    from lrf_jax import config as config_lib
+    from lrf_jax.learning import config as config_lib
     parsed = train.build_parser().parse_args(args)
     config_lib.replace(config_lib.load_config(parsed.config),
                        **config_lib.parse_overrides(parsed.overrides))
@@ -138,7 +138,7 @@ def test_python_block_runs(block, tmp_path, monkeypatch):
 def test_help_of_evaluate_and_train_shows_defaults_and_presets():
   import evaluate
   import train
-  from lrf_jax import config as config_lib
+  from lrf_jax.learning import config as config_lib
   text = " ".join(evaluate.build_parser().format_help().split())
   assert "(default: 1000)" in text and "(default: out/eval)" in text
   assert "(default: 15.0)" in text and "(default: None)" not in text

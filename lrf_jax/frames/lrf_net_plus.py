@@ -19,11 +19,11 @@ from typing import NamedTuple
 
 import numpy as np
 
-from lrf_jax import engine
+from lrf_jax.search import engine
 from lrf_jax.frames.lrf_net import (MIN_Z_NEIGHBOURS, X_EPS, lrf_net_frames,
                                    table_host_supports)
 from lrf_jax.frames.spec import KEYPOINT, SLOT, HostPatchKernel, MethodSpec
-from lrf_jax.neighborhoods import Patches
+from lrf_jax.search.neighborhoods import Patches
 
 
 class ViewExtra(NamedTuple):
@@ -52,7 +52,7 @@ def prepare_view(points, keypoints, patches, *, faces=None, normals=None, radius
     there; the whole patch is too wide for thin parts;
   * else zeros (the z sign then comes from `ball_sign`).
   """
-  from lrf_jax.normals import NORMAL_RADIUS_RATIO, estimate_normals
+  from lrf_jax.geometry.normals import NORMAL_RADIUS_RATIO, estimate_normals
   pts = np.asarray(points, np.float64)
   kp = np.asarray(keypoints)
   if viewpoint is not None:
@@ -94,7 +94,7 @@ def patch_areas(points: np.ndarray, patches: Patches,
   of the local sampling density. Normalised to mean 1 over each patch's neighbours (0 in
   padding). Rotation and translation invariant.
   """
-  from lrf_jax.normals import cache_last
+  from lrf_jax.geometry.normals import cache_last
 
   pts = np.asarray(points, np.float64)
 

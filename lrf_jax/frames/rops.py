@@ -39,12 +39,13 @@ import jax.numpy as jnp
 import numba as nb
 import numpy as np
 
-from lrf_jax import engine, geometry
+from lrf_jax.search import engine
+from lrf_jax.geometry import ops as geometry
 from lrf_jax.frames import host_geometry as hg
 from lrf_jax.frames.spec import TRIANGLE, TRIANGLE_MASK, MethodSpec
-from lrf_jax.geometry import sanitize
-from lrf_jax.neighborhoods import Patches, hash_priority
-from lrf_jax.normals import cache_last
+from lrf_jax.geometry.ops import sanitize
+from lrf_jax.search.neighborhoods import Patches, hash_priority
+from lrf_jax.geometry.normals import cache_last
 
 MAX_TRIANGLES = 8192
 _T_MULTIPLE = 64

@@ -1,1 +1,0 @@
-"""Config presets: `python train.py --config NAME` loads `lrf_jax/configs/NAME.py:get_config()`."""

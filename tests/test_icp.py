@@ -53,7 +53,7 @@ def _old_icp_numpy(source, target, init, max_distance, iterations=30, tolerance=
   tree = cKDTree(target)
   center = target.mean(axis=0)
   r2 = max_distance * max_distance
-  nblock = max(1, -(-len(source) // engine._BLOCK))
+  nblock = max(1, -(-len(source) // icp_host._SUMS_BLOCK))
 
   def step(tr):
     rot, trans = tr[:3, :3], tr[:3, 3]
@@ -70,11 +70,11 @@ def _old_icp_numpy(source, target, init, max_distance, iterations=30, tolerance=
     terms = np.concatenate([np.ones((len(q), 1)), d2[:, None], a, b,
                             (a[:, :, None] * b[:, None, :]).reshape(-1, 9)], axis=1)
     terms[~ok] = 0.0
-    padded = np.zeros((nblock * engine._BLOCK, 17))
+    padded = np.zeros((nblock * icp_host._SUMS_BLOCK, 17))
     padded[:len(q)] = terms
-    padded = padded.reshape(nblock, engine._BLOCK, 17)
+    padded = padded.reshape(nblock, icp_host._SUMS_BLOCK, 17)
     partial = np.zeros((nblock, 17))
-    for k in range(engine._BLOCK):  # each block's sums in point order, as the kernel adds them
+    for k in range(icp_host._SUMS_BLOCK):  # each block's sums in point order, as the kernel adds them
       partial += padded[:, k]
     acc = partial.sum(axis=0)
     n = int(acc[0])
@@ -163,7 +163,7 @@ def test_one_step_matches_a_numpy_reference():
   np.testing.assert_allclose(got, want, rtol=0, atol=1e-12)
   assert not np.allclose(got, init, atol=1e-4)  # the step is not trivially zero
   # fitness and rmse are point-to-point statistics at the returned pose, as in point_to_point.
-  n, d2, *_ = engine.icp_sums(grid, source, got[:3, :3], got[:3, 3], 0.08, pts.mean(axis=0))
+  n, d2, *_ = icp_host.icp_sums(grid, source, got[:3, :3], got[:3, 3], 0.08, pts.mean(axis=0))
   assert fitness == n / len(source)
   assert rmse == pytest.approx(np.sqrt(d2 / n), rel=1e-12)
 

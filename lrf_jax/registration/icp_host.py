@@ -44,7 +44,9 @@ import numba as nb
 import numpy as np
 
 from lrf_jax.search import engine
-from lrf_jax.search.engine import nearest_moved  # the engine's ICP pairing step (inlined)
+from lrf_jax.search.grid import _BLOCK as _SUMS_BLOCK  # the point-to-point sums' blocks
+from lrf_jax.search.grid import Grid, _centers
+from lrf_jax.search.nearest import nearest_moved  # the engine's ICP pairing step (inlined)
 from lrf_jax.geometry.normals import pca_normals
 
 # Source points per parallel task of the sums kernel (a fixed partition: deterministic sums).
@@ -313,3 +315,78 @@ def point_to_plane_icp(source: np.ndarray, target: np.ndarray, init: np.ndarray,
       break
   rmse = np.sqrt(cur.sq_distance / cur.pairs) if cur.pairs else float("inf")
   return tr, (cur.pairs / len(source) if len(source) else 0.0), float(rmse)
+
+
+# ---------------------------------------------------------------------------------------------
+# Point-to-point sums (`icp`).
+
+
+@nb.njit(parallel=True, cache=True)
+def _icp_sums(pts, slot_index, starts, origin, h, dims, target, source, rot, trans, c0, max_d2,
+              partial):
+  """Per block of source points: the sums of one ICP step over the pairs (moved source point,
+  its nearest target point within sqrt(max_d2), as `knn`), coordinates relative to c0."""
+  m = source.shape[0]
+  n = pts.shape[1]
+  for blk in nb.prange(partial.shape[0]):
+    bd = np.empty(1)
+    bi = np.empty(1, np.int64)
+    acc = partial[blk]
+    acc[:] = 0.0
+    for i in range(blk * _SUMS_BLOCK, min(m, (blk + 1) * _SUMS_BLOCK)):
+      qx, qy, qz, j = nearest_moved(pts, slot_index, starts, origin, h, dims, source[i], rot,
+                                    trans, max_d2, bd, bi)
+      if j >= n:
+        continue
+      a0, a1, a2 = qx - c0[0], qy - c0[1], qz - c0[2]
+      b0, b1, b2 = target[j, 0] - c0[0], target[j, 1] - c0[1], target[j, 2] - c0[2]
+      acc[0] += 1.0
+      acc[1] += bd[0]
+      acc[2] += a0
+      acc[3] += a1
+      acc[4] += a2
+      acc[5] += b0
+      acc[6] += b1
+      acc[7] += b2
+      acc[8] += a0 * b0
+      acc[9] += a0 * b1
+      acc[10] += a0 * b2
+      acc[11] += a1 * b0
+      acc[12] += a1 * b1
+      acc[13] += a1 * b2
+      acc[14] += a2 * b0
+      acc[15] += a2 * b1
+      acc[16] += a2 * b2
+
+
+def icp_sums(grid: Grid, source: np.ndarray, rotation: np.ndarray, translation: np.ndarray,
+             max_distance: float, center: np.ndarray
+             ) -> tuple[int, float, np.ndarray, np.ndarray, np.ndarray]:
+  """One ICP step's statistics without materialising the pairs.
+
+  Each source point s is moved to a = R s + t and paired with its nearest grid point b within
+  `max_distance` (ties: the smaller index, as `knn`); unpaired points are left out.
+
+  Args:
+    grid: `Grid` of the target cloud (any cell size).
+    source: (n, 3) source points.
+    rotation: (3, 3) R.
+    translation: (3,) t.
+    max_distance: pairing distance (cloud units).
+    center: (3,) the sums are taken of a - center and b - center (pick a point near the clouds:
+      it keeps the float64 sums well conditioned).
+
+  Returns:
+    (pairs, sum of squared pair distances, sum_a (3,), sum_b (3,), sum of a bᵀ (3, 3)).
+  """
+  src = _centers(source)
+  r = float(max_distance)
+  nblock = max(1, (len(src) + _SUMS_BLOCK - 1) // _SUMS_BLOCK)
+  partial = np.empty((nblock, 17))
+  _icp_sums(grid.xyz, grid.slot_index, grid.starts, grid.origin, grid.h, grid.dims, grid.points,
+            src, np.ascontiguousarray(rotation, np.float64),
+            np.ascontiguousarray(translation, np.float64),
+            np.ascontiguousarray(center, np.float64), r * r if np.isfinite(r) else np.inf,
+            partial)
+  acc = partial.sum(axis=0)
+  return int(acc[0]), float(acc[1]), acc[2:5], acc[5:8], acc[8:17].reshape(3, 3)

@@ -378,8 +378,8 @@ def icp(source: np.ndarray, target: np.ndarray, init: np.ndarray, *, max_distanc
   grid = target_grid if target_grid is not None else engine.Grid(target, max_distance)
   center = target.mean(axis=0) if len(target) else np.zeros(3)
 
-  def step(tr):  # the pairs' sums under tr (engine.icp_sums), their count and rmse
-    n, d2, sa, sb, sab = engine.icp_sums(grid, source, tr[:3, :3], tr[:3, 3], max_distance,
+  def step(tr):  # the pairs' sums under tr (icp_host.icp_sums), their count and rmse
+    n, d2, sa, sb, sab = icp_host.icp_sums(grid, source, tr[:3, :3], tr[:3, 3], max_distance,
                                          center)
     return n, (np.sqrt(d2 / n) if n else float("inf")), sa, sb, sab
 

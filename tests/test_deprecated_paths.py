@@ -48,12 +48,12 @@ def test_old_path_warns_and_forwards(old):
 def test_old_package_names_forward_with_a_warning():
   from lrf_jax import geometry, registration
   from lrf_jax.geometry import ops
-  from lrf_jax.registration import pipeline
+  from lrf_jax.registration import evidence, pipeline
   geometry._warned = registration._warned = False
   with pytest.warns(DeprecationWarning, match="lrf_jax.geometry.ops"):
     assert geometry.kabsch is ops.kabsch
-  with pytest.warns(DeprecationWarning, match="lrf_jax.registration.pipeline"):
-    assert registration.verdict is pipeline.verdict
+  with pytest.warns(DeprecationWarning, match="lrf_jax.registration.evidence"):
+    assert registration.verdict is evidence.verdict
   assert registration.register is pipeline.register  # the package's own interface: no warning
   with pytest.raises(AttributeError):
     geometry.no_such_name  # noqa: B018

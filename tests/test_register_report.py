@@ -6,7 +6,7 @@ import pytest
 from lrf_jax import datasets, io
 from lrf_jax.cli.register import build_parser, main
 from lrf_jax.registration import Registration
-from lrf_jax.registration.pipeline import Evidence, verdict
+from lrf_jax.registration.evidence import Evidence, verdict
 
 
 def _registration(**kw):

@@ -8,7 +8,7 @@ from scipy.spatial import cKDTree
 
 import lrf_jax
 from lrf_jax import datasets
-from lrf_jax.registration import pipeline
+from lrf_jax.registration import estimators, pipeline
 from lrf_jax.geometry.ops import kabsch
 from lrf_jax.registration import (icp, lrf_ransac, pose_errors, pose_from_correspondence,
                                   ransac_3point, register, rotation_error_deg, to_transform)
@@ -85,31 +85,31 @@ def test_both_estimators_recover_a_pose_among_outliers_deterministically():
 
 
 def test_host_hypotheses_and_scores_agree_with_the_jitted_ones():
-  """register's host steps (registration_host) against the jitted vmap programs of lrf_ransac
+  """register's host steps (registration.host) against the jitted vmap programs of lrf_ransac
   and ransac_3point on the same centred float32 correspondences."""
   import jax
   from lrf_jax.registration import host
   src, dst, f_src, f_dst, _, _ = _synthetic_correspondences(5, m=300)
-  s, d, _, _ = pipeline._centred(src, dst)
+  s, d, _, _ = estimators._centred(src, dst)
   rs, ts = host.lrf_hypotheses(s, f_src, d, f_dst, 0.2)
-  rj, tj = pipeline._lrf_hypotheses(s, f_src.astype(np.float32), d,
+  rj, tj = estimators._lrf_hypotheses(s, f_src.astype(np.float32), d,
                                         f_dst.astype(np.float32), 0.2)
   np.testing.assert_allclose(rs, np.asarray(rj), atol=2e-5)
   np.testing.assert_allclose(ts, np.asarray(tj), atol=2e-5)
   np.testing.assert_allclose(np.linalg.det(rs), 1.0, atol=1e-12)
   triples = np.random.default_rng(0).integers(0, 300, (200, 3))
   rk, tk = host.kabsch_batch(s[triples], d[triples])
-  rkj, tkj = pipeline._kabsch_batch(s[triples], d[triples])
+  rkj, tkj = estimators._kabsch_batch(s[triples], d[triples])
   ok = np.linalg.svd(s[triples] - s[triples].mean(1, keepdims=True))[1][:, 1] > 0.05
   np.testing.assert_allclose(rk[ok], np.asarray(rkj)[ok], atol=1e-4)  # well-posed triples
   thr = 0.02
   counts = host.count_inliers(rs, ts, s, d, thr)
-  cj = np.asarray(jax.vmap(lambda r, t: pipeline._inlier_mask(r, t, s, d, thr).sum())(
+  cj = np.asarray(jax.vmap(lambda r, t: estimators._inlier_mask(r, t, s, d, thr).sum())(
       rj, tj))
   assert counts.max() > 50 and np.abs(counts - cj).max() <= 1  # float32 rounding at the edge
   best = int(np.argmax(counts))
   r, t, mask = host.select_and_refine(rs[best], ts[best], s, d, thr)
-  r2, t2, mask2, _, _ = pipeline._select_and_refine(rj[best:best + 1], tj[best:best + 1],
+  r2, t2, mask2, _, _ = estimators._select_and_refine(rj[best:best + 1], tj[best:best + 1],
                                                         s, d, thr, True)
   np.testing.assert_allclose(r, np.asarray(r2), atol=1e-5)
   np.testing.assert_allclose(t, np.asarray(t2), atol=1e-5)
@@ -289,7 +289,7 @@ def test_pose_protocol_on_a_rigidly_moved_cloud():
 
 
 def test_verdict_rule_of_the_one_point_estimator():
-  from lrf_jax.registration.pipeline import Evidence, verdict
+  from lrf_jax.registration.evidence import Evidence, verdict
 
   def ok(n, chance, fitness, contrast):
     return verdict(Evidence(n, chance, 0, fitness, contrast, "lrf"))[0]

@@ -7,7 +7,7 @@ from scipy.spatial.transform import Rotation
 from lrf_jax.registration import graph
 from lrf_jax.registration import host
 from lrf_jax.registration import rotation_error_deg
-from lrf_jax.registration.pipeline import Evidence, verdict
+from lrf_jax.registration.evidence import Evidence, verdict
 
 
 def _scene(n=400, inlier_fraction=0.08, seed=0, noise=0.002):

@@ -2,7 +2,7 @@
 
 Two correspondences (p_i, q_i) and (p_j, q_j) of a rigid motion preserve their distance,
 |p_i - p_j| = |q_i - q_j|, and, when both carry LRFs, give the same rotation: the
-one-correspondence poses R_i, R_j of `registration_host.lrf_hypotheses` (paper section 3.2.3)
+one-correspondence poses R_i, R_j of `host.lrf_hypotheses` (paper section 3.2.3)
 differ by a small angle. An outlier agrees with an inlier by chance only, so the inliers form a
 dense cluster of the graph whose edges are these agreements (Leordeanu & Hebert 2005; SC2-PCR,
 Chen et al. 2022; MAC, Zhang et al. 2023). The estimator:

@@ -1,6 +1,6 @@
 """Point-to-plane ICP on the host (numpy, numba, float64): the sums, the step and the loop.
 
-`lrf_jax.registration.icp_host(..., mode="point_to_plane")` runs `point_to_plane_icp`. Each
+`lrf_jax.registration.icp(..., mode="point_to_plane")` runs `point_to_plane_icp`. Each
 iteration pairs every source point p (under the current pose) with its nearest target point q
 within `max_distance` (the engine's nearest-neighbour query on the target's grid, as
 `engine.knn`) and takes q's unit normal n. The linearised Gauss-Newton step of Chen & Medioni's
@@ -48,6 +48,7 @@ from lrf_jax.search.grid import _BLOCK as _SUMS_BLOCK  # the point-to-point sums
 from lrf_jax.search.grid import Grid, _centers
 from lrf_jax.search.nearest import nearest_moved  # the engine's ICP pairing step (inlined)
 from lrf_jax.geometry.normals import pca_normals
+from lrf_jax.registration.errors import to_transform
 
 # Source points per parallel task of the sums kernel (a fixed partition: deterministic sums).
 _BLOCK = 256
@@ -390,3 +391,83 @@ def icp_sums(grid: Grid, source: np.ndarray, rotation: np.ndarray, translation: 
             partial)
   acc = partial.sum(axis=0)
   return int(acc[0]), float(acc[1]), acc[2:5], acc[5:8], acc[8:17].reshape(3, 3)
+
+
+# ---------------------------------------------------------------------------------------------
+# The ICP loop (`register`'s refinement).
+
+
+def icp(source: np.ndarray, target: np.ndarray, init: np.ndarray, *, max_distance: float,
+        iterations: int = 30, tolerance: float = 1e-7,
+        target_grid: engine.Grid | None = None, target_normals: np.ndarray | None = None,
+        mode: str = "point_to_plane") -> tuple[np.ndarray, float, float]:
+  """Point-to-plane or point-to-point ICP from an initial pose (host, float64, deterministic).
+
+  Each iteration pairs every source point with its nearest target point and keeps the pairs
+  closer than `max_distance`. "point_to_plane" (Chen & Medioni) takes one damped Gauss-Newton
+  step of sum ((R p + t - q) · n_q)^2 (`lrf_jax.registration.icp_host`; pairs whose normal is zero or
+  non-finite are left out of the step); "point_to_point" (Besl & McKay) solves Kabsch. It stops
+  when the pose changes by less than `tolerance` (rotation in radians plus translation over
+  `max_distance`).
+
+  Args:
+    source: (n, 3) points.
+    target: (m, 3) points.
+    init: (4, 4) initial source -> target transform.
+    max_distance: pairs farther apart are ignored (cloud units).
+    iterations: at most this many iterations.
+    tolerance: convergence threshold.
+    target_grid: optional `engine.Grid(target, max_distance)` to reuse.
+    target_normals: (m, 3) target normals for "point_to_plane" (any length, any sign; zero or
+      non-finite rows are skipped). None: unsigned PCA normals
+      (`estimate_target_normals`: radius min(max_distance, 4 x the target's mean
+      nearest-neighbour spacing)). Ignored by "point_to_point".
+    mode: "point_to_plane" or "point_to_point".
+
+  Returns:
+    (transform (4, 4), fitness = fraction of source points paired, rmse of the pairs' point
+    distances), both modes alike.
+
+  Raises:
+    ValueError: an unknown `mode`, `target_normals` not of shape (m, 3), or `max_distance` not
+      a positive number (finite when normals are estimated).
+  """
+
+  if mode not in ("point_to_point", "point_to_plane"):
+    raise ValueError(f"mode: expected 'point_to_point' or 'point_to_plane', got {mode!r}")
+  try:
+    positive = float(max_distance) > 0
+  except (TypeError, ValueError):
+    positive = False
+  if not positive:
+    raise ValueError(f"max_distance: expected a positive distance, got {max_distance!r}")
+  target = np.asarray(target, np.float64)
+  source = np.asarray(source, np.float64)
+  if mode == "point_to_plane":
+    return point_to_plane_icp(source, target, init, max_distance=float(max_distance),
+                                       iterations=iterations, tolerance=tolerance,
+                                       target_grid=target_grid, target_normals=target_normals)
+  grid = target_grid if target_grid is not None else engine.Grid(target, max_distance)
+  center = target.mean(axis=0) if len(target) else np.zeros(3)
+
+  def step(tr):  # the pairs' sums under tr (icp_sums), their count and rmse
+    n, d2, sa, sb, sab = icp_sums(grid, source, tr[:3, :3], tr[:3, 3], max_distance,
+                                         center)
+    return n, (np.sqrt(d2 / n) if n else float("inf")), sa, sb, sab
+
+  tr = np.array(init, np.float64)
+  for _ in range(int(iterations)):
+    n, _, sa, sb, sab = step(tr)
+    if n < 3:
+      break
+    ca, cb = sa / n, sb / n  # centroids relative to `center`
+    u, _, vt = np.linalg.svd(sab - n * np.outer(ca, cb))
+    dd = np.sign(np.linalg.det(vt.T @ u.T)) or 1.0
+    r = vt.T @ np.diag([1.0, 1.0, dd]) @ u.T
+    move = to_transform(r, (cb + center) - r @ (ca + center))
+    tr = move @ tr
+    angle = np.arccos(np.clip((np.trace(r) - 1) / 2, -1, 1))
+    if angle + np.linalg.norm(move[:3, 3]) / max_distance < tolerance:
+      break
+  n, rmse, *_ = step(tr)
+  return tr, (n / len(source) if len(source) else 0.0), float(rmse)

@@ -147,3 +147,44 @@ def test_help_of_evaluate_and_train_shows_defaults_and_presets():
   for name in config_lib.preset_names():
     assert name in text
   assert {"default", "smoke", "plus_soft"} <= set(config_lib.preset_names())
+
+
+_ENTRY = re.compile(r"^[\w-]+(/|\.(py|toml|md)),?$")
+
+
+def layout_entries() -> set[str]:
+  """The paths the README's layout section lists (relative to the repository root): a tree with
+  two spaces per level, each line's leading names (`a.py, b.py,` lists allowed) under the last
+  folder (`name/`) of the level above; the description after them is not read."""
+  section = README.read_text().split("\n## Layout", 1)[1].split("\n## ", 1)[0]
+  block = section.split("```", 2)[1]
+  entries, folders = set(), []  # folders: the open folder at each level
+  for line in block.splitlines()[1:]:
+    if not line.strip():
+      continue
+    level = (len(line) - len(line.lstrip())) // 2
+    names = []
+    for token in line.split():
+      if not _ENTRY.match(token):
+        break
+      names.append(token.rstrip(","))
+    if not names:
+      continue
+    folders = folders[:level]
+    assert len(folders) == level, f"README layout: {line!r} is indented under no folder"
+    for name in names:
+      entries.add("/".join([*folders, name.rstrip("/")]))
+    if names[-1].endswith("/") and len(names) == 1:
+      folders.append(names[-1].rstrip("/"))
+  return entries
+
+
+def test_layout_section_matches_the_tree():
+  listed = layout_entries()
+  missing = sorted(p for p in listed if not (REPO / p).exists())
+  assert missing == [], f"README layout lists what does not exist: {missing}"
+  package = REPO / "lrf_jax"
+  actual = {str(p.relative_to(REPO)) for p in package.rglob("*.py")}
+  actual |= {str(p.parent.relative_to(REPO)) for p in package.rglob("__init__.py")}
+  unlisted = sorted(actual - listed)
+  assert unlisted == [], f"README layout omits: {unlisted}"

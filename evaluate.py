@@ -20,7 +20,7 @@ import time
 from pathlib import Path
 
 from lrf_jax import evaluation
-from lrf_jax.cli_help import DefaultsHelpFormatter
+from lrf_jax.cli.help import DefaultsHelpFormatter
 from lrf_jax.evaluation import runner
 from lrf_jax.evaluation.experiments import (DATASETS, EXPERIMENTS, POINTS_ONLY_DATASETS,
                                             POINTS_ONLY_HANDCRAFTED, POINTS_ONLY_PAIRS)

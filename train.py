@@ -6,14 +6,14 @@
     python train.py --config default --workdir /shared/runs/x \
         --coordinator HOST0:1234 --num-processes N --process-id I     # on each of N hosts
 
-Overrides are `key=value` fields of `lrf_jax.config.TrainConfig`. A run restarted with the same
+Overrides are `key=value` fields of `lrf_jax.learning.config.TrainConfig`. A run restarted with the same
 --workdir resumes from its latest checkpoint, under the same config: another config is an
 error naming the fields that differ, unless --replace-config (config.json is kept, the new
 config is written as config.<n>.json and noted in metrics.jsonl). Every bad argument, config or
 unwritable file is one `error:` line and exit code 2 (1: the run diverged). With --coordinator, the processes join one
 `jax.distributed` job (gloo collectives on CPU), the batch is split over the devices of all of
 them, the workdir must be shared, and only process 0 prints and writes files besides the
-checkpoints. This file is intentionally kept short; the loop lives in lrf_jax/train_lib.py.
+checkpoints. This file is intentionally kept short; the loop lives in lrf_jax/learning/train_lib.py.
 """
 
 import argparse
@@ -21,10 +21,10 @@ import os
 import sys
 from pathlib import Path
 
-from lrf_jax import checkpoints
-from lrf_jax import config as config_lib
-from lrf_jax import train_lib
-from lrf_jax.cli_help import DefaultsHelpFormatter
+from lrf_jax.learning import checkpoints
+from lrf_jax.learning import config as config_lib
+from lrf_jax.learning import train_lib
+from lrf_jax.cli.help import DefaultsHelpFormatter
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -34,7 +34,7 @@ def build_parser() -> argparse.ArgumentParser:
       description="Train LRF-Net (weakly supervised, Chamfer loss). Writes checkpoints/, "
                   "config.json, metrics.jsonl, curves.png, final_params.msgpack and "
                   "best_params.msgpack to --workdir.",
-      epilog=f"config presets (lrf_jax/configs/NAME.py): {presets}",
+      epilog=f"config presets (lrf_jax/learning/configs/NAME.py): {presets}",
       formatter_class=DefaultsHelpFormatter)
   ap.add_argument("--config", default="default",
                   help=f"preset name ({presets}) or path (.py / .json)")

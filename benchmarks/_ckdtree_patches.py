@@ -8,7 +8,7 @@ import itertools
 import numpy as np
 from scipy.spatial import cKDTree
 
-from lrf_jax.neighborhoods import Patches, hash_priority, _round_up
+from lrf_jax.search.neighborhoods import Patches, hash_priority, _round_up
 
 
 class SearchIndex:

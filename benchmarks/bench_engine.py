@@ -36,8 +36,9 @@ sys.path.insert(0, str(REPO / "tools" / "pcl_driver"))
 sys.path.insert(0, str(REPO / "benchmarks"))
 
 import lrf_jax  # noqa: E402
-from lrf_jax import datasets, engine  # noqa: E402
-from lrf_jax import normals as normals_cache  # noqa: E402
+from lrf_jax import datasets  # noqa: E402
+from lrf_jax.search import engine  # noqa: E402
+from lrf_jax.geometry import normals as normals_cache  # noqa: E402
 
 # PCL's implementation of the same LRF, where it has one.
 PCL_SAME = {"shot": "shot_omp", "board": "board", "flare": "flare", "rops": "rops"}

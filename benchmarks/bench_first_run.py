@@ -45,7 +45,7 @@ FRAMES_CODE = """
 import sys, time
 t0 = time.perf_counter()
 import numpy as np, lrf_jax
-from lrf_jax import io
+from lrf_jax import io  # noqa: E402
 path = sys.argv[1]
 n = len(io.read_cloud(path).points)
 keypoints = np.random.default_rng(0).choice(n, 1000, replace=False)

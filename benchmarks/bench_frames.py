@@ -3,7 +3,7 @@
     LRF_DATA=/path/to/data python benchmarks/bench_frames.py [--model bunny] [--counts 1000 10000]
 
 Both are measured in the same run on the same BR model at r = 15 mr (mean edge length). The numpy
-baseline (lrf_jax.reference_numpy, one keypoint at a time) is timed on a subset of keypoints
+baseline (tests.reference_numpy, one keypoint at a time) is timed on a subset of keypoints
 (`--numpy-max`) and reported as a rate; it is far too slow for 10k keypoints. The JAX time is
 the second call (the first one compiles), split into host search and jitted frame computation.
 """
@@ -25,8 +25,8 @@ import sys
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 import lrf_jax  # noqa: E402
-from lrf_jax.neighborhoods import build_patches  # noqa: E402
-from lrf_jax.reference_numpy import reference_frames  # noqa: E402
+from lrf_jax.search.neighborhoods import build_patches  # noqa: E402
+from tests.reference_numpy import reference_frames  # noqa: E402
 from tests.lrf_testing import load_br_model  # noqa: E402
 
 

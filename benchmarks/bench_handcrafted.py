@@ -5,7 +5,7 @@
 Every method of `lrf_jax.METHODS` except the learned ones runs through `compute_frames` on the BR
 bunny at r = 15 mr (mean edge length) for the same seeded keypoints; the first call (compilation)
 is excluded and the fastest of `--repeat` timed calls is reported. Normals are computed once
-beforehand (`lrf_jax.normals.estimate_normals`) and fed to both sides, so neither timing includes
+beforehand (`lrf_jax.geometry.normals.estimate_normals`) and fed to both sides, so neither timing includes
 normal estimation; their cost is reported on its own line. Per-mesh quantities that lrf_jax caches
 across calls (GFrames' mean curvature, the vertex -> face map) are computed in the warm-up call.
 
@@ -31,7 +31,7 @@ sys.path.insert(0, str(REPO))
 sys.path.insert(0, str(REPO / "tools" / "pcl_driver"))
 
 import lrf_jax  # noqa: E402
-from lrf_jax.normals import NORMAL_RADIUS_RATIO, estimate_normals, pca_normals  # noqa: E402
+from lrf_jax.geometry.normals import NORMAL_RADIUS_RATIO, estimate_normals, pca_normals  # noqa: E402
 from tests.lrf_testing import load_br_model  # noqa: E402
 
 HANDCRAFTED = ("toldi", "mian", "shot", "rops", "board", "flare", "ps", "gframes")

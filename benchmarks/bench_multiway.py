@@ -46,7 +46,7 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
 from lrf_jax import compilation_cache  # noqa: E402
-from lrf_jax import multiway  # noqa: E402
+from lrf_jax.registration import multiway  # noqa: E402
 from lrf_jax.datasets.stanford import bunny_poses  # noqa: E402
 from lrf_jax.datasets.uwa3m import PSEUDO_GT_FILE, read_pseudo_gt, uwa3m_views  # noqa: E402
 from lrf_jax.io import read_cloud  # noqa: E402

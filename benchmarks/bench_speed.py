@@ -28,7 +28,7 @@ sys.path.insert(0, str(REPO / "tools" / "pcl_driver"))
 
 import lrf_jax  # noqa: E402
 from lrf_jax import datasets  # noqa: E402
-from lrf_jax import normals as normals_cache  # noqa: E402
+from lrf_jax.geometry import normals as normals_cache  # noqa: E402
 
 
 def _rss_mb() -> float:
@@ -47,7 +47,7 @@ def main() -> None:
   ap.add_argument("--counts", type=int, nargs="+", default=[1000, 10000, 100000])
   ap.add_argument("--methods", nargs="+", default=["lrf_net", "lrf_net:lut", "toldi", "shot"],
                   help="registry names; NAME:lut reads the weights from a 257x257 table, "
-                       "NAME:device searches on the default device (lrf_jax.device_search), "
+                       "NAME:device searches on the default device (lrf_jax.search.device), "
                        "NAME:lut:device both, NAME:exact the network per point (lrf_net_plus "
                        "reads a table by default), NAME:mesh passes the faces")
   ap.add_argument("--no-pcl", action="store_true")

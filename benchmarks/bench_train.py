@@ -22,9 +22,10 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from lrf_jax import config as config_lib  # noqa: E402
-from lrf_jax import data_sources, train_step  # noqa: E402
-from lrf_jax.batches import BatchMaker  # noqa: E402
+from lrf_jax.learning import config as config_lib  # noqa: E402
+from lrf_jax.learning import data_sources  # noqa: E402
+from lrf_jax.learning import train_step  # noqa: E402
+from lrf_jax.learning.batches import BatchMaker  # noqa: E402
 
 
 def main() -> None:

@@ -29,32 +29,33 @@ _EXPORTS: dict[str, str] = {
     "frames_from_patches": "api",
     "mesh_resolution": "api",
     "clear_caches": "caches",
-    "set_num_threads": "engine",
+    "set_num_threads": "search.engine",
     "METHODS": "frames",
     "MethodSpec": "frames",
     "register_method": "frames",
     "lrf_net_frames": "frames.lrf_net",
-    "iss_keypoints": "keypoints",
-    "batched_chamfer": "losses",
-    "chamfer": "losses",
-    "siamese_loss": "losses",
-    "meancos": "metrics",
-    "repeatability_summary": "metrics",
-    "default_params": "model",
-    "init_params": "model",
-    "load_params": "model",
-    "save_params": "model",
-    "Patches": "neighborhoods",
-    "build_patches": "neighborhoods",
+    "iss_keypoints": "geometry.keypoints",
+    "batched_chamfer": "learning.losses",
+    "chamfer": "learning.losses",
+    "siamese_loss": "learning.losses",
+    "meancos": "evaluation.metrics",
+    "repeatability_summary": "evaluation.metrics",
+    "default_params": "learning.model",
+    "init_params": "learning.model",
+    "load_params": "learning.model",
+    "save_params": "learning.model",
+    "Patches": "search.neighborhoods",
+    "build_patches": "search.neighborhoods",
     "register": "registration",
-    "register_all": "multiway",
-    "voxel_downsample": "sampling",
+    "register_all": "registration.multiway",
+    "voxel_downsample": "geometry.sampling",
 }
 
 # subpackages and modules reachable as attributes after a bare `import lrf_jax`.
-_SUBMODULES = frozenset({"datasets", "descriptors", "engine", "evaluation", "frames", "io"})
+_SUBMODULES = frozenset({"cli", "datasets", "descriptors", "engine", "evaluation", "frames",
+                         "geometry", "io", "learning", "registration", "search"})
 
-__all__ = sorted([*_EXPORTS, "engine"])
+__all__ = sorted([*_EXPORTS, "search"])
 
 
 def _load(module: str) -> Any:
@@ -68,28 +69,28 @@ def _load(module: str) -> Any:
       import lrf_jax.api as m
     case "caches":
       import lrf_jax.caches as m
-    case "engine":
-      import lrf_jax.engine as m
+    case "search.engine":
+      import lrf_jax.search.engine as m
     case "frames":
       import lrf_jax.frames as m
     case "frames.lrf_net":
       import lrf_jax.frames.lrf_net as m
-    case "keypoints":
-      import lrf_jax.keypoints as m
-    case "losses":
-      import lrf_jax.losses as m
-    case "metrics":
-      import lrf_jax.metrics as m
-    case "model":
-      import lrf_jax.model as m
-    case "neighborhoods":
-      import lrf_jax.neighborhoods as m
+    case "geometry.keypoints":
+      import lrf_jax.geometry.keypoints as m
+    case "learning.losses":
+      import lrf_jax.learning.losses as m
+    case "evaluation.metrics":
+      import lrf_jax.evaluation.metrics as m
+    case "learning.model":
+      import lrf_jax.learning.model as m
+    case "search.neighborhoods":
+      import lrf_jax.search.neighborhoods as m
     case "registration":
       import lrf_jax.registration as m
-    case "multiway":
-      import lrf_jax.multiway as m
-    case "sampling":
-      import lrf_jax.sampling as m
+    case "registration.multiway":
+      import lrf_jax.registration.multiway as m
+    case "geometry.sampling":
+      import lrf_jax.geometry.sampling as m
     case "datasets":
       import lrf_jax.datasets as m
     case "descriptors":
@@ -98,6 +99,16 @@ def _load(module: str) -> Any:
       import lrf_jax.evaluation as m
     case "io":
       import lrf_jax.io as m
+    case "search":
+      import lrf_jax.search as m
+    case "geometry":
+      import lrf_jax.geometry as m
+    case "learning":
+      import lrf_jax.learning as m
+    case "cli":
+      import lrf_jax.cli as m
+    case "engine":  # deprecated alias of lrf_jax.search.engine (removed in the next release)
+      import lrf_jax.engine as m
     case _:
       raise KeyError(module)
   return m
@@ -121,17 +132,19 @@ def __dir__() -> list[str]:
 
 
 if TYPE_CHECKING:  # for type checkers and IDEs; at run time these come from __getattr__
-  from lrf_jax import datasets, descriptors, engine, evaluation, frames, io  # noqa: F401
+  from lrf_jax import (cli, datasets, descriptors, evaluation, frames, geometry, io,  # noqa: F401
+                       learning, registration, search)
+  from lrf_jax.search import engine  # noqa: F401
   from lrf_jax.api import compute_frames, frames_from_patches, mesh_resolution  # noqa: F401
   from lrf_jax.caches import clear_caches  # noqa: F401
-  from lrf_jax.engine import set_num_threads  # noqa: F401
+  from lrf_jax.search.engine import set_num_threads  # noqa: F401
   from lrf_jax.frames import METHODS, MethodSpec, register_method  # noqa: F401
   from lrf_jax.frames.lrf_net import lrf_net_frames  # noqa: F401
-  from lrf_jax.keypoints import iss_keypoints  # noqa: F401
-  from lrf_jax.losses import batched_chamfer, chamfer, siamese_loss  # noqa: F401
-  from lrf_jax.metrics import meancos, repeatability_summary  # noqa: F401
-  from lrf_jax.model import default_params, init_params, load_params, save_params  # noqa: F401
-  from lrf_jax.neighborhoods import Patches, build_patches  # noqa: F401
-  from lrf_jax.multiway import register_all  # noqa: F401
+  from lrf_jax.geometry.keypoints import iss_keypoints  # noqa: F401
+  from lrf_jax.learning.losses import batched_chamfer, chamfer, siamese_loss  # noqa: F401
+  from lrf_jax.evaluation.metrics import meancos, repeatability_summary  # noqa: F401
+  from lrf_jax.learning.model import default_params, init_params, load_params, save_params  # noqa: F401
+  from lrf_jax.search.neighborhoods import Patches, build_patches  # noqa: F401
+  from lrf_jax.registration.multiway import register_all  # noqa: F401
   from lrf_jax.registration import register  # noqa: F401
-  from lrf_jax.sampling import voxel_downsample  # noqa: F401
+  from lrf_jax.geometry.sampling import voxel_downsample  # noqa: F401

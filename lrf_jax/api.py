@@ -11,13 +11,13 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from lrf_jax import engine
-from lrf_jax.chunks import map_chunks
-from lrf_jax.resolution import mesh_resolution as _mesh_resolution
+from lrf_jax.search import engine
+from lrf_jax.search.chunks import map_chunks
+from lrf_jax.geometry.resolution import mesh_resolution as _mesh_resolution
 from lrf_jax.frames import METHODS, MethodSpec
 from lrf_jax.inputs import as_cloud
-from lrf_jax.model import default_params
-from lrf_jax.neighborhoods import (Patches, SearchIndex, build_patches, unit_scaled,
+from lrf_jax.learning.model import default_params
+from lrf_jax.search.neighborhoods import (Patches, SearchIndex, build_patches, unit_scaled,
                                    validate_keypoints, validate_radius, validate_seed,
                                    validate_viewpoint)
 from lrf_jax.prepare import method_normals, prepare_extra
@@ -232,7 +232,7 @@ def compute_frames(
 ) -> tuple[jax.Array, jax.Array] | tuple[jax.Array, jax.Array, jax.Array]:
   """Local reference frames of `keypoints` of a cloud, by any registered method.
 
-  The radius search runs on the host (the compiled engine, `lrf_jax.engine`, all cores) or on the
+  The radius search runs on the host (the compiled engine, `lrf_jax.search.engine`, all cores) or on the
   accelerator (`search`), keypoints are processed in fixed-size chunks (for the jitted functions
   the last one padded) so that memory is bounded and one compiled function serves every chunk;
   the frames are computed by the method's jitted function, or on a CPU backend by its compiled
@@ -259,18 +259,18 @@ def compute_frames(
     seed: seed of the neighbour subsample when a ball holds more than K points.
     faces: (f, 3) triangle indices, for mesh methods.
     normals: (n, 3) per-point normals, for methods that use them; None = estimated
-      (`lrf_jax.normals.estimate_normals`: PCA over 0.2 r, oriented by `faces`, else `viewpoint`,
+      (`lrf_jax.geometry.normals.estimate_normals`: PCA over 0.2 r, oriented by `faces`, else `viewpoint`,
       else by propagation).
     viewpoint: (3,) sensor position, for a single-view scan without faces: estimated normals are
       oriented towards it (PCL's convention), and so is lrf_net_plus's z. Pass it for range
       scans where it is known. Without it (and without faces or normals) lrf_net_plus orients
-      z from the points alone (`lrf_jax.normals.orient_by_vote`); the other methods' estimated
+      z from the points alone (`lrf_jax.geometry.normals.orient_by_vote`); the other methods' estimated
       normals are oriented by propagation, which cannot know which side of an open scan is out.
     chunk_size: keypoints per jitted call (bounds memory: about chunk_size x K x 16 bytes of
       patches at a time). With several local devices, each chunk is sharded over them.
     progress: show a progress bar over chunks (default: when there are more than 4 chunks).
     search: where the radius search runs: "host" (the compiled engine, all cores), "device" (jitted
-      voxel grids on the default device, `lrf_jax.device_search`; integer K only; the same
+      voxel grids on the default device, `lrf_jax.search.device`; integer K only; the same
       patches, keypoints it cannot guarantee are redone on the host), or "auto" (device when the
       default backend is a GPU/TPU and K is an integer, else host).
     kernel: how the frames are computed: "jit" (patches, then the method's jitted function),
@@ -383,7 +383,7 @@ class _PatchSearch:
     self.points, self.spec, self.radius, self.k, self.seed = points, spec, radius, k, seed
     self.device = None
     if on_device:
-      from lrf_jax.device_search import DeviceIndex
+      from lrf_jax.search.device import DeviceIndex
       self.device = DeviceIndex(points, radius, k, seed, spec.z_ratio)
       self.index = self.device.host
     else:
@@ -392,7 +392,7 @@ class _PatchSearch:
   def __call__(self, kp: np.ndarray) -> Patches:
     spec, k = self.spec, self.k
     if self.device is not None:
-      from lrf_jax.device_search import build_patches_device
+      from lrf_jax.search.device import build_patches_device
       patches, _ = build_patches_device(self.points, kp, self.radius, k, seed=self.seed,
                                         z_ratio=spec.z_ratio, index=self.device)
       return patches

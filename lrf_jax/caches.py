@@ -15,7 +15,9 @@ cleared here.
 
 from __future__ import annotations
 
-from lrf_jax import api, descriptors, model, normals
+from lrf_jax import api, descriptors
+from lrf_jax.learning import model
+from lrf_jax.geometry import normals
 
 
 def clear_caches() -> None:

@@ -1,39 +1,12 @@
-"""Console-script entry points (`lrf-register`, `lrf-frames`): run a CLI's `main` and leave.
+"""Deprecated alias of `lrf_jax.cli.console` (moved there in 0.7); removed in the next release.
 
-A process that has used JAX and numba spends about half a second in the interpreter's teardown
-(destroying the XLA runtime, its thread pools and every module) after the answer is written;
-the commands flush their output and end with `os._exit` instead. Nothing is lost: the outputs
-are closed files and flushed streams, and JAX's and numba's on-disk caches are written when a
-function is compiled, not at exit. Calling `main()` from Python (as the tests do) is unchanged.
+The console scripts of an install made before 0.7 (`lrf-frames`, `lrf-register`) call
+`lrf_jax.console:frames` / `:register`; a fresh install points them at `lrf_jax.cli.console`.
+This alias does not warn: the warning would be printed on every command of such an install,
+to users who did not write the import (reinstalling is the fix).
 """
 
-from __future__ import annotations
+from lrf_jax import _deprecated
+from lrf_jax.cli import console as _new
 
-import os
-import sys
-from typing import Callable, NoReturn
-
-
-def run(main: Callable[[], int]) -> NoReturn:
-  """Call `main()`, flush stdout and stderr, and end the process with its return code."""
-  try:
-    rc = main()
-  except SystemExit as e:  # argparse's --help and usage errors
-    rc = e.code if isinstance(e.code, int) else (0 if e.code is None else 1)
-    if not isinstance(e.code, (int, type(None))):
-      print(e.code, file=sys.stderr)
-  sys.stdout.flush()
-  sys.stderr.flush()
-  os._exit(int(rc or 0))
-
-
-def register() -> NoReturn:
-  """`lrf-register`: `lrf_jax.register_cli.main`."""
-  from lrf_jax.register_cli import main
-  run(main)
-
-
-def frames() -> NoReturn:
-  """`lrf-frames`: `lrf_jax.frames_cli.main`."""
-  from lrf_jax.frames_cli import main
-  run(main)
+__getattr__, __dir__, __all__ = _deprecated.alias(__name__, _new, warn=False)

@@ -18,7 +18,7 @@ from typing import Any, NamedTuple
 import numpy as np
 
 from lrf_jax.io import Cloud, read_cloud
-from lrf_jax.neighborhoods import validate_cloud, validate_faces, validate_normals
+from lrf_jax.search.neighborhoods import validate_cloud, validate_faces, validate_normals
 
 
 class CloudInput(NamedTuple):

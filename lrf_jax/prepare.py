@@ -11,7 +11,7 @@ from typing import Any, Callable, Union
 import numpy as np
 
 from lrf_jax.frames.spec import MethodSpec
-from lrf_jax.normals import NORMAL_RADIUS_RATIO, estimate_normals
+from lrf_jax.geometry.normals import NORMAL_RADIUS_RATIO, estimate_normals
 
 # The caller's (n, 3) normals; or None (estimate them when the method needs them) or a thunk that
 # returns that estimate (so that a caller holding a cache estimates them only when needed).

@@ -19,7 +19,7 @@ from lrf_jax.descriptors.rops import rotation_matrices
 from lrf_jax.evaluation.description import (DescriptionRun, evaluate_description_pair,
                                             recall_at, rpc_counts, rpc_curve)
 from lrf_jax.evaluation.repeatability import MethodRun
-from lrf_jax.neighborhoods import Patches, build_patches
+from lrf_jax.search.neighborhoods import Patches, build_patches
 from tests.lrf_testing import random_rotation
 
 FIXTURE = Path(__file__).resolve().parent / "fixtures" / "pcl_desc_demo.npz"

@@ -1,4 +1,4 @@
-"""The accelerator radius search (`lrf_jax.device_search`) gives the host search's patches."""
+"""The accelerator radius search (`lrf_jax.search.device`) gives the host search's patches."""
 
 from __future__ import annotations
 
@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 
 import lrf_jax
-from lrf_jax.device_search import DeviceIndex, build_patches_device
-from lrf_jax.neighborhoods import build_patches
+from lrf_jax.search.device import DeviceIndex, build_patches_device
+from lrf_jax.search.neighborhoods import build_patches
 
 
 def _cloud(seed=0):

@@ -4,8 +4,8 @@ import numpy as np
 import pytest
 from scipy.spatial import cKDTree
 
-from lrf_jax import engine
-from lrf_jax.neighborhoods import SearchIndex, build_patches, hash_priority
+from lrf_jax.search import balls, engine
+from lrf_jax.search.neighborhoods import SearchIndex, build_patches, hash_priority
 
 # Float64 statistics are summed in another order than the reference's: they agree to this
 # relative tolerance (of the ball's squared radius for covariances, its radius for centroids).
@@ -101,7 +101,7 @@ def test_build_patches_rejects_a_bad_support_ratio(z_ratio):
 @pytest.mark.parametrize("offset", [0.0, 1e6])
 def test_cells_counted_whole_lie_inside_the_ball(offset):
   """The patch count takes cells whose box lies inside the ball without testing their points
-  (`engine._column_runs`): every point of such a cell is within r by cKDTree's rule, also far
+  (`balls._column_runs`): every point of such a cell is within r by cKDTree's rule, also far
   from the origin, and the shortcut covers a good part of a dense ball."""
   import numba as nb
   rng = np.random.default_rng(4)
@@ -109,7 +109,7 @@ def test_cells_counted_whole_lie_inside_the_ball(offset):
   r = 0.1
   grid = engine.Grid(pts, r / 3)
   centers = pts[rng.choice(len(pts), 300, replace=False)]
-  reach = engine._reach(grid, r)
+  reach = balls._reach(grid, r)
 
   @nb.njit
   def check(xyz, starts, origin, h, dims, centers, r, reach):
@@ -120,7 +120,7 @@ def test_cells_counted_whole_lie_inside_the_ball(offset):
     bad = 0
     for i in range(centers.shape[0]):
       cx, cy, cz = centers[i, 0], centers[i, 1], centers[i, 2]
-      nr = engine._column_runs(cx, cy, cz, origin, h, dims, starts, r, reach, js, je, True, ji,
+      nr = balls._column_runs(cx, cy, cz, origin, h, dims, starts, r, reach, js, je, True, ji,
                                jk)
       for q in range(nr):
         bad += not (js[q] <= ji[q] <= jk[q] <= je[q])
@@ -149,7 +149,7 @@ def test_in_ball_rule_is_ckdtree_squared_distance():
 @pytest.mark.data
 @pytest.mark.parametrize("cloud", ["br_bunny", "bunny_scan", "uwaor_rs1"])
 def test_patches_equal_ckdtree_on_real_clouds(cloud, data_root):
-  from lrf_jax.resolution import mesh_resolution
+  from lrf_jax.geometry.resolution import mesh_resolution
   from lrf_jax.io import read_cloud
   if cloud == "br_bunny":
     c = read_cloud(data_root / "bologna_retrieval" / "models" / "bunny" / "bun_zipper_0.ply")
@@ -212,9 +212,9 @@ def test_balls_missed_by_the_rank_limit_are_collected_again():
              indices=np.empty((m, k), np.int32), count=np.zeros(m, np.int64),
              z_count=np.zeros(m, np.int64), z_mean=np.zeros((m, 3)), z_cov=np.zeros((m, 3, 3)))
   r, rz = 0.5, 0.5 / 3
-  engine._patch_kernel(grid.xyz, grid.slot_index, grid.slot_rank, grid.starts, grid.origin,
+  balls._patch_kernel(grid.xyz, grid.slot_index, grid.slot_rank, grid.starts, grid.origin,
                        grid.h, grid.dims, centers, engine.query_order(grid, centers), r, rz, k,
-                       1, engine._reach(grid, r), engine._reach(grid, rz), *engine._keep(r, None),
+                       1, balls._reach(grid, r), balls._reach(grid, rz), *balls._keep(r, None),
                        False, *got.values())
   assert (want["count"] > 2 * k).mean() > 0.5  # balls the limit would have cut
   for name in got:

@@ -71,12 +71,12 @@ def test_numba_cache_under_the_cache_root(tmp_path):
 
 def test_compile_notice_once_and_only_on_a_cache_miss(tmp_path):
   code = """
-      import sys, numpy as np, numba, lrf_jax.engine as engine
+      import sys, numpy as np, numba, lrf_jax.search.grid as grid
       assert numba.config.CACHE_DIR.endswith("/lrf_jax/numba"), numba.config.CACHE_DIR
       print("imported", file=sys.stderr, flush=True)
       for shape in ((2, 3), (3, 3), (2, 3)):  # one compile (one signature), three calls
-        assert engine._bounds(np.zeros(shape)) is not None
-      assert engine._bounds(np.zeros((2, 3), np.float32)) is not None  # a second signature
+        assert grid._bounds(np.zeros(shape)) is not None
+      assert grid._bounds(np.zeros((2, 3), np.float32)) is not None  # a second signature
       """
   env = {"XDG_CACHE_HOME": str(tmp_path / "cache")}
   first = _python(code, env, cwd=tmp_path)

@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from lrf_jax import datasets, io
-from lrf_jax.frames_cli import build_parser, main
+from lrf_jax.cli.frames import build_parser, main
 
 
 @pytest.fixture(scope="module")

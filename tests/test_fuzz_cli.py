@@ -15,10 +15,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from lrf_jax import config as config_lib
+from lrf_jax.learning import config as config_lib
 from lrf_jax import datasets
-from lrf_jax import frames_cli, register_cli
-from lrf_jax import train_lib
+from lrf_jax.cli import frames as frames_cli
+from lrf_jax.cli import register as register_cli
+from lrf_jax.learning import train_lib
 
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
@@ -346,8 +347,8 @@ def test_train_resume_with_other_model_fields_is_incompatible(tmp_path):
 
 
 def _batch(z_count: int, count: int):
-  from lrf_jax.batches import Batch
-  from lrf_jax.neighborhoods import Patches
+  from lrf_jax.learning.batches import Batch
+  from lrf_jax.search.neighborhoods import Patches
   n, k = 8, 4
   p = Patches(np.zeros((n, k, 3), np.float32), np.ones((n, k), bool), np.zeros((n, k), np.int32),
               np.full(n, count, np.int32), np.ones(n, np.float32), np.zeros((n, 3, 3), np.float32),
@@ -367,9 +368,9 @@ def test_all_invalid_frames_blame_the_support_when_patches_are_too_small():
 
 
 def test_frames_iss_keypoints(cloud_npy, tmp_path, monkeypatch):
-  """`--keypoints iss` takes lrf_jax.keypoints.iss_keypoints at the cloud's mr (sorted int64)."""
+  """`--keypoints iss` takes lrf_jax.geometry.keypoints.iss_keypoints at the cloud's mr (sorted int64)."""
   import lrf_jax
-  from lrf_jax import keypoints
+  from lrf_jax.geometry import keypoints
   seen = {}
 
   def iss(points, mr=None, **kw):

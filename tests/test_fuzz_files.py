@@ -16,7 +16,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from lrf_jax import datasets, frames_cli, register_cli, train_lib
+from lrf_jax import datasets
+from lrf_jax.cli import frames as frames_cli
+from lrf_jax.cli import register as register_cli
+from lrf_jax.learning import train_lib
 from lrf_jax.io import atomic
 
 REPO = Path(__file__).resolve().parents[1]
@@ -195,7 +198,7 @@ def test_frames_result_path_and_failed_rewrites(cloud_npy, tmp_path, capsys, mon
 
 
 def test_frames_png_on_a_full_disk(cloud_npy, tmp_path, capsys, monkeypatch, fast_frames):
-  from lrf_jax import plot
+  from lrf_jax.cli import plot
   png = tmp_path / "f.png"
   png.write_bytes(b"old figure")
 

@@ -10,10 +10,11 @@ import numpy as np
 import pytest
 
 import lrf_jax
-from lrf_jax import io, normals
+from lrf_jax import io
+from lrf_jax.geometry import normals
 from lrf_jax.api import host_frames, patch_size_cap
 from lrf_jax.io import ply as ply_module
-from lrf_jax.neighborhoods import SearchIndex
+from lrf_jax.search.neighborhoods import SearchIndex
 
 
 def _sphere(n=600, seed=0):
@@ -312,7 +313,7 @@ def test_ply_header_errors_keep_their_line(tmp_path):
 
 
 def test_build_patches_refuses_an_index_of_another_cloud():
-  from lrf_jax.neighborhoods import SearchIndex, build_patches
+  from lrf_jax.search.neighborhoods import SearchIndex, build_patches
   rng = np.random.default_rng(0)
   a, b = rng.normal(size=(500, 3)), rng.normal(size=(500, 3))
   with pytest.raises(ValueError, match="different cloud"):
@@ -323,6 +324,6 @@ def test_build_patches_refuses_an_index_of_another_cloud():
 
 
 def test_uint64_keypoint_out_of_range_is_reported_exactly():
-  from lrf_jax.neighborhoods import validate_keypoints
+  from lrf_jax.search.neighborhoods import validate_keypoints
   with pytest.raises(ValueError, match="9223372036854775813"):
     validate_keypoints(np.array([2**63 + 5], np.uint64), 100)

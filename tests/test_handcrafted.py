@@ -16,7 +16,7 @@ import pytest
 
 import lrf_jax
 from lrf_jax import datasets
-from lrf_jax import normals as nm
+from lrf_jax.geometry import normals as nm
 from lrf_jax.frames import shot as shot_mod
 from tests.lrf_testing import (N_GOOD, assert_frames_orthonormal, equivariance_deficit,
                                random_rotation, synthetic_mesh)

@@ -1,4 +1,4 @@
-"""ICP refinement: point-to-plane (lrf_jax.icp_host) against numpy references, and the
+"""ICP refinement: point-to-plane (lrf_jax.registration.icp_host) against numpy references, and the
 point-to-point mode held to the original algorithm bit for bit."""
 
 from __future__ import annotations
@@ -8,7 +8,9 @@ import pytest
 from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
-from lrf_jax import datasets, engine, icp_host
+from lrf_jax import datasets
+from lrf_jax.search import engine
+from lrf_jax.registration import icp_host
 from lrf_jax.registration import icp, pose_errors, to_transform
 
 
@@ -51,7 +53,7 @@ def _old_icp_numpy(source, target, init, max_distance, iterations=30, tolerance=
   tree = cKDTree(target)
   center = target.mean(axis=0)
   r2 = max_distance * max_distance
-  nblock = max(1, -(-len(source) // engine._BLOCK))
+  nblock = max(1, -(-len(source) // icp_host._SUMS_BLOCK))
 
   def step(tr):
     rot, trans = tr[:3, :3], tr[:3, 3]
@@ -68,11 +70,11 @@ def _old_icp_numpy(source, target, init, max_distance, iterations=30, tolerance=
     terms = np.concatenate([np.ones((len(q), 1)), d2[:, None], a, b,
                             (a[:, :, None] * b[:, None, :]).reshape(-1, 9)], axis=1)
     terms[~ok] = 0.0
-    padded = np.zeros((nblock * engine._BLOCK, 17))
+    padded = np.zeros((nblock * icp_host._SUMS_BLOCK, 17))
     padded[:len(q)] = terms
-    padded = padded.reshape(nblock, engine._BLOCK, 17)
+    padded = padded.reshape(nblock, icp_host._SUMS_BLOCK, 17)
     partial = np.zeros((nblock, 17))
-    for k in range(engine._BLOCK):  # each block's sums in point order, as the kernel adds them
+    for k in range(icp_host._SUMS_BLOCK):  # each block's sums in point order, as the kernel adds them
       partial += padded[:, k]
     acc = partial.sum(axis=0)
     n = int(acc[0])
@@ -161,7 +163,7 @@ def test_one_step_matches_a_numpy_reference():
   np.testing.assert_allclose(got, want, rtol=0, atol=1e-12)
   assert not np.allclose(got, init, atol=1e-4)  # the step is not trivially zero
   # fitness and rmse are point-to-point statistics at the returned pose, as in point_to_point.
-  n, d2, *_ = engine.icp_sums(grid, source, got[:3, :3], got[:3, 3], 0.08, pts.mean(axis=0))
+  n, d2, *_ = icp_host.icp_sums(grid, source, got[:3, :3], got[:3, 3], 0.08, pts.mean(axis=0))
   assert fitness == n / len(source)
   assert rmse == pytest.approx(np.sqrt(d2 / n), rel=1e-12)
 
@@ -275,7 +277,7 @@ def test_bad_arguments_name_the_argument():
 def test_the_fine_gate_is_the_clipped_median_residual():
   """`registration.fine_distance` against cKDTree: 1.5 x the median nearest distance of the moved
   source over the pairs within the first gate, clipped to [1 mr, first gate]."""
-  from lrf_jax.registration import ICP_FINE_FACTOR, ICP_FINE_MIN_MR, fine_distance
+  from lrf_jax.registration.pipeline import ICP_FINE_FACTOR, ICP_FINE_MIN_MR, fine_distance
   source, _ = _height_field(3000, 0)
   target, _ = _height_field(4000, 1)
   mr = float(cKDTree(source).query(source, 2)[0][:, 1].mean())
@@ -296,7 +298,7 @@ def test_register_without_the_fine_pass_is_one_icp_pass():
   """`register(icp_fine=False)` refines the coarse pose by a single ICP pass at icp_mr mr; the
   default adds the second pass and reports fitness at icp_mr mr either way."""
   from lrf_jax import register
-  from lrf_jax.registration import ICP_POINTS
+  from lrf_jax.registration.pipeline import ICP_POINTS
   cloud, _ = _height_field(4000, 3)
   gt = _pose([0.3, -1.0, 0.4], 20.0, [0.1, 0.2, -0.1])
   target = datasets.transform_points(gt, cloud[::-1])

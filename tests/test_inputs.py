@@ -19,7 +19,7 @@ def demo():
 def test_default_method_is_lrf_net_plus():
   for fn in (lrf_jax.compute_frames, lrf_jax.frames_from_patches, lrf_jax.register):
     assert inspect.signature(fn).parameters["method"].default == "lrf_net_plus", fn
-  from lrf_jax.register_cli import build_parser
+  from lrf_jax.cli.register import build_parser
   assert build_parser().get_default("method") == "lrf_net_plus"
 
 
@@ -103,8 +103,8 @@ def test_methods_print_as_a_table_with_descriptions_and_the_default_marked():
 
 def test_default_method_is_the_one_the_entry_points_use():
   from lrf_jax.frames import DEFAULT_METHOD
-  from lrf_jax.frames_cli import build_parser as frames_parser
-  from lrf_jax.register_cli import build_parser as register_parser
+  from lrf_jax.cli.frames import build_parser as frames_parser
+  from lrf_jax.cli.register import build_parser as register_parser
   for fn in (lrf_jax.compute_frames, lrf_jax.register):
     assert inspect.signature(fn).parameters["method"].default == DEFAULT_METHOD
   for parser in (frames_parser(), register_parser()):
@@ -112,7 +112,8 @@ def test_default_method_is_the_one_the_entry_points_use():
 
 
 def test_clear_caches_empties_them(demo):
-  from lrf_jax import api, normals
+  from lrf_jax import api
+  from lrf_jax.geometry import normals
   pts, faces, mr = demo
   lrf_jax.compute_frames(pts, np.arange(0, len(pts), 97), 15 * mr, "flare")
   lrf_jax.compute_frames(pts, np.arange(0, len(pts), 97), 15 * mr, "lrf_net")

@@ -1,4 +1,4 @@
-"""ISS keypoints (`lrf_jax.keypoints`) against a brute-force cKDTree reference, and their
+"""ISS keypoints (`lrf_jax.geometry.keypoints`) against a brute-force cKDTree reference, and their
 invariances."""
 
 from __future__ import annotations
@@ -9,7 +9,7 @@ from scipy.spatial import cKDTree
 
 import lrf_jax
 from lrf_jax import datasets
-from lrf_jax.keypoints import iss_keypoints
+from lrf_jax.geometry.keypoints import iss_keypoints
 from tests.lrf_testing import random_rotation
 
 

@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 
 import lrf_jax
-from lrf_jax.losses import batched_chamfer, chamfer, siamese_loss
-from lrf_jax.neighborhoods import build_patches
+from lrf_jax.learning.losses import batched_chamfer, chamfer, siamese_loss
+from lrf_jax.search.neighborhoods import build_patches
 from tests.lrf_testing import random_rotation
 
 

@@ -7,12 +7,12 @@ import numpy as np
 import pytest
 
 import lrf_jax
-from lrf_jax import geometry
+from lrf_jax.geometry import ops as geometry
 from lrf_jax.frames.lrf_net import (attributes, lrf_net_frames, lrf_net_weights, softmax_weights,
                                     uniform_frames)
 from lrf_jax.frames.lrf_net import lrf_net_frames as _lrf_net_frames
-from lrf_jax.neighborhoods import Patches, build_patches
-from lrf_jax.reference_numpy import reference_frames
+from lrf_jax.search.neighborhoods import Patches, build_patches
+from tests.reference_numpy import reference_frames
 from tests.lrf_testing import (assert_frames_orthonormal, equivariance_deficit,
                                random_rotation)
 
@@ -270,7 +270,7 @@ def test_chunked_equals_single_call(bunny):
 def test_methods_registry_lists_lrf_net():
   assert "lrf_net" in lrf_jax.METHODS and lrf_jax.METHODS["lrf_net"].needs_params
   assert "toldi" in lrf_jax.METHODS
-  f = lrf_jax.geometry.frame_from_zx(jnp.array([0, 0, 1.0]), jnp.array([1.0, 1.0, 5.0]))[0]
+  f = lrf_jax.geometry.ops.frame_from_zx(jnp.array([0, 0, 1.0]), jnp.array([1.0, 1.0, 5.0]))[0]
   np.testing.assert_allclose(f, [[np.sqrt(.5), np.sqrt(.5), 0], [-np.sqrt(.5), np.sqrt(.5), 0],
                                  [0, 0, 1]], atol=1e-6)
 
@@ -359,7 +359,7 @@ def test_weight_table_is_cached_and_equals_the_parameters_path(bunny):
 def test_prepare_view_precedence(br_bunny):
   """lrf_net_plus's sign reference: viewpoint, else given normals, else winding-oriented normals."""
   from lrf_jax.frames.lrf_net_plus import prepare_view
-  from lrf_jax.normals import NORMAL_RADIUS_RATIO, estimate_normals
+  from lrf_jax.geometry.normals import NORMAL_RADIUS_RATIO, estimate_normals
 
   points, faces, mr, _ = br_bunny
   kp = np.arange(0, len(points), 997)
@@ -380,7 +380,7 @@ def test_prepare_view_precedence(br_bunny):
   # Nothing but the points: normals oriented from the cloud (`voted_normals`), summed over the z
   # support where the vote is trusted, else zero (the ball sign).
   from lrf_jax.frames.lrf_net_plus import MIN_VOTE_TRUST
-  from lrf_jax.normals import voted_normals
+  from lrf_jax.geometry.normals import voted_normals
   alone = prepare_view(points, kp, patches, radius=r)
   voted, trust = voted_normals(points, NORMAL_RADIUS_RATIO * r, r)
   want = np.stack([np.nansum(voted[i[m]], 0) for i, m in zip(patches.indices, near)])

@@ -19,10 +19,10 @@ import numpy as np
 import pytest
 
 import lrf_jax
-from lrf_jax import normals as nm
+from lrf_jax.geometry import normals as nm
 from lrf_jax.api import frames_from_patches
 from lrf_jax.frames import KEYPOINT, SLOT, TRIANGLE, TRIANGLE_MASK
-from lrf_jax.neighborhoods import build_patches
+from lrf_jax.search.neighborhoods import build_patches
 from lrf_jax.prepare import prepare_extra
 from tests.lrf_testing import N_GOOD, assert_frames_orthonormal, synthetic_mesh
 

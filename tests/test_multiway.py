@@ -12,7 +12,8 @@ import pytest
 from scipy.optimize import minimize
 from scipy.spatial.transform import Rotation
 
-from lrf_jax import multiway, pose_graph
+from lrf_jax.registration import multiway
+from lrf_jax.registration import pose_graph
 from lrf_jax.datasets.synthetic import hidden_point_removal, make_demo_mesh, vertex_normals
 
 
@@ -148,7 +149,7 @@ def _views(n: int, seed: int = 0, step_deg: float = 60.0):
   a random rigid motion; (clouds, world-from-view poses, mr)."""
   points, faces = make_demo_mesh("blob", seed)
   normals = vertex_normals(points, faces)
-  from lrf_jax.resolution import mesh_resolution
+  from lrf_jax.geometry.resolution import mesh_resolution
   mr = mesh_resolution(points, faces)[0]
   poses = _poses(n, seed + 100)
   clouds = []
@@ -238,7 +239,7 @@ def test_cli_end_to_end_into_a_tmp_dir(tmp_path, capsys):
   """`lrf-register a b c --out-dir D` with the real pairwise registration on three small views
   of the demo blob: poses right, every output written, refusing an input as an output."""
   from lrf_jax import io
-  from lrf_jax.register_cli import main
+  from lrf_jax.cli.register import main
   clouds, poses, mr = _views(3, step_deg=50.0)
   paths = []
   for k, c in enumerate(clouds):
@@ -266,8 +267,8 @@ def test_cli_end_to_end_into_a_tmp_dir(tmp_path, capsys):
 
 
 def test_cli_hand_over_rule():
-  from lrf_jax.multiway_cli import wanted
-  from lrf_jax.register_cli import build_parser
+  from lrf_jax.cli.multiway import wanted
+  from lrf_jax.cli.register import build_parser
   ap = build_parser()
   assert wanted(ap, ["a.ply", "b.ply", "c.ply"])
   assert wanted(ap, ["a.ply", "b.ply", "--out-dir", "D"])

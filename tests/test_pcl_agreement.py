@@ -26,7 +26,7 @@ import pytest
 
 import lrf_jax
 from lrf_jax.frames import shot as shot_mod
-from lrf_jax.normals import NORMAL_RADIUS_RATIO, estimate_normals, pca_normals
+from lrf_jax.geometry.normals import NORMAL_RADIUS_RATIO, estimate_normals, pca_normals
 
 FIXTURES = Path(__file__).resolve().parent / "fixtures"
 PCL_METHODS = ("shot", "board", "flare", "rops")
@@ -97,7 +97,7 @@ def test_shot_ties_agree(br_bunny):
 
 
 def test_pca_normals_match_pcl(br_bunny):
-  """lrf_jax.normals.pca_normals reproduces pcl::NormalEstimation up to sign (PCL: viewpoint)."""
+  """lrf_jax.geometry.normals.pca_normals reproduces pcl::NormalEstimation up to sign (PCL: viewpoint)."""
   points, _, _, _ = br_bunny
   fx = _fixture("board")
   kp = fx["keypoints"]

@@ -12,8 +12,8 @@ from lrf_jax import datasets, evaluation
 from lrf_jax.evaluation import PatchCache
 from lrf_jax.frames import METHODS
 from lrf_jax.frames.lrf_net_plus import MIN_VOTE_TRUST, prepare_view, sign_confidence
-from lrf_jax.neighborhoods import Patches, build_patches
-from lrf_jax.normals import orient_by_vote, pca_normals
+from lrf_jax.search.neighborhoods import Patches, build_patches
+from lrf_jax.geometry.normals import orient_by_vote, pca_normals
 from tests.lrf_testing import (assert_frames_orthonormal, equivariance_deficit,
                                random_rotation)
 
@@ -213,7 +213,7 @@ def test_evaluate_points_only_defaults(tmp_path):
 def test_register_keeps_the_patch_sign_on_a_bare_cloud(scan, monkeypatch):
   # register() passes oriented_sign=False for a cloud without viewpoint or mesh: the frames are
   # those of the patch sign, and prepare_view orients no normals for them.
-  from lrf_jax import normals as normals_module
+  from lrf_jax.geometry import normals as normals_module
   pts, kp, r = scan
   calls = []
   real = normals_module.voted_normals

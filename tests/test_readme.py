@@ -57,18 +57,18 @@ def _project_command(cmd: list[str]) -> tuple[str, list[str]] | None:
   if cmd[0] in ("python", "python3") and len(cmd) > 1:
     if cmd[1] in ("train.py", "evaluate.py"):
       return cmd[1], cmd[2:]
-    if cmd[1:3] == ["-m", "lrf_jax.register_cli"]:
+    if cmd[1:3] == ["-m", "lrf_jax.cli.register"]:
       return "lrf-register", cmd[3:]
   return None
 
 
 def _parse(program: str, args: list[str]) -> None:
   if program == "lrf-frames":
-    from lrf_jax.frames_cli import build_parser
+    from lrf_jax.cli.frames import build_parser
     build_parser().parse_args(args)
   elif program == "lrf-register":
-    from lrf_jax import multiway_cli
-    from lrf_jax.register_cli import build_parser
+    from lrf_jax.cli import multiway as multiway_cli
+    from lrf_jax.cli.register import build_parser
     if multiway_cli.wanted(build_parser(), args):  # more than two scans: the multiway command
       multiway_cli.build_parser().parse_args(args)
     else:
@@ -78,7 +78,7 @@ def _parse(program: str, args: list[str]) -> None:
     evaluate.build_parser().parse_args(args)
   else:
     import train
-    from lrf_jax import config as config_lib
+    from lrf_jax.learning import config as config_lib
     parsed = train.build_parser().parse_args(args)
     config_lib.replace(config_lib.load_config(parsed.config),
                        **config_lib.parse_overrides(parsed.overrides))
@@ -138,7 +138,7 @@ def test_python_block_runs(block, tmp_path, monkeypatch):
 def test_help_of_evaluate_and_train_shows_defaults_and_presets():
   import evaluate
   import train
-  from lrf_jax import config as config_lib
+  from lrf_jax.learning import config as config_lib
   text = " ".join(evaluate.build_parser().format_help().split())
   assert "(default: 1000)" in text and "(default: out/eval)" in text
   assert "(default: 15.0)" in text and "(default: None)" not in text
@@ -147,3 +147,44 @@ def test_help_of_evaluate_and_train_shows_defaults_and_presets():
   for name in config_lib.preset_names():
     assert name in text
   assert {"default", "smoke", "plus_soft"} <= set(config_lib.preset_names())
+
+
+_ENTRY = re.compile(r"^[\w-]+(/|\.(py|toml|md)),?$")
+
+
+def layout_entries() -> set[str]:
+  """The paths the README's layout section lists (relative to the repository root): a tree with
+  two spaces per level, each line's leading names (`a.py, b.py,` lists allowed) under the last
+  folder (`name/`) of the level above; the description after them is not read."""
+  section = README.read_text().split("\n## Layout", 1)[1].split("\n## ", 1)[0]
+  block = section.split("```", 2)[1]
+  entries, folders = set(), []  # folders: the open folder at each level
+  for line in block.splitlines()[1:]:
+    if not line.strip():
+      continue
+    level = (len(line) - len(line.lstrip())) // 2
+    names = []
+    for token in line.split():
+      if not _ENTRY.match(token):
+        break
+      names.append(token.rstrip(","))
+    if not names:
+      continue
+    folders = folders[:level]
+    assert len(folders) == level, f"README layout: {line!r} is indented under no folder"
+    for name in names:
+      entries.add("/".join([*folders, name.rstrip("/")]))
+    if names[-1].endswith("/") and len(names) == 1:
+      folders.append(names[-1].rstrip("/"))
+  return entries
+
+
+def test_layout_section_matches_the_tree():
+  listed = layout_entries()
+  missing = sorted(p for p in listed if not (REPO / p).exists())
+  assert missing == [], f"README layout lists what does not exist: {missing}"
+  package = REPO / "lrf_jax"
+  actual = {str(p.relative_to(REPO)) for p in package.rglob("*.py")}
+  actual |= {str(p.parent.relative_to(REPO)) for p in package.rglob("__init__.py")}
+  unlisted = sorted(actual - listed)
+  assert unlisted == [], f"README layout omits: {unlisted}"

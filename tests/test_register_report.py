@@ -4,8 +4,9 @@ import numpy as np
 import pytest
 
 from lrf_jax import datasets, io
-from lrf_jax.register_cli import build_parser, main
-from lrf_jax.registration import Evidence, Registration, verdict
+from lrf_jax.cli.register import build_parser, main
+from lrf_jax.registration import Registration
+from lrf_jax.registration.evidence import Evidence, verdict
 
 
 def _registration(**kw):

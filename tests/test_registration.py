@@ -7,8 +7,9 @@ import pytest
 from scipy.spatial import cKDTree
 
 import lrf_jax
-from lrf_jax import datasets, registration
-from lrf_jax.geometry import kabsch
+from lrf_jax import datasets
+from lrf_jax.registration import estimators, pipeline
+from lrf_jax.geometry.ops import kabsch
 from lrf_jax.registration import (icp, lrf_ransac, pose_errors, pose_from_correspondence,
                                   ransac_3point, register, rotation_error_deg, to_transform)
 from tests.lrf_testing import random_rotation
@@ -84,31 +85,31 @@ def test_both_estimators_recover_a_pose_among_outliers_deterministically():
 
 
 def test_host_hypotheses_and_scores_agree_with_the_jitted_ones():
-  """register's host steps (registration_host) against the jitted vmap programs of lrf_ransac
+  """register's host steps (registration.host) against the jitted vmap programs of lrf_ransac
   and ransac_3point on the same centred float32 correspondences."""
   import jax
-  from lrf_jax import registration_host as host
+  from lrf_jax.registration import host
   src, dst, f_src, f_dst, _, _ = _synthetic_correspondences(5, m=300)
-  s, d, _, _ = registration._centred(src, dst)
+  s, d, _, _ = estimators._centred(src, dst)
   rs, ts = host.lrf_hypotheses(s, f_src, d, f_dst, 0.2)
-  rj, tj = registration._lrf_hypotheses(s, f_src.astype(np.float32), d,
+  rj, tj = estimators._lrf_hypotheses(s, f_src.astype(np.float32), d,
                                         f_dst.astype(np.float32), 0.2)
   np.testing.assert_allclose(rs, np.asarray(rj), atol=2e-5)
   np.testing.assert_allclose(ts, np.asarray(tj), atol=2e-5)
   np.testing.assert_allclose(np.linalg.det(rs), 1.0, atol=1e-12)
   triples = np.random.default_rng(0).integers(0, 300, (200, 3))
   rk, tk = host.kabsch_batch(s[triples], d[triples])
-  rkj, tkj = registration._kabsch_batch(s[triples], d[triples])
+  rkj, tkj = estimators._kabsch_batch(s[triples], d[triples])
   ok = np.linalg.svd(s[triples] - s[triples].mean(1, keepdims=True))[1][:, 1] > 0.05
   np.testing.assert_allclose(rk[ok], np.asarray(rkj)[ok], atol=1e-4)  # well-posed triples
   thr = 0.02
   counts = host.count_inliers(rs, ts, s, d, thr)
-  cj = np.asarray(jax.vmap(lambda r, t: registration._inlier_mask(r, t, s, d, thr).sum())(
+  cj = np.asarray(jax.vmap(lambda r, t: estimators._inlier_mask(r, t, s, d, thr).sum())(
       rj, tj))
   assert counts.max() > 50 and np.abs(counts - cj).max() <= 1  # float32 rounding at the edge
   best = int(np.argmax(counts))
   r, t, mask = host.select_and_refine(rs[best], ts[best], s, d, thr)
-  r2, t2, mask2, _, _ = registration._select_and_refine(rj[best:best + 1], tj[best:best + 1],
+  r2, t2, mask2, _, _ = estimators._select_and_refine(rj[best:best + 1], tj[best:best + 1],
                                                         s, d, thr, True)
   np.testing.assert_allclose(r, np.asarray(r2), atol=1e-5)
   np.testing.assert_allclose(t, np.asarray(t2), atol=1e-5)
@@ -166,7 +167,7 @@ def test_register_scans_with_viewpoints_and_lrf_net_plus(data_root):
 def test_register_cli_on_demo_files(tmp_path):
   """The CLI reads two PLY files and writes the 4x4 transform (synthetic data: no download)."""
   from lrf_jax import io
-  from lrf_jax.register_cli import main
+  from lrf_jax.cli.register import main
   pair = datasets.make_demo_pair(0, seed=0, noise_mr=0.1, partial=True)
   src, dst = tmp_path / "a.ply", tmp_path / "b.ply"
   io.write_ply(src, pair.model_points, dtype="float64")
@@ -185,21 +186,21 @@ def test_console_entry_flushes_its_output_and_keeps_the_exit_code(tmp_path):
   what main printed arrives, its return code is the process's, argparse's exits too."""
   import subprocess
   import sys
-  code = ("import sys; from lrf_jax.console import run; "
+  code = ("import sys; from lrf_jax.cli.console import run; "
           "run(lambda: (print('out'), print('err', file=sys.stderr), 3)[2])")
   done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
   assert (done.returncode, done.stdout, done.stderr) == (3, "out\n", "err\n")
-  bad = subprocess.run([sys.executable, "-c", "from lrf_jax.console import register; register()",
+  bad = subprocess.run([sys.executable, "-c", "from lrf_jax.cli.console import register; register()",
                         str(tmp_path / "missing.ply"), str(tmp_path / "b.ply")],
                        capture_output=True, text=True)
   assert bad.returncode == 2 and "no such file" in bad.stderr
-  usage = subprocess.run([sys.executable, "-c", "from lrf_jax.console import frames; frames()",
+  usage = subprocess.run([sys.executable, "-c", "from lrf_jax.cli.console import frames; frames()",
                           "--no-such-flag"], capture_output=True, text=True)
   assert usage.returncode == 2 and "usage: lrf-frames" in usage.stderr
 
 
 def test_register_cli_rejects_bad_paths_before_any_work(tmp_path, capsys):
-  from lrf_jax.register_cli import build_parser, main
+  from lrf_jax.cli.register import build_parser, main
   a = tmp_path / "a.ply"
   a.write_text("not read: the path check comes first")
   assert main([str(a), str(a), "--out", str(tmp_path / "missing" / "T.txt")]) == 2
@@ -260,7 +261,7 @@ def test_icp_refines_a_small_misalignment():
   err_r, err_t = pose_errors(est, gt, mr=0.01)
   assert err_r < 1e-3 and err_t < 1e-3 and fitness == 1.0 and rmse < 1e-9
   tree = cKDTree(target)
-  fits = registration.overlap_scores(np.stack([est[:3, :3], np.eye(3)]),
+  fits = pipeline.overlap_scores(np.stack([est[:3, :3], np.eye(3)]),
                                      np.stack([est[:3, 3], np.zeros(3)]), pts[::5], tree, 0.005)
   assert fits[0] == 1.0 and fits[1] < 0.5
 
@@ -288,7 +289,7 @@ def test_pose_protocol_on_a_rigidly_moved_cloud():
 
 
 def test_verdict_rule_of_the_one_point_estimator():
-  from lrf_jax.registration import Evidence, verdict
+  from lrf_jax.registration.evidence import Evidence, verdict
 
   def ok(n, chance, fitness, contrast):
     return verdict(Evidence(n, chance, 0, fitness, contrast, "lrf"))[0]
@@ -301,7 +302,7 @@ def test_verdict_rule_of_the_one_point_estimator():
 
 def test_register_verdict_on_a_real_pair_and_on_unrelated_blobs(tmp_path, capsys):
   from lrf_jax import io
-  from lrf_jax.register_cli import main
+  from lrf_jax.cli.register import main
   pair = datasets.make_demo_pair(0, seed=0, noise_mr=0.1, partial=True)
   good = register(pair.model_points, pair.scene_points, n_keypoints=800, n_correspondences=200,
                   mr=pair.mr)

@@ -1,12 +1,13 @@
-"""The compatibility-graph estimator (`lrf_jax.registration_graph`) and the verdict's evidence."""
+"""The compatibility-graph estimator (`lrf_jax.registration.graph`) and the verdict's evidence."""
 
 import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from lrf_jax import registration_graph as graph
-from lrf_jax import registration_host as host
-from lrf_jax.registration import Evidence, rotation_error_deg, verdict
+from lrf_jax.registration import graph
+from lrf_jax.registration import host
+from lrf_jax.registration import rotation_error_deg
+from lrf_jax.registration.evidence import Evidence, verdict
 
 
 def _scene(n=400, inlier_fraction=0.08, seed=0, noise=0.002):

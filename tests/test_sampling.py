@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from lrf_jax.sampling import voxel_downsample
+from lrf_jax.geometry.sampling import voxel_downsample
 
 
 def _reference(points: np.ndarray, size: float) -> np.ndarray:

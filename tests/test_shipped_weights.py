@@ -9,7 +9,7 @@ import pytest
 import lrf_jax
 from lrf_jax import datasets
 from lrf_jax.evaluation import MethodRun, evaluate_pair
-from lrf_jax.model import DEFAULT_WEIGHTS, WEIGHTS_DIR, load_params
+from lrf_jax.learning.model import DEFAULT_WEIGHTS, WEIGHTS_DIR, load_params
 
 
 def test_shipped_weights_are_the_default_and_documented():
@@ -29,7 +29,7 @@ def test_shipped_weights_are_the_default_and_documented():
 
 
 def test_default_params_first_called_inside_jit_do_not_leak_tracers():
-  from lrf_jax.model import _default_params_cached
+  from lrf_jax.learning.model import _default_params_cached
   _default_params_cached.cache_clear()
   jax.jit(lambda x: x + jax.tree.leaves(lrf_jax.default_params("lrf_net_plus"))[0].sum())(1.0)
   for leaf in jax.tree.leaves(lrf_jax.default_params("lrf_net_plus")):
@@ -79,8 +79,8 @@ def test_flax_free_forward_and_reader_equal_flax():
   # module's forward pass and flax's msgpack reader, on every shipped file and a fresh save.
   from flax import serialization
 
-  from lrf_jax import model
-  from lrf_jax.networks import WeightNet
+  from lrf_jax.learning import model
+  from lrf_jax.learning.networks import WeightNet
   files = sorted(model.WEIGHTS_DIR.rglob("*.msgpack"))
   assert files
   for path in files:
@@ -102,7 +102,7 @@ def test_inference_imports_neither_flax_nor_the_datasets(tmp_path):
   # loaders (each a few tenths of a second of import time).
   import subprocess
   import sys
-  code = ("import sys, lrf_jax, lrf_jax.registration, lrf_jax.register_cli; "
+  code = ("import sys, lrf_jax, lrf_jax.registration, lrf_jax.cli.register; "
           "heavy = sorted(m for m in ('flax', 'optax', 'orbax', 'lrf_jax.datasets', 'pypcd4') "
           "if m in sys.modules); print(heavy); sys.exit(1 if heavy else 0)")
   out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)

@@ -11,11 +11,14 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from lrf_jax import config as config_lib
-from lrf_jax import checkpoints, data_sources, train_lib, train_step
-from lrf_jax.batches import BatchMaker, crop_patches
-from lrf_jax.losses import siamese_loss
-from lrf_jax.model import load_params
+from lrf_jax.learning import config as config_lib
+from lrf_jax.learning import checkpoints
+from lrf_jax.learning import data_sources
+from lrf_jax.learning import train_lib
+from lrf_jax.learning import train_step
+from lrf_jax.learning.batches import BatchMaker, crop_patches
+from lrf_jax.learning.losses import siamese_loss
+from lrf_jax.learning.model import load_params
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -147,7 +150,7 @@ def test_epoch_patches_reusing_last_epochs_stats_equal_a_fresh_makers(smoke):
 
 
 def test_crop_augmentation_cuts_by_a_plane():
-  from lrf_jax.neighborhoods import build_patches
+  from lrf_jax.search.neighborhoods import build_patches
 
   rng = np.random.default_rng(0)
   pts = rng.normal(size=(4000, 3)) * [1.0, 1.0, 0.05]

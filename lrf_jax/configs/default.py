@@ -1,11 +1,6 @@
-"""The paper's training setup (section 3.1): noise-free BR, 256 points per patch, 512 pairs per
-batch, Adam 1e-4 decaying 5% per epoch, 20 epochs, Chamfer eq_cham (the smaller directed mean).
+"""Deprecated alias of `lrf_jax.learning.configs.default` (moved there in 0.7); removed in the next release."""
 
-    LRF_DATA=/path/to/data python train.py --config default --workdir runs/default
-"""
+from lrf_jax import _deprecated
+from lrf_jax.learning.configs import default as _new
 
-from lrf_jax.config import TrainConfig
-
-
-def get_config() -> TrainConfig:
-  return TrainConfig(name="default")
+__getattr__, __dir__, __all__ = _deprecated.alias(__name__, _new)

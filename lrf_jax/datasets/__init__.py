@@ -18,7 +18,7 @@ from lrf_jax.datasets.nuisances import (Decimation, add_gaussian_noise, decimate
                                         with_decimation, with_noise, with_random_motion,
                                         with_rotation)
 from lrf_jax.datasets.pair import Pair, repeatability_keypoints, transform_points
-from lrf_jax.resolution import mesh_resolution, unique_edges
+from lrf_jax.geometry.resolution import mesh_resolution, unique_edges
 from lrf_jax.datasets.root import (DATASETS, ENV_VAR, DataNotFoundError, dataset_dir,
                                    find_data_root)
 from lrf_jax.datasets.stanford import BUNNY_SCAN_ORDER, bunny_poses, load_bunny_pairs

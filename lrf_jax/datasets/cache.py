@@ -15,7 +15,7 @@ from pathlib import Path
 import numpy as np
 
 from lrf_jax.io import read_cloud
-from lrf_jax.resolution import MrDefinition, mesh_resolution
+from lrf_jax.geometry.resolution import MrDefinition, mesh_resolution
 
 
 @dataclasses.dataclass(frozen=True, eq=False)

@@ -50,7 +50,7 @@ class Pair:
     model_viewpoint: (3,) float64 sensor position in the model's own coordinates when the model
       is a single-view scan (normals of a scan are oriented towards it, as PCL's
       `flipNormalTowardsViewpoint`), else None (a mesh or a complete model: orientation from the
-      faces' winding or by propagation, see `lrf_jax.normals`).
+      faces' winding or by propagation, see `lrf_jax.geometry.normals`).
     scene_viewpoint: (3,) the same for the scene, in the scene's coordinates.
   """
 

@@ -20,7 +20,7 @@ from scipy.spatial.transform import Rotation
 
 from lrf_jax.datasets.nuisances import add_gaussian_noise
 from lrf_jax.datasets.pair import Pair, transform_points
-from lrf_jax.resolution import mesh_resolution
+from lrf_jax.geometry.resolution import mesh_resolution
 
 Shape = Literal["blob", "torus"]
 SHAPES: tuple[Shape, ...] = ("blob", "torus")

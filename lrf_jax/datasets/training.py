@@ -3,7 +3,7 @@
 A `TrainingSet` is a fixed, seeded set of keypoints over the 18 noise-free BR pairs (all 6
 models). A keypoint is (pair, vertex): the same vertex index on the model side and on the scene
 side (the model under the ground truth), since BR correspondences are exact by index. Patches
-are built from these points by `lrf_jax.neighborhoods`; this module only provides the points,
+are built from these points by `lrf_jax.search.neighborhoods`; this module only provides the points,
 the keypoints and seeded shuffled batches of keypoint indices.
 
 Disjointness from the evaluation: for each pair, the vertices that `repeatability_keypoints`

@@ -29,7 +29,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from lrf_jax.chunks import map_chunks
+from lrf_jax.search.chunks import map_chunks
 from lrf_jax.descriptors import rops as _rops
 from lrf_jax.descriptors import shot as _shot
 from lrf_jax.descriptors import snapshots as _snapshots
@@ -42,7 +42,7 @@ from lrf_jax.descriptors.rops import rops_descriptors
 from lrf_jax.descriptors.shot import shot_descriptors
 from lrf_jax.descriptors.snapshots import snapshot_descriptors
 from lrf_jax.descriptors.toldi import toldi_descriptors
-from lrf_jax.neighborhoods import (Patches, SearchIndex, build_patches, validate_cloud,
+from lrf_jax.search.neighborhoods import (Patches, SearchIndex, build_patches, validate_cloud,
                                    validate_keypoints, validate_radius)
 from lrf_jax.frames.normal_based import prepare_normals
 
@@ -238,7 +238,7 @@ def compute_descriptors(
     valid: (m,) bool validity of the frames (None: every finite frame).
     descriptor: a key of `DESCRIPTORS`.
     faces: optional (f, 3) triangles (orient SHOT's estimated normals by the winding).
-    normals: optional (n, 3) normals for SHOT (default: `lrf_jax.normals.estimate_normals`).
+    normals: optional (n, 3) normals for SHOT (default: `lrf_jax.geometry.normals.estimate_normals`).
     k: neighbours per patch; None = every neighbour within r (the original descriptors).
     seed: seed of the subsample when `k` is set.
     chunk_size: keypoints per search and jitted call (memory: about chunk_size x K x 60 bytes

@@ -11,8 +11,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from lrf_jax import engine
-from lrf_jax.neighborhoods import Patches, SearchIndex, build_patches
+from lrf_jax.search import engine
+from lrf_jax.search.neighborhoods import Patches, SearchIndex, build_patches
 
 
 def local_coordinates(offsets: jax.Array, frames: jax.Array) -> jax.Array:

@@ -33,7 +33,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from lrf_jax.descriptors.common import local_coordinates, sanitize_inputs
-from lrf_jax.neighborhoods import Patches
+from lrf_jax.search.neighborhoods import Patches
 
 N_BINS = 5
 N_ROTATIONS = 3

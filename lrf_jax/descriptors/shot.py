@@ -42,7 +42,7 @@ import jax
 import jax.numpy as jnp
 
 from lrf_jax.descriptors.common import local_coordinates, sanitize_inputs
-from lrf_jax.neighborhoods import Patches
+from lrf_jax.search.neighborhoods import Patches
 
 N_COS = 10                 # PCL nr_shape_bins_
 STRIDE = N_COS + 1         # slots per spatial volume

@@ -32,7 +32,7 @@ import jax
 import jax.numpy as jnp
 
 from lrf_jax.descriptors.common import local_coordinates, sanitize_inputs
-from lrf_jax.neighborhoods import Patches
+from lrf_jax.search.neighborhoods import Patches
 
 GRID = 15
 MIN_POINTS = 3

@@ -39,7 +39,7 @@ import numpy as np
 
 from lrf_jax.descriptors.common import local_coordinates, sanitize_inputs
 from lrf_jax.frames import host_geometry as hg
-from lrf_jax.neighborhoods import Patches
+from lrf_jax.search.neighborhoods import Patches
 
 GRID = 20
 EMPTY_PIXEL = 100.0

@@ -16,7 +16,7 @@ Protocol per model/scene pair (as the repeatability experiment):
   the correct ones; recall = N_true / N_corr (eq. `eq_recall`), 1 - precision =
   (N_match - N_true) / N_match (eq. `eq_prec`). Counts are pooled over the pairs of a dataset.
 
-Normals (SHOT, and the LRFs that need them) are `lrf_jax.normals`' defaults (PCA over 0.2 r,
+Normals (SHOT, and the LRFs that need them) are `lrf_jax.geometry.normals`' defaults (PCA over 0.2 r,
 oriented by the mesh winding or by propagation), estimated once per side and pair.
 
 Invalid descriptors (invalid frame, too few points) are never matched on the model side and never
@@ -42,7 +42,7 @@ from lrf_jax.evaluation.repeatability import (EXACT_NETWORK, MethodRun, PatchCac
                                               group_records)
 from lrf_jax.frames import METHODS
 from lrf_jax.io import atomic
-from lrf_jax.normals import default_normals
+from lrf_jax.geometry.normals import default_normals
 from lrf_jax.prepare import prepare_extra
 
 RATIO_THRESHOLDS = np.round(np.linspace(0.0, 1.0, 101), 2)

@@ -34,7 +34,7 @@ from lrf_jax.descriptors import (DESCRIPTORS, describe_patches, match_descriptor
 from lrf_jax.evaluation.repeatability import (PatchCache, correspondences, group_records,
                                               paper_options)
 from lrf_jax.frames import METHODS
-from lrf_jax.normals import default_normals
+from lrf_jax.geometry.normals import default_normals
 from lrf_jax.prepare import prepare_extra
 from lrf_jax.registration import lrf_ransac, pose_errors, ransac_3point
 

@@ -23,14 +23,14 @@ from scipy.spatial import cKDTree
 
 import jax
 
-from lrf_jax import engine
+from lrf_jax.search import engine
 from lrf_jax.api import frames_from_patches, host_frames
 from lrf_jax.datasets import Pair, repeatability_keypoints, transform_points
 from lrf_jax.frames import METHODS
 from lrf_jax.io import atomic
-from lrf_jax.metrics import meancos
-from lrf_jax.neighborhoods import Patches, SearchIndex, build_patches
-from lrf_jax.normals import NORMAL_RADIUS_RATIO, estimate_normals
+from lrf_jax.evaluation.metrics import meancos
+from lrf_jax.search.neighborhoods import Patches, SearchIndex, build_patches
+from lrf_jax.geometry.normals import NORMAL_RADIUS_RATIO, estimate_normals
 from lrf_jax.prepare import method_normals, prepare_extra
 
 # Default cap on all-neighbour patches in evaluations (see `evaluate_pair`).

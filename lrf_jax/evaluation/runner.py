@@ -27,7 +27,7 @@ from lrf_jax.evaluation.repeatability import (EXACT_NETWORK, MethodRun, PatchCac
                                               paper_options)
 from lrf_jax.frames import METHODS
 from lrf_jax.io import atomic
-from lrf_jax.model import load_params
+from lrf_jax.learning.model import load_params
 
 # Experiments that sweep one nuisance: the number of settings per clean pair.
 SWEEPS = {"noise": len(NOISE_LEVELS), "decimation": len(DECIMATIONS), "radius": len(RADII_MR),
@@ -79,7 +79,7 @@ def method_runs(methods: list[str] | None = None, *, checkpoint: str | None = No
   runs = [MethodRun(m, m, options=paper_options(m)) for m in (methods or default_methods())]
   notes = []
   if checkpoint:
-    from lrf_jax.checkpoints import restore_params
+    from lrf_jax.learning.checkpoints import restore_params
     try:
       best, cfg = restore_params(checkpoint, "best")
       final, _ = restore_params(checkpoint, "latest")

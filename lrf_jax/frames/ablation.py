@@ -17,12 +17,12 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 
-from lrf_jax import geometry
+from lrf_jax.geometry import ops as geometry
 from lrf_jax.frames.lrf_net import attributes, frame_from_weights, z_axes
 from lrf_jax.frames.spec import MethodSpec
-from lrf_jax.geometry import sanitize
-from lrf_jax.model import Params, apply_weights, init_params
-from lrf_jax.neighborhoods import Patches
+from lrf_jax.geometry.ops import sanitize
+from lrf_jax.learning.model import Params, apply_weights, init_params
+from lrf_jax.search.neighborhoods import Patches
 
 Z_MODES = ("normal", "dr")
 X_MODES = ("sum1", "sum2", "dr", "max")
@@ -45,10 +45,10 @@ def init_variant_params(seed: int, z_mode: str, x_mode: str,
   elif x_mode == "sum2":
     params["weights"] = init_params(seed, 6, widths)
   else:
-    from lrf_jax.networks import init_regressor  # flax: only the "dr" variants need it
+    from lrf_jax.learning.networks import init_regressor  # flax: only the "dr" variants need it
     params["x_reg"] = init_regressor(seed + 1, 6)
   if z_mode == "dr":
-    from lrf_jax.networks import init_regressor
+    from lrf_jax.learning.networks import init_regressor
     params["z_reg"] = init_regressor(seed + 2, 3)
   return params
 
@@ -58,7 +58,7 @@ def variant_frames(params: dict[str, Params], patches: Patches, *, z_mode: str =
   """Frames of an ablation variant for a batch of patches: (N, 3, 3) rows x, y, z; (N,) valid."""
   check_modes(z_mode, x_mode)
   if "dr" in (z_mode, x_mode):
-    from lrf_jax.networks import apply_regressor  # flax: only the "dr" variants need it
+    from lrf_jax.learning.networks import apply_regressor  # flax: only the "dr" variants need it
   patches, finite = sanitize(patches)
   rel = patches.offsets / patches.radius[:, None, None]
   if z_mode == "normal":

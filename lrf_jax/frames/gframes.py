@@ -35,14 +35,14 @@ import jax.numpy as jnp
 import numba as nb
 import numpy as np
 
-from lrf_jax import geometry
+from lrf_jax.geometry import ops as geometry
 from lrf_jax.frames import host_geometry as hg
 from lrf_jax.frames.rops import gather_triangles, validate_faces, vertex_faces
 from lrf_jax.frames.normal_based import usable_normals
 from lrf_jax.frames.spec import KEYPOINT, TRIANGLE, TRIANGLE_MASK, MethodSpec
-from lrf_jax.geometry import sanitize
-from lrf_jax.neighborhoods import Patches
-from lrf_jax.normals import cache_last, default_normals, face_cross, mean_curvature
+from lrf_jax.geometry.ops import sanitize
+from lrf_jax.search.neighborhoods import Patches
+from lrf_jax.geometry.normals import cache_last, default_normals, face_cross, mean_curvature
 
 X_EPS = 1e-5
 # A triangle whose height is at most this fraction of its longest edge (|cross| <= SLIVER_EPS ·

@@ -14,7 +14,8 @@ from typing import Any
 import numba as nb
 import numpy as np
 
-from lrf_jax import engine, geometry
+from lrf_jax.search import engine
+from lrf_jax.geometry import ops as geometry
 
 EPS = geometry.DEGENERATE_EPS
 

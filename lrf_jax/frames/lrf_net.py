@@ -25,10 +25,10 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from lrf_jax import geometry
+from lrf_jax.geometry import ops as geometry
 from lrf_jax.frames.spec import HostPatchKernel, MethodSpec
-from lrf_jax.model import Params, apply_weights, apply_weights_numpy
-from lrf_jax.neighborhoods import Patches
+from lrf_jax.learning.model import Params, apply_weights, apply_weights_numpy
+from lrf_jax.search.neighborhoods import Patches
 
 # |Σ w v| must exceed this fraction of Σ |w| |v| for x to be defined (symmetric patches fail).
 X_EPS = 1e-5

@@ -23,11 +23,12 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from lrf_jax import engine, geometry
+from lrf_jax.geometry import ops as geometry
+from lrf_jax.search import engine
 from lrf_jax.frames.lrf_net import (MIN_Z_NEIGHBOURS, X_EPS, lrf_net_frames,
                                    table_host_supports)
 from lrf_jax.frames.spec import KEYPOINT, SLOT, HostPatchKernel, MethodSpec
-from lrf_jax.neighborhoods import Patches
+from lrf_jax.search.neighborhoods import Patches
 
 
 # Below this vote margin (`normals.orient_by_vote`) a component's sign is not used and z falls
@@ -78,7 +79,7 @@ def prepare_view(points, keypoints, patches, *, faces=None, normals=None, radius
   `trust` (see `ViewExtra`) is 1 for the first three and the vote margin for the fourth; 0 where
   `view` is 0.
   """
-  from lrf_jax.normals import NORMAL_RADIUS_RATIO, estimate_normals, voted_normals
+  from lrf_jax.geometry.normals import NORMAL_RADIUS_RATIO, estimate_normals, voted_normals
   pts = np.asarray(points, np.float64)
   kp = np.asarray(keypoints)
   trust = None
@@ -137,7 +138,7 @@ def patch_areas(points: np.ndarray, patches: Patches,
   of the local sampling density. Normalised to mean 1 over each patch's neighbours (0 in
   padding). Rotation and translation invariant.
   """
-  from lrf_jax.normals import cache_last
+  from lrf_jax.geometry.normals import cache_last
 
   pts = np.asarray(points, np.float64)
 

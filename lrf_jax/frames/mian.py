@@ -32,12 +32,12 @@ import jax.numpy as jnp
 import numba as nb
 import numpy as np
 
-from lrf_jax import geometry
+from lrf_jax.geometry import ops as geometry
 from lrf_jax.frames import host_geometry as hg
 from lrf_jax.frames.normal_based import NormalExtra, prepare_normals, usable_normals
 from lrf_jax.frames.spec import MethodSpec
-from lrf_jax.geometry import sanitize
-from lrf_jax.neighborhoods import Patches
+from lrf_jax.geometry.ops import sanitize
+from lrf_jax.search.neighborhoods import Patches
 
 MIN_NEIGHBOURS = 5
 

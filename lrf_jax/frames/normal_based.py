@@ -1,7 +1,7 @@
 """The host `prepare` hook shared by the normal-based LRFs (mian, board, flare, ps).
 
 Numpy, outside jit: it gathers the per-point normals (the caller's, else estimated by
-`lrf_jax.normals.estimate_normals`) into the patch slots, for the jitted frame functions.
+`lrf_jax.geometry.normals.estimate_normals`) into the patch slots, for the jitted frame functions.
 """
 
 from __future__ import annotations
@@ -11,7 +11,7 @@ from typing import NamedTuple
 import numpy as np
 
 from lrf_jax.frames.spec import KEYPOINT, SLOT
-from lrf_jax.normals import default_normals
+from lrf_jax.geometry.normals import default_normals
 
 
 class NormalExtra(NamedTuple):

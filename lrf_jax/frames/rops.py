@@ -39,12 +39,14 @@ import jax.numpy as jnp
 import numba as nb
 import numpy as np
 
-from lrf_jax import engine, geometry
+from lrf_jax.search import engine
+from lrf_jax.geometry import mesh
+from lrf_jax.geometry import ops as geometry
 from lrf_jax.frames import host_geometry as hg
 from lrf_jax.frames.spec import TRIANGLE, TRIANGLE_MASK, MethodSpec
-from lrf_jax.geometry import sanitize
-from lrf_jax.neighborhoods import Patches, hash_priority
-from lrf_jax.normals import cache_last
+from lrf_jax.geometry.ops import sanitize
+from lrf_jax.search.neighborhoods import Patches, hash_priority
+from lrf_jax.geometry.normals import cache_last
 
 MAX_TRIANGLES = 8192
 _T_MULTIPLE = 64
@@ -105,7 +107,7 @@ def gather_triangles(points: np.ndarray, keypoints: np.ndarray, faces: np.ndarra
     grid = cache_last("grid", (pts, float(radius)), lambda: engine.Grid(pts, radius / 3))
     ball_ptr, ball = engine.ball_lists(grid, pts[kp], radius)
   # Every face touching a ball vertex, once per keypoint, sorted by face index (compiled).
-  face_ptr, t_id = engine.incident_faces(ball_ptr, ball, ptr, vf, f.shape[0])
+  face_ptr, t_id = mesh.incident_faces(ball_ptr, ball, ptr, vf, f.shape[0])
   counts = np.diff(face_ptr)
   starts = face_ptr[:-1]
   r_t = np.repeat(np.arange(m), counts)
@@ -117,7 +119,7 @@ def gather_triangles(points: np.ndarray, keypoints: np.ndarray, faces: np.ndarra
   rr, slot, tt = r_t[keep], rank[keep], t_id[keep]
   width = int(min(max(int(counts.max()) if m else 1, 1), cap))
   width = -(-width // _T_MULTIPLE) * _T_MULTIPLE
-  return engine.fill_triangles(pts, f, pts[kp], rr, slot, tt, width)
+  return mesh.fill_triangles(pts, f, pts[kp], rr, slot, tt, width)
 
 
 class TriangleExtra(NamedTuple):

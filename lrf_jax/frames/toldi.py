@@ -19,11 +19,11 @@ import jax.numpy as jnp
 import numba as nb
 import numpy as np
 
-from lrf_jax import geometry
+from lrf_jax.geometry import ops as geometry
 from lrf_jax.frames import host_geometry as hg
 from lrf_jax.frames.lrf_net import MIN_Z_NEIGHBOURS, X_EPS, frames_with_weight_fn
 from lrf_jax.frames.spec import MethodSpec
-from lrf_jax.neighborhoods import Patches
+from lrf_jax.search.neighborhoods import Patches
 
 
 def toldi_weights(offsets: jax.Array, z: jax.Array, radius: jax.Array,

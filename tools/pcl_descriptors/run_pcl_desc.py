@@ -106,7 +106,7 @@ def agreement(a: np.ndarray, b: np.ndarray) -> dict:
 def make_fixture() -> None:
   import lrf_jax
   from lrf_jax import datasets
-  from lrf_jax.normals import NORMAL_RADIUS_RATIO, estimate_normals
+  from lrf_jax.geometry.normals import NORMAL_RADIUS_RATIO, estimate_normals
 
   pts, faces = datasets.make_demo_mesh("blob", 0)
   mr, _ = datasets.mesh_resolution(pts, faces)
@@ -139,7 +139,7 @@ def make_fixture() -> None:
 def compare_br(n: int) -> None:
   import lrf_jax
   from lrf_jax import datasets
-  from lrf_jax.normals import NORMAL_RADIUS_RATIO, estimate_normals
+  from lrf_jax.geometry.normals import NORMAL_RADIUS_RATIO, estimate_normals
 
   model = datasets.load_br_model("bunny")
   pts, faces, mr = model.points, model.faces, model.mr

@@ -13,7 +13,7 @@ The fixtures hold, per method: the BR bunny keypoint indices (seeded), the suppo
 (mr = the mesh's mean edge length), PCL's frames (rows x, y, z; NaN where PCL failed) and, for
 BOARD and FLARE, the normals that were fed to PCL at the keypoints plus a digest of the full
 normal array, so that the test can check that it regenerates and feeds the very same normals
-(`lrf_jax.normals.estimate_normals` at 0.2 r, oriented by the faces' winding). Every fixture also
+(`lrf_jax.geometry.normals.estimate_normals` at 0.2 r, oriented by the faces' winding). Every fixture also
 stores PCL's own `NormalEstimation` normals at the keypoints (radius 0.2 r) for comparison.
 """
 
@@ -110,7 +110,7 @@ def bunny(data_root: Path):
 def make_fixtures(data_root: Path) -> None:
   """Write tests/fixtures/pcl_lrf_*.npz (see the module docstring)."""
   sys.path.insert(0, str(REPO))
-  from lrf_jax.normals import NORMAL_RADIUS_RATIO, estimate_normals
+  from lrf_jax.geometry.normals import NORMAL_RADIUS_RATIO, estimate_normals
 
   points, faces, mr, _ = bunny(data_root)
   radius = RADIUS_MR * mr

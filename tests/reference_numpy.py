@@ -12,7 +12,7 @@ from typing import Any
 import numpy as np
 from scipy.spatial import cKDTree
 
-from lrf_jax.neighborhoods import hash_priority
+from lrf_jax.search.neighborhoods import hash_priority
 
 
 def _mlp_weights(params: Any, attrs: np.ndarray) -> np.ndarray:

@@ -18,7 +18,7 @@ import jax
 import jax.numpy as jnp
 
 if TYPE_CHECKING:
-  from lrf_jax.neighborhoods import Patches
+  from lrf_jax.search.neighborhoods import Patches
 
 Array = jax.Array
 

@@ -1,33 +1,15 @@
-"""6-DoF pose from correspondences (paper section 3.2.3) and `register` for users' scans.
+"""`register(source, target)`: the user-facing registration pipeline.
 
-Two RANSAC estimators that differ ONLY in the minimal sample (same inlier threshold, same score =
-number of correspondences within the threshold, same final refit, seeded and deterministic,
-hypotheses generated and scored at once with `jax.vmap`):
-
-* `lrf_ransac` (the paper's LRF-Net variant, 100 iterations): one correspondence per hypothesis.
-  With LRFs F_s, F_t (rows x, y, z) at the points p, q, three point pairs (p, q),
-  (p + s x_s, q + s x_t), (p + s y_s, q + s y_t) give the pose by Kabsch (paper figure
-  `fig_SVD`): for exactly repeatable frames (F_t = F_s Rᵀ) it is R = F_tᵀ F_s, t = q - R p.
-* `ransac_3point` (classic RANSAC, 1000 iterations): three distinct correspondences per
-  hypothesis, Kabsch.
-
-The best hypothesis (most inliers; ties: the earliest) is refitted by Kabsch on its inliers
-(`refine=True`; skipped when it has fewer than 3) and the inliers are recounted.
-
-Errors (paper eqs. `eq_err_r`, `eq_err_t`): err_r = arccos(clip((trace(R_gtᵀ R) - 1) / 2))
-in degrees, err_t = |t_gt - t| / mr.
-
-`register(source, target)` is the user-facing pipeline: mr from the source, seeded random (or
-ISS) keypoints on both clouds, LRF-Net frames, TOLDI descriptors, ratio matching, hypotheses from
-the compatibility graph of the correspondences (`lrf_jax.registration_graph`: distances
-preserved and one-correspondence LRF poses in agreement), then point-to-plane ICP
-(`lrf_jax.icp_host`) and a verdict that claims success only when the winner's support is far
-above chance and above every distinct pose's. It generates and scores its hypotheses on the host
-(`lrf_jax.registration_host`), the same arithmetic as the jitted estimators without a JAX
-program to load in every fresh process.
+mr from the source, seeded random (or ISS) keypoints on both clouds, LRF-Net frames, TOLDI
+descriptors, ratio matching, hypotheses from the compatibility graph of the correspondences
+(`lrf_jax.registration.graph`: distances preserved and one-correspondence LRF poses in
+agreement; or the RANSACs of `estimators.py`), then point-to-plane ICP
+(`lrf_jax.registration.icp_host`) and a verdict (`evidence.py`) that claims success only when the
+winner's support is far above chance and above every distinct pose's. It generates and scores
+its hypotheses on the host (`lrf_jax.registration.host`), the same arithmetic as the jitted
+estimators without a JAX program to load in every fresh process.
 
 References:
-  Fischler & Bolles, "Random sample consensus", CACM 1981. Kabsch, Acta Cryst. A32, 1976.
   Besl & McKay, "A method for registration of 3-D shapes", TPAMI 1992 (ICP).
   Chen & Medioni, "Object modelling by registration of multiple range images", IVC 1992
   (point-to-plane ICP).
@@ -39,369 +21,27 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
-import functools
 import time
 from typing import Any, NamedTuple
 
-import jax
-import jax.numpy as jnp
 import numpy as np
 from threadpoolctl import threadpool_limits
 
-from lrf_jax import engine
-from lrf_jax import icp_host
-from lrf_jax import registration_graph as graph
-from lrf_jax import registration_host as host
 from lrf_jax.api import compute_frames
-from lrf_jax.resolution import mesh_resolution
 from lrf_jax.descriptors import DESCRIPTORS, compute_descriptors, select_correspondences
 from lrf_jax.frames import METHODS
-from lrf_jax.geometry import kabsch
+from lrf_jax.geometry.keypoints import iss_keypoints
+from lrf_jax.geometry.normals import NORMAL_RADIUS_RATIO, estimate_normals
+from lrf_jax.geometry.resolution import mesh_resolution
 from lrf_jax.inputs import as_cloud
-from lrf_jax.keypoints import iss_keypoints
-from lrf_jax.neighborhoods import validate_seed, validate_viewpoint
-from lrf_jax.normals import NORMAL_RADIUS_RATIO, estimate_normals
-
-# ------------------------------------------------------------------------------------------------
-# Pose errors
-# ------------------------------------------------------------------------------------------------
-
-
-def rotation_error_deg(r_est: np.ndarray, r_gt: np.ndarray) -> float:
-  """err_r = arccos(clip((trace(R_gtᵀ R_est) - 1) / 2, -1, 1)) in degrees (paper eq. `eq_err_r`).
-
-  Args:
-    r_est: (3, 3) estimated rotation.
-    r_gt: (3, 3) ground-truth rotation.
-
-  Returns:
-    The angle of R_gtᵀ R_est in degrees, in [0, 180].
-  """
-  r_est = np.asarray(r_est, np.float64)
-  r_gt = np.asarray(r_gt, np.float64)
-  c = (np.trace(r_gt.T @ r_est) - 1.0) / 2.0
-  return float(np.degrees(np.arccos(np.clip(c, -1.0, 1.0))))
-
-
-def pose_errors(transform_est: np.ndarray, transform_gt: np.ndarray,
-                mr: float) -> tuple[float, float]:
-  """(err_r in degrees, err_t in mr) between two (4, 4) rigid transforms (paper eqs. `eq_err_r`,
-  `eq_err_t`).
-
-  Args:
-    transform_est: (4, 4) estimate.
-    transform_gt: (4, 4) ground truth.
-    mr: mesh resolution (the unit of err_t).
-
-  Returns:
-    (err_r, err_t).
-  """
-  te = _check_transform(transform_est, "transform_est")
-  tg = _check_transform(transform_gt, "transform_gt")
-  if not mr > 0:
-    raise ValueError(f"mr: expected a positive mesh resolution, got {mr!r}")
-  return (rotation_error_deg(te[:3, :3], tg[:3, :3]),
-          float(np.linalg.norm(tg[:3, 3] - te[:3, 3]) / mr))
-
-
-def to_transform(rotation: Any, translation: Any) -> np.ndarray:
-  """(4, 4) float64 [R t; 0 0 0 1] from a (3, 3) rotation and a (3,) translation."""
-  out = np.eye(4)
-  out[:3, :3] = np.asarray(rotation, np.float64)
-  out[:3, 3] = np.asarray(translation, np.float64)
-  return out
-
-
-def _check_transform(t: Any, name: str) -> np.ndarray:
-  a = np.asarray(t, np.float64)
-  if a.shape != (4, 4) or not np.all(np.isfinite(a)):
-    raise ValueError(f"{name}: expected a finite (4, 4) rigid transform, got shape {a.shape}")
-  return a
-
-
-# ------------------------------------------------------------------------------------------------
-# Minimal solvers
-# ------------------------------------------------------------------------------------------------
-
-
-def frame_point_triplets(points: jax.Array, frames: jax.Array, scale: float) -> jax.Array:
-  """The three points p, p + s x, p + s y of each (point, frame): (..., 3) -> (..., 3, 3)."""
-  return jnp.stack([points, points + scale * frames[..., 0, :],
-                    points + scale * frames[..., 1, :]], axis=-2)
-
-
-def pose_from_correspondence(src_point: Any, src_frame: Any, dst_point: Any, dst_frame: Any, *,
-                             scale: float = 1.0) -> tuple[jax.Array, jax.Array]:
-  """The pose from ONE correspondence with LRFs: Kabsch on three point pairs (paper fig_SVD).
-
-  Args:
-    src_point: (3,) keypoint p on the source.
-    src_frame: (3, 3) its LRF, rows x, y, z.
-    dst_point: (3,) corresponding keypoint q on the target.
-    dst_frame: (3, 3) its LRF.
-    scale: s, the length of the frame arms (any positive value; for exact frames the pose does
-      not depend on it; the support radius is a natural choice).
-
-  Returns:
-    (R (3, 3), t (3,)) with q ≈ R p + t and F_dst ≈ F_src Rᵀ.
-  """
-  src = frame_point_triplets(jnp.asarray(src_point), jnp.asarray(src_frame), scale)
-  dst = frame_point_triplets(jnp.asarray(dst_point), jnp.asarray(dst_frame), scale)
-  return kabsch(src, dst)
-
-
-# ------------------------------------------------------------------------------------------------
-# RANSAC
-# ------------------------------------------------------------------------------------------------
-
-
-class RansacResult(NamedTuple):
-  """Result of a RANSAC estimator.
-
-  Attributes:
-    transform: (4, 4) float64, source -> target (after the refit when `refine`).
-    inliers: (M,) bool, correspondences within the threshold under `transform`.
-    n_inliers: number of inliers under `transform`.
-    best_hypothesis: index of the winning hypothesis.
-    hypothesis_inliers: inlier count of the winning hypothesis (before the refit).
-  """
-
-  transform: np.ndarray
-  inliers: np.ndarray
-  n_inliers: int
-  best_hypothesis: int
-  hypothesis_inliers: int
-
-
-def _inlier_mask(r: jax.Array, t: jax.Array, src: jax.Array, dst: jax.Array,
-                 threshold: float) -> jax.Array:
-  res = src @ r.T + t - dst
-  return jnp.sum(res * res, axis=-1) <= threshold * threshold
-
-
-@functools.partial(jax.jit, static_argnames=("refine",))
-def _select_and_refine(rs: jax.Array, ts: jax.Array, src: jax.Array, dst: jax.Array,
-                       threshold: jax.Array, refine: bool):
-  masks = jax.vmap(lambda r, t: _inlier_mask(r, t, src, dst, threshold))(rs, ts)  # (H, M)
-  counts = jnp.sum(masks, axis=1)
-  best = jnp.argmax(counts)  # first maximum: deterministic
-  r, t, mask = rs[best], ts[best], masks[best]
-  if refine:
-    ok = jnp.sum(mask) >= 3
-    w = jnp.where(ok, mask.astype(src.dtype), jnp.ones_like(mask, src.dtype))
-    r2, t2 = kabsch(src, dst, w)
-    r = jnp.where(ok, r2, r)
-    t = jnp.where(ok, t2, t)
-    mask = _inlier_mask(r, t, src, dst, threshold)
-  return r, t, mask, best, counts[best]
-
-
-def _check_correspondences(src: Any, dst: Any, threshold: float,
-                           iterations: int) -> tuple[np.ndarray, np.ndarray]:
-  s = np.asarray(src, np.float64)
-  d = np.asarray(dst, np.float64)
-  if s.ndim != 2 or s.shape[1] != 3 or d.shape != s.shape:
-    raise ValueError(f"correspondences: expected source and target points of the same shape "
-                     f"(M, 3), got {s.shape} and {d.shape}")
-  if not (np.all(np.isfinite(s)) and np.all(np.isfinite(d))):
-    raise ValueError("correspondences: expected finite coordinates, found NaN or inf")
-  if not (np.isfinite(threshold) and threshold > 0):
-    raise ValueError(f"inlier_threshold: expected a positive distance, got {threshold!r}")
-  if int(iterations) < 1 or int(iterations) != iterations:
-    raise ValueError(f"iterations: expected a positive integer, got {iterations!r}")
-  return s, d
-
-
-def _finish(r, t, mask, best, count) -> RansacResult:
-  mask = np.asarray(mask)
-  return RansacResult(to_transform(np.asarray(r), np.asarray(t)), mask, int(mask.sum()),
-                      int(best), int(count))
-
-
-def _centred(s: np.ndarray, d: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-  """float32 coordinates about the source/target centroids (precision away from the origin)."""
-  cs, cd = s.mean(axis=0), d.mean(axis=0)
-  return ((s - cs).astype(np.float32), (d - cd).astype(np.float32), cs, cd)
-
-
-def _uncentre(r, t, cs, cd) -> tuple[np.ndarray, np.ndarray]:
-  r = np.asarray(r, np.float64)
-  return r, np.asarray(t, np.float64) + cd - r @ cs
-
-
-def lrf_ransac(src_points: Any, dst_points: Any, src_frames: Any, dst_frames: Any, *,
-               inlier_threshold: float, scale: float, iterations: int = 100, seed: int = 0,
-               valid: Any = None, refine: bool = True) -> RansacResult:
-  """RANSAC with ONE correspondence per hypothesis, the pose from the two LRFs (LRF-Net paper).
-
-  Args:
-    src_points: (M, 3) source keypoints of the correspondences.
-    dst_points: (M, 3) their target keypoints.
-    src_frames: (M, 3, 3) source LRFs, rows x, y, z.
-    dst_frames: (M, 3, 3) target LRFs.
-    inlier_threshold: a correspondence is an inlier when |R p + t - q| <= this (cloud units).
-    scale: frame arm length s of `pose_from_correspondence` (e.g. the support radius).
-    iterations: hypotheses (the paper: 100).
-    seed: sampling seed (`jax.random.key(seed)`); the same seed gives the same result.
-    valid: (M,) bool, correspondences whose two frames are valid (only those are sampled;
-      all count for the score). None: all.
-    refine: refit the best hypothesis by Kabsch on its inliers.
-
-  Returns:
-    `RansacResult` (transform source -> target).
-
-  Raises:
-    ValueError: mismatched shapes, non-finite input, a bad threshold/iteration count, or no
-      valid correspondence.
-  """
-  s, d = _check_correspondences(src_points, dst_points, inlier_threshold, iterations)
-  m = s.shape[0]
-  fs = np.asarray(src_frames, np.float64)
-  fd = np.asarray(dst_frames, np.float64)
-  if fs.shape != (m, 3, 3) or fd.shape != (m, 3, 3):
-    raise ValueError(f"frames: expected source and target frames of shape ({m}, 3, 3), got "
-                     f"{fs.shape} and {fd.shape}")
-  v = np.ones(m, bool) if valid is None else np.asarray(valid, bool).reshape(-1)
-  if v.shape != (m,):
-    raise ValueError(f"valid: expected shape ({m},), got {v.shape}")
-  v = v & np.all(np.isfinite(fs), axis=(1, 2)) & np.all(np.isfinite(fd), axis=(1, 2))
-  if not v.any():
-    raise ValueError("correspondences: none has two valid frames; cannot form a hypothesis")
-  if not (np.isfinite(scale) and scale > 0):
-    raise ValueError(f"scale: expected a positive length, got {scale!r}")
-  src, dst, cs, cd = _centred(s, d)
-  pick = jax.random.choice(jax.random.key(seed), jnp.asarray(np.flatnonzero(v)),
-                           (int(iterations),), replace=True)
-  rs, ts = _lrf_hypotheses(src[pick], jnp.asarray(fs[pick], jnp.float32), dst[pick],
-                           jnp.asarray(fd[pick], jnp.float32), float(scale))
-  r, t, mask, best, count = _select_and_refine(rs, ts, src, dst, float(inlier_threshold), refine)
-  r, t = _uncentre(r, t, cs, cd)
-  return _finish(r, t, mask, best, count)
-
-
-@jax.jit
-def _lrf_hypotheses(ps, fs, qs, fd, scale):
-  return jax.vmap(lambda p, f, q, g: pose_from_correspondence(p, f, q, g, scale=scale))(
-      ps, fs, qs, fd)
-
-
-@jax.jit
-def _kabsch_batch(a: jax.Array, b: jax.Array):
-  return jax.vmap(kabsch)(a, b)
-
-
-def ransac_3point(src_points: Any, dst_points: Any, *, inlier_threshold: float,
-                  iterations: int = 1000, seed: int = 0, refine: bool = True) -> RansacResult:
-  """Classic RANSAC: three distinct correspondences per hypothesis, Kabsch.
-
-  Same threshold, score and refit as `lrf_ransac`; only the sample differs.
-
-  Args:
-    src_points: (M, 3) source keypoints, M >= 3.
-    dst_points: (M, 3) target keypoints.
-    inlier_threshold: inlier distance (cloud units).
-    iterations: hypotheses (the paper: 1000).
-    seed: sampling seed.
-    refine: refit the best hypothesis on its inliers.
-
-  Returns:
-    `RansacResult` (transform source -> target).
-
-  Raises:
-    ValueError: mismatched shapes, fewer than 3 correspondences, bad threshold or iterations.
-  """
-  s, d = _check_correspondences(src_points, dst_points, inlier_threshold, iterations)
-  m = s.shape[0]
-  if m < 3:
-    raise ValueError(f"correspondences: 3-point RANSAC needs at least 3, got {m}")
-  src, dst, cs, cd = _centred(s, d)
-  samples = _triples(m, iterations, seed)
-  rs, ts = _kabsch_batch(src[samples], dst[samples])
-  r, t, mask, best, count = _select_and_refine(rs, ts, src, dst, float(inlier_threshold), refine)
-  r, t = _uncentre(r, t, cs, cd)
-  return _finish(r, t, mask, best, count)
-
-
-# ------------------------------------------------------------------------------------------------
-# ICP (host, float64)
-# ------------------------------------------------------------------------------------------------
-
-
-def icp(source: np.ndarray, target: np.ndarray, init: np.ndarray, *, max_distance: float,
-        iterations: int = 30, tolerance: float = 1e-7,
-        target_grid: engine.Grid | None = None, target_normals: np.ndarray | None = None,
-        mode: str = "point_to_plane") -> tuple[np.ndarray, float, float]:
-  """Point-to-plane or point-to-point ICP from an initial pose (host, float64, deterministic).
-
-  Each iteration pairs every source point with its nearest target point and keeps the pairs
-  closer than `max_distance`. "point_to_plane" (Chen & Medioni) takes one damped Gauss-Newton
-  step of sum ((R p + t - q) · n_q)^2 (`lrf_jax.icp_host`; pairs whose normal is zero or
-  non-finite are left out of the step); "point_to_point" (Besl & McKay) solves Kabsch. It stops
-  when the pose changes by less than `tolerance` (rotation in radians plus translation over
-  `max_distance`).
-
-  Args:
-    source: (n, 3) points.
-    target: (m, 3) points.
-    init: (4, 4) initial source -> target transform.
-    max_distance: pairs farther apart are ignored (cloud units).
-    iterations: at most this many iterations.
-    tolerance: convergence threshold.
-    target_grid: optional `engine.Grid(target, max_distance)` to reuse.
-    target_normals: (m, 3) target normals for "point_to_plane" (any length, any sign; zero or
-      non-finite rows are skipped). None: unsigned PCA normals
-      (`icp_host.estimate_target_normals`: radius min(max_distance, 4 x the target's mean
-      nearest-neighbour spacing)). Ignored by "point_to_point".
-    mode: "point_to_plane" or "point_to_point".
-
-  Returns:
-    (transform (4, 4), fitness = fraction of source points paired, rmse of the pairs' point
-    distances), both modes alike.
-
-  Raises:
-    ValueError: an unknown `mode`, `target_normals` not of shape (m, 3), or `max_distance` not
-      a positive number (finite when normals are estimated).
-  """
-
-  if mode not in ("point_to_point", "point_to_plane"):
-    raise ValueError(f"mode: expected 'point_to_point' or 'point_to_plane', got {mode!r}")
-  try:
-    positive = float(max_distance) > 0
-  except (TypeError, ValueError):
-    positive = False
-  if not positive:
-    raise ValueError(f"max_distance: expected a positive distance, got {max_distance!r}")
-  target = np.asarray(target, np.float64)
-  source = np.asarray(source, np.float64)
-  if mode == "point_to_plane":
-    return icp_host.point_to_plane_icp(source, target, init, max_distance=float(max_distance),
-                                       iterations=iterations, tolerance=tolerance,
-                                       target_grid=target_grid, target_normals=target_normals)
-  grid = target_grid if target_grid is not None else engine.Grid(target, max_distance)
-  center = target.mean(axis=0) if len(target) else np.zeros(3)
-
-  def step(tr):  # the pairs' sums under tr (engine.icp_sums), their count and rmse
-    n, d2, sa, sb, sab = engine.icp_sums(grid, source, tr[:3, :3], tr[:3, 3], max_distance,
-                                         center)
-    return n, (np.sqrt(d2 / n) if n else float("inf")), sa, sb, sab
-
-  tr = np.array(init, np.float64)
-  for _ in range(int(iterations)):
-    n, _, sa, sb, sab = step(tr)
-    if n < 3:
-      break
-    ca, cb = sa / n, sb / n  # centroids relative to `center`
-    u, _, vt = np.linalg.svd(sab - n * np.outer(ca, cb))
-    dd = np.sign(np.linalg.det(vt.T @ u.T)) or 1.0
-    r = vt.T @ np.diag([1.0, 1.0, dd]) @ u.T
-    move = to_transform(r, (cb + center) - r @ (ca + center))
-    tr = move @ tr
-    angle = np.arccos(np.clip((np.trace(r) - 1) / 2, -1, 1))
-    if angle + np.linalg.norm(move[:3, 3]) / max_distance < tolerance:
-      break
-  n, rmse, *_ = step(tr)
-  return tr, (n / len(source) if len(source) else 0.0), float(rmse)
-
+from lrf_jax.registration import graph, host, icp_host
+from lrf_jax.registration.errors import _check_transform, pose_errors
+from lrf_jax.registration.estimators import _centred, _finish, _triples, _uncentre
+from lrf_jax.registration.evidence import (CHANCE_SHUFFLES, RIVAL_DEG, Evidence, overlap_contrast,
+                                           verdict)
+from lrf_jax.registration.icp_host import icp
+from lrf_jax.search import engine
+from lrf_jax.search.neighborhoods import validate_seed, validate_viewpoint
 
 # ------------------------------------------------------------------------------------------------
 # register: the user-facing pipeline
@@ -553,7 +193,7 @@ def register(source: Any, target: Any, *, mr: float | None = None, radius_mr: fl
      d1/d2 kept (`lrf_jax.descriptors.select_correspondences`);
   3. hypotheses: with `estimator="graph"` (default) one per seed of the correspondences'
      compatibility graph (distances preserved within inlier_mr mr AND one-correspondence LRF
-     rotations within `GRAPH_ANGLE_DEG`; `registration_graph`), with `"lrf"` ONE per
+     rotations within `GRAPH_ANGLE_DEG`; `graph`), with `"lrf"` ONE per
      correspondence (the pose from its two LRFs), with `"3point"` `iterations` seeded triples;
      each is scored by its inlier count (correspondences within inlier_mr mr);
   4. selection: "graph" takes the most inliers; "lrf" and "3point" re-rank the `verify`
@@ -801,85 +441,6 @@ def _refine_only(source, target, init, *, mr, icp_iterations, icp_mr, seed, time
 ICP_POINTS = 5000
 
 
-# The verdict (`verdict`). ICP pairs at least VERDICT_FITNESS of the source (VERDICT_GRAPH_FITNESS
-# for estimator="graph", whose evidence does not need the overlap to be large).
-# estimator="graph": the winner's inliers reach VERDICT_GRAPH_FACTOR times the best of what
-# chance alignment reaches on the same correspondences shuffled and what any distinct pose
-# reaches on the real ones, plus VERDICT_GRAPH_MARGIN. "lrf" and "3point": the inliers beat
-# chance by VERDICT_FACTOR and VERDICT_MARGIN, or the overlap stands out from the other
-# hypotheses' by VERDICT_CONTRAST.
-VERDICT_FACTOR = 2.0
-VERDICT_MARGIN = 3
-VERDICT_CONTRAST = 1.6
-VERDICT_FITNESS = 0.2
-VERDICT_GRAPH_FACTOR = 3.0
-VERDICT_GRAPH_MARGIN = 3
-VERDICT_GRAPH_FITNESS = 0.05
-CHANCE_SHUFFLES = 4
-# A hypothesis is distinct from the winner (a rival) when their rotations differ by more than
-# RIVAL_DEG degrees or their translations (at the source centroid) by more than the support
-# radius.
-RIVAL_DEG = 10.0
-
-
-class Evidence(NamedTuple):
-  """What `verdict` decides on (all counts are correspondences within the inlier distance).
-
-  n_inliers: inliers of the refitted winner.
-  chance_inliers: the most inliers any hypothesis reaches on the correspondences shuffled.
-  rival_inliers: the most inliers outside the winner's of a hypothesis distinct from the winner
-    (`_rival_inliers`).
-  fitness: fraction of the ICP's source points within icp_mr mr of the target after ICP.
-  contrast: `overlap_contrast` of the verified hypotheses (0 when none were verified).
-  estimator: the estimator that produced them.
-  """
-
-  n_inliers: int
-  chance_inliers: int
-  rival_inliers: int
-  fitness: float
-  contrast: float
-  estimator: str
-
-
-def overlap_contrast(fits: np.ndarray) -> float:
-  """Best overlap score over the 99th percentile of all hypotheses' (0 without scores): a real
-  overlap is found by few hypotheses and stands out; chance alignment (blobs, a mirror image, two
-  objects) is as good as many other poses."""
-  fits = np.asarray(fits, np.float64)
-  if fits.size == 0:
-    return 0.0
-  return float(fits.max() / max(np.percentile(fits, 99), 1e-12))
-
-
-def verdict(evidence: Evidence) -> tuple[bool, str]:
-  """`Registration.success` and `.reason` from the evidence (module constants `VERDICT_*`).
-
-  Returns:
-    (success, reason): reason is a short sentence saying what decided.
-  """
-  e = evidence
-  floor = VERDICT_GRAPH_FITNESS if e.estimator == "graph" else VERDICT_FITNESS
-  if e.fitness < floor:
-    return False, (f"not sure: only {e.fitness:.0%} of the source lies on the target after "
-                   f"ICP (needs {floor:.0%})")
-  if e.estimator == "graph":
-    level = max(e.chance_inliers, e.rival_inliers)
-    need = VERDICT_GRAPH_FACTOR * level + VERDICT_GRAPH_MARGIN
-    if e.n_inliers >= need:
-      return True, (f"{e.n_inliers} consistent correspondences; chance gives "
-                    f"{e.chance_inliers}, the best distinct pose {e.rival_inliers}")
-    which = "a distinct pose" if e.rival_inliers >= e.chance_inliers else "chance"
-    return False, (f"not sure: {e.n_inliers} consistent correspondences, {which} gives {level} "
-                   f"(needs {need:g})")
-  if e.n_inliers >= VERDICT_FACTOR * e.chance_inliers + VERDICT_MARGIN:
-    return True, f"{e.n_inliers} inliers; chance gives {e.chance_inliers}"
-  if e.contrast >= VERDICT_CONTRAST:
-    return True, (f"the overlap stands out from the other hypotheses' (the best is "
-                  f"{e.contrast:.2f}x their 99th percentile)")
-  return False, (f"not sure: {e.n_inliers} inliers, chance gives {e.chance_inliers}, and the "
-                 f"best overlap is only {e.contrast:.2f}x the other hypotheses' 99th "
-                 f"percentile (needs {VERDICT_CONTRAST:g}x)")
 
 
 def _rival_inliers(rs, ts, src, dst, threshold, r, t, winner_mask, radius) -> int:
@@ -1088,7 +649,7 @@ def _match(frames, descs, estimator: str, n_correspondences: int, radius_mr: flo
 def _hypotheses(src, dst, f_src, f_dst, estimator: str, iterations: int, radius: float,
                 seed: int, threshold: float) -> tuple[np.ndarray, np.ndarray]:
   """Stage "hypotheses" from the centred float32 coordinates, host float64
-  (`registration_host`, `registration_graph`), (H, 3, 3) and (H, 3): "lrf" one pose per
+  (`host`, `graph`), (H, 3, 3) and (H, 3): "lrf" one pose per
   correspondence from its LRFs; "3point" `iterations` seeded triples (the `ransac_3point`
   sampler); "graph" one per seed of the compatibility graph (distances within `threshold`,
   LRF rotations within `GRAPH_ANGLE_DEG`), followed by the seeds' own LRF poses."""
@@ -1104,7 +665,7 @@ def _hypotheses(src, dst, f_src, f_dst, estimator: str, iterations: int, radius:
   return np.concatenate([gr, rs[seeds]]), np.concatenate([gt, ts[seeds]])
 
 
-# estimator="graph" (`registration_graph.graph_hypotheses`): the LRF rotation agreement bound, the
+# estimator="graph" (`graph.graph_hypotheses`): the LRF rotation agreement bound, the
 # seeds, the consensus set of each and the seeds' suppression radius in support radii.
 GRAPH_ANGLE_DEG = 45.0
 GRAPH_SEEDS = 100
@@ -1112,10 +673,6 @@ GRAPH_CONSENSUS = 30
 GRAPH_NMS_RADII = 0.25
 
 
-def _triples(m: int, iterations: int, seed: int) -> jax.Array:
-  """(iterations, 3) seeded triples of distinct correspondence indices."""
-  keys = jax.random.split(jax.random.key(seed), int(iterations))
-  return jax.vmap(lambda k: jax.random.choice(k, m, (3,), replace=False))(keys)
 
 
 def _verify(rs, ts, counts, cs, cd, src_pts, target_grid, distance, verify, rng
@@ -1133,10 +690,3 @@ def _verify(rs, ts, counts, cs, cd, src_pts, target_grid, distance, verify, rng
     fits = overlap_scores(r_c, t_c, sub, target_grid, distance)
     best = int(cand[int(np.argmax(fits))])  # first maximum: the higher inlier count
   return best, fits
-
-
-__all__ = [
-    "RansacResult", "Registration", "frame_point_triplets", "icp", "lrf_ransac", "overlap_scores",
-    "pose_errors", "pose_from_correspondence", "ransac_3point", "register", "rotation_error_deg",
-    "to_transform",
-]

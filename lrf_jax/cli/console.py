@@ -1,0 +1,39 @@
+"""Console-script entry points (`lrf-register`, `lrf-frames`): run a CLI's `main` and leave.
+
+A process that has used JAX and numba spends about half a second in the interpreter's teardown
+(destroying the XLA runtime, its thread pools and every module) after the answer is written;
+the commands flush their output and end with `os._exit` instead. Nothing is lost: the outputs
+are closed files and flushed streams, and JAX's and numba's on-disk caches are written when a
+function is compiled, not at exit. Calling `main()` from Python (as the tests do) is unchanged.
+"""
+
+from __future__ import annotations
+
+import os
+import sys
+from typing import Callable, NoReturn
+
+
+def run(main: Callable[[], int]) -> NoReturn:
+  """Call `main()`, flush stdout and stderr, and end the process with its return code."""
+  try:
+    rc = main()
+  except SystemExit as e:  # argparse's --help and usage errors
+    rc = e.code if isinstance(e.code, int) else (0 if e.code is None else 1)
+    if not isinstance(e.code, (int, type(None))):
+      print(e.code, file=sys.stderr)
+  sys.stdout.flush()
+  sys.stderr.flush()
+  os._exit(int(rc or 0))
+
+
+def register() -> NoReturn:
+  """`lrf-register`: `lrf_jax.cli.register.main`."""
+  from lrf_jax.cli.register import main
+  run(main)
+
+
+def frames() -> NoReturn:
+  """`lrf-frames`: `lrf_jax.cli.frames.main`."""
+  from lrf_jax.cli.frames import main
+  run(main)

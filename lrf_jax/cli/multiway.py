@@ -1,0 +1,163 @@
+"""Register many scans into one model: `lrf-register a.ply b.ply c.ply ... --out-dir D`.
+
+`lrf-register` hands over to this module when it is given more than two scans or `--out-dir`
+(`wanted`). It runs `lrf_jax.registration.multiway.register_all` and writes, into D (created if missing,
+every file atomically): `<stem>.txt` per scan in the model (the 4x4 that maps that scan into
+the reference scan's frame: the first scan's, unless the first scan is left out, then the
+first scan that is in the model), `merged.ply` (the merged cloud coloured by scan, `--voxel`
+mr voxels if given), `edges.tsv` (pair, verdict, inliers, overlap, residual, accepted or
+rejected; also printed) and the figures `merged.png` and `graph.png`. Without `--out-dir` the
+edge table and the poses are only printed. No output may be one of the inputs.
+
+Exit code 0: every scan is in the model; 3: some scans were left out (named on stderr; their
+poses are not written); 2: bad input or an unwritable output (one `error:` line naming it).
+This file is intentionally thin.
+
+    lrf-register bun000.ply bun045.ply bun090.ply bun180.ply --out-dir model/
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+
+import numpy as np
+
+
+def build_parser() -> argparse.ArgumentParser:
+  ap = argparse.ArgumentParser(
+      prog="lrf-register",
+      description="Register several scans into one model: pairwise LRF registration over a "
+                  "candidate graph, a robust pose graph (wrong edges rejected), joint ICP.")
+  ap.add_argument("scans", nargs="+", help="the scans (PLY, PCD, XYZ/TXT(.gz), NPY), each in "
+                                           "its own frame; the first one's frame is the model's")
+  ap.add_argument("--out-dir", default=None, metavar="D",
+                  help="write D/<stem>.txt, D/merged.ply, D/edges.tsv, D/merged.png, "
+                       "D/graph.png")
+  ap.add_argument("--voxel", type=float, default=None,
+                  help="voxel size of merged.ply in mr (default: every point)")
+  ap.add_argument("--mr", type=float, default=None,
+                  help="mesh resolution in the clouds' units (default: median over the scans)")
+  ap.add_argument("--radius-mr", type=float, default=15.0, help="support radius in mr (15)")
+  ap.add_argument("--keypoints", type=int, default=3000, help="keypoints per scan (3000)")
+  ap.add_argument("--method", default="lrf_net_plus", help="LRF method (lrf_net_plus)")
+  ap.add_argument("--viewpoint", type=float, nargs=3, default=None, metavar=("X", "Y", "Z"),
+                  help="sensor position of every scan, in each scan's own frame")
+  ap.add_argument("--reject-mr", type=float, default=5.0,
+                  help="reject edges whose residual exceeds this many mr (5)")
+  ap.add_argument("--all-pairs-max", type=int, default=12,
+                  help="register every pair up to this many scans (12); beyond, neighbours in "
+                       "the given order plus loop-closure candidates")
+  ap.add_argument("--no-refine", action="store_true", help="skip the joint ICP")
+  ap.add_argument("--no-figures", action="store_true", help="do not draw the PNG figures")
+  ap.add_argument("--quiet", action="store_true", help="no progress bar")
+  ap.add_argument("--seed", type=int, default=0)
+  return ap
+
+
+def wanted(pairwise_parser: argparse.ArgumentParser, argv: list[str] | None) -> bool:
+  """Whether a command line of `lrf-register` asks for several scans: more than two positional
+  arguments or `--out-dir` (parsed with the two-scan `pairwise_parser`, so that option values
+  are not counted as scans)."""
+  args = sys.argv[1:] if argv is None else list(argv)
+  if any(a == "--out-dir" or a.startswith("--out-dir=") for a in args):
+    return True
+  if any(a in ("-h", "--help") for a in args):
+    return False
+  try:
+    _, extra = pairwise_parser.parse_known_args(args)
+  except SystemExit:  # too few arguments etc.: the two-scan parser reports it
+    return False
+  return any(not a.startswith("-") for a in extra)
+
+
+def _check(args: argparse.Namespace) -> str | None:
+  """What is wrong with the arguments, before any work (None: fine)."""
+  from pathlib import Path
+
+  from lrf_jax.io.atomic import output_problem
+  from lrf_jax.registration.multiway import output_paths, scan_names
+  if len(args.scans) < 2:
+    return f"expected at least 2 scans, got {len(args.scans)}"
+  if not 0 <= args.seed < 2**32:
+    return f"--seed: expected an integer in [0, 2**32), got {args.seed}"
+  for name in ("voxel", "mr", "reject_mr"):
+    val = getattr(args, name)
+    if val is not None and not (np.isfinite(val) and val > 0):
+      return f"--{name.replace('_', '-')}: expected a positive number, got {val}"
+  for s in args.scans:
+    if not Path(s).expanduser().is_file():
+      return f"{s}: no such file"
+  if args.out_dir is None:
+    return None
+  d = Path(args.out_dir).expanduser()
+  if d.exists() and not d.is_dir():
+    return f"--out-dir: {args.out_dir} is not a folder"
+  inputs = [(f"scan {k + 1}", s) for k, s in enumerate(args.scans)]
+  for path in output_paths(scan_names(args.scans), d).values():
+    if d.is_dir():
+      problem = output_problem(path, "--out-dir", inputs)
+    else:  # created later: only the inputs can clash
+      problem = next((f"--out-dir: {path} is the input {n} ({s}); refusing to overwrite it"
+                      for n, s in inputs if Path(s).expanduser().resolve() == path.resolve()),
+                     None)
+    if problem:
+      return problem
+  return None
+
+
+def _print_result(res, out) -> None:
+  from lrf_jax.registration.multiway import edges_table
+  print(edges_table(res), end="", file=out)
+  print(f"# {int(res.in_model.sum())}/{len(res.names)} scans in the model (frame of "
+        f"{res.names[res.reference]}), {sum(e.accepted for e in res.edges)}/{len(res.edges)} "
+        f"edges accepted, mr {res.mr:.6g}, {res.seconds:.1f} s", file=sys.stderr)
+  if res.left_out:
+    print(f"# left out (not merged, no pose written): {', '.join(res.left_out)}",
+          file=sys.stderr)
+
+
+def main(argv: list[str] | None = None) -> int:
+  args = build_parser().parse_args(argv)
+  problem = _check(args)
+  if problem:
+    print(f"error: {problem}", file=sys.stderr)
+    return 2
+  from lrf_jax import compilation_cache
+  compilation_cache.enable()
+  from lrf_jax.io.atomic import WriteError
+  from lrf_jax.registration.multiway import load_scans, register_all, scan_names, write_outputs
+  try:
+    names = scan_names(args.scans)
+    clouds = load_scans(args.scans, names)
+    res = register_all(clouds, names=names, mr=args.mr, seed=args.seed, refine=not args.no_refine,
+                       reject_mr=args.reject_mr, all_pairs_max=args.all_pairs_max,
+                       viewpoints=args.viewpoint, progress=not args.quiet,
+                       radius_mr=args.radius_mr, n_keypoints=args.keypoints,
+                       method=args.method)
+  except (ValueError, FileNotFoundError) as e:
+    print(f"error: {e}", file=sys.stderr)
+    return 2
+  except OSError as e:
+    print(f"error: could not read {e.filename or 'an input'}: {e.strerror or e}",
+          file=sys.stderr)
+    return 2
+  _print_result(res, sys.stdout)
+  if args.out_dir is None:
+    for k, name in enumerate(res.names):
+      if res.in_model[k]:
+        print(f"# {name}\n" + "\n".join(" ".join(f"{v:.9g}" for v in row)
+                                        for row in res.poses[k]))
+  else:
+    try:
+      write_outputs(res, [c.points for c in clouds], args.out_dir,
+                    voxel=None if args.voxel is None else args.voxel * res.mr,
+                    figures=not args.no_figures)
+    except WriteError as e:
+      print(f"error: {e}", file=sys.stderr)
+      return 2
+  return 3 if res.left_out else 0
+
+
+if __name__ == "__main__":
+  sys.exit(main())

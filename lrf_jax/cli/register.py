@@ -1,0 +1,218 @@
+"""Register two scans with LRF-Net frames: `python -m lrf_jax.cli.register SRC TGT [--out T.txt]`.
+
+Prints the 4 x 4 transform that maps SRC onto TGT (rows, 9 significant digits), the inlier count
+of the coarse estimate, the final overlap (fitness) and RMSE and the verdict
+(`Registration.success`; exit code 3 when it failed, 2 for bad input); `--out` also writes the matrix as
+text (`numpy.loadtxt` reads it back), atomically, and may not be one of the inputs. `--init`
+gives an initial source->target transform (a 4x4 text file as `lrf_jax.io.read_xf` reads, or
+a (4, 4) .npy) that `register` then only refines. Inputs: any cloud or mesh
+`lrf_jax.io.read_cloud` reads (PLY, PCD, XYZ/TXT(.gz), NPY). Every length is in mesh
+resolutions of SRC unless `--mr` is given. Every bad argument, unreadable input or unwritable
+output is one `error:` line and exit code 2. `--png` draws the correspondences the estimate
+used (inliers and outliers joining the two clouds side by side). This file is intentionally
+thin; the pipeline is
+`lrf_jax.registration.register`.
+
+    python -m lrf_jax.cli.register bun000.ply bun045.ply --out bun000_to_bun045.txt
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+
+import numpy as np
+
+from lrf_jax.cli.help import DefaultsHelpFormatter
+
+
+def build_parser() -> argparse.ArgumentParser:
+  ap = argparse.ArgumentParser(prog="lrf-register",
+                               description="Rigid registration of two scans with learned LRFs "
+                                           "(LRF-Net frames, TOLDI matching, a compatibility "
+                                           "graph of correspondences and their LRF poses, "
+                                           "point-to-plane ICP).",
+                               formatter_class=DefaultsHelpFormatter)
+  ap.add_argument("source", help="the cloud to move (PLY, PCD, XYZ/TXT(.gz), NPY)")
+  ap.add_argument("target", help="the cloud to align it to")
+  ap.add_argument("--out", default=None, help="write the 4x4 source->target matrix here")
+  ap.add_argument("--mr", type=float, default=None,
+                  help="mesh resolution in the clouds' units (default: measured on SOURCE)")
+  ap.add_argument("--radius-mr", type=float, default=15.0, help="support radius in mr")
+  ap.add_argument("--keypoints", type=int, default=3000, help="keypoints per cloud")
+  ap.add_argument("--correspondences", type=int, default=1000,
+                  help="correspondences kept after matching")
+  ap.add_argument("--inlier-mr", type=float, default=5.0, help="inlier distance in mr")
+  ap.add_argument("--estimator", choices=("graph", "lrf", "3point"), default="graph",
+                  help="compatibility graph (graph), one correspondence per hypothesis "
+                       "(lrf) or classic 3-point RANSAC")
+  ap.add_argument("--detector", choices=("random", "iss"), default="random",
+                  help="keypoints: seeded random points (random) or ISS keypoints, at most "
+                       "--keypoints of them")
+  ap.add_argument("--mutual", action="store_true", help="keep mutual nearest matches only")
+  ap.add_argument("--ratio", type=float, default=None,
+                  help="Lowe's ratio test threshold in (0, 1] (default: none)")
+  ap.add_argument("--icp", choices=("point_to_plane", "point_to_point"),
+                  default="point_to_plane", help="ICP variant")
+  ap.add_argument("--iterations", type=int, default=1000, help="3-point RANSAC hypotheses")
+  ap.add_argument("--icp-iterations", type=int, default=50, help="ICP iterations (0: none)")
+  ap.add_argument("--checkpoint", default=None,
+                  help="a train.py workdir whose best LRF-Net parameters to use "
+                       "(default: the shipped weights)")
+  ap.add_argument("--method", default="lrf_net_plus",
+                  help="LRF method, a key of lrf_jax.METHODS (lrf_net_plus: the most "
+                       "repeatable; lrf_net is the paper's LRF-Net)")
+  ap.add_argument("--source-viewpoint", type=float, nargs=3, default=None, metavar=("X", "Y", "Z"),
+                  help="sensor position of a single-view SOURCE scan (orients its normals)")
+  ap.add_argument("--target-viewpoint", type=float, nargs=3, default=None, metavar=("X", "Y", "Z"),
+                  help="sensor position of a single-view TARGET scan")
+  ap.add_argument("--init", default=None, metavar="FILE",
+                  help="initial source->target transform to refine: a 4x4 text file (.xf, "
+                       ".txt) or a (4, 4) .npy")
+  ap.add_argument("--seed", type=int, default=0, help="seed of keypoints and sampling")
+  ap.add_argument("--png", default=None, metavar="FILE",
+                  help="also draw the correspondences here: inliers and outliers joining the "
+                       "two clouds side by side")
+  return ap
+
+
+def _check_paths(args: argparse.Namespace) -> str | None:
+  """What is wrong with --out, --checkpoint, --init, --seed or --keypoints, checked before any
+  work is done (None: fine)."""
+  from pathlib import Path
+
+  from lrf_jax.io.atomic import output_problem
+  if not 0 <= args.seed < 2**32:
+    return f"--seed: expected an integer in [0, 2**32), got {args.seed}"
+  if args.keypoints < 1:
+    return f"--keypoints: expected a positive integer, got {args.keypoints}"
+  if args.out:
+    inputs = [("SOURCE", args.source), ("TARGET", args.target), ("--init", args.init)]
+    problem = output_problem(args.out, "--out", inputs)
+    if problem:
+      return problem
+  if args.png:
+    if Path(args.png).suffix.lower() not in (".png", ".pdf", ".svg", ".jpg", ".jpeg"):
+      return f"--png: {args.png!r} has no figure suffix (.png, .pdf, .svg, .jpg)"
+    problem = output_problem(args.png, "--png",
+                             [("SOURCE", args.source), ("TARGET", args.target),
+                              ("--init", args.init), ("--out", args.out)])
+    if problem:
+      return problem
+  if args.checkpoint:
+    workdir = Path(args.checkpoint).expanduser()
+    if not workdir.is_dir():
+      return (f"--checkpoint: {args.checkpoint} is not a folder; expected a train.py workdir "
+              "(the one passed to train.py --workdir)")
+    if not (workdir / "checkpoints").is_dir():
+      return (f"--checkpoint: {args.checkpoint} has no checkpoints/ folder; expected a train.py "
+              "workdir (the one passed to train.py --workdir)")
+  if args.init is not None and not Path(args.init).expanduser().is_file():
+    return f"--init: {args.init} is not a file; expected a 4x4 text file or a (4, 4) .npy"
+  return None
+
+
+def read_init(path: str) -> np.ndarray:
+  """The (4, 4) rigid transform of `--init`: a .npy holding one, else a text file of 4 rows of
+  4 numbers (`lrf_jax.io.read_xf`).
+
+  Raises:
+    ValueError: not a readable (4, 4) rigid matrix; the message names the file.
+  """
+  from lrf_jax.io import check_rigid, read_xf
+  if path.lower().endswith(".npy"):
+    try:
+      t = np.load(path, allow_pickle=False)
+    except (ValueError, OSError, EOFError) as e:
+      raise ValueError(f"--init {path}: not a readable .npy file ({e})") from None
+    if not np.issubdtype(t.dtype, np.number):
+      raise ValueError(f"--init {path}: expected a numeric (4, 4) array, got dtype {t.dtype}")
+    return check_rigid(t, path, "--init matrix")
+  try:
+    return read_xf(path)
+  except ValueError as e:
+    raise ValueError(f"--init: {e}") from None
+
+
+def main(argv: list[str] | None = None) -> int:
+  from lrf_jax.cli import multiway as multiway_cli
+  if multiway_cli.wanted(build_parser(), argv):  # more than two scans, or --out-dir
+    return multiway_cli.main(argv)
+  args = build_parser().parse_args(argv)
+  problem = _check_paths(args)
+  if problem:
+    print(f"error: {problem}", file=sys.stderr)
+    return 2
+  from lrf_jax import compilation_cache
+  compilation_cache.enable()  # a second run loads the compiled functions instead of recompiling
+  from lrf_jax.registration import register
+
+  params, extra = None, {}
+  try:
+    if args.init is not None:
+      extra["init"] = read_init(args.init)  # passed only when given
+    if args.checkpoint:
+      from lrf_jax.learning.checkpoints import restore_params
+      try:
+        params, _ = restore_params(args.checkpoint, "best")
+      except (ValueError, FileNotFoundError) as e:
+        raise ValueError(f"--checkpoint: {e}") from None
+    reg = register(args.source, args.target, mr=args.mr, radius_mr=args.radius_mr,
+                   n_keypoints=args.keypoints, n_correspondences=args.correspondences,
+                   inlier_mr=args.inlier_mr, estimator=args.estimator,
+                   iterations=args.iterations, icp_iterations=args.icp_iterations,
+                   params=params, seed=args.seed, method=args.method,
+                   source_viewpoint=args.source_viewpoint,
+                   target_viewpoint=args.target_viewpoint, keypoints=args.detector,
+                   mutual=args.mutual, ratio=args.ratio, icp_mode=args.icp, **extra)
+  except (ValueError, FileNotFoundError) as e:
+    print(f"error: {e}", file=sys.stderr)
+    return 2
+  except OSError as e:  # an unreadable input (permissions, an I/O error)
+    print(f"error: could not read {e.filename or 'an input'}: {e.strerror or e}",
+          file=sys.stderr)
+    return 2
+  text = "\n".join(" ".join(f"{v:.9g}" for v in row) for row in reg.transform)
+  print(text)
+  print("\n".join(f"# {line}" for line in reg.summary().splitlines()), file=sys.stderr)
+  if args.png:
+    problem = correspondence_figure(args, reg)
+    if problem:
+      print(f"error: {problem}", file=sys.stderr)
+      return 2
+  if args.out:
+    from lrf_jax.io.atomic import WriteError, atomic_write
+    try:
+      with atomic_write(args.out, "w") as f:
+        f.write(text + "\n")
+    except WriteError as e:
+      print(f"error: {e}", file=sys.stderr)
+      return 2
+  return 0 if reg.success else 3
+
+
+def correspondence_figure(args: argparse.Namespace, reg) -> str | None:
+  """`--png`: the correspondences of `reg` (a `Registration`) joining the two clouds side by
+  side, inliers green, outliers red (`lrf_jax.cli.plot.correspondences`); None, or the error."""
+  from pathlib import Path
+
+  from lrf_jax.cli import plot
+  from lrf_jax.inputs import as_cloud
+  from lrf_jax.io.atomic import WriteError
+  src, dst = as_cloud(args.source, "SOURCE").points, as_cloud(args.target, "TARGET").points
+  verdict = "success" if reg.success else "not sure"
+  title = (f"{Path(args.source).name} -> {Path(args.target).name}: {verdict}, estimated "
+           f"overlap {reg.overlap:.0%}, {reg.n_inliers} of {len(reg.correspondences)} "
+           "correspondences are inliers")
+  try:
+    plot.correspondences(src, dst, reg.correspondences, reg.inliers, reg.transform, args.png,
+                         seed=args.seed, title=title,
+                         names=(Path(args.source).name, Path(args.target).name))
+  except WriteError as e:
+    return str(e)
+  print(f"# correspondences figure: {args.png}", file=sys.stderr)
+  return None
+
+
+if __name__ == "__main__":
+  sys.exit(main())

@@ -1,0 +1,212 @@
+"""Checkpoints of a training run: orbax, in `<workdir>/checkpoints`, with the config beside them.
+
+The `CheckpointManager` keeps the latest two checkpoints and the best one by validation MeanCos
+(Stanford bunny scans); a restarted run resumes from the newest readable one
+(`restore_readable`), and `restore_params` gives evaluate.py and lrf-register the parameters of a
+finished run. A checkpoint holds the state's params, opt_state and step (host arrays) and the
+run's `TrainConfig` as JSON. In a multi-process run every process takes part in each save and
+restore (orbax works collectively); only process 0 (`is_primary`) renames files and warns.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import warnings
+from pathlib import Path
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import orbax.checkpoint as ocp
+from jax.experimental import multihost_utils
+
+from lrf_jax.learning.config import TrainConfig
+from lrf_jax.learning.train_step import TrainState, create_state
+
+
+class _QuietOrbax(logging.Filter):
+  """Drops orbax's "Requested `tracked_metric`; did not provide metrics." warning: a checkpoint
+  saved between validations has no metric by design (it is kept as one of the latest, not
+  ranked), so the warning says nothing a user can act on."""
+
+  def filter(self, record: logging.LogRecord) -> bool:
+    return "Requested `tracked_metric`" not in record.getMessage()
+
+
+_QUIET = _QuietOrbax()
+logging.getLogger("absl").addFilter(_QUIET)  # orbax logs through absl's logger
+
+
+def is_primary() -> bool:
+  """True in the process that writes the workdir's files and prints (process 0)."""
+  return jax.process_index() == 0
+
+
+def checkpoint_manager(workdir: Path, create: bool = True) -> ocp.CheckpointManager:
+  """Keeps the latest two checkpoints (one to fall back to) and the best by validation MeanCos."""
+  policy = ocp.checkpoint_managers.AnyPreservationPolicy([
+      ocp.checkpoint_managers.LatestN(n=2),
+      ocp.checkpoint_managers.BestN(get_metric_fn=lambda m: m["val_meancos"], reverse=False, n=1,
+                                    keep_checkpoints_without_metrics=False),
+  ])
+  options = ocp.CheckpointManagerOptions(
+      preservation_policy=policy, best_fn=lambda m: m["val_meancos"], best_mode="max",
+      create=create)
+  return ocp.CheckpointManager((Path(workdir) / "checkpoints").absolute(), options=options,
+                               item_names=("state", "config"))
+
+
+def check_compatible(saved: dict[str, Any], config: TrainConfig, where: Path) -> None:
+  """Raise if a checkpoint was written under a config whose parameters differ in shape/meaning."""
+  diffs = [f for f in TrainConfig.MODEL_FIELDS
+           if json.dumps(saved.get(f)) != json.dumps(getattr(config, f), default=list)]
+  if diffs:
+    detail = ", ".join(f"{f}: checkpoint {saved.get(f)!r} vs config {getattr(config, f)!r}"
+                       for f in diffs)
+    raise ValueError(f"{where}: checkpoint is incompatible with this config ({detail}); use "
+                     "another --workdir or the checkpoint's own config")
+
+
+def restore_params(workdir: str | Path, which: str = "best") -> tuple[Any, TrainConfig]:
+  """Parameters and config of a training run's best (or latest) checkpoint (for evaluate.py).
+
+  Raises:
+    FileNotFoundError: `workdir` has no checkpoints/ folder, or no checkpoint (for "best": none
+      ranked by validation) in it.
+  """
+  root = Path(workdir) / "checkpoints"
+  if not root.is_dir():
+    raise FileNotFoundError(f"{workdir}: not a train.py workdir (no checkpoints/ folder)")
+  mngr = checkpoint_manager(Path(workdir), create=False)
+  step = mngr.best_step() if which == "best" else mngr.latest_step()
+  if step is None:
+    what = "ranked by validation (val_pairs=0?)" if which == "best" else "found"
+    raise FileNotFoundError(f"{root}: no checkpoint {what}")
+  cfg_dict = mngr.restore(step, args=ocp.args.Composite(config=ocp.args.JsonRestore()))["config"]
+  config = TrainConfig.from_dict({k: tuple(v) if isinstance(v, list) else v
+                                  for k, v in cfg_dict.items()})
+  restored = mngr.restore(step, args=ocp.args.Composite(
+      state=ocp.args.StandardRestore(_state_target(create_state(config)))))
+  return restored["state"]["params"], config
+
+
+def save_checkpoint(mngr: ocp.CheckpointManager, step: int, state: TrainState,
+                    config: TrainConfig, metrics: dict[str, float] | None) -> None:
+  """Save `state` and `config` as checkpoint `step` (asynchronously).
+
+  metrics: {"val_meancos": ...} to rank it among the best, or None (kept as one of the latest
+  only).
+  """
+  mngr.save(step, args=ocp.args.Composite(
+      state=ocp.args.StandardSave(_state_target(state)),
+      config=ocp.args.JsonSave(json.loads(config.to_json()))), metrics=metrics)
+
+
+def _state_target(state: TrainState) -> dict[str, Any]:
+  """The checkpointed part of a TrainState, as host arrays (the restore target)."""
+  return jax.tree.map(np.asarray, {"params": state.params, "opt_state": state.opt_state,
+                                   "step": state.step})
+
+
+def resume(workdir: Path, state: TrainState,
+           config: TrainConfig) -> tuple[ocp.CheckpointManager, TrainState]:
+  """The run's checkpoint manager, and `state` replaced by its newest readable checkpoint (if
+  there is one; see `restore_readable`)."""
+  mngr = checkpoint_manager(workdir)
+  if mngr.latest_step() is None:
+    return mngr, state
+  return restore_readable(mngr, state, config, workdir)
+
+
+def restore_readable(mngr: ocp.CheckpointManager, state: TrainState, config: TrainConfig,
+                     workdir: Path) -> tuple[ocp.CheckpointManager, TrainState]:
+  """Restore the newest readable checkpoint, newest first.
+
+  An unreadable one (a corrupt file, non-finite parameters) is renamed
+  `checkpoints/<step>.unreadable` (kept, out of the way of the steps replayed over it) with one
+  warning naming it. A checkpoint written under an incompatible config is an error, not skipped.
+  In a multi-process run process 0 renames and warns, and the others wait for it.
+
+  Returns:
+    (manager, state): a new manager when checkpoints were renamed, else `mngr`.
+
+  Raises:
+    ValueError: no checkpoint is readable (the message says how to start afresh).
+  """
+  root = workdir / "checkpoints"
+  skipped = []
+  for step in sorted(mngr.all_steps(), reverse=True):
+    damage = visible_damage(root / str(step))
+    if damage is not None:  # not handed to orbax: tensorstore's failed reads print tracebacks
+      skipped.append((step, ValueError(damage)))
+      continue
+    try:
+      saved = mngr.restore(step, args=ocp.args.Composite(config=ocp.args.JsonRestore()))
+    except Exception as e:  # orbax raises JSON, tensorstore, Key and Value errors here
+      skipped.append((step, e))
+      continue
+    check_compatible(saved["config"], config, workdir)
+    try:
+      restored = mngr.restore(step, args=ocp.args.Composite(
+          state=ocp.args.StandardRestore(_state_target(state))))["state"]
+      bad = nonfinite_leaves(restored["params"])
+      if bad:
+        raise FloatingPointError(f"non-finite parameters in {bad}")
+    except Exception as e:
+      skipped.append((step, e))
+      continue
+    if skipped:
+      mngr = _set_aside(mngr, skipped, step, workdir)
+    return mngr, state.replace(params=restored["params"], opt_state=restored["opt_state"],
+                               step=restored["step"])
+  tried = ", ".join(f"{s} ({type(e).__name__}: {str(e).splitlines()[0][:80]})"
+                    for s, e in skipped)
+  raise ValueError(f"{root}: no readable checkpoint (tried {tried}); delete that folder (or "
+                   "choose another --workdir) to start afresh")
+
+
+def visible_damage(step_dir: Path) -> str | None:
+  """What makes a checkpoint folder unreadable at a glance (None: nothing visible).
+
+  Checks, in every item folder, that an OCDBT manifest (`manifest.ocdbt`) is not empty and that
+  `_METADATA` and `_CHECKPOINT_METADATA` parse as JSON; a corrupt array file is only found by
+  reading it.
+  """
+  for path in sorted(step_dir.rglob("*")):
+    if path.name == "manifest.ocdbt" and path.stat().st_size == 0:
+      return f"{path.relative_to(step_dir.parent)}: empty"
+    if path.name in ("_METADATA", "_CHECKPOINT_METADATA"):
+      try:
+        json.loads(path.read_text())
+      except (ValueError, UnicodeDecodeError):
+        return f"{path.relative_to(step_dir.parent)}: not JSON"
+  return None
+
+
+def _set_aside(mngr: ocp.CheckpointManager, skipped: list[tuple[int, Exception]],
+               resumed: int, workdir: Path) -> ocp.CheckpointManager:
+  """Rename the `skipped` (step, error) checkpoints to `<step>.unreadable` and warn once (process
+  0; the others wait for it); returns a fresh manager over what is left."""
+  root = workdir / "checkpoints"
+  mngr.close()
+  if is_primary():
+    for bad_step, _ in skipped:
+      (root / str(bad_step)).rename(root / f"{bad_step}.unreadable")
+    names = ", ".join(f"checkpoints/{s} ({type(e).__name__})" for s, e in skipped)
+    # stacklevel: _set_aside < restore_readable < resume < train_and_evaluate < its caller.
+    warnings.warn(f"{names}: unreadable, kept as <step>.unreadable; resumed from "
+                  f"checkpoints/{resumed}", stacklevel=5)
+  if jax.process_count() > 1:
+    multihost_utils.sync_global_devices("lrf_jax: unreadable checkpoints renamed")
+  return checkpoint_manager(workdir)
+
+
+def nonfinite_leaves(tree: Any) -> list[str]:
+  """Paths of the leaves of `tree` that hold a NaN or an infinity."""
+  bad = []
+  for path, leaf in jax.tree_util.tree_flatten_with_path(tree)[0]:
+    if not bool(jnp.all(jnp.isfinite(jnp.asarray(leaf)))):
+      bad.append(jax.tree_util.keystr(path))
+  return bad

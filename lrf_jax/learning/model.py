@@ -1,0 +1,158 @@
+"""The LRF-Net weight network: its parameters, its forward pass and the shipped weights.
+
+The paper (section 3.1, "a U-Net with MLP layers only") feeds each radius neighbour's two invariant
+attributes (distance / r, cos(z, pq)) through per-point MLP layers and predicts one weight per
+neighbour. The figure with its layer sizes is missing from our copy, so the sizes are ours:
+
+    encoder   2 -> 16 -> 32 -> 64          (Dense + ReLU, per point)
+    decoder  64 -> 32 (concat enc 32) -> 16 (concat enc 16) -> 1
+
+about 6.6k parameters. Why this size: the network maps a 2-D input to a scalar, so it only needs
+the capacity to draw a smooth 2-D weight map w(d, cos θ), and every extra width costs K x width
+FLOPs per keypoint on the hot path. The
+output is linear (signed weights): TOLDI's own weight (r - d)² sign(h) h² is signed, and a positive
+activation could not express it. The weights only matter up to a positive scale (x is normalised).
+lrf_net_plus reads the same output as a log-weight (`frames.lrf_net.softmax_weights`).
+
+The layers are defined as flax.linen modules in `networks.py`; this module evaluates them from
+the parameter dict in `jax.numpy` and reads parameter files with `msgpack` (flax's format), so
+inference never imports flax; initialising and saving do.
+"""
+
+from __future__ import annotations
+
+import functools
+from pathlib import Path
+from typing import Any, Sequence
+
+import jax
+import jax.numpy as jnp
+import msgpack
+import numpy as np
+
+Params = Any
+
+WEIGHTS_DIR = Path(__file__).resolve().parents[1] / "weights"  # lrf_jax/weights
+DEFAULT_WEIGHTS = WEIGHTS_DIR / "lrf_net.msgpack"
+
+
+def init_params(seed: int = 0, num_attributes: int = 2,
+                widths: Sequence[int] = (16, 32, 64)) -> Params:
+  """Seeded initial parameters of the weight network (`networks.WeightNet`).
+
+  Args:
+    seed: PRNG seed (`jax.random.key(seed)`).
+    num_attributes: A, the number of per-point attributes (2 in the paper).
+    widths: encoder widths.
+
+  Returns:
+    A flax params pytree: {"enc<i>", "dec<i>", "out"} each {"kernel", "bias"}.
+  """
+  from lrf_jax.learning.networks import init_weight_net  # flax, only to initialise
+  return init_weight_net(seed, num_attributes, widths)
+
+
+def _dense(layer: Params, h: jax.Array) -> jax.Array:
+  return h @ layer["kernel"] + layer["bias"]
+
+
+def apply_weights(params: Params, attrs: jax.Array) -> jax.Array:
+  """Weights (..., K) for attributes (..., K, A): `networks.WeightNet.apply`, written out.
+
+  Encoder Dense+ReLU layers enc0..enc{m-1}, decoder Dense+ReLU layers dec0..dec{m-2} each
+  concatenated with the encoder output of the same width, and a linear Dense "out" to one
+  value; the widths are read from `params`.
+  """
+  n_enc = _num_enc(params)
+  h = attrs
+  skips = []
+  for i in range(n_enc):
+    h = jax.nn.relu(_dense(params[f"enc{i}"], h))
+    skips.append(h)
+  skips.pop()  # the bottleneck is not concatenated with itself
+  for i in range(n_enc - 1):
+    h = jax.nn.relu(_dense(params[f"dec{i}"], h))
+    h = jnp.concatenate([h, skips.pop()], axis=-1)
+  return _dense(params["out"], h)[..., 0]
+
+
+def apply_weights_numpy(params: Params, attrs: np.ndarray) -> np.ndarray:
+  """`apply_weights` in numpy float32 for host callers (no JAX program to trace, lower and
+  load): the same layers, equal up to float32 rounding (the matrix products sum in another
+  order). attrs (..., K, A) -> weights (..., K)."""
+  def dense(layer, h):
+    return h @ np.asarray(layer["kernel"], np.float32) + np.asarray(layer["bias"], np.float32)
+
+  n_enc = _num_enc(params)
+  h = np.asarray(attrs, np.float32)
+  skips = []
+  for i in range(n_enc):
+    h = np.maximum(dense(params[f"enc{i}"], h), 0.0)
+    skips.append(h)
+  skips.pop()
+  for i in range(n_enc - 1):
+    h = np.concatenate([np.maximum(dense(params[f"dec{i}"], h), 0.0), skips.pop()], axis=-1)
+  return dense(params["out"], h)[..., 0]
+
+
+def _num_enc(params: Params) -> int:
+  return sum(1 for name in params if name.startswith("enc"))
+
+
+def save_params(params: Params, path: str | Path) -> None:
+  """Write parameters as flax msgpack (a few KB)."""
+  from flax import serialization  # only to write
+  Path(path).parent.mkdir(parents=True, exist_ok=True)
+  from lrf_jax.io import atomic  # pylint: disable=import-outside-toplevel
+  atomic.write_bytes(path, serialization.msgpack_serialize(jax.device_get(params)))
+
+
+def load_params(path: str | Path) -> Params:
+  """Read parameters written by `save_params`.
+
+  Raises:
+    FileNotFoundError: when `path` does not exist.
+    ValueError: when the file is not a parameter file of this network.
+  """
+  path = Path(path)
+  if not path.exists():
+    raise FileNotFoundError(f"{path}: no such parameter file")
+  try:
+    params = msgpack.unpackb(path.read_bytes(), ext_hook=_unpack_array, raw=False)
+  except Exception as e:  # msgpack raises several types on garbage
+    raise ValueError(f"{path}: not a flax msgpack parameter file ({e})") from e
+  weightnet = isinstance(params, dict) and "out" in params and _num_enc(params) > 0
+  variant = (isinstance(params, dict) and params
+             and set(params) <= {"weights", "x_reg", "z_reg"})  # ablation variants
+  if not (weightnet or variant):
+    raise ValueError(f"{path}: expected WeightNet parameters (enc*/dec*/out) or ablation "
+                     f"parameters (weights/x_reg/z_reg), got keys "
+                     f"{sorted(params) if isinstance(params, dict) else type(params)}")
+  return jax.device_put(params)
+
+
+@functools.lru_cache(maxsize=8)
+def _default_params_cached(name: str) -> Params:
+  path = WEIGHTS_DIR / f"{name}.msgpack"
+  # Concrete arrays even when the first call happens inside a jit trace: the cache would
+  # otherwise keep (and later leak) that trace's tracers.
+  with jax.ensure_compile_time_eval():
+    if path.exists():
+      return load_params(path)
+    return init_params(0)
+
+
+def default_params(name: str = "lrf_net") -> Params:
+  """The shipped weights `lrf_jax/weights/<name>.msgpack` ("lrf_net": the paper's model trained
+  with the default config; "lrf_net_plus": see that method), or, where none are shipped, the
+  seeded initialisation `init_params(0)`."""
+  return _default_params_cached(name)
+
+
+def _unpack_array(code: int, data: bytes) -> Any:
+  """flax.serialization's msgpack extension types: 1 an ndarray, 3 a numpy scalar."""
+  if code not in (1, 3):
+    raise ValueError(f"msgpack extension type {code} (expected 1, an array, or 3, a scalar)")
+  shape, dtype, buffer = msgpack.unpackb(data, raw=True)
+  arr = np.frombuffer(buffer, dtype=np.dtype(dtype.decode())).reshape(shape)
+  return arr if code == 1 else arr[()]

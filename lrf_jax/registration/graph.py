@@ -1,0 +1,181 @@
+"""A compatibility-graph estimator for `register`: correspondences that agree with each other.
+
+Two correspondences (p_i, q_i) and (p_j, q_j) of a rigid motion preserve their distance,
+|p_i - p_j| = |q_i - q_j|, and, when both carry LRFs, give the same rotation: the
+one-correspondence poses R_i, R_j of `host.lrf_hypotheses` (paper section 3.2.3)
+differ by a small angle. An outlier agrees with an inlier by chance only, so the inliers form a
+dense cluster of the graph whose edges are these agreements (Leordeanu & Hebert 2005; SC2-PCR,
+Chen et al. 2022; MAC, Zhang et al. 2023). The estimator:
+
+1. first-order compatibility C_ij = [ | |p_i - p_j| - |q_i - q_j| | < d ] and, with LRFs,
+   [ angle(R_i R_jᵀ) < a ] (`compatibility`);
+2. a score per correspondence: the leading eigenvector of C (spectral matching, power
+   iteration from a constant vector: deterministic);
+3. seeds: the best-scoring correspondences, at most one per `nms` ball of source points
+   (spatial non-maximum suppression, as SC2-PCR);
+4. per seed s the second-order compatibilities SC2_sj = C_sj (C C)_sj, the number of
+   correspondences compatible with both s and j (SC2-PCR's measure, computed for the seeds' rows
+   only); its consensus set: s and the `consensus` j of largest SC2_sj;
+5. per seed one hypothesis: Kabsch on its consensus set weighted by the leading eigenvector of
+   the set's own compatibility submatrix.
+
+Memory: C is an (N, N) float32 matrix for N correspondences (4 N^2 bytes: 4 MB at N = 1,000,
+36 MB at N = 3,000), filled by a numba kernel with no temporaries; the seeds' second-order rows
+are (seeds, N). `register` keeps N at its
+`n_correspondences` (at most `MAX_CORRESPONDENCES`).
+
+The compatibility matrix is a numba kernel, the rest numpy (BLAS for the products); no JAX
+program is traced or loaded.
+"""
+
+from __future__ import annotations
+
+import numba as nb
+import numpy as np
+
+from lrf_jax.registration import host
+
+# Power iterations of the spectral score (enough to order the correspondences: the score only
+# picks the seeds, the consensus sets are chosen by second-order compatibility).
+SCORE_ITERATIONS = 10
+# Largest number of correspondences the dense compatibility matrix is built for (100 MB).
+MAX_CORRESPONDENCES = 5000
+
+
+def compatibility(src: np.ndarray, dst: np.ndarray, distance: float,
+                  rotations: np.ndarray | None = None, angle_deg: float | None = None
+                  ) -> np.ndarray:
+  """First-order compatibility of N correspondences, (N, N) float32 of 0/1, zero diagonal.
+
+  Args:
+    src: (N, 3) source points of the correspondences.
+    dst: (N, 3) their target points.
+    distance: d, correspondences i, j are compatible when | |p_i - p_j| - |q_i - q_j| | < d
+      (cloud units).
+    rotations: optional (N, 3, 3) one-correspondence rotations (q ≈ R_i p + t_i); with
+      `angle_deg` the pair must also satisfy angle(R_i R_jᵀ) < angle_deg.
+    angle_deg: the rotation agreement bound in degrees (None: distances only).
+
+  Returns:
+    (N, N) float32 matrix C with C_ij in {0, 1}, symmetric, C_ii = 0.
+  """
+  p = np.ascontiguousarray(src, np.float64)
+  q = np.ascontiguousarray(dst, np.float64)
+  n = len(p)
+  if n > MAX_CORRESPONDENCES:
+    raise ValueError(f"compatibility: {n} correspondences, at most {MAX_CORRESPONDENCES} "
+                     f"(the dense matrix takes 4 N^2 bytes)")
+  use_rot = rotations is not None and angle_deg is not None
+  rf = (np.ascontiguousarray(rotations, np.float64).reshape(n, 9) if use_rot
+        else np.zeros((n, 9)))
+  # angle(R_i R_jᵀ) < a  <=>  trace(R_i R_jᵀ) = sum of the entries of R_i ⊙ R_j > 1 + 2 cos a
+  min_trace = 1.0 + 2.0 * np.cos(np.radians(float(angle_deg))) if use_rot else -np.inf
+  out = np.empty((n, n), np.float32)
+  _compatibility(p, q, rf, float(distance), float(min_trace), bool(use_rot), out)
+  return out
+
+
+@nb.njit(parallel=True, cache=True)
+def _compatibility(p, q, rf, distance, min_trace, use_rot, out):
+  """Rows of `compatibility` in parallel; each (i, j) and (j, i) computed alike (symmetric)."""
+  n = p.shape[0]
+  for i in nb.prange(n):
+    for j in range(n):
+      if i == j:
+        out[i, j] = 0.0
+        continue
+      dp = np.sqrt((p[i, 0] - p[j, 0]) ** 2 + (p[i, 1] - p[j, 1]) ** 2 + (p[i, 2] - p[j, 2]) ** 2)
+      dq = np.sqrt((q[i, 0] - q[j, 0]) ** 2 + (q[i, 1] - q[j, 1]) ** 2 + (q[i, 2] - q[j, 2]) ** 2)
+      ok = abs(dp - dq) < distance
+      if ok and use_rot:
+        tr = 0.0
+        for k in range(9):
+          tr += rf[i, k] * rf[j, k]
+        ok = tr > min_trace
+      out[i, j] = 1.0 if ok else 0.0
+
+
+def leading_eigenvector(matrix: np.ndarray, iterations: int = 30) -> np.ndarray:
+  """The leading eigenvector of a symmetric non-negative matrix, or of each of a stack of them,
+  by power iteration from the constant vector (deterministic), scaled to a maximum of 1.
+
+  Args:
+    matrix: (N, N) or (B, N, N).
+    iterations: power iterations.
+
+  Returns:
+    (N,) or (B, N) in the matrix's float dtype; zeros for a zero matrix.
+  """
+  m = np.asarray(matrix)
+  v = np.ones(m.shape[:-1], m.dtype)
+  for _ in range(int(iterations)):
+    w = np.einsum("...ij,...j->...i", m, v) if m.ndim == 3 else m @ v
+    v = w / np.maximum(np.linalg.norm(w, axis=-1, keepdims=True), 1e-30)
+  return v / np.maximum(v.max(axis=-1, keepdims=True), 1e-30)
+
+
+def select_seeds(points: np.ndarray, scores: np.ndarray, n_seeds: int, nms: float
+                 ) -> np.ndarray:
+  """Up to `n_seeds` correspondence indices by decreasing score, none within `nms` of a better
+  seed's source point (greedy spatial non-maximum suppression); zero scores are never seeds.
+  Ties go to the smaller index. (S,) int64."""
+  order = np.lexsort((np.arange(len(scores)), -np.asarray(scores)))
+  pts = np.asarray(points, np.float64)
+  chosen: list[int] = []
+  nms2 = float(nms) ** 2
+  for i in order:
+    if scores[i] <= 0 or len(chosen) >= n_seeds:
+      break
+    if chosen and np.min(np.sum((pts[chosen] - pts[i]) ** 2, axis=1)) < nms2:
+      continue
+    chosen.append(int(i))
+  return np.asarray(chosen, np.int64)
+
+
+def graph_hypotheses(src: np.ndarray, dst: np.ndarray, rotations: np.ndarray | None, *,
+                     distance: float, angle_deg: float | None, n_seeds: int, consensus: int,
+                     nms: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+  """One rigid hypothesis per seed of the compatibility graph (module docstring, steps 1-5).
+
+  Args:
+    src: (N, 3) source points of the correspondences (centred coordinates are best).
+    dst: (N, 3) target points.
+    rotations: (N, 3, 3) one-correspondence rotations or None (distance compatibility only).
+    distance: compatibility distance d (cloud units).
+    angle_deg: rotation agreement bound (degrees) or None.
+    n_seeds: at most this many seeds (hypotheses).
+    consensus: consensus-set size per seed, besides the seed.
+    nms: seed suppression radius (cloud units).
+
+  Returns:
+    (R (H, 3, 3), t (H, 3)) float64 hypotheses, the seeds (H,) int64 and the spectral scores
+    (N,) float64. H = 0 when no two correspondences are compatible.
+  """
+  c = compatibility(src, dst, distance, rotations, angle_deg)
+  scores = leading_eigenvector(c, SCORE_ITERATIONS)
+  seeds = select_seeds(src, scores * (c.sum(axis=1) > 0), n_seeds, nms)
+  if len(seeds) == 0:
+    return np.zeros((0, 3, 3)), np.zeros((0, 3)), seeds, scores
+  rows = c[seeds]                        # (S, N)
+  sc2 = rows * (rows @ c)                # second order, seed rows only
+  k = int(min(consensus, len(src) - 1))
+  members = np.argsort(-sc2, axis=1, kind="stable")[:, :k]
+  sets = np.concatenate([seeds[:, None], members], axis=1)       # (S, k + 1)
+  keep = np.concatenate([np.ones((len(seeds), 1), bool),
+                         np.take_along_axis(sc2, members, axis=1) > 0], axis=1)
+  sets = np.where(keep, sets, seeds[:, None])  # dropped members repeat the seed, weight 0
+  sub = c[sets[:, :, None], sets[:, None, :]] * (keep[:, :, None] & keep[:, None, :])
+  sub = sub + np.eye(sets.shape[1], dtype=np.float32) * keep[:, :, None]
+  weights = leading_eigenvector(sub).astype(np.float64) * keep
+  p = np.asarray(src, np.float64)
+  q = np.asarray(dst, np.float64)
+  rs, ts = host.kabsch_batch(p[sets], q[sets], weights)
+  small = keep.sum(axis=1) < 3  # Kabsch needs three points: the seed's own LRF pose instead
+  if rotations is not None and small.any():
+    r1 = np.asarray(rotations, np.float64)[seeds[small]]
+    rs[small] = r1
+    ts[small] = q[seeds[small]] - np.einsum("hij,hj->hi", r1, p[seeds[small]])
+  return rs, ts, seeds, scores
+
+
+__all__ = ["compatibility", "graph_hypotheses", "leading_eigenvector", "select_seeds"]

@@ -1,0 +1,591 @@
+"""Many scans into one model: pairwise LRF registration over a candidate graph, a robust pose
+graph, optional joint ICP; `register_all(scans) -> MultiwayResult`.
+
+Pipeline (every length in mr, the median over the scans of each one's mesh resolution unless
+`mr` is given):
+
+1. candidates (`candidate_pairs`): all pairs when there are at most `all_pairs_max` scans;
+   otherwise each scan with the next one in the given order (`neighbours` of them) plus, as
+   loop-closure candidates, the `loop_candidates` scans whose D2 shape distribution (the
+   histogram of distances between random point pairs, `shape_signature`, invariant to rigid
+   motion) is closest to its own (L1 distance of the histograms).
+2. pairwise: `lrf_jax.register(scan_i, scan_j)` for each candidate (i < j), seeded, one mr for
+   all. Its verdict decides how far an edge is trusted: `success` edges are trusted, "not sure"
+   edges are weak (kept as candidates: on real scans many right poses are "not sure" at low
+   overlap, and most wrong ones are too), and a pair that could not be registered at all gives
+   no edge. Every edge carries `EDGE_POINTS` points of scan i where the two scans overlap
+   (farthest-point sample of the source points within `icp_mr` mr of the target after the
+   pairwise transform).
+3. pose graph (`lrf_jax.registration.pose_graph.solve`): trusted edges start it (the spanning tree that
+   explains most edges, then `scipy.optimize.least_squares` with a Cauchy loss of scale
+   `robust_mr` over SE(3), then every edge whose RMS point residual exceeds `reject_mr` is
+   rejected and the rest re-solved); weak edges join only where the graph corroborates them:
+   inside a component, when they agree with it; between two components, when at least two of
+   them agree on one placement. A wrong loop closure the verdict let through contradicts the
+   cycles it closes and is rejected; a single weak edge never joins a scan.
+4. the model is the largest connected component of accepted edges (ties: the one with the
+   earliest scan); its earliest scan is the reference frame (the first scan unless the first
+   scan is left out). Scans outside it are left out: they get no pose (NaN) and are listed in
+   `MultiwayResult.left_out`; nothing of them is merged.
+5. optional joint ICP (`refine_poses`, default on): point-to-plane residuals of every
+   accepted pair in both directions (pairs re-found each round within `icp_mr` mr, Cauchy loss
+   of scale `robust_mr`), all poses of the model at once in one `least_squares` per round.
+
+The same scans, options and seed give the same poses.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+import time
+from pathlib import Path
+from typing import Any, Callable, Sequence
+
+import numpy as np
+
+from lrf_jax.search import engine
+from lrf_jax.registration import pose_graph
+from lrf_jax.registration.icp_host import estimate_target_normals
+from lrf_jax.inputs import as_cloud
+from lrf_jax.io.cloud import Cloud
+from lrf_jax.geometry.resolution import mesh_resolution
+
+__all__ = ["MultiwayEdge", "MultiwayResult", "candidate_pairs", "edges_table", "load_scans",
+           "merged_cloud", "output_paths", "refine_poses", "register_all", "scan_names", "shape_signature",
+           "write_outputs"]
+
+# Scans up to this many: every pair is a candidate.
+ALL_PAIRS_MAX = 12
+# Points per edge in the pose graph's residual.
+EDGE_POINTS = 32
+# Source points a pair's overlap is looked for among.
+OVERLAP_SAMPLES = 4000
+# Joint ICP: Gauss-Newton steps (residual evaluations) per re-pairing round.
+REFINE_STEPS = 3
+SUFFIXES = (".gz", ".ply", ".pcd", ".xyz", ".txt", ".npy")
+
+
+@dataclasses.dataclass(frozen=True)
+class MultiwayEdge:
+  """One candidate pair and what became of it.
+
+  Attributes:
+    i: the source scan (moved).
+    j: the target scan.
+    transform: (4, 4) float64, the pairwise estimate mapping scan i into scan j's frame (NaN
+      when the pair could not be registered).
+    verdict: "success", "not sure" (`Registration.success` False) or "error" (no estimate).
+    reason: the pairwise verdict's reason, or the error message.
+    n_inliers: coarse inliers of the pairwise estimate.
+    overlap: its estimated overlap (fraction of scan i on scan j after ICP).
+    rmse: its ICP RMS distance, cloud units.
+    residual_mr: RMS disagreement of the edge with the final poses at its overlap points, in mr
+      (inf when its two scans are not both in the model).
+    accepted: whether the pose graph kept it.
+  """
+
+  i: int
+  j: int
+  transform: np.ndarray
+  verdict: str
+  reason: str
+  n_inliers: int
+  overlap: float
+  rmse: float
+  residual_mr: float
+  accepted: bool
+
+
+@dataclasses.dataclass(frozen=True)
+class MultiwayResult:
+  """What `register_all` returns.
+
+  Attributes:
+    names: (n,) scan names (file stems, or "scan<k>").
+    poses: (n, 4, 4) float64; pose k maps scan k into the reference scan's frame; NaN for the
+      scans left out.
+    in_model: (n,) bool, the scans in the model.
+    reference: index of the reference scan (the first scan of the model).
+    edges: every candidate pair, in the order registered.
+    mr: the mesh resolution used as the unit (cloud units).
+    seconds: wall time of the call.
+    timings: seconds per stage: "load", "pairwise", "graph", "refine".
+  """
+
+  names: tuple[str, ...]
+  poses: np.ndarray
+  in_model: np.ndarray
+  reference: int
+  edges: tuple[MultiwayEdge, ...]
+  mr: float
+  seconds: float
+  timings: dict = dataclasses.field(default_factory=dict)
+
+  @property
+  def left_out(self) -> list[str]:
+    """Names of the scans not in the model."""
+    return [n for n, m in zip(self.names, self.in_model) if not m]
+
+
+def scan_names(scans: Sequence[Any]) -> list[str]:
+  """Unique names: a path's file name without its cloud suffixes (".txt.gz" included), else
+  "scan<k>"; repeated names get "_2", "_3", ... in order."""
+  out, seen = [], {}
+  for k, s in enumerate(scans):
+    if isinstance(s, (str, os.PathLike)):
+      name = Path(s).name
+      while Path(name).suffix.lower() in SUFFIXES and Path(name).stem:
+        name = Path(name).stem
+    else:
+      name = f"scan{k}"
+    seen[name] = seen.get(name, 0) + 1
+    out.append(name if seen[name] == 1 else f"{name}_{seen[name]}")
+  return out
+
+
+def shape_signature(points: np.ndarray, *, max_distance: float, bins: int = 32,
+                    samples: int = 4000, seed: int = 0) -> np.ndarray:
+  """The D2 shape distribution of a cloud: a normalised histogram of the distances between
+  `samples` seeded random point pairs over [0, max_distance] (Osada et al., "Shape
+  distributions", TOG 2002). Invariant to rigid motion, cheap, and similar for scans that see
+  the same part of an object.
+
+  Args:
+    points: (n, 3) cloud.
+    max_distance: upper edge of the histogram (cloud units; the same for scans compared).
+    bins: histogram bins.
+    samples: point pairs drawn.
+    seed: seed of the pairs.
+
+  Returns:
+    (bins,) float64 summing to 1.
+  """
+  rng = np.random.default_rng(seed)
+  pts = np.asarray(points, np.float64)
+  a, b = rng.integers(len(pts), size=(2, samples))
+  d = np.linalg.norm(pts[a] - pts[b], axis=1)
+  hist, _ = np.histogram(np.minimum(d, max_distance), bins=bins, range=(0.0, max_distance))
+  return hist / max(hist.sum(), 1)
+
+
+def candidate_pairs(clouds: Sequence[np.ndarray], *, all_pairs_max: int = ALL_PAIRS_MAX,
+                    neighbours: int = 1, loop_candidates: int = 3, seed: int = 0
+                    ) -> list[tuple[int, int]]:
+  """The pairs (i, j), i < j, to register (see the module docstring, step 1).
+
+  Args:
+    clouds: n (m_k, 3) clouds in the given order.
+    all_pairs_max: up to this many scans, every pair.
+    neighbours: otherwise, each scan with this many next scans in the order.
+    loop_candidates: plus, per scan, this many scans of closest D2 signature.
+    seed: seed of the signatures' point pairs.
+
+  Returns:
+    Sorted unique pairs.
+  """
+  n = len(clouds)
+  if n <= all_pairs_max:
+    return [(i, j) for i in range(n) for j in range(i + 1, n)]
+  pairs = {(i, j) for i in range(n) for j in range(i + 1, min(i + 1 + neighbours, n))}
+  extent = max(float(np.linalg.norm(np.ptp(c, axis=0))) for c in clouds)
+  sig = np.stack([shape_signature(c, max_distance=extent, seed=seed) for c in clouds])
+  dist = np.abs(sig[:, None, :] - sig[None, :, :]).sum(axis=2)
+  np.fill_diagonal(dist, np.inf)
+  for i in range(n):
+    for j in np.argsort(dist[i], kind="stable")[:loop_candidates]:
+      pairs.add((min(i, int(j)), max(i, int(j))))
+  return sorted(pairs)
+
+
+def _farthest(points: np.ndarray, k: int) -> np.ndarray:
+  """k points of `points` by farthest-point sampling from the first (repeated when fewer)."""
+  if len(points) <= k:
+    return np.resize(points, (k, 3))
+  chosen = [0]
+  d = np.linalg.norm(points - points[0], axis=1)
+  for _ in range(k - 1):
+    chosen.append(int(np.argmax(d)))
+    d = np.minimum(d, np.linalg.norm(points - points[chosen[-1]], axis=1))
+  return points[chosen]
+
+
+def _apply(t: np.ndarray, p: np.ndarray) -> np.ndarray:
+  return p @ t[:3, :3].T + t[:3, 3]
+
+
+def _overlap_points(src: np.ndarray, grid: engine.Grid, transform: np.ndarray, distance: float,
+                    rng: np.random.Generator) -> np.ndarray:
+  """`EDGE_POINTS` points of `src` within `distance` of the target (its grid) under
+  `transform`, spread by farthest-point sampling; empty when none is."""
+  sub = src if len(src) <= OVERLAP_SAMPLES else src[np.sort(
+      rng.choice(len(src), OVERLAP_SAMPLES, replace=False))]
+  d, _ = engine.knn(grid, _apply(transform, sub), 1, distance)
+  near = sub[np.isfinite(d[:, 0])]
+  return _farthest(near, EDGE_POINTS) if len(near) else near
+
+
+def load_scans(scans: Sequence[Any], names: Sequence[str]) -> list[Cloud]:
+  """Each scan (a path, array, `Cloud` or object with `.points`) as a `Cloud` of float64
+  points; a bad scan raises ValueError naming its path (or its name), FileNotFoundError for a
+  missing path."""
+  out = []
+  for scan, name in zip(scans, names):
+    label = str(scan) if isinstance(scan, (str, os.PathLike)) else name
+    try:
+      c = as_cloud(scan, label)
+    except ValueError as e:
+      raise ValueError(e if label in str(e) else f"{label}: {e}") from None
+    if len(c.points) < 10:
+      raise ValueError(f"{label}: expected a cloud of at least 10 points, got {len(c.points)}")
+    out.append(Cloud(np.asarray(c.points, np.float64), c.faces, c.normals))
+  return out
+
+
+def _viewpoints(viewpoints: Any, n: int) -> list[Any]:
+  if viewpoints is None:
+    return [None] * n
+  arr = np.asarray(viewpoints, dtype=object if isinstance(viewpoints, (list, tuple)) and any(
+      v is None for v in viewpoints) else np.float64)
+  if arr.dtype != object and arr.shape == (3,):
+    return [np.asarray(viewpoints, np.float64)] * n
+  if len(viewpoints) != n:
+    raise ValueError(f"viewpoints: expected None, one (3,) sensor position or one per scan "
+                     f"({n}), got {len(viewpoints)}")
+  return list(viewpoints)
+
+
+def _pairwise(clouds, pairs, *, mr, seed, viewpoints, pairwise, icp_mr, progress, register_kw
+              ) -> tuple[list[MultiwayEdge], list[np.ndarray]]:
+  """Stage "pairwise": one registration per candidate pair; edges and their overlap points."""
+  from tqdm.auto import tqdm
+
+  from lrf_jax.registration import register
+  run = pairwise or register
+  grids: dict[int, engine.Grid] = {}
+  rng = np.random.default_rng(seed)
+  edges, points = [], []
+  bar = tqdm(pairs, desc="pairwise registration", unit="pair", disable=not progress)
+  for i, j in bar:
+    try:
+      reg = run(clouds[i], clouds[j], mr=mr, seed=seed, source_viewpoint=viewpoints[i],
+                target_viewpoint=viewpoints[j], **register_kw)
+    except ValueError as e:
+      edges.append(MultiwayEdge(i, j, np.full((4, 4), np.nan), "error", str(e), 0, 0.0,
+                                float("inf"), float("inf"), False))
+      points.append(np.zeros((0, 3)))
+      continue
+    if j not in grids:
+      grids[j] = engine.knn_grid(clouds[j].points)
+    t = np.asarray(reg.transform, np.float64)
+    points.append(_overlap_points(clouds[i].points, grids[j], t, icp_mr * mr, rng))
+    edges.append(MultiwayEdge(i, j, t, "success" if reg.success else "not sure",
+                              str(reg.reason), int(reg.n_inliers), float(reg.overlap),
+                              float(reg.rmse), float("inf"), False))
+  return edges, points
+
+
+def refine_poses(clouds: Sequence[np.ndarray], poses: np.ndarray,
+                 pairs: Sequence[tuple[int, int]], *, reference: int, mr: float,
+                 icp_mr: float = 3.0, robust_mr: float = 1.0, iterations: int = 10,
+                 samples: int = 1000, seed: int = 0) -> np.ndarray:
+  """Joint point-to-plane ICP of all scans' poses at once.
+
+  Each round, for every pair (i, j) in both directions: `samples` seeded points of scan i under
+  the current poses are paired with their nearest point of scan j within icp_mr mr; one
+  `scipy.optimize.least_squares` (Cauchy loss of scale robust_mr mr) moves every pose but the
+  reference's to reduce the point-to-plane distances ((X_i p - X_j q) · R_j n, unsigned PCA
+  normals of scan j). Stops when no pose moves by more than 0.01 mr at its scan's points.
+
+  Args:
+    clouds: n (m_k, 3) scans, each in its own frame.
+    poses: (n, 4, 4) start (each maps its scan into the common frame).
+    pairs: the overlapping pairs to pair points over (the scans not in any stay fixed).
+    reference: the scan whose pose stays fixed.
+    mr: mesh resolution (cloud units).
+    icp_mr: pairing distance in mr.
+    robust_mr: the loss scale in mr.
+    iterations: rounds (re-pairings) at most.
+    samples: points per scan and direction.
+    seed: seed of the samples.
+
+  Returns:
+    (n, 4, 4) refined poses.
+  """
+  poses = np.array(poses, np.float64)
+  if not pairs:
+    return poses
+  rng = np.random.default_rng(seed)
+  scans = sorted({k for p in pairs for k in p})
+  grids = {k: engine.knn_grid(clouds[k]) for k in scans}
+  normals = {k: estimate_target_normals(clouds[k], icp_mr * mr, grids[k]) for k in scans}
+  subs = {k: clouds[k][np.sort(rng.choice(len(clouds[k]), min(samples, len(clouds[k])),
+                                          replace=False))] for k in scans}
+  free = [k for k in scans if k != reference]
+  for _ in range(int(iterations)):
+    blocks = []
+    for a, b in pairs:
+      for i, j in ((a, b), (b, a)):
+        moved = _apply(np.linalg.inv(poses[j]) @ poses[i], subs[i])
+        d, idx = engine.knn(grids[j], moved, 1, icp_mr * mr)
+        ok = np.isfinite(d[:, 0])
+        ok[ok] = np.all(np.isfinite(normals[j][idx[ok, 0]]), axis=1)
+        if ok.sum() >= 3:
+          blocks.append(pose_graph.PointPairs(i, j, subs[i][ok], clouds[j][idx[ok, 0]],
+                                              normals[j][idx[ok, 0]]))
+    new = pose_graph.least_squares_poses(poses, blocks, free, scale=mr, robust=robust_mr,
+                                         max_nfev=REFINE_STEPS)
+    moved_by = max((np.abs(_apply(new[k], subs[k]) - _apply(poses[k], subs[k])).max()
+                    for k in free), default=0.0)
+    poses = new
+    if moved_by < 0.01 * mr:
+      break
+  return poses
+
+
+def _graph(n, edges, points, *, mr, reject_mr, robust_mr, seed):
+  """Stage "graph": the pose graph over the edges with overlap points; (poses, accepted (E,),
+  errors (E,) in mr, component (n,))."""
+  usable = [k for k, (e, p) in enumerate(zip(edges, points)) if e.verdict != "error" and len(p)]
+  pg_edges = [pose_graph.PoseEdge(edges[k].i, edges[k].j, edges[k].transform, points[k],
+                                  float(edges[k].n_inliers)) for k in usable]
+  trusted = [edges[k].verdict == "success" for k in usable]
+  accepted = np.zeros(len(edges), bool)
+  errors = np.full(len(edges), np.inf)
+  if not pg_edges:
+    return np.tile(np.eye(4), (n, 1, 1)), accepted, errors, np.arange(n)
+  res = pose_graph.solve(n, pg_edges, trusted=trusted, scale=mr, threshold=reject_mr,
+                         robust=robust_mr, seed=seed)
+  accepted[usable] = res.accepted
+  errors[usable] = res.errors
+  return res.poses, accepted, errors, res.component
+
+
+def _model(component: np.ndarray) -> int:
+  """The label of the largest component (ties: the lowest label, i.e. the earliest scan)."""
+  labels, counts = np.unique(component, return_counts=True)
+  return int(labels[np.argmax(counts)])  # np.unique sorts, argmax takes the first maximum
+
+
+def register_all(scans: Sequence[Any], *, names: Sequence[str] | None = None,
+                 mr: float | None = None, all_pairs_max: int = ALL_PAIRS_MAX,
+                 neighbours: int = 1, loop_candidates: int = 3, reject_mr: float = 5.0,
+                 robust_mr: float = 1.0, refine: bool = True, refine_iterations: int = 10,
+                 icp_mr: float = 3.0, viewpoints: Any = None, seed: int = 0,
+                 progress: bool = False,
+                 pairwise: Callable[..., Any] | None = None, **register_kw: Any
+                 ) -> MultiwayResult:
+  """Register many scans of one object or scene into one frame (module docstring).
+
+  Args:
+    scans: n >= 2 scans: paths of any cloud/mesh `lrf_jax.io` reads, (m, 3) arrays, `Cloud`s or
+      objects with `.points`, each in its own frame.
+    names: n names for the result and the outputs (default `scan_names(scans)`).
+    mr: mesh resolution in the clouds' units (None: the median of the scans' own).
+    all_pairs_max: up to this many scans every pair is registered (`candidate_pairs`).
+    neighbours: otherwise, pairs with this many next scans in the given order...
+    loop_candidates: ...plus this many loop-closure candidates per scan (D2 signature).
+    reject_mr: an edge whose RMS point residual under the optimised poses exceeds this (mr)
+      is rejected.
+    robust_mr: scale of the Cauchy loss of the pose graph and the joint ICP, in mr.
+    refine: run the joint ICP (`refine_poses`) after the pose graph.
+    refine_iterations: its rounds at most.
+    icp_mr: overlap and ICP pairing distance, in mr.
+    viewpoints: None, one (3,) sensor position used for every scan (in each scan's own frame),
+      or n of them (None entries allowed); passed to `register`.
+    seed: seed of the pairwise registrations, the samples and the pose graph's start.
+    progress: show a tqdm progress bar over the pairs (stderr).
+    pairwise: the pairwise registration (default `lrf_jax.register`): called as
+      `pairwise(source_cloud, target_cloud, mr=, seed=, source_viewpoint=, target_viewpoint=,
+      **register_kw)`, returning an object with `transform`, `success`, `reason`,
+      `n_inliers`, `overlap`, `rmse`; a ValueError marks the pair "error".
+    **register_kw: passed to `register` (e.g. `n_keypoints`, `radius_mr`, `method`, `params`).
+
+  Returns:
+    `MultiwayResult`: poses into the reference scan's frame, the edges with their verdicts,
+    residuals and whether the graph accepted them, the scans left out.
+
+  Raises:
+    ValueError: fewer than 2 scans, an unreadable or malformed scan (the message names it),
+      `names` of the wrong length, a non-positive mr or distance.
+    FileNotFoundError: a path that does not exist.
+
+  Example:
+    >>> res = lrf_jax.register_all(["bun000.ply", "bun045.ply", "bun090.ply"])
+    >>> res.poses[1]   # maps bun045 into bun000's frame
+  """
+  t0 = time.perf_counter()
+  timings = {}
+  if len(scans) < 2:
+    raise ValueError(f"scans: expected at least 2 scans, got {len(scans)}")
+  names = list(scan_names(scans) if names is None else names)
+  if len(names) != len(scans):
+    raise ValueError(f"names: expected {len(scans)} names, got {len(names)}")
+  for label, val in (("reject_mr", reject_mr), ("robust_mr", robust_mr), ("icp_mr", icp_mr)):
+    if not (isinstance(val, (int, float)) and np.isfinite(val) and val > 0):
+      raise ValueError(f"{label}: expected a positive number of mesh resolutions, got {val!r}")
+  clouds = load_scans(scans, names)
+  n = len(clouds)
+  views = _viewpoints(viewpoints, n)
+  if mr is None:
+    mr = float(np.median([mesh_resolution(c.points, c.faces)[0] for c in clouds]))
+  elif not (np.isfinite(mr) and mr > 0):
+    raise ValueError(f"mr: expected a positive mesh resolution, got {mr!r}")
+  timings["load"] = time.perf_counter() - t0
+  pairs = candidate_pairs([c.points for c in clouds], all_pairs_max=all_pairs_max,
+                          neighbours=neighbours, loop_candidates=loop_candidates, seed=seed)
+  t = time.perf_counter()
+  edges, points = _pairwise(clouds, pairs, mr=mr, seed=seed, viewpoints=views,
+                            pairwise=pairwise, icp_mr=icp_mr, progress=progress,
+                            register_kw=register_kw)
+  timings["pairwise"] = time.perf_counter() - t
+  t = time.perf_counter()
+  poses, accepted, errors, component = _graph(n, edges, points, mr=mr, reject_mr=reject_mr,
+                                              robust_mr=robust_mr, seed=seed)
+  reference = _model(component)
+  in_model = component == reference
+  timings["graph"] = time.perf_counter() - t
+  t = time.perf_counter()
+  kept = [(e.i, e.j) for e, a in zip(edges, accepted) if a and in_model[e.i]]
+  if refine and kept:
+    poses = refine_poses([c.points for c in clouds], poses, kept, reference=reference, mr=mr,
+                         icp_mr=icp_mr, robust_mr=robust_mr, iterations=refine_iterations,
+                         seed=seed)
+  timings["refine"] = time.perf_counter() - t
+  poses = np.where(in_model[:, None, None], poses, np.nan)
+  final = []
+  for e, a, p in zip(edges, accepted, points):
+    res = float("inf")
+    if in_model[e.i] and in_model[e.j] and len(p):
+      res = float(pose_graph.edge_errors(poses, [pose_graph.PoseEdge(e.i, e.j, e.transform, p)],
+                                         mr)[0])
+    final.append(dataclasses.replace(e, accepted=bool(a), residual_mr=res))
+  return MultiwayResult(names=tuple(names), poses=poses, in_model=in_model,
+                        reference=reference, edges=tuple(final), mr=float(mr),
+                        seconds=time.perf_counter() - t0, timings=timings)
+
+
+def merged_cloud(clouds: Sequence[np.ndarray], result: MultiwayResult, *,
+                 voxel: float | None = None) -> tuple[np.ndarray, np.ndarray]:
+  """The model's scans in the reference frame, one cloud.
+
+  Args:
+    clouds: the n scans' (m_k, 3) points, as given to `register_all`.
+    result: its result.
+    voxel: optional voxel size (cloud units): one point per occupied voxel, the mean of its
+      points, labelled with the scan most of them came from (ties: the earliest).
+
+  Returns:
+    (points (m, 3) float64, scan (m,) int64 index of the scan each point came from); the scans
+    left out contribute nothing.
+  """
+  pts = [_apply(result.poses[k], np.asarray(clouds[k], np.float64))
+         for k in range(len(clouds)) if result.in_model[k]]
+  lab = [np.full(len(clouds[k]), k, np.int64) for k in range(len(clouds)) if result.in_model[k]]
+  points, scan = np.concatenate(pts), np.concatenate(lab)
+  if voxel is None:
+    return points, scan
+  if not (np.isfinite(voxel) and voxel > 0):
+    raise ValueError(f"voxel: expected a positive size, got {voxel!r}")
+  keys = np.floor((points - points.min(axis=0)) / voxel).astype(np.int64)
+  _, inverse, counts = np.unique(keys, axis=0, return_inverse=True, return_counts=True)
+  inverse = inverse.ravel()
+  mean = np.stack([np.bincount(inverse, points[:, d]) for d in range(3)], axis=1)
+  mean /= counts[:, None]
+  n_scans = len(clouds)
+  votes = np.bincount(inverse * n_scans + scan, minlength=len(counts) * n_scans)
+  return mean, np.argmax(votes.reshape(len(counts), n_scans), axis=1).astype(np.int64)
+
+
+EDGE_COLUMNS = ("source", "target", "verdict", "inliers", "overlap", "residual_mr", "graph",
+                "reason")
+
+
+def edges_table(result: MultiwayResult) -> str:
+  """The edges as tab-separated text, a header line first (`EDGE_COLUMNS`): the pair (source
+  moved onto target), the pairwise verdict, inliers, overlap, the residual under the final
+  poses in mr ("-" when a scan is not in the model) and "accepted" or "rejected"."""
+  lines = ["\t".join(EDGE_COLUMNS)]
+  for e in result.edges:
+    res = f"{e.residual_mr:.3f}" if np.isfinite(e.residual_mr) else "-"
+    lines.append("\t".join([result.names[e.i], result.names[e.j], e.verdict, str(e.n_inliers),
+                            f"{e.overlap:.3f}", res, "accepted" if e.accepted else "rejected",
+                            " ".join(e.reason.split())]))
+  return "\n".join(lines) + "\n"
+
+
+def write_merged_ply(path: str | os.PathLike, points: np.ndarray, scan: np.ndarray,
+                     n_scans: int) -> Path:
+  """Binary PLY of the merged cloud with per-point red/green/blue by scan
+  (`multiway_figures.scan_colours`) and a `scan` index property, written atomically."""
+  import plyfile
+
+  from lrf_jax.io.atomic import atomic_path
+  from lrf_jax.registration.multiway_figures import scan_colours
+  colours = scan_colours(n_scans)[scan]
+  vertex = np.empty(len(points), dtype=[("x", "f4"), ("y", "f4"), ("z", "f4"), ("red", "u1"),
+                                        ("green", "u1"), ("blue", "u1"), ("scan", "i4")])
+  for k, name in enumerate("xyz"):
+    vertex[name] = points[:, k]
+  for k, name in enumerate(("red", "green", "blue")):
+    vertex[name] = colours[:, k]
+  vertex["scan"] = scan
+  with atomic_path(path) as tmp:
+    plyfile.PlyData([plyfile.PlyElement.describe(vertex, "vertex")], text=False,
+                    byte_order="<").write(str(tmp))
+  return Path(path)
+
+
+def output_paths(names: Sequence[str], out_dir: str | os.PathLike) -> dict[str, Path]:
+  """Every file `write_outputs` may write, keyed by role: "<name>.txt" per scan, "merged.ply",
+  "edges.tsv", "merged.png", "graph.png"."""
+  d = Path(out_dir)
+  out = {f"pose:{n}": d / f"{n}.txt" for n in names}
+  out.update({k: d / k for k in ("merged.ply", "edges.tsv", "merged.png", "graph.png")})
+  return out
+
+
+def write_outputs(result: MultiwayResult, clouds: Sequence[np.ndarray],
+                  out_dir: str | os.PathLike, *, voxel: float | None = None,
+                  figures: bool = True) -> list[Path]:
+  """Write the model (every file atomically; the folder is created if missing).
+
+  `<name>.txt`: the (4, 4) pose mapping that scan into the reference scan's frame (rows, 9
+  significant digits; `numpy.loadtxt` reads it), for the scans in the model only;
+  `merged.ply`: the merged cloud (`merged_cloud`, `voxel` in cloud units), coloured by scan;
+  `edges.tsv`: `edges_table`; with `figures`, `merged.png` and `graph.png`
+  (`lrf_jax.registration.multiway_figures`).
+
+  Args:
+    result: `register_all`'s result.
+    clouds: the scans' (m_k, 3) points.
+    out_dir: the folder.
+    voxel: optional voxel size of merged.ply (cloud units).
+    figures: also draw the two figures.
+
+  Returns:
+    The paths written.
+
+  Raises:
+    WriteError: a file could not be written (the message names it).
+  """
+  from lrf_jax.io.atomic import WriteError, write_text
+  d = Path(out_dir)
+  try:
+    d.mkdir(parents=True, exist_ok=True)
+  except OSError as e:
+    raise WriteError(d, e) from e
+  paths = output_paths(result.names, d)
+  written = []
+  for k, name in enumerate(result.names):
+    if result.in_model[k]:
+      text = "\n".join(" ".join(f"{v:.9g}" for v in row) for row in result.poses[k]) + "\n"
+      written.append(write_text(paths[f"pose:{name}"], text))
+  points, scan = merged_cloud(clouds, result, voxel=voxel)
+  written.append(write_merged_ply(paths["merged.ply"], points, scan, len(result.names)))
+  written.append(write_text(paths["edges.tsv"], edges_table(result)))
+  if figures:
+    from lrf_jax.registration import multiway_figures
+    written.append(multiway_figures.merged_figure(points, scan, result, paths["merged.png"]))
+    written.append(multiway_figures.graph_figure(result, clouds, paths["graph.png"]))
+  return written

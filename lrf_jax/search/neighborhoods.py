@@ -1,0 +1,418 @@
+"""Host-side radius search: a cloud and keypoints -> fixed-size, padded patches.
+
+This is the only place where shapes depend on the data. Everything downstream (frames, losses,
+descriptors) takes a `Patches` of static shape and is jitted.
+
+Two neighbourhoods are gathered per keypoint p with one search of radius r:
+
+* the *patch*: up to K neighbours q with |q - p| <= r, as offsets q - p, padded to K with a mask.
+  When the ball holds more than K points a seeded subsample is kept. The subsample depends only on
+  (seed, point index) through an integer hash, never on coordinates or on the order the search
+  returns points: rotating or translating the cloud selects the same neighbours.
+* the *normal support*: *all* neighbours within `z_ratio * r` (r/3 for TOLDI and LRF-Net), reduced
+  on the host, in float64, to their count, centroid offset and covariance about the centroid. The
+  z-axis therefore never depends on the K-point subsample (on BR a 15 mr ball holds 380-2800
+  points, a 256-point subsample only 20-35 inside r/3).
+
+Both come from one call of the compiled engine (`lrf_jax.search.engine`: a uniform grid, numba,
+multi-threaded), which writes the arrays of `Patches` directly.
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import numpy as np
+
+from lrf_jax.search import engine
+
+# Multiplier of the splitmix64 finaliser (public domain, Steele et al.).
+_MIX1 = np.uint64(0xBF58476D1CE4E5B9)
+_MIX2 = np.uint64(0x94D049BB133111EB)
+_GOLDEN = np.uint64(0x9E3779B97F4A7C15)
+# Grid cells per support radius (cell side r / 3).
+CELLS_PER_RADIUS = 3.0
+# The support radii the frames' arithmetic supports (cloud units), and how far from the origin,
+# in support radii, a cloud may reach (float64 offsets q - p keep ~4 significant digits more
+# than the float32 frames need up to there).
+MIN_SCALE = 1e-30
+MAX_SCALE = 1e30
+MAX_RADII_FROM_ORIGIN = 1e12
+
+
+class Patches(NamedTuple):
+  """Fixed-size neighbourhoods of N keypoints (a pytree; all leaves share the leading axis N).
+
+  Attributes:
+    offsets: (N, K, 3) float32, q - p for the kept neighbours, zeros in padding (cloud units).
+    mask: (N, K) bool, True for real neighbours.
+    indices: (N, K) int32, the cloud index of each kept neighbour, -1 in padding.
+    count: (N,) int32, number of points within r (keypoint included) before subsampling.
+    radius: (N,) float32, the support radius r (cloud units).
+    z_cov: (N, 3, 3) float32, covariance of all offsets within z_ratio * r about their centroid.
+    z_mean: (N, 3) float32, centroid of those offsets (relative to the keypoint).
+    z_count: (N,) int32, number of points within z_ratio * r (keypoint included).
+  """
+
+  offsets: np.ndarray
+  mask: np.ndarray
+  indices: np.ndarray
+  count: np.ndarray
+  radius: np.ndarray
+  z_cov: np.ndarray
+  z_mean: np.ndarray
+  z_count: np.ndarray
+
+  @property
+  def num_keypoints(self) -> int:
+    return self.offsets.shape[0]
+
+  @property
+  def k(self) -> int:
+    return self.offsets.shape[1]
+
+
+def validate_cloud(points: np.ndarray, name: str = "points") -> np.ndarray:
+  """Check that `points` is a non-empty (n, 3) array of finite floats and return it as float64.
+
+  Raises:
+    ValueError: naming what was wrong and what was expected.
+  """
+  try:
+    arr = np.asarray(points)
+  except (TypeError, ValueError):  # e.g. rows of different lengths
+    raise ValueError(f"{name}: expected a numeric (n, 3) array of floats, got "
+                     f"{type(points).__name__} {points!r:.80} (not an array)") from None
+  if arr.dtype.kind not in "fiu":
+    raise ValueError(f"{name}: expected a numeric (n, 3) array of floats, got dtype {arr.dtype}")
+  if arr.ndim != 2 or arr.shape[1] != 3:
+    raise ValueError(f"{name}: expected shape (n, 3), got {arr.shape}")
+  if arr.shape[0] == 0:
+    raise ValueError(f"{name}: the cloud is empty (shape {arr.shape}); expected at least one point")
+  arr = arr.astype(np.float64, copy=False)
+  bad = ~np.isfinite(arr).all(axis=1)
+  if bad.any():
+    first = int(np.flatnonzero(bad)[0])
+    raise ValueError(
+        f"{name}: {int(bad.sum())} point(s) have non-finite coordinates (first at row {first}: "
+        f"{arr[first].tolist()}); expected finite floats")
+  return arr
+
+
+def validate_keypoints(keypoints: np.ndarray, n_points: int, name: str = "keypoints") -> np.ndarray:
+  """Check that `keypoints` is a 1-D array of integer indices into a cloud of `n_points`."""
+  try:
+    kp = np.asarray(keypoints)
+  except (TypeError, ValueError):  # e.g. nested lists of different lengths
+    raise ValueError(f"{name}: expected a 1-D array of point indices, got "
+                     f"{type(keypoints).__name__} {keypoints!r:.80} (not an array)") from None
+  if kp.ndim != 1:
+    raise ValueError(f"{name}: expected a 1-D array of point indices, got shape {kp.shape}")
+  if kp.size and kp.dtype.kind not in "iu":
+    raise ValueError(f"{name}: expected integer point indices, got dtype {kp.dtype}")
+  # the range is checked in the input's own dtype: a uint64 above 2**63 must not wrap negative
+  if kp.size and (kp.min() < 0 or kp.max() >= n_points):
+    bad = kp[(kp < 0) | (kp >= n_points)][0]
+    raise ValueError(
+        f"{name}: index {int(bad)} is out of range; expected indices in [0, {n_points}) "
+        f"for a cloud of {n_points} points")
+  return kp.astype(np.int64)
+
+
+def validate_radius(radius: float, name: str = "radius") -> float:
+  """Check that the support radius is a positive finite number (not a string or bool)."""
+  if isinstance(radius, (str, bytes, bool, np.bool_)):
+    raise ValueError(f"{name}: expected a positive number, got {radius!r}")
+  try:
+    r = float(radius)
+  except (TypeError, ValueError):
+    raise ValueError(f"{name}: expected a positive number, got {radius!r}") from None
+  if not np.isfinite(r) or r <= 0:
+    raise ValueError(f"{name}: expected a positive finite number (cloud units), got {radius!r}")
+  if not MIN_SCALE <= r <= MAX_SCALE:
+    raise ValueError(f"{name}: {r:.6g} is outside the supported scale {MIN_SCALE:g} .. "
+                     f"{MAX_SCALE:g}; rescale the cloud (frames do not depend on its unit)")
+  return r
+
+
+def validate_scale(max_abs: float, radius: float, name: str = "points") -> None:
+  """Check that a cloud whose largest absolute coordinate is `max_abs` can be searched at
+  `radius`: the radius within `MIN_SCALE` .. `MAX_SCALE` and the cloud within
+  `MAX_RADII_FROM_ORIGIN` radii of the origin (beyond, offsets lose their precision and grid
+  cell indices overflow).
+
+  Raises:
+    ValueError: naming `name` and the scale.
+  """
+  validate_radius(radius)
+  if not max_abs <= MAX_RADII_FROM_ORIGIN * radius:
+    raise ValueError(f"{name}: coordinates reach {max_abs:.6g}, more than "
+                     f"{MAX_RADII_FROM_ORIGIN:g} support radii ({radius:.6g}) from the origin: "
+                     "outside the supported scale; centre the cloud or use a larger radius")
+
+
+def unit_scaled(points: np.ndarray, radius: float, viewpoint: np.ndarray | None = None
+                ) -> tuple[np.ndarray, float, np.ndarray | None]:
+  """A cloud, its support radius and sensor position in units of the radius (radius 1).
+
+  Every LRF method is invariant to a common scale of cloud and radius (frames are directions),
+  so the frames of the result are those of the input; normals and faces need no change. In
+  these units float32 patches, squared distances and the methods' small tolerances behave
+  alike at every scale, and two clouds that differ by a scale factor give the same patches up
+  to float64 rounding. One pass over the cloud.
+
+  Args:
+    points: (n, 3) float64 cloud, validated.
+    radius: support radius r (cloud units).
+    viewpoint: optional (3,) sensor position (cloud units).
+
+  Returns:
+    (points / r (n, 3) float64, 1.0, viewpoint / r or None).
+
+  Raises:
+    ValueError: a radius outside `MIN_SCALE` .. `MAX_SCALE` (`validate_radius`).
+  """
+  r = validate_radius(radius)
+  vp = None if viewpoint is None else np.asarray(viewpoint, np.float64) / r
+  return np.asarray(points, np.float64) / r, 1.0, vp
+
+
+def validate_faces(faces: object, n_points: int, name: str = "faces") -> np.ndarray:
+  """Check that `faces` is an (f, 3) integer array of indices into `n_points` vertices.
+
+  Returns:
+    The faces as int64.
+  """
+  try:
+    f = np.asarray(faces)
+  except (TypeError, ValueError):  # e.g. rows of different lengths
+    raise ValueError(f"{name}: expected an (f, 3) integer array of triangle vertex indices, got "
+                     f"{type(faces).__name__} {faces!r:.80} (not an array)") from None
+  if f.ndim != 2 or f.shape[1] != 3 or (f.size and f.dtype.kind not in "iu"):
+    raise ValueError(f"{name}: expected an (f, 3) integer array of triangle vertex indices, got "
+                     f"shape {f.shape} and dtype {f.dtype}")
+  f = f.astype(np.int64)
+  if f.size and (f.min() < 0 or f.max() >= n_points):
+    raise ValueError(f"{name}: indices must lie in [0, {n_points}), got [{f.min()}, {f.max()}]")
+  return f
+
+
+def validate_normals(normals: object, n_points: int, name: str = "normals") -> np.ndarray:
+  """Check that `normals` is an (n_points, 3) array of real numbers. NaN rows are allowed: they
+  mark missing normals, and the frames that need them come out invalid.
+
+  Returns:
+    The normals as an array (dtype unchanged).
+  """
+  try:
+    nrm = np.asarray(normals)
+  except (TypeError, ValueError):  # e.g. rows of different lengths
+    nrm = np.empty(())  # reported as shape ()
+  if nrm.shape != (n_points, 3):
+    raise ValueError(f"{name}: expected shape {(n_points, 3)} (one per point), got {nrm.shape}")
+  if nrm.dtype.kind not in "fiu":
+    raise ValueError(f"{name}: expected real numbers, got dtype {nrm.dtype}")
+  return nrm
+
+
+def validate_seed(seed: object, name: str = "seed") -> int:
+  """Check that a seed is a non-negative integer (numpy's and jax's generators need one)."""
+  if (isinstance(seed, (bool, np.bool_)) or not isinstance(seed, (int, np.integer))
+      or seed < 0):
+    raise ValueError(f"{name}: expected a non-negative integer, got {seed!r}")
+  return int(seed)
+
+
+def validate_viewpoint(viewpoint: object, name: str = "viewpoint") -> np.ndarray | None:
+  """None, or the sensor position as a finite (3,) float64 array.
+
+  Raises:
+    ValueError: naming `name`, when it is not a finite (3,) position.
+  """
+  if viewpoint is None:
+    return None
+  try:
+    vp = np.asarray(viewpoint, np.float64)
+  except (TypeError, ValueError):
+    raise ValueError(f"{name}: expected a finite (3,) sensor position, got {viewpoint!r}") from None
+  if vp.shape != (3,) or not np.all(np.isfinite(vp)):
+    raise ValueError(f"{name}: expected a finite (3,) sensor position, got {viewpoint!r}")
+  return vp
+
+
+def hash_priority(seed: int, point: np.ndarray) -> np.ndarray:
+  """A pseudo-random uint64 per (seed, point index): splitmix64 of a mixed key.
+
+  Args:
+    seed: integer seed.
+    point: (M,) point indices.
+
+  Returns:
+    (M,) uint64 priorities; a subsampled ball keeps its K points of smallest priority.
+  """
+  with np.errstate(over="ignore"):
+    x = np.uint64(seed & 0xFFFFFFFFFFFFFFFF) * _GOLDEN + point.astype(np.uint64)
+    x = (x ^ (x >> np.uint64(30))) * _MIX1
+    x = (x ^ (x >> np.uint64(27))) * _MIX2
+    return x ^ (x >> np.uint64(31))
+
+
+class SearchIndex:
+  """The cloud binned for the engine's radius search, reusable across calls.
+
+  Ranks are the seeded priority order (`hash_priority(seed, index)`, ties broken by index), so
+  that "the K points of smallest priority" of a ball are its K points of smallest rank. Grids
+  (`lrf_jax.search.engine.Grid`) are built lazily, one per cell size, for cells of `radius / 3` (any
+  radius is answered by any grid, only the speed changes).
+
+  Args:
+    points: (n, 3) cloud (float64 on the host).
+    seed: the subsample seed.
+  """
+
+  def __init__(self, points: np.ndarray, seed: int = 0):
+    self.points = np.ascontiguousarray(points, np.float64)
+    self.seed = int(seed)
+    n = len(self.points)
+    # The priorities are distinct (splitmix64 is a bijection of the distinct keys seed * golden
+    # + index), so the fast unstable sort gives the one possible order.
+    self.order = np.argsort(hash_priority(self.seed, np.arange(n)))
+    self.rank = np.empty(n, np.int64)
+    self.rank[self.order] = np.arange(n)
+    self.max_abs = float(np.abs(self.points).max()) if n else 0.0
+    self._grids: dict[float, engine.Grid] = {}
+
+  def matches(self, points: np.ndarray) -> bool:
+    """Whether this index was built from `points` (the same array, or equal values)."""
+    return points is self.points or (np.shape(points) == self.points.shape
+                                     and np.array_equal(points, self.points))
+
+  @property
+  def data(self) -> np.ndarray:
+    """(n, 3) the points in priority order (row i has rank i)."""
+    return self.points[self.order]
+
+  def grid(self, radius: float) -> engine.Grid:
+    """The grid for balls of `radius` (cells of radius / 3), built on first use.
+
+    Raises:
+      ValueError: a radius or cloud outside the supported scale (`validate_scale`).
+    """
+    cell = float(radius) / CELLS_PER_RADIUS
+    g = self._grids.get(cell)
+    if g is None:
+      validate_scale(self.max_abs, float(radius))
+      if len(self._grids) >= 4:
+        self._grids.clear()
+      g = self._grids[cell] = engine.Grid(self.points, cell, self.rank)
+    return g
+
+
+def _round_up(k: int) -> int:
+  """The smallest size of the ladder 32, 48, 64, 96, 128, 192, ... that is >= k."""
+  size = 32
+  while True:
+    if size >= k:
+      return size
+    if size * 3 // 2 >= k:
+      return size * 3 // 2
+    size *= 2
+
+
+def build_patches(
+    points: np.ndarray,
+    keypoints: np.ndarray,
+    radius: float,
+    k: int | None = 256,
+    *,
+    seed: int = 0,
+    z_ratio: float = 1.0 / 3.0,
+    index: SearchIndex | None = None,
+    validate: bool = True,
+    max_k: int | None = None,
+    shells: tuple[float, float] | None = None,
+    into: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None,
+    stats_from: Patches | None = None,
+) -> Patches:
+  """Radius search around keypoints into fixed-size padded patches.
+
+  Args:
+    points: (n, 3) cloud (any float dtype; computed in float64 on the host).
+    keypoints: (m,) integer indices into `points`.
+    radius: support radius r, in the cloud's units (> 0).
+    k: patch size K. Balls with more than K points keep the K points of smallest
+      `hash_priority(seed, point index)`: a subsample that depends only on point indices and the
+      seed. `None` keeps every neighbour: K becomes the largest ball size rounded up to the next
+      size of the ladder 32, 48, 64, 96, 128, 192, ... (at most 1.5x padding and two sizes per
+      octave, so that runs over many clouds compile a handful of shapes, not one per cloud).
+    seed: seed of the subsample.
+    z_ratio: the normal support radius as a fraction of r (1/3: TOLDI, LRF-Net).
+    index: an optional prebuilt `SearchIndex(points, seed)` to reuse across calls.
+    validate: check the inputs (disable only for already validated arrays).
+    max_k: with `k=None`, an upper bound on K: larger balls keep their `max_k` points of smallest
+      priority (the same seeded subsample as an integer k). None = no bound.
+    shells: (a, b) fractions of r: the patch holds only the neighbours within a * r or beyond
+      b * r, still in priority order (for methods that read nothing in between, e.g. FLARE: its
+      r/3 plane support and its 0.85 r margin). `count` still counts every point within r.
+    into: with an integer k, optional (offsets (m, K, 3) float32, mask (m, K) bool, indices
+      (m, K) int32) arrays (e.g. row ranges of larger arrays, any contents: every element is
+      written) that receive those fields instead of new arrays; the returned Patches holds them.
+    stats_from: optional Patches of the same points, keypoints, radius and z_ratio built
+      earlier with any seed and K (e.g. the previous epoch's): `count`, `z_cov`, `z_mean` and
+      `z_count` do not depend on the seed or K, so they are taken from it and the search skips
+      the two passes that compute them (the result is identical). Not with `shells`; its radius
+      must equal `radius`.
+
+  Returns:
+    `Patches` with N = m; within a patch, neighbours are stored in priority order.
+
+  Raises:
+    ValueError: bad cloud, keypoints, radius or K.
+  """
+  if validate:
+    points = validate_cloud(points)
+    keypoints = validate_keypoints(keypoints, points.shape[0])
+    radius = validate_radius(radius)
+    z_ratio = validate_radius(z_ratio, "z_ratio")
+    if k is not None and (int(k) != k or k < 1):
+      raise ValueError(f"k: expected a positive integer patch size or None, got {k!r}")
+  else:
+    points = np.asarray(points, np.float64)
+    keypoints = np.asarray(keypoints, np.int64)
+  if validate and index is not None and not index.matches(points):
+    raise ValueError("index: a SearchIndex of a different cloud (its points differ from "
+                     "`points`); build it with SearchIndex(points, seed)")
+  if index is None or index.seed != seed or index.points.shape != points.shape:
+    index = SearchIndex(points, seed)
+  m = keypoints.shape[0]
+  centers = points[keypoints]
+  grid = index.grid(radius)
+  if k is None:
+    counts = engine.ball_counts(grid, centers, radius, shells)
+    k = _round_up(int(counts.max()) if m else 1)
+    if max_k is not None:
+      k = min(k, int(max_k))
+  known = None
+  if stats_from is not None:
+    if stats_from.count.shape != (m,) or not np.all(stats_from.radius == np.float32(radius)):
+      raise ValueError(f"stats_from: expected Patches of these {m} keypoints at radius "
+                       f"{radius}, got {stats_from.count.shape[0]} at "
+                       f"{np.unique(stats_from.radius)[:3]}")
+    known = stats_from.count
+  out = engine.patches(grid, centers, radius, int(k), z_ratio * radius, shells, into, known)
+  if stats_from is not None:
+    z_cov, z_mean, z_count = stats_from.z_cov, stats_from.z_mean, stats_from.z_count
+  else:
+    z_cov = out["z_cov"].astype(np.float32)
+    z_mean = out["z_mean"].astype(np.float32)
+    z_count = out["z_count"].astype(np.int32)
+  return Patches(
+      offsets=out["offsets"],
+      mask=out["mask"],
+      indices=out["indices"],
+      count=out["count"].astype(np.int32),
+      radius=np.full((m,), radius, np.float32),
+      z_cov=z_cov,
+      z_mean=z_mean,
+      z_count=z_count,
+  )

@@ -119,19 +119,8 @@ def read_init(path: str) -> np.ndarray:
   Raises:
     ValueError: not a readable (4, 4) rigid matrix; the message names the file.
   """
-  from lrf_jax.io import check_rigid, read_xf
-  if path.lower().endswith(".npy"):
-    try:
-      t = np.load(path, allow_pickle=False)
-    except (ValueError, OSError, EOFError) as e:
-      raise ValueError(f"--init {path}: not a readable .npy file ({e})") from None
-    if not np.issubdtype(t.dtype, np.number):
-      raise ValueError(f"--init {path}: expected a numeric (4, 4) array, got dtype {t.dtype}")
-    return check_rigid(t, path, "--init matrix")
-  try:
-    return read_xf(path)
-  except ValueError as e:
-    raise ValueError(f"--init: {e}") from None
+  from lrf_jax.cli.frames import read_transform
+  return read_transform(path, "--init")
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -8,8 +8,8 @@ import itertools
 import numpy as np
 import pytest
 
-from lrf_jax.descriptors.matching import (match_descriptors, select_correspondences,
-                                          top_correspondences)
+from lrf_jax.descriptors.matching import (_occupancy_form, match_descriptors,
+                                          select_correspondences, top_correspondences)
 
 
 def reference_select(q, r, qv=None, rv=None, *, n=None, mutual=False, ratio=None, k=1):
@@ -51,8 +51,8 @@ def reference_select(q, r, qv=None, rv=None, *, n=None, mutual=False, ratio=None
           np.array([t[3] for t in rows], np.float64))
 
 
-def _check(q, r, qv=None, rv=None, block=1024, rtol=1e-5, **opts):
-  qi, ri, score = select_correspondences(q, r, qv, rv, block=block, **opts)
+def _check(q, r, qv=None, rv=None, block=1024, rtol=1e-5, search="auto", **opts):
+  qi, ri, score = select_correspondences(q, r, qv, rv, block=block, search=search, **opts)
   eqi, eri, escore = reference_select(q, r, qv, rv, **opts)
   assert qi.dtype == np.int64 and ri.dtype == np.int64 and score.dtype == np.float32
   np.testing.assert_array_equal(qi, eqi, err_msg=str(opts))
@@ -149,7 +149,87 @@ def test_nothing_to_match():
     assert out[0].dtype == np.int64 and out[2].dtype == np.float32
 
 
+def _occupancy_like(rng, m, dim=70, empty=100.0, levels=None):
+  """Descriptors of TOLDI's form: entries in [0, 1] (or `levels` values in it: exact ties) or
+  `empty`, empty entries clustered towards the end of each row as a depth image's rim."""
+  x = (rng.random((m, dim)) if levels is None
+       else rng.integers(0, levels, (m, dim)) / (levels - 1)).astype(np.float32)
+  rim = rng.integers(dim // 3, dim, m)
+  x[np.arange(dim)[None, :] >= rim[:, None]] = empty
+  x[rng.random((m, dim)) < 0.1] = empty
+  return x
+
+
+@pytest.mark.parametrize("opts", OPTIONS, ids=str)
+@pytest.mark.parametrize("search", ["occupancy", "auto"])
+def test_occupancy_descriptors_search(opts, search):
+  """Descriptors with an empty value: the occupancy search (auto's choice) gives the brute-force
+  reference's matches (its bounds may not drop a true neighbour). The dense search's float32
+  expansion |q|^2 + |r|^2 - 2 q.r rounds at ~1e-7 |q|^2 and swaps near ties on such data, which
+  is why auto does not use it there."""
+  rng = np.random.default_rng(6)
+  q, r = _occupancy_like(rng, 160), _occupancy_like(rng, 140)
+  r[:60] = np.where(q[:60] == 100, 100, np.clip(q[:60] + 0.02 * rng.normal(size=(60, 70)), 0, 1))
+  qv, rv = rng.random(160) > 0.15, rng.random(140) > 0.15
+  assert _occupancy_form(q, r, qv, rv)[0] == 100.0
+  assert len(_check(q, r, qv, rv, search=search, **opts)) > 0
+
+
+@pytest.mark.parametrize("opts", OPTIONS, ids=str)
+def test_occupancy_search_ties(opts):
+  """Exact ties (depths on a 3-level grid, duplicated rows): lower index first, as the
+  reference's stable sort."""
+  rng = np.random.default_rng(7)
+  q, r = _occupancy_like(rng, 90, dim=20, levels=3), _occupancy_like(rng, 70, dim=20, levels=3)
+  r[10:20] = r[0]
+  q[30:40] = q[5]
+  qv, rv = rng.random(90) > 0.1, rng.random(70) > 0.1
+  _check(q, r, qv, rv, search="occupancy", **opts)
+
+
+def test_occupancy_form_is_detected_only_where_it_holds():
+  rng = np.random.default_rng(8)
+  q, r = _occupancy_like(rng, 30), _occupancy_like(rng, 20)
+  ok_q, ok_r = np.ones(30, bool), np.ones(20, bool)
+  form = _occupancy_form(q, r, ok_q, ok_r)
+  assert form[0] == 100.0 and 0.0 <= form[1] < form[2] <= 1.0
+  odd = q.copy()
+  odd[:5] = -5.0  # invalid rows are not looked at
+  assert _occupancy_form(odd, r, np.arange(30) >= 5, ok_r) == _occupancy_form(q[5:], r, ok_q[5:],
+                                                                             ok_r)
+  near = q.copy()
+  near[0, 0] = 60.0  # an entry between the interval and the empty value
+  assert _occupancy_form(near, r, ok_q, ok_r) is None
+  g = rng.normal(size=(30, 70))
+  assert _occupancy_form(g, g, ok_q, ok_q) is None
+  full = np.full((30, 70), 100.0)
+  assert _occupancy_form(full, full, ok_q, ok_q) is None  # nothing but the empty value
+  with pytest.raises(ValueError, match="occupancy.*dense"):
+    select_correspondences(g, g, search="occupancy")
+  np.testing.assert_array_equal(match_descriptors(g, g[::-1], search="auto").nearest,
+                                np.arange(29, -1, -1))
+
+
+def test_toldi_descriptors_occupancy_equals_the_reference():
+  """TOLDI descriptors of a procedural surface: the default (occupancy) search gives the float64
+  brute-force matches, ratios included."""
+  from lrf_jax.descriptors import compute_descriptors
+  rng = np.random.default_rng(9)
+  uv = rng.uniform(-1, 1, (3000, 2))
+  pts = np.column_stack([uv, 0.3 * np.sin(3 * uv[:, 0]) * np.cos(2 * uv[:, 1])])
+  other = pts + 0.002 * rng.normal(size=pts.shape)
+  kp = rng.choice(3000, 150, replace=False)
+  frames = np.broadcast_to(np.eye(3, dtype=np.float32), (150, 3, 3))
+  desc = [compute_descriptors(p, kp, 0.25, frames, np.ones(150, bool), "toldi")
+          for p in (pts, other)]
+  (dq, vq), (dr, vr) = [(np.asarray(d), np.asarray(v)) for d, v in desc]
+  assert _occupancy_form(dq, dr, vq, vr) is not None
+  for opts in (dict(n=100), dict(mutual=True), dict(k=3)):
+    _check(dq, dr, vq, vr, **opts)
+
+
 @pytest.mark.parametrize("kwargs, match", [
+    (dict(search="fast"), "search"), (dict(search=None), "search"),
     (dict(k=0), "k"), (dict(k=1.5), "k"), (dict(k=True), "k"),
     (dict(n=-1), "n"), (dict(n=2.0), "n"),
     (dict(ratio=0.0), "ratio"), (dict(ratio=1.5), "ratio"), (dict(ratio=float("nan")), "ratio"),

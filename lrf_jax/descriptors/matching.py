@@ -6,9 +6,20 @@ distinctive). Recall vs 1-precision curves threshold this ratio (`lrf_jax.evalua
 correspondence selection keeps the matches of smallest ratio (`lrf_jax.registration`).
 
 `select_correspondences` is the general selection: each query's k nearest references, mutual
-nearest neighbours, Lowe's ratio test, capped at n, best first. Every search is exact, blocked
-over the queries in one jitted call per block (the mutual check's reverse nearest queries come
-from the same distance block).
+nearest neighbours, Lowe's ratio test, capped at n, best first. Every search is exact. Two
+searches give the same neighbours:
+
+* "dense": blocked over the queries, one jitted distance block (a matrix product) per block (the
+  mutual check's reverse nearest queries come from the same block); its float32 expansion
+  |q|^2 + |r|^2 - 2 q.r rounds at about 1e-7 |q|^2, which can swap near ties of large
+  descriptors;
+* "occupancy", for descriptors whose entries are either one "empty" value far from all the
+  others or lie in a narrow interval (TOLDI's depth images: empty pixels 100, depths in [0, 1]):
+  the entries where exactly one of two descriptors is empty, counted on bit masks
+  (`_occupancy_knn_kernel`), bound the distance from below and above, so only the references
+  those bounds cannot rule out get their exact distance, summed in float64 (on scans, a few per
+  query instead of all of them). `search="auto"` (the default) takes it when the descriptors
+  have that form (`_occupancy_form`).
 
 References:
   Lowe, "Distinctive image features from scale-invariant keypoints", IJCV 2004 (the ratio test);
@@ -22,7 +33,12 @@ from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
+import numba as nb
 import numpy as np
+from numba.core import types
+from numba.extending import intrinsic
+
+from lrf_jax.search.nearest import _insert
 
 
 class Matches(NamedTuple):
@@ -89,7 +105,29 @@ def _pad_rows(a: np.ndarray, rows: int) -> np.ndarray:
 
 
 def _nearest(q: np.ndarray, r: np.ndarray, qv: np.ndarray, rv: np.ndarray, k: int, kc: int,
-             block: int) -> tuple[np.ndarray, ...]:
+             block: int, search: str = "auto") -> tuple[np.ndarray, ...]:
+  """Exact search, m >= 1 queries and at least one valid reference: the occupancy search where
+  `search` asks for it or is "auto" and the descriptors have its form (`_occupancy_form`), else
+  the dense blocks (`_nearest_dense`, whose returns these are).
+
+  Raises:
+    ValueError: search="occupancy" on descriptors without that form.
+  """
+  form = None if search == "dense" else _occupancy_form(q, r, qv, rv)
+  if form is None:
+    if search == "occupancy":
+      raise ValueError("search='occupancy': the descriptors' valid entries are not one empty "
+                       f"value far above an interval of the others (gap >= {OCCUPANCY_GAP:g} x "
+                       "the interval); use search='dense' or 'auto'")
+    return _nearest_dense(q, r, qv, rv, k, kc, block)
+  d2, idx = _occupancy_knn(q, r, qv, rv, k, form)
+  if not kc:
+    return d2, idx
+  return (d2, idx) + _occupancy_knn(r, q, rv, qv, kc, form)
+
+
+def _nearest_dense(q: np.ndarray, r: np.ndarray, qv: np.ndarray, rv: np.ndarray, k: int, kc: int,
+                   block: int) -> tuple[np.ndarray, ...]:
   """Blocked exact search, m >= 1 queries and at least one valid reference.
 
   Returns:
@@ -124,6 +162,128 @@ def _nearest(q: np.ndarray, r: np.ndarray, qv: np.ndarray, rv: np.ndarray, k: in
   return d2, idx, np.take_along_axis(cd, order, 1), np.take_along_axis(ci, order, 1)
 
 
+# ------------------------------------------------------------------------------------------------
+# The occupancy search: exact nearest neighbours of descriptors with an "empty" value
+# ------------------------------------------------------------------------------------------------
+
+# `_occupancy_form`: the empty value must lie at least OCCUPANCY_GAP times the spread of the other
+# entries beyond them, so that the bounds of `_occupancy_knn_kernel` are within a few per cent of
+# each other (TOLDI: 99 / 1); below that the dense block is used.
+OCCUPANCY_GAP = 50.0
+SEARCHES = ("auto", "dense", "occupancy")
+
+
+@intrinsic
+def _popcount(typingctx, word):
+  """The number of set bits of an integer (LLVM's ctpop: one instruction on current CPUs)."""
+  if not isinstance(word, types.Integer):
+    return None
+
+  def codegen(context, builder, signature, args):
+    return builder.ctpop(args[0])
+
+  return word(word), codegen
+
+
+@nb.njit(cache=True)
+def _kth_smallest(h, k, dim):
+  """The k-th smallest value (k >= 1) of h among its entries in [0, dim], by counting."""
+  counts = np.zeros(dim + 1, np.int64)
+  for j in range(h.shape[0]):
+    if h[j] <= dim:
+      counts[h[j]] += 1
+  seen = 0
+  for v in range(dim + 1):
+    seen += counts[v]
+    if seen >= k:
+      return v
+  return dim
+
+
+@nb.njit(parallel=True, cache=True)
+def _occupancy_knn_kernel(a_bits, b_bits, a, b, a_ok, b_ok, k, lower, upper, spread, out_d2,
+                          out_idx):
+  """The k nearest valid rows of `b` for every valid row of `a` (squared L2, ties: lower index).
+
+  h = the entries where exactly one of two descriptors is empty (popcount of their bit masks'
+  XOR). Each such entry adds between `lower` and `upper` to the squared distance, every other
+  entry at most `spread`: lower h <= d2 <= upper h + (D - h) spread. The k rows of least h bound
+  the k-th distance by U = upper h_k + (D - h_k) spread, so a row with lower h > U is never among
+  the k nearest; the others get their exact distance (float64 sums).
+  """
+  n, dim = b.shape[0], a.shape[1]
+  never = np.int64(1) << 62
+  for i in nb.prange(a.shape[0]):
+    if not a_ok[i]:
+      continue
+    h = np.full(n, never, np.int64)
+    valid = 0
+    for j in range(n):
+      if b_ok[j]:
+        c = 0
+        for w in range(a_bits.shape[1]):
+          c += _popcount(a_bits[i, w] ^ b_bits[j, w])
+        h[j] = c
+        valid += 1
+    if valid == 0:
+      continue
+    hk = _kth_smallest(h, min(k, valid), dim)
+    bound = (upper * hk + (dim - hk) * spread) * (1.0 + 1e-9)
+    bd = np.full(k, np.inf)
+    bi = np.zeros(k, np.int64)
+    for j in range(n):
+      if h[j] == never or lower * h[j] > bound:
+        continue
+      d2 = 0.0
+      for t in range(dim):
+        diff = np.float64(a[i, t]) - np.float64(b[j, t])
+        d2 += diff * diff
+      _insert(bd, bi, k, d2, j)
+    for s in range(k):
+      out_d2[i, s] = bd[s]
+      out_idx[i, s] = bi[s] if bd[s] < np.inf else 0
+
+
+def _occupancy_form(q: np.ndarray, r: np.ndarray, qv: np.ndarray, rv: np.ndarray
+                    ) -> tuple[float, float, float] | None:
+  """(empty, lo, hi) when every valid descriptor entry is either `empty` (the largest value) or
+  in [lo, hi], with empty - hi >= OCCUPANCY_GAP (hi - lo) and both kinds present; else None."""
+  rows = [x[v] for x, v in ((q, qv), (r, rv)) if v.any()]
+  if not rows:
+    return None
+  empty = max(float(x.max()) for x in rows)
+  filled = [x[x != empty] for x in rows]
+  filled = [f for f in filled if f.size]
+  if not filled or not np.isfinite(empty):
+    return None
+  lo, hi = min(float(f.min()) for f in filled), max(float(f.max()) for f in filled)
+  if not np.isfinite(lo) or empty - hi < OCCUPANCY_GAP * (hi - lo) or empty <= hi:
+    return None
+  return empty, lo, hi
+
+
+def _occupancy_bits(x: np.ndarray, empty: float) -> np.ndarray:
+  """(m, ceil(D / 64)) uint64 masks of the entries equal to `empty`."""
+  packed = np.packbits(x == empty, axis=1, bitorder="little")
+  pad = (-packed.shape[1]) % 8
+  packed = np.pad(packed, ((0, 0), (0, pad)))
+  return np.ascontiguousarray(packed).view(np.uint64)
+
+
+def _occupancy_knn(a, b, a_ok, b_ok, k, form) -> tuple[np.ndarray, np.ndarray]:
+  """`_occupancy_knn_kernel` on float32 rows: (d2 (m, k) float64, idx (m, k) int64), inf and
+  index 0 past the valid rows (and for invalid rows of `a`)."""
+  empty, lo, hi = form
+  lower = (empty - hi) ** 2
+  upper = (empty - lo) ** 2
+  d2 = np.full((len(a), k), np.inf)
+  idx = np.zeros((len(a), k), np.int64)
+  _occupancy_knn_kernel(_occupancy_bits(a, empty), _occupancy_bits(b, empty), a, b,
+                        np.ascontiguousarray(a_ok), np.ascontiguousarray(b_ok), int(k), lower,
+                        upper, (hi - lo) ** 2, d2, idx)
+  return d2, idx
+
+
 def _ratio(d1: np.ndarray, d_2: np.ndarray) -> np.ndarray:
   """d1 / d2, 1 where there is no second reference (d2 inf) or d2 is 0."""
   with np.errstate(divide="ignore", invalid="ignore"):
@@ -131,7 +291,8 @@ def _ratio(d1: np.ndarray, d_2: np.ndarray) -> np.ndarray:
 
 
 def match_descriptors(query: np.ndarray, reference: np.ndarray, query_valid=None,
-                      reference_valid=None, *, block: int = 1024) -> Matches:
+                      reference_valid=None, *, block: int = 1024, search: str = "auto"
+                      ) -> Matches:
   """Nearest and second-nearest reference of every query descriptor (L2), with the ratio score.
 
   Args:
@@ -139,13 +300,17 @@ def match_descriptors(query: np.ndarray, reference: np.ndarray, query_valid=None
     reference: (n, D) descriptors.
     query_valid: (m,) bool (None: all valid).
     reference_valid: (n,) bool (None: all valid); invalid references are never matched.
-    block: queries per jitted call (memory: block x n floats).
+    block: queries per jitted call of the dense search (memory: block x n floats).
+    search: "auto" (default: the occupancy search for descriptors of its form, such as TOLDI's,
+      else the dense one), "dense" or "occupancy" (the module docstring); all exact, they
+      differ only in float rounding of the distances.
 
   Returns:
     `Matches` for the m queries.
 
   Raises:
-    ValueError: non-2-D inputs or different descriptor lengths.
+    ValueError: non-2-D inputs or different descriptor lengths, an unknown `search`, or
+      search="occupancy" on descriptors without its form.
   """
   q, r, qv, rv = _check_inputs(query, reference, query_valid, reference_valid)
   m = len(q)
@@ -154,7 +319,8 @@ def match_descriptors(query: np.ndarray, reference: np.ndarray, query_valid=None
   ratio = np.full(m, np.inf, np.float32)
   if m == 0 or not rv.any():
     return Matches(nearest, dist, ratio)
-  d2, idx = _nearest(q, r, qv, rv, 2, 0, block)
+  _check_search(search)
+  d2, idx = _nearest(q, r, qv, rv, 2, 0, block, search)
   nearest[:] = idx[:, 0]
   dist[:] = np.sqrt(d2[:, 0])
   ratio[:] = _ratio(dist, np.sqrt(d2[:, 1]))
@@ -178,6 +344,11 @@ def top_correspondences(matches: Matches, n: int) -> tuple[np.ndarray, np.ndarra
   order = np.lexsort((ok, matches.distance[ok], matches.ratio[ok]))
   keep = ok[order[:max(0, int(n))]]
   return keep.astype(np.int64), matches.nearest[keep].astype(np.int64)
+
+
+def _check_search(search) -> None:
+  if not isinstance(search, str) or search not in SEARCHES:
+    raise ValueError(f"search: expected one of {SEARCHES}, got {search!r}")
 
 
 def _option_int(value, name: str, least: int) -> int:
@@ -208,7 +379,8 @@ def _check_options(n, mutual, ratio, k, block) -> tuple[int | None, float | None
 
 def select_correspondences(query: np.ndarray, reference: np.ndarray, query_valid=None,
                            reference_valid=None, *, n: int | None = None, mutual: bool = False,
-                           ratio: float | None = None, k: int = 1, block: int = 1024
+                           ratio: float | None = None, k: int = 1, block: int = 1024,
+                           search: str = "auto"
                            ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
   """Correspondences between two descriptor sets (L2), best first.
 
@@ -224,7 +396,8 @@ def select_correspondences(query: np.ndarray, reference: np.ndarray, query_valid
 
   With k=1 the correspondences are ordered by ratio d1 / d2, then distance, then query index
   (`top_correspondences`'s order: `select_correspondences(q, r, n=N)` is
-  `top_correspondences(match_descriptors(q, r), N)`); with k > 1 by distance, then query
+  `top_correspondences(match_descriptors(q, r), N)`, up to the float32 rounding of the ratios
+  that `Matches` holds); with k > 1 by distance, then query
   index, then reference index.
 
   Args:
@@ -236,7 +409,8 @@ def select_correspondences(query: np.ndarray, reference: np.ndarray, query_valid
     mutual: keep mutual nearest neighbours only.
     ratio: the ratio-test threshold in (0, 1] (None: no test).
     k: proposals per query (fewer where fewer valid references exist).
-    block: queries per jitted call (memory: block x r floats).
+    block: queries per jitted call of the dense search (memory: block x r floats).
+    search: "auto" (default), "dense" or "occupancy", as `match_descriptors`.
 
   Returns:
     (query_idx (c,) int64, reference_idx (c,) int64, score (c,) float32), best first: score is
@@ -244,13 +418,15 @@ def select_correspondences(query: np.ndarray, reference: np.ndarray, query_valid
 
   Raises:
     ValueError: inputs as `match_descriptors`; k, n or block not integers (k, block >= 1,
-      n >= 0), a ratio outside (0, 1], a ratio with k > 1, or a non-boolean `mutual`.
+      n >= 0), a ratio outside (0, 1], a ratio with k > 1, a non-boolean `mutual`, or a
+      `search` as `match_descriptors`.
   """
   q, r, qv, rv = _check_inputs(query, reference, query_valid, reference_valid)
   n, ratio, k = _check_options(n, mutual, ratio, k, block)
   if len(q) == 0 or not rv.any() or not qv.any():
     return np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0, np.float32)
-  found = _nearest(q, r, qv, rv, max(k, 2), k if mutual else 0, block)
+  _check_search(search)
+  found = _nearest(q, r, qv, rv, max(k, 2), k if mutual else 0, block, search)
   d2, idx = found[0][:, :k], found[1][:, :k].astype(np.int64)
   ok = np.isfinite(d2) & qv[:, None]
   if mutual:  # i among the k nearest queries of its reference
@@ -258,7 +434,7 @@ def select_correspondences(query: np.ndarray, reference: np.ndarray, query_valid
     ok &= (back == np.arange(len(q))[:, None, None]).any(axis=2)
   dist = np.sqrt(d2)
   if k == 1:
-    score = _ratio(dist, np.sqrt(found[0][:, 1:2])).astype(np.float32)
+    score = _ratio(dist, np.sqrt(found[0][:, 1:2]))  # float64 from the occupancy search
     if ratio is not None:
       ok &= score < ratio
   qi, slot = np.nonzero(ok)

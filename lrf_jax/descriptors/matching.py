@@ -186,21 +186,6 @@ def _popcount(typingctx, word):
   return word(word), codegen
 
 
-@nb.njit(cache=True)
-def _kth_smallest(h, k, dim):
-  """The k-th smallest value (k >= 1) of h among its entries in [0, dim], by counting."""
-  counts = np.zeros(dim + 1, np.int64)
-  for j in range(h.shape[0]):
-    if h[j] <= dim:
-      counts[h[j]] += 1
-  seen = 0
-  for v in range(dim + 1):
-    seen += counts[v]
-    if seen >= k:
-      return v
-  return dim
-
-
 @nb.njit(cache=True, nogil=True)
 def _occupancy_knn_kernel(a_bits, b_bits, a, b, a_ok, b_ok, k, lower, upper, spread, out_d2,
                           out_idx, start, stop):
@@ -230,7 +215,13 @@ def _occupancy_knn_kernel(a_bits, b_bits, a, b, a_ok, b_ok, k, lower, upper, spr
         valid += 1
     if valid == 0:
       continue
-    hk = _kth_smallest(h, min(k, valid), dim)
+    counts = np.zeros(dim + 2, np.int64)  # h_k, the k-th least h, by counting
+    for j in range(n):
+      counts[min(h[j], dim + 1)] += 1
+    hk, seen = 0, counts[0]
+    while seen < min(k, valid):
+      hk += 1
+      seen += counts[hk]
     bound = (upper * hk + (dim - hk) * spread) * (1.0 + 1e-9)
     bd = np.full(k, np.inf)
     bi = np.zeros(k, np.int64)

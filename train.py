@@ -21,10 +21,9 @@ import os
 import sys
 from pathlib import Path
 
-from lrf_jax.learning import checkpoints
-from lrf_jax.learning import config as config_lib
-from lrf_jax.learning import train_lib
 from lrf_jax.cli.help import DefaultsHelpFormatter
+from lrf_jax.extras import MissingExtraError
+from lrf_jax.learning import config as config_lib
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -70,6 +69,11 @@ def main(argv=None) -> int:
     # CPU devices of different processes talk through gloo (no effect on GPU or TPU devices).
     jax.config.update("jax_cpu_collectives_implementation", "gloo")
     jax.distributed.initialize(args.coordinator, args.num_processes, args.process_id)
+  try:  # flax, optax, orbax: the [train] extra
+    from lrf_jax.learning import checkpoints, train_lib
+  except MissingExtraError as e:
+    print(f"error: {e}", file=sys.stderr)
+    return 2
   workdir = args.workdir or f"runs/{config.name}"
   problem = _check_workdir(Path(workdir), args.config)
   if problem:
@@ -100,6 +104,7 @@ def _check_workdir(workdir: Path, config_arg: str) -> str | None:
   """What is wrong with --workdir, before any work (None: fine): a file, not creatable or not
   writable, or holding the --config file under the name of an output."""
   from lrf_jax.io.atomic import same_file
+  from lrf_jax.learning import train_lib
   if workdir.exists() and not workdir.is_dir():
     return f"--workdir: {workdir} is a file; expected a folder (new, or a run's to resume)"
   existing = next((p for p in [workdir, *workdir.absolute().parents] if p.exists()), None)

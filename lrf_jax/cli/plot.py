@@ -18,6 +18,7 @@ import os
 from pathlib import Path
 import numpy as np
 
+from lrf_jax.extras import pyplot
 from lrf_jax.io import atomic
 
 AXIS_COLOURS = ("tab:red", "tab:green", "tab:blue")  # x, y, z
@@ -27,9 +28,7 @@ REPEATED_MEANCOS = 0.97
 
 
 def _pyplot():
-  import matplotlib
-  matplotlib.use("Agg")
-  import matplotlib.pyplot as plt
+  plt = pyplot("plot", "the --png figures")
   return plt
 
 

@@ -9,9 +9,9 @@ from __future__ import annotations
 
 from typing import NamedTuple
 
-import fast_simplification
 import numpy as np
 
+from lrf_jax.extras import missing_extra
 from lrf_jax.datasets.pair import Pair, transform_points
 
 Seed = int | np.random.Generator
@@ -88,6 +88,10 @@ def decimate(points: np.ndarray, faces: np.ndarray | None, fraction: float,
     return Decimation(pts.copy(), tri.copy(), None)
   wanted = fraction * n
   target = fraction * len(tri)
+  try:
+    import fast_simplification
+  except ImportError as e:  # the [eval] extra
+    raise missing_extra(e.name, "eval", "mesh decimation (datasets.decimate)") from e
   for _ in range(4):
     new_pts, new_faces = fast_simplification.simplify(pts, tri, target_count=int(round(target)))
     got = len(new_pts)

@@ -35,6 +35,7 @@ from typing import Any, Iterable, Iterator
 
 import numpy as np
 
+from lrf_jax.extras import pyplot
 from lrf_jax.api import frames_from_patches
 from lrf_jax.datasets import Pair
 from lrf_jax.descriptors import DESCRIPTORS, describe_patches, match_descriptors
@@ -307,9 +308,7 @@ def description_report(records: list[dict[str, Any]]) -> str:
 
 def plot_rpc(records: list[dict[str, Any]], out: Path) -> list[Path]:
   """One PNG per dataset (`rpc_<dataset>.png`): a panel per descriptor, one curve per LRF."""
-  import matplotlib
-  matplotlib.use("Agg")
-  import matplotlib.pyplot as plt
+  plt = pyplot("eval", "evaluate.py's figures")
 
   summary = summarise_description(records)
   out = Path(out)

@@ -9,6 +9,7 @@ from typing import Any, Iterable
 
 import numpy as np
 
+from lrf_jax.extras import matplotlib_module, pyplot
 from lrf_jax.io import atomic
 
 # What the paper states in its text and tables (its figures are missing from our copy).
@@ -163,7 +164,7 @@ AXIS_LABELS = {"noise_mr": "Gaussian noise (mr)", "decimation": "fraction of ver
 def method_styles(methods: list[str]) -> dict[str, tuple[Any, str]]:
   """A distinct (colour, hatch) per method for any number of methods: the 20 colours of
   matplotlib's tab20 (dark shades first), then the same colours again with a hatch."""
-  import matplotlib
+  matplotlib = matplotlib_module("eval", "evaluate.py's figures")
   cmap = matplotlib.colormaps["tab20"]
   order = list(range(0, 20, 2)) + list(range(1, 20, 2))
   return {m: (cmap(order[i % 20]), HATCHES[(i // 20) % len(HATCHES)])
@@ -172,9 +173,7 @@ def method_styles(methods: list[str]) -> dict[str, tuple[Any, str]]:
 
 def plot_figures(records: list[dict[str, Any]], out: Path) -> list[Path]:
   """Bars per dataset (repeatability) and curves per dataset for the nuisance sweeps."""
-  import matplotlib
-  matplotlib.use("Agg")
-  import matplotlib.pyplot as plt
+  plt = pyplot("eval", "evaluate.py's figures")
 
   summary = summarise(records)
   methods = list(dict.fromkeys(r["method"] for r in records))
@@ -245,9 +244,7 @@ def plot_figures(records: list[dict[str, Any]], out: Path) -> list[Path]:
 def plot_weights(patches_xyz: list[np.ndarray], weights: list[np.ndarray], frames: list[np.ndarray],
                  out: Path) -> Path:
   """Sample patches (in their LRF) with points coloured by learned weight and the x axis drawn."""
-  import matplotlib
-  matplotlib.use("Agg")
-  import matplotlib.pyplot as plt
+  plt = pyplot("eval", "evaluate.py's figures")
 
   n = len(patches_xyz)
   fig, axes = plt.subplots(1, n, figsize=(3.4 * n + 1.0, 3.6), squeeze=False,
@@ -304,9 +301,7 @@ def weight_maps_figure(out: Path, maps: dict[str, tuple[Any, str]] | None = None
     size: grid points per axis.
   """
   import jax.numpy as jnp
-  import matplotlib
-  matplotlib.use("Agg")
-  import matplotlib.pyplot as plt
+  plt = pyplot("eval", "evaluate.py's figures")
 
   from lrf_jax.learning.model import apply_weights, default_params
 

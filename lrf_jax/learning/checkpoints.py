@@ -19,8 +19,14 @@ from typing import Any
 import jax
 import jax.numpy as jnp
 import numpy as np
-import orbax.checkpoint as ocp
 from jax.experimental import multihost_utils
+
+from lrf_jax.extras import missing_extra
+
+try:
+  import orbax.checkpoint as ocp
+except ImportError as e:  # the [train] extra
+  raise missing_extra(e.name, "train", "training checkpoints (lrf_jax.learning.checkpoints)") from e
 
 from lrf_jax.learning.config import TrainConfig
 from lrf_jax.learning.train_step import TrainState, create_state

@@ -30,6 +30,8 @@ import jax.numpy as jnp
 import msgpack
 import numpy as np
 
+from lrf_jax.extras import missing_extra
+
 Params = Any
 
 WEIGHTS_DIR = Path(__file__).resolve().parents[1] / "weights"  # lrf_jax/weights
@@ -101,7 +103,10 @@ def _num_enc(params: Params) -> int:
 
 def save_params(params: Params, path: str | Path) -> None:
   """Write parameters as flax msgpack (a few KB)."""
-  from flax import serialization  # only to write
+  try:
+    from flax import serialization  # only to write
+  except ImportError as e:
+    raise missing_extra(e.name, "train", "save_params (writing flax msgpack)") from e
   Path(path).parent.mkdir(parents=True, exist_ok=True)
   from lrf_jax.io import atomic  # pylint: disable=import-outside-toplevel
   atomic.write_bytes(path, serialization.msgpack_serialize(jax.device_get(params)))

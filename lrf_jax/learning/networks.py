@@ -10,9 +10,15 @@ from __future__ import annotations
 
 from typing import Any, Sequence
 
-import flax.linen as nn
 import jax
 import jax.numpy as jnp
+
+from lrf_jax.extras import missing_extra
+
+try:
+  import flax.linen as nn
+except ImportError as e:  # the [train] extra
+  raise missing_extra(e.name, "train", "LRF-Net's flax modules (training, the 'dr' ablation)") from e
 
 Params = Any
 

@@ -38,9 +38,16 @@ from typing import Any, Callable, NamedTuple
 import jax
 import jax.numpy as jnp
 import numpy as np
-import orbax.checkpoint as ocp
 from jax.sharding import Mesh, NamedSharding, PartitionSpec as P
 
+from lrf_jax.extras import missing_extra
+
+try:
+  import orbax.checkpoint as ocp
+except ImportError as e:  # the [train] extra
+  raise missing_extra(e.name, "train", "training (lrf_jax.learning.train_lib)") from e
+
+from lrf_jax.extras import pyplot
 from lrf_jax.learning import data_sources
 from lrf_jax.evaluation import metrics as metrics_lib
 from lrf_jax.learning.batches import Batch, BatchMaker, TrainingClouds, global_batch
@@ -465,9 +472,7 @@ def written_files(workdir: str | Path) -> list[Path]:
 def plot_curves(log_path: Path, out: Path, title: str = "validation") -> None:
   """Loss and validation MeanCos against the step, as a PNG; `title` heads the validation
   panel (say what was validated on: `data_sources.validation_label`)."""
-  import matplotlib
-  matplotlib.use("Agg")
-  import matplotlib.pyplot as plt
+  plt = pyplot("train", "the training curves")
 
   rows = [r for _, r in _read_jsonl(log_path) if "loss" in r]  # not the notes
   fig, ax = plt.subplots(1, 2, figsize=(10, 3.5))

@@ -11,9 +11,15 @@
 from __future__ import annotations
 
 import jax
-import optax
-from flax import struct
-from flax.training import train_state
+
+from lrf_jax.extras import missing_extra
+
+try:
+  import optax
+  from flax import struct
+  from flax.training import train_state
+except ImportError as e:  # the [train] extra
+  raise missing_extra(e.name, "train", "training (lrf_jax.learning.train_step)") from e
 
 from lrf_jax.learning.batches import Batch
 from lrf_jax.learning.config import TrainConfig

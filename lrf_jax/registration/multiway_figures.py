@@ -9,6 +9,7 @@ from typing import TYPE_CHECKING, Sequence
 
 import numpy as np
 
+from lrf_jax.extras import pyplot
 from lrf_jax.io.atomic import save_figure
 
 if TYPE_CHECKING:
@@ -26,9 +27,7 @@ def scan_colours(n: int) -> np.ndarray:
 
 
 def _pyplot():
-  import matplotlib
-  matplotlib.use("Agg")
-  import matplotlib.pyplot as plt
+  plt = pyplot("plot", "register_all's figures")
   return plt
 
 

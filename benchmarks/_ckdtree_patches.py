@@ -47,7 +47,7 @@ class SearchIndex:
     counts = np.asarray(counts, np.int64)
     lists: list = [None] * len(centers)
     todo = np.arange(len(centers))
-    for size, tree in reversed(self.prefix_trees):  # coarsest first
+    for _size, tree in reversed(self.prefix_trees):  # coarsest first
       if not todo.size:
         break
       n_pref = tree.query_ball_point(centers[todo], radius, workers=-1, return_length=True)

@@ -108,8 +108,8 @@ def bench_frames(data: str | None, cases: list[tuple[str, int]], methods: list[s
           pcl_rate[p] = m / (t[p] + t["normals_omp"])
     for method in methods:
       kw = {"faces": faces} if lrf_jax.METHODS[method].needs_mesh else {}
-      call = lambda: lrf_jax.compute_frames(pts, kp, r, method, progress=False,  # noqa: E731
-                                            **kw)[0].block_until_ready()
+      call = lambda: lrf_jax.compute_frames(pts, kp, r, method, progress=False,  # noqa: B023,E731
+                                            **kw)[0].block_until_ready()  # noqa: B023 (called in this iteration)
       lrf_jax.compute_frames(pts, kp[:min(m, 4096)], r, method, progress=False, **kw)
       dt = _median_time(call, repeat if m <= 10_000 else 1)
       peer = PCL_SAME.get(method, "shot_omp")

@@ -42,12 +42,11 @@ sys.path.insert(0, str(REPO))
 
 import jax  # noqa: E402
 
-import lrf_jax  # noqa: E402
 from lrf_jax import datasets, evaluation  # noqa: E402
 from lrf_jax.evaluation.description import (description_report, plot_rpc,  # noqa: E402
                                             run_description)
 from lrf_jax.evaluation.pose import pose_report, run_pose  # noqa: E402
-from lrf_jax.registration import icp, pose_errors, register  # noqa: E402
+from lrf_jax.registration import pose_errors, register  # noqa: E402
 
 from benchmarks._open3d_pipeline import global_registration, have_open3d  # noqa: E402
 

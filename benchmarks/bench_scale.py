@@ -72,7 +72,7 @@ def main() -> None:
   if args.child is not None:
     _child(args.child, args.keypoints, args.data, args.method, args.lut)
     return
-  print(f"| cloud | points | keypoints | frames/s | seconds | valid | peak RSS MB |")
+  print("| cloud | points | keypoints | frames/s | seconds | valid | peak RSS MB |")
   print("|---|---:|---:|---:|---:|---:|---:|")
   rows = [("BR dragon vertices (baseline)", 0), ("dragon surface samples", args.points)]
   rows = {"both": rows, "mesh": rows[:1], "cloud": rows[1:]}[args.rows]

@@ -39,7 +39,8 @@ import sys
 import tempfile
 import time
 from pathlib import Path
-from typing import Any, Iterable
+from typing import Any
+from collections.abc import Iterable
 
 import numpy as np
 
@@ -261,8 +262,8 @@ def summary_table(rows: list[dict[str, Any]]) -> str:
   lines = [head, rule]
   for r in rows:
     unit = {"room": " m", "object": " mr"}.get(r["kind"])
-    te = (lambda m: f"{_f(r[f'{m}_median_re'])} / {_f(r[f'{m}_median_te'])}{unit}"  # noqa: E731
-          if unit and r[f"{m}_median_re"] is not None else _f(r[f"{m}_median_re"]))
+    te = (lambda m: f"{_f(r[f'{m}_median_re'])} / {_f(r[f'{m}_median_te'])}{unit}"  # noqa: B023,E731
+          if unit and r[f"{m}_median_re"] is not None else _f(r[f"{m}_median_re"]))  # noqa: B023 (called in this iteration)
     cot = r["lrf_claimed_of_true"]
     line = (f"| {r['split']} | {r['kind']} | {r['bin']} | {r['n']} | {r['lrf_true']} | "
             f"{r['lrf_false']} | {'' if cot is None else f'{cot:.0%}'} | {te('lrf')} | "

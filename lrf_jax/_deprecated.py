@@ -10,7 +10,8 @@ from __future__ import annotations
 
 import warnings
 from types import ModuleType
-from typing import Any, Callable
+from typing import Any
+from collections.abc import Callable
 
 REMOVED_IN = "the next release"
 

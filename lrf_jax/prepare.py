@@ -6,7 +6,8 @@
 
 from __future__ import annotations
 
-from typing import Any, Callable, Union
+from typing import Any
+from collections.abc import Callable
 
 import numpy as np
 
@@ -15,7 +16,7 @@ from lrf_jax.geometry.normals import NORMAL_RADIUS_RATIO, estimate_normals
 
 # The caller's (n, 3) normals; or None (estimate them when the method needs them) or a thunk that
 # returns that estimate (so that a caller holding a cache estimates them only when needed).
-NormalsArg = Union[np.ndarray, None, Callable[[], np.ndarray]]
+NormalsArg = np.ndarray | None | Callable[[], np.ndarray]
 
 
 def method_normals(spec: MethodSpec, points: np.ndarray, radius: float, *,

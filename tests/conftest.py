@@ -4,7 +4,6 @@ import os
 from pathlib import Path
 
 import jax
-import numpy as np
 import pytest
 
 jax.config.update("jax_debug_nans", True)  # any NaN produced inside a jitted function fails a test

@@ -32,7 +32,8 @@ import tracemalloc
 import traceback
 import warnings
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any
+from collections.abc import Callable
 
 import numpy as np
 import plyfile

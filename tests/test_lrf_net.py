@@ -7,7 +7,6 @@ import numpy as np
 import pytest
 
 import lrf_jax
-from lrf_jax.geometry import ops as geometry
 from lrf_jax.frames.lrf_net import (attributes, lrf_net_frames, lrf_net_weights, softmax_weights,
                                     uniform_frames)
 from lrf_jax.frames.lrf_net import lrf_net_frames as _lrf_net_frames

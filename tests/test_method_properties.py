@@ -250,7 +250,7 @@ def _both_kernels(method, points, keypoints, radius, faces):
 
 
 def _agreement(method, host, jit):
-  (fh, vh), (fj, vj) = host, jit
+  (fh, _), (fj, _) = host, jit
   cx = np.sum(fh[:, 0] * fj[:, 0], -1)
   if method == "mian":  # x is sign-ambiguous by construction
     cx = np.abs(cx)

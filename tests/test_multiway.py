@@ -143,7 +143,7 @@ def test_point_to_plane_jacobian_matches_finite_differences():
     np.testing.assert_allclose(problem.jacobian(v).toarray(), num, atol=1e-5)
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def _views(n: int, seed: int = 0, step_deg: float = 60.0):
   """n partial views of the demo blob from viewpoints `step_deg` apart around z, each moved by
   a random rigid motion; (clouds, world-from-view poses, mr)."""

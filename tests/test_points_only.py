@@ -12,7 +12,7 @@ from lrf_jax import datasets, evaluation
 from lrf_jax.evaluation import PatchCache
 from lrf_jax.frames import METHODS
 from lrf_jax.frames.lrf_net_plus import MIN_VOTE_TRUST, prepare_view, sign_confidence
-from lrf_jax.search.neighborhoods import Patches, build_patches
+from lrf_jax.search.neighborhoods import build_patches
 from lrf_jax.geometry.normals import orient_by_vote, pca_normals
 from tests.lrf_testing import (assert_frames_orthonormal, equivariance_deficit,
                                random_rotation)

@@ -31,7 +31,8 @@ from __future__ import annotations
 import dataclasses
 import time
 from pathlib import Path
-from typing import Any, Iterable, Iterator
+from typing import Any
+from collections.abc import Iterable, Iterator
 
 import numpy as np
 
@@ -318,7 +319,7 @@ def plot_rpc(records: list[dict[str, Any]], out: Path) -> list[Path]:
     descs = list(dict.fromkeys(v["descriptor"] for (d, _), v in summary.items() if d == ds))
     fig, axes = plt.subplots(1, len(descs), figsize=(3.6 * len(descs), 3.4), squeeze=False)
     for ax, desc in zip(axes[0], descs):
-      for (d, label), v in summary.items():
+      for (d, _label), v in summary.items():
         if d != ds or v["descriptor"] != desc:
           continue
         if v["recall_max"] is None:

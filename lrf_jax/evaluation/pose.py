@@ -23,7 +23,8 @@ the ground truth) and the estimator's time (a second, compiled call).
 from __future__ import annotations
 
 import time
-from typing import Any, Iterable, Iterator
+from typing import Any
+from collections.abc import Iterable, Iterator
 
 import numpy as np
 
@@ -88,7 +89,7 @@ def evaluate_pose_pair(pair: Pair, *, n_keypoints: int = 1000, n_correspondences
       ("scene", pair.scene_points, pair.scene_faces, si, pair.scene_viewpoint)):
     patches = cache.get(pts, idx, radius, spec.default_k, seed, spec.z_ratio)
     extra = prepare_extra(spec, pts, idx, patches, faces=faces, radius=radius, viewpoint=vp,
-                          normals=lambda: default_normals(pts, radius, faces, None, vp))
+                          normals=lambda: default_normals(pts, radius, faces, None, vp))  # noqa: B023 (called in this iteration)
     f, v = frames_from_patches(patches, lrf, params=params if spec.needs_params else None,
                                extra=extra, **dict(paper_options(lrf)))
     dp = cache.get(pts, idx, radius, None, seed, 1.0 / 3.0)

@@ -16,7 +16,8 @@ import dataclasses
 import hashlib
 import time
 from pathlib import Path
-from typing import Any, Iterable
+from typing import Any
+from collections.abc import Iterable
 
 import numpy as np
 from scipy.spatial import cKDTree
@@ -235,7 +236,7 @@ def evaluate_pair(pair: Pair, methods: Iterable[MethodRun], *, experiment: str,
     for tag, pts, faces, idx, vp in (
         ("model", pair.model_points, pair.model_faces, mi, pair.model_viewpoint),
         ("scene", pair.scene_points, pair.scene_faces, si, pair.scene_viewpoint)):
-      normals = lambda: normals_of(tag, pts, faces, vp)  # noqa: E731 (estimated once, if read)
+      normals = lambda: normals_of(tag, pts, faces, vp)  # noqa: B023,E731 (estimated once, if read)
       host = host_side(tag, pts, idx) if may_host else None
       if host is not None:
         sides.append(host_frames(pts, idx, radius, run.method, index=host[0], faces=faces,

@@ -14,7 +14,8 @@ import dataclasses
 import json
 import time
 from pathlib import Path
-from typing import Any, Iterator
+from typing import Any
+from collections.abc import Iterator
 
 from tqdm.auto import tqdm
 

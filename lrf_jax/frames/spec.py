@@ -16,7 +16,8 @@ from __future__ import annotations
 
 import dataclasses
 import warnings
-from typing import Any, Callable
+from typing import Any
+from collections.abc import Callable
 
 KEYPOINT = "keypoint"
 SLOT = "slot"

@@ -29,7 +29,8 @@ import contextlib
 import os
 import tempfile
 from pathlib import Path
-from typing import IO, Iterable, Iterator
+from typing import IO
+from collections.abc import Iterable, Iterator
 
 __all__ = ["WriteError", "append_line", "atomic_path", "atomic_write", "output_problem",
            "same_file", "save_figure", "write_bytes", "write_text"]

@@ -8,7 +8,8 @@ modules define the parameter layout and initialise it (`model.init_params` calls
 
 from __future__ import annotations
 
-from typing import Any, Sequence
+from typing import Any
+from collections.abc import Sequence
 
 import jax
 import jax.numpy as jnp

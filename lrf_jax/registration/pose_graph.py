@@ -50,7 +50,7 @@ References:
 from __future__ import annotations
 
 import dataclasses
-from typing import Sequence
+from collections.abc import Sequence
 
 import numpy as np
 from scipy.optimize import least_squares
@@ -389,7 +389,7 @@ def _reject(n, edges, poses, used, scale, threshold, robust, rounds):
   """Solve and reject edges above `threshold` until the used set is stable; returns (poses,
   used, rounds run)."""
   done = 0
-  for done in range(1, max(int(rounds), 1) + 1):
+  for done in range(1, max(int(rounds), 1) + 1):  # noqa: B007 (read after the loop)
     label = components(n, [(e.i, e.j) for e, u in zip(edges, used) if u])
     poses = _solve_components(poses, edges, used, label, scale, robust)
     new = used & (edge_errors(poses, edges, scale) <= threshold)

@@ -136,7 +136,8 @@ def main(argv: list[str] | None = None) -> int:
   compilation_cache.enable()  # a second run loads the compiled functions instead of recompiling
   from lrf_jax.registration import register
 
-  params, extra = None, {}
+  params = None
+  extra: dict[str, object] = {}
   try:
     if args.init is not None:
       extra["init"] = read_init(args.init)  # passed only when given

@@ -94,7 +94,7 @@ def points_only_pair(pair: Pair, runs: list[MethodRun], *, setting: dict[str, An
   with meancos None). Records carry MeanCos and z_flip (`repeatability.z_flip_rate`).
   """
   moved = datasets.with_random_motion(pair, motion_seed(opts.seed, pair.name))
-  common = dict(experiment="points_only", n_keypoints=opts.n_keypoints, seed=opts.seed,
+  common: dict[str, Any] = dict(experiment="points_only", n_keypoints=opts.n_keypoints, seed=opts.seed,
                 radius_mr=opts.radius_mr, cache=cache, max_neighbors=opts.max_neighbors)
   setting = dict(setting, motion_seed=motion_seed(opts.seed, pair.name))
   records = []
@@ -231,7 +231,7 @@ def iter_pairs(dataset_names: Iterable[str],
 def run_experiment(name: str, dataset_names: list[str], methods: list[MethodRun],
                    opts: EvalOptions, cache: PatchCache) -> Iterator[dict[str, Any]]:
   """Yield the records of one experiment over the given datasets (see module doc)."""
-  common = dict(n_keypoints=opts.n_keypoints, seed=opts.seed, cache=cache,
+  common: dict[str, Any] = dict(n_keypoints=opts.n_keypoints, seed=opts.seed, cache=cache,
                 max_neighbors=opts.max_neighbors)
   if name == "points_only":
     runs = points_only_runs(methods)

@@ -354,7 +354,7 @@ def _refine(source: np.ndarray, target: np.ndarray, init: np.ndarray, distance: 
   grid = grid if grid is not None else engine.Grid(target, distance)
   normals = (icp_host.estimate_target_normals(target, distance, grid)
              if mode == "point_to_plane" else None)
-  kw = dict(target_grid=grid, target_normals=normals, mode=mode)
+  kw: dict[str, Any] = dict(target_grid=grid, target_normals=normals, mode=mode)
   coarse, _, _ = icp(source, target, init, max_distance=distance, iterations=iterations, **kw)
   gate = fine_distance(source, grid, coarse, distance, mr)
   tr, _, _ = icp(source, target, coarse, max_distance=gate, iterations=iterations, **kw)
@@ -609,7 +609,7 @@ def _side_frames(side: _Side, setup: _Setup, method: str, params: Any, seed: int
   per cloud and, measured on the registration benchmark, does not register more pairs."""
 
   spec = METHODS[method]
-  options = ({"oriented_sign": False}
+  options: dict[str, Any] = ({"oriented_sign": False}
              if spec.uses_viewpoint and side.viewpoint is None and side.faces is None else {})
   frames, valid = compute_frames(
       side.points, side.keypoints, setup.radius, method, params=params, faces=side.faces,

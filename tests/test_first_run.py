@@ -119,3 +119,39 @@ def test_eta_is_timed_after_the_first_record():
   remaining = (fmt["total"] - fmt["n"]) / rate
   assert remaining < 98 * 0.3 / 3
   bar.close()
+
+
+@pytest.mark.slow
+def test_one_specialisation_per_kernel(tmp_path):
+  """A register (from files and from arrays) and compute_frames compile each numba kernel for
+  one argument type only: a read-only array (a file's cached cloud, a broadcast) is a type of
+  its own to numba, and a second specialisation is a second compile on a first run."""
+  code = textwrap.dedent(f"""
+      import sys
+      import numpy as np
+      import lrf_jax
+      from lrf_jax.io import write_ply
+      from numba.core.registry import CPUDispatcher
+      rng = np.random.default_rng(0)
+      uv = rng.uniform(-1, 1, (4000, 2))
+      pts = np.column_stack([uv, 0.3 * np.sin(3 * uv[:, 0]) * np.cos(2 * uv[:, 1])])
+      a, b = {str(tmp_path / 'a.ply')!r}, {str(tmp_path / 'b.ply')!r}
+      write_ply(a, pts)
+      write_ply(b, pts[::-1] + [0.05, 0.0, 0.0])
+      lrf_jax.register(a, b, n_keypoints=400, n_correspondences=300)
+      ro = pts.copy()
+      ro.flags.writeable = False
+      lrf_jax.register(ro, ro + 0.01, n_keypoints=400, n_correspondences=300)
+      lrf_jax.compute_frames(a, np.arange(100), radius_mr=15)
+      lrf_jax.compute_frames(ro, np.arange(100), radius_mr=15)
+      many = [f"{{name}}.{{attr}}: {{len(obj.signatures)}}"
+              for name, mod in list(sys.modules.items()) if name.startswith("lrf_jax")
+              for attr, obj in list(vars(mod).items())
+              if isinstance(obj, CPUDispatcher) and obj.__module__ == name
+              and len(obj.signatures) > 1]
+      print("MANY", many)
+      """)
+  out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                       timeout=1200)
+  assert out.returncode == 0, out.stderr[-3000:]
+  assert "MANY []" in out.stdout, out.stdout[-2000:]

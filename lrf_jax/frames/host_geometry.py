@@ -15,6 +15,7 @@ import numba as nb
 import numpy as np
 
 from lrf_jax.search import engine
+from lrf_jax.search.grid import writable_float64
 from lrf_jax.geometry import ops as geometry
 
 EPS = geometry.DEGENERATE_EPS
@@ -36,7 +37,7 @@ def ball_lists(points: np.ndarray, keypoints: np.ndarray, radius: float, index: 
   within `radius` of each keypoint (only those within a * r or beyond b * r with
   `shells=(a, b)`, slightly widened), from the cloud's `SearchIndex` (`engine.ball_lists`);
   with `with_counts`, also (N,) the number of points within `radius` (whatever `shells`)."""
-  pts = np.ascontiguousarray(points, np.float64)
+  pts = writable_float64(points)  # one kernel specialisation (read-only arrays are another)
   centers = np.ascontiguousarray(pts[np.asarray(keypoints)])
   lists = engine.ball_lists(index.grid(radius), centers, float(radius), shells, with_counts)
   return (pts, centers) + lists

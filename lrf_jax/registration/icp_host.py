@@ -45,7 +45,7 @@ import numpy as np
 
 from lrf_jax.search import engine
 from lrf_jax.search.grid import _BLOCK as _SUMS_BLOCK  # the point-to-point sums' blocks
-from lrf_jax.search.grid import Grid, _centers
+from lrf_jax.search.grid import Grid, _centers, writable_float64
 from lrf_jax.search.nearest import nearest_moved  # the engine's ICP pairing step (inlined)
 from lrf_jax.geometry.normals import pca_normals
 from lrf_jax.registration.errors import to_transform
@@ -173,15 +173,13 @@ def plane_sums(grid: engine.Grid, normals: np.ndarray, source: np.ndarray,
   Returns:
     The `PlaneSums`.
   """
-  src = np.ascontiguousarray(source, np.float64).reshape(-1, 3)
+  src = writable_float64(source).reshape(-1, 3)  # one specialisation of the kernel
   r = float(max_distance)
   partial = np.empty((max(1, (len(src) + _BLOCK - 1) // _BLOCK), _N_SUMS))
   _plane_sums(grid.xyz, grid.slot_index, grid.starts, grid.origin, grid.h, grid.dims, grid.points,
-              np.ascontiguousarray(normals, np.float64), src,
-              np.ascontiguousarray(rotation, np.float64),
-              np.ascontiguousarray(translation, np.float64),
-              np.ascontiguousarray(center, np.float64), r * r if np.isfinite(r) else np.inf,
-              partial)
+              writable_float64(normals), src, writable_float64(rotation),
+              writable_float64(translation), writable_float64(center),
+              r * r if np.isfinite(r) else np.inf, partial)
   acc = partial.sum(axis=0)
   hessian = np.zeros((6, 6))
   hessian[np.triu_indices(6)] = acc[9:]
@@ -385,10 +383,8 @@ def icp_sums(grid: Grid, source: np.ndarray, rotation: np.ndarray, translation: 
   nblock = max(1, (len(src) + _SUMS_BLOCK - 1) // _SUMS_BLOCK)
   partial = np.empty((nblock, 17))
   _icp_sums(grid.xyz, grid.slot_index, grid.starts, grid.origin, grid.h, grid.dims, grid.points,
-            src, np.ascontiguousarray(rotation, np.float64),
-            np.ascontiguousarray(translation, np.float64),
-            np.ascontiguousarray(center, np.float64), r * r if np.isfinite(r) else np.inf,
-            partial)
+            src, writable_float64(rotation), writable_float64(translation),
+            writable_float64(center), r * r if np.isfinite(r) else np.inf, partial)
   acc = partial.sum(axis=0)
   return int(acc[0]), float(acc[1]), acc[2:5], acc[5:8], acc[8:17].reshape(3, 3)
 

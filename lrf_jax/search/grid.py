@@ -156,7 +156,7 @@ class Grid:
   """
 
   def __init__(self, points: np.ndarray, cell: float, rank: np.ndarray | None = None):
-    pts = np.ascontiguousarray(points, np.float64)
+    pts = writable_float64(points)
     n = pts.shape[0]
     if rank is None:
       rank = np.arange(n, dtype=np.int64)
@@ -203,4 +203,14 @@ def _reach(grid: Grid, radius: float) -> int:
 
 
 def _centers(centers: np.ndarray) -> np.ndarray:
-  return np.ascontiguousarray(centers, np.float64).reshape(-1, 3)
+  return writable_float64(centers).reshape(-1, 3)
+
+
+def writable_float64(a: np.ndarray) -> np.ndarray:
+  """`a` as a C-contiguous, writable float64 array (a copy only when it is not one already).
+
+  numba compiles a kernel once per argument type, and a read-only array (a cache's view, a
+  broadcast) is a type of its own: every array the engine's kernels read passes through here so
+  that each kernel compiles one specialisation on a first run, not two."""
+  out = np.ascontiguousarray(a, np.float64)
+  return out if out.flags.writeable else out.copy()

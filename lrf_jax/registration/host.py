@@ -39,12 +39,27 @@ def kabsch_batch(src: np.ndarray, dst: np.ndarray, weights: np.ndarray | None = 
   ca = np.einsum("hn,hni->hi", w, a)
   cb = np.einsum("hn,hni->hi", w, b)
   h = np.einsum("hni,hnj->hij", a - ca[:, None], (b - cb[:, None]) * w[..., None])
-  u, _, vt = np.linalg.svd(h)
-  v = np.swapaxes(vt, 1, 2)
-  d = np.sign(np.linalg.det(v @ np.swapaxes(u, 1, 2)))
-  v[:, :, 2] *= np.where(d == 0, 1.0, d)[:, None]
-  r = v @ np.swapaxes(u, 1, 2)
+  r = proper_rotation(h)
   return r, cb - np.einsum("hij,hj->hi", r, ca)
+
+
+def proper_rotation(h: np.ndarray) -> np.ndarray:
+  """Kabsch's rotation from a cross-covariance: R = V diag(1, 1, d) Uᵀ for h = U S Vᵀ, d the sign
+  of det(V Uᵀ) (1 where it is 0), the rotation (det +1) that maximises trace(R h); the one
+  host (float64) form, used by `kabsch_batch` and point-to-point ICP
+  (`lrf_jax.geometry.kabsch` is its jitted float32 counterpart).
+
+  Args:
+    h: (..., 3, 3) sum of (a - ca)(b - cb)ᵀ over the pairs (weighted or not).
+
+  Returns:
+    (..., 3, 3) float64 rotations.
+  """
+  u, _, vt = np.linalg.svd(np.asarray(h, np.float64))
+  v = np.swapaxes(vt, -1, -2)
+  d = np.sign(np.linalg.det(v @ np.swapaxes(u, -1, -2)))
+  v[..., :, 2] *= np.where(d == 0, 1.0, d)[..., None]
+  return v @ np.swapaxes(u, -1, -2)
 
 
 def lrf_hypotheses(src: np.ndarray, src_frames: np.ndarray, dst: np.ndarray,

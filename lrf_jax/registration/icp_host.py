@@ -49,6 +49,7 @@ from lrf_jax.search.grid import Grid, _centers, writable_float64
 from lrf_jax.search.nearest import nearest_moved  # the engine's ICP pairing step (inlined)
 from lrf_jax.geometry.normals import pca_normals
 from lrf_jax.registration.errors import to_transform
+from lrf_jax.registration.host import proper_rotation
 
 # Source points per parallel task of the sums kernel (a fixed partition: deterministic sums).
 _BLOCK = 256
@@ -457,9 +458,7 @@ def icp(source: np.ndarray, target: np.ndarray, init: np.ndarray, *, max_distanc
     if n < 3:
       break
     ca, cb = sa / n, sb / n  # centroids relative to `center`
-    u, _, vt = np.linalg.svd(sab - n * np.outer(ca, cb))
-    dd = np.sign(np.linalg.det(vt.T @ u.T)) or 1.0
-    r = vt.T @ np.diag([1.0, 1.0, dd]) @ u.T
+    r = proper_rotation(sab - n * np.outer(ca, cb))
     move = to_transform(r, (cb + center) - r @ (ca + center))
     tr = move @ tr
     angle = np.arccos(np.clip((np.trace(r) - 1) / 2, -1, 1))

@@ -32,7 +32,8 @@ _EXPORTS: dict[str, str] = {
     "set_num_threads": "search.engine",
     "METHODS": "frames",
     "MethodSpec": "frames",
-    "register_method": "frames",
+    "add_method": "frames",
+    "register_method": "frames",  # deprecated: add_method
     "lrf_net_frames": "frames.lrf_net",
     "iss_keypoints": "geometry.keypoints",
     "batched_chamfer": "learning.losses",
@@ -138,7 +139,7 @@ if TYPE_CHECKING:  # for type checkers and IDEs; at run time these come from __g
   from lrf_jax.api import compute_frames, frames_from_patches, mesh_resolution  # noqa: F401
   from lrf_jax.caches import clear_caches  # noqa: F401
   from lrf_jax.search.engine import set_num_threads  # noqa: F401
-  from lrf_jax.frames import METHODS, MethodSpec, register_method  # noqa: F401
+  from lrf_jax.frames import METHODS, MethodSpec, add_method  # noqa: F401
   from lrf_jax.frames.lrf_net import lrf_net_frames  # noqa: F401
   from lrf_jax.geometry.keypoints import iss_keypoints  # noqa: F401
   from lrf_jax.learning.losses import batched_chamfer, chamfer, siamese_loss  # noqa: F401

@@ -1,4 +1,4 @@
-"""What an LRF method declares (`MethodSpec`), the registry `METHODS`, and `register_method`.
+"""What an LRF method declares (`MethodSpec`), the registry `METHODS`, and `add_method`.
 
 A method is a pure, jittable `fn(patches, extra, **options) -> (frames (N, 3, 3), valid (N,))`
 plus what it needs: a patch size, the radius of its normal support, learned parameters, a mesh,
@@ -180,20 +180,28 @@ class MethodRegistry(dict):
 METHODS: MethodRegistry = MethodRegistry()
 
 
-def register_method(spec: MethodSpec) -> MethodSpec:
+def add_method(spec: MethodSpec) -> MethodSpec:
   """Add a method to `METHODS` under `spec.name` (replacing one of that name) and return it.
 
   `lrf_jax.compute_frames(..., method=spec.name)` then runs it: the search with `spec.default_k`
-  and `spec.z_ratio`, the `prepare` hook, and `spec.fn` jitted per option set.
+  and `spec.z_ratio`, the `prepare` hook, and `spec.fn` jitted per option set. (Named so that
+  `lrf_jax.register` means one thing: aligning scans.)
   """
   if not isinstance(spec, MethodSpec):
-    raise TypeError(f"register_method: expected a MethodSpec, got {type(spec).__name__}")
+    raise TypeError(f"add_method: expected a MethodSpec, got {type(spec).__name__}")
   METHODS[spec.name] = spec
   return spec
 
 
-def register(spec: MethodSpec) -> MethodSpec:
-  """Deprecated alias of `register_method` (kept for one release)."""
-  warnings.warn("lrf_jax.frames.register is deprecated: use lrf_jax.register_method",
+def register_method(spec: MethodSpec) -> MethodSpec:
+  """Deprecated alias of `add_method` (kept for one release)."""
+  warnings.warn("lrf_jax.register_method is deprecated: use lrf_jax.add_method",
                 DeprecationWarning, stacklevel=2)
-  return register_method(spec)
+  return add_method(spec)
+
+
+def register(spec: MethodSpec) -> MethodSpec:
+  """Deprecated alias of `add_method` (kept for one release)."""
+  warnings.warn("lrf_jax.frames.register is deprecated: use lrf_jax.add_method",
+                DeprecationWarning, stacklevel=2)
+  return add_method(spec)

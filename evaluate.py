@@ -19,7 +19,7 @@ import sys
 import time
 from pathlib import Path
 
-from lrf_jax import evaluation
+from lrf_jax import evaluation, extras
 from lrf_jax.cli.help import DefaultsHelpFormatter
 from lrf_jax.evaluation import runner
 from lrf_jax.evaluation.experiments import (DATASETS, EXPERIMENTS, POINTS_ONLY_DATASETS,
@@ -72,6 +72,11 @@ def main(argv=None) -> int:
   problem = _check(args)
   if problem:
     print(f"error: {problem}", file=sys.stderr)
+    return 2
+  try:  # matplotlib, fast-simplification, flax: the [eval] extra
+    extras.require("eval", "evaluate.py")
+  except extras.MissingExtraError as e:
+    print(f"error: {e}", file=sys.stderr)
     return 2
 
   t0 = time.perf_counter()

@@ -16,6 +16,8 @@ ImportError, so that the message says what to install instead of only what is mi
 
 from __future__ import annotations
 
+import importlib.util
+import sys
 from typing import Any
 
 EXTRAS = {
@@ -23,6 +25,11 @@ EXTRAS = {
     "eval": ("matplotlib", "fast-simplification", "flax"),
     "plot": ("matplotlib",),
 }
+
+
+# The module each extra's package is imported as.
+_MODULES = {"flax": "flax", "optax": "optax", "orbax-checkpoint": "orbax.checkpoint",
+            "matplotlib": "matplotlib", "fast-simplification": "fast_simplification"}
 
 
 class MissingExtraError(ImportError):
@@ -64,3 +71,25 @@ def matplotlib_module(extra: str = "plot", what: str = "the figures") -> Any:
   except ImportError as e:
     raise missing_extra(e.name, extra, what) from e
   return matplotlib
+
+
+def require(extra: str, what: str) -> None:
+  """Check, before any work, that every package of `extra` is installed (without importing
+  them): a job that needs them at its end (evaluate.py's figures) fails at its start instead.
+
+  Raises:
+    MissingExtraError: naming the first missing package and the extra.
+  """
+  for package in EXTRAS[extra]:
+    if not _installed(_MODULES[package]):
+      raise missing_extra(_MODULES[package], extra, what)
+
+
+def _installed(module: str) -> bool:
+  top = module.split(".")[0]
+  if top in sys.modules:
+    return sys.modules[top] is not None
+  try:
+    return importlib.util.find_spec(module) is not None
+  except (ImportError, ValueError):
+    return False

@@ -78,3 +78,19 @@ def test_a_missing_extra_is_named(code, blocked, extra):
   assert out.returncode != 0
   last = out.stderr.strip().splitlines()[-1]
   assert "MissingExtraError" in last and f"lrf_jax[{extra}]" in last, last
+
+
+def test_evaluate_py_names_the_eval_extra_before_any_work(tmp_path):
+  code = "import runpy; runpy.run_path('evaluate.py', run_name='__main__')"
+  out = _run_without(code, ("matplotlib",), ("--out", str(tmp_path / "o"), "--max-pairs", "1"))
+  assert out.returncode == 2, out.stderr[-3000:]
+  assert "error:" in out.stderr and "lrf_jax[eval]" in out.stderr and "matplotlib" in out.stderr
+  assert not (tmp_path / "o").exists()
+
+
+def test_require_sees_installed_and_blocked_packages():
+  out = _run_without("from lrf_jax import extras\nextras.require('train', 'x')\nprint('ok')",
+                     blocked=())
+  assert out.returncode == 0 and "ok" in out.stdout, out.stderr[-2000:]
+  out = _run_without("from lrf_jax import extras\nextras.require('train', 'x')", ("optax",))
+  assert out.returncode != 0 and "lrf_jax[train]" in out.stderr.strip().splitlines()[-1]

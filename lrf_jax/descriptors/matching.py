@@ -188,7 +188,7 @@ def _popcount(typingctx, word):
 
 @nb.njit(cache=True, nogil=True)
 def _occupancy_knn_kernel(a_bits, b_bits, a, b, a_ok, b_ok, k, lower, upper, spread, out_d2,
-                          out_idx, start, stop):
+                          out_idx, start, stop, h, counts, bd, bi):
   """The k nearest valid rows of `b` for the valid rows start..stop-1 of `a` (squared L2, ties:
   lower index). Serial and without the GIL: `_occupancy_knn` runs it on row blocks in threads
   (a `parallel=True` kernel compiles in twice the time on a first run).
@@ -197,16 +197,18 @@ def _occupancy_knn_kernel(a_bits, b_bits, a, b, a_ok, b_ok, k, lower, upper, spr
   XOR). Each such entry adds between `lower` and `upper` to the squared distance, every other
   entry at most `spread`: lower h <= d2 <= upper h + (D - h) spread. The k rows of least h bound
   the k-th distance by U = upper h_k + (D - h_k) spread, so a row with lower h > U is never among
-  the k nearest; the others get their exact distance (float64 sums).
+  the k nearest; the others get their exact distance (float64 sums). h (n,), counts (D + 2,),
+  bd (k,) and bi (k,) are the caller's scratch (int64, int64, float64, int64): no allocation
+  here.
   """
   n, dim = b.shape[0], a.shape[1]
   never = np.int64(1) << 62
   for i in range(start, stop):
     if not a_ok[i]:
       continue
-    h = np.full(n, never, np.int64)
     valid = 0
     for j in range(n):
+      h[j] = never
       if b_ok[j]:
         c = 0
         for w in range(a_bits.shape[1]):
@@ -215,7 +217,7 @@ def _occupancy_knn_kernel(a_bits, b_bits, a, b, a_ok, b_ok, k, lower, upper, spr
         valid += 1
     if valid == 0:
       continue
-    counts = np.zeros(dim + 2, np.int64)  # h_k, the k-th least h, by counting
+    counts[:] = 0  # h_k, the k-th least h, by counting
     for j in range(n):
       counts[min(h[j], dim + 1)] += 1
     hk, seen = 0, counts[0]
@@ -223,8 +225,8 @@ def _occupancy_knn_kernel(a_bits, b_bits, a, b, a_ok, b_ok, k, lower, upper, spr
       hk += 1
       seen += counts[hk]
     bound = (upper * hk + (dim - hk) * spread) * (1.0 + 1e-9)
-    bd = np.full(k, np.inf)
-    bi = np.zeros(k, np.int64)
+    bd[:] = np.inf
+    bi[:] = 0
     for j in range(n):
       if h[j] == never or lower * h[j] > bound:
         continue
@@ -276,11 +278,16 @@ def _occupancy_knn(a, b, a_ok, b_ok, k, form) -> tuple[np.ndarray, np.ndarray]:
           np.ascontiguousarray(b_ok), int(k), lower, upper, (hi - lo) ** 2, d2, idx)
   threads = max(1, min(nb.config.NUMBA_NUM_THREADS, len(a) // 64))
   edges = np.linspace(0, len(a), threads + 1).astype(np.int64)
+
+  def block(start: int, stop: int) -> None:
+    _occupancy_knn_kernel(*args, start, stop, np.empty(len(b), np.int64),
+                          np.empty(a.shape[1] + 2, np.int64), np.empty(k), np.empty(k, np.int64))
+
   if threads == 1:
-    _occupancy_knn_kernel(*args, 0, len(a))
+    block(0, len(a))
   else:
     with ThreadPoolExecutor(threads) as pool:
-      list(pool.map(lambda se: _occupancy_knn_kernel(*args, *se), zip(edges[:-1], edges[1:])))
+      list(pool.map(lambda se: block(*se), zip(edges[:-1], edges[1:])))
   return d2, idx
 
 

@@ -55,11 +55,7 @@ def missing_extra(package: str | None, extra: str, what: str) -> MissingExtraErr
 
 def pyplot(extra: str = "plot", what: str = "the figures") -> Any:
   """matplotlib.pyplot on the file-only Agg backend, or a `MissingExtraError` naming `extra`."""
-  try:
-    import matplotlib
-  except ImportError as e:
-    raise missing_extra(e.name, extra, what) from e
-  matplotlib.use("Agg")
+  matplotlib_module(extra, what).use("Agg")
   import matplotlib.pyplot as plt
   return plt
 

@@ -39,6 +39,7 @@ import numpy as np
 from numba.core import types
 from numba.extending import intrinsic
 
+from lrf_jax.search.grid import num_threads
 from lrf_jax.search.nearest import _insert
 
 
@@ -121,10 +122,11 @@ def _nearest(q: np.ndarray, r: np.ndarray, qv: np.ndarray, rv: np.ndarray, k: in
                        f"value far above an interval of the others (gap >= {OCCUPANCY_GAP:g} x "
                        "the interval); use search='dense' or 'auto'")
     return _nearest_dense(q, r, qv, rv, k, kc, block)
-  d2, idx = _occupancy_knn(q, r, qv, rv, k, form)
+  q_bits, r_bits = _occupancy_bits(q, form[0]), _occupancy_bits(r, form[0])
+  d2, idx = _occupancy_knn(q, r, q_bits, r_bits, qv, rv, k, form)
   if not kc:
     return d2, idx
-  return (d2, idx) + _occupancy_knn(r, q, rv, qv, kc, form)
+  return (d2, idx) + _occupancy_knn(r, q, r_bits, q_bits, rv, qv, kc, form)
 
 
 def _nearest_dense(q: np.ndarray, r: np.ndarray, qv: np.ndarray, rv: np.ndarray, k: int, kc: int,
@@ -266,17 +268,18 @@ def _occupancy_bits(x: np.ndarray, empty: float) -> np.ndarray:
   return np.ascontiguousarray(packed).view(np.uint64)
 
 
-def _occupancy_knn(a, b, a_ok, b_ok, k, form) -> tuple[np.ndarray, np.ndarray]:
-  """`_occupancy_knn_kernel` on float32 rows: (d2 (m, k) float64, idx (m, k) int64), inf and
-  index 0 past the valid rows (and for invalid rows of `a`)."""
+def _occupancy_knn(a, b, a_bits, b_bits, a_ok, b_ok, k, form) -> tuple[np.ndarray, np.ndarray]:
+  """`_occupancy_knn_kernel` on float32 rows and their `_occupancy_bits`, on the engine's threads
+  (`search.grid.num_threads`): (d2 (m, k) float64, idx (m, k) int64), inf and index 0 past the
+  valid rows (and for invalid rows of `a`)."""
   empty, lo, hi = form
   lower = (empty - hi) ** 2
   upper = (empty - lo) ** 2
   d2 = np.full((len(a), k), np.inf)
   idx = np.zeros((len(a), k), np.int64)
-  args = (_occupancy_bits(a, empty), _occupancy_bits(b, empty), a, b, np.ascontiguousarray(a_ok),
-          np.ascontiguousarray(b_ok), int(k), lower, upper, (hi - lo) ** 2, d2, idx)
-  threads = max(1, min(nb.config.NUMBA_NUM_THREADS, len(a) // 64))
+  args = (a_bits, b_bits, a, b, np.ascontiguousarray(a_ok), np.ascontiguousarray(b_ok), int(k),
+          lower, upper, (hi - lo) ** 2, d2, idx)
+  threads = max(1, min(num_threads(), len(a) // 64))
   edges = np.linspace(0, len(a), threads + 1).astype(np.int64)
 
   def block(start: int, stop: int) -> None:

@@ -41,14 +41,13 @@ import jax.numpy as jnp
 import numpy as np
 from jax.sharding import Mesh, NamedSharding, PartitionSpec as P
 
-from lrf_jax.extras import missing_extra
+from lrf_jax.extras import missing_extra, pyplot
 
 try:
   import orbax.checkpoint as ocp
 except ImportError as e:  # the [train] extra
   raise missing_extra(e.name, "train", "training (lrf_jax.learning.train_lib)") from e
 
-from lrf_jax.extras import pyplot
 from lrf_jax.learning import data_sources
 from lrf_jax.evaluation import metrics as metrics_lib
 from lrf_jax.learning.batches import Batch, BatchMaker, TrainingClouds, global_batch

@@ -160,3 +160,29 @@ def test_register_with_init_only_refines_and_does_not_claim_success():
     register(pair.model_points, pair.scene_points, init=bad, mr=pair.mr)
   with pytest.raises(ValueError, match="init"):
     register(pair.model_points, pair.scene_points, init=np.eye(3), mr=pair.mr)
+
+
+def test_second_order_equals_the_matrix_product():
+  """The popcount kernel against SC2-PCR's C_s (C C)_s, for N across word boundaries."""
+  rng = np.random.default_rng(5)
+  for n in (1, 63, 64, 65, 200):
+    c = (rng.random((n, n)) < 0.3).astype(np.float32)
+    c = np.triu(c, 1)
+    c = c + c.T
+    seeds = rng.choice(n, size=min(n, 7), replace=False)
+    np.testing.assert_array_equal(graph.second_order(c, seeds), c[seeds] * (c[seeds] @ c))
+
+
+def test_seeds_match_a_brute_force_greedy_suppression():
+  rng = np.random.default_rng(2)
+  pts = rng.uniform(size=(150, 3))
+  scores = np.round(rng.random(150), 1)  # ties: the smaller index first
+  scores[::7] = 0.0
+  want: list[int] = []
+  for i in sorted(range(150), key=lambda i: (-scores[i], i)):
+    if scores[i] <= 0 or len(want) >= 25:
+      break
+    if all(np.sum((pts[j] - pts[i]) ** 2) >= 0.1 ** 2 for j in want):
+      want.append(i)
+  np.testing.assert_array_equal(graph.select_seeds(pts, scores, 25, 0.1), want)
+  assert len(graph.select_seeds(pts, scores, 0, 0.1)) == 0

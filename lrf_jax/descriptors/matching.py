@@ -36,9 +36,8 @@ import jax
 import jax.numpy as jnp
 import numba as nb
 import numpy as np
-from numba.core import types
-from numba.extending import intrinsic
 
+from lrf_jax.search.bits import pack_rows, popcount
 from lrf_jax.search.grid import num_threads
 from lrf_jax.search.nearest import _insert
 
@@ -176,18 +175,6 @@ OCCUPANCY_GAP = 50.0
 SEARCHES = ("auto", "dense", "occupancy")
 
 
-@intrinsic
-def _popcount(typingctx, word):
-  """The number of set bits of an integer (LLVM's ctpop: one instruction on current CPUs)."""
-  if not isinstance(word, types.Integer):
-    return None
-
-  def codegen(context, builder, signature, args):
-    return builder.ctpop(args[0])
-
-  return word(word), codegen
-
-
 @nb.njit(cache=True, nogil=True)
 def _occupancy_knn_kernel(a_bits, b_bits, a, b, a_ok, b_ok, k, lower, upper, spread, out_d2,
                           out_idx, start, stop, h, counts, bd, bi):
@@ -214,7 +201,7 @@ def _occupancy_knn_kernel(a_bits, b_bits, a, b, a_ok, b_ok, k, lower, upper, spr
       if b_ok[j]:
         c = 0
         for w in range(a_bits.shape[1]):
-          c += _popcount(a_bits[i, w] ^ b_bits[j, w])
+          c += popcount(a_bits[i, w] ^ b_bits[j, w])
         h[j] = c
         valid += 1
     if valid == 0:
@@ -262,10 +249,7 @@ def _occupancy_form(q: np.ndarray, r: np.ndarray, qv: np.ndarray, rv: np.ndarray
 
 def _occupancy_bits(x: np.ndarray, empty: float) -> np.ndarray:
   """(m, ceil(D / 64)) uint64 masks of the entries equal to `empty`."""
-  packed = np.packbits(x == empty, axis=1, bitorder="little")
-  pad = (-packed.shape[1]) % 8
-  packed = np.pad(packed, ((0, 0), (0, pad)))
-  return np.ascontiguousarray(packed).view(np.uint64)
+  return pack_rows(x == empty)
 
 
 def _occupancy_knn(a, b, a_bits, b_bits, a_ok, b_ok, k, form) -> tuple[np.ndarray, np.ndarray]:

@@ -15,17 +15,18 @@ Chen et al. 2022; MAC, Zhang et al. 2023). The estimator:
    (spatial non-maximum suppression, as SC2-PCR);
 4. per seed s the second-order compatibilities SC2_sj = C_sj (C C)_sj, the number of
    correspondences compatible with both s and j (SC2-PCR's measure, computed for the seeds' rows
-   only); its consensus set: s and the `consensus` j of largest SC2_sj;
+   only, as popcounts of C's rows packed into bits: `second_order`); its consensus set: s and
+   the `consensus` j of largest SC2_sj;
 5. per seed one hypothesis: Kabsch on its consensus set weighted by the leading eigenvector of
    the set's own compatibility submatrix.
 
 Memory: C is an (N, N) float32 matrix for N correspondences (4 N^2 bytes: 4 MB at N = 1,000,
-36 MB at N = 3,000), filled by a numba kernel with no temporaries; the seeds' second-order rows
-are (seeds, N). `register` keeps N at its
+36 MB at N = 3,000), filled by a numba kernel with no temporaries, and its bit rows N^2 / 8
+bytes; the seeds' second-order rows are (seeds, N). `register` keeps N at its
 `n_correspondences` (at most `MAX_CORRESPONDENCES`).
 
-The compatibility matrix is a numba kernel, the rest numpy (BLAS for the products); no JAX
-program is traced or loaded.
+The compatibility matrix, the seeds' suppression and the second order are numba kernels, the
+rest numpy (BLAS for the spectral products); no JAX program is traced or loaded.
 """
 
 from __future__ import annotations
@@ -34,6 +35,7 @@ import numba as nb
 import numpy as np
 
 from lrf_jax.registration import host
+from lrf_jax.search.bits import pack_rows, popcount
 
 # Power iterations of the spectral score (enough to order the correspondences: the score only
 # picks the seeds, the consensus sets are chosen by second-order compatibility).
@@ -119,17 +121,68 @@ def select_seeds(points: np.ndarray, scores: np.ndarray, n_seeds: int, nms: floa
   """Up to `n_seeds` correspondence indices by decreasing score, none within `nms` of a better
   seed's source point (greedy spatial non-maximum suppression); zero scores are never seeds.
   Ties go to the smaller index. (S,) int64."""
-  order = np.lexsort((np.arange(len(scores)), -np.asarray(scores)))
-  pts = np.asarray(points, np.float64)
-  chosen: list[int] = []
-  nms2 = float(nms) ** 2
-  for i in order:
-    if scores[i] <= 0 or len(chosen) >= n_seeds:
+  scores = np.asarray(scores)
+  order = np.lexsort((np.arange(len(scores)), -scores))
+  out = np.empty(max(int(n_seeds), 0), np.int64)
+  count = _suppress(np.ascontiguousarray(points, np.float64), scores[order] > 0, order,
+                    float(nms) ** 2, out)
+  return out[:count]
+
+
+@nb.njit(cache=True)
+def _suppress(pts, positive, order, nms2, out):
+  """`select_seeds`' greedy pass over `order`: writes the seeds into `out`, returns their count."""
+  count = 0
+  for a in range(order.shape[0]):
+    if not positive[a] or count >= out.shape[0]:
       break
-    if chosen and np.min(np.sum((pts[chosen] - pts[i]) ** 2, axis=1)) < nms2:
-      continue
-    chosen.append(int(i))
-  return np.asarray(chosen, np.int64)
+    i = order[a]
+    free = True
+    for b in range(count):
+      j = out[b]
+      d2 = ((pts[j, 0] - pts[i, 0]) ** 2 + (pts[j, 1] - pts[i, 1]) ** 2
+            + (pts[j, 2] - pts[i, 2]) ** 2)
+      if d2 < nms2:
+        free = False
+        break
+    if free:
+      out[count] = i
+      count += 1
+  return count
+
+
+def second_order(c: np.ndarray, seeds: np.ndarray) -> np.ndarray:
+  """SC2-PCR's second-order compatibility of the seeds' rows: SC2_sj = C_sj (C C)_sj, the number
+  of correspondences compatible with both s and j where s and j are compatible, else 0.
+
+  Args:
+    c: (N, N) first-order compatibility, 0/1 (`compatibility`).
+    seeds: (S,) row indices.
+
+  Returns:
+    (S, N) float32, equal to `c[seeds] * (c[seeds] @ c)` (counts are exact in float32), from
+    popcounts of ANDed bit rows instead of a matrix product.
+  """
+  bits = pack_rows(np.asarray(c) > 0)
+  out = np.empty((len(seeds), len(c)), np.float32)
+  _second_order(bits, np.asarray(seeds, np.int64), out)
+  return out
+
+
+@nb.njit(cache=True)
+def _second_order(bits, seeds, out):
+  """`second_order`'s rows: popcount(row s AND row j) where bit j of row s is set."""
+  n, words = out.shape[1], bits.shape[1]
+  for a in range(seeds.shape[0]):
+    s = seeds[a]
+    for j in range(n):
+      if (bits[s, j >> 6] >> np.uint64(j & 63)) & np.uint64(1):
+        c = 0
+        for w in range(words):
+          c += popcount(bits[s, w] & bits[j, w])
+        out[a, j] = c
+      else:
+        out[a, j] = 0.0
 
 
 def graph_hypotheses(src: np.ndarray, dst: np.ndarray, rotations: np.ndarray | None, *,
@@ -156,8 +209,7 @@ def graph_hypotheses(src: np.ndarray, dst: np.ndarray, rotations: np.ndarray | N
   seeds = select_seeds(src, scores * (c.sum(axis=1) > 0), n_seeds, nms)
   if len(seeds) == 0:
     return np.zeros((0, 3, 3)), np.zeros((0, 3)), seeds, scores
-  rows = c[seeds]                        # (S, N)
-  sc2 = rows * (rows @ c)                # second order, seed rows only
+  sc2 = second_order(c, seeds)           # (S, N), seed rows only
   k = int(min(consensus, len(src) - 1))
   members = np.argsort(-sc2, axis=1, kind="stable")[:, :k]
   sets = np.concatenate([seeds[:, None], members], axis=1)       # (S, k + 1)
@@ -178,4 +230,5 @@ def graph_hypotheses(src: np.ndarray, dst: np.ndarray, rotations: np.ndarray | N
   return rs, ts, seeds, scores
 
 
-__all__ = ["compatibility", "graph_hypotheses", "leading_eigenvector", "select_seeds"]
+__all__ = ["compatibility", "graph_hypotheses", "leading_eigenvector", "second_order",
+           "select_seeds"]

@@ -79,22 +79,34 @@ def compatibility(src: np.ndarray, dst: np.ndarray, distance: float,
 
 @nb.njit(parallel=True, cache=True)
 def _compatibility(p, q, rf, distance, min_trace, use_rot, out):
-  """Rows of `compatibility` in parallel; each (i, j) and (j, i) computed alike (symmetric)."""
+  """`compatibility`'s matrix: the upper triangle, mirrored (each test is symmetric in i and j to
+  the bit); rows i and n - 1 - i in one parallel task, so that tasks have equal work."""
   n = p.shape[0]
-  for i in nb.prange(n):
-    for j in range(n):
-      if i == j:
-        out[i, j] = 0.0
-        continue
+  for task in nb.prange((n + 1) // 2):
+    _compatibility_row(p, q, rf, distance, min_trace, use_rot, out, task)
+    if n - 1 - task != task:
+      _compatibility_row(p, q, rf, distance, min_trace, use_rot, out, n - 1 - task)
+
+
+@nb.njit(cache=True)
+def _compatibility_row(p, q, rf, distance, min_trace, use_rot, out, i):
+  """Entries (i, j) and (j, i) for j >= i. The rotation test (nine products) goes first: most
+  pairs fail it and skip the two square roots."""
+  out[i, i] = 0.0
+  for j in range(i + 1, p.shape[0]):
+    ok = True
+    if use_rot:
+      tr = 0.0
+      for k in range(9):
+        tr += rf[i, k] * rf[j, k]
+      ok = tr > min_trace
+    if ok:
       dp = np.sqrt((p[i, 0] - p[j, 0]) ** 2 + (p[i, 1] - p[j, 1]) ** 2 + (p[i, 2] - p[j, 2]) ** 2)
       dq = np.sqrt((q[i, 0] - q[j, 0]) ** 2 + (q[i, 1] - q[j, 1]) ** 2 + (q[i, 2] - q[j, 2]) ** 2)
       ok = abs(dp - dq) < distance
-      if ok and use_rot:
-        tr = 0.0
-        for k in range(9):
-          tr += rf[i, k] * rf[j, k]
-        ok = tr > min_trace
-      out[i, j] = 1.0 if ok else 0.0
+    v = 1.0 if ok else 0.0
+    out[i, j] = v
+    out[j, i] = v
 
 
 def leading_eigenvector(matrix: np.ndarray, iterations: int = 30) -> np.ndarray:

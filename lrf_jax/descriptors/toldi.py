@@ -162,8 +162,9 @@ def toldi_descriptors_host(points: np.ndarray, keypoints: np.ndarray, radius: fl
   f = np.asarray(frames, np.float64)
   ok = np.asarray(valid, bool) & np.isfinite(f).all(axis=(1, 2))
   f = np.where(ok[:, None, None], np.nan_to_num(f), np.eye(3))
-  out = np.empty((len(centers), 3 * grid * grid))
+  # float32 rows written by the kernel (each depth rounded once, as a float64 image cast would)
+  out = np.empty((len(centers), 3 * grid * grid), np.float32)
   out_ok = np.empty(len(centers), np.bool_)
   _toldi_host_kernel(pts, centers, ptr, ball, np.ascontiguousarray(f), ok, float(radius),
                      int(grid), float(empty), out, out_ok)
-  return out.astype(np.float32), out_ok
+  return out, out_ok

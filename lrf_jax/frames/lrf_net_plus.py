@@ -7,6 +7,8 @@ and `area=`); this module holds the host side (numpy, outside jit) that gathers 
 * `prepare_view`: per keypoint, the direction z must not point away from (towards the sensor
   of a scan, along the mesh's or the caller's oriented normals, else along normals oriented from
   the points alone, `normals.orient_by_vote`) and how far that direction's sign is trusted;
+  its points-alone case is `points_only_view`, which training also calls
+  (`TrainConfig.z_view="voted"`, `configs/plus_points.py`) so that both orient z the same way;
 * `patch_areas`: the surface area each neighbour stands for (barycentric vertex areas on a mesh,
   the inverse sampling density on a cloud), so that x does not depend on the sampling;
 
@@ -79,39 +81,99 @@ def prepare_view(points, keypoints, patches, *, faces=None, normals=None, radius
   `trust` (see `ViewExtra`) is 1 for the first three and the vote margin for the fourth; 0 where
   `view` is 0.
   """
-  from lrf_jax.geometry.normals import NORMAL_RADIUS_RATIO, estimate_normals, voted_normals
+  from lrf_jax.geometry.normals import NORMAL_RADIUS_RATIO, estimate_normals
   pts = np.asarray(points, np.float64)
   kp = np.asarray(keypoints)
   trust = None
   if viewpoint is not None:
     view = np.asarray(viewpoint, np.float64)[None] - pts[kp]
-  elif patches is not None and radius is not None and (
-      oriented or normals is not None or faces is not None):
-    if normals is not None or faces is not None:
-      nrm = (np.asarray(normals, np.float64) if normals is not None else
-             estimate_normals(pts, NORMAL_RADIUS_RATIO * float(radius), faces))
-      per_point = None
-    else:
-      nrm, per_point = voted_normals(pts, NORMAL_RADIUS_RATIO * float(radius), float(radius))
-    idx = np.asarray(patches.indices)
-    off = np.asarray(patches.offsets, np.float64)
-    near = (idx >= 0) & (np.einsum("nkc,nkc->nk", off, off) <= (float(radius) / 3.0) ** 2)
-    near &= np.all(np.isfinite(nrm[np.maximum(idx, 0)]), axis=-1)
-    view = np.where(near[..., None], nrm[np.maximum(idx, 0)], 0.0).sum(1)
-    if per_point is not None:
-      trust = (np.where(near, per_point[np.maximum(idx, 0)], 0.0).sum(1)
-               / np.maximum(near.sum(1), 1))
-      view = np.where((trust >= MIN_VOTE_TRUST)[:, None], view, 0.0)  # else: ball_sign
+  elif patches is not None and radius is not None and (normals is not None or faces is not None):
+    nrm = (np.asarray(normals, np.float64) if normals is not None else
+           estimate_normals(pts, NORMAL_RADIUS_RATIO * float(radius), faces))
+    view, trust = support_view(nrm, None, patches, radius)
+  elif patches is not None and radius is not None and oriented:
+    view, trust = points_only_view(pts, patches, radius)
+    return ViewExtra(view, patch_areas(pts, patches, faces), trust)
   elif normals is not None:
     raise ValueError("prepare_view: normals need the patches and the radius")
   else:
     view = np.zeros((kp.shape[0], 3))
+  view, trust = _finish_view(view, trust)
+  return ViewExtra(view, patch_areas(pts, patches, faces) if patches is not None else None, trust)
+
+
+def points_only_normals(points: np.ndarray, radius: float) -> tuple[np.ndarray, np.ndarray]:
+  """The normals `prepare_view` orients from the points alone: `normals.voted_normals` (PCA over
+  `NORMAL_RADIUS_RATIO` r, propagation, each component's sign by convexity votes over r).
+
+  Args:
+    points: (n, 3) cloud (cloud units).
+    radius: support radius r (cloud units).
+
+  Returns:
+    (normals (n, 3) float64, trust (n,) float64 in [0, 1], the vote margin of each point's
+    component). They depend on the cloud and r only, so a caller may keep them for another set
+    of patches of the same cloud (`points_only_view(..., voted=)`).
+  """
+  from lrf_jax.geometry.normals import NORMAL_RADIUS_RATIO, voted_normals
+  return voted_normals(np.asarray(points, np.float64), NORMAL_RADIUS_RATIO * float(radius),
+                       float(radius))
+
+
+def points_only_view(points: np.ndarray, patches: Patches, radius: float, *,
+                     voted: tuple[np.ndarray, np.ndarray] | None = None
+                     ) -> tuple[np.ndarray, np.ndarray]:
+  """`prepare_view`'s view and trust for the points alone (no viewpoint, faces or normals):
+  `support_view` of `points_only_normals`. Training uses it (`TrainConfig.z_view="voted"`) so
+  that its z sign is the one inference gives.
+
+  Args:
+    points: (n, 3) cloud (cloud units).
+    patches: `Patches` of N keypoints of `points` (their `indices` and `offsets` are read).
+    radius: support radius r (cloud units).
+    voted: `points_only_normals(points, radius)` if already computed (None: computed here).
+
+  Returns:
+    (view (N, 3) float32, trust (N,) float32), as `ViewExtra.view` and `ViewExtra.trust`.
+  """
+  nrm, per_point = voted if voted is not None else points_only_normals(points, radius)
+  return _finish_view(*support_view(nrm, per_point, patches, radius))
+
+
+def support_view(normals: np.ndarray, per_point: np.ndarray | None, patches: Patches,
+                 radius: float) -> tuple[np.ndarray, np.ndarray | None]:
+  """The sum of the oriented normals of each patch's neighbours within r/3 (the z support).
+
+  Args:
+    normals: (n, 3) oriented normals of the cloud (NaN rows are skipped).
+    per_point: (n,) trust of each normal's sign (`points_only_normals`), or None (trusted).
+    patches: `Patches` of N keypoints of that cloud.
+    radius: support radius r (cloud units).
+
+  Returns:
+    (view (N, 3) float64, trust (N,) float64 or None): with `per_point`, trust is its mean over
+    the z support and the view is zeroed where it is below `MIN_VOTE_TRUST` (`ball_sign` then).
+  """
+  nrm, trust = normals, None
+  idx = np.asarray(patches.indices)
+  off = np.asarray(patches.offsets, np.float64)
+  near = (idx >= 0) & (np.einsum("nkc,nkc->nk", off, off) <= (float(radius) / 3.0) ** 2)
+  near &= np.all(np.isfinite(nrm[np.maximum(idx, 0)]), axis=-1)
+  view = np.where(near[..., None], nrm[np.maximum(idx, 0)], 0.0).sum(1)
+  if per_point is not None:
+    trust = (np.where(near, per_point[np.maximum(idx, 0)], 0.0).sum(1)
+             / np.maximum(near.sum(1), 1))
+    view = np.where((trust >= MIN_VOTE_TRUST)[:, None], view, 0.0)  # else: ball_sign
+  return view, trust
+
+
+def _finish_view(view: np.ndarray, trust: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
+  """(view (N, 3), trust (N,) or None) -> float32 `ViewExtra` fields: NaN views zeroed, trust 0
+  where the view is 0 and 1 where it is given without a trust."""
   view = np.nan_to_num(view)
   given = np.any(view != 0, axis=1)
   trust = np.where(given, 1.0 if trust is None else trust, 0.0)
-  return ViewExtra(view.astype(np.float32),
-                   patch_areas(pts, patches, faces) if patches is not None else None,
-                   trust.astype(np.float32))
+  return view.astype(np.float32), trust.astype(np.float32)
 
 
 AREA_NEIGHBOURS = 8

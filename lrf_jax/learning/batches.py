@@ -5,7 +5,9 @@ and the same model under a scene's ground truth). An epoch is one pass in a seed
 order; every batch is rebuilt from (seed, epoch, batch index) alone, with 256 points sampled
 independently on each side, so a resumed run sees exactly the batches it would have. In a
 multi-process run every process builds the same global batch from the seed and places only the
-rows of its own devices (`global_batch`).
+rows of its own devices (`global_batch`). With `config.z_view="voted"` each side of a batch also
+carries the view direction that orients z at inference from the points alone
+(`lrf_net_plus.points_only_view`).
 """
 
 from __future__ import annotations
@@ -17,6 +19,7 @@ import jax
 import numpy as np
 from jax.sharding import NamedSharding
 
+from lrf_jax.frames.lrf_net_plus import points_only_normals, points_only_view
 from lrf_jax.learning.config import TrainConfig
 from lrf_jax.search.neighborhoods import Patches, build_patches
 
@@ -73,10 +76,18 @@ def sample_training_keypoints(sizes: list[int], count: int, seed: int,
 
 
 class Batch(NamedTuple):
-  """Corresponding patches: `model[i]` and `scene[i]` are one training pair."""
+  """Corresponding patches: `model[i]` and `scene[i]` are one training pair.
+
+  `model_view` / `scene_view`: with `TrainConfig.z_view="voted"`, (N, 3) float32 per side, the
+  direction z must not point away from (`lrf_net_plus.points_only_view` on that side's cloud,
+  in cloud units; 0: the `z_sign` rule decides); None otherwise (no leaves: the batch is the
+  two `Patches` alone).
+  """
 
   model: Patches
   scene: Patches
+  model_view: np.ndarray | None = None
+  scene_view: np.ndarray | None = None
 
 
 def crop_patches(patches: Patches, p: float, min_dist: float,
@@ -119,7 +130,11 @@ class BatchMaker:
   independently and every epoch sees new subsamples. With `config.noise_mr`, each cloud's scene
   side gets, per epoch, Gaussian noise of a level drawn from the list (seeded by (seed, epoch,
   cloud)). With `config.crop_p`, patches are cut by random planes (`crop_patches`), seeded by
-  (seed, epoch, side, cloud).
+  (seed, epoch, side, cloud). With `config.z_view="voted"`, the view of every patch
+  (`epoch_views`) is computed with the patches, on the cloud they were searched in (the scene
+  side after its noise), as inference computes it from the points alone; the cloud's oriented
+  normals are kept for its unperturbed clouds (every model side, the scenes drawn without noise),
+  so later epochs only sum them over the new patches.
   """
 
   def __init__(self, clouds: TrainingClouds, config: TrainConfig):
@@ -127,6 +142,9 @@ class BatchMaker:
     self.config = config
     self._epoch: int | None = None
     self._patches: tuple[Patches, Patches] | None = None
+    self._views: tuple[np.ndarray | None, np.ndarray | None] = (None, None)
+    # Per (side, cloud): `points_only_normals` of that unperturbed cloud (z_view="voted").
+    self._voted: dict[tuple[int, int], tuple[np.ndarray, np.ndarray]] = {}
     # Per (side, cloud): the seed-independent fields (count, r/3 statistics) of the last patches
     # built on that cloud's unperturbed points, reused by the next epoch's search.
     self._stats: dict[tuple[int, int], Patches] = {}
@@ -143,29 +161,36 @@ class BatchMaker:
     rng = np.random.default_rng(_mix(self.config.seed, 4, epoch, cloud))
     return float(rng.choice(np.asarray(self.config.noise_mr)))
 
+  def side_points(self, epoch: int, side: int, cloud: int) -> tuple[np.ndarray, float]:
+    """The (n, 3) points `epoch` searches on `cloud`'s side `side` (0: model, 1: scene; the
+    scene with its noise of the epoch) and that noise level in mr (0 for the model side)."""
+    pts = self.clouds.models[cloud] if side == 0 else self.clouds.scenes[cloud]
+    level = self.noise_level(epoch, cloud) if side == 1 else 0.0
+    if level > 0:
+      rng = np.random.default_rng(_mix(self.config.seed, 5, epoch, cloud))
+      pts = pts + rng.normal(scale=level * self.clouds.mr[cloud], size=pts.shape)
+    return pts, level
+
   def epoch_patches(self, epoch: int) -> tuple[Patches, Patches]:
-    """(model, scene) patches of every training keypoint for `epoch`, rows as `keypoints`."""
+    """(model, scene) patches of every training keypoint for `epoch`, rows as `keypoints` (and,
+    with `config.z_view="voted"`, their views: `epoch_views`)."""
     if self._epoch == epoch:
       return self._patches
     cfg, kp = self.config, self.clouds.keypoints
     n, k = len(kp), cfg.patch_k
-    sides = []
+    sides, view_sides = [], []
     for side in (0, 1):
       seed = _mix(cfg.seed, 3, epoch, side)
       # The large fields are written in place by the search where a cloud's rows are one run
       # (the usual layout) and nothing rewrites them; the others are scattered below.
       # Uninitialised: build_patches (or the copy below) writes every row whole.
       big = (np.empty((n, k, 3), np.float32), np.empty((n, k), bool), np.empty((n, k), np.int32))
-      parts, rows = [], []
+      parts, rows, views = [], [], []
       for c in np.unique(kp[:, 0]):
         sel = np.flatnonzero(kp[:, 0] == c)
         if sel[-1] - sel[0] + 1 == len(sel):
           sel = slice(sel[0], sel[-1] + 1)
-        pts = self.clouds.models[c] if side == 0 else self.clouds.scenes[c]
-        level = self.noise_level(epoch, int(c)) if side == 1 else 0.0
-        if level > 0:
-          rng = np.random.default_rng(_mix(cfg.seed, 5, epoch, int(c)))
-          pts = pts + rng.normal(scale=level * self.clouds.mr[c], size=pts.shape)
+        pts, level = self.side_points(epoch, side, int(c))
         in_place = isinstance(sel, slice) and cfg.crop_p <= 0
         stats = self._stats.get((side, int(c))) if level == 0 else None
         part = build_patches(pts, kp[sel, 1], float(self.clouds.radii[c]), k, seed=seed,
@@ -176,6 +201,8 @@ class BatchMaker:
         if cfg.crop_p > 0:
           crop_rng = np.random.default_rng(_mix(cfg.seed, 6, epoch, side, int(c)))
           part = crop_patches(part, cfg.crop_p, cfg.crop_min, crop_rng)
+        if cfg.z_view == "voted":
+          views.append(self._view(side, int(c), pts, part, level))
         parts.append((part, in_place))
         rows.append(sel)
       fields = list(big) + [np.empty((n,) + a.shape[1:], a.dtype) for a in parts[0][0][3:]]
@@ -184,15 +211,43 @@ class BatchMaker:
           if not (in_place and i < 3):
             out[sel] = a
       sides.append(Patches(*fields))
+      view_sides.append(_scatter_rows(views, rows, n) if views else None)
     self._epoch, self._patches = epoch, (sides[0], sides[1])
+    self._views = (view_sides[0], view_sides[1])
     return self._patches
+
+  def epoch_views(self, epoch: int) -> tuple[np.ndarray | None, np.ndarray | None]:
+    """(model, scene) views of every training keypoint for `epoch`, rows as `keypoints`: (P, 3)
+    float32 each with `config.z_view="voted"` (see `Batch`), else (None, None)."""
+    self.epoch_patches(epoch)
+    return self._views
+
+  def _view(self, side: int, cloud: int, points: np.ndarray, patches: Patches,
+            level: float) -> np.ndarray:
+    """(N, 3) float32 view of `patches` on `points` (`cloud`'s side `side`, with noise `level`
+    in mr): `lrf_net_plus.points_only_view`, the cloud's normals kept when `level` is 0."""
+    radius = float(self.clouds.radii[cloud])
+    voted = self._voted.get((side, cloud)) if level == 0 else None
+    if voted is None:
+      voted = points_only_normals(points, radius)
+      if level == 0:
+        self._voted[side, cloud] = voted
+    return points_only_view(points, patches, radius, voted=voted)[0]
 
   def batch(self, epoch: int, step_in_epoch: int) -> Batch:
     """The host `Batch` (batch_size rows per side) of step `step_in_epoch` of `epoch`."""
     bs = self.config.batch_size
     rows = self.epoch_order(epoch)[step_in_epoch * bs:(step_in_epoch + 1) * bs]
     model, scene = self.epoch_patches(epoch)
-    return Batch(*(jax.tree.map(lambda a: a[rows], p) for p in (model, scene)))
+    return Batch(*(jax.tree.map(lambda a: a[rows], p) for p in (model, scene, *self._views)))
+
+
+def _scatter_rows(parts: list[np.ndarray], rows: list[slice | np.ndarray], n: int) -> np.ndarray:
+  """(n, ...) array holding `parts[i]` at rows `rows[i]` (every row is covered)."""
+  out = np.empty((n,) + parts[0].shape[1:], parts[0].dtype)
+  for part, sel in zip(parts, rows):
+    out[sel] = part
+  return out
 
 
 def global_batch(batch: Batch, sharding: NamedSharding) -> Batch:
@@ -200,6 +255,7 @@ def global_batch(batch: Batch, sharding: NamedSharding) -> Batch:
 
   Each process copies only the rows of its addressable devices, so no host data is exchanged
   between processes; in a single process this places exactly what `jax.device_put` would.
+  Absent views (None) stay None.
   """
   return jax.tree.map(
       lambda a: jax.make_array_from_callback(a.shape, sharding, lambda index: a[index]), batch)

@@ -28,7 +28,7 @@ try:
 except ImportError as e:  # the [train] extra
   raise missing_extra(e.name, "train", "training checkpoints (lrf_jax.learning.checkpoints)") from e
 
-from lrf_jax.learning.config import TrainConfig
+from lrf_jax.learning.config import TrainConfig, with_new_defaults
 from lrf_jax.learning.train_step import TrainState, create_state
 
 
@@ -66,6 +66,7 @@ def checkpoint_manager(workdir: Path, create: bool = True) -> ocp.CheckpointMana
 
 def check_compatible(saved: dict[str, Any], config: TrainConfig, where: Path) -> None:
   """Raise if a checkpoint was written under a config whose parameters differ in shape/meaning."""
+  saved = with_new_defaults(saved)
   diffs = [f for f in TrainConfig.MODEL_FIELDS
            if json.dumps(saved.get(f)) != json.dumps(getattr(config, f), default=list)]
   if diffs:

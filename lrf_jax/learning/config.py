@@ -33,6 +33,14 @@ class TrainConfig:
     z_mode: "normal" (paper: the TOLDI normal over r/3) or "dr" (regressed; ablation).
     z_sign: "toldi" (paper: sign from the r/3 neighbours) or "ball" (sign over the whole
       support; lrf_net_plus, beyond the paper).
+    z_view: "none" (z_sign decides everywhere) or "voted" (beyond the paper: lrf_net_plus from
+      the points alone): each batch carries, per side, the view direction that inference's
+      `lrf_net_plus.prepare_view` computes without a viewpoint, faces or normals
+      (`lrf_net_plus.points_only_view`: normals oriented over the whole cloud by convexity
+      votes, summed over the z support; 0 where the vote is not trusted), and z is flipped to
+      agree with it where it is non-zero (`lrf_net.view_sign`), as at inference; validation
+      orients z the same way. Needs the paper's model (z_mode "normal"; x_mode "sum", "max"
+      or "softmax").
     x_mode: "sum" (paper, the ablation's "Sum1"), "sum2", "dr" or "max" (ablation, see
       `lrf_jax.frames.ablation`; "max" has no gradient and reuses weights trained for "sum"), or
       "softmax" (beyond the paper: the outputs are log-weights, `lrf_net.softmax_weights`).
@@ -64,6 +72,7 @@ class TrainConfig:
   widths: tuple[int, ...] = (16, 32, 64)
   z_mode: str = "normal"
   z_sign: str = "toldi"
+  z_view: str = "none"
   x_mode: str = "sum"
   noise_mr: tuple[float, ...] = ()
   crop_p: float = 0.0
@@ -75,7 +84,7 @@ class TrainConfig:
 
   # Fields that change the shape or meaning of the parameters: a checkpoint written under other
   # values cannot be resumed.
-  MODEL_FIELDS = ("widths", "z_mode", "z_sign", "x_mode")
+  MODEL_FIELDS = ("widths", "z_mode", "z_sign", "z_view", "x_mode")
 
   def __post_init__(self):
     if self.data not in ("br", "demo"):
@@ -90,6 +99,13 @@ class TrainConfig:
       raise ValueError(f"config.z_sign: expected 'toldi' or 'ball', got {self.z_sign!r}")
     if self.z_mode not in ("normal", "dr"):
       raise ValueError(f"config.z_mode: expected 'normal' or 'dr', got {self.z_mode!r}")
+    if self.z_view not in ("none", "voted"):
+      raise ValueError(f"config.z_view: expected 'none' or 'voted', got {self.z_view!r}")
+    if self.z_view != "none" and (self.z_mode != "normal"
+                                  or self.x_mode not in ("sum", "max", "softmax")):
+      raise ValueError(f"config.z_view: {self.z_view!r} orients the z of LRF-Net's own frames; "
+                       f"expected z_mode 'normal' and x_mode 'sum', 'max' or 'softmax', got "
+                       f"z_mode {self.z_mode!r} and x_mode {self.x_mode!r} (or z_view 'none')")
     if not (_is_number(self.crop_p) and _is_number(self.crop_min)
             and 0.0 <= self.crop_p <= 1.0 and 0.0 <= self.crop_min < 1.0):
       raise ValueError(f"config.crop_p / crop_min: expected crop_p in [0, 1] and crop_min in "
@@ -114,7 +130,7 @@ class TrainConfig:
                        f"{self.num_train_keypoints} training keypoints (num_train_keypoints; one "
                        "epoch is one pass over them): lower batch_size or raise "
                        "num_train_keypoints")
-    for f in ("name", "data", "loss_reduction", "z_mode", "z_sign", "x_mode"):
+    for f in ("name", "data", "loss_reduction", "z_mode", "z_sign", "z_view", "x_mode"):
       if not isinstance(getattr(self, f), str):
         raise ValueError(f"config.{f}: expected a string, got {getattr(self, f)!r}")
     if self.data_root is not None and not isinstance(self.data_root, str):
@@ -156,6 +172,13 @@ class TrainConfig:
       raise ValueError(f"config: expected an object of field: value pairs, got "
                        f"{type(d).__name__}")
     return replace(cls(), **d)
+
+
+def with_new_defaults(saved: dict[str, Any]) -> dict[str, Any]:
+  """A config read back from a run (its config.json, a checkpoint's config) with the fields it
+  lacks, added to `TrainConfig` after it was written (e.g. `z_view`), at their defaults: the
+  behaviour that run had. Other keys are kept as they are."""
+  return {**json.loads(TrainConfig().to_json()), **saved}
 
 
 def _is_number(v: Any) -> bool:

@@ -67,8 +67,16 @@ def to_frame(offsets: jax.Array, frames: jax.Array) -> jax.Array:
   return jnp.einsum("nij,nkj->nki", frames, offsets)
 
 
+def frames_with_view(frames_fn, params: Params, patches: Patches,
+                     view: jax.Array | None) -> tuple[jax.Array, jax.Array]:
+  """`frames_fn(params, patches)`, or `frames_fn(params, patches, view)` with a (N, 3) `view`:
+  (frames (N, 3, 3), valid (N,)). A frames function that takes no view keeps working without."""
+  return frames_fn(params, patches) if view is None else frames_fn(params, patches, view)
+
+
 def siamese_loss(params: Params, model: Patches, scene: Patches, *, reduction: str = "min",
-                 x_mode: str = "sum", frames_fn=None) -> tuple[jax.Array, dict[str, jax.Array]]:
+                 x_mode: str = "sum", frames_fn=None, model_view: jax.Array | None = None,
+                 scene_view: jax.Array | None = None) -> tuple[jax.Array, dict[str, jax.Array]]:
   """The LRF-Net training loss (eq. `eq_loss`) over a batch of corresponding patch pairs.
 
   Both streams share `params`. Pairs where either frame is invalid are left out of the mean.
@@ -80,16 +88,20 @@ def siamese_loss(params: Params, model: Patches, scene: Patches, *, reduction: s
     reduction: Chamfer reduction, see `chamfer`.
     x_mode: "sum" or "max" (see `lrf_net_frames`).
     frames_fn: `(params, patches) -> (frames, valid)` replacing `lrf_net_frames` (ablation
-      variants); `x_mode` is then ignored.
+      variants); `x_mode` is then ignored. Given a view, it is called as
+      `(params, patches, view)`.
+    model_view, scene_view: optional (N, 3) direction each side's z must not point away from
+      where non-zero (`lrf_net.view_sign`; `Batch.model_view`, `TrainConfig.z_view`); None: none.
 
   Returns:
     (loss, aux): the mean Chamfer distance over valid pairs (cloud units); aux holds
     `per_pair` (N,), `valid` (N,) and `valid_fraction` ().
   """
   if frames_fn is None:
-    frames_fn = lambda p, patches: lrf_net_frames(p, patches, x_mode=x_mode)  # noqa: E731
-  fm, vm = frames_fn(params, model)
-  fs, vs = frames_fn(params, scene)
+    frames_fn = lambda p, patches, view=None: lrf_net_frames(  # noqa: E731
+        p, patches, x_mode=x_mode, view=view)
+  fm, vm = frames_with_view(frames_fn, params, model, model_view)
+  fs, vs = frames_with_view(frames_fn, params, scene, scene_view)
   per_pair = batched_chamfer(to_frame(model.offsets, fm), model.mask,
                              to_frame(scene.offsets, fs), scene.mask, reduction)
   valid = vm & vs

@@ -13,7 +13,9 @@ the state, optimiser and step in `lrf_jax.learning.train_step`, checkpoints in `
   metrics.jsonl, curves.png, final and best parameters) and shows the progress bar. The workdir
   must be one shared folder for all processes.
 * Validation: at the end of every epoch, MeanCos on fixed patches of validation pairs (by
-  default Stanford bunny scans), with the config's frames function jitted once per run.
+  default Stanford bunny scans), with the config's frames function jitted once per run; with
+  `z_view="voted"` z is oriented as lrf_net_plus orients it from the points alone (the views of
+  `lrf_net_plus.points_only_view`, computed once per run).
 * Checkpoints: at the end of every epoch, every `checkpoint_every` steps and at the last step; a
   restarted run resumes from the latest readable one, under the config it was started with
   (config.json): a different config is an error naming the fields, unless `replace_config`,
@@ -53,10 +55,12 @@ from lrf_jax.evaluation import metrics as metrics_lib
 from lrf_jax.learning.batches import Batch, BatchMaker, TrainingClouds, global_batch
 from lrf_jax.learning.checkpoints import (is_primary, nonfinite_leaves, restore_params, resume,
                                  save_checkpoint)
-from lrf_jax.learning.config import TrainConfig
+from lrf_jax.learning.config import TrainConfig, with_new_defaults
 from lrf_jax.datasets import repeatability_keypoints
 from lrf_jax.frames.lrf_net import MIN_Z_NEIGHBOURS
+from lrf_jax.frames.lrf_net_plus import points_only_view
 from lrf_jax.io import atomic
+from lrf_jax.learning.losses import frames_with_view
 from lrf_jax.learning.model import save_params
 from lrf_jax.search.neighborhoods import Patches, build_patches
 from lrf_jax.learning.train_step import TrainState, create_state, frames_fn, make_train_step
@@ -73,29 +77,38 @@ class ValidationSet:
     names: pair names.
     model, scene: per pair, the `Patches` of its keypoints on each side (rows correspond).
     rotations: per pair, the (3, 3) ground-truth rotation from model to scene.
-    frames: the jitted `(params, patches) -> (frames, valid)` of the run's model; built once,
-      so calls with patches of the shapes already seen reuse its compiled code.
+    frames: the jitted `(params, patches[, view]) -> (frames, valid)` of the run's model; built
+      once, so calls with patches of the shapes already seen reuse its compiled code.
+    model_view, scene_view: per pair, the (N, 3) float32 views of each side's patches
+      (`z_view="voted"`: `lrf_net_plus.points_only_view`, the points alone), or None.
   """
 
   names: list[str]
   model: list[Patches]
   scene: list[Patches]
   rotations: list[np.ndarray]
-  frames: Callable[[Any, Patches], tuple[jax.Array, jax.Array]]
+  frames: Callable[..., tuple[jax.Array, jax.Array]]
+  model_view: list[np.ndarray | None] | None = None
+  scene_view: list[np.ndarray | None] | None = None
 
 
 def build_validation(pairs: list[Any], config: TrainConfig) -> ValidationSet:
   """Patches for `config.val_keypoints` protocol keypoints per pair (`lrf_jax.datasets.Pair`),
-  and the config's frames function (`train_step.frames_fn`) jitted once."""
-  names, pm, ps, rots = [], [], [], []
+  and the config's frames function (`train_step.frames_fn`) jitted once. With
+  `config.z_view="voted"`, each side's views from its points alone, as lrf_net_plus computes them
+  without a viewpoint, faces or normals (`lrf_net_plus.points_only_view`)."""
+  names, pm, ps, rots, vm, vs = [], [], [], [], [], []
   for pair in pairs:
     mi, si = repeatability_keypoints(pair, config.val_keypoints, seed=config.seed)
     r = config.radius_mr * pair.mr
     pm.append(build_patches(pair.model_points, mi, r, config.patch_k, seed=config.seed))
     ps.append(build_patches(pair.scene_points, si, r, config.patch_k, seed=config.seed))
+    voted = config.z_view == "voted"
+    vm.append(points_only_view(pair.model_points, pm[-1], r)[0] if voted else None)
+    vs.append(points_only_view(pair.scene_points, ps[-1], r)[0] if voted else None)
     names.append(pair.name)
     rots.append(np.asarray(pair.transform)[:3, :3])
-  return ValidationSet(names, pm, ps, rots, jax.jit(frames_fn(config)))
+  return ValidationSet(names, pm, ps, rots, jax.jit(frames_fn(config)), vm, vs)
 
 
 def validate(params, val: ValidationSet) -> dict[str, float]:
@@ -105,9 +118,11 @@ def validate(params, val: ValidationSet) -> dict[str, float]:
     {"val_meancos": float (NaN without pairs), "val_per_pair": {name: float}}.
   """
   per_pair = {}
-  for name, pm, ps, rot in zip(val.names, val.model, val.scene, val.rotations):
-    fm, vm = val.frames(params, jax.tree.map(jnp.asarray, pm))
-    fs, vs = val.frames(params, jax.tree.map(jnp.asarray, ps))
+  none = [None] * len(val.names)
+  for name, pm, ps, rot, view_m, view_s in zip(val.names, val.model, val.scene, val.rotations,
+                                               val.model_view or none, val.scene_view or none):
+    fm, vm = frames_with_view(val.frames, params, jax.tree.map(jnp.asarray, pm), view_m)
+    fs, vs = frames_with_view(val.frames, params, jax.tree.map(jnp.asarray, ps), view_s)
     per_pair[name] = float(jnp.mean(metrics_lib.meancos(fm, fs, rot, vm, vs)))
   return {"val_meancos": float(np.mean(list(per_pair.values()))) if per_pair else float("nan"),
           "val_per_pair": per_pair}
@@ -392,6 +407,7 @@ def resume_config(workdir: Path, config: TrainConfig, replace: bool = False) -> 
   except (ValueError, UnicodeDecodeError) as e:
     raise ValueError(f"{saved_path}: the run's saved config is not readable ({e}); restore it "
                      "or choose another --workdir") from None
+  saved = with_new_defaults(saved)  # a run from before a field existed had its default
   wanted = json.loads(config.to_json())
   diffs = [k for k in sorted(set(saved) | set(wanted)) if saved.get(k) != wanted.get(k)]
   if not diffs:

@@ -56,12 +56,21 @@ def is_paper_model(config: TrainConfig) -> bool:
 
 
 def frames_fn(config: TrainConfig):
-  """`(params, patches) -> (frames, valid)` for the config's model (LRF-Net or an ablation)."""
+  """`(params, patches, view=None) -> (frames, valid)` for the config's model (LRF-Net or an
+  ablation). `view`: optional (N, 3) direction z must not point away from where non-zero
+  (`lrf_net.view_sign`; `config.z_view="voted"`, which only the paper's model takes)."""
   if is_paper_model(config):
-    return lambda p, patches: lrf_net_frames(p, patches, x_mode=config.x_mode,
-                                             z_sign=config.z_sign)
+    return lambda p, patches, view=None: lrf_net_frames(p, patches, x_mode=config.x_mode,
+                                                        z_sign=config.z_sign, view=view)
   x_mode = "sum1" if config.x_mode == "sum" else config.x_mode
-  return lambda p, patches: variant_frames(p, patches, z_mode=config.z_mode, x_mode=x_mode)
+
+  def variant(p, patches, view=None):
+    if view is not None:
+      raise ValueError(f"frames_fn: the ablation variant z_mode={config.z_mode!r} x_mode="
+                       f"{config.x_mode!r} takes no view (config.z_view)")
+    return variant_frames(p, patches, z_mode=config.z_mode, x_mode=x_mode)
+
+  return variant
 
 
 def create_state(config: TrainConfig) -> TrainState:
@@ -85,7 +94,8 @@ def make_train_step(config: TrainConfig):
 
   def loss_fn(params, batch: Batch):
     return siamese_loss(params, batch.model, batch.scene, reduction=config.loss_reduction,
-                        frames_fn=frames_fn(config))
+                        frames_fn=frames_fn(config), model_view=batch.model_view,
+                        scene_view=batch.scene_view)
 
   def train_step(state: TrainState, batch: Batch):
     (loss, aux), grads = jax.value_and_grad(loss_fn, has_aux=True)(state.params, batch)

@@ -221,9 +221,11 @@ def patch_areas(points: np.ndarray, patches: Patches,
   key = (pts,) if faces is None else (pts, np.asarray(faces))
   per_point = cache_last("point_area", key, compute)
   idx = np.asarray(patches.indices)
-  a = np.where(idx >= 0, per_point[np.maximum(idx, 0)], 0.0)
-  mean = a.sum(1, keepdims=True) / np.maximum((idx >= 0).sum(1, keepdims=True), 1)
-  return (a / np.where(mean > 0, mean, 1.0)).astype(np.float32)
+  a = np.append(per_point, 0.0)[idx]  # padding (index -1) reads the appended 0
+  count = np.count_nonzero(idx >= 0, axis=1)[:, None]
+  mean = a.sum(1, keepdims=True) / np.maximum(count, 1)
+  np.divide(a, np.where(mean > 0, mean, 1.0), out=a)
+  return a.astype(np.float32)
 
 
 # ------------------------------------------------------------------------------ sign confidence

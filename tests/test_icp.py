@@ -315,3 +315,46 @@ def test_register_without_the_fine_pass_is_one_icp_pass():
     assert err_r < 0.05 and err_t < 0.05
   with pytest.raises(ValueError, match="icp_fine"):
     register(cloud, target, icp_fine="yes")
+
+
+def test_revisited_finds_a_pose_within_the_tolerance():
+  rot = Rotation.from_rotvec([0.3, -0.2, 0.1]).as_matrix()
+  pose = to_transform(rot, np.array([1.0, 2.0, 3.0]))
+  near = to_transform(Rotation.from_rotvec([2e-8, 0.0, 0.0]).as_matrix() @ rot,
+                      pose[:3, 3] + [0.0, 1e-9, 0.0])
+  far = to_transform(Rotation.from_rotvec([2e-7, 0.0, 0.0]).as_matrix() @ rot, pose[:3, 3])
+  other = np.eye(4)
+  assert icp_host.revisited(near, [other, pose, pose], 0.1, 1e-7) == 1
+  assert icp_host.revisited(far, [other, pose], 0.1, 1e-7) is None
+  assert icp_host.revisited(pose, [], 0.1, 1e-7) is None
+
+
+def _wavy(rng, n):
+  uv = rng.uniform(-1, 1, size=(n, 2))
+  z = 0.2 * np.sin(3 * uv[:, 0]) * np.cos(2 * uv[:, 1])
+  return np.c_[uv, z] + rng.normal(scale=0.01, size=(n, 3))
+
+
+@pytest.mark.parametrize("seed", [1, 6, 7])
+def test_a_cycle_of_pairings_stops_at_its_best_pose(seed, monkeypatch):
+  """Two samplings of one surface whose pairing alternates near the optimum: the loop stops at
+  the cycle instead of the iteration cap, at a pose no worse than where the cap leaves it."""
+  rng = np.random.default_rng(seed)
+  src, dst = _wavy(rng, 400), _wavy(rng, 400)
+  init = to_transform(np.eye(3), np.array([0.03, -0.02, 0.01]))
+  steps = [0]
+  sums = icp_host.plane_sums
+
+  def counted(*a, **k):
+    steps[0] += 1
+    return sums(*a, **k)
+
+  monkeypatch.setattr(icp_host, "plane_sums", counted)
+  kw = dict(max_distance=0.15, iterations=60, tolerance=1e-7)
+  tr, _, rmse = icp_host.point_to_plane_icp(src, dst, init, **kw)
+  stopped = steps[0]
+  monkeypatch.setattr(icp_host, "revisited", lambda *a: None)
+  steps[0] = 0
+  _, _, rmse_cap = icp_host.point_to_plane_icp(src, dst, init, **kw)
+  assert steps[0] == 61 and stopped < 30
+  assert np.isfinite(tr).all() and rmse <= rmse_cap * (1 + 1e-9)

@@ -257,6 +257,30 @@ def estimate_target_normals(target: np.ndarray, max_distance: float,
   return pca_normals(pts, radius, grid=grid)
 
 
+# Poses `point_to_plane_icp` remembers to detect a cycle of pairings (`revisited`).
+CYCLE_MEMORY = 8
+
+
+def revisited(pose: np.ndarray, recent: list[np.ndarray], max_distance: float,
+              tolerance: float) -> int | None:
+  """The index of the first pose in `recent` that `pose` equals to within `tolerance` (the
+  convergence measure of `point_to_plane_icp`: the rotation angle between them in radians plus
+  their translations' distance over `max_distance`), else None.
+
+  Near convergence the pairing can alternate between a few sets of pairs: each step undoes the
+  previous ones and the pose returns to where it was (measured on room fragments: cycles of 2
+  and 5 poses from the 12th iteration on, to the iteration cap). Further steps only go round;
+  `point_to_plane_icp` stops there and keeps the cycle's pose of least mean squared distance.
+  """
+  for i, old in enumerate(recent):
+    rel = pose[:3, :3] @ old[:3, :3].T
+    axis = np.array([rel[2, 1] - rel[1, 2], rel[0, 2] - rel[2, 0], rel[1, 0] - rel[0, 1]])
+    angle = np.arctan2(0.5 * np.linalg.norm(axis), 0.5 * (np.trace(rel) - 1.0))  # exact near 0
+    if angle + np.linalg.norm(pose[:3, 3] - old[:3, 3]) / max_distance < tolerance:
+      return i
+  return None
+
+
 def point_to_plane_icp(source: np.ndarray, target: np.ndarray, init: np.ndarray, *,
                        max_distance: float, iterations: int, tolerance: float,
                        target_grid: engine.Grid | None = None,
@@ -265,7 +289,9 @@ def point_to_plane_icp(source: np.ndarray, target: np.ndarray, init: np.ndarray,
   """Point-to-plane ICP from `init` (what `registration.icp` runs in that mode).
 
   Stops when a step is below `tolerance` (its rotation in radians plus its translation over
-  `max_distance`) or has fewer than `MIN_PAIRS` pairs with a usable normal.
+  `max_distance`), has fewer than `MIN_PAIRS` pairs with a usable normal, or returns to one of
+  the last `CYCLE_MEMORY` poses (`revisited`: a cycle of pairings; the cycle's pose of least
+  mean squared pair distance is kept).
 
   Args:
     source: (n, 3) float64 source points.
@@ -302,6 +328,7 @@ def point_to_plane_icp(source: np.ndarray, target: np.ndarray, init: np.ndarray,
     return plane_sums(grid, normals, source, pose[:3, :3], pose[:3, 3], max_distance, center)
 
   cur = sums(tr)
+  recent = [(tr, cur)]  # the last CYCLE_MEMORY poses and their sums
   for _ in range(int(iterations)):
     if cur.plane_pairs < MIN_PAIRS:
       break
@@ -313,6 +340,11 @@ def point_to_plane_icp(source: np.ndarray, target: np.ndarray, init: np.ndarray,
     cur = sums(tr)
     if np.linalg.norm(x[:3]) + np.linalg.norm(move[:3, 3]) / max_distance < tolerance:
       break
+    back = revisited(tr, [pose for pose, _ in recent], max_distance, tolerance)
+    if back is not None:  # a cycle of pairings: the pose of least mean squared distance
+      tr, cur = min(recent[back:], key=lambda e: e[1].sq_distance / max(e[1].pairs, 1))
+      break
+    recent = (recent + [(tr, cur)])[-CYCLE_MEMORY:]
   rmse = np.sqrt(cur.sq_distance / cur.pairs) if cur.pairs else float("inf")
   return tr, (cur.pairs / len(source) if len(source) else 0.0), float(rmse)
 

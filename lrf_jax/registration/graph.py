@@ -25,8 +25,9 @@ Memory: C is an (N, N) float32 matrix for N correspondences (4 N^2 bytes: 4 MB a
 bytes; the seeds' second-order rows are (seeds, N). `register` keeps N at its
 `n_correspondences` (at most `MAX_CORRESPONDENCES`).
 
-The compatibility matrix, the seeds' suppression and the second order are numba kernels, the
-rest numpy (BLAS for the spectral products); no JAX program is traced or loaded.
+The compatibility matrix and the seeds' suppression are numba kernels, the rest numpy (BLAS for
+the spectral products, `np.bitwise_count` for the second order); no JAX program is traced or
+loaded.
 """
 
 from __future__ import annotations
@@ -35,7 +36,7 @@ import numba as nb
 import numpy as np
 
 from lrf_jax.registration import host
-from lrf_jax.search.bits import pack_rows, popcount
+from lrf_jax.search.bits import pack_rows
 
 # Power iterations of the spectral score (enough to order the correspondences: the score only
 # picks the seeds, the consensus sets are chosen by second-order compatibility).
@@ -80,33 +81,31 @@ def compatibility(src: np.ndarray, dst: np.ndarray, distance: float,
 @nb.njit(parallel=True, cache=True)
 def _compatibility(p, q, rf, distance, min_trace, use_rot, out):
   """`compatibility`'s matrix: the upper triangle, mirrored (each test is symmetric in i and j to
-  the bit); rows i and n - 1 - i in one parallel task, so that tasks have equal work."""
+  the bit); rows i and n - 1 - i in one parallel task, so that tasks have equal work. The
+  rotation test (nine products) goes first: most pairs fail it and skip the two square roots."""
   n = p.shape[0]
   for task in nb.prange((n + 1) // 2):
-    _compatibility_row(p, q, rf, distance, min_trace, use_rot, out, task)
-    if n - 1 - task != task:
-      _compatibility_row(p, q, rf, distance, min_trace, use_rot, out, n - 1 - task)
-
-
-@nb.njit(cache=True)
-def _compatibility_row(p, q, rf, distance, min_trace, use_rot, out, i):
-  """Entries (i, j) and (j, i) for j >= i. The rotation test (nine products) goes first: most
-  pairs fail it and skip the two square roots."""
-  out[i, i] = 0.0
-  for j in range(i + 1, p.shape[0]):
-    ok = True
-    if use_rot:
-      tr = 0.0
-      for k in range(9):
-        tr += rf[i, k] * rf[j, k]
-      ok = tr > min_trace
-    if ok:
-      dp = np.sqrt((p[i, 0] - p[j, 0]) ** 2 + (p[i, 1] - p[j, 1]) ** 2 + (p[i, 2] - p[j, 2]) ** 2)
-      dq = np.sqrt((q[i, 0] - q[j, 0]) ** 2 + (q[i, 1] - q[j, 1]) ** 2 + (q[i, 2] - q[j, 2]) ** 2)
-      ok = abs(dp - dq) < distance
-    v = 1.0 if ok else 0.0
-    out[i, j] = v
-    out[j, i] = v
+    for side in range(2):
+      i = task + side * (n - 1 - 2 * task)  # task, then n - 1 - task
+      if side == 1 and i == task:
+        break
+      out[i, i] = 0.0
+      for j in range(i + 1, n):
+        ok = True
+        if use_rot:
+          tr = 0.0
+          for k in range(9):
+            tr += rf[i, k] * rf[j, k]
+          ok = tr > min_trace
+        if ok:
+          dp = np.sqrt((p[i, 0] - p[j, 0]) ** 2 + (p[i, 1] - p[j, 1]) ** 2
+                       + (p[i, 2] - p[j, 2]) ** 2)
+          dq = np.sqrt((q[i, 0] - q[j, 0]) ** 2 + (q[i, 1] - q[j, 1]) ** 2
+                       + (q[i, 2] - q[j, 2]) ** 2)
+          ok = abs(dp - dq) < distance
+        v = 1.0 if ok else 0.0
+        out[i, j] = v
+        out[j, i] = v
 
 
 def leading_eigenvector(matrix: np.ndarray, iterations: int = 30) -> np.ndarray:
@@ -173,28 +172,21 @@ def second_order(c: np.ndarray, seeds: np.ndarray) -> np.ndarray:
 
   Returns:
     (S, N) float32, equal to `c[seeds] * (c[seeds] @ c)` (counts are exact in float32), from
-    popcounts of ANDed bit rows instead of a matrix product.
+    popcounts of ANDed bit rows (`np.bitwise_count`) at the non-zero C_sj only, instead of a
+    matrix product.
   """
   bits = pack_rows(np.asarray(c) > 0)
-  out = np.empty((len(seeds), len(c)), np.float32)
-  _second_order(bits, np.asarray(seeds, np.int64), out)
+  seeds = np.asarray(seeds, np.int64)
+  out = np.zeros((len(seeds), len(c)), np.float32)
+  rows, cols = np.nonzero(np.asarray(c)[seeds])
+  for lo in range(0, len(rows), SECOND_ORDER_CHUNK):  # bounded temporaries
+    r, j = rows[lo:lo + SECOND_ORDER_CHUNK], cols[lo:lo + SECOND_ORDER_CHUNK]
+    out[r, j] = np.bitwise_count(bits[seeds[r]] & bits[j]).sum(axis=1)
   return out
 
 
-@nb.njit(cache=True)
-def _second_order(bits, seeds, out):
-  """`second_order`'s rows: popcount(row s AND row j) where bit j of row s is set."""
-  n, words = out.shape[1], bits.shape[1]
-  for a in range(seeds.shape[0]):
-    s = seeds[a]
-    for j in range(n):
-      if (bits[s, j >> 6] >> np.uint64(j & 63)) & np.uint64(1):
-        c = 0
-        for w in range(words):
-          c += popcount(bits[s, w] & bits[j, w])
-        out[a, j] = c
-      else:
-        out[a, j] = 0.0
+# Non-zero entries per step of `second_order` (its temporaries: 8 N / 64 bytes each).
+SECOND_ORDER_CHUNK = 65536
 
 
 def graph_hypotheses(src: np.ndarray, dst: np.ndarray, rotations: np.ndarray | None, *,

@@ -1,8 +1,8 @@
-"""Rows of booleans as bit masks, and the popcount that counts them (numba).
+"""Rows of booleans as bit masks, and the popcount that counts their set bits in numba kernels.
 
-Two kernels count set bits of ANDed or XORed rows: the occupancy search of
-`descriptors.matching` (entries empty in exactly one of two descriptors) and the second-order
-compatibility of `registration.graph` (correspondences compatible with both of two).
+Set bits of XORed or ANDed rows count the entries empty in exactly one of two descriptors (the
+occupancy search of `descriptors.matching`, a numba kernel) and the correspondences compatible
+with both of two (the second order of `registration.graph`, with numpy's `np.bitwise_count`).
 """
 
 from __future__ import annotations

@@ -33,6 +33,7 @@ import dataclasses
 import json
 import math
 import sys
+import textwrap
 import time
 from pathlib import Path
 from typing import Any, NamedTuple
@@ -496,7 +497,7 @@ def plot_curves(log_path: Path, out: Path, title: str = "validation") -> None:
   ax[0].set(xlabel="step", ylabel="Chamfer loss", title="training loss")
   val = [r for r in rows if "val_meancos" in r]
   ax[1].plot([r["epoch"] for r in val], [r["val_meancos"] for r in val], marker="o")
-  ax[1].set(xlabel="epoch", ylabel="MeanCos", title=title)
+  ax[1].set(xlabel="epoch", ylabel="MeanCos", title=textwrap.fill(title, 48))  # no clipping
   fig.tight_layout()
   atomic.save_figure(fig, out, dpi=120)
   plt.close(fig)

@@ -28,6 +28,21 @@ def test_shipped_weights_are_the_default_and_documented():
     np.testing.assert_array_equal(a, b)
 
 
+def test_points_only_weights_load_and_are_documented():
+  """lrf_net_plus_points.msgpack: lrf_net_plus's network trained with z from the points alone
+  (preset plus_points); shipped beside the default weights, not instead of them."""
+  card = json.loads((WEIGHTS_DIR / "lrf_net_plus_points.json").read_text())
+  assert card["config"]["name"] == "plus_points" and card["config"]["z_view"] == "voted"
+  rows = card["validation_curve"]["rows"]
+  assert len(rows) == card["config"]["epochs"]
+  assert card["selected_val_meancos"] == max(r[2] for r in rows)
+  points = lrf_jax.default_params("lrf_net_plus_points")
+  plus = lrf_jax.default_params("lrf_net_plus")
+  assert jax.tree.structure(points) == jax.tree.structure(plus)
+  assert all(np.isfinite(a).all() for a in _leaves(points))
+  assert any(not np.array_equal(a, b) for a, b in zip(_leaves(points), _leaves(plus)))
+
+
 def test_default_params_first_called_inside_jit_do_not_leak_tracers():
   from lrf_jax.learning.model import _default_params_cached
   _default_params_cached.cache_clear()

@@ -247,3 +247,36 @@ def test_bad_inputs_raise():
     select_correspondences(np.zeros((3, 4)), np.zeros((3, 5)))
   with pytest.raises(ValueError, match="valid flags"):
     select_correspondences(np.zeros((3, 4)), np.zeros((3, 4)), np.ones(2, bool))
+
+
+def _form_reference(q, r, qv, rv):
+  """`_occupancy_form` by its definition, on copies of the valid entries (a valid entry that is
+  not finite is neither empty nor in an interval)."""
+  rows = [x[v] for x, v in ((q, qv), (r, rv)) if v.any()]
+  if not rows or not all(np.isfinite(x).all() for x in rows):
+    return None
+  empty = max(float(x.max()) for x in rows)
+  filled = [f for f in (x[x != empty] for x in rows) if f.size]
+  if not filled or not np.isfinite(empty):
+    return None
+  lo, hi = min(float(f.min()) for f in filled), max(float(f.max()) for f in filled)
+  if not np.isfinite(lo) or empty - hi < 50.0 * (hi - lo) or empty <= hi:
+    return None
+  return empty, lo, hi
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_occupancy_form_matches_its_definition(seed):
+  rng = np.random.default_rng(seed)
+  q = rng.uniform(-0.5, 1.0, (40, 24)).astype(np.float32)
+  r = rng.uniform(0.0, 1.0, (30, 24)).astype(np.float32)
+  for x in (q, r):
+    x[rng.random(x.shape) < 0.6] = 100.0
+  q[3] = 100.0                       # a row with no other entry
+  r[4, 0] = np.nan                   # NaN in a row that may be invalid
+  qv, rv = rng.random(40) < 0.8, rng.random(30) < 0.7
+  cases = [(q, r, qv, rv), (q, r, qv, rv & (np.arange(30) != 4)), (q * 1e30, r, qv, rv),
+           (q, r, np.zeros(40, bool), rv), (np.full_like(q, 100.0), r[:, :24] * 0 + 100.0, qv,
+                                             rv), (q - 200.0, r, qv, rv)]
+  for c in cases:
+    assert _occupancy_form(*c) == _form_reference(*c)

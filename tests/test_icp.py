@@ -358,3 +358,23 @@ def test_a_cycle_of_pairings_stops_at_its_best_pose(seed, monkeypatch):
   _, _, rmse_cap = icp_host.point_to_plane_icp(src, dst, init, **kw)
   assert steps[0] == 61 and stopped < 30
   assert np.isfinite(tr).all() and rmse <= rmse_cap * (1 + 1e-9)
+
+
+def test_overlap_points_are_the_source_within_the_distance():
+  from lrf_jax.registration.pipeline import overlap_points
+  rng = np.random.default_rng(0)
+  target = rng.uniform(0, 1, size=(2000, 3)) * [1.0, 1.0, 0.0]   # the unit square, z = 0
+  source = rng.uniform(-1, 2, size=(3000, 3)) * [1.0, 1.0, 0.0]
+  source[:, 2] = rng.choice([0.0, 0.5], size=3000)                  # half of them lifted
+  grid = engine.Grid(target, 0.05)
+  pose = np.eye(4)
+  got = overlap_points(source, grid, pose, 0.05, 10_000, np.random.default_rng(1),
+                       fallback=source[:3])
+  d = cKDTree(target).query(source)[0]
+  np.testing.assert_array_equal(got, source[d <= 0.05])
+  few = overlap_points(source, grid, pose, 0.05, 50, np.random.default_rng(1), fallback=source)
+  assert len(few) == 50 and np.all(cKDTree(target).query(few)[0] <= 0.05)
+  moved = to_transform(np.eye(3), np.array([0.0, 0.0, 10.0]))     # no overlap: the fallback
+  np.testing.assert_array_equal(overlap_points(source, grid, moved, 0.05, 50,
+                                               np.random.default_rng(1), fallback=source[:3]),
+                                source[:3])

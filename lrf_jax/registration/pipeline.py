@@ -202,7 +202,8 @@ def register(source: Any, target: Any, *, mr: float | None = None, radius_mr: fl
      inliers;
   5. point-to-plane ICP (pairs within icp_mr mr, target normals by PCA) on up to `ICP_POINTS`
      seeded source points; with `icp_fine` (default) a second pass at an adaptive gate
-     (`fine_distance`: 1.5 x the median residual, 1 mr to icp_mr mr);
+     (`fine_distance`: 1.5 x the median residual, 1 mr to icp_mr mr) on up to `ICP_POINTS`
+     source points drawn among those within icp_mr mr of the target (`overlap_points`);
   6. the verdict (`verdict`): "graph" claims success when the winner's inliers are at least
      `VERDICT_GRAPH_FACTOR` times (+ `VERDICT_GRAPH_MARGIN`) both what chance alignment reaches
      on the correspondences shuffled and what the best distinct pose explains outside them.
@@ -305,7 +306,8 @@ def register(source: Any, target: Any, *, mr: float | None = None, radius_mr: fl
     if len(src_pts) > ICP_POINTS:
       icp_src = src_pts[np.sort(setup.rng.choice(len(src_pts), ICP_POINTS, replace=False))]
     final, fitness, rmse = _refine(icp_src, dst_pts, res.transform, overlap_distance,
-                                   icp_fine, setup.mr, icp_iterations, target_grid, icp_mode)
+                                   icp_fine, setup.mr, icp_iterations, target_grid, icp_mode,
+                                   pool=src_pts, rng=setup.rng)
   n_corr = len(qi)
   contrast = overlap_contrast(fits)
   evidence = Evidence(n_inliers=res.n_inliers, chance_inliers=chance, rival_inliers=rival,
@@ -343,10 +345,16 @@ def _check_rigid(t: Any, name: str) -> np.ndarray:
 
 def _refine(source: np.ndarray, target: np.ndarray, init: np.ndarray, distance: float,
             fine: bool, mr: float, iterations: int, grid: engine.Grid | None,
-            mode: str) -> tuple[np.ndarray, float, float]:
+            mode: str, pool: np.ndarray | None = None,
+            rng: np.random.Generator | None = None) -> tuple[np.ndarray, float, float]:
   """ICP at `distance`; then, with `fine`, again at the gate `fine_distance` of the first pass's
   residuals with the same target normals. Fitness and rmse are those at `distance` of the
-  returned pose (what the verdict and `Registration.overlap` read)."""
+  returned pose (what the verdict and `Registration.overlap` read), over `source`.
+
+  With `pool` (the whole source cloud, of which `source` is a seeded subset) the second pass
+  pairs up to `ICP_POINTS` points drawn by `rng` among the pool's points that lie within
+  `distance` of the target at the first pass's pose (`overlap_points`): on a partial overlap
+  all of them can pair, instead of the overlap's share of a uniform subset."""
   if not fine or iterations == 0:
     return icp(source, target, init, max_distance=distance, iterations=iterations,
                target_grid=grid, mode=mode)
@@ -357,9 +365,40 @@ def _refine(source: np.ndarray, target: np.ndarray, init: np.ndarray, distance: 
   kw: dict[str, Any] = dict(target_grid=grid, target_normals=normals, mode=mode)
   coarse, _, _ = icp(source, target, init, max_distance=distance, iterations=iterations, **kw)
   gate = fine_distance(source, grid, coarse, distance, mr)
-  tr, _, _ = icp(source, target, coarse, max_distance=gate, iterations=iterations, **kw)
+  fine_src = source
+  if pool is not None and rng is not None:
+    fine_src = overlap_points(pool, grid, coarse, distance, ICP_POINTS, rng, fallback=source)
+  tr, _, _ = icp(fine_src, target, coarse, max_distance=gate, iterations=iterations, **kw)
   _, fitness, rmse = icp(source, target, tr, max_distance=distance, iterations=0, **kw)
   return tr, fitness, rmse
+
+
+def overlap_points(points: np.ndarray, grid: engine.Grid, transform: np.ndarray,
+                   distance: float, count: int, rng: np.random.Generator,
+                   fallback: np.ndarray) -> np.ndarray:
+  """Up to `count` of `points` (sorted by index, drawn by `rng`) whose image under `transform`
+  has a grid point within `distance`: the source's part of the overlap, for `register`'s second
+  ICP pass. `fallback` where fewer than `icp_host.MIN_PAIRS` points lie there.
+
+  Args:
+    points: (n, 3) source points (float64).
+    grid: an `engine.Grid` of the target.
+    transform: (4, 4) source -> target.
+    distance: the overlap distance (cloud units).
+    count: at most this many points.
+    rng: the generator that draws them.
+    fallback: (m, 3) returned when the overlap is too small.
+
+  Returns:
+    (k, 3) float64 points, k <= count.
+  """
+  moved = points @ transform[:3, :3].T + transform[:3, 3]
+  near = np.flatnonzero(np.isfinite(engine.knn(grid, moved, 1, distance)[0][:, 0]))
+  if len(near) < icp_host.MIN_PAIRS:
+    return fallback
+  if len(near) > count:
+    near = np.sort(rng.choice(near, count, replace=False))
+  return points[near]
 
 
 def fine_distance(source: np.ndarray, grid: engine.Grid, transform: np.ndarray,
@@ -427,7 +466,7 @@ def _refine_only(source, target, init, *, mr, icp_iterations, icp_mr, seed, time
     if len(src_pts) > ICP_POINTS:
       icp_src = src_pts[np.sort(rng.choice(len(src_pts), ICP_POINTS, replace=False))]
     final, fitness, rmse = _refine(icp_src, dst_pts, init, distance, icp_fine, mr,
-                                   icp_iterations, None, icp_mode)
+                                   icp_iterations, None, icp_mode, pool=src_pts, rng=rng)
   return Registration(transform=final, coarse_transform=init, inliers=np.zeros(0, bool),
                       n_inliers=0, correspondences=np.zeros((0, 2), np.int64), fitness=fitness,
                       rmse=rmse, mr=float(mr), seconds=timer.total(),
@@ -436,8 +475,9 @@ def _refine_only(source, target, init, *, mr, icp_iterations, icp_mr, seed, time
                               f"optimum); {fitness:.0%} of the source lies on the target"),
                       overlap=fitness)
 
-# Source points ICP pairs per iteration (a seeded subset of larger clouds); fitness and rmse are
-# measured on them.
+# Source points ICP pairs per iteration (a seeded subset of larger clouds; in the second pass,
+# of the part within the overlap distance, `overlap_points`); fitness and rmse are measured on
+# the first subset.
 ICP_POINTS = 5000
 
 

@@ -82,20 +82,23 @@ def apply_weights(params: Params, attrs: jax.Array) -> jax.Array:
 def apply_weights_numpy(params: Params, attrs: np.ndarray) -> np.ndarray:
   """`apply_weights` in numpy float32 for host callers (no JAX program to trace, lower and
   load): the same layers, equal up to float32 rounding (the matrix products sum in another
-  order). attrs (..., K, A) -> weights (..., K)."""
+  order). attrs (..., K, A) -> weights (..., K). numpy's BLAS runs on one thread here
+  (`search.grid.serial_blas`)."""
   def dense(layer, h):
     return h @ np.asarray(layer["kernel"], np.float32) + np.asarray(layer["bias"], np.float32)
 
+  from lrf_jax.search.grid import serial_blas  # pylint: disable=import-outside-toplevel
   n_enc = _num_enc(params)
   h = np.asarray(attrs, np.float32)
   skips = []
-  for i in range(n_enc):
-    h = np.maximum(dense(params[f"enc{i}"], h), 0.0)
-    skips.append(h)
-  skips.pop()
-  for i in range(n_enc - 1):
-    h = np.concatenate([np.maximum(dense(params[f"dec{i}"], h), 0.0), skips.pop()], axis=-1)
-  return dense(params["out"], h)[..., 0]
+  with serial_blas():  # threaded BLAS beside numba's threads: up to 25x slower on 2 cores
+    for i in range(n_enc):
+      h = np.maximum(dense(params[f"enc{i}"], h), 0.0)
+      skips.append(h)
+    skips.pop()
+    for i in range(n_enc - 1):
+      h = np.concatenate([np.maximum(dense(params[f"dec{i}"], h), 0.0), skips.pop()], axis=-1)
+    return dense(params["out"], h)[..., 0]
 
 
 def _num_enc(params: Params) -> int:

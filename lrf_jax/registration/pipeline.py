@@ -25,7 +25,6 @@ import time
 from typing import Any, NamedTuple
 
 import numpy as np
-from threadpoolctl import threadpool_limits
 
 from lrf_jax.api import compute_frames
 from lrf_jax.descriptors import DESCRIPTORS, compute_descriptors, select_correspondences
@@ -41,6 +40,7 @@ from lrf_jax.registration.evidence import (CHANCE_SHUFFLES, RIVAL_DEG, Evidence,
                                            verdict)
 from lrf_jax.registration.icp_host import icp
 from lrf_jax.search import engine
+from lrf_jax.search.grid import serial_blas
 from lrf_jax.search.neighborhoods import validate_seed, validate_viewpoint
 
 # ------------------------------------------------------------------------------------------------
@@ -286,14 +286,14 @@ def register(source: Any, target: Any, *, mr: float | None = None, radius_mr: fl
   src_pts, dst_pts = setup.sides[0].points, setup.sides[1].points
   p, q = src_pts[kp_s[qi]], dst_pts[kp_t[ri]]
   threshold = inlier_mr * setup.mr
-  with timer("hypotheses"), _serial_blas():
+  with timer("hypotheses"), serial_blas():
     src, dst, cs, cd = _centred(p, q)
     rs, ts = _hypotheses(src, dst, f_s[qi], f_t[ri], estimator, iterations, setup.radius, seed,
                          float(threshold))
     counts = host.count_inliers(rs, ts, src, dst, threshold)
     chance = _chance_inliers(src, dst, f_s[qi], f_t[ri], estimator, iterations, setup.radius,
                              seed, float(threshold))
-  with timer("verification"), _serial_blas():
+  with timer("verification"), serial_blas():
     overlap_distance = icp_mr * setup.mr
     target_grid = engine.Grid(dst_pts, overlap_distance)
     best, fits = _verify(rs, ts, counts, cs, cd, src_pts, target_grid, overlap_distance,
@@ -517,13 +517,6 @@ def _chance_inliers(src, dst, f_src, f_dst, estimator, iterations, radius, seed,
     if len(rs):
       best = max(best, int(np.max(host.count_inliers(rs, ts, src, d, threshold))))
   return best
-
-
-def _serial_blas() -> contextlib.AbstractContextManager:
-  """numpy's BLAS on one thread: the graph's (N, N) matrix-vector products are too small to
-  share, and BLAS threads that wait by spinning slow down the numba kernels beside them (on 2
-  cores, 1000 x 1000 products took 1.6 ms threaded, 0.08 ms on one thread)."""
-  return threadpool_limits(1, user_api="blas")
 
 
 class _StageTimer:

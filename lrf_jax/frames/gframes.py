@@ -42,10 +42,10 @@ from lrf_jax.frames.normal_based import usable_normals
 from lrf_jax.frames.spec import KEYPOINT, TRIANGLE, TRIANGLE_MASK, MethodSpec
 from lrf_jax.geometry.ops import sanitize
 from lrf_jax.search.neighborhoods import Patches
+from lrf_jax.geometry.normals import cache_last, default_normals, face_cross, mean_curvature
 
 if TYPE_CHECKING:
   from lrf_jax.search.neighborhoods import AnyArray
-from lrf_jax.geometry.normals import cache_last, default_normals, face_cross, mean_curvature
 
 X_EPS = 1e-5
 # A triangle whose height is at most this fraction of its longest edge (|cross| <= SLIVER_EPS ·

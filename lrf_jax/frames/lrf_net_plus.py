@@ -98,7 +98,7 @@ def prepare_view(points, keypoints, patches, *, faces=None, normals=None, radius
     view, trust = support_view(nrm, None, patches, radius)
   elif patches is not None and radius is not None and oriented:
     view, trust = points_only_view(pts, patches, radius)
-    return ViewExtra(view, patch_areas(pts, patches, faces), trust)  # type: ignore[call-arg]  # AXES
+    return ViewExtra(view, patch_areas(pts, patches, faces), trust)  # type: ignore[call-arg]
   elif normals is not None:
     raise ValueError("prepare_view: normals need the patches and the radius")
   else:

@@ -46,10 +46,10 @@ from lrf_jax.frames import host_geometry as hg
 from lrf_jax.frames.spec import TRIANGLE, TRIANGLE_MASK, MethodSpec
 from lrf_jax.geometry.ops import sanitize
 from lrf_jax.search.neighborhoods import Patches, hash_priority
+from lrf_jax.geometry.normals import cache_last
 
 if TYPE_CHECKING:
   from lrf_jax.search.neighborhoods import AnyArray
-from lrf_jax.geometry.normals import cache_last
 
 MAX_TRIANGLES = 8192
 _T_MULTIPLE = 64

@@ -15,6 +15,7 @@ is set, so that compiled kernels are kept even for a read-only install.
 
 from __future__ import annotations
 
+from types import ModuleType
 from typing import TYPE_CHECKING, Any
 
 from lrf_jax import compilation_cache as _compilation_cache
@@ -65,6 +66,7 @@ def _load(module: str) -> Any:
   Every import is written out (no computed module names), so the package's import graph stays
   visible to static checks. `import lrf_jax.x as m`, not `from lrf_jax import x`: the latter
   would look the name up on this package first and so call `__getattr__` again."""
+  m: ModuleType  # declared once: every case binds it to a different module
   match module:
     case "api":
       import lrf_jax.api as m

@@ -5,7 +5,7 @@ from __future__ import annotations
 import functools
 import inspect
 import warnings
-from typing import Any
+from typing import TYPE_CHECKING, Any, cast
 
 import jax
 import jax.numpy as jnp
@@ -21,6 +21,9 @@ from lrf_jax.search.neighborhoods import (Patches, SearchIndex, build_patches, u
                                    validate_keypoints, validate_radius, validate_seed,
                                    validate_viewpoint)
 from lrf_jax.prepare import method_normals, prepare_extra
+
+if TYPE_CHECKING:
+  from lrf_jax.search.neighborhoods import AnyArray
 
 # Ball sizes outside these bounds (median over a sample of keypoints) draw a warning.
 MIN_MEDIAN_BALL = 10
@@ -91,6 +94,7 @@ def _weight_table(params: Any, size: int, host: bool = False) -> Any:
       return table
   table = weight_table_numpy(params, size) if host else _jit_weight_table(params, size)
   if host:  # shared by every later call: read-only, so no caller can write into the cache
+    assert isinstance(table.values, np.ndarray)  # weight_table_numpy's
     table.values.flags.writeable = False
   _TABLES.append((params, size, host, table))
   del _TABLES[:-4]
@@ -338,7 +342,7 @@ def compute_frames(
   visit = (engine.query_order(search_patches.index.grid(radius), points[keypoints]) if host
            else np.arange(m))
 
-  def run(idx: np.ndarray, n_real: int) -> tuple[jax.Array, ...]:
+  def run(idx: np.ndarray, n_real: int) -> tuple[AnyArray, ...]:
     kp = keypoints[visit[idx]]
     if on_host:
       return _host_frames_in_budget(spec, points, kp, radius, search_patches.index, faces,
@@ -348,10 +352,12 @@ def compute_frames(
                           normals=normals, viewpoint=viewpoint,
                           oriented=bool(host_options.get("oriented_sign", True)))
     if host_patches:
+      assert spec.host_patch_frames is not None  # host_patches says it applies
       out = spec.host_patch_frames(patches, extra, params, host_options)
     else:
       out = frames_from_patches(patches, method, params=params, extra=extra, **options)
     if return_confidence:
+      assert spec.confidence is not None  # checked by _check_call
       conf = spec.confidence(patches, extra, out[0], out[1], host_options)
       return (*out, np.asarray(conf) if host_patches else conf)
     return out
@@ -364,7 +370,8 @@ def compute_frames(
     return out
   back = np.empty_like(visit)
   back[visit] = np.arange(m)
-  return tuple(jnp.asarray(np.asarray(a)[back]) for a in out)
+  return cast("tuple[jax.Array, jax.Array] | tuple[jax.Array, jax.Array, jax.Array]",
+              tuple(jnp.asarray(np.asarray(a)[back]) for a in out))  # as many as `run` gives
 
 
 def _in_callers_order(order: np.ndarray, frames: Any, valid: Any) -> tuple[np.ndarray, np.ndarray]:
@@ -384,6 +391,7 @@ class _PatchSearch:
     self.device = None
     if on_device:
       from lrf_jax.search.device import DeviceIndex
+      assert k is not None  # the device search takes an integer K (`_patch_search`)
       self.device = DeviceIndex(points, radius, k, seed, spec.z_ratio)
       self.index = self.device.host
     else:
@@ -393,6 +401,7 @@ class _PatchSearch:
     spec, k = self.spec, self.k
     if self.device is not None:
       from lrf_jax.search.device import build_patches_device
+      assert k is not None  # set with the device index
       patches, _ = build_patches_device(self.points, kp, self.radius, k, seed=self.seed,
                                         z_ratio=spec.z_ratio, index=self.device)
       return patches
@@ -414,6 +423,7 @@ def _host_frames_in_budget(spec: MethodSpec, points: np.ndarray, kp: np.ndarray,
     counts = engine.ball_counts(index.grid(radius), points[kp], radius)
   group = np.cumsum(counts) // HOST_NEIGHBOUR_BUDGET
   cuts = np.flatnonzero(np.diff(group)) + 1
+  assert spec.host_frames is not None  # both callers check it
   parts = [spec.host_frames(points, part, radius, index, faces=faces, normals=normals)
            for part in np.split(kp, cuts)]
   return np.concatenate([f for f, _ in parts]), np.concatenate([v for _, v in parts])

@@ -158,5 +158,6 @@ def announce_compiles(stream: TextIO | None = None) -> None:
   if not _state["jax"] and "jax" in sys.modules:
     from jax import monitoring
     monitoring.register_event_listener(_on_jax_event)
-    monitoring.register_event_duration_secs_listener(_on_jax_duration)
+    # jax passes the duration positionally; its listener protocol names it `duration_secs`
+    monitoring.register_event_duration_secs_listener(_on_jax_duration)  # type: ignore[arg-type]
     _state["jax"] = True

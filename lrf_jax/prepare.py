@@ -54,10 +54,12 @@ def method_normals(spec: MethodSpec, points: np.ndarray, radius: float, *,
     if viewpoint is not None or (not given and faces is None):
       return None
     if given:
+      assert normals is not None and not callable(normals)  # what `given` says
       return normals
     return normals() if callable(normals) else estimate_normals(
         points, NORMAL_RADIUS_RATIO * radius, faces)
   if given:
+    assert normals is not None and not callable(normals)
     return normals
   return normals() if callable(normals) else estimate_normals(
       points, NORMAL_RADIUS_RATIO * radius, faces, viewpoint)

@@ -302,7 +302,8 @@ def correspondences(source_points: np.ndarray, target_points: np.ndarray,
     idx = np.flatnonzero(mask)
     shown = idx[_sample(len(idx), max_lines, seed)]
     segs = np.stack([s2[pairs[shown, 0]], d2[pairs[shown, 1]]], axis=1)
-    ax.add_collection(LineCollection(segs, colors=colour, linewidths=0.5,
+    # an (N, 2, 2) array of segments, which matplotlib takes (its stub asks for a sequence)
+    ax.add_collection(LineCollection(segs, colors=colour, linewidths=0.5,  # type: ignore[arg-type]
                                      alpha=0.35 if colour == "tab:red" else 0.7, zorder=z,
                                      label=f"{label}: {len(idx)}"
                                            + (f" ({len(shown)} drawn)" if len(shown) < len(idx)

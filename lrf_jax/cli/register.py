@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import argparse
 import sys
+from typing import Any
 
 import numpy as np
 
@@ -137,7 +138,7 @@ def main(argv: list[str] | None = None) -> int:
   from lrf_jax.registration import register
 
   params = None
-  extra: dict[str, object] = {}
+  extra: dict[str, Any] = {}  # keyword arguments of `register`
   try:
     if args.init is not None:
       extra["init"] = read_init(args.init)  # passed only when given

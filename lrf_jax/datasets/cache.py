@@ -11,11 +11,17 @@ import dataclasses
 import functools
 import os
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from lrf_jax.io import read_cloud
 from lrf_jax.geometry.resolution import MrDefinition, mesh_resolution
+
+if TYPE_CHECKING:
+  from typing import TypeVar
+
+  _Array = TypeVar("_Array", bound=np.ndarray | None)  # an array stays one, None stays None
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
@@ -37,7 +43,7 @@ class Mesh:
   path: Path
 
 
-def _frozen(a: np.ndarray | None) -> np.ndarray | None:
+def _frozen(a: _Array) -> _Array:
   if a is not None:
     a.flags.writeable = False
   return a

@@ -12,7 +12,7 @@ Units are arbitrary (radius about 1); mr is the model's mean edge length.
 from __future__ import annotations
 
 import functools
-from typing import Literal
+from typing import Any, Literal
 
 import numpy as np
 from scipy.spatial import ConvexHull
@@ -207,7 +207,7 @@ def make_demo_pair(index: int = 0, *, seed: int = 0, noise_mr: float = 0.0,
   ids = np.arange(len(points))
   scene_faces = faces
   scene_viewpoint = None
-  meta = {"shape": shape, "seed": seed, "index": index, "noise_mr": noise_mr,
+  meta: dict[str, Any] = {"shape": shape, "seed": seed, "index": index, "noise_mr": noise_mr,
           "synthetic": True, "units": "arbitrary (radius ~1)"}
   if partial:
     direction = rng.normal(size=3)

@@ -161,7 +161,7 @@ def build_training_set(root: str | os.PathLike | None = None, *, n_keypoints: in
   if cache_file is not None:
     cache_file.parent.mkdir(parents=True, exist_ok=True)
     with atomic.atomic_write(cache_file) as f:  # a concurrent reader never sees half a file
-      np.savez(f, **arrays)
+      np.savez(f, **arrays)  # type: ignore[arg-type]  # array names: none is allow_pickle
   return _from_arrays(arrays, params)
 
 

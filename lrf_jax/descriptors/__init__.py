@@ -275,6 +275,7 @@ def compute_descriptors(
     raise ValueError(f"kernel='host': descriptor {descriptor!r} has no host fast path for these "
                      "arguments (it needs DESCRIPTORS[descriptor].host_fn and k=None)")
   if kernel == "host" or (kernel == "auto" and applies and jax.default_backend() == "cpu"):
+    assert spec.host_fn is not None  # applies (kernel="host" raised above otherwise)
     run_host = lambda idx, n_real: spec.host_fn(points, keypoints[idx], radius, frames[idx],
                                                 valid[idx], index, **options)
     return map_chunks(run_host, m, min(int(chunk_size) * 16, m), pad=False)

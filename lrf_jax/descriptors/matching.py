@@ -201,7 +201,7 @@ def _occupancy_knn_kernel(a_bits, b_bits, a, b, a_ok, b_ok, k, lower, upper, spr
       if b_ok[j]:
         c = 0
         for w in range(a_bits.shape[1]):
-          c += popcount(a_bits[i, w] ^ b_bits[j, w])
+          c += popcount(a_bits[i, w] ^ b_bits[j, w])  # type: ignore[call-arg]  # numba intrinsic
         h[j] = c
         valid += 1
     if valid == 0:

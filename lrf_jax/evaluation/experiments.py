@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import dataclasses
 import zlib
-from typing import Any
+from typing import Any, cast
 from collections.abc import Callable, Iterable, Iterator
 
 from lrf_jax import datasets
@@ -245,7 +245,7 @@ def run_experiment(name: str, dataset_names: list[str], methods: list[MethodRun]
       yield from _tagged(evaluate_pair(pair, runs, experiment=name, setting=setting,
                                        radius_mr=opts.radius_mr, **common), ds)
     return
-  clean = sorted({_clean_name(ds) for ds in dataset_names} - {None})
+  clean = sorted(cast("set[str]", {_clean_name(ds) for ds in dataset_names} - {None}))
   if name == "ablation":  # the paper's tables: noise-free BR, UWA3M, UWAOR
     runs = ablation_runs()
     for ds in clean:

@@ -156,7 +156,7 @@ def run_pose(dataset_names: list[str], opts: Any, cache: PatchCache, *, params: 
       yield rec
 
 
-def summarise_pose(records: Iterable[dict[str, Any]]) -> dict[tuple, dict[str, float]]:
+def summarise_pose(records: Iterable[dict[str, Any]]) -> dict[tuple, dict[str, Any]]:
   """{(dataset, method): {"err_r_mean", "err_t_mean", "err_r_median", "err_t_median", "success",
   "n_pairs", "seconds"}}; success = err_r <= 5 deg and err_t <= 10 mr."""
   groups = group_records(records, "pose")

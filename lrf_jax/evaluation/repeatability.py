@@ -16,7 +16,7 @@ import dataclasses
 import hashlib
 import time
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any, Literal
 from collections.abc import Iterable
 
 import numpy as np
@@ -33,6 +33,9 @@ from lrf_jax.evaluation.metrics import meancos
 from lrf_jax.search.neighborhoods import Patches, SearchIndex, build_patches
 from lrf_jax.geometry.normals import NORMAL_RADIUS_RATIO, estimate_normals
 from lrf_jax.prepare import method_normals, prepare_extra
+
+if TYPE_CHECKING:
+  from lrf_jax.search.neighborhoods import AnyArray
 
 # Default cap on all-neighbour patches in evaluations (see `evaluate_pair`).
 MAX_NEIGHBORS = 4096
@@ -62,7 +65,7 @@ class MethodRun:
   method: str
   params: Any = None
   options: tuple[tuple[str, Any], ...] = ()
-  k: int | None | str = "default"
+  k: int | None | Literal["default"] = "default"
 
   @property
   def patch_k(self) -> int | None:
@@ -230,6 +233,7 @@ def evaluate_pair(pair: Pair, methods: Iterable[MethodRun], *, experiment: str,
                           n_valid=0, note="n/a: needs a mesh, the pair has a cloud side"))
       continue
     t0 = time.perf_counter()
+    sides: list[tuple[AnyArray, AnyArray]]  # numpy from the host kernels, else jax.Array
     sides, kernels = [], []
     may_host = (kernel == "auto" and on_cpu and spec.host_frames is not None
                 and run.patch_k is None and not run.options)

@@ -5,13 +5,16 @@ from __future__ import annotations
 import json
 from collections import defaultdict
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 from collections.abc import Iterable
 
 import numpy as np
 
 from lrf_jax.extras import matplotlib_module, pyplot
 from lrf_jax.io import atomic
+
+if TYPE_CHECKING:
+  from lrf_jax.search.neighborhoods import AnyArray
 
 # What the paper states in its text and tables (its figures are missing from our copy).
 PAPER_STATED = {
@@ -44,14 +47,14 @@ def _setting_key(setting: dict[str, Any]) -> str:
                    f"{k}={setting[k]}" for k in keys) or "-"
 
 
-def summarise(records: Iterable[dict[str, Any]]) -> dict[tuple, dict[str, dict[str, float]]]:
+def summarise(records: Iterable[dict[str, Any]]) -> dict[tuple, dict[str, dict[str, Any]]]:
   """{(experiment, dataset, setting): {method: {"meancos", "frac_above_0.97", "n_pairs",
   "n_valid_frac", "z_flip"}}}: per-pair values averaged per dataset (the paper's averaging);
   z_flip is None for records without it."""
   groups: dict[tuple, dict[str, list[dict]]] = defaultdict(lambda: defaultdict(list))
   for r in records:
     groups[(r["experiment"], r["dataset"], _setting_key(r["setting"]))][r["method"]].append(r)
-  out: dict[tuple, dict[str, dict[str, float]]] = {}
+  out: dict[tuple, dict[str, dict[str, Any]]] = {}  # floats, counts, None where undefined
   for key, by_method in groups.items():
     out[key] = {}
     for method, rs in by_method.items():
@@ -188,7 +191,8 @@ def plot_figures(records: list[dict[str, Any]], out: Path) -> list[Path]:
       continue
     exp_methods = list(dict.fromkeys(r["method"] for r in records if r["experiment"] == bar_exp))
     keys = list(rep)
-    panels = [("meancos", "MeanCos (1: identical frames)", (0, 1))]
+    panels: list[tuple[str, str, tuple[int, int] | None]] = [
+        ("meancos", "MeanCos (1: identical frames)", (0, 1))]
     if bar_exp == "points_only":
       panels.append(("z_flip", "z flip rate (0: every z repeatable)", None))
     fig, axes = plt.subplots(len(panels), 1, squeeze=False,
@@ -242,7 +246,7 @@ def plot_figures(records: list[dict[str, Any]], out: Path) -> list[Path]:
   return written
 
 
-def plot_weights(patches_xyz: list[np.ndarray], weights: list[np.ndarray], frames: list[np.ndarray],
+def plot_weights(patches_xyz: list[AnyArray], weights: list[np.ndarray], frames: list[np.ndarray],
                  out: Path) -> Path:
   """Sample patches (in their LRF) with points coloured by learned weight and the x axis drawn."""
   plt = pyplot("eval", "evaluate.py's figures")

@@ -14,7 +14,7 @@ import dataclasses
 import json
 import time
 from pathlib import Path
-from typing import Any
+from typing import Any, cast
 from collections.abc import Iterator
 
 from tqdm.auto import tqdm
@@ -143,7 +143,7 @@ def count_records(experiment: str, plan: EvalPlan) -> int:
   if experiment in AS_NAMED:
     return (len(_experiment_runs(experiment, plan))
             * sum(1 for _ in iter_pairs(plan.datasets, opts)))
-  clean = sorted({_clean_name(ds) for ds in plan.datasets} - {None})
+  clean = sorted(cast("set[str]", {_clean_name(ds) for ds in plan.datasets} - {None}))
   pairs = sum(len(_limit(CLEAN[ds](opts.data_root, opts.seed), opts)) for ds in clean)
   per_pair = (len(ABLATION_Z) * len(ABLATION_X) if experiment == "ablation"
               else SWEEPS[experiment] * len(plan.runs))
@@ -187,6 +187,8 @@ def evaluate(plan: EvalPlan, out: Path, *, progress: bool = True) -> str:
   out = Path(out)
   cache = PatchCache(plan.cache_dir)
   total = sum(count_records(exp, plan) for exp in plan.experiments)
+  records: list[dict[str, Any]]
+  other: list[dict[str, Any]]
   records, other = [], []
   t0 = time.perf_counter()
   with tqdm(total=total, desc="evaluate", unit="record", dynamic_ncols=True,

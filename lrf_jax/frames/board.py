@@ -29,7 +29,7 @@ References:
 
 from __future__ import annotations
 
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import jax
 import jax.numpy as jnp
@@ -42,6 +42,9 @@ from lrf_jax.frames.normal_based import NormalExtra, prepare_normals, usable_nor
 from lrf_jax.frames.spec import MethodSpec
 from lrf_jax.geometry.ops import sanitize
 from lrf_jax.search.neighborhoods import Patches
+
+if TYPE_CHECKING:
+  from lrf_jax.search.neighborhoods import AnyArray
 
 Z_RATIO = 1.0 / 3.0
 MARGIN = 0.85
@@ -95,7 +98,7 @@ def board_frame(offsets, mask, index, radius, z_cov, z_count, normals):
   return geometry.identity_where_invalid(frame, valid), valid
 
 
-def board_frames(patches: Patches, normals: jax.Array) -> tuple[jax.Array, jax.Array]:
+def board_frames(patches: Patches, normals: AnyArray) -> tuple[jax.Array, jax.Array]:
   """BOARD frames for a batch (pure, jittable).
 
   Args:

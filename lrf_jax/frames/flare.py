@@ -27,7 +27,7 @@ References:
 
 from __future__ import annotations
 
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import jax
 import jax.numpy as jnp
@@ -41,6 +41,9 @@ from lrf_jax.frames.normal_based import NormalExtra, prepare_normals, usable_nor
 from lrf_jax.frames.spec import MethodSpec
 from lrf_jax.geometry.ops import sanitize
 from lrf_jax.search.neighborhoods import Patches
+
+if TYPE_CHECKING:
+  from lrf_jax.search.neighborhoods import AnyArray
 
 Z_RATIO = 1.0 / 3.0
 MARGIN = 0.85
@@ -84,8 +87,8 @@ def flare_frame(offsets, mask, index, radius, count, z_cov, z_count, normals, kp
   return geometry.identity_where_invalid(frame, valid), valid
 
 
-def flare_frames(patches: Patches, normals: jax.Array,
-                 kp_normal: jax.Array) -> tuple[jax.Array, jax.Array]:
+def flare_frames(patches: Patches, normals: AnyArray,
+                 kp_normal: AnyArray) -> tuple[jax.Array, jax.Array]:
   """FLARE frames for a batch (pure, jittable).
 
   Args:

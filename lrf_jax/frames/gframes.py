@@ -28,7 +28,7 @@ References:
 
 from __future__ import annotations
 
-from typing import Any, NamedTuple
+from typing import TYPE_CHECKING, Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -44,6 +44,9 @@ from lrf_jax.geometry.ops import sanitize
 from lrf_jax.search.neighborhoods import Patches
 from lrf_jax.geometry.normals import cache_last, default_normals, face_cross, mean_curvature
 
+if TYPE_CHECKING:
+  from lrf_jax.search.neighborhoods import AnyArray
+
 X_EPS = 1e-5
 # A triangle whose height is at most this fraction of its longest edge (|cross| <= SLIVER_EPS ·
 # longest edge²) has no reliable normal (float32 rounding alone gives collinear points a
@@ -54,11 +57,14 @@ SLIVER_EPS = 1e-5
 class GFramesExtra(NamedTuple):
   """`extra` of GFrames: the support's triangles, their vertices' curvature, the normal."""
 
-  tri: np.ndarray        # (N, T, 3, 3) float32 vertex offsets from the keypoint
-  tri_mask: np.ndarray   # (N, T) bool, False in padding
-  tri_f: np.ndarray      # (N, T, 3) float32 mean curvature at the vertices
-  kp_normal: np.ndarray  # (N, 3) float32
-  AXES = {"tri": TRIANGLE, "tri_mask": TRIANGLE_MASK, "tri_f": TRIANGLE, "kp_normal": KEYPOINT}
+  tri: AnyArray        # (N, T, 3, 3) float32 vertex offsets from the keypoint
+  tri_mask: AnyArray   # (N, T) bool, False in padding
+  tri_f: AnyArray      # (N, T, 3) float32 mean curvature at the vertices
+  kp_normal: AnyArray  # (N, 3) float32
+  # A class attribute, not a field: mypy takes it for a field (hence the ignores here and on
+  # the constructor calls).
+  AXES = {"tri": TRIANGLE, "tri_mask": TRIANGLE_MASK, "tri_f": TRIANGLE,  # type: ignore[misc]
+          "kp_normal": KEYPOINT}
 
 
 def prepare_gframes(points, keypoints, patches, *, faces=None, normals=None,
@@ -71,7 +77,7 @@ def prepare_gframes(points, keypoints, patches, *, faces=None, normals=None,
   f = np.asarray(faces, np.int64)
   tri_f = np.where(mask[..., None], h[f[np.maximum(ids, 0)]], 0.0).astype(np.float32)
   nrm = default_normals(points, radius, faces, normals)
-  return GFramesExtra(tri, mask, tri_f,
+  return GFramesExtra(tri, mask, tri_f,  # type: ignore[call-arg]  # AXES is no field
                       usable_normals(np.asarray(nrm)[np.asarray(keypoints)], np.float32))
 
 
@@ -121,8 +127,8 @@ def gframes_frame(tri, tri_mask, tri_f, kp_normal):
   return geometry.identity_where_invalid(frame, valid), valid
 
 
-def gframes_frames(patches: Patches, tri: jax.Array, tri_mask: jax.Array, tri_f: jax.Array,
-                   kp_normal: jax.Array) -> tuple[jax.Array, jax.Array]:
+def gframes_frames(patches: Patches, tri: AnyArray, tri_mask: AnyArray, tri_f: AnyArray,
+                   kp_normal: AnyArray) -> tuple[jax.Array, jax.Array]:
   """GFrames for a batch (pure, jittable).
 
   Args:

@@ -19,7 +19,7 @@ statistics that do not depend on the parameters.
 
 from __future__ import annotations
 
-from typing import NamedTuple
+from typing import TYPE_CHECKING, NamedTuple
 from collections.abc import Callable
 
 import jax
@@ -31,12 +31,15 @@ from lrf_jax.frames.spec import HostPatchKernel, MethodSpec
 from lrf_jax.learning.model import Params, apply_weights, apply_weights_numpy
 from lrf_jax.search.neighborhoods import Patches
 
+if TYPE_CHECKING:
+  from lrf_jax.search.neighborhoods import AnyArray
+
 # |Σ w v| must exceed this fraction of Σ |w| |v| for x to be defined (symmetric patches fail).
 X_EPS = 1e-5
 MIN_Z_NEIGHBOURS = 3
 
 
-def attributes(offsets: jax.Array, z: jax.Array, radius: jax.Array) -> jax.Array:
+def attributes(offsets: AnyArray, z: jax.Array, radius: AnyArray) -> jax.Array:
   """The two invariant attributes of eq. `eq_attrib` for every neighbour.
 
   Args:
@@ -53,7 +56,7 @@ def attributes(offsets: jax.Array, z: jax.Array, radius: jax.Array) -> jax.Array
   return jnp.stack([dist / radius, cos], axis=-1)
 
 
-def x_axis_from_weights(offsets: jax.Array, mask: jax.Array, z: jax.Array,
+def x_axis_from_weights(offsets: AnyArray, mask: AnyArray, z: jax.Array,
                         weights: jax.Array) -> tuple[jax.Array, jax.Array]:
   """Weighted vector sum of tangent projections (eqs. `eq_vector_x`, `eq_axis_x`), unnormalised.
 
@@ -74,7 +77,7 @@ def x_axis_from_weights(offsets: jax.Array, mask: jax.Array, z: jax.Array,
   return s, geometry.safe_norm(s) > X_EPS * scale
 
 
-def frame_from_weights(offsets: jax.Array, mask: jax.Array, z: jax.Array, z_ok: jax.Array,
+def frame_from_weights(offsets: AnyArray, mask: AnyArray, z: jax.Array, z_ok: jax.Array,
                        weights: jax.Array) -> tuple[jax.Array, jax.Array]:
   """A frame (rows x, y, z) from a z-axis and per-neighbour x weights; identity when invalid."""
   s, x_ok = x_axis_from_weights(offsets, mask, z, weights)
@@ -90,10 +93,10 @@ def z_axes(patches: Patches) -> tuple[jax.Array, jax.Array]:
   return jax.lax.stop_gradient(z), ok
 
 
-WeightFn = Callable[[jax.Array, jax.Array, jax.Array], jax.Array]
+WeightFn = Callable[["AnyArray", jax.Array, "AnyArray"], jax.Array]  # (offsets, z, radius)
 
 
-def ball_sign(z: jax.Array, offsets: jax.Array, mask: jax.Array) -> jax.Array:
+def ball_sign(z: jax.Array, offsets: AnyArray, mask: AnyArray) -> jax.Array:
   """Re-orient z so that Σ (p - q_i)·z >= 0 over the whole patch (all radius neighbours kept),
   not only the r/3 ball: TOLDI's sign rule at the full support scale (lrf_net_plus).
 
@@ -110,7 +113,7 @@ def ball_sign(z: jax.Array, offsets: jax.Array, mask: jax.Array) -> jax.Array:
   return jnp.where((h > 0)[:, None], -z, z)
 
 
-def view_sign(z: jax.Array, view: jax.Array) -> jax.Array:
+def view_sign(z: jax.Array, view: AnyArray) -> jax.Array:
   """Orient z towards the sensor where a viewpoint is known (|view| > 0), as PCL orients scan
   normals (`flipNormalTowardsViewpoint`); keypoints with view = 0 keep their z.
 
@@ -124,7 +127,7 @@ def view_sign(z: jax.Array, view: jax.Array) -> jax.Array:
   return jnp.where((h < 0)[:, None], -z, z)
 
 
-def softmax_weights(scores: jax.Array, mask: jax.Array) -> jax.Array:
+def softmax_weights(scores: jax.Array, mask: AnyArray) -> jax.Array:
   """Attention-style x weights (lrf_net_plus, beyond the paper): w_i = exp(s_i - max_j s_j) over
   the real neighbours of each patch, 0 in padding.
 
@@ -144,8 +147,8 @@ def softmax_weights(scores: jax.Array, mask: jax.Array) -> jax.Array:
 
 
 def frames_with_weight_fn(patches: Patches, weight_fn: WeightFn, x_mode: str = "sum",
-                          z_sign: str = "toldi", view: jax.Array | None = None,
-                          area: jax.Array | None = None) -> tuple[jax.Array, jax.Array, jax.Array]:
+                          z_sign: str = "toldi", view: AnyArray | None = None,
+                          area: AnyArray | None = None) -> tuple[jax.Array, jax.Array, jax.Array]:
   """Frames for all keypoints given a per-neighbour weight function.
 
   Args:
@@ -199,7 +202,7 @@ class WeightTable(NamedTuple):
   """The weight network tabulated on a size x size grid over (|pq|/r in [0, 1], cos in [-1, 1])
   (`weight_table`); pass it where parameters go, with `lut=size`, to skip rebuilding it."""
 
-  values: jax.Array  # (size, size)
+  values: AnyArray  # (size, size): jax.Array, numpy from `weight_table_numpy`
 
 
 def weight_table(params: Params, size: int = 257) -> WeightTable:
@@ -256,8 +259,8 @@ def uniform_weights(offsets, z, radius):
 
 
 def lrf_net_frames(params: Params, patches: Patches, *, x_mode: str = "sum",
-                   z_sign: str = "toldi", lut: int = 0, view: jax.Array | None = None,
-                   area: jax.Array | None = None) -> tuple[jax.Array, jax.Array]:
+                   z_sign: str = "toldi", lut: int = 0, view: AnyArray | None = None,
+                   area: AnyArray | None = None) -> tuple[jax.Array, jax.Array]:
   """LRF-Net frames for a batch of patches (pure; jit it or call through `compute_frames`).
 
   Args:

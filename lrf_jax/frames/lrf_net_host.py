@@ -11,10 +11,15 @@ sit on a tie (a patch height Σ (q_i - p)·z or a view product of about 0).
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import numba as nb
 import numpy as np
 
 from lrf_jax.frames import host_geometry as hg
+
+if TYPE_CHECKING:
+  from lrf_jax.search.neighborhoods import AnyArray
 
 # Weight modes of the kernel.
 UNIFORM, TABLE_SUM, TABLE_SOFTMAX = 0, 1, 2
@@ -107,9 +112,9 @@ def _lrf_net_host_kernel(offsets, mask, z_cov, z_mean, z_count, radius, table, m
       hg.write_frame(frames, valid, i, z, np.array([sx, sy, sz]))
 
 
-def lrf_net_frames_host(patches, table: np.ndarray | None, *, x_eps: float, min_count: int,
+def lrf_net_frames_host(patches, table: AnyArray | None, *, x_eps: float, min_count: int,
                         x_mode: str = "sum", z_sign: str = "toldi",
-                        view: np.ndarray | None = None, area: np.ndarray | None = None
+                        view: AnyArray | None = None, area: AnyArray | None = None
                         ) -> tuple[np.ndarray, np.ndarray]:
   """`lrf_net.lrf_net_frames` with table weights (or uniform ones) on the host, float64.
 

@@ -19,7 +19,7 @@ trained with `configs/plus_soft.py`).
 
 from __future__ import annotations
 
-from typing import NamedTuple
+from typing import TYPE_CHECKING, NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -31,6 +31,9 @@ from lrf_jax.frames.lrf_net import (MIN_Z_NEIGHBOURS, X_EPS, lrf_net_frames,
                                    table_host_supports)
 from lrf_jax.frames.spec import KEYPOINT, SLOT, HostPatchKernel, MethodSpec
 from lrf_jax.search.neighborhoods import Patches
+
+if TYPE_CHECKING:
+  from lrf_jax.search.neighborhoods import AnyArray
 
 
 # Below this vote margin (`normals.orient_by_vote`) a component's sign is not used and z falls
@@ -45,13 +48,15 @@ FLAT_EPS = 1e-3
 class ViewExtra(NamedTuple):
   """`extra` of lrf_net_plus."""
 
-  view: np.ndarray         # (N, 3) float32 direction z should not point away from (0: none)
-  area: np.ndarray | None  # (N, K) float32 area per patch slot, mean 1 over a patch; 0 in padding
+  view: AnyArray         # (N, 3) float32 direction z should not point away from (0: none)
+  area: AnyArray | None  # (N, K) float32 area per patch slot, mean 1 over a patch; 0 in padding
   # (N,) float32 in [0, 1]: how far the sign of `view` is trusted (1: a sensor position, the
   # caller's or the mesh's oriented normals; the vote margin of `orient_by_vote` for normals
   # oriented from the points alone; 0 where view = 0). None: 1 wherever view is non-zero.
-  trust: np.ndarray | None = None
-  AXES = {"view": KEYPOINT, "area": SLOT, "trust": KEYPOINT}
+  trust: AnyArray | None = None
+  # A class attribute, not a field: mypy takes it for a field (hence the ignores here and on
+  # the constructor calls).
+  AXES = {"view": KEYPOINT, "area": SLOT, "trust": KEYPOINT}  # type: ignore[misc]
 
 
 # ------------------------------------------------------------------------------ host hooks
@@ -93,13 +98,14 @@ def prepare_view(points, keypoints, patches, *, faces=None, normals=None, radius
     view, trust = support_view(nrm, None, patches, radius)
   elif patches is not None and radius is not None and oriented:
     view, trust = points_only_view(pts, patches, radius)
-    return ViewExtra(view, patch_areas(pts, patches, faces), trust)
+    return ViewExtra(view, patch_areas(pts, patches, faces), trust)  # type: ignore[call-arg]
   elif normals is not None:
     raise ValueError("prepare_view: normals need the patches and the radius")
   else:
     view = np.zeros((kp.shape[0], 3))
   view, trust = _finish_view(view, trust)
-  return ViewExtra(view, patch_areas(pts, patches, faces) if patches is not None else None, trust)
+  return ViewExtra(view,  # type: ignore[call-arg]  # AXES is no field
+                   patch_areas(pts, patches, faces) if patches is not None else None, trust)
 
 
 def points_only_normals(points: np.ndarray, radius: float) -> tuple[np.ndarray, np.ndarray]:

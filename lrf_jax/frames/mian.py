@@ -25,7 +25,7 @@ References:
 
 from __future__ import annotations
 
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import jax
 import jax.numpy as jnp
@@ -38,6 +38,9 @@ from lrf_jax.frames.normal_based import NormalExtra, prepare_normals, usable_nor
 from lrf_jax.frames.spec import MethodSpec
 from lrf_jax.geometry.ops import sanitize
 from lrf_jax.search.neighborhoods import Patches
+
+if TYPE_CHECKING:
+  from lrf_jax.search.neighborhoods import AnyArray
 
 MIN_NEIGHBOURS = 5
 
@@ -70,7 +73,7 @@ def mian_frame(offsets, mask, kp_normal, center: str = "centroid"):
   return geometry.identity_where_invalid(frame, valid), valid
 
 
-def mian_frames(patches: Patches, kp_normal: jax.Array, *,
+def mian_frames(patches: Patches, kp_normal: AnyArray, *,
                 center: str = "centroid") -> tuple[jax.Array, jax.Array]:
   """Mian frames for a batch (pure, jittable).
 

@@ -6,20 +6,25 @@ Numpy, outside jit: it gathers the per-point normals (the caller's, else estimat
 
 from __future__ import annotations
 
-from typing import NamedTuple
+from typing import TYPE_CHECKING, NamedTuple
 
 import numpy as np
 
 from lrf_jax.frames.spec import KEYPOINT, SLOT
 from lrf_jax.geometry.normals import default_normals
 
+if TYPE_CHECKING:
+  from lrf_jax.search.neighborhoods import AnyArray
+
 
 class NormalExtra(NamedTuple):
   """`extra` of the normal-based LRFs: normals of the patch slots and of the keypoint."""
 
-  normals: np.ndarray    # (N, K, 3) float32, 0 in padding, NaN where undefined
-  kp_normal: np.ndarray  # (N, 3) float32
-  AXES = {"normals": SLOT, "kp_normal": KEYPOINT}
+  normals: AnyArray    # (N, K, 3) float32, 0 in padding, NaN where undefined
+  kp_normal: AnyArray  # (N, 3) float32
+  # A class attribute, not a field: mypy takes it for a field (hence the ignores here and on
+  # the constructor calls).
+  AXES = {"normals": SLOT, "kp_normal": KEYPOINT}  # type: ignore[misc]
 
 
 def usable_normals(normals: np.ndarray, dtype: type = np.float64) -> np.ndarray:
@@ -35,7 +40,7 @@ def usable_normals(normals: np.ndarray, dtype: type = np.float64) -> np.ndarray:
     (n, 3) C-contiguous array of `dtype` (the input itself when nothing is missing and it already
     has that layout).
   """
-  nrm = np.ascontiguousarray(normals, dtype)
+  nrm: np.ndarray = np.ascontiguousarray(normals, dtype)
   missing = ~(np.isfinite(nrm).all(axis=1) & (nrm != 0).any(axis=1))
   if missing.any():
     nrm = nrm.copy()
@@ -65,4 +70,4 @@ def prepare_normals(points: np.ndarray, keypoints: np.ndarray, patches, *,
   idx = np.asarray(patches.indices)
   gathered = nrm[np.maximum(idx, 0)]
   gathered[idx < 0] = 0.0
-  return NormalExtra(gathered, nrm[np.asarray(keypoints)])
+  return NormalExtra(gathered, nrm[np.asarray(keypoints)])  # type: ignore[call-arg]  # AXES

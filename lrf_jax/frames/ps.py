@@ -23,7 +23,7 @@ References:
 
 from __future__ import annotations
 
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import jax
 import jax.numpy as jnp
@@ -36,6 +36,9 @@ from lrf_jax.frames.normal_based import NormalExtra, prepare_normals, usable_nor
 from lrf_jax.frames.spec import MethodSpec
 from lrf_jax.geometry.ops import sanitize
 from lrf_jax.search.neighborhoods import Patches
+
+if TYPE_CHECKING:
+  from lrf_jax.search.neighborhoods import AnyArray
 
 CONTOUR_RATIO = 0.85
 MIN_CONTOUR = 5
@@ -68,7 +71,7 @@ def ps_frame(offsets, mask, index, radius, kp_normal):
   return geometry.identity_where_invalid(frame, valid), valid
 
 
-def ps_frames(patches: Patches, kp_normal: jax.Array) -> tuple[jax.Array, jax.Array]:
+def ps_frames(patches: Patches, kp_normal: AnyArray) -> tuple[jax.Array, jax.Array]:
   """Point-signature frames for a batch (pure, jittable).
 
   Args:

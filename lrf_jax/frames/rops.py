@@ -32,7 +32,7 @@ References:
 
 from __future__ import annotations
 
-from typing import Any, NamedTuple
+from typing import TYPE_CHECKING, Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -47,6 +47,9 @@ from lrf_jax.frames.spec import TRIANGLE, TRIANGLE_MASK, MethodSpec
 from lrf_jax.geometry.ops import sanitize
 from lrf_jax.search.neighborhoods import Patches, hash_priority
 from lrf_jax.geometry.normals import cache_last
+
+if TYPE_CHECKING:
+  from lrf_jax.search.neighborhoods import AnyArray
 
 MAX_TRIANGLES = 8192
 _T_MULTIPLE = 64
@@ -125,9 +128,11 @@ def gather_triangles(points: np.ndarray, keypoints: np.ndarray, faces: np.ndarra
 class TriangleExtra(NamedTuple):
   """`extra` of RoPS: the triangles of each keypoint's support."""
 
-  tri: np.ndarray       # (N, T, 3, 3) float32 vertex offsets from the keypoint
-  tri_mask: np.ndarray  # (N, T) bool, False in padding
-  AXES = {"tri": TRIANGLE, "tri_mask": TRIANGLE_MASK}
+  tri: AnyArray       # (N, T, 3, 3) float32 vertex offsets from the keypoint
+  tri_mask: AnyArray  # (N, T) bool, False in padding
+  # A class attribute, not a field: mypy takes it for a field (hence the ignores here and on
+  # the constructor calls).
+  AXES = {"tri": TRIANGLE, "tri_mask": TRIANGLE_MASK}  # type: ignore[misc]
 
 
 def prepare_triangles(points, keypoints, patches, *, faces=None, normals=None,
@@ -137,10 +142,10 @@ def prepare_triangles(points, keypoints, patches, *, faces=None, normals=None,
   if faces is None:
     raise ValueError("rops needs a triangle mesh: pass faces=(f, 3) indices")
   tri, mask, _ = gather_triangles(points, keypoints, faces, radius, patches=patches)
-  return TriangleExtra(tri, mask)
+  return TriangleExtra(tri, mask)  # type: ignore[call-arg]  # AXES is no field
 
 
-def rops_frame(tri: jax.Array, tri_mask: jax.Array, radius: jax.Array):
+def rops_frame(tri: jax.Array, tri_mask: AnyArray, radius: jax.Array):
   """RoPS frame of one keypoint.
 
   Args:
@@ -168,8 +173,8 @@ def rops_frame(tri: jax.Array, tri_mask: jax.Array, radius: jax.Array):
   return geometry.identity_where_invalid(frame, valid), valid
 
 
-def rops_frames(patches: Patches, tri: jax.Array,
-                tri_mask: jax.Array) -> tuple[jax.Array, jax.Array]:
+def rops_frames(patches: Patches, tri: AnyArray,
+                tri_mask: AnyArray) -> tuple[jax.Array, jax.Array]:
   """RoPS frames for a batch (pure, jittable).
 
   Args:

@@ -12,7 +12,7 @@ non-vanishing weighted sum). TOLDI uses every radius neighbour: call it with `k=
 
 from __future__ import annotations
 
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import jax
 import jax.numpy as jnp
@@ -25,8 +25,11 @@ from lrf_jax.frames.lrf_net import MIN_Z_NEIGHBOURS, X_EPS, frames_with_weight_f
 from lrf_jax.frames.spec import MethodSpec
 from lrf_jax.search.neighborhoods import Patches
 
+if TYPE_CHECKING:
+  from lrf_jax.search.neighborhoods import AnyArray
 
-def toldi_weights(offsets: jax.Array, z: jax.Array, radius: jax.Array,
+
+def toldi_weights(offsets: AnyArray, z: jax.Array, radius: AnyArray,
                   signed: bool = True) -> jax.Array:
   """TOLDI's x weights for a batch: offsets (N, K, 3), z (N, 3), radius (N,) -> (N, K).
 

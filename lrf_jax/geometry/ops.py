@@ -18,7 +18,7 @@ import jax
 import jax.numpy as jnp
 
 if TYPE_CHECKING:
-  from lrf_jax.search.neighborhoods import Patches
+  from lrf_jax.search.neighborhoods import AnyArray, Patches
 
 Array = jax.Array
 
@@ -26,7 +26,7 @@ Array = jax.Array
 DEGENERATE_EPS = 1e-6
 
 
-def safe_norm(v: Array, axis: int = -1, keepdims: bool = False) -> Array:
+def safe_norm(v: AnyArray, axis: int = -1, keepdims: bool = False) -> Array:
   """Euclidean norm whose gradient is finite (zero) at the zero vector.
 
   Args:
@@ -78,7 +78,7 @@ def frame_from_zx(z: Array, x_raw: Array, eps: float = 0.0) -> tuple[Array, Arra
   return jnp.stack([x, y, z]), ok
 
 
-def tangent_projection(offsets: Array, z: Array) -> Array:
+def tangent_projection(offsets: AnyArray, z: Array) -> AnyArray:
   """Projection of neighbour offsets on the tangent plane of `z` (paper eq. `eq_vector_x`).
 
   Args:
@@ -230,7 +230,7 @@ def identity_where_invalid(frames: Array, valid: Array) -> Array:
 # ------------------------------------------------------------------------------------------------
 
 
-def finite_or_zero(x: Array) -> Array:
+def finite_or_zero(x: AnyArray) -> Array:
   """`x` with non-finite entries replaced by 0 (safe to feed to arithmetic under jax_debug_nans).
 
   Args:

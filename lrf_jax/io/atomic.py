@@ -29,7 +29,7 @@ import contextlib
 import os
 import tempfile
 from pathlib import Path
-from typing import IO
+from typing import IO, Any
 from collections.abc import Iterable, Iterator
 
 __all__ = ["WriteError", "append_line", "atomic_path", "atomic_write", "output_problem",
@@ -125,7 +125,7 @@ def atomic_write(path: str | os.PathLike, mode: str = "wb", *,
   if mode not in ("w", "wb"):
     raise ValueError(f"atomic_write: mode: expected 'w' or 'wb', got {mode!r}")
   with atomic_path(path) as tmp:
-    kw = {"encoding": encoding or "utf-8"} if mode == "w" else {}
+    kw: dict[str, Any] = {"encoding": encoding or "utf-8"} if mode == "w" else {}
     with open(tmp, mode, **kw) as f:
       yield f
       f.flush()

@@ -263,6 +263,7 @@ def _read_binary(stream, lines: list[str], body_start: int,
     except (ValueError, OverflowError, MemoryError) as e:
       # plyfile raises these when a corrupt body yields impossible list lengths.
       raise bad_input(p, "body", "data matching the header", f"unreadable ({e})") from e
+  assert ply is not None  # every pass of the loop (at least one) sets it before leaving
   trailing = size - stream.tell()
   if trailing > 0:
     raise bad_input(p, "body", f"{stream.tell()} bytes for the elements in the header",
@@ -411,7 +412,7 @@ def _assemble(header: plyfile.PlyData, data: dict[str, dict[str, np.ndarray]],
   if len(nonempty) > 1:
     raise bad_input(p, "elements", "one face element (" + " or ".join(_FACE_ELEMENTS) + ")",
                     f"both, non-empty: {nonempty}")
-  face_name = (nonempty or present or [None])[0]
+  face_name = (nonempty or present or [None])[0]  # type: ignore[list-item]  # str or None
   if face_name is not None:
     face = data[face_name]
     key = next((k for k in _FACE_LISTS if k in face), None)

@@ -13,7 +13,7 @@ carries the view direction that orients z at inference from the points alone
 from __future__ import annotations
 
 import dataclasses
-from typing import NamedTuple
+from typing import TYPE_CHECKING, NamedTuple, cast
 
 import jax
 import numpy as np
@@ -22,6 +22,9 @@ from jax.sharding import NamedSharding
 from lrf_jax.frames.lrf_net_plus import points_only_normals, points_only_view
 from lrf_jax.learning.config import TrainConfig
 from lrf_jax.search.neighborhoods import Patches, build_patches
+
+if TYPE_CHECKING:
+  from lrf_jax.search.neighborhoods import AnyArray
 
 
 @dataclasses.dataclass(frozen=True)
@@ -86,8 +89,8 @@ class Batch(NamedTuple):
 
   model: Patches
   scene: Patches
-  model_view: np.ndarray | None = None
-  scene_view: np.ndarray | None = None
+  model_view: AnyArray | None = None  # numpy on the host, jax.Array after `global_batch`
+  scene_view: AnyArray | None = None
 
 
 def crop_patches(patches: Patches, p: float, min_dist: float,
@@ -175,6 +178,7 @@ class BatchMaker:
     """(model, scene) patches of every training keypoint for `epoch`, rows as `keypoints` (and,
     with `config.z_view="voted"`, their views: `epoch_views`)."""
     if self._epoch == epoch:
+      assert self._patches is not None  # set with _epoch
       return self._patches
     cfg, kp = self.config, self.clouds.keypoints
     n, k = len(kp), cfg.patch_k
@@ -194,10 +198,14 @@ class BatchMaker:
         in_place = isinstance(sel, slice) and cfg.crop_p <= 0
         stats = self._stats.get((side, int(c))) if level == 0 else None
         part = build_patches(pts, kp[sel, 1], float(self.clouds.radii[c]), k, seed=seed,
-                             validate=False, into=tuple(a[sel] for a in big) if in_place else None,
+                             validate=False,
+                             into=cast("tuple[np.ndarray, np.ndarray, np.ndarray]",  # big's 3
+                                       tuple(a[sel] for a in big)) if in_place else None,
                              stats_from=stats)
         if level == 0:
-          self._stats[side, int(c)] = part._replace(offsets=None, mask=None, indices=None)
+          # Only what `stats_from` reads is kept: the seed-dependent fields are dropped (None).
+          self._stats[side, int(c)] = part._replace(
+              offsets=None, mask=None, indices=None)  # type: ignore[arg-type]
         if cfg.crop_p > 0:
           crop_rng = np.random.default_rng(_mix(cfg.seed, 6, epoch, side, int(c)))
           part = crop_patches(part, cfg.crop_p, cfg.crop_min, crop_rng)

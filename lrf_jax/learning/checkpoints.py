@@ -143,7 +143,7 @@ def restore_readable(mngr: ocp.CheckpointManager, state: TrainState, config: Tra
     ValueError: no checkpoint is readable (the message says how to start afresh).
   """
   root = workdir / "checkpoints"
-  skipped = []
+  skipped: list[tuple[int, Exception]] = []
   for step in sorted(mngr.all_steps(), reverse=True):
     damage = visible_damage(root / str(step))
     if damage is not None:  # not handed to orbax: tensorstore's failed reads print tracebacks

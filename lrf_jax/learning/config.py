@@ -278,6 +278,7 @@ def load_config(name_or_path: str) -> TrainConfig:
       raise ValueError(f"--config {name_or_path!r}: no such preset or file; presets are "
                        f"{names}, or give a path to a .py (with get_config()) or .json")
   spec = importlib.util.spec_from_file_location(f"lrf_jax_config_{path.stem}", path)
+  assert spec is not None and spec.loader is not None  # a .py file gets a source loader
   module = importlib.util.module_from_spec(spec)
   try:
     spec.loader.exec_module(module)

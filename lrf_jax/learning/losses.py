@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import jax
 import jax.numpy as jnp
 
@@ -9,12 +11,15 @@ from lrf_jax.frames.lrf_net import lrf_net_frames
 from lrf_jax.learning.model import Params
 from lrf_jax.search.neighborhoods import Patches
 
+if TYPE_CHECKING:
+  from lrf_jax.search.neighborhoods import AnyArray
+
 REDUCTIONS = ("min", "max", "sum")
 _FAR = 1e30
 
 
-def _directed_means(a: jax.Array, mask_a: jax.Array, b: jax.Array,
-                    mask_b: jax.Array) -> tuple[jax.Array, jax.Array]:
+def _directed_means(a: jax.Array, mask_a: AnyArray, b: jax.Array,
+                    mask_b: AnyArray) -> tuple[jax.Array, jax.Array]:
   d2 = jnp.sum((a[:, None, :] - b[None, :, :]) ** 2, axis=-1)  # (Ka, Kb)
   pair_ok = mask_a[:, None] & mask_b[None, :]
   d2 = jnp.where(pair_ok, d2, _FAR)
@@ -29,7 +34,7 @@ def _directed_means(a: jax.Array, mask_a: jax.Array, b: jax.Array,
   return mean_dist(a_to_b, mask_a), mean_dist(b_to_a, mask_b)
 
 
-def chamfer(a: jax.Array, mask_a: jax.Array, b: jax.Array, mask_b: jax.Array,
+def chamfer(a: jax.Array, mask_a: AnyArray, b: jax.Array, mask_b: AnyArray,
             reduction: str = "min") -> jax.Array:
   """Chamfer distance between two padded point sets (eq. `eq_cham`), unsquared distances.
 
@@ -56,27 +61,29 @@ def chamfer(a: jax.Array, mask_a: jax.Array, b: jax.Array, mask_b: jax.Array,
   return ab + ba
 
 
-def batched_chamfer(a: jax.Array, mask_a: jax.Array, b: jax.Array, mask_b: jax.Array,
+def batched_chamfer(a: jax.Array, mask_a: AnyArray, b: jax.Array, mask_b: AnyArray,
                     reduction: str = "min") -> jax.Array:
   """`chamfer` vmapped over a leading batch axis: (N, Ka, 3), (N, Ka), (N, Kb, 3), (N, Kb) -> (N,)."""
-  return jax.vmap(lambda *x: chamfer(*x, reduction))(a, mask_a, b, mask_b)
+  # x is the 4 arrays; mypy counts *x as possibly filling `reduction` too
+  return jax.vmap(lambda *x: chamfer(*x, reduction))(  # type: ignore[call-arg]
+      a, mask_a, b, mask_b)
 
 
-def to_frame(offsets: jax.Array, frames: jax.Array) -> jax.Array:
+def to_frame(offsets: AnyArray, frames: jax.Array) -> jax.Array:
   """Express patch offsets (N, K, 3) in frames (N, 3, 3): q' = L q (the paper's L·Q)."""
   return jnp.einsum("nij,nkj->nki", frames, offsets)
 
 
 def frames_with_view(frames_fn, params: Params, patches: Patches,
-                     view: jax.Array | None) -> tuple[jax.Array, jax.Array]:
+                     view: AnyArray | None) -> tuple[jax.Array, jax.Array]:
   """`frames_fn(params, patches)`, or `frames_fn(params, patches, view)` with a (N, 3) `view`:
   (frames (N, 3, 3), valid (N,)). A frames function that takes no view keeps working without."""
   return frames_fn(params, patches) if view is None else frames_fn(params, patches, view)
 
 
 def siamese_loss(params: Params, model: Patches, scene: Patches, *, reduction: str = "min",
-                 x_mode: str = "sum", frames_fn=None, model_view: jax.Array | None = None,
-                 scene_view: jax.Array | None = None) -> tuple[jax.Array, dict[str, jax.Array]]:
+                 x_mode: str = "sum", frames_fn=None, model_view: AnyArray | None = None,
+                 scene_view: AnyArray | None = None) -> tuple[jax.Array, dict[str, jax.Array]]:
   """The LRF-Net training loss (eq. `eq_loss`) over a batch of corresponding patch pairs.
 
   Both streams share `params`. Pairs where either frame is invalid are left out of the mean.

@@ -8,13 +8,16 @@ modules define the parameter layout and initialise it (`model.init_params` calls
 
 from __future__ import annotations
 
-from typing import Any
+from typing import TYPE_CHECKING, Any, cast
 from collections.abc import Sequence
 
 import jax
 import jax.numpy as jnp
 
 from lrf_jax.extras import missing_extra
+
+if TYPE_CHECKING:
+  from lrf_jax.search.neighborhoods import AnyArray
 
 try:
   import flax.linen as nn
@@ -76,6 +79,7 @@ def init_regressor(seed: int, num_features: int) -> Params:
                                jnp.ones((1, 4), bool))["params"]
 
 
-def apply_regressor(params: Params, feats: jax.Array, mask: jax.Array) -> jax.Array:
+def apply_regressor(params: Params, feats: AnyArray, mask: AnyArray) -> jax.Array:
   """(..., K, F), (..., K) -> (..., 3)."""
-  return PointRegressor().apply({"params": params}, feats, mask)
+  # without `mutable`, apply returns the module's output alone (not an (output, state) pair)
+  return cast(jax.Array, PointRegressor().apply({"params": params}, feats, mask))

@@ -112,7 +112,7 @@ def build_validation(pairs: list[Any], config: TrainConfig) -> ValidationSet:
   return ValidationSet(names, pm, ps, rots, jax.jit(frames_fn(config)), vm, vs)
 
 
-def validate(params, val: ValidationSet) -> dict[str, float]:
+def validate(params, val: ValidationSet) -> dict[str, Any]:
   """Mean MeanCos over validation pairs (per pair first), and per pair, with `val.frames`.
 
   Returns:

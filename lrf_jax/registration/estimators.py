@@ -82,7 +82,7 @@ class RansacResult(NamedTuple):
 
 
 def _inlier_mask(r: jax.Array, t: jax.Array, src: jax.Array, dst: jax.Array,
-                 threshold: float) -> jax.Array:
+                 threshold: float | jax.Array) -> jax.Array:
   res = src @ r.T + t - dst
   return jnp.sum(res * res, axis=-1) <= threshold * threshold
 

@@ -72,7 +72,8 @@ def compatibility(src: np.ndarray, dst: np.ndarray, distance: float,
   rf = (np.ascontiguousarray(rotations, np.float64).reshape(n, 9) if use_rot
         else np.zeros((n, 9)))
   # angle(R_i R_jᵀ) < a  <=>  trace(R_i R_jᵀ) = sum of the entries of R_i ⊙ R_j > 1 + 2 cos a
-  min_trace = 1.0 + 2.0 * np.cos(np.radians(float(angle_deg))) if use_rot else -np.inf
+  min_trace = (1.0 + 2.0 * np.cos(np.radians(float(angle_deg)))  # type: ignore[arg-type]
+               if use_rot else -np.inf)  # use_rot: angle_deg is not None
   out = np.empty((n, n), np.float32)
   _compatibility(p, q, rf, float(distance), float(min_trace), bool(use_rot), out)
   return out

@@ -132,6 +132,8 @@ class MultiwayResult:
 def scan_names(scans: Sequence[Any]) -> list[str]:
   """Unique names: a path's file name without its cloud suffixes (".txt.gz" included), else
   "scan<k>"; repeated names get "_2", "_3", ... in order."""
+  out: list[str]
+  seen: dict[str, int]
   out, seen = [], {}
   for k, s in enumerate(scans):
     if isinstance(s, (str, os.PathLike)):
@@ -491,7 +493,8 @@ def merged_cloud(clouds: Sequence[np.ndarray], result: MultiwayResult, *,
   keys = np.floor((points - points.min(axis=0)) / voxel).astype(np.int64)
   _, inverse, counts = np.unique(keys, axis=0, return_inverse=True, return_counts=True)
   inverse = inverse.ravel()
-  mean = np.stack([np.bincount(inverse, points[:, d]) for d in range(3)], axis=1)
+  # float64: numpy's stubs type every bincount as integer, the weighted one included
+  mean: np.ndarray = np.stack([np.bincount(inverse, points[:, d]) for d in range(3)], axis=1)
   mean /= counts[:, None]
   n_scans = len(clouds)
   votes = np.bincount(inverse * n_scans + scan, minlength=len(counts) * n_scans)

@@ -22,7 +22,7 @@ from __future__ import annotations
 import contextlib
 import dataclasses
 import time
-from typing import Any, NamedTuple
+from typing import Any, NamedTuple, cast
 
 import numpy as np
 
@@ -611,7 +611,7 @@ def _prepare(source: Any, target: Any, *, mr, radius_mr, n_keypoints, n_correspo
     if vp is not None and (spec.needs_normals or descriptor == "shot"):
       normals = estimate_normals(pts, NORMAL_RADIUS_RATIO * radius, faces, vp)
     sides.append(_Side(pts, faces, vp, kp, normals))
-  return _Setup(tuple(sides), float(mr), float(radius), rng)
+  return _Setup(cast("tuple[_Side, _Side]", tuple(sides)), float(mr), float(radius), rng)
 
 
 def _is_positive(val: Any) -> bool:
@@ -644,7 +644,8 @@ def _side_frames(side: _Side, setup: _Setup, method: str, params: Any, seed: int
   spec = METHODS[method]
   options: dict[str, Any] = ({"oriented_sign": False}
              if spec.uses_viewpoint and side.viewpoint is None and side.faces is None else {})
-  frames, valid = compute_frames(
+  # two arrays: no return_confidence (compute_frames' return type admits three)
+  frames, valid = compute_frames(  # type: ignore[misc]
       side.points, side.keypoints, setup.radius, method, params=params, faces=side.faces,
       seed=seed, viewpoint=side.viewpoint,
       normals=None if spec.uses_viewpoint else side.normals, **options)

@@ -331,6 +331,7 @@ class _Problem:
       block = np.concatenate([-_skew(lever[p]) @ jl, np.broadcast_to(np.eye(3), jl.shape)],
                              axis=2) * (sign / self.scale)  # d(±M y)/dx: (P, 3, 6)
       if self.plane:
+        assert n is not None  # computed above for point-to-plane pairs
         block = np.einsum("pi,pij->pj", n[p], block)[:, None, :]
         if sign < 0:  # the normal turns with pose j: d(n · d)/dw_j += d · (-[n]x J_l)
           d = (a[p] - b[p]) / self.scale
@@ -348,7 +349,8 @@ class _Problem:
                       shape=shape)
 
 
-def least_squares_poses(poses0: np.ndarray, blocks: Sequence[PointPairs], free: Sequence[int],
+def least_squares_poses(poses0: np.ndarray, blocks: Sequence[PointPairs],
+                        free: Sequence[int | np.integer],
                         *, scale: float, robust: float | None, max_nfev: int = 100
                         ) -> np.ndarray:
   """Minimise the point pairs' residuals over the poses of `free` (the others stay fixed).

@@ -24,10 +24,28 @@ helpers: without them the ball lists, normals and k-NN queries run 1.3-5x slower
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING, cast
+
 import numba as nb
 import numpy as np
 
 from lrf_jax.search.grid import _BLOCK, _PRUNE_MARGIN, Grid, _cell, _centers, _reach, query_order
+
+if TYPE_CHECKING:
+  from typing import TypedDict
+
+  import numpy.typing as npt
+
+  class PatchFields(TypedDict):
+    """What `patches` returns: the fields of `neighborhoods.Patches` (see there)."""
+
+    offsets: np.ndarray
+    mask: np.ndarray
+    indices: np.ndarray
+    count: np.ndarray
+    z_count: np.ndarray | None  # the three None when `patches` is given the counts
+    z_mean: np.ndarray | None
+    z_cov: np.ndarray | None
 
 _SHELL_SLACK = 1e-5
 
@@ -443,7 +461,7 @@ def ball_stats(grid: Grid, centers: np.ndarray, radius: float
 def patches(grid: Grid, centers: np.ndarray, radius: float, k: int, inner_radius: float,
             shells: tuple[float, float] | None = None,
             into: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None,
-            count: np.ndarray | None = None) -> dict[str, np.ndarray | None]:
+            count: npt.ArrayLike | None = None) -> PatchFields:
   """The fields of `neighborhoods.Patches` for balls of `radius` around `centers`.
 
   Args:
@@ -486,11 +504,11 @@ def patches(grid: Grid, centers: np.ndarray, radius: float, k: int, inner_radius
     count = np.array(count, np.int64).reshape(-1)
     if count.shape != (m,):
       raise ValueError(f"count: expected ({m},) counts, got shape {count.shape}")
-  out = dict(
+  out: PatchFields = dict(
       offsets=into[0],
       mask=into[1],
       indices=into[2],
-      count=count if known else np.zeros(m, np.int64),
+      count=cast("np.ndarray", count) if known else np.zeros(m, np.int64),  # converted above
       z_count=None if known else np.zeros(m, np.int64),
       z_mean=None if known else np.zeros((m, 3)),
       z_cov=None if known else np.zeros((m, 3, 3)),

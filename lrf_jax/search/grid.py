@@ -62,7 +62,8 @@ def set_num_threads(n: int | None = None) -> int:
   Raises:
     ValueError: `n` not a positive integer.
   """
-  limit = int(nb.config.NUMBA_NUM_THREADS)
+  # numba.config sets its attributes from the environment at run time: no static declaration
+  limit = int(nb.config.NUMBA_NUM_THREADS)  # type: ignore[attr-defined]
   if n is None:
     n = limit
   if isinstance(n, bool) or int(n) != n or n < 1:

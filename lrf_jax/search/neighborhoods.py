@@ -20,11 +20,20 @@ multi-threaded), which writes the arrays of `Patches` directly.
 
 from __future__ import annotations
 
-from typing import NamedTuple
+from typing import TYPE_CHECKING, NamedTuple
 
 import numpy as np
 
 from lrf_jax.search import engine
+
+if TYPE_CHECKING:
+  from typing import TypeAlias
+
+  import jax
+
+  # A pytree leaf such as a `Patches` field: a numpy array on the host (`build_patches`), a
+  # jax.Array on the device and under jit (`search.device`, `geometry.ops.sanitize`, the frames).
+  AnyArray: TypeAlias = np.ndarray | jax.Array
 
 # Multiplier of the splitmix64 finaliser (public domain, Steele et al.).
 _MIX1 = np.uint64(0xBF58476D1CE4E5B9)
@@ -54,14 +63,14 @@ class Patches(NamedTuple):
     z_count: (N,) int32, number of points within z_ratio * r (keypoint included).
   """
 
-  offsets: np.ndarray
-  mask: np.ndarray
-  indices: np.ndarray
-  count: np.ndarray
-  radius: np.ndarray
-  z_cov: np.ndarray
-  z_mean: np.ndarray
-  z_count: np.ndarray
+  offsets: AnyArray
+  mask: AnyArray
+  indices: AnyArray
+  count: AnyArray  # type: ignore[assignment]  # a field named like tuple.count (public)
+  radius: AnyArray
+  z_cov: AnyArray
+  z_mean: AnyArray
+  z_count: AnyArray
 
   @property
   def num_keypoints(self) -> int:
@@ -402,7 +411,8 @@ def build_patches(
   out = engine.patches(grid, centers, radius, int(k), z_ratio * radius, shells, into, known)
   if stats_from is not None:
     z_cov, z_mean, z_count = stats_from.z_cov, stats_from.z_mean, stats_from.z_count
-  else:
+  else:  # no counts given: the engine computed the statistics
+    assert out["z_cov"] is not None and out["z_mean"] is not None and out["z_count"] is not None
     z_cov = out["z_cov"].astype(np.float32)
     z_mean = out["z_mean"].astype(np.float32)
     z_count = out["z_count"].astype(np.int32)

@@ -1,6 +1,7 @@
 """Host-side surface normals and mesh quantities shared by the hand-crafted LRFs.
 
-Everything here runs once per cloud on the host (numpy / scipy, float64); the LRF functions in
+Everything here runs once per cloud on the host (numpy, numba kernels and the engine, float64;
+scipy only for the orientation graph's connected components); the LRF functions in
 `lrf_jax.frames` then receive per-keypoint gathers of these arrays through their `prepare` hook
 (`frames.normal_based.prepare_normals`, `frames.rops.prepare_triangles`).
 

@@ -6,8 +6,10 @@ Two caches share one per-user root, `cache_root()` (`$XDG_CACHE_HOME/lrf_jax`, e
 * numba's kernels (`cache=True`) in `cache_root()/numba`: `configure_numba_cache()` (run by
   `import lrf_jax`, before numba is imported) sets `NUMBA_CACHE_DIR` there unless the user has
   set it. numba would otherwise write next to the package's sources, which fails for a read-only
-  install (it then falls back to its own per-user directory); numba keys the entries by the
-  sources' path and time stamps, so each install has its own.
+  install (it then falls back to its own per-user directory). lrf_jax's kernels are keyed by the
+  contents of every source they are compiled from and not by the install's path
+  (`search.kernel_cache`): an edited helper recompiles the kernels that call it, and a second
+  install of the same code loads the first one's kernels.
 * JAX's persistent compilation cache in `cache_root()/jax` (or `$LRF_JAX_CACHE_DIR`):
   `enable()`, called by the command-line programs. A fresh `lrf-register` or `lrf-frames` would
   otherwise recompile every jitted function it calls.
@@ -148,11 +150,16 @@ def announce_compiles(stream: TextIO | None = None) -> None:
 
   Hooks numba's compile event (fired on a cache miss only) when numba is imported, and JAX's
   monitoring events when JAX is imported; idempotent, cheap, and it imports neither library.
+  With numba it also installs lrf_jax's cache locator (`search.kernel_cache.install`): every
+  module that defines a cached kernel calls this first.
   """
   if stream is not None:
     _state["stream"] = stream
   if _state["numba"] is None and "numba" in sys.modules:
     from numba.core import event
+
+    from lrf_jax.search import kernel_cache
+    kernel_cache.install()
     _state["numba"] = _numba_listener()
     event.register("numba:compile", _state["numba"])
   if not _state["jax"] and "jax" in sys.modules:

@@ -35,8 +35,11 @@ from __future__ import annotations
 import numba as nb
 import numpy as np
 
+from lrf_jax import compilation_cache
 from lrf_jax.registration import host
 from lrf_jax.search.bits import pack_rows
+
+compilation_cache.announce_compiles()  # numba cache keys (search.kernel_cache), the compile note
 
 # Power iterations of the spectral score (enough to order the correspondences: the score only
 # picks the seeds, the consensus sets are chosen by second-order compatibility).

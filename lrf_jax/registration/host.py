@@ -18,6 +18,10 @@ from __future__ import annotations
 import numba as nb
 import numpy as np
 
+from lrf_jax import compilation_cache
+
+compilation_cache.announce_compiles()  # numba cache keys (search.kernel_cache), the compile note
+
 
 def kabsch_batch(src: np.ndarray, dst: np.ndarray, weights: np.ndarray | None = None
                  ) -> tuple[np.ndarray, np.ndarray]:

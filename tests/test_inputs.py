@@ -117,6 +117,8 @@ def test_clear_caches_empties_them(demo):
   pts, faces, mr = demo
   lrf_jax.compute_frames(pts, np.arange(0, len(pts), 97), 15 * mr, "flare")
   lrf_jax.compute_frames(pts, np.arange(0, len(pts), 97), 15 * mr, "lrf_net")
+  # the jitted path too (on a CPU both methods above run host kernels): fills api._jitted
+  lrf_jax.compute_frames(pts, np.arange(0, len(pts), 97), 15 * mr, "lrf_net", kernel="jit")
   assert normals._CACHE and api._TABLES and api._jitted.cache_info().currsize
   lrf_jax.clear_caches()
   assert not normals._CACHE and not api._TABLES and api._jitted.cache_info().currsize == 0

@@ -15,11 +15,11 @@ from lrf_jax.search import engine
 from lrf_jax.search.chunks import map_chunks
 from lrf_jax.geometry.resolution import mesh_resolution as _mesh_resolution
 from lrf_jax.frames import METHODS, MethodSpec
-from lrf_jax.inputs import as_cloud
+from lrf_jax.inputs import CloudInput, as_cloud
 from lrf_jax.learning.model import default_params
-from lrf_jax.search.neighborhoods import (Patches, SearchIndex, build_patches, unit_scaled,
-                                   validate_keypoints, validate_radius, validate_seed,
-                                   validate_viewpoint)
+from lrf_jax.search.neighborhoods import (Patches, SearchIndex, _patches_checked, unit_scaled,
+                                          validate_keypoints, validate_radius, validate_seed,
+                                          validate_viewpoint)
 from lrf_jax.prepare import method_normals, prepare_extra
 
 if TYPE_CHECKING:
@@ -54,7 +54,14 @@ def frames_from_patches(patches: Patches, method: str = "lrf_net_plus", *, param
     (frames (N, 3, 3), valid (N,)).
   """
   spec = _spec(method)
-  _check_options(method, options)
+  _check_options(method, options, spec)
+  return _patch_frames_checked(spec, patches, params, extra, options)
+
+
+def _patch_frames_checked(spec: MethodSpec, patches: Patches, params: Any, extra: Any,
+                          options: dict) -> tuple[jax.Array, jax.Array]:
+  """`frames_from_patches` without its checks: `spec` is a registered method and `options` are
+  options it takes (inputs already checked by `frames_from_patches` or `compute_frames`)."""
   options = dict(spec.default_options) | options
   if spec.needs_params and params is None:
     params = default_params(spec.weights)
@@ -124,13 +131,17 @@ def mesh_resolution(points: Any, faces: Any = None) -> float:
 
 def method_options(method: str) -> list[str]:
   """The option names `method` accepts (keyword arguments of its frame function)."""
-  spec = _spec(method)
+  return _option_names(_spec(method))
+
+
+def _option_names(spec: MethodSpec) -> list[str]:
   params = inspect.signature(spec.fn).parameters.values()
   return sorted(p.name for p in params if p.kind is p.KEYWORD_ONLY and p.name != "params")
 
 
-def _check_options(method: str, options: dict) -> None:
-  valid = method_options(method)
+def _check_options(method: str, options: dict, spec: MethodSpec) -> None:
+  """Raise unless `spec` (the method registered as `method`) takes every option in `options`."""
+  valid = _option_names(spec)
   unknown = sorted(set(options) - set(valid))
   if unknown:
     raise ValueError(f"options: unknown option(s) {unknown} for method {method!r}; its options "
@@ -208,7 +219,7 @@ def _check_call(spec: MethodSpec, faces: Any, chunk_size: Any, k: Any, options: 
       or chunk_size < 1):
     raise ValueError(f"chunk_size: expected a positive integer, got {chunk_size!r}")
   _validate_k(k)
-  _check_options(method, options)
+  _check_options(method, options, spec)
   if return_confidence and spec.confidence is None:
     raise ValueError(f"return_confidence: method {method!r} defines no sign confidence; methods "
                      f"that do: {sorted(n for n, s in METHODS.items() if s.confidence)}")
@@ -306,14 +317,59 @@ def compute_frames(
     >>> frames, valid = compute_frames(points, np.arange(100), radius=0.02)
   """
   spec = _spec(method)
-  points, faces, normals = as_cloud(points, "points", faces=faces, normals=normals)
-  keypoints = validate_keypoints(keypoints, points.shape[0])
-  radius = _resolve_radius(points, faces, radius, radius_mr)
-  _check_call(spec, faces, chunk_size, k, options, return_confidence)
+  cloud = as_cloud(points, "points", faces=faces, normals=normals)
+  keypoints = validate_keypoints(keypoints, cloud.points.shape[0])
+  radius = _resolve_radius(cloud.points, cloud.faces, radius, radius_mr)
+  _check_call(spec, cloud.faces, chunk_size, k, options, return_confidence)
   seed = validate_seed(seed)
   viewpoint = validate_viewpoint(viewpoint)
+  return _frames_checked(method, cloud, keypoints, radius, params=params, k=k, seed=seed,
+                         viewpoint=viewpoint, chunk_size=chunk_size, progress=progress,
+                         search=search, kernel=kernel, return_confidence=return_confidence,
+                         options=options)
+
+
+def _frames_checked(
+    method: str,
+    cloud: CloudInput,
+    keypoints: np.ndarray,
+    radius: float,
+    *,
+    params: Any = None,
+    k: int | None | str = "default",
+    seed: int = 0,
+    viewpoint: np.ndarray | None = None,
+    chunk_size: int = 4096,
+    progress: bool | None = None,
+    search: str = "auto",
+    kernel: str = "auto",
+    return_confidence: bool = False,
+    options: dict | None = None,
+) -> tuple[jax.Array, jax.Array] | tuple[jax.Array, jax.Array, jax.Array]:
+  """`compute_frames` after its argument checks: the same arguments (and defaults), already
+  checked by `compute_frames` (or by `register`, for the clouds it read and the keypoints it
+  drew). Only `search` and `kernel` are checked here, where they are first read (after the
+  empty-keypoints return, as always).
+
+  Args:
+    method: a key of `METHODS`.
+    cloud: the checked cloud (`as_cloud`: (n, 3) finite float64 points, faces (f, 3) int64 into
+      them or None, normals (n, 3) or None).
+    keypoints: (m,) int64 indices into `cloud.points`.
+    radius: support radius r (cloud units; `validate_radius`'s range).
+    seed: a non-negative int.
+    viewpoint: None or a finite (3,) float64 position (`validate_viewpoint`).
+    chunk_size, k, return_confidence, options: checked by `_check_call` for this method.
+    params, progress, search, kernel: as `compute_frames` takes them.
+
+  Returns:
+    As `compute_frames`.
+  """
+  spec = METHODS[method]
+  options = {} if options is None else options
+  points, faces, normals = cloud
   # Every method works in units of the radius (frames are directions): the same arithmetic at
-  # any scale of cloud and radius, a ValueError outside 1e-30..1e30 (`unit_scaled`).
+  # any scale of cloud and radius (1e-30..1e30, `validate_radius`; `unit_scaled`).
   unit = radius
   points, radius, viewpoint = unit_scaled(points, radius, viewpoint)
   k = spec.default_k if k == "default" else k
@@ -355,7 +411,7 @@ def compute_frames(
       assert spec.host_patch_frames is not None  # host_patches says it applies
       out = spec.host_patch_frames(patches, extra, params, host_options)
     else:
-      out = frames_from_patches(patches, method, params=params, extra=extra, **options)
+      out = _patch_frames_checked(spec, patches, params, extra, options)
     if return_confidence:
       assert spec.confidence is not None  # checked by _check_call
       conf = spec.confidence(patches, extra, out[0], out[1], host_options)
@@ -405,9 +461,9 @@ class _PatchSearch:
       patches, _ = build_patches_device(self.points, kp, self.radius, k, seed=self.seed,
                                         z_ratio=spec.z_ratio, index=self.device)
       return patches
-    return build_patches(self.points, kp, self.radius, k, seed=self.seed, z_ratio=spec.z_ratio,
-                         index=self.index, validate=False,
-                         shells=spec.shells if k is None else None)
+    return _patches_checked(self.points, kp, self.radius, k, seed=self.seed,
+                            z_ratio=spec.z_ratio, index=self.index,
+                            shells=spec.shells if k is None else None)
 
 
 # Ball-list entries (8 bytes each) a host fast path holds at a time.

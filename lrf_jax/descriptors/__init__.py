@@ -43,8 +43,8 @@ from lrf_jax.descriptors.rops import rops_descriptors
 from lrf_jax.descriptors.shot import shot_descriptors
 from lrf_jax.descriptors.snapshots import snapshot_descriptors
 from lrf_jax.descriptors.toldi import toldi_descriptors
-from lrf_jax.search.neighborhoods import (Patches, SearchIndex, build_patches, validate_cloud,
-                                   validate_keypoints, validate_radius)
+from lrf_jax.search.neighborhoods import (Patches, SearchIndex, _patches_checked,
+                                          validate_cloud, validate_keypoints, validate_radius)
 from lrf_jax.frames.normal_based import prepare_normals
 
 
@@ -256,14 +256,44 @@ def compute_descriptors(
   Raises:
     ValueError: a bad cloud, keypoints, radius, frames or descriptor name.
   """
-  spec = _spec(descriptor)
+  _spec(descriptor)  # a ValueError for an unknown descriptor, before the other arguments
   points = validate_cloud(points)
   keypoints = validate_keypoints(keypoints, points.shape[0])
   radius = validate_radius(radius)
-  m = keypoints.shape[0]
-  frames, valid = validate_frames(frames, valid, m)
+  frames, valid = validate_frames(frames, valid, keypoints.shape[0])
   if int(chunk_size) < 1:
     raise ValueError(f"chunk_size: expected a positive integer, got {chunk_size!r}")
+  return _descriptors_checked(descriptor, points, keypoints, radius, frames, valid, faces=faces,
+                              normals=normals, k=k, seed=seed, chunk_size=chunk_size,
+                              index=index, kernel=kernel, options=options)
+
+
+def _descriptors_checked(descriptor: str, points: np.ndarray, keypoints: np.ndarray,
+                         radius: float, frames: np.ndarray, valid: np.ndarray, *,
+                         faces: np.ndarray | None = None, normals: np.ndarray | None = None,
+                         k: int | None = None, seed: int = 0, chunk_size: int = 256,
+                         index: SearchIndex | None = None, kernel: str = "auto",
+                         options: dict | None = None) -> tuple[jax.Array, jax.Array]:
+  """`compute_descriptors` after its argument checks: the same arguments (and defaults), already
+  checked by `compute_descriptors` (or by `register`, for the clouds it read, the keypoints it
+  drew and the frames `compute_frames` gave). Only `kernel` is checked here, where it is first
+  read (after the empty-keypoints return, as always).
+
+  Args:
+    descriptor: a key of `DESCRIPTORS`.
+    points: (n, 3) finite float64 cloud (`validate_cloud`).
+    keypoints: (m,) int64 indices into it (`validate_keypoints`).
+    radius: support radius r (cloud units; `validate_radius`'s range).
+    frames: (m, 3, 3) float32 frames, rows x, y, z; valid: (m,) bool (`validate_frames`).
+    chunk_size: a positive integer.
+    faces, normals, k, seed, index, kernel, options: as `compute_descriptors` takes them.
+
+  Returns:
+    As `compute_descriptors`.
+  """
+  spec = DESCRIPTORS[descriptor]
+  options = {} if options is None else options
+  m = keypoints.shape[0]
   if m == 0:
     return jnp.zeros((0, spec.dim), jnp.float32), jnp.zeros((0,), bool)
   if index is None or index.seed != seed or index.points.shape != points.shape:
@@ -285,7 +315,7 @@ def compute_descriptors(
     if k is None:  # the whole ball: one plain radius search
       patches = ball_patches(index, points, kp, radius)
     else:
-      patches = build_patches(points, kp, radius, k, seed=seed, index=index, validate=False)
+      patches = _patches_checked(points, kp, radius, k, seed=seed, index=index)
     return describe_patches(patches, frames[idx], valid[idx], descriptor, points=points,
                             keypoints=kp, radius=radius, faces=faces, normals=normals,
                             chunk_size=len(idx), **options)

@@ -12,7 +12,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from lrf_jax.search import engine
-from lrf_jax.search.neighborhoods import Patches, SearchIndex, build_patches
+from lrf_jax.search.neighborhoods import Patches, SearchIndex, _patches_checked
 
 
 def local_coordinates(offsets: jax.Array, frames: jax.Array) -> jax.Array:
@@ -130,5 +130,4 @@ def ball_patches(index: SearchIndex, points: np.ndarray, keypoints: np.ndarray,
   grid = index.grid(radius)
   counts = engine.ball_counts(grid, centers, radius)
   k = bucket_k(int(counts.max()) if len(keypoints) else 1)
-  return build_patches(points, keypoints, radius, k, seed=index.seed, index=index,
-                       validate=False)
+  return _patches_checked(points, keypoints, radius, k, seed=index.seed, index=index)

@@ -26,13 +26,13 @@ from typing import Any, NamedTuple, cast
 
 import numpy as np
 
-from lrf_jax.api import compute_frames
-from lrf_jax.descriptors import DESCRIPTORS, compute_descriptors, select_correspondences
+from lrf_jax.api import _check_options, _frames_checked
+from lrf_jax.descriptors import DESCRIPTORS, _descriptors_checked, select_correspondences
 from lrf_jax.frames import METHODS
 from lrf_jax.geometry.keypoints import iss_keypoints
 from lrf_jax.geometry.normals import NORMAL_RADIUS_RATIO, estimate_normals
 from lrf_jax.geometry.resolution import mesh_resolution
-from lrf_jax.inputs import as_cloud
+from lrf_jax.inputs import CloudInput, as_cloud
 from lrf_jax.registration import graph, host, icp_host
 from lrf_jax.registration.errors import _check_transform, pose_errors
 from lrf_jax.registration.estimators import _centred, _finish, _triples, _uncentre
@@ -41,7 +41,7 @@ from lrf_jax.registration.evidence import (CHANCE_SHUFFLES, RIVAL_DEG, Evidence,
 from lrf_jax.registration.icp_host import icp
 from lrf_jax.search import engine
 from lrf_jax.search.grid import serial_blas
-from lrf_jax.search.neighborhoods import validate_seed, validate_viewpoint
+from lrf_jax.search.neighborhoods import validate_radius, validate_seed, validate_viewpoint
 
 # ------------------------------------------------------------------------------------------------
 # register: the user-facing pipeline
@@ -276,10 +276,9 @@ def register(source: Any, target: Any, *, mr: float | None = None, radius_mr: fl
                                                               target_viewpoint),
                      keypoints=keypoints, mutual=mutual, ratio=ratio, icp_mode=icp_mode)
   with timer("frames"):
-    frames = [_side_frames(side, setup, method, params, seed) for side in setup.sides]
+    frames = [_side_frames(side, setup, method, params) for side in setup.sides]
   with timer("descriptors"):
-    descs = [_side_descriptors(side, f, setup, descriptor, seed)
-             for side, f in zip(setup.sides, frames)]
+    descs = [_side_descriptors(side, f, setup, descriptor) for side, f in zip(setup.sides, frames)]
   with timer("matching"):
     qi, ri = _match(frames, descs, estimator, n_correspondences, radius_mr, mutual, ratio)
   (kp_s, (f_s, v_s)), (kp_t, (f_t, v_t)) = zip((s.keypoints for s in setup.sides), frames)
@@ -547,17 +546,25 @@ class _Side(NamedTuple):
 
 
 class _Setup(NamedTuple):
+  """`register`'s checked inputs: what its stages pass inward without checking them again."""
+
   sides: tuple[_Side, _Side]
   mr: float
-  radius: float
+  radius: float                # the support radius (cloud units), `validate_radius`'s range
   rng: np.random.Generator
+  seed: int                    # `validate_seed`'s
 
 
 def _prepare(source: Any, target: Any, *, mr, radius_mr, n_keypoints, n_correspondences,
              iterations, inlier_mr, verify, estimator, icp_iterations, icp_mr, method,
              descriptor, seed, views, keypoints="random", mutual=False, ratio=None,
              icp_mode="point_to_plane") -> _Setup:
-  """Stage "prepare": read and check the inputs, measure mr, pick keypoints, estimate normals."""
+  """Stage "prepare": read and check the inputs, measure mr, pick keypoints, estimate normals.
+
+  Where `register` checks its inputs (`icp_fine` aside): the later stages hand the checked clouds,
+  keypoints, radius and seed to the inner functions of `compute_frames` and
+  `compute_descriptors` (`_frames_checked`, `_descriptors_checked`), which do not check them
+  again."""
 
   src_pts, src_faces = _as_cloud(source, "source")
   dst_pts, dst_faces = _as_cloud(target, "target")
@@ -611,7 +618,9 @@ def _prepare(source: Any, target: Any, *, mr, radius_mr, n_keypoints, n_correspo
     if vp is not None and (spec.needs_normals or descriptor == "shot"):
       normals = estimate_normals(pts, NORMAL_RADIUS_RATIO * radius, faces, vp)
     sides.append(_Side(pts, faces, vp, kp, normals))
-  return _Setup(cast("tuple[_Side, _Side]", tuple(sides)), float(mr), float(radius), rng)
+  # checked last, where `compute_frames` checked it: the same ValueError after the same steps
+  radius = validate_radius(radius)
+  return _Setup(cast("tuple[_Side, _Side]", tuple(sides)), float(mr), radius, rng, seed)
 
 
 def _is_positive(val: Any) -> bool:
@@ -634,7 +643,7 @@ def _is_count(val: Any, minimum: int) -> bool:
     return False
 
 
-def _side_frames(side: _Side, setup: _Setup, method: str, params: Any, seed: int
+def _side_frames(side: _Side, setup: _Setup, method: str, params: Any
                  ) -> tuple[np.ndarray, np.ndarray]:
   """Stage "frames": the LRFs of one side's keypoints. A viewpoint-aware method (lrf_net_plus)
   given neither a viewpoint nor a mesh takes its z sign from each patch (`oriented_sign=False`)
@@ -644,21 +653,23 @@ def _side_frames(side: _Side, setup: _Setup, method: str, params: Any, seed: int
   spec = METHODS[method]
   options: dict[str, Any] = ({"oriented_sign": False}
              if spec.uses_viewpoint and side.viewpoint is None and side.faces is None else {})
+  _check_options(method, options, spec)  # options of register's own choosing: checked here
+  cloud = CloudInput(side.points, side.faces, None if spec.uses_viewpoint else side.normals)
   # two arrays: no return_confidence (compute_frames' return type admits three)
-  frames, valid = compute_frames(  # type: ignore[misc]
-      side.points, side.keypoints, setup.radius, method, params=params, faces=side.faces,
-      seed=seed, viewpoint=side.viewpoint,
-      normals=None if spec.uses_viewpoint else side.normals, **options)
+  frames, valid = _frames_checked(  # type: ignore[misc]
+      method, cloud, side.keypoints, setup.radius, params=params, seed=setup.seed,
+      viewpoint=side.viewpoint, options=options)
   return np.asarray(frames), np.asarray(valid)
 
 
 def _side_descriptors(side: _Side, frames: tuple[np.ndarray, np.ndarray], setup: _Setup,
-                      descriptor: str, seed: int) -> tuple[np.ndarray, np.ndarray]:
-  """Stage "descriptors": one side's descriptors on its frames."""
+                      descriptor: str) -> tuple[np.ndarray, np.ndarray]:
+  """Stage "descriptors": one side's descriptors on its frames ((m, 3, 3) float32 and (m,) bool,
+  as `_side_frames` gives them)."""
 
-  desc, ok = compute_descriptors(side.points, side.keypoints, setup.radius, frames[0],
-                                 frames[1], descriptor, faces=side.faces, seed=seed,
-                                 normals=side.normals)
+  desc, ok = _descriptors_checked(descriptor, side.points, side.keypoints, setup.radius,
+                                  frames[0], frames[1], faces=side.faces, seed=setup.seed,
+                                  normals=side.normals)
   return np.asarray(desc), np.asarray(ok)
 
 

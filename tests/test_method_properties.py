@@ -8,8 +8,8 @@ touching the other keypoints; and every method honouring the declared `extra` la
 method with a host kernel (`host_frames` or `host_patch_frames`) must give its jitted function's
 frames on procedural clouds: smooth, noisy, planar, cut off, with degenerate keypoints
 (`lrf_testing.host_check_cloud`). A new method registered in `lrf_jax/frames/__init__.py` is
-tested here without edits; the README's "Adding an LRF method" example is run as written and
-put through the same checks.
+tested here without edits; the README's "Adding an LRF method" example, host kernel included,
+is run as written and put through the same checks.
 """
 
 from __future__ import annotations
@@ -180,7 +180,8 @@ def _readme_example() -> str:
 
 def test_adding_a_method_as_the_readme_says():
   """The README's toy method, registered inside this test only, passes every property check,
-  runs through `compute_frames`, and is equivariant on the synthetic mesh."""
+  runs through `compute_frames`, is equivariant on the synthetic mesh, and its host kernel
+  passes the host check (`test_host_fast_path_equals_the_jitted_function`) on every cloud."""
   assert "centroid" not in lrf_jax.METHODS
   try:
     exec(compile(_readme_example(), str(README), "exec"), {})
@@ -195,6 +196,10 @@ def test_adding_a_method_as_the_readme_says():
                                                     "centroid"))
     np.testing.assert_array_equal(v0, v1)
     np.testing.assert_allclose(f1[v0], f0[v0] @ rot.T, atol=1e-4)
+    assert has_host_kernel(lrf_jax.METHODS["centroid"])  # its host kernel equals its definition
+    for kind in HOST_CHECK_KINDS:
+      if not (kind == "tilted_plane" and "centroid" in ROUNDING_ON_A_TILTED_PLANE):
+        check_host_equals_jit("centroid", kind)
   finally:
     lrf_jax.METHODS.pop("centroid", None)
   assert "centroid" not in lrf_jax.METHODS
@@ -255,7 +260,7 @@ HOST_METHODS = [m for m, s in lrf_jax.METHODS.items() if has_host_kernel(s)]
 # sign vote over heights Σ (q_i - p)·z of about 0, or an x from the highest point or from
 # heights h_i of about 0; their host and jitted frames differ there (both valid).
 ROUNDING_ON_A_TILTED_PLANE = {"toldi", "shot", "rops", "board", "flare", "ps", "lrf_net",
-                              "uniform"}
+                              "uniform", "centroid"}
 
 
 def _both_kernels(method, points, keypoints, radius, faces):

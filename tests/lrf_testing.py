@@ -63,6 +63,48 @@ def load_br_model(root: Path, name: str, scene: int | None = None):
 
 
 N_GOOD = 12  # interior keypoints of `synthetic_mesh`
+GRID = 41  # the height field's grid: GRID x GRID points, spacing 1 (about 1 mr)
+
+
+def _grid(rng: np.random.Generator, height=None) -> tuple[np.ndarray, np.ndarray]:
+  """A GRID x GRID grid of spacing 1 jittered by up to 0.1 in x and y, z = height(x, y) (0
+  when None), and its triangles: ((GRID**2, 3) points, (f, 3) faces), row-major (x index
+  first)."""
+  n = GRID
+  gx, gy = np.meshgrid(np.arange(n, dtype=float), np.arange(n, dtype=float), indexing="ij")
+  x = gx + rng.uniform(-0.1, 0.1, gx.shape)
+  y = gy + rng.uniform(-0.1, 0.1, gy.shape)
+  z = np.zeros_like(x) if height is None else height(x, y)
+  ids = np.arange(n * n).reshape(n, n)
+  a, b, c, d = ids[:-1, :-1], ids[1:, :-1], ids[1:, 1:], ids[:-1, 1:]
+  faces = np.concatenate([np.stack([a, b, c], -1).reshape(-1, 3),
+                          np.stack([a, c, d], -1).reshape(-1, 3)])
+  return np.stack([x, y, z], -1).reshape(-1, 3), faces
+
+
+def _height(x, y):
+  """`synthetic_mesh`'s irregular height field (a few units of relief over the 41 x 41 grid)."""
+  return 1.5 * np.sin(0.35 * x + 0.2 * y) + 0.8 * np.cos(0.3 * y - 0.15 * x) + 0.01 * x * y
+
+
+def _grid_keypoints(rows, cols) -> np.ndarray:
+  """Indices of the grid points at (rows x cols), row-major."""
+  return np.arange(GRID * GRID).reshape(GRID, GRID)[np.ix_(rows, cols)].reshape(-1)
+
+
+def _with_degenerate_parts(surface: np.ndarray, faces: np.ndarray, keypoints: np.ndarray):
+  """`surface` plus, far away, a pair of points (a keypoint with one neighbour) and 30 collinear
+  points with zero-area triangles (a keypoint on a collinear support): (points, faces int64,
+  keypoints = `keypoints` then those two, radius 6)."""
+  s = len(surface)
+  pair = np.array([[500.0, 500.0, 500.0], [500.1, 500.0, 500.0]])  # too few neighbours
+  direction = np.array([1.0, 2.0, 3.0]) / np.sqrt(14.0)
+  line = np.array([-500.0, -500.0, -500.0]) + 0.5 * np.arange(30)[:, None] * direction  # collinear
+  points = np.concatenate([surface, pair, line])
+  l0 = s + 2
+  line_faces = np.stack([l0 + np.arange(28), l0 + np.arange(1, 29), l0 + np.arange(2, 30)], -1)
+  faces = np.concatenate([faces, line_faces])  # zero-area triangles along the line
+  return points, faces.astype(np.int64), np.concatenate([keypoints, [s], [l0 + 15]]), 6.0
 
 
 def synthetic_mesh():
@@ -72,24 +114,52 @@ def synthetic_mesh():
     (points, faces, keypoints, radius): the first `N_GOOD` keypoints are interior surface points,
     then a keypoint with one neighbour and one on a collinear support.
   """
-  rng = np.random.default_rng(3)
-  n = 41
-  gx, gy = np.meshgrid(np.arange(n, dtype=float), np.arange(n, dtype=float), indexing="ij")
-  x = gx + rng.uniform(-0.1, 0.1, gx.shape)
-  y = gy + rng.uniform(-0.1, 0.1, gy.shape)
-  z = 1.5 * np.sin(0.35 * x + 0.2 * y) + 0.8 * np.cos(0.3 * y - 0.15 * x) + 0.01 * x * y
-  grid = np.stack([x, y, z], -1).reshape(-1, 3)
-  ids = np.arange(n * n).reshape(n, n)
-  a, b, c, d = ids[:-1, :-1], ids[1:, :-1], ids[1:, 1:], ids[:-1, 1:]
-  faces = np.concatenate([np.stack([a, b, c], -1).reshape(-1, 3),
-                          np.stack([a, c, d], -1).reshape(-1, 3)])
-  pair = np.array([[500.0, 500.0, 500.0], [500.1, 500.0, 500.0]])  # too few neighbours
-  direction = np.array([1.0, 2.0, 3.0]) / np.sqrt(14.0)
-  line = np.array([-500.0, -500.0, -500.0]) + 0.5 * np.arange(30)[:, None] * direction  # collinear
-  points = np.concatenate([grid, pair, line])
-  l0 = n * n + 2
-  line_faces = np.stack([l0 + np.arange(28), l0 + np.arange(1, 29), l0 + np.arange(2, 30)], -1)
-  faces = np.concatenate([faces, line_faces])  # zero-area triangles along the line
-  interior = ids[14:27:4, 14:27:4].reshape(-1)[:12]
-  keypoints = np.concatenate([interior, [n * n], [l0 + 15]])
-  return points, faces.astype(np.int64), keypoints, 6.0
+  grid, faces = _grid(np.random.default_rng(3), _height)
+  interior = _grid_keypoints(range(14, 27, 4), range(14, 27, 4))[:N_GOOD]
+  return _with_degenerate_parts(grid, faces, interior)
+
+
+# The kinds of `host_check_cloud`: every host kernel must give its jitted function's frames on
+# each. "tilted_plane" is where some methods' frames are set by float rounding (see there).
+HOST_CHECK_KINDS = ("smooth", "noisy", "planar", "cut", "tilted_plane")
+
+
+def host_check_cloud(kind: str):
+  """A procedural mesh of `kind` on which a method's host kernel and its jitted function must
+  give the same frames: (points (n, 3) float64, faces (f, 3) int64, keypoints (14,), radius 6).
+
+  The surface is a 41 x 41 grid (spacing 1, about 1 mr; the radius is 6 mr), its 12 keypoints
+  first, then `synthetic_mesh`'s two degenerate keypoints (one neighbour; a collinear support),
+  which every method must flag invalid:
+
+  * "smooth": `synthetic_mesh` (an irregular height field, all 12 keypoints interior);
+  * "noisy": that field with Gaussian noise of 0.1 grid spacings (about 0.1 mr) per axis;
+  * "planar": the grid on the exact plane z = 0 (offsets exact in float32 and float64: a frame
+    undefined there is invalid on both paths, e.g. TOLDI's x weights h = 0);
+  * "cut": the field cut off at x = 20.5, as a scan ends: 4 keypoints on the cut, 8 within 3 mr
+    of it (their balls half-empty);
+  * "tilted_plane": the "planar" grid rotated: the points' heights above their plane, exactly 0,
+    are float rounding (about 1e-7 r in float32, 1e-16 r in float64), so a method that reads
+    their signs (a z vote, a highest point, an x weighted by h) may take any frame, and the two
+    paths differ.
+  """
+  from lrf_jax.datasets.nuisances import add_gaussian_noise
+  if kind not in HOST_CHECK_KINDS:
+    raise ValueError(f"kind: expected one of {HOST_CHECK_KINDS}, got {kind!r}")
+  if kind == "smooth":
+    return synthetic_mesh()
+  rng = np.random.default_rng(5)
+  interior = _grid_keypoints(range(14, 27, 4), range(14, 27, 4))[:N_GOOD]
+  if kind == "noisy":
+    grid, faces = _grid(rng, _height)
+    return _with_degenerate_parts(add_gaussian_noise(grid, 0.1, 1.0, rng), faces, interior)
+  if kind in ("planar", "tilted_plane"):
+    grid, faces = _grid(rng)
+    if kind == "tilted_plane":
+      grid = grid @ Rotation.from_euler("xyz", [20, 35, 10], degrees=True).as_matrix().T
+    return _with_degenerate_parts(grid, faces, interior)
+  grid, faces = _grid(rng, _height)
+  keep = grid[:, 0] <= 20.5  # rows 0..20 (x = row +- 0.1)
+  remap = np.cumsum(keep) - 1
+  kp = remap[_grid_keypoints([20, 19, 17], [5, 15, 25, 35])]
+  return _with_degenerate_parts(grid[keep], remap[faces[keep[faces].all(1)]], kp)

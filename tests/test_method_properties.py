@@ -4,9 +4,12 @@ On a synthetic mesh (an irregular height field plus two degenerate far-away part
 rows and det +1; interior keypoints valid, a one-neighbour and a collinear support invalid with
 an identity frame; frames that depend on the input; invariance to the order of the patch slots
 (and triangle slots) and to extra padding holding garbage; NaN input flagged invalid without
-touching the other keypoints; and every method honouring the declared `extra` layout. A new
-method registered in `lrf_jax/frames/__init__.py` is tested here without edits; the README's
-"Adding an LRF method" example is run as written and put through the same checks.
+touching the other keypoints; and every method honouring the declared `extra` layout. Every
+method with a host kernel (`host_frames` or `host_patch_frames`) must give its jitted function's
+frames on procedural clouds: smooth, noisy, planar, cut off, with degenerate keypoints
+(`lrf_testing.host_check_cloud`). A new method registered in `lrf_jax/frames/__init__.py` is
+tested here without edits; the README's "Adding an LRF method" example, host kernel included,
+is run as written and put through the same checks.
 """
 
 from __future__ import annotations
@@ -24,7 +27,8 @@ from lrf_jax.api import frames_from_patches
 from lrf_jax.frames import KEYPOINT, SLOT, TRIANGLE, TRIANGLE_MASK
 from lrf_jax.search.neighborhoods import build_patches
 from lrf_jax.prepare import prepare_extra
-from tests.lrf_testing import N_GOOD, assert_frames_orthonormal, synthetic_mesh
+from tests.lrf_testing import (HOST_CHECK_KINDS, N_GOOD, assert_frames_orthonormal,
+                               host_check_cloud, synthetic_mesh)
 
 SYN = synthetic_mesh()
 README = Path(__file__).resolve().parents[1] / "README.md"
@@ -176,7 +180,8 @@ def _readme_example() -> str:
 
 def test_adding_a_method_as_the_readme_says():
   """The README's toy method, registered inside this test only, passes every property check,
-  runs through `compute_frames`, and is equivariant on the synthetic mesh."""
+  runs through `compute_frames`, is equivariant on the synthetic mesh, and its host kernel
+  passes the host check (`test_host_fast_path_equals_the_jitted_function`) on every cloud."""
   assert "centroid" not in lrf_jax.METHODS
   try:
     exec(compile(_readme_example(), str(README), "exec"), {})
@@ -191,6 +196,10 @@ def test_adding_a_method_as_the_readme_says():
                                                     "centroid"))
     np.testing.assert_array_equal(v0, v1)
     np.testing.assert_allclose(f1[v0], f0[v0] @ rot.T, atol=1e-4)
+    assert has_host_kernel(lrf_jax.METHODS["centroid"])  # its host kernel equals its definition
+    for kind in HOST_CHECK_KINDS:
+      if not (kind == "tilted_plane" and "centroid" in ROUNDING_ON_A_TILTED_PLANE):
+        check_host_equals_jit("centroid", kind)
   finally:
     lrf_jax.METHODS.pop("centroid", None)
   assert "centroid" not in lrf_jax.METHODS
@@ -241,7 +250,17 @@ def test_normal_methods_get_the_same_normals_on_every_path():
   assert method_normals(lrf_jax.METHODS["rops"], points, radius, faces=faces) is None
 
 
-HOST_METHODS = [m for m, s in lrf_jax.METHODS.items() if s.host_frames is not None]
+def has_host_kernel(spec) -> bool:
+  """Whether a method has a host path (`host_frames` or `host_patch_frames`)."""
+  return spec.host_frames is not None or spec.host_patch_frames is not None
+
+
+HOST_METHODS = [m for m, s in lrf_jax.METHODS.items() if has_host_kernel(s)]
+# Methods whose frame on an exact tilted plane is set by float rounding (`host_check_cloud`): a
+# sign vote over heights Σ (q_i - p)·z of about 0, or an x from the highest point or from
+# heights h_i of about 0; their host and jitted frames differ there (both valid).
+ROUNDING_ON_A_TILTED_PLANE = {"toldi", "shot", "rops", "board", "flare", "ps", "lrf_net",
+                              "uniform", "centroid"}
 
 
 def _both_kernels(method, points, keypoints, radius, faces):
@@ -260,17 +279,33 @@ def _agreement(method, host, jit):
   return 0.5 * (cx + np.sum(fh[:, 2] * fj[:, 2], -1))
 
 
-@pytest.mark.parametrize("method", HOST_METHODS)
-def test_host_fast_path_equals_the_jitted_function(method):
-  """`kernel="host"` (compiled engine code, float64, no padded patches) gives the jitted
-  function's frames and validity on the synthetic mesh, degenerate keypoints included."""
-  points, faces, keypoints, radius = SYN
+def check_host_equals_jit(method, kind):
+  """`kernel="host"` (compiled float64 code: `host_frames` on every neighbour, or
+  `host_patch_frames` on the same patches) gives the jitted function's validity, and its frames
+  to float32 rounding (mean cosine of x and z > 1 - 1e-5), on `host_check_cloud(kind)`: the two
+  degenerate keypoints invalid, the smooth field's keypoints valid."""
+  points, faces, keypoints, radius = host_check_cloud(kind)
   host, jit = _both_kernels(method, points, keypoints, radius, faces)
   assert_frames_orthonormal(*host)
-  np.testing.assert_array_equal(host[1], jit[1])
-  assert host[1][:N_GOOD].all() and not host[1][N_GOOD:].any()
+  np.testing.assert_array_equal(host[1], jit[1], err_msg=f"{method} on {kind}: validity")
+  assert not host[1][-2:].any(), f"{method} on {kind}: a degenerate keypoint is valid"
+  assert kind != "smooth" or host[1][:-2].all(), f"{method}: smooth keypoints invalid"
   mc = _agreement(method, host, jit)[host[1]]
-  assert mc.min() > 1 - 1e-5, (method, mc.min())
+  assert mc.size == 0 or mc.min() > 1 - 1e-5, (method, kind, mc.min())
+
+
+def _host_check_params():
+  for method in HOST_METHODS:
+    for kind in HOST_CHECK_KINDS:
+      ill_posed = kind == "tilted_plane" and method in ROUNDING_ON_A_TILTED_PLANE
+      yield pytest.param(method, kind, id=f"{method}-{kind}", marks=[pytest.mark.xfail(
+          reason="on an exact tilted plane the frame is set by float rounding")] * ill_posed)
+
+
+@pytest.mark.parametrize("method,kind", list(_host_check_params()))
+def test_host_fast_path_equals_the_jitted_function(method, kind):
+  """Every method with a host kernel, on smooth, noisy, planar, cut-off and degenerate input."""
+  check_host_equals_jit(method, kind)
 
 
 @pytest.mark.parametrize("method", HOST_METHODS)

@@ -4,7 +4,8 @@ A host fast path (`MethodSpec.host_frames`) computes a method's frames on the CP
 the engine's ball lists (`engine.ball_lists`: every point within r of each keypoint), one
 keypoint per thread, in float64, without padded patches. The helpers below are the numba
 counterparts of the `lrf_jax.geometry` rules the jitted functions use (same tolerances, same
-tie-breaking), so that both paths return the same frames up to float32 rounding.
+tie-breaking), so that both paths return the same frames up to float32 rounding. The kernels of
+`MethodSpec.host_patch_frames` (`lrf_net_host`: frames from prepared patches) use them too.
 """
 
 from __future__ import annotations
@@ -68,14 +69,15 @@ def smallest_ok(evals, eps):
 
 
 @nb.njit(inline="always")
-def write_frame(frames, valid, i, z, x):
-  """`geometry.frame_from_zx`: rows (x, y = z × x, z) from a unit z and an unnormalised x.
+def write_frame(frames, valid, i, z, x, eps=0.0):
+  """`geometry.frame_from_zx(z, x, eps)`: rows (x, y = z × x, z) from a unit z and an
+  unnormalised x; frame i flagged valid.
 
-  Returns False (frame i left as it is) when x has no component off z."""
+  Returns False (frame i left as it is) when the part of x off z has norm <= eps (x's units)."""
   d = x[0] * z[0] + x[1] * z[1] + x[2] * z[2]
   t0, t1, t2 = x[0] - d * z[0], x[1] - d * z[1], x[2] - d * z[2]
   nx = np.sqrt(t0 * t0 + t1 * t1 + t2 * t2)
-  if not nx > 0.0:
+  if not nx > eps:
     return False
   t0, t1, t2 = t0 / nx, t1 / nx, t2 / nx
   frames[i, 0, 0], frames[i, 0, 1], frames[i, 0, 2] = t0, t1, t2

@@ -29,7 +29,8 @@ AXIS_KINDS = (KEYPOINT, SLOT, TRIANGLE, TRIANGLE_MASK)
 @dataclasses.dataclass(frozen=True)
 class HostPatchKernel:
   """A method's frames from prepared patches on the host (numba, float64), for the option sets
-  it supports.
+  it supports: `MethodSpec.host_patch_frames`, the hook of methods on subsampled patches or with
+  options (a method on every neighbour without options uses `MethodSpec.host_frames`).
 
   Attributes:
     fn: `fn(patches, extra, params, options) -> (frames (N, 3, 3) float32, valid (N,) bool)`;
@@ -70,14 +71,23 @@ class MethodSpec:
     weights: name of the shipped parameter file used when no params are given
       (`lrf_jax/weights/<weights>.msgpack`).
     default_options: options applied unless the caller gives them (e.g. lut=257).
-    host_frames: optional host fast path `host_frames(points, keypoints, radius, index, *,
-      faces=, normals=) -> (frames (N, 3, 3) float32, valid (N,) bool)`, numpy and compiled
-      engine code computing the same frames as `fn` on every neighbour (k=None) without padded
-      patches (`normals` as `lrf_jax.prepare.method_normals` gives them); `compute_frames` runs
-      it by default on a CPU backend (`kernel="auto"`).
-    host_patch_frames: optional `HostPatchKernel` computing the same frames as `fn` from the
-      same (padded, subsampled) patches on the host; `compute_frames` runs it by default on a
-      CPU backend where it supports the options (`kernel="auto"`).
+    host_frames: optional host fast path for a method on every neighbour (`default_k=None`):
+      `host_frames(points (n, 3) float64, keypoints (N,) int, radius, index, *, faces=,
+      normals=) -> (frames (N, 3, 3) float32, valid (N,) bool)`, numpy and compiled engine code
+      (`frames.host_geometry`) computing the same frames as `fn` from the cloud's ball lists
+      (`index` is its `SearchIndex`), without padded patches; `faces` the mesh or None, `normals`
+      (n, 3) as `lrf_jax.prepare.method_normals` gives them (None for a method without).
+      `compute_frames` runs it by default on a CPU backend (`kernel="auto"`) for calls with
+      k=None and no options.
+    host_patch_frames: optional `HostPatchKernel` for a method on subsampled patches (an
+      integer `default_k`) or with options: computes the same frames as `fn` from the same
+      (padded, subsampled) patches and `extra` on the host; `compute_frames` runs it by default
+      on a CPU backend where `supports` accepts the options (`kernel="auto"`). The two hooks
+      take different inputs on purpose: `host_frames` never builds patches (its speed), and
+      `host_patch_frames` must see the very patches `fn` sees (the same seeded subsample); where
+      both are set and apply, `host_frames` runs. Either must equal `fn`: the same validity,
+      the same axes to float32 rounding, checked for every registered method by
+      tests/test_method_properties.py::test_host_fast_path_equals_the_jitted_function.
     confidence: optional `confidence(patches, extra, frames, valid, options) -> (N,)` in
       [0, 1]: how sure each frame's z sign is (`compute_frames(..., return_confidence=True)`);
       `options` holds every option (the method's defaults filled in).

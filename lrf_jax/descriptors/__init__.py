@@ -4,8 +4,8 @@
     desc, ok = lrf_jax.descriptors.compute_descriptors(points, kp, radius, frames, valid,
                                                        descriptor="toldi")
 
-Each descriptor is a pure jnp function of a `Patches` batch (every neighbour within r: `k=None`),
-the frames and their validity (plus, for SHOT, the neighbours' normals gathered on the host by a
+Each descriptor is a pure jnp function of a `Patches` batch (every neighbor within r: `k=None`),
+the frames and their validity (plus, for SHOT, the neighbors' normals gathered on the host by a
 `prepare` hook), vmapped over keypoints. With an equivariant LRF the descriptors are rotation
 invariant: the patch is expressed in the frame before anything is binned.
 
@@ -48,7 +48,7 @@ from lrf_jax.search.neighborhoods import (Patches, SearchIndex, _patches_checked
 from lrf_jax.frames.normal_based import prepare_normals
 
 
-# Keypoints x neighbour slots per jitted call (bounds the memory of the vmapped descriptors).
+# Keypoints x neighbor slots per jitted call (bounds the memory of the vmapped descriptors).
 MAX_SLOTS = 1 << 20
 
 
@@ -65,7 +65,7 @@ class DescriptorSpec:
     prepare: optional host hook `prepare(points, keypoints, patches, faces=, normals=, radius=)`.
     description: one line for listings.
     host_fn: optional host fast path `host_fn(points, keypoints, radius, frames, valid, index,
-      **options) -> (desc, valid)` over every neighbour (k=None), numpy and compiled engine code,
+      **options) -> (desc, valid)` over every neighbor (k=None), numpy and compiled engine code,
       the same descriptors as `fn`; `compute_descriptors` runs it by default on a CPU backend.
   """
 
@@ -137,11 +137,11 @@ def descriptors_from_patches(patches: Patches, frames: Any, valid: Any, descript
   """Run a registered descriptor's jitted function on prepared patches.
 
   Args:
-    patches: `Patches` (every neighbour within r for the original descriptors).
+    patches: `Patches` (every neighbor within r for the original descriptors).
     frames: (N, 3, 3) frames, rows x, y, z.
     valid: (N,) bool.
     descriptor: a key of `DESCRIPTORS`.
-    extra: what the descriptor's `prepare` hook returned (SHOT: the neighbours' normals).
+    extra: what the descriptor's `prepare` hook returned (SHOT: the neighbors' normals).
     **options: static options (e.g. `grid=` for snapshots and TOLDI).
 
   Returns:
@@ -150,7 +150,7 @@ def descriptors_from_patches(patches: Patches, frames: Any, valid: Any, descript
   spec = _spec(descriptor)
   if spec.prepare is not None and extra is None:
     raise ValueError(f"descriptor {descriptor!r} needs `extra` from its prepare hook "
-                     f"(DESCRIPTORS[{descriptor!r}].prepare), e.g. the neighbours' normals")
+                     f"(DESCRIPTORS[{descriptor!r}].prepare), e.g. the neighbors' normals")
   fn = _jitted(descriptor, tuple(sorted(options.items())))
   return fn(jax.tree.map(jnp.asarray, patches), jnp.asarray(frames, jnp.float32),
             jnp.asarray(valid, bool), extra)
@@ -173,7 +173,7 @@ def describe_patches(patches: Patches, frames: Any, valid: Any, descriptor: str,
     faces: optional triangles (orient estimated normals).
     normals: optional (n, 3) normals for SHOT.
     chunk_size: at most this many keypoints per jitted call (fewer for large balls: at most
-      `MAX_SLOTS` keypoint x neighbour slots per call).
+      `MAX_SLOTS` keypoint x neighbor slots per call).
     **options: static descriptor options.
 
   Returns:
@@ -240,13 +240,13 @@ def compute_descriptors(
     descriptor: a key of `DESCRIPTORS`.
     faces: optional (f, 3) triangles (orient SHOT's estimated normals by the winding).
     normals: optional (n, 3) normals for SHOT (default: `lrf_jax.geometry.normals.estimate_normals`).
-    k: neighbours per patch; None = every neighbour within r (the original descriptors).
+    k: neighbors per patch; None = every neighbor within r (the original descriptors).
     seed: seed of the subsample when `k` is set.
     chunk_size: keypoints per search and jitted call (memory: about chunk_size x K x 60 bytes
       for SHOT, x 250 bytes for RoPS).
     index: optional prebuilt `SearchIndex(points, seed)`.
     kernel: "jit" (patches, then the jitted descriptor), "host" (the descriptor's host fast path,
-      `DESCRIPTORS[descriptor].host_fn`: every neighbour, float64, no padded patches; needs
+      `DESCRIPTORS[descriptor].host_fn`: every neighbor, float64, no padded patches; needs
       k=None), or "auto" (host where it applies and the backend is the CPU, else jit).
     **options: static descriptor options (`grid=`, `empty=`, `align_normals=`).
 

@@ -10,7 +10,7 @@ PCL's `BOARDLocalReferenceFrameEstimation` with `setRadiusSearch(r_z)`, `setTang
   inclined to z (smallest n_i · z); if the ring is empty, among all the other points; x is the
   unit projection of its offset on the tangent plane, y = z × x.
 
-Minimum neighbours: 6 within r_z (PCL's rule). Invalid also when the plane fit is degenerate
+Minimum neighbors: 6 within r_z (PCL's rule). Invalid also when the plane fit is degenerate
 (collinear points), no candidate has a usable normal (finite and not all zero: zero rows, the
 placeholder of files without normals, count as missing, `normal_based.usable_normals`), the
 chosen point projects onto p, or an input is not finite. Normals come from the `prepare` hook
@@ -102,7 +102,7 @@ def board_frames(patches: Patches, normals: AnyArray) -> tuple[jax.Array, jax.Ar
   """BOARD frames for a batch (pure, jittable).
 
   Args:
-    patches: `Patches` built with `z_ratio=Z_RATIO`; `k=None` (every neighbour) reproduces PCL.
+    patches: `Patches` built with `z_ratio=Z_RATIO`; `k=None` (every neighbor) reproduces PCL.
     normals: (N, K, 3) normals of the patch slots.
 
   Returns:

@@ -1,7 +1,7 @@
 """FLARE local reference frames (Petrelli & Di Stefano 2012; the paper's "SD"), as PCL 1.13.
 
 PCL's `FLARELocalReferenceFrameEstimation` with `setRadiusSearch(r_z)`, `setTangentRadius(r)`,
-margin threshold 0.85 and 6 / 6 minimum neighbours (the defaults). For a keypoint p:
+margin threshold 0.85 and 6 / 6 minimum neighbors (the defaults). For a keypoint p:
 
 * z: with at least 6 points within r_z = `Z_RATIO` · r, their least-squares plane normal
   (`Patches.z_cov`) flipped to agree with the mean of their finite normals
@@ -10,7 +10,7 @@ margin threshold 0.85 and 6 / 6 minimum neighbours (the defaults). For a keypoin
   pq_i · z from the tangent plane (the largest "local depth"); x is the unit projection of its
   offset on the tangent plane, y = z × x.
 
-Minimum neighbours: 6 within r (PCL's `min_neighbors_for_tangent_axis`) and at least one in the
+Minimum neighbors: 6 within r (PCL's `min_neighbors_for_tangent_axis`) and at least one in the
 ring; where PCL then returns a *random* x-axis, we return the identity with `valid = False`.
 Invalid also for a degenerate plane fit (collinear points; PCL returns an arbitrary normal), no
 finite normal to orient z, or a non-finite input. Normals come from the `prepare` hook.
@@ -92,7 +92,7 @@ def flare_frames(patches: Patches, normals: AnyArray,
   """FLARE frames for a batch (pure, jittable).
 
   Args:
-    patches: `Patches` built with `z_ratio=Z_RATIO`; `k=None` (every neighbour) reproduces PCL.
+    patches: `Patches` built with `z_ratio=Z_RATIO`; `k=None` (every neighbor) reproduces PCL.
     normals: (N, K, 3) normals of the patch slots.
     kp_normal: (N, 3) normals of the keypoints.
 

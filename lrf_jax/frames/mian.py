@@ -1,6 +1,6 @@
 """Mian et al. (2010) local reference frames: the principal axes of the support.
 
-For a keypoint p with neighbours q_i within r:
+For a keypoint p with neighbors q_i within r:
 
 * C = the covariance of the q_i about their centroid (`center="centroid"`, Mian et al.'s mean
   vector m) or about p (`center="keypoint"`);
@@ -14,7 +14,7 @@ about half of the x-axes flip under a random rotation). Mian's frames are theref
 equivariant only up to the sign of x and y (z is fixed by the normal); tests check them so, and
 MeanCos penalises the flips, which is precisely the weakness the LRF-Net paper points out.
 
-Minimum neighbours: 5 points within r. Invalid also when two eigenvalues coincide (relative gap
+Minimum neighbors: 5 points within r. Invalid also when two eigenvalues coincide (relative gap
 <= `geometry.DEGENERATE_EPS`: collinear or isotropic supports), the keypoint normal is not finite,
 or an input is not finite. Normals come from the `prepare` hook (`frames.normal_based.prepare_normals`).
 
@@ -78,7 +78,7 @@ def mian_frames(patches: Patches, kp_normal: AnyArray, *,
   """Mian frames for a batch (pure, jittable).
 
   Args:
-    patches: `Patches` (N keypoints); `k=None` uses every neighbour (the registry's default).
+    patches: `Patches` (N keypoints); `k=None` uses every neighbor (the registry's default).
     kp_normal: (N, 3) normals of the keypoints (they fix the sign of z only).
     center: "centroid" (default, Mian et al.) or "keypoint".
 

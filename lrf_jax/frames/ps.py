@@ -13,7 +13,7 @@ version for a cloud:
   h_j = pq_j · z to the tangent plane through p (ties: the nearer, then the lower cloud index);
   y = z × x.
 
-Minimum neighbours: 5 contour points. Invalid also for a degenerate contour plane (collinear
+Minimum neighbors: 5 contour points. Invalid also for a degenerate contour plane (collinear
 contour), a non-finite keypoint normal, a chosen point projecting onto p, or a non-finite input.
 
 References:

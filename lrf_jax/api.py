@@ -11,6 +11,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from lrf_jax import _deprecated
 from lrf_jax.search import engine
 from lrf_jax.search.chunks import map_chunks
 from lrf_jax.geometry.resolution import mesh_resolution as _mesh_resolution
@@ -467,17 +468,19 @@ class _PatchSearch:
 
 
 # Ball-list entries (8 bytes each) a host fast path holds at a time.
-HOST_NEIGHBOUR_BUDGET = 1 << 24
+HOST_NEIGHBOR_BUDGET = 1 << 24
+# The pre-0.7 names of this module's constants (`_deprecated.RENAMED`), for one release.
+__getattr__ = _deprecated.renamed(__name__, globals())
 
 
 def _host_frames_in_budget(spec: MethodSpec, points: np.ndarray, kp: np.ndarray, radius: float,
                            index: SearchIndex, faces: Any, normals: Any,
                            counts: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
-  """`spec.host_frames` over `kp` in groups whose balls hold at most `HOST_NEIGHBOUR_BUDGET`
+  """`spec.host_frames` over `kp` in groups whose balls hold at most `HOST_NEIGHBOR_BUDGET`
   points together (one keypoint at least), so memory does not grow with the ball size."""
   if counts is None:
     counts = engine.ball_counts(index.grid(radius), points[kp], radius)
-  group = np.cumsum(counts) // HOST_NEIGHBOUR_BUDGET
+  group = np.cumsum(counts) // HOST_NEIGHBOR_BUDGET
   cuts = np.flatnonzero(np.diff(group)) + 1
   assert spec.host_frames is not None  # both callers check it
   parts = [spec.host_frames(points, part, radius, index, faces=faces, normals=normals)

@@ -337,7 +337,7 @@ def test_host_fast_path_splits_by_a_neighbor_budget(monkeypatch):
   from lrf_jax import api
   points, faces, keypoints, radius = SYN
   full = lrf_jax.compute_frames(points, keypoints, radius, "shot", kernel="host")
-  monkeypatch.setattr(api, "HOST_NEIGHBOUR_BUDGET", 50)  # a few keypoints per group
+  monkeypatch.setattr(api, "HOST_NEIGHBOR_BUDGET", 50)  # a few keypoints per group
   split = lrf_jax.compute_frames(points, keypoints, radius, "shot", kernel="host")
   np.testing.assert_array_equal(np.asarray(full[0]), np.asarray(split[0]))
   np.testing.assert_array_equal(np.asarray(full[1]), np.asarray(split[1]))

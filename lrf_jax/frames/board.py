@@ -36,6 +36,7 @@ import jax.numpy as jnp
 import numba as nb
 import numpy as np
 
+from lrf_jax import _deprecated
 from lrf_jax.geometry import ops as geometry
 from lrf_jax.frames import host_geometry as hg
 from lrf_jax.frames.normal_based import NormalExtra, prepare_normals, usable_normals
@@ -48,7 +49,9 @@ if TYPE_CHECKING:
 
 Z_RATIO = 1.0 / 3.0
 MARGIN = 0.85
-MIN_Z_NEIGHBOURS = 6
+MIN_Z_NEIGHBORS = 6
+# The pre-0.7 names of this module's constants (`_deprecated.RENAMED`), for one release.
+__getattr__ = _deprecated.renamed(__name__, globals())
 
 
 def normals_mean(normals: jax.Array, use: jax.Array) -> tuple[jax.Array, jax.Array]:
@@ -94,7 +97,7 @@ def board_frame(offsets, mask, index, radius, z_cov, z_count, normals):
   slot, found = geometry.lexicographic_argmax(-cos, cand, dist2, index)
   x, x_ok = geometry.directed_tangent_axis(z, offsets[slot])
   frame, f_ok = geometry.frame_from_zx(z, x)
-  valid = z_ok & (z_count >= MIN_Z_NEIGHBOURS) & found & x_ok & f_ok
+  valid = z_ok & (z_count >= MIN_Z_NEIGHBORS) & found & x_ok & f_ok
   return geometry.identity_where_invalid(frame, valid), valid
 
 
@@ -126,7 +129,7 @@ def _board_host_kernel(points, centers, ptr, ball, normals, r, rz2, eps, frames,
     hg.set_identity(frames, valid, i)
     start, stop = ptr[i], ptr[i + 1]
     mean = np.zeros(3)
-    ok, z = hg.plane_z(points, centers[i], ball, start, stop, rz2, eps, MIN_Z_NEIGHBOURS, mean)
+    ok, z = hg.plane_z(points, centers[i], ball, start, stop, rz2, eps, MIN_Z_NEIGHBORS, mean)
     if not ok:
       continue
     ref = np.zeros(3)

@@ -34,6 +34,7 @@ import jax.numpy as jnp
 import numba as nb
 import numpy as np
 
+from lrf_jax import _deprecated
 from lrf_jax.geometry import ops as geometry
 from lrf_jax.frames import host_geometry as hg
 from lrf_jax.frames.board import normals_mean
@@ -47,8 +48,10 @@ if TYPE_CHECKING:
 
 Z_RATIO = 1.0 / 3.0
 MARGIN = 0.85
-MIN_Z_NEIGHBOURS = 6
-MIN_TANGENT_NEIGHBOURS = 6
+MIN_Z_NEIGHBORS = 6
+MIN_TANGENT_NEIGHBORS = 6
+# The pre-0.7 names of this module's constants (`_deprecated.RENAMED`), for one release.
+__getattr__ = _deprecated.renamed(__name__, globals())
 
 
 def flare_frame(offsets, mask, index, radius, count, z_cov, z_count, normals, kp_normal):
@@ -75,7 +78,7 @@ def flare_frame(offsets, mask, index, radius, count, z_cov, z_count, normals, kp
   fit = geometry.orient_like(fit, ref)
   own, own_ok = geometry.safe_normalize(geometry.finite_or_zero(kp_normal))
   own_ok = own_ok & jnp.all(jnp.isfinite(kp_normal))
-  use_fit = z_count >= MIN_Z_NEIGHBOURS
+  use_fit = z_count >= MIN_Z_NEIGHBORS
   z = jnp.where(use_fit, fit, own)
   z_ok = jnp.where(use_fit, fit_ok & ref_ok, own_ok)
 
@@ -83,7 +86,7 @@ def flare_frame(offsets, mask, index, radius, count, z_cov, z_count, normals, kp
   slot, found = geometry.lexicographic_argmax(offsets @ z, margin, dist2, index)
   x, x_ok = geometry.directed_tangent_axis(z, offsets[slot])
   frame, f_ok = geometry.frame_from_zx(z, x)
-  valid = z_ok & (count >= MIN_TANGENT_NEIGHBOURS) & found & x_ok & f_ok
+  valid = z_ok & (count >= MIN_TANGENT_NEIGHBORS) & found & x_ok & f_ok
   return geometry.identity_where_invalid(frame, valid), valid
 
 
@@ -118,12 +121,12 @@ def _flare_host_kernel(points, centers, kp_ids, counts, ptr, ball, normals, r, r
   for i in nb.prange(centers.shape[0]):
     hg.set_identity(frames, valid, i)
     start, stop = ptr[i], ptr[i + 1]
-    if counts[i] < MIN_TANGENT_NEIGHBOURS:
+    if counts[i] < MIN_TANGENT_NEIGHBORS:
       continue
     mean = np.zeros(3)
     cov = np.zeros((3, 3))
     count = hg.inner_stats(points, centers[i], ball, start, stop, rz2, mean, cov)
-    if count >= MIN_Z_NEIGHBOURS:
+    if count >= MIN_Z_NEIGHBORS:
       evals, evecs = np.linalg.eigh(cov)
       z = evecs[:, 0].copy()
       ref = np.zeros(3)

@@ -25,6 +25,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from lrf_jax import _deprecated
 from lrf_jax.geometry import ops as geometry
 from lrf_jax.search import engine
 from lrf_jax.frames.lrf_net import (MIN_Z_NEIGHBOURS, X_EPS, lrf_net_frames,
@@ -182,7 +183,9 @@ def _finish_view(view: np.ndarray, trust: np.ndarray | None) -> tuple[np.ndarray
   return view.astype(np.float32), trust.astype(np.float32)
 
 
-AREA_NEIGHBOURS = 8
+AREA_NEIGHBORS = 8
+# The pre-0.7 names of this module's constants (`_deprecated.RENAMED`), for one release.
+__getattr__ = _deprecated.renamed(__name__, globals())
 
 
 def vertex_areas(points: np.ndarray, faces: np.ndarray) -> np.ndarray:
@@ -202,7 +205,7 @@ def patch_areas(points: np.ndarray, patches: Patches,
 
   With `faces` (a mesh), a vertex's area is its barycentric share of its triangles
   (`vertex_areas`), exact for a mesh; vertices on no triangle, and every point of a cloud, get
-  π d² / k with d the distance to its k-th nearest neighbor (k = `AREA_NEIGHBOURS`): the inverse
+  π d² / k with d the distance to its k-th nearest neighbor (k = `AREA_NEIGHBORS`): the inverse
   of the local sampling density. Normalised to mean 1 over each patch's neighbors (0 in
   padding). Rotation and translation invariant.
   """
@@ -211,9 +214,9 @@ def patch_areas(points: np.ndarray, patches: Patches,
   pts = np.asarray(points, np.float64)
 
   def estimate(which: np.ndarray) -> np.ndarray:
-    kk = min(AREA_NEIGHBOURS + 1, len(pts))
+    kk = min(AREA_NEIGHBORS + 1, len(pts))
     d, _ = engine.knn(engine.knn_grid(pts, kk), pts[which], kk)
-    return np.pi * d[:, -1] ** 2 / AREA_NEIGHBOURS
+    return np.pi * d[:, -1] ** 2 / AREA_NEIGHBORS
 
   def compute():
     if faces is None or len(faces) == 0:

@@ -32,6 +32,7 @@ import jax.numpy as jnp
 import numba as nb
 import numpy as np
 
+from lrf_jax import _deprecated
 from lrf_jax.geometry import ops as geometry
 from lrf_jax.frames import host_geometry as hg
 from lrf_jax.frames.normal_based import NormalExtra, prepare_normals, usable_normals
@@ -42,7 +43,9 @@ from lrf_jax.search.neighborhoods import Patches
 if TYPE_CHECKING:
   from lrf_jax.search.neighborhoods import AnyArray
 
-MIN_NEIGHBOURS = 5
+MIN_NEIGHBORS = 5
+# The pre-0.7 names of this module's constants (`_deprecated.RENAMED`), for one release.
+__getattr__ = _deprecated.renamed(__name__, globals())
 
 
 def mian_frame(offsets, mask, kp_normal, center: str = "centroid"):
@@ -69,7 +72,7 @@ def mian_frame(offsets, mask, kp_normal, center: str = "centroid"):
   n_ok = jnp.all(jnp.isfinite(kp_normal)) & (geometry.safe_norm(n) > 0)
   z = geometry.orient_like(evecs[2], n)
   frame, f_ok = geometry.frame_from_zx(z, evecs[0])
-  valid = ok & n_ok & f_ok & (jnp.sum(mask) >= MIN_NEIGHBOURS)
+  valid = ok & n_ok & f_ok & (jnp.sum(mask) >= MIN_NEIGHBORS)
   return geometry.identity_where_invalid(frame, valid), valid
 
 
@@ -101,7 +104,7 @@ def _mian_host_kernel(points, centers, kp_ids, ptr, ball, normals, eps, frames, 
   for i in nb.prange(centers.shape[0]):
     hg.set_identity(frames, valid, i)
     start, stop = ptr[i], ptr[i + 1]
-    if stop - start < MIN_NEIGHBOURS:
+    if stop - start < MIN_NEIGHBORS:
       continue
     mean = np.zeros(3)
     cov = np.zeros((3, 3))

@@ -33,13 +33,16 @@ import jax.numpy as jnp
 import numba as nb
 import numpy as np
 
+from lrf_jax import _deprecated
 from lrf_jax.geometry import ops as geometry
 from lrf_jax.frames import host_geometry as hg
 from lrf_jax.frames.spec import MethodSpec
 from lrf_jax.geometry.ops import sanitize
 from lrf_jax.search.neighborhoods import Patches
 
-MIN_NEIGHBOURS = 5
+MIN_NEIGHBORS = 5
+# The pre-0.7 names of this module's constants (`_deprecated.RENAMED`), for one release.
+__getattr__ = _deprecated.renamed(__name__, globals())
 TIE_VOTERS = 5
 
 
@@ -73,7 +76,7 @@ def _axes_and_votes(offsets, mask, radius):
   _, evecs, ok = geometry.eigen_frame(cov)
   bx = geometry.majority_balance(evecs[0], offsets, use)
   bz = geometry.majority_balance(evecs[2], offsets, use)
-  return evecs[0], evecs[2], bx, bz, use, dist2, n, ok & (n >= MIN_NEIGHBOURS)
+  return evecs[0], evecs[2], bx, bz, use, dist2, n, ok & (n >= MIN_NEIGHBORS)
 
 
 def _assemble(x, z, ok):
@@ -194,7 +197,7 @@ def _shot_host_kernel(points, centers, ptr, ball, r, eps, frames, valid):
       cov[1, 2] += w * dy * dz
       cov[2, 2] += w * dz * dz
     hg.set_identity(frames, valid, i)
-    if n < MIN_NEIGHBOURS or not wsum > 0.0:
+    if n < MIN_NEIGHBORS or not wsum > 0.0:
       continue
     cov[1, 0], cov[2, 0], cov[2, 1] = cov[0, 1], cov[0, 2], cov[1, 2]
     evals, evecs = np.linalg.eigh(cov / wsum)  # ascending

@@ -106,7 +106,7 @@ def geometry_helpers() -> frozenset[str]:
 
 @pytest.mark.parametrize("old", sorted(_deprecated.RENAMED))
 def test_old_name_warns_and_forwards(old):
-  """0.7's renamed constants ("neighbour" -> "neighbor"): the old
+  """0.7's renamed constants ("neighbour" -> "neighbor", one name per radius fraction): the old
   name still gives the new one's value, warning once per access with the new name."""
   module_name, _, name = old.rpartition(".")
   module = importlib.import_module(module_name)

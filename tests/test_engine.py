@@ -329,14 +329,14 @@ def test_shell_patches_hold_exactly_the_inner_and_outer_neighbors():
   kp = rng.choice(len(pts), 300, replace=False)
   r = 0.4
   full = build_patches(pts, kp, r, None)
-  ring = build_patches(pts, kp, r, None, shells=(1 / 3, 0.85))
-  np.testing.assert_array_equal(ring.count, full.count)
-  np.testing.assert_array_equal(ring.z_cov, full.z_cov)
+  shell = build_patches(pts, kp, r, None, shells=(1 / 3, 0.85))
+  np.testing.assert_array_equal(shell.count, full.count)
+  np.testing.assert_array_equal(shell.z_cov, full.z_cov)
   for i in range(len(kp)):
     d = np.linalg.norm(full.offsets[i][full.mask[i]], axis=1)
     want = full.indices[i][full.mask[i]][(d <= r / 3 * (1 + 1e-5)) | (d > 0.85 * r * (1 - 1e-5))]
-    np.testing.assert_array_equal(ring.indices[i][ring.mask[i]], want)  # same priority order
-  assert ring.k < full.k
+    np.testing.assert_array_equal(shell.indices[i][shell.mask[i]], want)  # same priority order
+  assert shell.k < full.k
 
 
 def test_flare_frames_from_shell_patches_equal_full_patches():

@@ -57,7 +57,7 @@ class MethodSpec:
       `prepare` returned (None when there is no `prepare`). For learned methods `options` holds
       `params`. Its keyword-only arguments are the method's options.
     default_k: patch size K used when the caller gives none; None = every neighbor in the ball.
-    z_ratio: radius of the normal support as a fraction of r (stored in `Patches.z_*`).
+    z_ratio: radius of the z support as a fraction of r (stored in `Patches.z_*`).
     needs_params: the method takes learned parameters.
     needs_mesh: the method needs triangle faces (`faces=` in `compute_frames`).
     needs_normals: `prepare` reads per-point normals (the caller's, else estimated; see

@@ -9,7 +9,7 @@ Two neighborhoods are gathered per keypoint p with one search of radius r:
   When the ball holds more than K points a seeded subsample is kept. The subsample depends only on
   (seed, point index) through an integer hash, never on coordinates or on the order the search
   returns points: rotating or translating the cloud selects the same neighbors.
-* the *normal support*: *all* neighbors within `z_ratio * r` (r/3 for TOLDI and LRF-Net), reduced
+* the *z support*: *all* neighbors within `z_ratio * r` (r/3 for TOLDI and LRF-Net), reduced
   on the host, in float64, to their count, centroid offset and covariance about the centroid. The
   z-axis therefore never depends on the K-point subsample (on BR a 15 mr ball holds 380-2800
   points, a 256-point subsample only 20-35 inside r/3).
@@ -363,7 +363,7 @@ def build_patches(
       priority (the same seeded subsample as an integer k). None = no bound.
     shells: (a, b) fractions of r: the patch holds only the neighbors within a * r or beyond
       b * r, still in priority order (for methods that read nothing in between, e.g. FLARE: its
-      r/3 plane support and its 0.85 r margin). `count` still counts every point within r.
+      r/3 z support and its 0.85 r margin). `count` still counts every point within r.
     into: with an integer k, optional (offsets (m, K, 3) float32, mask (m, K) bool, indices
       (m, K) int32) arrays (e.g. row ranges of larger arrays, any contents: every element is
       written) that receive those fields instead of new arrays; the returned Patches holds them.

@@ -119,6 +119,13 @@ def test_old_name_warns_and_forwards(old):
     getattr(module, name + "_NO_SUCH")
 
 
+def test_descriptor_spec_host_fn_is_host_descriptors():
+  from lrf_jax.descriptors import DESCRIPTORS
+  spec = DESCRIPTORS["toldi"]
+  with pytest.warns(DeprecationWarning, match="DescriptorSpec.host_descriptors"):
+    assert spec.host_fn is spec.host_descriptors is not None
+
+
 def test_nothing_of_ours_imports_an_old_name():
   found = []
   for path in _sources():
@@ -126,4 +133,6 @@ def test_nothing_of_ours_imports_an_old_name():
       if isinstance(node, ast.ImportFrom) and node.module and node.level == 0:
         found += [f"{path}:{node.lineno} {node.module}.{a.name}" for a in node.names
                   if f"{node.module}.{a.name}" in _deprecated.RENAMED]
+      elif isinstance(node, ast.Attribute) and node.attr == "host_fn":
+        found.append(f"{path}:{node.lineno} .host_fn")
   assert found == []

@@ -21,7 +21,7 @@ class SearchIndex:
   It also keeps trees over the priority-order *prefixes* of n/2, n/4, ... points. A prefix holds,
   in every ball, exactly the ball's points of smallest priority; so when the prefix ball still
   holds at least K points, its first K are the same K points as the full ball's, found while
-  materialising about K to 2K neighbours instead of all of them (a 15 mr ball on BR holds up to
+  materialising about K to 2K neighbors instead of all of them (a 15 mr ball on BR holds up to
   2800 points for K = 256).
   """
 
@@ -89,7 +89,7 @@ def ckdtree_build_patches(
     radius: support radius r, in the cloud's units (> 0).
     k: patch size K. Balls with more than K points keep the K points of smallest
       `hash_priority(seed, point index)`: a subsample that depends only on point indices and the
-      seed. `None` keeps every neighbour: K becomes the largest ball size rounded up to the next
+      seed. `None` keeps every neighbor: K becomes the largest ball size rounded up to the next
       size of the ladder 32, 48, 64, 96, 128, 192, ... (at most 1.5x padding and two sizes per
       octave, so that runs over many clouds compile a handful of shapes, not one per cloud).
     seed: seed of the subsample.
@@ -100,7 +100,7 @@ def ckdtree_build_patches(
       priority (the same seeded subsample as an integer k). None = no bound.
 
   Returns:
-    `Patches` with N = m; within a patch, neighbours are stored in priority order.
+    `Patches` with N = m; within a patch, neighbors are stored in priority order.
 
   Raises:
     ValueError: bad cloud, keypoints, radius or K.
@@ -112,7 +112,7 @@ def ckdtree_build_patches(
   m = keypoints.shape[0]
   centers = points[keypoints]
 
-  # Normal support: every neighbour within z_ratio * r, reduced to float64 statistics.
+  # Normal support: every neighbor within z_ratio * r, reduced to float64 statistics.
   inner = index.tree.query_ball_point(centers, z_ratio * radius, workers=-1, return_sorted=False)
   z_count = np.fromiter(map(len, inner), dtype=np.int64, count=m)
   r_in = np.repeat(np.arange(m), z_count)

@@ -5,12 +5,12 @@
 
 The steps and settings of Open3D's "Global registration" tutorial
 (`docs/tutorial/pipelines/global_registration.ipynb`): voxel downsampling at `voxel`; normals
-from a hybrid search (radius 2 voxel, 30 neighbours); FPFH (radius 5 voxel, 100 neighbours);
+from a hybrid search (radius 2 voxel, 30 neighbors); FPFH (radius 5 voxel, 100 neighbors);
 `registration_ransac_based_on_feature_matching` with mutual filtering, point-to-point
 estimation, 3 points per hypothesis, the edge-length (0.9) and distance (1.5 voxel) checkers and
 `RANSACConvergenceCriteria(100000, 0.999)`; then `registration_icp` on the full clouds, either
 point-to-plane at the tutorial's 0.4 voxel (target normals estimated on the full target, radius
-2 voxel, 30 neighbours) or point-to-point at a caller-given distance.
+2 voxel, 30 neighbors) or point-to-point at a caller-given distance.
 """
 
 from __future__ import annotations

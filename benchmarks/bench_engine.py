@@ -1,4 +1,4 @@
-"""The neighbourhood engine: patches/s against the cKDTree search it replaced, and frames/s of the
+"""The neighborhood engine: patches/s against the cKDTree search it replaced, and frames/s of the
 default `compute_frames` call of every method beside PCL 1.13's same LRF, in one run.
 
     LRF_DATA=/path/to/data python benchmarks/bench_engine.py [--cases bunny:10000 dragon:10000]

@@ -3,7 +3,7 @@ every real dataset), per dataset and method, cold and then again with a warm pat
 
     LRF_DATA=/path/to/data python benchmarks/bench_eval.py [--max-pairs 2] [--datasets ...]
 
-The baseline in the same run is the second pass, which finds every neighbourhood in the patch
+The baseline in the same run is the second pass, which finds every neighborhood in the patch
 cache (disk cache in a temporary folder) and compiled functions in memory: the difference is
 what the search and compilation cost. `--results out/eval/results.json` instead summarises the
 per-record `seconds` of an evaluation that already ran (e.g. the full default one).

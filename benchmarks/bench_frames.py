@@ -1,4 +1,4 @@
-"""LRF-Net frames per second, neighbour search included, against the plain numpy implementation.
+"""LRF-Net frames per second, neighbor search included, against the plain numpy implementation.
 
     LRF_DATA=/path/to/data python benchmarks/bench_frames.py [--model bunny] [--counts 1000 10000]
 

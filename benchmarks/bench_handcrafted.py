@@ -1,4 +1,4 @@
-"""Hand-crafted LRFs per second (neighbour search included), beside PCL 1.13 in the same run.
+"""Hand-crafted LRFs per second (neighbor search included), beside PCL 1.13 in the same run.
 
     LRF_DATA=/path/to/data python benchmarks/bench_handcrafted.py [--keypoints 1000] [--repeat 3]
 

@@ -16,7 +16,7 @@ JAX compilation is not timed):
 
 Open3D (0.20) runs its multiway-registration tutorial
 (`docs/tutorial/pipelines/multiway_registration.ipynb`): voxel downsampling, normals (radius 2
-voxel, 30 neighbours), every pair by point-to-plane ICP from the identity at 15 voxel then 1.5
+voxel, 30 neighbors), every pair by point-to-plane ICP from the identity at 15 voxel then 1.5
 voxel, the information matrix at 1.5 voxel, odometry edges between consecutive scans and
 uncertain loop closures for the others, `global_optimization` (Levenberg-Marquardt, line process,
 edge_prune_threshold 0.25, reference node 0). The tutorial's voxel (0.02 for its demo scans) is

@@ -1,4 +1,4 @@
-"""Frames per second, neighbour search included, for LRF-Net and hand-crafted LRFs at 1k, 10k and
+"""Frames per second, neighbor search included, for LRF-Net and hand-crafted LRFs at 1k, 10k and
 100k keypoints (r = 15 mr) on a real BR model, with PCL 1.13's SHOT beside them in the same run
 when the driver in tools/pcl_driver is built; peak resident memory of the whole run.
 

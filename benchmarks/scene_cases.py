@@ -21,7 +21,7 @@ Every case's source then gets a uniformly random rotation about its centroid and
 length U(0.5, 1) x the source's bounding-box diagonal, folded into `gt`.
 
 Overlap (`overlap_fraction`): the fraction of source points that have a target point within
-3 x spacing once mapped by `gt`, spacing = the source's mean nearest-neighbour distance (its mr
+3 x spacing once mapped by `gt`, spacing = the source's mean nearest-neighbor distance (its mr
 as a cloud). Bins: "10-30%" (0.10 <= overlap < 0.30) and ">30%"; a crop is drawn again (up to
 `MAX_TRIES` times) until its overlap lands in the bin it was made for, and every case keeps at
 least `MIN_POINTS` points on each side (a crop of a pair also a quarter of each scan).
@@ -67,12 +67,12 @@ from lrf_jax.datasets.pair import transform_points  # noqa: E402
 MAX_POINTS = 30_000
 MIN_POINTS = 2_000
 MAX_TRIES = 400
-NEAR_K = 8                    # target neighbours per source point in the crop search
+NEAR_K = 8                    # target neighbors per source point in the crop search
 OVERLAP_RADIUS = 3.0          # in source spacings
 FRAGMENT_KEEP = 0.7           # fraction of points kept on each side of a one-fragment pair
 FRAGMENT_NOISE = 0.1          # Gaussian sigma of a one-fragment pair, in source spacings
 BINS = ("10-30%", ">30%")
-# Where a crop aims, per bin: the cheap neighbour-list overlap must land here (a margin inside the
+# Where a crop aims, per bin: the cheap neighbor-list overlap must land here (a margin inside the
 # bin, so the exact overlap of the final clouds lands in the bin too).
 _AIM = {"10-30%": (0.12, 0.28), ">30%": (0.35, 1.0)}
 
@@ -107,7 +107,7 @@ class Case:
     unit: length unit of the translation error, in cloud units: 1.0 (metres) for rooms, the
       source's mr for objects.
     unit_name: "m" or "mr".
-    spacing: the source's mean nearest-neighbour distance (cloud units).
+    spacing: the source's mean nearest-neighbor distance (cloud units).
     origin: "pair" (as in the data set), "crop" (both sides of a pair cropped) or "fragment"
       (two crops of one fragment).
     meta: provenance (data set pair, crop shapes, motion).
@@ -139,7 +139,7 @@ def overlap_bin(overlap: float) -> str:
 
 
 def spacing_of(points: np.ndarray) -> float:
-  """Mean nearest-neighbour distance of a cloud (its mr as a cloud), cloud units."""
+  """Mean nearest-neighbor distance of a cloud (its mr as a cloud), cloud units."""
   return float(datasets.mesh_resolution(points)[0])
 
 
@@ -151,7 +151,7 @@ def overlap_fraction(source: np.ndarray, target: np.ndarray, gt: np.ndarray,
     source: (n, 3).
     target: (m, 3).
     gt: (4, 4) source -> target.
-    spacing: the unit (None: the source's mean nearest-neighbour distance).
+    spacing: the unit (None: the source's mean nearest-neighbor distance).
 
   Returns:
     The fraction in [0, 1].
@@ -219,7 +219,7 @@ class _NearTarget:
     """The approximate overlap fraction of the source points kept."""
     if not keep_source.any():
       return 0.0
-    kept = np.append(keep_target, False)  # index n_target: no neighbour
+    kept = np.append(keep_target, False)  # index n_target: no neighbor
     return float(kept[self.index[keep_source]].any(axis=1).mean())
 
 

@@ -11,6 +11,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from lrf_jax import _deprecated
 from lrf_jax.search import engine
 from lrf_jax.search.chunks import map_chunks
 from lrf_jax.geometry.resolution import mesh_resolution as _mesh_resolution
@@ -116,7 +117,7 @@ def _spec(method: str) -> MethodSpec:
 
 def mesh_resolution(points: Any, faces: Any = None) -> float:
   """The length unit of support radii and noise: mean edge length of a mesh (with `faces`), mean
-  nearest-neighbour distance of a cloud (without), as the datasets measure it.
+  nearest-neighbor distance of a cloud (without), as the datasets measure it.
 
   Args:
     points: any cloud input `compute_frames` takes (an (n, 3) array, a `Cloud`, a path, ...).
@@ -182,7 +183,7 @@ def _validate_k(k: Any) -> None:
   if k is None or (isinstance(k, str) and k == "default"):
     return
   if isinstance(k, (bool, np.bool_)) or not isinstance(k, (int, np.integer)) or k < 1:
-    raise ValueError(f"k: expected a positive integer patch size, None (every neighbour) or "
+    raise ValueError(f"k: expected a positive integer patch size, None (every neighbor) or "
                      f"'default', got {k!r}")
 
 
@@ -264,14 +265,14 @@ def compute_frames(
     method: a key of `lrf_jax.METHODS`; default "lrf_net_plus", the most repeatable shipped
       method ("lrf_net" is the paper's LRF-Net).
     radius_mr: the support radius in mesh resolutions instead (`lrf_jax.mesh_resolution` of this
-      call's points and faces: mean edge length of a mesh, mean nearest-neighbour distance of a
+      call's points and faces: mean edge length of a mesh, mean nearest-neighbor distance of a
       cloud); the paper uses 15.
     params: learned parameters for learned methods; None = the shipped default weights
       (`lrf_jax.default_params()`).
     k: patch size K; "default" = the method's own (`METHODS[method].default_k`); None = every
-      neighbour in the ball. A K above the cloud's size is capped at `patch_size_cap(n)` (the
+      neighbor in the ball. A K above the cloud's size is capped at `patch_size_cap(n)` (the
       power of two >= n): a ball cannot hold more points, and padding never changes a frame.
-    seed: seed of the neighbour subsample when a ball holds more than K points.
+    seed: seed of the neighbor subsample when a ball holds more than K points.
     faces: (f, 3) triangle indices, for mesh methods.
     normals: (n, 3) per-point normals, for methods that use them; None = estimated
       (`lrf_jax.geometry.normals.estimate_normals`: PCA over 0.2 r, oriented by `faces`, else `viewpoint`,
@@ -290,7 +291,7 @@ def compute_frames(
       default backend is a GPU/TPU and K is an integer, else host).
     kernel: how the frames are computed: "jit" (patches, then the method's jitted function),
       "host" (the method's host fast path, `METHODS[method].host_frames`: compiled engine code
-      over every neighbour, float64, no padded patches, for methods that have one, with k=None
+      over every neighbor, float64, no padded patches, for methods that have one, with k=None
       and no options; or, for lrf_net, lrf_net_plus and uniform with table weights (`lut` > 1,
       x_mode "sum" or "softmax"), the same patches' frames in compiled float64 code,
       `METHODS[method].host_patch_frames`), or "auto" (host where it applies and the backend
@@ -467,17 +468,19 @@ class _PatchSearch:
 
 
 # Ball-list entries (8 bytes each) a host fast path holds at a time.
-HOST_NEIGHBOUR_BUDGET = 1 << 24
+HOST_NEIGHBOR_BUDGET = 1 << 24
+# The pre-0.7 names of this module's constants (`_deprecated.RENAMED`), for one release.
+__getattr__ = _deprecated.renamed(__name__, globals())
 
 
 def _host_frames_in_budget(spec: MethodSpec, points: np.ndarray, kp: np.ndarray, radius: float,
                            index: SearchIndex, faces: Any, normals: Any,
                            counts: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
-  """`spec.host_frames` over `kp` in groups whose balls hold at most `HOST_NEIGHBOUR_BUDGET`
+  """`spec.host_frames` over `kp` in groups whose balls hold at most `HOST_NEIGHBOR_BUDGET`
   points together (one keypoint at least), so memory does not grow with the ball size."""
   if counts is None:
     counts = engine.ball_counts(index.grid(radius), points[kp], radius)
-  group = np.cumsum(counts) // HOST_NEIGHBOUR_BUDGET
+  group = np.cumsum(counts) // HOST_NEIGHBOR_BUDGET
   cuts = np.flatnonzero(np.diff(group)) + 1
   assert spec.host_frames is not None  # both callers check it
   parts = [spec.host_frames(points, part, radius, index, faces=faces, normals=normals)
@@ -489,7 +492,7 @@ def host_frames(points: np.ndarray, keypoints: np.ndarray, radius: float, method
                 index: SearchIndex, faces: np.ndarray | None = None,
                 normals: np.ndarray | None = None, ball_counts: np.ndarray | None = None
                 ) -> tuple[np.ndarray, np.ndarray]:
-  """A method's host fast path over every neighbour (`compute_frames(kernel="host")` without the
+  """A method's host fast path over every neighbor (`compute_frames(kernel="host")` without the
   argument checks, normal estimation or chunking): for callers that already hold the index.
   Keypoints are visited in grid-cell order; the results come back in the order given.
 
@@ -498,7 +501,7 @@ def host_frames(points: np.ndarray, keypoints: np.ndarray, radius: float, method
     keypoints: (m,) int64 indices into `points`.
     radius: support radius r (> 0).
     method: a key of `METHODS` whose `host_frames` is set.
-    index: `SearchIndex(points, seed)` (the host paths read every neighbour; the seed only
+    index: `SearchIndex(points, seed)` (the host paths read every neighbor; the seed only
       orders the grid).
     faces: (f, 3) triangles for mesh methods.
     normals: (n, 3) normals as `prepare.method_normals` gives them (None for methods without).
@@ -563,7 +566,7 @@ def _patch_search(points: np.ndarray, spec: MethodSpec, radius: float, k: int | 
     return _PatchSearch(points, spec, radius, k, seed, False)
   if search == "device" and k is None:
     raise ValueError(f"search='device' needs an integer patch size; method {spec.name!r} uses "
-                     "every neighbour (k=None): use search='host'")
+                     "every neighbor (k=None): use search='host'")
   on_device = k is not None and (search == "device" or (
       search == "auto" and jax.default_backend() != "cpu"))
   return _PatchSearch(points, spec, radius, k, seed, on_device)

@@ -93,11 +93,11 @@ def _grid_keypoints(rows, cols) -> np.ndarray:
 
 
 def _with_degenerate_parts(surface: np.ndarray, faces: np.ndarray, keypoints: np.ndarray):
-  """`surface` plus, far away, a pair of points (a keypoint with one neighbour) and 30 collinear
+  """`surface` plus, far away, a pair of points (a keypoint with one neighbor) and 30 collinear
   points with zero-area triangles (a keypoint on a collinear support): (points, faces int64,
   keypoints = `keypoints` then those two, radius 6)."""
   s = len(surface)
-  pair = np.array([[500.0, 500.0, 500.0], [500.1, 500.0, 500.0]])  # too few neighbours
+  pair = np.array([[500.0, 500.0, 500.0], [500.1, 500.0, 500.0]])  # too few neighbors
   direction = np.array([1.0, 2.0, 3.0]) / np.sqrt(14.0)
   line = np.array([-500.0, -500.0, -500.0]) + 0.5 * np.arange(30)[:, None] * direction  # collinear
   points = np.concatenate([surface, pair, line])
@@ -112,7 +112,7 @@ def synthetic_mesh():
 
   Returns:
     (points, faces, keypoints, radius): the first `N_GOOD` keypoints are interior surface points,
-    then a keypoint with one neighbour and one on a collinear support.
+    then a keypoint with one neighbor and one on a collinear support.
   """
   grid, faces = _grid(np.random.default_rng(3), _height)
   interior = _grid_keypoints(range(14, 27, 4), range(14, 27, 4))[:N_GOOD]
@@ -129,7 +129,7 @@ def host_check_cloud(kind: str):
   give the same frames: (points (n, 3) float64, faces (f, 3) int64, keypoints (14,), radius 6).
 
   The surface is a 41 x 41 grid (spacing 1, about 1 mr; the radius is 6 mr), its 12 keypoints
-  first, then `synthetic_mesh`'s two degenerate keypoints (one neighbour; a collinear support),
+  first, then `synthetic_mesh`'s two degenerate keypoints (one neighbor; a collinear support),
   which every method must flag invalid:
 
   * "smooth": `synthetic_mesh` (an irregular height field, all 12 keypoints interior);

@@ -42,7 +42,7 @@ def reference_frame(points: np.ndarray, center_index: int, radius: float, *, wei
     radius: support radius.
     weights: "lrf_net" (needs params), "uniform", "toldi" (signed) or "toldi_unsigned".
     params: WeightNet params for "lrf_net".
-    k: patch size (None = all neighbours).
+    k: patch size (None = all neighbors).
     seed: subsample seed.
     tree: optional cKDTree of points.
 

@@ -101,7 +101,7 @@ def test_padding_and_slot_order_do_not_change_descriptors(demo_crop):
 
 
 def _one_point_patch(local: np.ndarray, cos: float, radius: float = 1.0):
-  """A keypoint plus 4 copies of one neighbour at `local` (identity frame), its normal making
+  """A keypoint plus 4 copies of one neighbor at `local` (identity frame), its normal making
   `cos` with z: (patches, frames, valid, normals)."""
   offsets = np.zeros((1, 8, 3), np.float32)
   offsets[0, 1:5] = local
@@ -120,7 +120,7 @@ def _one_point_patch(local: np.ndarray, cos: float, radius: float = 1.0):
 @pytest.mark.parametrize("sector", range(8))
 @pytest.mark.parametrize("shell,upper", [(0, 1), (1, 0), (1, 1), (0, 0)])
 def test_shot_bin_layout(sector, shell, upper):
-  """A neighbour at the centre of a volume's azimuth, at an elevation and distance where no
+  """A neighbor at the centre of a volume's azimuth, at an elevation and distance where no
   interpolation spills, votes into exactly bin (4 sector + 2 shell + upper) * 11 + cosine bin."""
   az = -7 * math.pi / 8 + sector * math.pi / 4
   inc = math.pi / 4 if upper else 3 * math.pi / 4
@@ -265,7 +265,7 @@ def test_description_protocol_on_a_rigidly_moved_cloud():
 
 def test_toldi_host_fast_path_equals_the_jitted_descriptor(br_bunny):
   """compute_descriptors(kernel="host"): the same images as the jitted descriptor (float64
-  coordinates: a point on a pixel border may land in its neighbour)."""
+  coordinates: a point on a pixel border may land in its neighbor)."""
   points, faces, mr, _ = br_bunny
   r = 15.0 * mr
   kp = np.random.default_rng(5).choice(len(points), 300, replace=False)

@@ -67,7 +67,7 @@ def test_compute_frames_device_search_matches_host():
   assert np.quantile(err, 0.99) < 1e-4 and err.max() < 1e-3, np.sort(err)[-5:]
 
 
-def test_device_search_rejects_all_neighbour_patches_and_bad_names():
+def test_device_search_rejects_all_neighbor_patches_and_bad_names():
   pts = _cloud()
   with pytest.raises(ValueError, match="integer patch size"):
     lrf_jax.compute_frames(pts, np.arange(5), 0.8, "flare", search="device")

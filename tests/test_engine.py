@@ -1,4 +1,4 @@
-"""The compiled neighbourhood engine against cKDTree references, on real and adversarial clouds."""
+"""The compiled neighborhood engine against cKDTree references, on real and adversarial clouds."""
 
 import numpy as np
 import pytest
@@ -281,7 +281,7 @@ def test_knn_distances_equal_ckdtree(name, k):
   scale = max(1.0, float(np.abs(points).max()))
   np.testing.assert_allclose(d, rd[:, :k], rtol=1e-12, atol=1e-12 * scale)
   # Indices agree wherever the distance is not tied with another point's (k + 1 reference
-  # neighbours show ties with the first point left out).
+  # neighbors show ties with the first point left out).
   ext = np.c_[np.full(len(rd), -np.inf), rd, np.full(len(rd), np.inf)]
   untied = (np.diff(ext, axis=1)[:, :-1] > 1e-9 * scale) & (np.diff(ext, axis=1)[:, 1:] > 1e-9 * scale)
   untied, ri = untied[:, :k], ri[:, :k]
@@ -323,20 +323,20 @@ def test_ball_lists_and_stats_match_ckdtree():
                                                                    (0.3, 0.8)))
 
 
-def test_shell_patches_hold_exactly_the_inner_and_outer_neighbours():
+def test_shell_patches_hold_exactly_the_inner_and_outer_neighbors():
   rng = np.random.default_rng(7)
   pts = rng.normal(size=(6000, 3)) * [1, 1, 0.1]
   kp = rng.choice(len(pts), 300, replace=False)
   r = 0.4
   full = build_patches(pts, kp, r, None)
-  ring = build_patches(pts, kp, r, None, shells=(1 / 3, 0.85))
-  np.testing.assert_array_equal(ring.count, full.count)
-  np.testing.assert_array_equal(ring.z_cov, full.z_cov)
+  shell = build_patches(pts, kp, r, None, shells=(1 / 3, 0.85))
+  np.testing.assert_array_equal(shell.count, full.count)
+  np.testing.assert_array_equal(shell.z_cov, full.z_cov)
   for i in range(len(kp)):
     d = np.linalg.norm(full.offsets[i][full.mask[i]], axis=1)
     want = full.indices[i][full.mask[i]][(d <= r / 3 * (1 + 1e-5)) | (d > 0.85 * r * (1 - 1e-5))]
-    np.testing.assert_array_equal(ring.indices[i][ring.mask[i]], want)  # same priority order
-  assert ring.k < full.k
+    np.testing.assert_array_equal(shell.indices[i][shell.mask[i]], want)  # same priority order
+  assert shell.k < full.k
 
 
 def test_flare_frames_from_shell_patches_equal_full_patches():
@@ -359,7 +359,7 @@ def test_flare_frames_from_shell_patches_equal_full_patches():
 
 def test_rops_triangles_from_a_subsampled_patch_equal_the_complete_ones():
   """gather_triangles searches the ball again when the patch is a subsample (the evaluation's
-  neighbour cap): both paths give the same triangles."""
+  neighbor cap): both paths give the same triangles."""
   from lrf_jax.frames.rops import gather_triangles
   rng = np.random.default_rng(9)
   n = 40

@@ -35,7 +35,7 @@ def demo_pair():
 
 
 def test_protocol_recovers_a_known_transform(demo_pair):
-  """A full, noise-free rigid copy: every neighbourhood is the same set, so MeanCos is 1; the
+  """A full, noise-free rigid copy: every neighborhood is the same set, so MeanCos is 1; the
   transposed (wrong-direction) ground truth is caught."""
   runs = [MethodRun("toldi", "toldi"), MethodRun("uniform", "uniform", k=None)]
   recs = evaluate_pair(demo_pair, runs, experiment="t", n_keypoints=200)
@@ -57,7 +57,7 @@ def test_partial_scan_keypoints_have_counterparts_within_half_mr():
 
 
 def test_host_kernels_give_the_jitted_records_and_yield_to_the_cap():
-  """kernel="auto" runs the host fast paths (float64, every neighbour) where no ball exceeds the
+  """kernel="auto" runs the host fast paths (float64, every neighbor) where no ball exceeds the
   cap: the same frames as the jitted path on the capped patches, so the same records."""
   pair = datasets.make_demo_pair(1, seed=0, partial=True, noise_mr=0.3)
   runs = [MethodRun(m, m) for m, s in lrf_jax.METHODS.items()

@@ -322,7 +322,7 @@ def test_shot_tie_rule_batched_equals_reference():
   assert np.asarray(vb).all()
   np.testing.assert_array_equal(np.asarray(vb), np.asarray(vr))
   np.testing.assert_allclose(np.asarray(fb), np.asarray(fr), atol=1e-6)
-  # Independent check of PCL's rule: after it, >= 3 of the 5 neighbours around the median of the
+  # Independent check of PCL's rule: after it, >= 3 of the 5 neighbors around the median of the
   # (distance, index)-sorted list lie on the positive side of x and of z.
   fb = np.asarray(fb)
   for i in range(0, n, 7):

@@ -72,7 +72,7 @@ def test_siamese_loss_gradient_matches_finite_differences(br_bunny):
     assert all(np.isfinite(np.asarray(g)).all() for g in gleaves)
     rng = np.random.default_rng(0)
     direction = [jnp.asarray(rng.normal(size=l.shape)) for l in leaves]
-    # A tiny step: the loss is piecewise smooth (ReLU kinks, nearest-neighbour switches), and
+    # A tiny step: the loss is piecewise smooth (ReLU kinks, nearest-neighbor switches), and
     # finite differences only agree with autodiff inside one smooth piece.
     eps = 1e-9
     plus = jax.tree.unflatten(tree, [l + eps * d for l, d in zip(leaves, direction)])
@@ -84,7 +84,7 @@ def test_siamese_loss_gradient_matches_finite_differences(br_bunny):
 
 
 def test_siamese_loss_zero_for_noise_free_pair_and_finite_grad(br_bunny):
-  """Same neighbours on both sides (same seed) and a rigid motion: frames repeat, loss ~ 0."""
+  """Same neighbors on both sides (same seed) and a rigid motion: frames repeat, loss ~ 0."""
   pts, _, mr, xf = br_bunny
   kp = np.random.default_rng(1).choice(len(pts), 16, replace=False)
   scene = pts @ xf[:3, :3].T + xf[:3, 3]

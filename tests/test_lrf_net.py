@@ -78,7 +78,7 @@ def test_matches_numpy_reference(bunny, weights, method):
 
 
 def test_z_sign_rule(bunny):
-  """Σ (p - q_i)·z >= 0 over the neighbours within r/3."""
+  """Σ (p - q_i)·z >= 0 over the neighbors within r/3."""
   pts, kp, r, _ = bunny
   f, v = _frames(pts, kp, r)
   for i, frame in zip(kp[v], f[v]):
@@ -110,7 +110,7 @@ def _jnp(p: Patches) -> Patches:
 
 
 @pytest.mark.parametrize("x_mode", ["sum", "softmax"])
-def test_neighbour_order_and_padding_invariance(bunny, x_mode):
+def test_neighbor_order_and_padding_invariance(bunny, x_mode):
   pts, kp, r, _ = bunny
   p = build_patches(pts, kp[:50], r, 256)
   lrf_net_frames = functools.partial(_lrf_net_frames, x_mode=x_mode)
@@ -163,7 +163,7 @@ def test_patches_match_brute_force_ball(bunny):
     np.testing.assert_allclose(p.z_cov[i], np.cov(inner.T, bias=True), rtol=1e-4, atol=1e-11)
 
 
-def test_all_neighbour_k_ladder_and_cap(bunny):
+def test_all_neighbor_k_ladder_and_cap(bunny):
   pts, kp, r, _ = bunny
   full = build_patches(pts, kp[:40], r, None)
   biggest = int(full.count.max())
@@ -190,7 +190,7 @@ def _single(points, r=1.0, k=64, method="lrf_net"):
 
 
 @pytest.mark.parametrize("method", ["lrf_net", "uniform", "toldi"])
-def test_too_few_neighbours_is_invalid(method):
+def test_too_few_neighbors_is_invalid(method):
   pts = np.array([[0, 0, 0], [0.1, 0, 0], [5, 5, 5.0]])
   f, v = _single(pts, method=method)
   assert not v and np.array_equal(f, np.eye(3))
@@ -436,11 +436,11 @@ def test_patch_areas_of_a_mesh_are_barycentric():
   a = patch_areas(pts, p, faces)[0]
   np.testing.assert_allclose(a.mean(), 1.0, rtol=1e-6)
   np.testing.assert_allclose(a[:11] / a[0], va[:11] / va[0], rtol=1e-6)
-  assert a[11] > 0  # the isolated vertex falls back to the nearest-neighbour estimate
+  assert a[11] > 0  # the isolated vertex falls back to the nearest-neighbor estimate
 
 
 def test_softmax_weights_properties():
-  """exp(s - max s) over real neighbours: in (0, 1], 1 at the best, 0 in padding, shift-free."""
+  """exp(s - max s) over real neighbors: in (0, 1], 1 at the best, 0 in padding, shift-free."""
   rng = np.random.default_rng(0)
   s = jnp.asarray(rng.normal(scale=5.0, size=(4, 9)), jnp.float32)
   mask = jnp.asarray(rng.random((4, 9)) < 0.7).at[:, 0].set(True)

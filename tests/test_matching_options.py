@@ -1,4 +1,4 @@
-"""Correspondence selection (`select_correspondences`): top-k, mutual nearest neighbours and
+"""Correspondence selection (`select_correspondences`): top-k, mutual nearest neighbors and
 Lowe's ratio test against a brute-force numpy reference."""
 
 from __future__ import annotations
@@ -164,7 +164,7 @@ def _occupancy_like(rng, m, dim=70, empty=100.0, levels=None):
 @pytest.mark.parametrize("search", ["occupancy", "auto"])
 def test_occupancy_descriptors_search(opts, search):
   """Descriptors with an empty value: the occupancy search (auto's choice) gives the brute-force
-  reference's matches (its bounds may not drop a true neighbour). The dense search's float32
+  reference's matches (its bounds may not drop a true neighbor). The dense search's float32
   expansion |q|^2 + |r|^2 - 2 q.r rounds at ~1e-7 |q|^2 and swaps near ties on such data, which
   is why auto does not use it there."""
   rng = np.random.default_rng(6)

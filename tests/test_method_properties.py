@@ -1,7 +1,7 @@
 """Properties every registered LRF method must have, parameterised over `lrf_jax.METHODS`.
 
 On a synthetic mesh (an irregular height field plus two degenerate far-away parts): orthonormal
-rows and det +1; interior keypoints valid, a one-neighbour and a collinear support invalid with
+rows and det +1; interior keypoints valid, a one-neighbor and a collinear support invalid with
 an identity frame; frames that depend on the input; invariance to the order of the patch slots
 (and triangle slots) and to extra padding holding garbage; NaN input flagged invalid without
 touching the other keypoints; and every method honouring the declared `extra` layout. Every
@@ -109,7 +109,7 @@ def check_conventions(method):
   _, _, frames, valid = _case(method)
   assert_frames_orthonormal(frames, valid)
   assert valid[:N_GOOD].all(), f"{method}: interior keypoints invalid: {valid[:N_GOOD]}"
-  assert not valid[N_GOOD], f"{method}: a 2-point neighbourhood must be invalid"
+  assert not valid[N_GOOD], f"{method}: a 2-point neighborhood must be invalid"
   assert not valid[N_GOOD + 1], f"{method}: a collinear support must be invalid"
   np.testing.assert_array_equal(frames[~valid], np.broadcast_to(np.eye(3), frames[~valid].shape))
   cos = np.einsum("ni,mi->nm", frames[:N_GOOD, 0], frames[:N_GOOD, 0])
@@ -279,7 +279,7 @@ def _agreement(method, host, jit):
 
 
 def check_host_equals_jit(method, kind):
-  """`kernel="host"` (compiled float64 code: `host_frames` on every neighbour, or
+  """`kernel="host"` (compiled float64 code: `host_frames` on every neighbor, or
   `host_patch_frames` on the same patches) gives the jitted function's validity, and its frames
   to float32 rounding (mean cosine of x and z > 1 - 1e-5), on `host_check_cloud(kind)`: the two
   degenerate keypoints invalid, the smooth field's keypoints valid. On an exact tilted plane a
@@ -332,12 +332,12 @@ def test_kernel_argument_is_checked():
     lrf_jax.compute_frames(points, keypoints, radius, "shot", k=64, kernel="host")
 
 
-def test_host_fast_path_splits_by_a_neighbour_budget(monkeypatch):
+def test_host_fast_path_splits_by_a_neighbor_budget(monkeypatch):
   """Keypoints are grouped so that their balls' lists stay within a budget: the same frames."""
   from lrf_jax import api
   points, faces, keypoints, radius = SYN
   full = lrf_jax.compute_frames(points, keypoints, radius, "shot", kernel="host")
-  monkeypatch.setattr(api, "HOST_NEIGHBOUR_BUDGET", 50)  # a few keypoints per group
+  monkeypatch.setattr(api, "HOST_NEIGHBOR_BUDGET", 50)  # a few keypoints per group
   split = lrf_jax.compute_frames(points, keypoints, radius, "shot", kernel="host")
   np.testing.assert_array_equal(np.asarray(full[0]), np.asarray(split[0]))
   np.testing.assert_array_equal(np.asarray(full[1]), np.asarray(split[1]))

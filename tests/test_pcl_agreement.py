@@ -9,7 +9,7 @@ checks that they are the ones PCL saw, and feeds them to lrf_jax. PCL is not nee
 Measured when the fixtures were made (also on 3000 keypoints, same settings): every keypoint
 agrees for all four methods, MeanCos > 0.9999 (min 0.9999998); PCL and lrf_jax flag the same
 keypoints valid (all). The 300 fixture keypoints include 2 where SHOT's x-axis vote is an exact
-tie (26 of the 3000), settled by PCL's median-neighbour rule, which lrf_jax reproduces.
+tie (26 of the 3000), settled by PCL's median-neighbor rule, which lrf_jax reproduces.
 Known sources of possible (rare) differences, none observed: PCL computes in float32 on absolute
 coordinates (lrf_jax on float32 offsets), so near-ties of BOARD's smallest n·z or FLARE's largest
 height, or points at exactly distance r, can resolve differently.
@@ -82,7 +82,7 @@ def test_agreement_with_pcl(method, br_bunny, bunny_normals):
 
 
 def test_shot_ties_agree(br_bunny):
-  """The fixture's exact-tie keypoints (PCL's median-neighbour rule) agree with PCL."""
+  """The fixture's exact-tie keypoints (PCL's median-neighbor rule) agree with PCL."""
   points, _, _, _ = br_bunny
   fx = _fixture("shot")
   kp, radius = fx["keypoints"], float(fx["radius"])

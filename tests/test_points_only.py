@@ -138,7 +138,7 @@ def test_confidence_ignores_padding_and_nan_gives_zero(scan):
   np.testing.assert_allclose(np.asarray(sign_confidence(fp, vp, padded, extra_p)), c,
                              atol=1e-6)
   broken = patches.offsets.copy()
-  broken[0, 3] = np.nan  # a real neighbour: the frame is flagged, its confidence is 0
+  broken[0, 3] = np.nan  # a real neighbor: the frame is flagged, its confidence is 0
   bad = patches._replace(offsets=broken)
   fb, vb = _plus(bad, extra)
   cb = np.asarray(sign_confidence(fb, vb, bad, extra))

@@ -162,7 +162,7 @@ def test_crop_augmentation_cuts_by_a_plane():
   lost = patches.mask & ~cut.mask
   assert lost.any(axis=1).mean() > 0.5  # most patches lose a side
   assert not (cut.mask & ~patches.mask).any()  # nothing is added
-  # The kept offsets are the original ones, dropped slots are clean padding, and no neighbour
+  # The kept offsets are the original ones, dropped slots are clean padding, and no neighbor
   # closer than crop_min * r is ever dropped (the plane lies at least that far).
   np.testing.assert_array_equal(cut.offsets[cut.mask], patches.offsets[cut.mask])
   assert (cut.offsets[lost] == 0).all() and (cut.indices[lost] == -1).all()

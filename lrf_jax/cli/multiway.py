@@ -46,7 +46,7 @@ def build_parser() -> argparse.ArgumentParser:
   ap.add_argument("--reject-mr", type=float, default=5.0,
                   help="reject edges whose residual exceeds this many mr (5)")
   ap.add_argument("--all-pairs-max", type=int, default=12,
-                  help="register every pair up to this many scans (12); beyond, neighbours in "
+                  help="register every pair up to this many scans (12); beyond, neighbors in "
                        "the given order plus loop-closure candidates")
   ap.add_argument("--no-refine", action="store_true", help="skip the joint ICP")
   ap.add_argument("--no-figures", action="store_true", help="do not draw the PNG figures")

@@ -50,7 +50,7 @@ class Decimation(NamedTuple):
     points: (k, 3) float64 points of the decimated mesh or cloud.
     faces: (g, 3) int64 triangles (meshes) or None (clouds).
     kept: (k,) int64 indices into the input points for clouds (a subset), None for meshes
-      (quadric decimation moves vertices; match them by ground truth + nearest neighbour).
+      (quadric decimation moves vertices; match them by ground truth + nearest neighbor).
   """
 
   points: np.ndarray

@@ -5,7 +5,7 @@ Layout under the data root::
     stanford_bunny_scans/{bun000,bun045,...}.ply   ascii, metres, x y z + range_grid
     stanford_bunny_scans/bun.conf                   poses; world = R(q)ᵀ p + t (conjugate)
 
-Scans are clouds (no faces), so mr is the mean nearest-neighbour distance (about 0.58 mm).
+Scans are clouds (no faces), so mr is the mean nearest-neighbor distance (about 0.58 mm).
 "Consecutive" follows `BUNNY_SCAN_ORDER`: the turntable scans in angle order with the four
 extra scans inserted next to the scans they overlap most. Every consecutive pair then shares at
 least 36 % of its points at 1 mm (both directions), whereas bun.conf's own line order and the

@@ -12,7 +12,7 @@ name, the 3DMatch scene, the benchmark it comes from ("3DMatch": > 30 % overlap,
 source points into the target: ``target ≈ R source + t`` (the benchmark's gt.log record
 ``i j n`` with source = fragment j, target = fragment i).
 
-Fragments are clouds (no faces): mr is the mean nearest-neighbour distance of the source (about
+Fragments are clouds (no faces): mr is the mean nearest-neighbor distance of the source (about
 1.2 cm at 2.5 cm voxels). A fused fragment has no single sensor position, so the pairs carry no
 viewpoint. The benchmark counts a pair as registered when the rotation error is below 15 degrees
 and the translation error below 30 cm (`SUCCESS_RE_DEG`, `SUCCESS_TE_M`).
@@ -138,7 +138,7 @@ def load_threedmatch_scenes(root: str | os.PathLike | None = None) -> list[Pair]
   Returns:
     One Pair per row of pairs.tsv, in file order: model = the source fragment, scene = the
     target fragment, transform = the ground truth (source -> target, metres), dataset
-    "3DMatch", correspondence "nearest", mr = the source's mean nearest-neighbour distance.
+    "3DMatch", correspondence "nearest", mr = the source's mean nearest-neighbor distance.
     meta holds "scene", "benchmark" ("3DMatch" or "3DLoMatch"), "files" (source, target, gt)
     and "units": "m".
 

@@ -4,8 +4,8 @@
     desc, ok = lrf_jax.descriptors.compute_descriptors(points, kp, radius, frames, valid,
                                                        descriptor="toldi")
 
-Each descriptor is a pure jnp function of a `Patches` batch (every neighbour within r: `k=None`),
-the frames and their validity (plus, for SHOT, the neighbours' normals gathered on the host by a
+Each descriptor is a pure jnp function of a `Patches` batch (every neighbor within r: `k=None`),
+the frames and their validity (plus, for SHOT, the neighbors' normals gathered on the host by a
 `prepare` hook), vmapped over keypoints. With an equivariant LRF the descriptors are rotation
 invariant: the patch is expressed in the frame before anything is binned.
 
@@ -30,6 +30,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from lrf_jax import _deprecated
 from lrf_jax.search.chunks import map_chunks
 from lrf_jax.descriptors import rops as _rops
 from lrf_jax.descriptors import shot as _shot
@@ -48,7 +49,7 @@ from lrf_jax.search.neighborhoods import (Patches, SearchIndex, _patches_checked
 from lrf_jax.frames.normal_based import prepare_normals
 
 
-# Keypoints x neighbour slots per jitted call (bounds the memory of the vmapped descriptors).
+# Keypoints x neighbor slots per jitted call (bounds the memory of the vmapped descriptors).
 MAX_SLOTS = 1 << 20
 
 
@@ -64,9 +65,11 @@ class DescriptorSpec:
     original_lrf: the LRF method the descriptor was published with (a key of `lrf_jax.METHODS`).
     prepare: optional host hook `prepare(points, keypoints, patches, faces=, normals=, radius=)`.
     description: one line for listings.
-    host_fn: optional host fast path `host_fn(points, keypoints, radius, frames, valid, index,
-      **options) -> (desc, valid)` over every neighbour (k=None), numpy and compiled engine code,
-      the same descriptors as `fn`; `compute_descriptors` runs it by default on a CPU backend.
+    host_descriptors: optional host fast path `host_descriptors(points, keypoints, radius,
+      frames, valid, index, **options) -> (desc, valid)` over every neighbor (k=None), numpy and
+      compiled engine code, the same descriptors as `fn`; `compute_descriptors` runs it by
+      default on a CPU backend. Named as `MethodSpec.host_frames` is: `host_` + what it returns
+      (0.7; `host_fn`, its old name, still reads it with a warning for one release).
   """
 
   name: str
@@ -75,7 +78,13 @@ class DescriptorSpec:
   original_lrf: str
   prepare: Callable[..., Any] | None = None
   description: str = ""
-  host_fn: Callable[..., Any] | None = None
+  host_descriptors: Callable[..., Any] | None = None
+
+  @property
+  def host_fn(self) -> Callable[..., Any] | None:
+    """Deprecated (0.7): `host_descriptors`."""
+    _deprecated.warn_moved("DescriptorSpec.host_fn", "DescriptorSpec.host_descriptors")
+    return self.host_descriptors
 
 
 def _snap(patches, frames, valid, extra, **options):
@@ -115,7 +124,7 @@ DESCRIPTORS: dict[str, DescriptorSpec] = {
     "toldi": DescriptorSpec(
         "toldi", _toldi_fn, 3 * _toldi.GRID ** 2, "toldi",
         description="TOLDI (Yang et al. 2017): three-view local depth images",
-        host_fn=_toldi.toldi_descriptors_host),
+        host_descriptors=_toldi.toldi_descriptors_host),
 }
 
 
@@ -137,11 +146,11 @@ def descriptors_from_patches(patches: Patches, frames: Any, valid: Any, descript
   """Run a registered descriptor's jitted function on prepared patches.
 
   Args:
-    patches: `Patches` (every neighbour within r for the original descriptors).
+    patches: `Patches` (every neighbor within r for the original descriptors).
     frames: (N, 3, 3) frames, rows x, y, z.
     valid: (N,) bool.
     descriptor: a key of `DESCRIPTORS`.
-    extra: what the descriptor's `prepare` hook returned (SHOT: the neighbours' normals).
+    extra: what the descriptor's `prepare` hook returned (SHOT: the neighbors' normals).
     **options: static options (e.g. `grid=` for snapshots and TOLDI).
 
   Returns:
@@ -150,7 +159,7 @@ def descriptors_from_patches(patches: Patches, frames: Any, valid: Any, descript
   spec = _spec(descriptor)
   if spec.prepare is not None and extra is None:
     raise ValueError(f"descriptor {descriptor!r} needs `extra` from its prepare hook "
-                     f"(DESCRIPTORS[{descriptor!r}].prepare), e.g. the neighbours' normals")
+                     f"(DESCRIPTORS[{descriptor!r}].prepare), e.g. the neighbors' normals")
   fn = _jitted(descriptor, tuple(sorted(options.items())))
   return fn(jax.tree.map(jnp.asarray, patches), jnp.asarray(frames, jnp.float32),
             jnp.asarray(valid, bool), extra)
@@ -173,7 +182,7 @@ def describe_patches(patches: Patches, frames: Any, valid: Any, descriptor: str,
     faces: optional triangles (orient estimated normals).
     normals: optional (n, 3) normals for SHOT.
     chunk_size: at most this many keypoints per jitted call (fewer for large balls: at most
-      `MAX_SLOTS` keypoint x neighbour slots per call).
+      `MAX_SLOTS` keypoint x neighbor slots per call).
     **options: static descriptor options.
 
   Returns:
@@ -240,14 +249,14 @@ def compute_descriptors(
     descriptor: a key of `DESCRIPTORS`.
     faces: optional (f, 3) triangles (orient SHOT's estimated normals by the winding).
     normals: optional (n, 3) normals for SHOT (default: `lrf_jax.geometry.normals.estimate_normals`).
-    k: neighbours per patch; None = every neighbour within r (the original descriptors).
+    k: neighbors per patch; None = every neighbor within r (the original descriptors).
     seed: seed of the subsample when `k` is set.
     chunk_size: keypoints per search and jitted call (memory: about chunk_size x K x 60 bytes
       for SHOT, x 250 bytes for RoPS).
     index: optional prebuilt `SearchIndex(points, seed)`.
     kernel: "jit" (patches, then the jitted descriptor), "host" (the descriptor's host fast path,
-      `DESCRIPTORS[descriptor].host_fn`: every neighbour, float64, no padded patches; needs
-      k=None), or "auto" (host where it applies and the backend is the CPU, else jit).
+      `DESCRIPTORS[descriptor].host_descriptors`: every neighbor, float64, no padded patches;
+      needs k=None), or "auto" (host where it applies and the backend is the CPU, else jit).
     **options: static descriptor options (`grid=`, `empty=`, `align_normals=`).
 
   Returns:
@@ -300,14 +309,15 @@ def _descriptors_checked(descriptor: str, points: np.ndarray, keypoints: np.ndar
     index = SearchIndex(points, seed)
   if kernel not in ("auto", "host", "jit"):
     raise ValueError(f"kernel: expected 'auto', 'host' or 'jit', got {kernel!r}")
-  applies = spec.host_fn is not None and k is None
+  applies = spec.host_descriptors is not None and k is None
   if kernel == "host" and not applies:
     raise ValueError(f"kernel='host': descriptor {descriptor!r} has no host fast path for these "
-                     "arguments (it needs DESCRIPTORS[descriptor].host_fn and k=None)")
+                     "arguments (it needs DESCRIPTORS[descriptor].host_descriptors and k=None)")
   if kernel == "host" or (kernel == "auto" and applies and jax.default_backend() == "cpu"):
-    assert spec.host_fn is not None  # applies (kernel="host" raised above otherwise)
-    run_host = lambda idx, n_real: spec.host_fn(points, keypoints[idx], radius, frames[idx],
-                                                valid[idx], index, **options)
+    assert spec.host_descriptors is not None  # applies (kernel="host" raised above otherwise)
+    host = spec.host_descriptors
+    run_host = lambda idx, n_real: host(points, keypoints[idx], radius, frames[idx], valid[idx],
+                                        index, **options)
     return map_chunks(run_host, m, min(int(chunk_size) * 16, m), pad=False)
 
   def run(idx: np.ndarray, n_real: int) -> tuple[jax.Array, jax.Array]:

@@ -1,6 +1,6 @@
 """Helpers shared by the LRF-based descriptors: local coordinates, padding, validation.
 
-Every descriptor takes the same inputs: a `Patches` batch (normally with *every* neighbour in the
+Every descriptor takes the same inputs: a `Patches` batch (normally with *every* neighbor in the
 ball, `k=None`, as the original descriptors use) and frames from ANY LRF method, rows x, y, z
 (they map world offsets into the LRF: `local = F @ (q - p)`).
 """
@@ -16,7 +16,7 @@ from lrf_jax.search.neighborhoods import Patches, SearchIndex, _patches_checked
 
 
 def local_coordinates(offsets: jax.Array, frames: jax.Array) -> jax.Array:
-  """Neighbour offsets expressed in their keypoint's LRF.
+  """Neighbor offsets expressed in their keypoint's LRF.
 
   Args:
     offsets: (N, K, 3) q - p (cloud units).
@@ -38,7 +38,7 @@ def sanitize_inputs(patches: Patches, frames: jax.Array,
     valid: (N,) bool validity of the frames.
 
   Returns:
-    (offsets (N, K, 3) with non-finite rows zeroed, mask (N, K) of finite real neighbours,
+    (offsets (N, K, 3) with non-finite rows zeroed, mask (N, K) of finite real neighbors,
     frames (N, 3, 3) with non-finite frames replaced by the identity, ok (N,) = valid and finite
     frame and finite radius).
   """
@@ -112,9 +112,9 @@ def validate_frames(frames, valid, n: int) -> tuple[np.ndarray, np.ndarray]:
 
 def ball_patches(index: SearchIndex, points: np.ndarray, keypoints: np.ndarray,
                  radius: float) -> Patches:
-  """Patches with EVERY neighbour within `radius` (the engine's radius search), K bucketed.
+  """Patches with EVERY neighbor within `radius` (the engine's radius search), K bucketed.
 
-  The descriptors' neighbourhood (the original descriptors use the whole ball). Slot order (the
+  The descriptors' neighborhood (the original descriptors use the whole ball). Slot order (the
   index's priority order) does not matter: descriptors are sums or extrema over the slots.
 
   Args:

@@ -1,4 +1,4 @@
-"""Matching in descriptor space: nearest neighbour with Lowe's ratio score (jnp, blocked).
+"""Matching in descriptor space: nearest neighbor with Lowe's ratio score (jnp, blocked).
 
 For each query descriptor the nearest and second-nearest reference descriptors in the L2 distance
 are found; the match is (query, nearest) with the score ratio = d1 / d2 in [0, 1] (smaller = more
@@ -6,8 +6,8 @@ distinctive). Recall vs 1-precision curves threshold this ratio (`lrf_jax.evalua
 correspondence selection keeps the matches of smallest ratio (`lrf_jax.registration`).
 
 `select_correspondences` is the general selection: each query's k nearest references, mutual
-nearest neighbours, Lowe's ratio test, capped at n, best first. Every search is exact. Two
-searches give the same neighbours:
+nearest neighbors, Lowe's ratio test, capped at n, best first. Every search is exact. Two
+searches give the same neighbors:
 
 * "dense": blocked over the queries, one jitted distance block (a matrix product) per block (the
   mutual check's reverse nearest queries come from the same block); its float32 expansion
@@ -43,7 +43,7 @@ from lrf_jax.search.nearest import _insert
 
 
 class Matches(NamedTuple):
-  """Nearest-neighbour matches of queries into references.
+  """Nearest-neighbor matches of queries into references.
 
   Attributes:
     nearest: (m,) int32 index of the nearest valid reference (-1 where the query is invalid or
@@ -165,7 +165,7 @@ def _nearest_dense(q: np.ndarray, r: np.ndarray, qv: np.ndarray, rv: np.ndarray,
 
 
 # ------------------------------------------------------------------------------------------------
-# The occupancy search: exact nearest neighbours of descriptors with an "empty" value
+# The occupancy search: exact nearest neighbors of descriptors with an "empty" value
 # ------------------------------------------------------------------------------------------------
 
 # `_occupancy_form`: the empty value must lie at least OCCUPANCY_GAP times the spread of the other
@@ -399,7 +399,7 @@ def select_correspondences(query: np.ndarray, reference: np.ndarray, query_valid
 
   * `mutual=True`: keep (i, j) only when i is also among the k nearest valid queries of
     reference j (equal distances: lower query index first); for k=1, the mutual nearest
-    neighbours.
+    neighbors.
   * `ratio=t` (k=1 only): Lowe's ratio test, keep (i, j) when d1 / d2 < t, d1 and d2 the
     distances to the nearest and second-nearest valid references (d1 / d2 = 1 when there is a
     single valid reference or d2 = 0, so such a query never passes).
@@ -416,7 +416,7 @@ def select_correspondences(query: np.ndarray, reference: np.ndarray, query_valid
     query_valid: (m,) bool (None: all valid); invalid queries propose nothing.
     reference_valid: (r,) bool (None: all valid); invalid references are never matched.
     n: keep at most this many, the best (None: all).
-    mutual: keep mutual nearest neighbours only.
+    mutual: keep mutual nearest neighbors only.
     ratio: the ratio-test threshold in (0, 1] (None: no test).
     k: proposals per query (fewer where fewer valid references exist).
     block: queries per jitted call of the dense search (memory: block x r floats).

@@ -106,7 +106,7 @@ def rops_descriptors(patches: Patches, frames: jax.Array,
   """RoPS descriptors of a batch (pure, jittable).
 
   Args:
-    patches: `Patches` with every neighbour within r (`k=None`).
+    patches: `Patches` with every neighbor within r (`k=None`).
     frames: (N, 3, 3) LRFs, rows x, y, z, from any method.
     valid: (N,) bool validity of the frames.
 

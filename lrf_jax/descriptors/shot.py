@@ -7,13 +7,13 @@ Bin layout (352 = 32 spatial volumes x 11 cosine bins), histogram index = v * 11
     deg (PCL's bit logic, reproduced exactly);
   - shell: 1 when |q - p| > r/2 (outer of two radial shells);
   - upper: 1 when z > 0 (two elevation halves);
-* cosine bin c: b = (1 + n_q . z) * 10 / 2 in [0, 10] for the neighbour's normal n_q and the LRF's
+* cosine bin c: b = (1 + n_q . z) * 10 / 2 in [0, 10] for the neighbor's normal n_q and the LRF's
   z; c = floor(b + 0.5) in 0..10 (10 shape bins plus PCL's 11th slot for cos >= 0.9).
 
-Quadrilinear interpolation (PCL `interpolateSingleChannel`): each neighbour votes 1 - |b - c| to
+Quadrilinear interpolation (PCL `interpolateSingleChannel`): each neighbor votes 1 - |b - c| to
 its bin and |b - c| to the adjacent cosine bin ((c +- 1) mod 10: PCL's circular wrap, so b in
 [8.5, 9.5) spills into c = 0, not 10), and in each of the radial, elevation and azimuth
-directions a weight to its own volume and the complement to the neighbouring volume (no spill
+directions a weight to its own volume and the complement to the neighboring volume (no spill
 beyond the outer shell, the poles, and nothing across the azimuth for points on the z axis).
 The histogram is L2-normalised (PCL; the ECCV paper normalised by the sum).
 
@@ -25,7 +25,7 @@ against the LRF's z (Σ n_q · z < 0), so the descriptor depends on the normals 
 per patch (equivariantly: z is disambiguated by the LRF). `align_normals=False` is PCL exactly
 (the agreement test uses it).
 
-Neighbours: every point within r except those at distance 0 (the keypoint itself) and those with
+Neighbors: every point within r except those at distance 0 (the keypoint itself) and those with
 a non-finite normal. Invalid (zeros, `valid = False`): an invalid frame, fewer than 5 points in
 the ball (keypoint included, PCL's rule), or an empty histogram.
 
@@ -56,10 +56,10 @@ def _shot_one(local: jax.Array, dist: jax.Array, cos: jax.Array, use: jax.Array,
   """Unnormalised SHOT histogram of one keypoint.
 
   Args:
-    local: (K, 3) neighbour coordinates in the LRF.
+    local: (K, 3) neighbor coordinates in the LRF.
     dist: (K,) |q - p|.
     cos: (K,) n_q . z, clipped to [-1, 1].
-    use: (K,) bool, the neighbours that vote.
+    use: (K,) bool, the neighbors that vote.
     radius: () r.
 
   Returns:
@@ -129,10 +129,10 @@ def shot_descriptors(patches: Patches, frames: jax.Array, valid: jax.Array,
   """SHOT352 descriptors of a batch (pure, jittable).
 
   Args:
-    patches: `Patches` with every neighbour within r (build them with `k=None`).
+    patches: `Patches` with every neighbor within r (build them with `k=None`).
     frames: (N, 3, 3) LRFs, rows x, y, z, from any method.
     valid: (N,) bool validity of the frames.
-    normals: (N, K, 3) the neighbours' unit normals (NaN where undefined, anything in padding),
+    normals: (N, K, 3) the neighbors' unit normals (NaN where undefined, anything in padding),
       e.g. from `lrf_jax.frames.normal_based.prepare_normals`.
     align_normals: flip a patch's normals together when Σ n_q · z < 0 (module docstring);
       False = PCL.

@@ -54,7 +54,7 @@ def snapshot_descriptors(patches: Patches, frames: jax.Array, valid: jax.Array, 
   """Snapshot descriptors of a batch (pure, jittable).
 
   Args:
-    patches: `Patches` with every neighbour within r (`k=None`).
+    patches: `Patches` with every neighbor within r (`k=None`).
     frames: (N, 3, 3) LRFs, rows x, y, z, from any method.
     valid: (N,) bool validity of the frames.
     grid: pixels per image side G.

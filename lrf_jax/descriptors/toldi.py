@@ -80,7 +80,7 @@ def toldi_descriptors(patches: Patches, frames: jax.Array, valid: jax.Array, *,
   """TOLDI descriptors of a batch (pure, jittable).
 
   Args:
-    patches: `Patches` with every neighbour within r (`k=None`).
+    patches: `Patches` with every neighbor within r (`k=None`).
     frames: (N, 3, 3) LRFs, rows x, y, z, from any method.
     valid: (N,) bool validity of the frames.
     grid: pixels per image side L (20 in the paper).

@@ -4,10 +4,10 @@ Protocol per model/scene pair (as the repeatability experiment):
 
 * keypoints: the repeatability protocol's 1000 seeded model points and their ground-truth scene
   correspondences (`repeatability.correspondences`: by index for BR, by ground truth plus nearest
-  neighbour within 0.5 mr for partial scans), so every scene keypoint has exactly one
+  neighbor within 0.5 mr for partial scans), so every scene keypoint has exactly one
   corresponding model feature (N_corr = number of scene keypoints);
 * frames by each LRF method on both sides (one absolute radius, 15 mr of the noise-free model),
-  descriptors on every neighbour within the same radius;
+  descriptors on every neighbor within the same radius;
 * matching: each scene descriptor is matched to its nearest model descriptor (L2) with the score
   ratio = d1 / d2 (`descriptors.match_descriptors`); a match is correct when the matched model
   keypoint lies within `correct_mr` mr (default 1) of the true corresponding model keypoint

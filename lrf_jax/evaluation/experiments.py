@@ -140,7 +140,7 @@ class EvalOptions:
     seed: keypoint, subsample and nuisance seed.
     radius_mr: support radius in mr (15).
     max_pairs: at most this many pairs per dataset and setting (None: all), for quick runs.
-    max_neighbors: cap on all-neighbour patches (see `evaluate_pair`; None: no cap).
+    max_neighbors: cap on all-neighbor patches (see `evaluate_pair`; None: no cap).
   """
 
   data_root: str | None = None

@@ -1,12 +1,12 @@
 """The paper's repeatability protocol (section 3.2.1) for any LRF method.
 
 For a model-scene pair: 1000 seeded model keypoints and their scene correspondences (by index
-for BR; by ground truth plus nearest neighbour within 0.5 mr for partial scans), frames on both
+for BR; by ground truth plus nearest neighbor within 0.5 mr for partial scans), frames on both
 sides with one absolute radius (radius_mr x the noise-free model's mr), MeanCos per keypoint after
 mapping the scene frame back by the ground-truth rotation, averaged per pair (invalid frames count
 as 0). Records also carry the fraction above 0.97 and the number of valid frames.
 
-Neighbourhoods are computed once per (pair, side, K, radius, seed) and shared by every method that
+Neighborhoods are computed once per (pair, side, K, radius, seed) and shared by every method that
 uses the same K (`PatchCache`), so adding a method to a run does not redo the search.
 """
 
@@ -37,7 +37,7 @@ from lrf_jax.prepare import method_normals, prepare_extra
 if TYPE_CHECKING:
   from lrf_jax.search.neighborhoods import AnyArray
 
-# Default cap on all-neighbour patches in evaluations (see `evaluate_pair`).
+# Default cap on all-neighbor patches in evaluations (see `evaluate_pair`).
 MAX_NEIGHBORS = 4096
 # Options of the paper's LRF-Net in the paper's experiments: the exact network (lut=0), not the
 # weight table that `compute_frames` reads by default.
@@ -76,7 +76,7 @@ class PatchCache:
   """Patches keyed by (cloud content, keypoints, K, radius, z_ratio, seed), in memory and
   optionally on disk.
 
-  The disk cache (when `directory` is set) stores the neighbour indices and normal statistics as
+  The disk cache (when `directory` is set) stores the neighbor indices and normal statistics as
   .npz, so a second run of `evaluate.py` with another method does not search again.
   """
 
@@ -128,7 +128,7 @@ def correspondences(pair: Pair, n: int, seed: int, *, scene_first: bool = False,
   """The protocol's keypoints: (model_idx, scene_idx), each (k,) int64.
 
   `scene_first` draws the keypoints on the scene and matches them in the model by the inverse
-  ground truth and nearest neighbour (within `max_dist_mr`): used for decimated scenes, whose
+  ground truth and nearest neighbor (within `max_dist_mr`): used for decimated scenes, whose
   vertices are fewer and moved, so that every keypoint has a counterpart within 0.5 mr on the
   full-resolution model.
   """
@@ -179,14 +179,14 @@ def evaluate_pair(pair: Pair, methods: Iterable[MethodRun], *, experiment: str,
     radius_mr: support radius in mr (one absolute radius on both sides).
     scene_first: draw keypoints on the scene (decimation), see `correspondences`.
     cache: shared patch cache.
-    max_neighbors: cap on the patch size of all-neighbour methods (K = None): balls with more
+    max_neighbors: cap on the patch size of all-neighbor methods (K = None): balls with more
       points keep this many by the seeded priority subsample (`build_patches(max_k=...)`). Only
       dense clouds reach it (UWAOR's full-resolution rs1: 33-50k points per 15 mr ball, from the
       decimated model's mr); None = no cap. Stored in each record as "max_neighbors".
     keep_frames: also return the frames (under "_frames") for figures.
-    kernel: "auto": a method with a host fast path (`MethodSpec.host_frames`), every neighbour
+    kernel: "auto": a method with a host fast path (`MethodSpec.host_frames`), every neighbor
       (K = None) and no options runs it on a CPU backend when no ball of the side exceeds
-      `max_neighbors` (then the capped patches would hold every neighbour too, so both paths
+      `max_neighbors` (then the capped patches would hold every neighbor too, so both paths
       compute the same frames, the host one in float64); otherwise, and with "jit", the jitted
       function on the (capped) patches. Stored in each record as "kernel".
 

@@ -265,7 +265,7 @@ def plot_weights(patches_xyz: list[AnyArray], weights: list[np.ndarray], frames:
     ax.set_xlabel("x in the LRF (r)")
   axes[0][0].set_ylabel("y in the LRF (r)")
   fig.colorbar(sc, ax=list(axes[0]), shrink=0.8, label="learned weight (shared scale)")
-  fig.suptitle("LRF-Net weights per neighbour (seen from +z, x axis drawn)")
+  fig.suptitle("LRF-Net weights per neighbor (seen from +z, x axis drawn)")
   path = out / "weights.png"
   atomic.save_figure(fig, path, dpi=120)
   plt.close(fig)
@@ -275,7 +275,7 @@ def plot_weights(patches_xyz: list[AnyArray], weights: list[np.ndarray], frames:
 def weights_figure(pair: Any, params: Any, out: Path, *, n: int = 4, radius_mr: float = 15.0,
                    seed: int = 0) -> Path:
   """The paper's weight visualisation: `n` model patches of `pair` in their LRF-Net frames with
-  every neighbour coloured by its learned weight (figure `fig_weight`)."""
+  every neighbor coloured by its learned weight (figure `fig_weight`)."""
   import jax
   import jax.numpy as jnp
 
@@ -329,7 +329,7 @@ def weight_maps_figure(out: Path, maps: dict[str, tuple[Any, str]] | None = None
     ax.set_ylabel("cos(z, pq)")
     ax.set_title(title, fontsize=10)
     fig.colorbar(im, ax=ax, shrink=0.8)
-  fig.suptitle("Learned x-axis weight per neighbour over the attribute plane")
+  fig.suptitle("Learned x-axis weight per neighbor over the attribute plane")
   fig.tight_layout()
   path = Path(out) / "weight_maps.png"
   atomic.save_figure(fig, path, dpi=110)

@@ -110,7 +110,7 @@ class EvalPlan:
     runs: the method columns (`method_runs`).
     options: the knobs shared by every experiment.
     notes: lines for the report (skipped data, where parameters came from).
-    cache_dir: keep neighbourhoods on disk here (None: in memory only).
+    cache_dir: keep neighborhoods on disk here (None: in memory only).
     meta: extra fields for results.json's "meta".
     methods_named: the runs were named by the caller (--methods); else the points_only
       experiment runs its own default hand-crafted methods (`POINTS_ONLY_HANDCRAFTED`).

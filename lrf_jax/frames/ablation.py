@@ -6,7 +6,7 @@ x-axis, given z:
   "sum1" LRF-Net: weights from the invariant attributes (|pq|/r, cos(z, pq)), weighted vector sum;
   "sum2" weights from the raw [q_i / r, z] (6 numbers, not rotation invariant), vector sum;
   "dr"   x regressed directly by a PointNet from [q_i / r, z], projected on the tangent plane;
-  "max"  the tangent projection of the neighbour with the largest Sum1 weight (no gradient
+  "max"  the tangent projection of the neighbor with the largest Sum1 weight (no gradient
          through the argmax, so it reuses weights trained for "sum1").
 (normal, sum1) is exactly `lrf_net_frames`. Parameters are a dict with the parts a variant uses:
 "weights" (WeightNet), "z_reg" / "x_reg" (PointRegressor).

@@ -6,11 +6,11 @@ PCL's `BOARDLocalReferenceFrameEstimation` with `setRadiusSearch(r_z)`, `setTang
 * z: the least-squares plane normal of all points within r_z = `Z_RATIO` · r (the smallest
   eigenvector of their covariance about their centroid, `Patches.z_cov`), flipped to agree with the
   mean of those points' normals (`normalDisambiguation`);
-* x: among the points in the margin ring 0.85 r < |pq_i| <= r, the one whose normal is the most
-  inclined to z (smallest n_i · z); if the ring is empty, among all the other points; x is the
+* x: among the points in the margin 0.85 r < |pq_i| <= r, the one whose normal is the most
+  inclined to z (smallest n_i · z); if the margin is empty, among all the other points; x is the
   unit projection of its offset on the tangent plane, y = z × x.
 
-Minimum neighbours: 6 within r_z (PCL's rule). Invalid also when the plane fit is degenerate
+Minimum neighbors: 6 within r_z (PCL's rule). Invalid also when the plane fit is degenerate
 (collinear points), no candidate has a usable normal (finite and not all zero: zero rows, the
 placeholder of files without normals, count as missing, `normal_based.usable_normals`), the
 chosen point projects onto p, or an input is not finite. Normals come from the `prepare` hook
@@ -36,6 +36,7 @@ import jax.numpy as jnp
 import numba as nb
 import numpy as np
 
+from lrf_jax import _deprecated
 from lrf_jax.geometry import ops as geometry
 from lrf_jax.frames import host_geometry as hg
 from lrf_jax.frames.normal_based import NormalExtra, prepare_normals, usable_normals
@@ -46,9 +47,14 @@ from lrf_jax.search.neighborhoods import Patches
 if TYPE_CHECKING:
   from lrf_jax.search.neighborhoods import AnyArray
 
+# Z_RATIO: the z support, the ball of radius Z_RATIO · r (r/3) whose points' plane gives z
+# (`MethodSpec.z_ratio`, `Patches.z_*`). MARGIN_RATIO: the margin, the band
+# MARGIN_RATIO · r < |pq_i| <= r (PCL's margin threshold) where the x axis is chosen.
 Z_RATIO = 1.0 / 3.0
-MARGIN = 0.85
-MIN_Z_NEIGHBOURS = 6
+MARGIN_RATIO = 0.85
+MIN_Z_NEIGHBORS = 6
+# The pre-0.7 names of this module's constants (`_deprecated.RENAMED`), for one release.
+__getattr__ = _deprecated.renamed(__name__, globals())
 
 
 def normals_mean(normals: jax.Array, use: jax.Array) -> tuple[jax.Array, jax.Array]:
@@ -89,12 +95,12 @@ def board_frame(offsets, mask, index, radius, z_cov, z_count, normals):
 
   n_ok = geometry.all_finite_rows(normals)
   cos = geometry.finite_or_zero(normals) @ z
-  margin = mask & (dist2 > (MARGIN * radius) ** 2)
+  margin = mask & (dist2 > (MARGIN_RATIO * radius) ** 2)
   cand = jnp.where(jnp.any(margin), margin, mask & (dist2 > 0)) & n_ok
   slot, found = geometry.lexicographic_argmax(-cos, cand, dist2, index)
   x, x_ok = geometry.directed_tangent_axis(z, offsets[slot])
   frame, f_ok = geometry.frame_from_zx(z, x)
-  valid = z_ok & (z_count >= MIN_Z_NEIGHBOURS) & found & x_ok & f_ok
+  valid = z_ok & (z_count >= MIN_Z_NEIGHBORS) & found & x_ok & f_ok
   return geometry.identity_where_invalid(frame, valid), valid
 
 
@@ -102,7 +108,7 @@ def board_frames(patches: Patches, normals: AnyArray) -> tuple[jax.Array, jax.Ar
   """BOARD frames for a batch (pure, jittable).
 
   Args:
-    patches: `Patches` built with `z_ratio=Z_RATIO`; `k=None` (every neighbour) reproduces PCL.
+    patches: `Patches` built with `z_ratio=Z_RATIO`; `k=None` (every neighbor) reproduces PCL.
     normals: (N, K, 3) normals of the patch slots.
 
   Returns:
@@ -121,12 +127,12 @@ def board_frames(patches: Patches, normals: AnyArray) -> tuple[jax.Array, jax.Ar
 
 @nb.njit(parallel=True, cache=True)
 def _board_host_kernel(points, centers, ptr, ball, normals, r, rz2, eps, frames, valid):
-  margin2 = (MARGIN * r) ** 2
+  margin2 = (MARGIN_RATIO * r) ** 2
   for i in nb.prange(centers.shape[0]):
     hg.set_identity(frames, valid, i)
     start, stop = ptr[i], ptr[i + 1]
     mean = np.zeros(3)
-    ok, z = hg.plane_z(points, centers[i], ball, start, stop, rz2, eps, MIN_Z_NEIGHBOURS, mean)
+    ok, z = hg.plane_z(points, centers[i], ball, start, stop, rz2, eps, MIN_Z_NEIGHBORS, mean)
     if not ok:
       continue
     ref = np.zeros(3)

@@ -1,17 +1,17 @@
 """FLARE local reference frames (Petrelli & Di Stefano 2012; the paper's "SD"), as PCL 1.13.
 
 PCL's `FLARELocalReferenceFrameEstimation` with `setRadiusSearch(r_z)`, `setTangentRadius(r)`,
-margin threshold 0.85 and 6 / 6 minimum neighbours (the defaults). For a keypoint p:
+margin threshold 0.85 and 6 / 6 minimum neighbors (the defaults). For a keypoint p:
 
 * z: with at least 6 points within r_z = `Z_RATIO` · r, their least-squares plane normal
   (`Patches.z_cov`) flipped to agree with the mean of their finite normals
   (`flipNormalTowardsNormalsMean`); otherwise the keypoint's own normal;
-* x: among the points in the ring 0.85 r < |pq_i| <= r, the one with the largest signed distance
+* x: among the points in the margin 0.85 r < |pq_i| <= r, the one with the largest signed distance
   pq_i · z from the tangent plane (the largest "local depth"); x is the unit projection of its
   offset on the tangent plane, y = z × x.
 
-Minimum neighbours: 6 within r (PCL's `min_neighbors_for_tangent_axis`) and at least one in the
-ring; where PCL then returns a *random* x-axis, we return the identity with `valid = False`.
+Minimum neighbors: 6 within r (PCL's `min_neighbors_for_tangent_axis`) and at least one in the
+margin; where PCL then returns a *random* x-axis, we return the identity with `valid = False`.
 Invalid also for a degenerate plane fit (collinear points; PCL returns an arbitrary normal), no
 finite normal to orient z, or a non-finite input. Normals come from the `prepare` hook.
 
@@ -34,6 +34,7 @@ import jax.numpy as jnp
 import numba as nb
 import numpy as np
 
+from lrf_jax import _deprecated
 from lrf_jax.geometry import ops as geometry
 from lrf_jax.frames import host_geometry as hg
 from lrf_jax.frames.board import normals_mean
@@ -45,10 +46,15 @@ from lrf_jax.search.neighborhoods import Patches
 if TYPE_CHECKING:
   from lrf_jax.search.neighborhoods import AnyArray
 
+# Z_RATIO: the z support, the ball of radius Z_RATIO · r (r/3) whose points' plane gives z
+# (`MethodSpec.z_ratio`, `Patches.z_*`). MARGIN_RATIO: the margin, the band
+# MARGIN_RATIO · r < |pq_i| <= r (PCL's margin threshold) where the x axis is chosen.
 Z_RATIO = 1.0 / 3.0
-MARGIN = 0.85
-MIN_Z_NEIGHBOURS = 6
-MIN_TANGENT_NEIGHBOURS = 6
+MARGIN_RATIO = 0.85
+MIN_Z_NEIGHBORS = 6
+MIN_TANGENT_NEIGHBORS = 6
+# The pre-0.7 names of this module's constants (`_deprecated.RENAMED`), for one release.
+__getattr__ = _deprecated.renamed(__name__, globals())
 
 
 def flare_frame(offsets, mask, index, radius, count, z_cov, z_count, normals, kp_normal):
@@ -75,15 +81,15 @@ def flare_frame(offsets, mask, index, radius, count, z_cov, z_count, normals, kp
   fit = geometry.orient_like(fit, ref)
   own, own_ok = geometry.safe_normalize(geometry.finite_or_zero(kp_normal))
   own_ok = own_ok & jnp.all(jnp.isfinite(kp_normal))
-  use_fit = z_count >= MIN_Z_NEIGHBOURS
+  use_fit = z_count >= MIN_Z_NEIGHBORS
   z = jnp.where(use_fit, fit, own)
   z_ok = jnp.where(use_fit, fit_ok & ref_ok, own_ok)
 
-  margin = mask & (dist2 > (MARGIN * radius) ** 2)
+  margin = mask & (dist2 > (MARGIN_RATIO * radius) ** 2)
   slot, found = geometry.lexicographic_argmax(offsets @ z, margin, dist2, index)
   x, x_ok = geometry.directed_tangent_axis(z, offsets[slot])
   frame, f_ok = geometry.frame_from_zx(z, x)
-  valid = z_ok & (count >= MIN_TANGENT_NEIGHBOURS) & found & x_ok & f_ok
+  valid = z_ok & (count >= MIN_TANGENT_NEIGHBORS) & found & x_ok & f_ok
   return geometry.identity_where_invalid(frame, valid), valid
 
 
@@ -92,7 +98,7 @@ def flare_frames(patches: Patches, normals: AnyArray,
   """FLARE frames for a batch (pure, jittable).
 
   Args:
-    patches: `Patches` built with `z_ratio=Z_RATIO`; `k=None` (every neighbour) reproduces PCL.
+    patches: `Patches` built with `z_ratio=Z_RATIO`; `k=None` (every neighbor) reproduces PCL.
     normals: (N, K, 3) normals of the patch slots.
     kp_normal: (N, 3) normals of the keypoints.
 
@@ -114,16 +120,16 @@ def flare_frames(patches: Patches, normals: AnyArray,
 @nb.njit(parallel=True, cache=True)
 def _flare_host_kernel(points, centers, kp_ids, counts, ptr, ball, normals, r, rz2, eps, frames,
                        valid):
-  margin2 = (MARGIN * r) ** 2
+  margin2 = (MARGIN_RATIO * r) ** 2
   for i in nb.prange(centers.shape[0]):
     hg.set_identity(frames, valid, i)
     start, stop = ptr[i], ptr[i + 1]
-    if counts[i] < MIN_TANGENT_NEIGHBOURS:
+    if counts[i] < MIN_TANGENT_NEIGHBORS:
       continue
     mean = np.zeros(3)
     cov = np.zeros((3, 3))
     count = hg.inner_stats(points, centers[i], ball, start, stop, rz2, mean, cov)
-    if count >= MIN_Z_NEIGHBOURS:
+    if count >= MIN_Z_NEIGHBORS:
       evals, evecs = np.linalg.eigh(cov)
       z = evecs[:, 0].copy()
       ref = np.zeros(3)
@@ -165,7 +171,7 @@ def flare_frames_host(points: np.ndarray, keypoints: np.ndarray, radius: float, 
     (frames (N, 3, 3) float32 rows x, y, z, the identity where invalid; valid (N,) bool).
   """
   del faces
-  # FLARE reads the r/3 support and the margin ring only (`SPEC.shells`), and counts the ball.
+  # FLARE reads the z support and the margin only (`SPEC.shells`), and counts the ball.
   pts, centers, ptr, ball, counts = hg.ball_lists(points, keypoints, radius, index, SPEC.shells,
                                                   with_counts=True)
   rz = float(Z_RATIO * radius)
@@ -181,6 +187,6 @@ def _flare(patches: Patches, extra: NormalExtra):
 
 SPEC = MethodSpec(
     "flare", _flare, default_k=None, needs_normals=True, z_ratio=Z_RATIO, prepare=prepare_normals, extra=NormalExtra,
-    shells=(Z_RATIO, MARGIN), host_frames=flare_frames_host,
+    shells=(Z_RATIO, MARGIN_RATIO), host_frames=flare_frames_host,
     description="FLARE / SD (Petrelli & Di Stefano 2012): plane-fit z over r/3, x to the "
                 "highest margin point (PCL)")

@@ -9,7 +9,7 @@ and `area=`); this module holds the host side (numpy, outside jit) that gathers 
   the points alone, `normals.orient_by_vote`) and how far that direction's sign is trusted;
   its points-alone case is `points_only_view`, which training also calls
   (`TrainConfig.z_view="voted"`, `configs/plus_points.py`) so that both orient z the same way;
-* `patch_areas`: the surface area each neighbour stands for (barycentric vertex areas on a mesh,
+* `patch_areas`: the surface area each neighbor stands for (barycentric vertex areas on a mesh,
   the inverse sampling density on a cloud), so that x does not depend on the sampling;
 
 and `sign_confidence`, the per-keypoint confidence of the z sign (`compute_frames(...,
@@ -25,6 +25,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from lrf_jax import _deprecated
 from lrf_jax.geometry import ops as geometry
 from lrf_jax.search import engine
 from lrf_jax.frames.lrf_net import (MIN_Z_NEIGHBOURS, X_EPS, lrf_net_frames,
@@ -41,7 +42,7 @@ if TYPE_CHECKING:
 # concave corners cancel) do not, and there the component's sign would be a coin toss per
 # fragment (every keypoint of a pair flipped or none); benchmarks/README.md has the margins.
 MIN_VOTE_TRUST = 0.25
-# Heights below this fraction of the neighbours' distances count as flat (`sign_confidence`).
+# Heights below this fraction of the neighbors' distances count as flat (`sign_confidence`).
 FLAT_EPS = 1e-3
 
 
@@ -69,7 +70,7 @@ def prepare_view(points, keypoints, patches, *, faces=None, normals=None, radius
 
   * `viewpoint` given (a single-view scan): sensor position - keypoint;
   * else `normals` given (oriented by the caller): the sum of the normals of the patch
-    neighbours within r/3 (the z support);
+    neighbors within r/3 (the z support);
   * else `faces` given (a mesh): the same with `normals.estimate_normals` (PCA over 0.2 r, outside
     by the triangles' winding: the normals the normal-based LRFs use). Summed over the z support
     as FLARE does (PCL's `flipNormalTowardsNormalsMean`): a single oriented normal disagrees
@@ -148,7 +149,7 @@ def points_only_view(points: np.ndarray, patches: Patches, radius: float, *,
 
 def support_view(normals: np.ndarray, per_point: np.ndarray | None, patches: Patches,
                  radius: float) -> tuple[np.ndarray, np.ndarray | None]:
-  """The sum of the oriented normals of each patch's neighbours within r/3 (the z support).
+  """The sum of the oriented normals of each patch's neighbors within r/3 (the z support).
 
   Args:
     normals: (n, 3) oriented normals of the cloud (NaN rows are skipped).
@@ -182,7 +183,9 @@ def _finish_view(view: np.ndarray, trust: np.ndarray | None) -> tuple[np.ndarray
   return view.astype(np.float32), trust.astype(np.float32)
 
 
-AREA_NEIGHBOURS = 8
+AREA_NEIGHBORS = 8
+# The pre-0.7 names of this module's constants (`_deprecated.RENAMED`), for one release.
+__getattr__ = _deprecated.renamed(__name__, globals())
 
 
 def vertex_areas(points: np.ndarray, faces: np.ndarray) -> np.ndarray:
@@ -198,12 +201,12 @@ def vertex_areas(points: np.ndarray, faces: np.ndarray) -> np.ndarray:
 
 def patch_areas(points: np.ndarray, patches: Patches,
                 faces: np.ndarray | None = None) -> np.ndarray:
-  """(N, K) float32 surface area each patch neighbour stands for, relative to the patch mean.
+  """(N, K) float32 surface area each patch neighbor stands for, relative to the patch mean.
 
   With `faces` (a mesh), a vertex's area is its barycentric share of its triangles
   (`vertex_areas`), exact for a mesh; vertices on no triangle, and every point of a cloud, get
-  π d² / k with d the distance to its k-th nearest neighbour (k = `AREA_NEIGHBOURS`): the inverse
-  of the local sampling density. Normalised to mean 1 over each patch's neighbours (0 in
+  π d² / k with d the distance to its k-th nearest neighbor (k = `AREA_NEIGHBORS`): the inverse
+  of the local sampling density. Normalised to mean 1 over each patch's neighbors (0 in
   padding). Rotation and translation invariant.
   """
   from lrf_jax.geometry.normals import cache_last
@@ -211,9 +214,9 @@ def patch_areas(points: np.ndarray, patches: Patches,
   pts = np.asarray(points, np.float64)
 
   def estimate(which: np.ndarray) -> np.ndarray:
-    kk = min(AREA_NEIGHBOURS + 1, len(pts))
+    kk = min(AREA_NEIGHBORS + 1, len(pts))
     d, _ = engine.knn(engine.knn_grid(pts, kk), pts[which], kk)
-    return np.pi * d[:, -1] ** 2 / AREA_NEIGHBOURS
+    return np.pi * d[:, -1] ** 2 / AREA_NEIGHBORS
 
   def compute():
     if faces is None or len(faces) == 0:
@@ -247,7 +250,7 @@ def sign_confidence(frames: jax.Array, valid: jax.Array, patches: Patches,
     `normals.orient_by_vote` for normals oriented from the points alone) times how far z is
     from the plane where the two signs tie (a grazing view or normals across an edge);
   * z by `ball_sign` (no view direction): the patch height's share of its absolute heights,
-    |Σ_i h_i| / (Σ_i |h_i| + FLAT_EPS Σ_i |pq_i|), h_i = pq_i · z, over the real neighbours (0
+    |Σ_i h_i| / (Σ_i |h_i| + FLAT_EPS Σ_i |pq_i|), h_i = pq_i · z, over the real neighbors (0
     for a flat or symmetric patch, about 1 when the whole patch lies on one side of the tangent
     plane);
   * 0 for an invalid frame.

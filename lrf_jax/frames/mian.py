@@ -1,6 +1,6 @@
 """Mian et al. (2010) local reference frames: the principal axes of the support.
 
-For a keypoint p with neighbours q_i within r:
+For a keypoint p with neighbors q_i within r:
 
 * C = the covariance of the q_i about their centroid (`center="centroid"`, Mian et al.'s mean
   vector m) or about p (`center="keypoint"`);
@@ -14,7 +14,7 @@ about half of the x-axes flip under a random rotation). Mian's frames are theref
 equivariant only up to the sign of x and y (z is fixed by the normal); tests check them so, and
 MeanCos penalises the flips, which is precisely the weakness the LRF-Net paper points out.
 
-Minimum neighbours: 5 points within r. Invalid also when two eigenvalues coincide (relative gap
+Minimum neighbors: 5 points within r. Invalid also when two eigenvalues coincide (relative gap
 <= `geometry.DEGENERATE_EPS`: collinear or isotropic supports), the keypoint normal is not finite,
 or an input is not finite. Normals come from the `prepare` hook (`frames.normal_based.prepare_normals`).
 
@@ -32,6 +32,7 @@ import jax.numpy as jnp
 import numba as nb
 import numpy as np
 
+from lrf_jax import _deprecated
 from lrf_jax.geometry import ops as geometry
 from lrf_jax.frames import host_geometry as hg
 from lrf_jax.frames.normal_based import NormalExtra, prepare_normals, usable_normals
@@ -42,7 +43,9 @@ from lrf_jax.search.neighborhoods import Patches
 if TYPE_CHECKING:
   from lrf_jax.search.neighborhoods import AnyArray
 
-MIN_NEIGHBOURS = 5
+MIN_NEIGHBORS = 5
+# The pre-0.7 names of this module's constants (`_deprecated.RENAMED`), for one release.
+__getattr__ = _deprecated.renamed(__name__, globals())
 
 
 def mian_frame(offsets, mask, kp_normal, center: str = "centroid"):
@@ -69,7 +72,7 @@ def mian_frame(offsets, mask, kp_normal, center: str = "centroid"):
   n_ok = jnp.all(jnp.isfinite(kp_normal)) & (geometry.safe_norm(n) > 0)
   z = geometry.orient_like(evecs[2], n)
   frame, f_ok = geometry.frame_from_zx(z, evecs[0])
-  valid = ok & n_ok & f_ok & (jnp.sum(mask) >= MIN_NEIGHBOURS)
+  valid = ok & n_ok & f_ok & (jnp.sum(mask) >= MIN_NEIGHBORS)
   return geometry.identity_where_invalid(frame, valid), valid
 
 
@@ -78,7 +81,7 @@ def mian_frames(patches: Patches, kp_normal: AnyArray, *,
   """Mian frames for a batch (pure, jittable).
 
   Args:
-    patches: `Patches` (N keypoints); `k=None` uses every neighbour (the registry's default).
+    patches: `Patches` (N keypoints); `k=None` uses every neighbor (the registry's default).
     kp_normal: (N, 3) normals of the keypoints (they fix the sign of z only).
     center: "centroid" (default, Mian et al.) or "keypoint".
 
@@ -101,7 +104,7 @@ def _mian_host_kernel(points, centers, kp_ids, ptr, ball, normals, eps, frames, 
   for i in nb.prange(centers.shape[0]):
     hg.set_identity(frames, valid, i)
     start, stop = ptr[i], ptr[i + 1]
-    if stop - start < MIN_NEIGHBOURS:
+    if stop - start < MIN_NEIGHBORS:
       continue
     mean = np.zeros(3)
     cov = np.zeros((3, 3))

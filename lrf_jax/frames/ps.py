@@ -5,15 +5,15 @@ resulting contour, translate it to p and take its normal as z; x points from p t
 projection of the contour point with the largest signed distance to that plane. Our discrete
 version for a cloud:
 
-* contour: the points in the spherical shell `CONTOUR_RATIO` · r <= |pq_i| <= r (a band of the
-  support's outer 15 %, the same ring as BOARD/FLARE's margin);
+* contour: the points in the spherical shell `MARGIN_RATIO` · r <= |pq_i| <= r (a band of the
+  support's outer 15 %, the same band as BOARD/FLARE's margin);
 * z: the least-squares plane normal of the contour points (smallest eigenvector of their
   covariance about their centroid), flipped to agree with the keypoint's normal (z · n(p) >= 0);
 * x: the unit tangent projection of pq_j for the contour point with the largest signed distance
   h_j = pq_j · z to the tangent plane through p (ties: the nearer, then the lower cloud index);
   y = z × x.
 
-Minimum neighbours: 5 contour points. Invalid also for a degenerate contour plane (collinear
+Minimum neighbors: 5 contour points. Invalid also for a degenerate contour plane (collinear
 contour), a non-finite keypoint normal, a chosen point projecting onto p, or a non-finite input.
 
 References:
@@ -30,6 +30,7 @@ import jax.numpy as jnp
 import numba as nb
 import numpy as np
 
+from lrf_jax import _deprecated
 from lrf_jax.geometry import ops as geometry
 from lrf_jax.frames import host_geometry as hg
 from lrf_jax.frames.normal_based import NormalExtra, prepare_normals, usable_normals
@@ -40,7 +41,11 @@ from lrf_jax.search.neighborhoods import Patches
 if TYPE_CHECKING:
   from lrf_jax.search.neighborhoods import AnyArray
 
-CONTOUR_RATIO = 0.85
+# MARGIN_RATIO: the margin, the band MARGIN_RATIO · r <= |pq_i| <= r of the support (here the
+# contour; BOARD/FLARE choose x there, `flare.MARGIN_RATIO`).
+MARGIN_RATIO = 0.85
+# The pre-0.7 names of this module's constants (`_deprecated.RENAMED`), for one release.
+__getattr__ = _deprecated.renamed(__name__, globals())
 MIN_CONTOUR = 5
 
 
@@ -58,7 +63,7 @@ def ps_frame(offsets, mask, index, radius, kp_normal):
     (frame (3, 3) rows x, y, z; valid () bool).
   """
   dist2 = jnp.sum(offsets * offsets, axis=-1)
-  contour = mask & (dist2 >= (CONTOUR_RATIO * radius) ** 2)
+  contour = mask & (dist2 >= (MARGIN_RATIO * radius) ** 2)
   cov, _ = geometry.centered_covariance(offsets, contour.astype(offsets.dtype))
   z, z_ok = geometry.smallest_eigvec(cov)
   n = geometry.finite_or_zero(kp_normal)
@@ -94,7 +99,7 @@ def ps_frames(patches: Patches, kp_normal: AnyArray) -> tuple[jax.Array, jax.Arr
 
 @nb.njit(parallel=True, cache=True)
 def _ps_host_kernel(points, centers, kp_ids, ptr, ball, normals, r, eps, frames, valid):
-  rc2 = (CONTOUR_RATIO * r) ** 2
+  rc2 = (MARGIN_RATIO * r) ** 2
   for i in nb.prange(centers.shape[0]):
     hg.set_identity(frames, valid, i)
     start, stop = ptr[i], ptr[i + 1]

@@ -86,7 +86,7 @@ def gather_triangles(points: np.ndarray, keypoints: np.ndarray, faces: np.ndarra
     keypoints: (N,) vertex indices.
     faces: (f, 3) triangles.
     radius: r (cloud units).
-    patches: the keypoints' `Patches` at radius r; their neighbour lists are reused when they are
+    patches: the keypoints' `Patches` at radius r; their neighbor lists are reused when they are
       complete (no subsample), else the ball is searched again.
     cap: the most triangles kept per keypoint.
     seed: seed of the subsample beyond `cap`.
@@ -105,7 +105,7 @@ def gather_triangles(points: np.ndarray, keypoints: np.ndarray, faces: np.ndarra
     have = idx >= 0
     ball_ptr = np.zeros(m + 1, np.int64)
     np.cumsum(have.sum(1), out=ball_ptr[1:])
-    ball = idx[have].astype(np.int64)  # row-major: the rows' neighbours in order
+    ball = idx[have].astype(np.int64)  # row-major: the rows' neighbors in order
   else:
     grid = cache_last("grid", (pts, float(radius)), lambda: engine.Grid(pts, radius / 3))
     ball_ptr, ball = engine.ball_lists(grid, pts[kp], radius)

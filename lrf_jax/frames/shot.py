@@ -1,16 +1,16 @@
 """SHOT local reference frames (Tombari, Salti, Di Stefano 2010), as PCL 1.13 computes them.
 
-For a keypoint p with neighbours q_i within r (offsets pq_i = q_i - p; points that coincide with p
+For a keypoint p with neighbors q_i within r (offsets pq_i = q_i - p; points that coincide with p
 are skipped, as in PCL's `SHOTLocalReferenceFrameEstimation::getLocalRF`):
 
 * C = Σ w_i pq_i pq_iᵀ / Σ w_i with w_i = r - |pq_i| (paper eq. `eq_shot`: about the keypoint,
   not the centroid);
 * x = the eigenvector of the largest eigenvalue, z = that of the smallest, y = z × x;
 * signs (Bro et al. 2008, PCL): an axis v keeps its sign when #{pq_i · v >= 0} > n/2, flips when
-  it is < n/2; on an exact tie the 5 neighbours around the median distance (ranks n/2 - 2 ...
+  it is < n/2; on an exact tie the 5 neighbors around the median distance (ranks n/2 - 2 ...
   n/2 + 2 of the distance-sorted list) vote with pq_i · v > 0 and v flips unless >= 3 agree.
 
-Minimum neighbours: 5 points distinct from p (PCL's rule). Invalid (identity, `valid = False`)
+Minimum neighbors: 5 points distinct from p (PCL's rule). Invalid (identity, `valid = False`)
 also when two eigenvalues of C coincide (relative gap <= `geometry.DEGENERATE_EPS`, e.g. collinear
 points; PCL returns an arbitrary frame there) or an input is not finite. SHOT uses every point
 of the ball: call it with `k=None` (the registry's default).
@@ -33,19 +33,22 @@ import jax.numpy as jnp
 import numba as nb
 import numpy as np
 
+from lrf_jax import _deprecated
 from lrf_jax.geometry import ops as geometry
 from lrf_jax.frames import host_geometry as hg
 from lrf_jax.frames.spec import MethodSpec
 from lrf_jax.geometry.ops import sanitize
 from lrf_jax.search.neighborhoods import Patches
 
-MIN_NEIGHBOURS = 5
+MIN_NEIGHBORS = 5
+# The pre-0.7 names of this module's constants (`_deprecated.RENAMED`), for one release.
+__getattr__ = _deprecated.renamed(__name__, globals())
 TIE_VOTERS = 5
 
 
 def _tie_vote(axis: jax.Array, offsets: jax.Array, use: jax.Array, dist2: jax.Array,
               index: jax.Array, n: jax.Array) -> jax.Array:
-  """PCL's tie rule: True to keep `axis` (>= 3 of the 5 median-distance neighbours have dp > 0)."""
+  """PCL's tie rule: True to keep `axis` (>= 3 of the 5 median-distance neighbors have dp > 0)."""
   big = jnp.iinfo(jnp.int32).max
   key = jnp.where(use, dist2, jnp.inf)
   idx = jnp.where(use, index.astype(jnp.int32), big)
@@ -73,7 +76,7 @@ def _axes_and_votes(offsets, mask, radius):
   _, evecs, ok = geometry.eigen_frame(cov)
   bx = geometry.majority_balance(evecs[0], offsets, use)
   bz = geometry.majority_balance(evecs[2], offsets, use)
-  return evecs[0], evecs[2], bx, bz, use, dist2, n, ok & (n >= MIN_NEIGHBOURS)
+  return evecs[0], evecs[2], bx, bz, use, dist2, n, ok & (n >= MIN_NEIGHBORS)
 
 
 def _assemble(x, z, ok):
@@ -88,7 +91,7 @@ def shot_frame(offsets: jax.Array, mask: jax.Array, index: jax.Array,
 
   Args:
     offsets: (K, 3) pq_i (cloud units), finite.
-    mask: (K,) bool, real neighbours.
+    mask: (K,) bool, real neighbors.
     index: (K,) int cloud indices (tie-breaking only).
     radius: () support radius r.
 
@@ -104,12 +107,12 @@ def shot_frame(offsets: jax.Array, mask: jax.Array, index: jax.Array,
 def shot_frames(patches: Patches) -> tuple[jax.Array, jax.Array]:
   """SHOT frames for a batch of patches (pure, jittable).
 
-  The tie rule needs the neighbours sorted by distance, which costs more than everything else;
+  The tie rule needs the neighbors sorted by distance, which costs more than everything else;
   it is evaluated only for the (about 1 % of) keypoints whose vote is tied: up to N / 16 of them
   are gathered and sorted, and all N are sorted in the rare batch that has more ties.
 
   Args:
-    patches: `Patches` (N keypoints); `k=None` (every neighbour) reproduces PCL.
+    patches: `Patches` (N keypoints); `k=None` (every neighbor) reproduces PCL.
 
   Returns:
     (frames (N, 3, 3) rows x, y, z; valid (N,) bool).
@@ -152,7 +155,7 @@ def _host_sign(axis, off, d2, ids, n):
   balance = 2 * plus - n
   if balance != 0:
     return 1.0 if balance > 0 else -1.0
-  # The tie rule: the neighbours around the median distance vote (equal distances by index).
+  # The tie rule: the neighbors around the median distance vote (equal distances by index).
   by_id = np.argsort(ids[:n], kind="mergesort")
   order = by_id[np.argsort(d2[:n][by_id], kind="mergesort")]
   votes = 0
@@ -194,7 +197,7 @@ def _shot_host_kernel(points, centers, ptr, ball, r, eps, frames, valid):
       cov[1, 2] += w * dy * dz
       cov[2, 2] += w * dz * dz
     hg.set_identity(frames, valid, i)
-    if n < MIN_NEIGHBOURS or not wsum > 0.0:
+    if n < MIN_NEIGHBORS or not wsum > 0.0:
       continue
     cov[1, 0], cov[2, 0], cov[2, 1] = cov[0, 1], cov[0, 2], cov[1, 2]
     evals, evecs = np.linalg.eigh(cov / wsum)  # ascending

@@ -30,7 +30,7 @@ AXIS_KINDS = (KEYPOINT, SLOT, TRIANGLE, TRIANGLE_MASK)
 class HostPatchKernel:
   """A method's frames from prepared patches on the host (numba, float64), for the option sets
   it supports: `MethodSpec.host_patch_frames`, the hook of methods on subsampled patches or with
-  options (a method on every neighbour without options uses `MethodSpec.host_frames`).
+  options (a method on every neighbor without options uses `MethodSpec.host_frames`).
 
   Attributes:
     fn: `fn(patches, extra, params, options) -> (frames (N, 3, 3) float32, valid (N,) bool)`;
@@ -56,8 +56,8 @@ class MethodSpec:
     fn: `fn(patches, extra, **options) -> (frames, valid)`, pure and jittable; `extra` is what
       `prepare` returned (None when there is no `prepare`). For learned methods `options` holds
       `params`. Its keyword-only arguments are the method's options.
-    default_k: patch size K used when the caller gives none; None = every neighbour in the ball.
-    z_ratio: radius of the normal support as a fraction of r (stored in `Patches.z_*`).
+    default_k: patch size K used when the caller gives none; None = every neighbor in the ball.
+    z_ratio: radius of the z support as a fraction of r (stored in `Patches.z_*`).
     needs_params: the method takes learned parameters.
     needs_mesh: the method needs triangle faces (`faces=` in `compute_frames`).
     needs_normals: `prepare` reads per-point normals (the caller's, else estimated; see
@@ -71,7 +71,7 @@ class MethodSpec:
     weights: name of the shipped parameter file used when no params are given
       (`lrf_jax/weights/<weights>.msgpack`).
     default_options: options applied unless the caller gives them (e.g. lut=257).
-    host_frames: optional host fast path for a method on every neighbour (`default_k=None`):
+    host_frames: optional host fast path for a method on every neighbor (`default_k=None`):
       `host_frames(points (n, 3) float64, keypoints (N,) int, radius, index, *, faces=,
       normals=) -> (frames (N, 3, 3) float32, valid (N,) bool)`, numpy and compiled engine code
       (`frames.host_geometry`) computing the same frames as `fn` from the cloud's ball lists
@@ -91,8 +91,8 @@ class MethodSpec:
     confidence: optional `confidence(patches, extra, frames, valid, options) -> (N,)` in
       [0, 1]: how sure each frame's z sign is (`compute_frames(..., return_confidence=True)`);
       `options` holds every option (the method's defaults filled in).
-    shells: (a, b) fractions of r when the method reads only the neighbours within a * r or
-      beyond b * r: with every neighbour (k=None), `compute_frames` then gathers only those
+    shells: (a, b) fractions of r when the method reads only the neighbors within a * r or
+      beyond b * r: with every neighbor (k=None), `compute_frames` then gathers only those
       (`build_patches(shells=)`), which gives the same frames from smaller patches. None: the
       method reads the whole ball.
   """

@@ -3,7 +3,7 @@
   ops.py         NaN-safe jnp helpers for one keypoint (frames from axes, covariance, sign rules,
                  Kabsch, `sanitize`), vmapped by every LRF method
   normals.py     PCA / mesh normals, their orientation, mesh curvature (numba)
-  mesh.py        mesh neighbourhoods: faces incident to a ball, RoPS' triangle slots (numba)
+  mesh.py        mesh neighborhoods: faces incident to a ball, RoPS' triangle slots (numba)
   resolution.py  mesh resolution (mr), the unit of every radius
   sampling.py    voxel downsampling
   keypoints.py   ISS keypoints on the compiled engine

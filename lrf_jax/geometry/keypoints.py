@@ -2,23 +2,23 @@
 
 For every point p of the cloud:
 
-1. the scatter matrix of its neighbours within the salient radius r_s (p itself included; a
-   neighbour is within r when its float64 squared distance is <= r * r, cKDTree's rule): the
-   plain covariance about the neighbours' centroid, divided by their count (Open3D's choice;
+1. the scatter matrix of its neighbors within the salient radius r_s (p itself included; a
+   neighbor is within r when its float64 squared distance is <= r * r, cKDTree's rule): the
+   plain covariance about the neighbors' centroid, divided by their count (Open3D's choice;
    PCL's `ISSKeypoint3D` takes the scatter about p itself and Zhong's paper weights each
-   neighbour by the inverse of its own neighbour count);
+   neighbor by the inverse of its own neighbor count);
 2. its eigenvalues l1 >= l2 >= l3;
-3. p is a *candidate* when it has at least `min_neighbors` neighbours within r_s,
+3. p is a *candidate* when it has at least `min_neighbors` neighbors within r_s,
    l2 / l1 < gamma_21, l3 / l2 < gamma_32 and l3 > 0; its saliency is l3 (0 for every other
    point). An l3 below 1e-12 l1 (the float64 rounding of a planar ball) counts as 0, so that a
    flat patch yields no keypoint whatever its pose;
-4. a candidate is a *keypoint* when it has at least `min_neighbors` neighbours within the
+4. a candidate is a *keypoint* when it has at least `min_neighbors` neighbors within the
    non-maximum radius r_n and no point within r_n has a larger saliency. Saliencies within a
    relative 1e-9 of each other count as equal and equal ones keep both, as Open3D keeps exact
-   ties: two points with the same neighbour set have the same l3 but for the rounding of their
+   ties: two points with the same neighbor set have the same l3 but for the rounding of their
    sums, and both stay whatever the cloud's pose or point order.
 
-The radii default to Open3D's: r_s = 6 mr and r_n = 4 mr, mr the cloud's mean nearest-neighbour
+The radii default to Open3D's: r_s = 6 mr and r_n = 4 mr, mr the cloud's mean nearest-neighbor
 distance (`lrf_jax.geometry.resolution.mesh_resolution` without faces, Open3D's `ComputeModelResolution`).
 
 Both ball searches run in the compiled engine (`engine.ball_stats` for the scatter matrices,
@@ -53,11 +53,11 @@ def iss_saliency(cov: np.ndarray, count: np.ndarray, *, gamma_21: float = 0.975,
   """ISS saliency of each point from its ball's scatter matrix.
 
   Args:
-    cov: (n, 3, 3) float64 covariance of each point's neighbours about their centroid.
-    count: (n,) number of neighbours in each ball (the point included).
+    cov: (n, 3, 3) float64 covariance of each point's neighbors about their centroid.
+    count: (n,) number of neighbors in each ball (the point included).
     gamma_21: upper bound (exclusive) on l2 / l1.
     gamma_32: upper bound (exclusive) on l3 / l2.
-    min_neighbors: least neighbour count of a candidate.
+    min_neighbors: least neighbor count of a candidate.
 
   Returns:
     (n,) float64: l3 (the smallest eigenvalue, squared cloud units) where the point is a
@@ -100,7 +100,7 @@ def _radii(pts: np.ndarray, salient_radius, non_max_radius, mr) -> tuple[float, 
     if mr is None:
       mr = mesh_resolution(pts)[0]
       if not mr > 0:
-        raise ValueError("mr: the cloud's mean nearest-neighbour distance is 0 (every point has "
+        raise ValueError("mr: the cloud's mean nearest-neighbor distance is 0 (every point has "
                          "a duplicate); pass mr or both radii")
     unit = _positive(mr, "mr")
     rs = SALIENT_RADIUS_MR * unit if rs is None else rs
@@ -122,7 +122,7 @@ def iss_keypoints(points: Any, *, salient_radius: float | None = None,
     gamma_21: upper bound (exclusive) on l2 / l1, in (0, 1].
     gamma_32: upper bound (exclusive) on l3 / l2, in (0, 1].
     min_neighbors: least number of points (itself included) within each radius.
-    mr: the unit of the default radii, cloud units (default: the mean nearest-neighbour
+    mr: the unit of the default radii, cloud units (default: the mean nearest-neighbor
       distance); unused when both radii are given.
     max_keypoints: keep at most this many, those of largest l3 (equal l3: lower index first).
 

@@ -1,4 +1,4 @@
-"""Mesh neighbourhoods on the host (numba): the faces incident to a ball's vertices, and the
+"""Mesh neighborhoods on the host (numba): the faces incident to a ball's vertices, and the
 triangle slots RoPS' frames are built from."""
 
 from __future__ import annotations

@@ -10,12 +10,12 @@ Normals (`estimate_normals`, used when `compute_frames` is called without `norma
 * direction: PCL's `NormalEstimation` (Rusu 2009): the eigenvector of the smallest eigenvalue of
   the covariance, about their centroid, of all points within `normal_radius` of the point
   (default `NORMAL_RADIUS_RATIO` · r = 3 mr at the paper's r = 15 mr); NaN for fewer than 3
-  neighbours (PCL's rule) or a degenerate spectrum (collinear points);
+  neighbors (PCL's rule) or a degenerate spectrum (collinear points);
 * orientation, which must be *equivariant* (it may not depend on a fixed viewpoint, which does not
   move with the cloud):
   - with a mesh (`faces`): the sign that agrees with the area-weighted vertex normal of the faces,
     i.e. with the triangles' winding;
-  - without: Hoppe et al. (1992) propagation. Over a k-nearest-neighbour graph weighted by
+  - without: Hoppe et al. (1992) propagation. Over a k-nearest-neighbor graph weighted by
     1 - |n_i · n_j|, the minimum spanning tree is grown (Prim) from one seed per connected
     component; each child takes the sign that agrees with its parent. The seed is the component's
     point farthest from the component's centroid, oriented away from that centroid (outward for a
@@ -43,7 +43,7 @@ from lrf_jax.search.neighborhoods import validate_viewpoint
 
 # Default normal radius as a fraction of the support radius r (3 mr at r = 15 mr).
 NORMAL_RADIUS_RATIO = 0.2
-# Neighbours per point in the orientation graph of `orient_by_propagation`.
+# Neighbors per point in the orientation graph of `orient_by_propagation`.
 PROPAGATION_K = 8
 # Relative eigenvalue gap below which a PCA normal is undefined (as geometry.DEGENERATE_EPS).
 _DEGENERATE = 1e-6
@@ -154,7 +154,7 @@ def _smallest_eigvecs(cov, evals, vecs):
 
 def pca_normals(points: np.ndarray, radius: float, *, grid: engine.Grid | None = None,
                 viewpoint: np.ndarray | None = None, min_neighbors: int = 3) -> np.ndarray:
-  """PCL-like PCA normals: smallest eigenvector of the neighbours' covariance about their centroid.
+  """PCL-like PCA normals: smallest eigenvector of the neighbors' covariance about their centroid.
 
   Args:
     points: (n, 3) cloud.
@@ -163,10 +163,10 @@ def pca_normals(points: np.ndarray, radius: float, *, grid: engine.Grid | None =
     viewpoint: (3,) optional; when given, normals are flipped towards it as PCL's
       `flipNormalTowardsViewpoint` ((v - p) · n >= 0). When None the sign is arbitrary (orient them
       with `orient_normals`).
-    min_neighbors: fewer neighbours than this give a NaN normal (PCL: 3).
+    min_neighbors: fewer neighbors than this give a NaN normal (PCL: 3).
 
   Returns:
-    (n, 3) float64 unit normals; NaN rows where undefined (too few neighbours, collinear points).
+    (n, 3) float64 unit normals; NaN rows where undefined (too few neighbors, collinear points).
 
   References:
     Rusu, "Semantic 3D object maps for everyday manipulation in human living environments", 2009
@@ -413,7 +413,7 @@ def orient_by_propagation(points: np.ndarray, normals: np.ndarray, *, k: int = P
                           ) -> np.ndarray:
   """Consistent orientation by minimum-spanning-tree propagation (Hoppe et al. 1992).
 
-  The graph joins every point to its k nearest neighbours (both directions), weighted by
+  The graph joins every point to its k nearest neighbors (both directions), weighted by
   1 - |n_i · n_j|. Per connected component the seed is the point farthest from the component's
   centroid (smallest index on a tie), oriented away from the centroid (outward for a closed
   surface); the minimum spanning tree is grown from it by Prim's algorithm (one compiled pass)
@@ -424,7 +424,7 @@ def orient_by_propagation(points: np.ndarray, normals: np.ndarray, *, k: int = P
   Args:
     points: (n, 3) cloud.
     normals: (n, 3) unit normals of arbitrary sign; NaN rows are left NaN (and not traversed).
-    k: neighbours per point in the graph (the engine's k-NN; ties broken by index).
+    k: neighbors per point in the graph (the engine's k-NN; ties broken by index).
 
   Returns:
     (n, 3) float64 consistently oriented normals.
@@ -456,7 +456,7 @@ VOTE_EPS = 1e-3
 
 
 def knn_components(points: np.ndarray, k: int = PROPAGATION_K) -> np.ndarray:
-  """(n,) int64 connected-component label of every point in the symmetrised k-nearest-neighbour
+  """(n,) int64 connected-component label of every point in the symmetrised k-nearest-neighbor
   graph (each point joined to its k nearest others), labels 0, 1, ... in order of each
   component's smallest point index: the components `orient_by_propagation` orients one by one.
   An empty cloud gives an empty array."""
@@ -500,7 +500,7 @@ def orient_by_vote(points: np.ndarray, normals: np.ndarray, vote_radius: float, 
     normals: (n, 3) unit normals of arbitrary sign; NaN rows stay NaN.
     vote_radius: radius of the convexity votes (cloud units; lrf_net_plus uses its support
       radius r).
-    k: neighbours per point of the propagation graph.
+    k: neighbors per point of the propagation graph.
     samples: votes per component (all of its points when it has fewer).
     seed: seed of the vote subsample.
 

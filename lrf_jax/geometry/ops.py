@@ -79,7 +79,7 @@ def frame_from_zx(z: Array, x_raw: Array, eps: float = 0.0) -> tuple[Array, Arra
 
 
 def tangent_projection(offsets: AnyArray, z: Array) -> AnyArray:
-  """Projection of neighbour offsets on the tangent plane of `z` (paper eq. `eq_vector_x`).
+  """Projection of neighbor offsets on the tangent plane of `z` (paper eq. `eq_vector_x`).
 
   Args:
     offsets: (K, 3) vectors pq_i = q_i - p.
@@ -164,20 +164,20 @@ def disambiguate_sign(axis: Array, offsets: Array, weights: Array) -> Array:
 
 
 def toldi_normal(cov: Array, mean: Array, count: Array, min_count: int = 3) -> tuple[Array, Array]:
-  """The TOLDI z-axis from the statistics of the neighbours within r/3 (Yang et al. 2017).
+  """The TOLDI z-axis from the statistics of the neighbors within r/3 (Yang et al. 2017).
 
-  z is the eigenvector of the smallest eigenvalue of the covariance of the r/3 neighbours about
+  z is the eigenvector of the smallest eigenvalue of the covariance of the r/3 neighbors about
   their centroid, oriented so that Σ_i (p - q_i)·z >= 0, i.e. `mean · z <= 0` where `mean` is the
   centroid of the offsets q_i - p (the original C++ rule; LRF-Net keeps it).
 
   Args:
-    cov: (3, 3) covariance of the r/3 neighbour offsets about their centroid.
-    mean: (3,) centroid of the r/3 neighbour offsets q_i - p.
-    count: () number of neighbours within r/3 (keypoint included).
-    min_count: fewer neighbours than this make the normal invalid.
+    cov: (3, 3) covariance of the r/3 neighbor offsets about their centroid.
+    mean: (3,) centroid of the r/3 neighbor offsets q_i - p.
+    count: () number of neighbors within r/3 (keypoint included).
+    min_count: fewer neighbors than this make the normal invalid.
 
   Returns:
-    (z, ok): z (3,) unit z-axis; ok False for too few neighbours or a degenerate spectrum.
+    (z, ok): z (3,) unit z-axis; ok False for too few neighbors or a degenerate spectrum.
   """
   finite = jnp.all(jnp.isfinite(cov)) & jnp.all(jnp.isfinite(mean))
   cov = jnp.where(finite, cov, jnp.eye(3, dtype=cov.dtype))
@@ -267,7 +267,7 @@ def orient_like(axis: Array, reference: Array) -> Array:
   """Flip `axis` so that `axis · reference >= 0` (ties and a zero reference keep the sign).
 
   The rule of Mian et al. (2010) for the z-axis, and of PCL's `flipNormalTowardsNormalsMean`
-  (FLARE) and BOARD's `normalDisambiguation` with `reference` = the mean of the neighbours' normals.
+  (FLARE) and BOARD's `normalDisambiguation` with `reference` = the mean of the neighbors' normals.
 
   Args:
     axis: (3,) unit vector.
@@ -284,8 +284,8 @@ def majority_balance(axis: Array, offsets: Array, mask: Array) -> Array:
 
   Args:
     axis: (3,) unit vector.
-    offsets: (K, 3) neighbour offsets pq_i.
-    mask: (K,) bool, the neighbours that vote.
+    offsets: (K, 3) neighbor offsets pq_i.
+    mask: (K,) bool, the neighbors that vote.
 
   Returns:
     () int32 balance 2·#{i: pq_i·axis >= 0} - n; the axis is kept for a positive balance and

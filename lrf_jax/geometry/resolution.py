@@ -2,7 +2,7 @@
 
 For a mesh, mr is the mean length of its unique edges (the Bologna convention: BR's noise sigma
 is 0.1/0.3/0.5 of it). For a cloud, mr is the mean distance from each point to its nearest other
-point. On the BR meshes the nearest-neighbour spacing is about 1/1.42-1/1.59 of the edge length,
+point. On the BR meshes the nearest-neighbor spacing is about 1/1.42-1/1.59 of the edge length,
 so the two definitions are *not* interchangeable; every dataset records which one it used.
 """
 

@@ -109,7 +109,7 @@ def read_stanford_conf(path: str | os.PathLike, *,
 
   Lines ``bmesh FILE tx ty tz qx qy qz qw`` (or ``mesh ...``) give the pose of each scan.
   The world point of a scan point p is ``R(q)ᵀ p + t`` -- the *conjugate* rotation. This is
-  what aligns the bunny scans (>= 36 % of points within 1 mm for neighbouring scans, against
+  what aligns the bunny scans (>= 36 % of points within 1 mm for neighboring scans, against
   <= 2 % with ``R(q) p + t``); tests/test_datasets.py checks it on the data. ``camera`` lines and
   blank lines are skipped.
 

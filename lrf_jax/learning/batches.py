@@ -98,7 +98,7 @@ def crop_patches(patches: Patches, p: float, min_dist: float,
   """Partiality augmentation: cut a random fraction `p` of the patches by a plane.
 
   For a cut patch, a direction u uniform on the sphere and a distance c uniform in
-  [min_dist, 1) · r are drawn; the neighbours with offset · u > c are dropped (mask False, offset
+  [min_dist, 1) · r are drawn; the neighbors with offset · u > c are dropped (mask False, offset
   0, index -1), as if a scan's boundary ran there. The keypoint side of the plane is kept, and
   the normal statistics (r/3) are left as they are: the cut teaches the x-axis weights to live
   with a support that ends early on one side.

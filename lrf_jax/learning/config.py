@@ -31,7 +31,7 @@ class TrainConfig:
     loss_reduction: Chamfer form, "min" (eq. eq_cham, the paper), "max" or "sum".
     widths: encoder widths of the weight network.
     z_mode: "normal" (paper: the TOLDI normal over r/3) or "dr" (regressed; ablation).
-    z_sign: "toldi" (paper: sign from the r/3 neighbours) or "ball" (sign over the whole
+    z_sign: "toldi" (paper: sign from the r/3 neighbors) or "ball" (sign over the whole
       support; lrf_net_plus, beyond the paper).
     z_view: "none" (z_sign decides everywhere) or "voted" (beyond the paper: lrf_net_plus from
       the points alone): each batch carries, per side, the view direction that inference's

@@ -1,8 +1,8 @@
 """The LRF-Net weight network: its parameters, its forward pass and the shipped weights.
 
-The paper (section 3.1, "a U-Net with MLP layers only") feeds each radius neighbour's two invariant
+The paper (section 3.1, "a U-Net with MLP layers only") feeds each radius neighbor's two invariant
 attributes (distance / r, cos(z, pq)) through per-point MLP layers and predicts one weight per
-neighbour. The figure with its layer sizes is missing from our copy, so the sizes are ours:
+neighbor. The figure with its layer sizes is missing from our copy, so the sizes are ours:
 
     encoder   2 -> 16 -> 32 -> 64          (Dense + ReLU, per point)
     decoder  64 -> 32 (concat enc 32) -> 16 (concat enc 16) -> 1

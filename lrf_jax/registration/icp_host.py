@@ -2,7 +2,7 @@
 
 `lrf_jax.registration.icp(..., mode="point_to_plane")` runs `point_to_plane_icp`. Each
 iteration pairs every source point p (under the current pose) with its nearest target point q
-within `max_distance` (the engine's nearest-neighbour query on the target's grid, as
+within `max_distance` (the engine's nearest-neighbor query on the target's grid, as
 `engine.knn`) and takes q's unit normal n. The linearised Gauss-Newton step of Chen & Medioni's
 objective sum ((R p + t - q) · n)^2 over a small rotation ω about a centre c (the target's
 centroid) and a translation t solves the 6 x 6 normal equations
@@ -26,7 +26,7 @@ point-to-point ICP).
 
 Target normals, when the caller has none (`estimate_target_normals`): PCA normals
 (`normals.pca_normals`, PCL's rule) over the pairing distance, capped at 4 x the target's mean
-nearest-neighbour spacing (about 50 neighbours on a surface), so that a generous pairing distance
+nearest-neighbor spacing (about 50 neighbors on a surface), so that a generous pairing distance
 does not smooth a curved surface's normals away; their sign is irrelevant to ((q - p) · n)^2, so
 no orientation pass is run.
 
@@ -56,7 +56,7 @@ _BLOCK = 256
 # Relative Levenberg damping of the rescaled 6 x 6 normal equations.
 DAMPING = 1e-6
 # Estimated target normals: a PCA radius of this many `max_distance`, at most this many mean
-# nearest-neighbour spacings of the target (`estimate_target_normals`).
+# nearest-neighbor spacings of the target (`estimate_target_normals`).
 NORMAL_RADIUS_RATIO = 1.0
 NORMAL_RADIUS_SPACING = 4.0
 # Fewest pairs with a usable normal for a step (six unknowns).
@@ -235,7 +235,7 @@ def estimate_target_normals(target: np.ndarray, max_distance: float,
   """Unsigned PCA normals of the target for point-to-plane ICP.
 
   The radius is min(`NORMAL_RADIUS_RATIO` x `max_distance`, `NORMAL_RADIUS_SPACING` x the
-  target's mean nearest-neighbour spacing): the pairing distance, capped so that a generous
+  target's mean nearest-neighbor spacing): the pairing distance, capped so that a generous
   `max_distance` does not smooth the normals of a curved surface away.
 
   Args:
@@ -244,7 +244,7 @@ def estimate_target_normals(target: np.ndarray, max_distance: float,
     grid: optional `engine.Grid` of `target` to reuse (any cell size).
 
   Returns:
-    (m, 3) float64 unit normals, NaN where fewer than 3 neighbours or a degenerate spectrum.
+    (m, 3) float64 unit normals, NaN where fewer than 3 neighbors or a degenerate spectrum.
   """
   pts = np.ascontiguousarray(target, np.float64)
   if len(pts) < 3:
@@ -450,7 +450,7 @@ def icp(source: np.ndarray, target: np.ndarray, init: np.ndarray, *, max_distanc
     target_normals: (m, 3) target normals for "point_to_plane" (any length, any sign; zero or
       non-finite rows are skipped). None: unsigned PCA normals
       (`estimate_target_normals`: radius min(max_distance, 4 x the target's mean
-      nearest-neighbour spacing)). Ignored by "point_to_point".
+      nearest-neighbor spacing)). Ignored by "point_to_point".
     mode: "point_to_plane" or "point_to_point".
 
   Returns:

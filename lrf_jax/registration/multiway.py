@@ -5,7 +5,7 @@ Pipeline (every length in mr, the median over the scans of each one's mesh resol
 `mr` is given):
 
 1. candidates (`candidate_pairs`): all pairs when there are at most `all_pairs_max` scans;
-   otherwise each scan with the next one in the given order (`neighbours` of them) plus, as
+   otherwise each scan with the next one in the given order (`neighbors` of them) plus, as
    loop-closure candidates, the `loop_candidates` scans whose D2 shape distribution (the
    histogram of distances between random point pairs, `shape_signature`, invariant to rigid
    motion) is closest to its own (L1 distance of the histograms).
@@ -173,14 +173,14 @@ def shape_signature(points: np.ndarray, *, max_distance: float, bins: int = 32,
 
 
 def candidate_pairs(clouds: Sequence[np.ndarray], *, all_pairs_max: int = ALL_PAIRS_MAX,
-                    neighbours: int = 1, loop_candidates: int = 3, seed: int = 0
+                    neighbors: int = 1, loop_candidates: int = 3, seed: int = 0
                     ) -> list[tuple[int, int]]:
   """The pairs (i, j), i < j, to register (see the module docstring, step 1).
 
   Args:
     clouds: n (m_k, 3) clouds in the given order.
     all_pairs_max: up to this many scans, every pair.
-    neighbours: otherwise, each scan with this many next scans in the order.
+    neighbors: otherwise, each scan with this many next scans in the order.
     loop_candidates: plus, per scan, this many scans of closest D2 signature.
     seed: seed of the signatures' point pairs.
 
@@ -190,7 +190,7 @@ def candidate_pairs(clouds: Sequence[np.ndarray], *, all_pairs_max: int = ALL_PA
   n = len(clouds)
   if n <= all_pairs_max:
     return [(i, j) for i in range(n) for j in range(i + 1, n)]
-  pairs = {(i, j) for i in range(n) for j in range(i + 1, min(i + 1 + neighbours, n))}
+  pairs = {(i, j) for i in range(n) for j in range(i + 1, min(i + 1 + neighbors, n))}
   extent = max(float(np.linalg.norm(np.ptp(c, axis=0))) for c in clouds)
   sig = np.stack([shape_signature(c, max_distance=extent, seed=seed) for c in clouds])
   dist = np.abs(sig[:, None, :] - sig[None, :, :]).sum(axis=2)
@@ -372,7 +372,7 @@ def _model(component: np.ndarray) -> int:
 
 def register_all(scans: Sequence[Any], *, names: Sequence[str] | None = None,
                  mr: float | None = None, all_pairs_max: int = ALL_PAIRS_MAX,
-                 neighbours: int = 1, loop_candidates: int = 3, reject_mr: float = 5.0,
+                 neighbors: int = 1, loop_candidates: int = 3, reject_mr: float = 5.0,
                  robust_mr: float = 1.0, refine: bool = True, refine_iterations: int = 10,
                  icp_mr: float = 3.0, viewpoints: Any = None, seed: int = 0,
                  progress: bool = False,
@@ -386,7 +386,7 @@ def register_all(scans: Sequence[Any], *, names: Sequence[str] | None = None,
     names: n names for the result and the outputs (default `scan_names(scans)`).
     mr: mesh resolution in the clouds' units (None: the median of the scans' own).
     all_pairs_max: up to this many scans every pair is registered (`candidate_pairs`).
-    neighbours: otherwise, pairs with this many next scans in the given order...
+    neighbors: otherwise, pairs with this many next scans in the given order...
     loop_candidates: ...plus this many loop-closure candidates per scan (D2 signature).
     reject_mr: an edge whose RMS point residual under the optimised poses exceeds this (mr)
       is rejected.
@@ -436,7 +436,7 @@ def register_all(scans: Sequence[Any], *, names: Sequence[str] | None = None,
     raise ValueError(f"mr: expected a positive mesh resolution, got {mr!r}")
   timings["load"] = time.perf_counter() - t0
   pairs = candidate_pairs([c.points for c in clouds], all_pairs_max=all_pairs_max,
-                          neighbours=neighbours, loop_candidates=loop_candidates, seed=seed)
+                          neighbors=neighbors, loop_candidates=loop_candidates, seed=seed)
   t = time.perf_counter()
   edges, points = _pairwise(clouds, pairs, mr=mr, seed=seed, viewpoints=views,
                             pairwise=pairwise, icp_mr=icp_mr, progress=progress,

@@ -182,14 +182,14 @@ def register(source: Any, target: Any, *, mr: float | None = None, radius_mr: fl
              icp_fine: bool = True) -> Registration:
   """Rigidly register `source` onto `target` with learned LRFs and a compatibility graph.
 
-  Pipeline (every length in mr: the source's mean edge length for a mesh, mean nearest-neighbour
+  Pipeline (every length in mr: the source's mean edge length for a mesh, mean nearest-neighbor
   distance for a cloud, `datasets.mesh_resolution`):
 
   1. `n_keypoints` per cloud (`keypoints="random"`: seeded random points; `"iss"`: ISS
      keypoints, `lrf_jax.iss_keypoints`, at most `n_keypoints`); LRFs (`method`, default
      lrf_net_plus) and descriptors (`descriptor`, default TOLDI) at r = radius_mr mr;
   2. each source keypoint matched to its nearest target descriptor (`mutual`: mutual nearest
-     neighbours only; `ratio`: Lowe's ratio test), the `n_correspondences` of smallest ratio
+     neighbors only; `ratio`: Lowe's ratio test), the `n_correspondences` of smallest ratio
      d1/d2 kept (`lrf_jax.descriptors.select_correspondences`);
   3. hypotheses: with `estimator="graph"` (default) one per seed of the correspondences'
      compatibility graph (distances preserved within inlier_mr mr AND one-correspondence LRF
@@ -233,14 +233,14 @@ def register(source: Any, target: Any, *, mr: float | None = None, radius_mr: fl
       shipped one; "lrf_net" is the paper's LRF-Net; mesh methods need mesh inputs).
     descriptor: a key of `lrf_jax.descriptors.DESCRIPTORS`.
     params: learned LRF parameters (None: the method's shipped weights).
-    seed: seed of keypoints, neighbour subsamples and sampling.
+    seed: seed of keypoints, neighbor subsamples and sampling.
     source_viewpoint, target_viewpoint: optional (3,) sensor positions of single-view scans, in
       each cloud's own coordinates: estimated normals (and `method="lrf_net_plus"`'s z) are
       oriented towards them (see `compute_frames`). Without them a scan's normals are oriented
       by propagation, which cannot know which side of an open scan is out.
     init: optional (4, 4) initial source -> target transform: refine it by ICP only.
     keypoints: "random" or "iss".
-    mutual: keep mutual nearest-neighbour matches only.
+    mutual: keep mutual nearest-neighbor matches only.
     ratio: optional ratio-test threshold in (0, 1].
     icp_mode: "point_to_plane" (default) or "point_to_point" (`icp`).
     icp_fine: run the second ICP pass at the adaptive gate (False: one pass at icp_mr mr, the

@@ -1,9 +1,9 @@
-"""Neighbourhood search: points -> neighbourhoods.
+"""Neighborhood search: points -> neighborhoods.
 
   engine.py         the compiled engine's interface (numba, multi-threaded, cached on disk)
   grid.py           its uniform grid (points binned by cell and rank) and threads
   balls.py          ball counts and moments, the patch kernel, ball lists, any-within
-  nearest.py        k nearest neighbours, the ICP kernels' pairing step
+  nearest.py        k nearest neighbors, the ICP kernels' pairing step
   neighborhoods.py  `build_patches` -> `Patches` (offsets, mask, r/3 normal statistics), the
                     cloud's `SearchIndex`, the inputs' validation
   device.py         the same `Patches` from jitted voxel grids on the accelerator

@@ -23,7 +23,7 @@ recomputes them with the host search, so the result equals the host search's (te
 
 `count` (points within r before subsampling) is exact when no patch cell of the keypoint is
 truncated and otherwise a lower bound that is at least K; the fixed-K methods (lrf_net,
-lrf_net_plus, uniform) do not read it. All-neighbour patches (K = None) stay on the host.
+lrf_net_plus, uniform) do not read it. All-neighbor patches (K = None) stay on the host.
 """
 
 from __future__ import annotations
@@ -64,7 +64,7 @@ class Grid(NamedTuple):
 
 def _grid(pts: np.ndarray, lo: np.ndarray, cell: float) -> tuple[Grid, int]:
   ijk = np.floor((pts - lo) / cell).astype(np.int64)
-  dims = ijk.max(axis=0) + 3  # one empty layer beyond the last cell (neighbour lookups)
+  dims = ijk.max(axis=0) + 3  # one empty layer beyond the last cell (neighbor lookups)
   ijk += 1
   if np.prod(dims.astype(np.float64)) >= 2**31 - 1:
     raise ValueError(f"device search: the grid of cell {cell:g} needs {dims.tolist()} cells, "
@@ -176,7 +176,7 @@ def build_patches_device(points: np.ndarray, keypoints: np.ndarray, radius: floa
     points: (n, 3) cloud (validated by the caller).
     keypoints: (m,) int indices.
     radius: support radius r (cloud units).
-    k: patch size K (an integer: all-neighbour patches stay on the host).
+    k: patch size K (an integer: all-neighbor patches stay on the host).
     seed: subsample seed.
     z_ratio: normal support radius / r.
     index: a `DeviceIndex(points, radius, k, seed, z_ratio)` to reuse across chunks.
@@ -189,7 +189,7 @@ def build_patches_device(points: np.ndarray, keypoints: np.ndarray, radius: floa
     device search could not guarantee the host result (recomputed on the host if `fallback`).
   """
   if k is None:
-    raise ValueError("device search: k must be an integer patch size (all-neighbour patches, "
+    raise ValueError("device search: k must be an integer patch size (all-neighbor patches, "
                      "k=None, use the host search)")
   if index is None or (index.radius, index.k, index.seed, index.z_ratio) != (
       float(radius), int(k), int(seed), z_ratio):

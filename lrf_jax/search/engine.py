@@ -1,9 +1,9 @@
-"""The compiled neighbourhood engine: uniform-grid radius and nearest-neighbour search (numba).
+"""The compiled neighborhood engine: uniform-grid radius and nearest-neighbor search (numba).
 
 This module is the engine's interface, one namespace for its callers (`from lrf_jax.search import
 engine`); the kernels are in `grid.py` (the `Grid`, threads), `balls.py` (ball counts, moment
-statistics, the patch kernel, ball lists, any-within) and `nearest.py` (k nearest neighbours).
-Every radius and nearest-neighbour query of `compute_frames`, training, the descriptors and
+statistics, the patch kernel, ball lists, any-within) and `nearest.py` (k nearest neighbors).
+Every radius and nearest-neighbor query of `compute_frames`, training, the descriptors and
 `register` goes through it; the evaluation's ground-truth pairs and the tests' references use
 scipy's cKDTree. Host code, compiled once by numba (`cache=True`: the machine code is stored on
 disk and reused by later processes) and multi-threaded over query points (`parallel=True`);

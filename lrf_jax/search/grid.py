@@ -3,7 +3,7 @@
 The engine (`lrf_jax.search.engine` gathers its interface) is host code, compiled once by numba
 (`cache=True`: the machine code is stored on disk and reused by later processes) and
 multi-threaded over query points (`parallel=True`). Its radius queries and patches are in
-`balls.py`, its nearest-neighbour queries in `nearest.py`, both on the `Grid` of this module.
+`balls.py`, its nearest-neighbor queries in `nearest.py`, both on the `Grid` of this module.
 
 * A `Grid` bins the cloud into cubic cells of side h (the patch search uses h = r / 3) and
   stores the points sorted by (cell, rank) with a counting sort, O(n), one row per coordinate.

@@ -1,6 +1,6 @@
-"""The compiled engine's nearest-neighbour queries (`knn`, and the ICP kernels' pairing step).
+"""The compiled engine's nearest-neighbor queries (`knn`, and the ICP kernels' pairing step).
 
-Nearest-neighbour queries (ICP pairs, mesh areas, the normal-orientation graph) grow the scanned
+Nearest-neighbor queries (ICP pairs, mesh areas, the normal-orientation graph) grow the scanned
 cube of cells ring by ring around the query's cell until the k-th distance found (or the bound)
 is within the ring's guaranteed radius.
 """
@@ -117,11 +117,11 @@ def knn(grid: Grid, queries: np.ndarray, k: int, max_distance: float = np.inf
   Args:
     grid: a `Grid` of the cloud (any cell size; `knn_grid` picks a good one).
     queries: (m, 3) query points.
-    k: neighbours per query (>= 1).
-    max_distance: neighbours farther than this are not returned.
+    k: neighbors per query (>= 1).
+    max_distance: neighbors farther than this are not returned.
 
   Returns:
-    (distances (m, k) float64 ascending, indices (m, k) int64 point indices); missing neighbours
+    (distances (m, k) float64 ascending, indices (m, k) int64 point indices); missing neighbors
     have distance inf and index n (cKDTree's convention). Equal distances: smaller index first.
   """
   q = _centers(queries)

@@ -3,13 +3,13 @@
 This is the only place where shapes depend on the data. Everything downstream (frames, losses,
 descriptors) takes a `Patches` of static shape and is jitted.
 
-Two neighbourhoods are gathered per keypoint p with one search of radius r:
+Two neighborhoods are gathered per keypoint p with one search of radius r:
 
-* the *patch*: up to K neighbours q with |q - p| <= r, as offsets q - p, padded to K with a mask.
+* the *patch*: up to K neighbors q with |q - p| <= r, as offsets q - p, padded to K with a mask.
   When the ball holds more than K points a seeded subsample is kept. The subsample depends only on
   (seed, point index) through an integer hash, never on coordinates or on the order the search
-  returns points: rotating or translating the cloud selects the same neighbours.
-* the *normal support*: *all* neighbours within `z_ratio * r` (r/3 for TOLDI and LRF-Net), reduced
+  returns points: rotating or translating the cloud selects the same neighbors.
+* the *z support*: *all* neighbors within `z_ratio * r` (r/3 for TOLDI and LRF-Net), reduced
   on the host, in float64, to their count, centroid offset and covariance about the centroid. The
   z-axis therefore never depends on the K-point subsample (on BR a 15 mr ball holds 380-2800
   points, a 256-point subsample only 20-35 inside r/3).
@@ -50,12 +50,12 @@ MAX_RADII_FROM_ORIGIN = 1e12
 
 
 class Patches(NamedTuple):
-  """Fixed-size neighbourhoods of N keypoints (a pytree; all leaves share the leading axis N).
+  """Fixed-size neighborhoods of N keypoints (a pytree; all leaves share the leading axis N).
 
   Attributes:
-    offsets: (N, K, 3) float32, q - p for the kept neighbours, zeros in padding (cloud units).
-    mask: (N, K) bool, True for real neighbours.
-    indices: (N, K) int32, the cloud index of each kept neighbour, -1 in padding.
+    offsets: (N, K, 3) float32, q - p for the kept neighbors, zeros in padding (cloud units).
+    mask: (N, K) bool, True for real neighbors.
+    indices: (N, K) int32, the cloud index of each kept neighbor, -1 in padding.
     count: (N,) int32, number of points within r (keypoint included) before subsampling.
     radius: (N,) float32, the support radius r (cloud units).
     z_cov: (N, 3, 3) float32, covariance of all offsets within z_ratio * r about their centroid.
@@ -351,7 +351,7 @@ def build_patches(
     radius: support radius r, in the cloud's units (> 0).
     k: patch size K. Balls with more than K points keep the K points of smallest
       `hash_priority(seed, point index)`: a subsample that depends only on point indices and the
-      seed. `None` keeps every neighbour: K becomes the largest ball size rounded up to the next
+      seed. `None` keeps every neighbor: K becomes the largest ball size rounded up to the next
       size of the ladder 32, 48, 64, 96, 128, 192, ... (at most 1.5x padding and two sizes per
       octave, so that runs over many clouds compile a handful of shapes, not one per cloud).
     seed: seed of the subsample.
@@ -361,9 +361,9 @@ def build_patches(
       `_patches_checked`, which the package's own callers call).
     max_k: with `k=None`, an upper bound on K: larger balls keep their `max_k` points of smallest
       priority (the same seeded subsample as an integer k). None = no bound.
-    shells: (a, b) fractions of r: the patch holds only the neighbours within a * r or beyond
+    shells: (a, b) fractions of r: the patch holds only the neighbors within a * r or beyond
       b * r, still in priority order (for methods that read nothing in between, e.g. FLARE: its
-      r/3 plane support and its 0.85 r margin). `count` still counts every point within r.
+      r/3 z support and its 0.85 r margin). `count` still counts every point within r.
     into: with an integer k, optional (offsets (m, K, 3) float32, mask (m, K) bool, indices
       (m, K) int32) arrays (e.g. row ranges of larger arrays, any contents: every element is
       written) that receive those fields instead of new arrays; the returned Patches holds them.
@@ -374,7 +374,7 @@ def build_patches(
       must equal `radius`.
 
   Returns:
-    `Patches` with N = m; within a patch, neighbours are stored in priority order.
+    `Patches` with N = m; within a patch, neighbors are stored in priority order.
 
   Raises:
     ValueError: bad cloud, keypoints, radius or K.

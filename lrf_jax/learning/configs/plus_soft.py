@@ -1,5 +1,5 @@
 """Beyond the paper (lrf_net_plus): the weight network's output read as a log-weight
-(`x_mode="softmax"`, `lrf_net.softmax_weights`): x can concentrate on a few neighbours of the
+(`x_mode="softmax"`, `lrf_net.softmax_weights`): x can concentrate on a few neighbors of the
 rim, as FLARE's highest rim point does, instead of LRF-Net's broad linear weights. z sign over the
 whole support, noise augmentation 0-0.5 mr on the scene side, a 10x larger learning rate than
 the paper's (the log-weights must reach a scale of tens, from an initialisation near 0), 20 epochs

@@ -101,6 +101,7 @@ RENAMED: dict[str, str] = {
     "lrf_jax.frames.flare.MARGIN": "MARGIN_RATIO",
     "lrf_jax.frames.flare.MIN_Z_NEIGHBOURS": "MIN_Z_NEIGHBORS",
     "lrf_jax.frames.flare.MIN_TANGENT_NEIGHBOURS": "MIN_TANGENT_NEIGHBORS",
+    "lrf_jax.frames.lrf_net.MIN_Z_NEIGHBOURS": "MIN_Z_NEIGHBORS",
     "lrf_jax.frames.lrf_net_plus.AREA_NEIGHBOURS": "AREA_NEIGHBORS",
     "lrf_jax.frames.mian.MIN_NEIGHBOURS": "MIN_NEIGHBORS",
     "lrf_jax.frames.ps.CONTOUR_RATIO": "MARGIN_RATIO",

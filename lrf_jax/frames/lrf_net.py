@@ -1,15 +1,15 @@
 """LRF-Net frames (Zhu et al., section 3.1): TOLDI z-axis, learned weights, weighted x-axis.
 
-For one keypoint p with radius neighbours q_i (offsets pq_i = q_i - p):
+For one keypoint p with radius neighbors q_i (offsets pq_i = q_i - p):
 
-* z: `geometry.toldi_normal` over all neighbours within r/3 (its sign makes Σ (p - q_i)·z >= 0);
+* z: `geometry.toldi_normal` over all neighbors within r/3 (its sign makes Σ (p - q_i)·z >= 0);
 * attributes (eq. `eq_attrib`): a_dist = |pq_i| / r, a_angle = cos(z, pq_i) (0 for the keypoint
   itself, whose direction is undefined);
 * weights w_i = WeightNet(a_i) (model.py);
 * x (eqs. `eq_vector_x`, `eq_axis_x`): normalised Σ w_i v_i with v_i = pq_i - (pq_i·z) z;
 * y = z × x (eq. `eq_lrf`), rows (x, y, z).
 
-Minimum neighbours: 3 within r/3 (a plane needs 3 points) with a non-degenerate covariance, and a
+Minimum neighbors: 3 within r/3 (a plane needs 3 points) with a non-degenerate covariance, and a
 weighted x-sum that does not vanish (|Σ w_i v_i| > 1e-5 Σ |w_i| |v_i|); otherwise the frame is
 returned as the identity with `valid = False`.
 
@@ -26,6 +26,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from lrf_jax import _deprecated
 from lrf_jax.geometry import ops as geometry
 from lrf_jax.frames.spec import HostPatchKernel, MethodSpec
 from lrf_jax.learning.model import Params, apply_weights, apply_weights_numpy
@@ -36,11 +37,13 @@ if TYPE_CHECKING:
 
 # |Σ w v| must exceed this fraction of Σ |w| |v| for x to be defined (symmetric patches fail).
 X_EPS = 1e-5
-MIN_Z_NEIGHBOURS = 3
+MIN_Z_NEIGHBORS = 3
+# The pre-0.7 names of this module's constants (`_deprecated.RENAMED`), for one release.
+__getattr__ = _deprecated.renamed(__name__, globals())
 
 
 def attributes(offsets: AnyArray, z: jax.Array, radius: AnyArray) -> jax.Array:
-  """The two invariant attributes of eq. `eq_attrib` for every neighbour.
+  """The two invariant attributes of eq. `eq_attrib` for every neighbor.
 
   Args:
     offsets: (K, 3) pq_i (cloud units; padding may hold anything finite).
@@ -64,10 +67,10 @@ def x_axis_from_weights(offsets: AnyArray, mask: AnyArray, z: jax.Array,
     offsets: (K, 3) pq_i.
     mask: (K,) bool, False for padding.
     z: (3,) unit z-axis.
-    weights: (K,) per-neighbour weights (any sign).
+    weights: (K,) per-neighbor weights (any sign).
 
   Returns:
-    (s, ok): s (3,) = Σ_i w_i v_i over real neighbours; ok False when it vanishes relative to
+    (s, ok): s (3,) = Σ_i w_i v_i over real neighbors; ok False when it vanishes relative to
     Σ |w_i| |v_i| (e.g. a symmetric planar patch with uniform weights, or all weights zero).
   """
   w = jnp.where(mask, weights, 0.0)
@@ -79,7 +82,7 @@ def x_axis_from_weights(offsets: AnyArray, mask: AnyArray, z: jax.Array,
 
 def frame_from_weights(offsets: AnyArray, mask: AnyArray, z: jax.Array, z_ok: jax.Array,
                        weights: jax.Array) -> tuple[jax.Array, jax.Array]:
-  """A frame (rows x, y, z) from a z-axis and per-neighbour x weights; identity when invalid."""
+  """A frame (rows x, y, z) from a z-axis and per-neighbor x weights; identity when invalid."""
   s, x_ok = x_axis_from_weights(offsets, mask, z, weights)
   frame, n_ok = geometry.frame_from_zx(z, s)
   valid = z_ok & x_ok & n_ok
@@ -88,7 +91,7 @@ def frame_from_weights(offsets: AnyArray, mask: AnyArray, z: jax.Array, z_ok: ja
 
 def z_axes(patches: Patches) -> tuple[jax.Array, jax.Array]:
   """TOLDI/LRF-Net z-axes of every keypoint: (N, 3) unit vectors and (N,) validity."""
-  z, ok = jax.vmap(lambda c, m, n: geometry.toldi_normal(c, m, n, MIN_Z_NEIGHBOURS))(
+  z, ok = jax.vmap(lambda c, m, n: geometry.toldi_normal(c, m, n, MIN_Z_NEIGHBORS))(
       patches.z_cov, patches.z_mean, patches.z_count)
   return jax.lax.stop_gradient(z), ok
 
@@ -97,7 +100,7 @@ WeightFn = Callable[["AnyArray", jax.Array, "AnyArray"], jax.Array]  # (offsets,
 
 
 def ball_sign(z: jax.Array, offsets: AnyArray, mask: AnyArray) -> jax.Array:
-  """Re-orient z so that Σ (p - q_i)·z >= 0 over the whole patch (all radius neighbours kept),
+  """Re-orient z so that Σ (p - q_i)·z >= 0 over the whole patch (all radius neighbors kept),
   not only the r/3 ball: TOLDI's sign rule at the full support scale (lrf_net_plus).
 
   The r/3 centroid height that TOLDI uses is a curvature sign that noise and flat regions flip
@@ -129,9 +132,9 @@ def view_sign(z: jax.Array, view: AnyArray) -> jax.Array:
 
 def softmax_weights(scores: jax.Array, mask: AnyArray) -> jax.Array:
   """Attention-style x weights (lrf_net_plus, beyond the paper): w_i = exp(s_i - max_j s_j) over
-  the real neighbours of each patch, 0 in padding.
+  the real neighbors of each patch, 0 in padding.
 
-  The network's output is read as a log-weight, so it can concentrate x on a few neighbours (a
+  The network's output is read as a log-weight, so it can concentrate x on a few neighbors (a
   soft version of FLARE's "highest point on the rim") or spread it (a large temperature), and the
   weights are positive. Normalisation is irrelevant (x is normalised), so no division.
 
@@ -139,7 +142,7 @@ def softmax_weights(scores: jax.Array, mask: AnyArray) -> jax.Array:
     scores: (N, K) network outputs. mask: (N, K) bool.
 
   Returns:
-    (N, K) weights in [0, 1], 1 at each patch's best-scored neighbour.
+    (N, K) weights in [0, 1], 1 at each patch's best-scored neighbor.
   """
   s = jnp.where(mask, scores, -jnp.inf)
   top = jax.lax.stop_gradient(jnp.max(s, axis=-1, keepdims=True))
@@ -149,18 +152,18 @@ def softmax_weights(scores: jax.Array, mask: AnyArray) -> jax.Array:
 def frames_with_weight_fn(patches: Patches, weight_fn: WeightFn, x_mode: str = "sum",
                           z_sign: str = "toldi", view: AnyArray | None = None,
                           area: AnyArray | None = None) -> tuple[jax.Array, jax.Array, jax.Array]:
-  """Frames for all keypoints given a per-neighbour weight function.
+  """Frames for all keypoints given a per-neighbor weight function.
 
   Args:
     patches: `Patches` with leading axis N.
     weight_fn: (offsets (N, K, 3), z (N, 3), radius (N,)) -> weights (N, K).
     x_mode: "sum" (eq. `eq_axis_x`), "softmax" (the same sum with `softmax_weights` of the
-      outputs: lrf_net_plus, beyond the paper) or "max" (the tangent projection of the neighbour
+      outputs: lrf_net_plus, beyond the paper) or "max" (the tangent projection of the neighbor
       with the largest weight, the paper's ablation "Max"; no gradient through the argmax).
-    z_sign: "toldi" (the paper: sign from the r/3 neighbours) or "ball" (`ball_sign`).
+    z_sign: "toldi" (the paper: sign from the r/3 neighbors) or "ball" (`ball_sign`).
     view: optional (N, 3) sensor position minus keypoint; where non-zero it decides the z sign
       (`view_sign`), overriding `z_sign`.
-    area: optional (N, K) surface area each neighbour stands for (`prepare_view`); the weights
+    area: optional (N, K) surface area each neighbor stands for (`prepare_view`); the weights
       are multiplied by it, so that x does not depend on the sampling density (beyond the paper).
 
   Returns:
@@ -229,7 +232,7 @@ def lut_weights(params: Params | WeightTable, size: int = 257) -> WeightFn:
 
   The network maps 2 numbers to 1, so one table of size² evaluations replaces K evaluations per
   keypoint (11k multiply-adds each): with K = 256 and 4096-keypoint chunks, 257² is 16x fewer
-  network evaluations, and the per-neighbour cost drops to a few gathers. The network is
+  network evaluations, and the per-neighbor cost drops to a few gathers. The network is
   piecewise linear (ReLU), so the interpolation error is small; `tests/test_lrf_net.py` bounds
   the frame deviation from the exact weights. `params` may be a prebuilt `WeightTable` of that
   size (`compute_frames` caches one per parameter set).
@@ -253,7 +256,7 @@ def lut_weights(params: Params | WeightTable, size: int = 257) -> WeightFn:
 
 
 def uniform_weights(offsets, z, radius):
-  """w_i = 1 for every neighbour: the "uniform weights, same z" baseline."""
+  """w_i = 1 for every neighbor: the "uniform weights, same z" baseline."""
   del z, radius
   return jnp.ones(offsets.shape[:-1], offsets.dtype)
 
@@ -265,14 +268,14 @@ def lrf_net_frames(params: Params, patches: Patches, *, x_mode: str = "sum",
 
   Args:
     params: WeightNet parameters (`model.default_params()` for the shipped ones).
-    patches: `Patches` (N keypoints, K neighbours).
+    patches: `Patches` (N keypoints, K neighbors).
     x_mode: "sum" (the paper), "softmax" (`softmax_weights`, lrf_net_plus) or "max" (ablation).
     z_sign: "toldi" (the paper) or "ball" (lrf_net_plus, see `ball_sign`).
-    lut: 0 evaluates the network per neighbour (exact); n > 1 reads the weights from an n x n
+    lut: 0 evaluates the network per neighbor (exact); n > 1 reads the weights from an n x n
       table of the network (`lut_weights`), much faster at the same K.
     view: optional (N, 3) sensor position minus keypoint (single-view scans): z is oriented
       towards the sensor where it is non-zero (`view_sign`).
-    area: optional (N, K) area per neighbour multiplying the weights (`prepare_view`).
+    area: optional (N, K) area per neighbor multiplying the weights (`prepare_view`).
 
   Returns:
     (frames (N, 3, 3) rows x, y, z; valid (N,) bool).
@@ -311,14 +314,14 @@ def _lrf_net_host(patches: Patches, extra: None, table: WeightTable, options: di
   from lrf_jax.frames.lrf_net_host import lrf_net_frames_host
   del extra
   return lrf_net_frames_host(patches, table.values, x_mode=options.get("x_mode", "sum"),
-                             x_eps=X_EPS, min_count=MIN_Z_NEIGHBOURS)
+                             x_eps=X_EPS, min_count=MIN_Z_NEIGHBORS)
 
 
 def _uniform_host(patches: Patches, extra: None, params: None, options: dict):
   from lrf_jax.frames.lrf_net_host import lrf_net_frames_host
   del extra, params
   return lrf_net_frames_host(patches, None, z_sign=options.get("z_sign", "toldi"), x_eps=X_EPS,
-                             min_count=MIN_Z_NEIGHBOURS)
+                             min_count=MIN_Z_NEIGHBORS)
 
 
 SPEC = MethodSpec(

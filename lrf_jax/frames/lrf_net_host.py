@@ -27,7 +27,7 @@ UNIFORM, TABLE_SUM, TABLE_SOFTMAX = 0, 1, 2
 
 @nb.njit(inline="always")
 def _table_weight(table, dist_r, cos):
-  """`lrf_net.lut_weights` for one neighbour: bilinear read of the size x size table at
+  """`lrf_net.lut_weights` for one neighbor: bilinear read of the size x size table at
   (clip(|pq|/r, 0, 1), clip(cos, -1, 1))."""
   n = table.shape[0] - 1
   u = min(max(dist_r, 0.0), 1.0) * n
@@ -119,15 +119,15 @@ def lrf_net_frames_host(patches, table: AnyArray | None, *, x_eps: float, min_co
   """`lrf_net.lrf_net_frames` with table weights (or uniform ones) on the host, float64.
 
   Args:
-    patches: host `Patches` (N keypoints, K neighbours).
+    patches: host `Patches` (N keypoints, K neighbors).
     table: (size, size) weight table (`lrf_net.weight_table(...).values`), or None for uniform
       weights (w = 1, `lrf_net.uniform_frames`).
     x_mode: "sum" or "softmax" (`lrf_net.softmax_weights`).
     z_sign: "toldi" or "ball" (`lrf_net.ball_sign`).
     view: optional (N, 3) sensor position minus keypoint (`lrf_net.view_sign`).
-    area: optional (N, K) area per neighbour multiplying the weights.
+    area: optional (N, K) area per neighbor multiplying the weights.
     x_eps: the x-sum test (`lrf_net.X_EPS`): |Σ w v| must exceed x_eps Σ |w| |v|.
-    min_count: fewer neighbours within r/3 make z invalid (`lrf_net.MIN_Z_NEIGHBOURS`).
+    min_count: fewer neighbors within r/3 make z invalid (`lrf_net.MIN_Z_NEIGHBORS`).
 
   Returns:
     (frames (N, 3, 3) float32 rows x, y, z, the identity where invalid; valid (N,) bool).

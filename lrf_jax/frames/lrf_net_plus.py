@@ -28,7 +28,7 @@ import numpy as np
 from lrf_jax import _deprecated
 from lrf_jax.geometry import ops as geometry
 from lrf_jax.search import engine
-from lrf_jax.frames.lrf_net import (MIN_Z_NEIGHBOURS, X_EPS, lrf_net_frames,
+from lrf_jax.frames.lrf_net import (MIN_Z_NEIGHBORS, X_EPS, lrf_net_frames,
                                    table_host_supports)
 from lrf_jax.frames.spec import KEYPOINT, SLOT, HostPatchKernel, MethodSpec
 from lrf_jax.search.neighborhoods import Patches
@@ -309,7 +309,7 @@ def _lrf_net_plus_host(patches: Patches, extra: ViewExtra | None, table, options
       patches, table.values, x_mode=options.get("x_mode", "softmax"), z_sign="ball",
       view=None if extra is None or not options.get("oriented_sign", True) else extra.view,
       area=None if extra is None or not options.get("density", True) else extra.area,
-      x_eps=X_EPS, min_count=MIN_Z_NEIGHBOURS)
+      x_eps=X_EPS, min_count=MIN_Z_NEIGHBORS)
 
 
 SPEC = MethodSpec(

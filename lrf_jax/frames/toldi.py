@@ -1,13 +1,13 @@
 """TOLDI local reference frames (Yang, Zhang, Cao 2017), the hand-crafted LRF that LRF-Net builds on.
 
-z: the normal of the neighbours within r/3 (`geometry.toldi_normal`, sign so that Σ (p - q_i)·z >= 0).
-x: normalised Σ w_i v_i over all radius neighbours with v_i the tangent projection of pq_i and
+z: the normal of the neighbors within r/3 (`geometry.toldi_normal`, sign so that Σ (p - q_i)·z >= 0).
+x: normalised Σ w_i v_i over all radius neighbors with v_i the tangent projection of pq_i and
 
 * `signed=True` (default, the original C++ implementation): w_i = (r - d_i)² · sign(h_i) · h_i²,
 * `signed=False` (the paper's eqs. `eq_w1`, `eq_w2`): w_i = (r - d_i)² · h_i²,
 
-where d_i = |pq_i| and h_i = pq_i · z. Minimum neighbours as for LRF-Net (3 within r/3, a
-non-vanishing weighted sum). TOLDI uses every radius neighbour: call it with `k=None`.
+where d_i = |pq_i| and h_i = pq_i · z. Minimum neighbors as for LRF-Net (3 within r/3, a
+non-vanishing weighted sum). TOLDI uses every radius neighbor: call it with `k=None`.
 """
 
 from __future__ import annotations
@@ -21,7 +21,7 @@ import numpy as np
 
 from lrf_jax.geometry import ops as geometry
 from lrf_jax.frames import host_geometry as hg
-from lrf_jax.frames.lrf_net import MIN_Z_NEIGHBOURS, X_EPS, frames_with_weight_fn
+from lrf_jax.frames.lrf_net import MIN_Z_NEIGHBORS, X_EPS, frames_with_weight_fn
 from lrf_jax.frames.spec import MethodSpec
 from lrf_jax.search.neighborhoods import Patches
 
@@ -48,7 +48,7 @@ def toldi_frames(patches: Patches, *, signed: bool = True) -> tuple[jax.Array, j
   """TOLDI frames for a batch of patches.
 
   Args:
-    patches: `Patches` (N keypoints); use `k=None` for the original (all neighbours).
+    patches: `Patches` (N keypoints); use `k=None` for the original (all neighbors).
     signed: the original signed height weight (True) or the paper's unsigned eq. `eq_w2` (False).
 
   Returns:
@@ -69,7 +69,7 @@ def _toldi_host_kernel(points, centers, ptr, ball, r, rz2, signed, eps, x_eps, f
     hg.set_identity(frames, valid, i)
     start, stop = ptr[i], ptr[i + 1]
     mean = np.zeros(3)
-    ok, z = hg.plane_z(points, centers[i], ball, start, stop, rz2, eps, MIN_Z_NEIGHBOURS, mean)
+    ok, z = hg.plane_z(points, centers[i], ball, start, stop, rz2, eps, MIN_Z_NEIGHBORS, mean)
     if not ok:
       continue
     if mean[0] * z[0] + mean[1] * z[1] + mean[2] * z[2] > 0.0:

@@ -58,7 +58,7 @@ from lrf_jax.learning.checkpoints import (is_primary, nonfinite_leaves, restore_
                                  save_checkpoint)
 from lrf_jax.learning.config import TrainConfig, with_new_defaults
 from lrf_jax.datasets import repeatability_keypoints
-from lrf_jax.frames.lrf_net import MIN_Z_NEIGHBOURS
+from lrf_jax.frames.lrf_net import MIN_Z_NEIGHBORS
 from lrf_jax.frames.lrf_net_plus import points_only_view
 from lrf_jax.io import atomic
 from lrf_jax.learning.losses import frames_with_view
@@ -285,7 +285,7 @@ def check_finite(metrics: dict, params: Any, step: int, epoch: int,
   nothing), or non-finite parameters.
 
   With the step's host `batch`, a batch of invalid frames whose patches mostly hold fewer than
-  the z axis's `MIN_Z_NEIGHBOURS` points within r/3 is blamed on the support (radius_mr too
+  the z axis's `MIN_Z_NEIGHBORS` points within r/3 is blamed on the support (radius_mr too
   small for the data's resolution), not on the learning rate."""
   for key in ("loss", "grad_norm"):
     if key in metrics and not math.isfinite(metrics[key]):
@@ -366,15 +366,15 @@ class _Log:
 
 def _support_problem(batch: Batch | None) -> str | None:
   """Why the patches of `batch` cannot give frames (None: they can, or no batch): most of them
-  hold fewer than `MIN_Z_NEIGHBOURS` points within r/3, where the z axis (the normal) is fitted."""
+  hold fewer than `MIN_Z_NEIGHBORS` points within r/3, where the z axis (the normal) is fitted."""
   if batch is None:
     return None
   z_count = np.concatenate([np.asarray(batch.model.z_count), np.asarray(batch.scene.z_count)])
   count = np.concatenate([np.asarray(batch.model.count), np.asarray(batch.scene.count)])
-  short = float(np.mean(z_count < MIN_Z_NEIGHBOURS))
+  short = float(np.mean(z_count < MIN_Z_NEIGHBORS))
   if short < 0.5:
     return None
-  return (f"{100 * short:.0f}% of its patches hold fewer than {MIN_Z_NEIGHBOURS} points within "
+  return (f"{100 * short:.0f}% of its patches hold fewer than {MIN_Z_NEIGHBORS} points within "
           f"r/3 (median {np.median(z_count):g} there, {np.median(count):g} within r), too few "
           "for the z axis: the support is too small for the data's resolution; raise radius_mr")
 

@@ -66,6 +66,9 @@ def x_axis_from_weights(offsets: jax.Array, mask: jax.Array, z: jax.Array,
   Returns:
     (s, ok): s (3,) = Σ_i w_i v_i over real neighbours; ok False when it vanishes relative to
     Σ |w_i| |v_i| (e.g. a symmetric planar patch with uniform weights, or all weights zero).
+
+  TOLDI's x axis is this sum with its weights (`toldi.toldi_weights`); the host kernels of both
+  compute it with `host_geometry.x_axis_sum_of`.
   """
   w = jnp.where(mask, weights, 0.0)
   v = geometry.tangent_projection(offsets, z)

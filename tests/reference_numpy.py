@@ -2,7 +2,9 @@
 
 It exists to check the JAX implementation formula by formula (tests) and to be the baseline of
 the speed benchmark. It shares nothing with the JAX path except the definition of the seeded
-subsample (`neighborhoods.hash_priority`) and reads the network weights from the same params.
+subsample (`neighborhoods.hash_priority`) and the weight network's forward pass
+(`model.apply_weights` in numpy float64, itself held equal to the flax module
+`networks.WeightNet` by tests/test_shipped_weights.py).
 """
 
 from __future__ import annotations
@@ -12,23 +14,8 @@ from typing import Any
 import numpy as np
 from scipy.spatial import cKDTree
 
+from lrf_jax.learning.model import apply_weights
 from lrf_jax.search.neighborhoods import hash_priority
-
-
-def _mlp_weights(params: Any, attrs: np.ndarray) -> np.ndarray:
-  """WeightNet forward pass in numpy: attrs (K, A) -> (K,)."""
-  p = {k: {kk: np.asarray(vv, np.float64) for kk, vv in v.items()} for k, v in params.items()}
-  n_enc = sum(1 for k in p if k.startswith("enc"))
-  h = attrs
-  skips = []
-  for i in range(n_enc):
-    h = np.maximum(h @ p[f"enc{i}"]["kernel"] + p[f"enc{i}"]["bias"], 0.0)
-    skips.append(h)
-  skips.pop()
-  for i in range(n_enc - 1):
-    h = np.maximum(h @ p[f"dec{i}"]["kernel"] + p[f"dec{i}"]["bias"], 0.0)
-    h = np.concatenate([h, skips.pop()], axis=-1)
-  return (h @ p["out"]["kernel"] + p["out"]["bias"])[:, 0]
 
 
 def reference_frame(points: np.ndarray, center_index: int, radius: float, *, weights: str,
@@ -74,7 +61,7 @@ def reference_frame(points: np.ndarray, center_index: int, radius: float, *, wei
   h = off @ z
   if weights == "lrf_net":
     cos = np.where(d > 0, h / np.where(d > 0, d, 1.0), 0.0)
-    w = _mlp_weights(params, np.stack([d / radius, cos], axis=1))
+    w = apply_weights(params, np.stack([d / radius, cos], axis=1), np, np.float64)
   elif weights == "uniform":
     w = np.ones(len(idx))
   elif weights == "toldi":

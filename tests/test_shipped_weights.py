@@ -91,7 +91,9 @@ def test_lrf_net_plus_beats_lrf_net_and_uniform_on_noisy_br(data_root):
 
 def test_flax_free_forward_and_reader_equal_flax():
   # model.apply_weights and model.load_params avoid importing flax; they must be the flax
-  # module's forward pass and flax's msgpack reader, on every shipped file and a fresh save.
+  # module's forward pass (the definition of the network) and flax's msgpack reader, on every
+  # shipped file and a fresh save; apply_weights in jax.numpy, and in numpy as the host
+  # kernels' weight table (float32) and the tests' reference (float64) evaluate it.
   from flax import serialization
 
   from lrf_jax.learning import model
@@ -110,6 +112,10 @@ def test_flax_free_forward_and_reader_equal_flax():
     params = model.init_params(3, 2, widths)
     want = WeightNet(widths=widths).apply({"params": params}, attrs)
     np.testing.assert_allclose(model.apply_weights(params, attrs), want, rtol=1e-6, atol=1e-7)
+    for dtype in (np.float32, np.float64):
+      got = model.apply_weights(params, np.asarray(attrs), np, dtype)
+      assert isinstance(got, np.ndarray) and got.dtype == dtype and got.shape == want.shape
+      np.testing.assert_allclose(got, want, rtol=1e-5, atol=1e-6)
 
 
 def test_inference_imports_neither_flax_nor_the_datasets(tmp_path):

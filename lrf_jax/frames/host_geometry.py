@@ -89,6 +89,78 @@ def write_frame(frames, valid, i, z, x, eps=0.0):
   return True
 
 
+def x_axis_sum_of(weight):
+  """`lrf_net.x_axis_from_weights` on the host, the x axis of TOLDI and LRF-Net (paper eqs.
+  `eq_vector_x`, `eq_axis_x`), for one way of weighting the neighbors: returns the numba
+  function
+
+      x_axis_sum(points, center, ball, start, stop, z, data, x_eps) -> (ok, s)
+
+  s = Σ_t w_t v_t over the listed neighbors t, with o_t = points[ball[start + t]] - center,
+  v_t = o_t - (o_t · z) z its projection on the tangent plane, and (w_t, o_t · z) =
+  weight(data, t, o_t[0], o_t[1], o_t[2], z).
+
+  Args of `weight`, an `nb.njit(inline="always")` function: data (what the caller passes on),
+  t (the neighbor's place in the list), the offset o_t (cloud units), z; it returns the weight
+  (any sign) and the height o_t · z: computed there and then (TOLDI's weight) or read from
+  lists made beforehand (`listed_weight`).
+
+  Args of `x_axis_sum`:
+    points: (n, 3) coordinates (cloud units): the cloud, or one patch's offsets.
+    center: (3,) the keypoint (an array or a tuple: (0.0, 0.0, 0.0) for a patch's offsets).
+    ball: (>= stop,) rows of `points`, the neighbors being ball[start:stop]; or None, the
+      neighbors being rows start..stop - 1 themselves (a patch's slots; compiled without the
+      lookup).
+    start, stop: the neighbors' range in `ball`.
+    z: (3,) float64 unit z axis.
+    data: what `weight` reads.
+    x_eps: `lrf_net.X_EPS`.
+
+  Returns of `x_axis_sum`:
+    (ok, s): s (3,) float64, unnormalised (cloud units); ok is False when s vanishes relative
+    to Σ_t |w_t| |v_t| (|s| <= x_eps Σ_t |w_t| |v_t|: a symmetric patch, or all weights 0).
+    Neighbours of weight 0 are skipped (they add exactly nothing), so a padding slot of weight
+    0 may hold any offset.
+
+  One definition for both kernels, specialised per weight by this factory rather than written
+  like the inline="always" helpers above: inlining its IR into a parallel kernel cost ~1 s (6 %)
+  more compilation (numba's parfor passes), and a weight function passed as an argument to a
+  non-inlined helper made the TOLDI kernel uncacheable (numba embedded the dispatcher's
+  address). Compiled apart (once per kernel), it runs as fast as the loop written in a kernel.
+  """
+
+  @nb.njit
+  def x_axis_sum(points, center, ball, start, stop, z, data, x_eps):
+    sx = sy = sz = 0.0  # scalars, not an array: they stay in registers
+    scale = 0.0
+    for t in range(start, stop):
+      j = t if ball is None else ball[t]
+      ox = points[j, 0] - center[0]
+      oy = points[j, 1] - center[1]
+      oz = points[j, 2] - center[2]
+      w, dot = weight(data, t - start, ox, oy, oz, z)
+      if w == 0.0:  # no term, whatever o_t holds (padding)
+        continue
+      vx, vy, vz = ox - dot * z[0], oy - dot * z[1], oz - dot * z[2]
+      sx += w * vx
+      sy += w * vy
+      sz += w * vz
+      scale += abs(w) * np.sqrt(vx * vx + vy * vy + vz * vz)
+    s = np.empty(3)
+    s[0], s[1], s[2] = sx, sy, sz
+    return np.sqrt(sx * sx + sy * sy + sz * sz) > x_eps * scale, s
+
+  return x_axis_sum
+
+
+@nb.njit(inline="always")
+def listed_weight(data, t, ox, oy, oz, z):
+  """`x_axis_sum_of`'s `weight` read from lists made beforehand: data = (weights, heights),
+  both float64 (>= stop - start,), indexed by the neighbor's place t; heights o_t · z."""
+  weights, heights = data
+  return weights[t], heights[t]
+
+
 @nb.njit(inline="always")
 def better(score, d2, idx, best_score, best_d2, best_idx):
   """`geometry.lexicographic_argmax`'s order: a larger score, then nearer, then lower index."""

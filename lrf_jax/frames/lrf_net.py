@@ -19,7 +19,7 @@ statistics that do not depend on the parameters.
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING, NamedTuple
+from typing import TYPE_CHECKING, Any, NamedTuple
 from collections.abc import Callable
 
 import jax
@@ -72,6 +72,9 @@ def x_axis_from_weights(offsets: AnyArray, mask: AnyArray, z: jax.Array,
   Returns:
     (s, ok): s (3,) = Σ_i w_i v_i over real neighbors; ok False when it vanishes relative to
     Σ |w_i| |v_i| (e.g. a symmetric planar patch with uniform weights, or all weights zero).
+
+  TOLDI's x axis is this sum with its weights (`toldi.toldi_weights`); the host kernels of both
+  compute it with `host_geometry.x_axis_sum_of`.
   """
   w = jnp.where(mask, weights, 0.0)
   v = geometry.tangent_projection(offsets, z)
@@ -208,22 +211,33 @@ class WeightTable(NamedTuple):
   values: AnyArray  # (size, size): jax.Array, numpy from `weight_table_numpy`
 
 
-def weight_table(params: Params, size: int = 257) -> WeightTable:
-  """Evaluate the network once on the lut grid: size² evaluations (about 25 ms for 257 on 2 CPU
-  cores, worth caching when a call has only a few thousand keypoints)."""
-  grid = jnp.linspace(0.0, 1.0, size)
-  cgrid = jnp.linspace(-1.0, 1.0, size)
-  return WeightTable(apply_weights(params, jnp.stack(jnp.meshgrid(grid, cgrid, indexing="ij"), -1)))
+def weight_table(params: Params, size: int = 257, xp: Any = jnp) -> WeightTable:
+  """Evaluate the network (`model.apply_weights`) once on the lut grid: size² evaluations
+  (about 25 ms for 257 on 2 CPU cores, worth caching when a call has only a few thousand
+  keypoints).
+
+  Args:
+    params: WeightNet parameters.
+    size: grid points per axis: |pq|/r at linspace(0, 1, size), cos at linspace(-1, 1, size).
+    xp: jax.numpy (the jitted paths; traceable) or numpy (float32, for the host frame kernels:
+      no JAX program to trace and load in a fresh process; equal up to float32 rounding).
+
+  Returns:
+    `WeightTable` with values (size, size) [i, j] = w(i / (size - 1), 2 j / (size - 1) - 1),
+    an `xp` array (float32 for numpy).
+  """
+  dtype = None if xp is jnp else np.float32  # jax.numpy: its default float
+  grid = xp.linspace(0.0, 1.0, size, dtype=dtype)
+  cgrid = xp.linspace(-1.0, 1.0, size, dtype=dtype)
+  attrs = xp.stack(xp.meshgrid(grid, cgrid, indexing="ij"), -1)
+  if xp is np:  # one BLAS thread beside numba's (`model.apply_weights_numpy`)
+    return WeightTable(apply_weights_numpy(params, attrs))
+  return WeightTable(apply_weights(params, attrs))
 
 
 def weight_table_numpy(params: Params, size: int = 257) -> WeightTable:
-  """`weight_table` evaluated in numpy float32 (`model.apply_weights_numpy`), for the host
-  frame kernels: no JAX program to trace and load in a fresh process; equal to `weight_table` up
-  to float32 rounding. values: (size, size) float32 numpy."""
-  grid = np.linspace(0.0, 1.0, size, dtype=np.float32)
-  cgrid = np.linspace(-1.0, 1.0, size, dtype=np.float32)
-  return WeightTable(apply_weights_numpy(params, np.stack(np.meshgrid(grid, cgrid, indexing="ij"),
-                                                          -1)))
+  """`weight_table(params, size, xp=np)`: values (size, size) float32 numpy."""
+  return weight_table(params, size, np)
 
 
 def lut_weights(params: Params | WeightTable, size: int = 257) -> WeightFn:

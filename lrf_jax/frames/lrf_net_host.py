@@ -4,9 +4,10 @@
 `compute_frames` runs it by default on a CPU backend for lrf_net, lrf_net_plus and uniform
 (`MethodSpec.host_patch_frames`): one keypoint per thread, the same rules as the jitted function
 (TOLDI z over r/3 with its sign, `ball_sign`, `view_sign`, the bilinear weight table, softmax and
-area weights, the x-sum test `X_EPS`, `geometry.frame_from_zx`), in float64 instead of float32.
-Frames then agree with the jitted ones to float32 rounding, except at keypoints whose sign tests
-sit on a tie (a patch height Σ (q_i - p)·z or a view product of about 0).
+area weights, the x axis and its test `X_EPS` (`host_geometry.x_axis_sum_of`, shared with TOLDI's
+kernel), `geometry.frame_from_zx`), in float64 instead of float32. Frames then agree with the
+jitted ones to float32 rounding, except at keypoints whose sign tests sit on a tie (a patch
+height Σ (q_i - p)·z or a view product of about 0).
 """
 
 from __future__ import annotations
@@ -37,6 +38,9 @@ def _table_weight(table, dist_r, cos):
   fu, fv = u - i0, v - j0
   return ((1.0 - fu) * ((1.0 - fv) * table[i0, j0] + fv * table[i0, j0 + 1])
           + fu * ((1.0 - fv) * table[i0 + 1, j0] + fv * table[i0 + 1, j0 + 1]))
+
+
+_x_axis_sum = hg.x_axis_sum_of(hg.listed_weight)  # w = 0 in padding: skipped
 
 
 @nb.njit(parallel=True, cache=True)
@@ -91,25 +95,16 @@ def _lrf_net_host_kernel(offsets, mask, z_cov, z_mean, z_count, radius, table, m
       d = np.sqrt(o0 * o0 + o1 * o1 + o2 * o2)
       w[s] = _table_weight(table, d / r, dot[s] / d if d > 0.0 else 0.0)
       top = max(top, w[s])
-    sx = sy = sz = 0.0
-    scale = 0.0
-    for s in range(k):
-      if not mask[i, s]:
-        continue
-      ws = w[s]
-      if mode == TABLE_SOFTMAX:
-        ws = np.exp(ws - top)
-      if has_area:
-        ws *= area[i, s]
-      v0 = offsets[i, s, 0] - dot[s] * z[0]
-      v1 = offsets[i, s, 1] - dot[s] * z[1]
-      v2 = offsets[i, s, 2] - dot[s] * z[2]
-      sx += ws * v0
-      sy += ws * v1
-      sz += ws * v2
-      scale += abs(ws) * np.sqrt(v0 * v0 + v1 * v1 + v2 * v2)
-    if np.sqrt(sx * sx + sy * sy + sz * sz) > x_eps * scale:
-      hg.write_frame(frames, valid, i, z, np.array([sx, sy, sz]))
+    if mode == TABLE_SOFTMAX or has_area:
+      for s in range(k):
+        if mask[i, s]:
+          if mode == TABLE_SOFTMAX:
+            w[s] = np.exp(w[s] - top)
+          if has_area:
+            w[s] *= area[i, s]
+    ok, x = _x_axis_sum(offsets[i], (0.0, 0.0, 0.0), None, 0, k, z, (w, dot), x_eps)
+    if ok:
+      hg.write_frame(frames, valid, i, z, x)
 
 
 def lrf_net_frames_host(patches, table: AnyArray | None, *, x_eps: float, min_count: int,

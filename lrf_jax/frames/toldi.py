@@ -63,6 +63,24 @@ def toldi_frames(patches: Patches, *, signed: bool = True) -> tuple[jax.Array, j
 # (`frames.host_geometry`): `compute_frames`' default on the CPU.
 
 
+@nb.njit(inline="always")
+def _toldi_weight(data, t, ox, oy, oz, z):
+  """`toldi_weights` of one neighbor (`hg.x_axis_sum_of`'s `weight`): (1 - d/r)^2 (h/r)^2 with
+  d = |o|, h = o · z (cloud units), times sign(h) when signed; data = (r, signed). Returns
+  (the weight, h)."""
+  r, signed = data
+  d = np.sqrt(ox * ox + oy * oy + oz * oz) / r
+  dot = ox * z[0] + oy * z[1] + oz * z[2]
+  h = dot / r
+  w = (1.0 - d) ** 2 * h * h
+  if signed:
+    w = w if h > 0.0 else (-w if h < 0.0 else 0.0)
+  return w, dot
+
+
+_x_axis_sum = hg.x_axis_sum_of(_toldi_weight)
+
+
 @nb.njit(parallel=True, cache=True)
 def _toldi_host_kernel(points, centers, ptr, ball, r, rz2, signed, eps, x_eps, frames, valid):
   for i in nb.prange(centers.shape[0]):
@@ -74,25 +92,8 @@ def _toldi_host_kernel(points, centers, ptr, ball, r, rz2, signed, eps, x_eps, f
       continue
     if mean[0] * z[0] + mean[1] * z[1] + mean[2] * z[2] > 0.0:
       z = -z
-    s = np.zeros(3)
-    scale = 0.0
-    for t in range(start, stop):
-      j = ball[t]
-      ox = points[j, 0] - centers[i, 0]
-      oy = points[j, 1] - centers[i, 1]
-      oz = points[j, 2] - centers[i, 2]
-      d = np.sqrt(ox * ox + oy * oy + oz * oz) / r
-      dot = ox * z[0] + oy * z[1] + oz * z[2]
-      h = dot / r
-      w = (1.0 - d) ** 2 * h * h
-      if signed:
-        w = w if h > 0.0 else (-w if h < 0.0 else 0.0)
-      vx, vy, vz = ox - dot * z[0], oy - dot * z[1], oz - dot * z[2]
-      s[0] += w * vx
-      s[1] += w * vy
-      s[2] += w * vz
-      scale += abs(w) * np.sqrt(vx * vx + vy * vy + vz * vz)
-    if np.sqrt(s[0] * s[0] + s[1] * s[1] + s[2] * s[2]) > x_eps * scale:
+    ok, s = _x_axis_sum(points, centers[i], ball, start, stop, z, (r, signed), x_eps)
+    if ok:
       hg.write_frame(frames, valid, i, z, s)
 
 

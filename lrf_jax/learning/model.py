@@ -15,8 +15,9 @@ activation could not express it. The weights only matter up to a positive scale 
 lrf_net_plus reads the same output as a log-weight (`frames.lrf_net.softmax_weights`).
 
 The layers are defined as flax.linen modules in `networks.py`; this module evaluates them from
-the parameter dict in `jax.numpy` and reads parameter files with `msgpack` (flax's format), so
-inference never imports flax; initialising and saving do.
+the parameter dict without flax (`apply_weights`, in `jax.numpy` or numpy) and reads parameter
+files with `msgpack` (flax's format), so inference never imports flax; initialising and saving
+do.
 """
 
 from __future__ import annotations
@@ -55,50 +56,54 @@ def init_params(seed: int = 0, num_attributes: int = 2,
   return init_weight_net(seed, num_attributes, widths)
 
 
-def _dense(layer: Params, h: jax.Array) -> jax.Array:
-  return h @ layer["kernel"] + layer["bias"]
-
-
-def apply_weights(params: Params, attrs: jax.Array) -> jax.Array:
-  """Weights (..., K) for attributes (..., K, A): `networks.WeightNet.apply`, written out.
+def apply_weights(params: Params, attrs: Any, xp: Any = jnp, dtype: Any = None) -> Any:
+  """Weights (..., K) for attributes (..., K, A): the forward pass of `networks.WeightNet` (the
+  definition, in flax) without flax; `tests/test_shipped_weights.py` holds the two equal.
 
   Encoder Dense+ReLU layers enc0..enc{m-1}, decoder Dense+ReLU layers dec0..dec{m-2} each
   concatenated with the encoder output of the same width, and a linear Dense "out" to one
-  value; the widths are read from `params`.
+  value; the widths are read from `params`. Every caller evaluates the network through this
+  function: the jitted frames and training (jax.numpy), the host kernels' weight table
+  (`lrf_net.weight_table(..., xp=np)`, numpy float32: no JAX program to trace and load in a
+  fresh process) and the tests' float64 reference (`tests/reference_numpy.py`).
+
+  Args:
+    params: WeightNet parameters, {"enc<i>", "dec<i>", "out"} each {"kernel", "bias"}.
+    attrs: (..., K, A) per-neighbor attributes (`lrf_net.attributes`: |pq|/r and cos(z, pq),
+      dimensionless).
+    xp: the array module, jax.numpy (traceable and differentiable) or numpy.
+    dtype: the float type the parameters and attributes are cast to first (None: as given);
+      numpy callers give np.float32 or np.float64.
+
+  Returns:
+    (..., K) weights (dimensionless, any sign), an `xp` array.
   """
+  relu = jax.nn.relu if xp is jnp else (lambda h: np.maximum(h, 0.0))
+
+  def dense(layer, h):
+    return h @ xp.asarray(layer["kernel"], dtype) + xp.asarray(layer["bias"], dtype)
+
   n_enc = _num_enc(params)
-  h = attrs
+  h = xp.asarray(attrs, dtype)
   skips = []
   for i in range(n_enc):
-    h = jax.nn.relu(_dense(params[f"enc{i}"], h))
+    h = relu(dense(params[f"enc{i}"], h))
     skips.append(h)
   skips.pop()  # the bottleneck is not concatenated with itself
   for i in range(n_enc - 1):
-    h = jax.nn.relu(_dense(params[f"dec{i}"], h))
-    h = jnp.concatenate([h, skips.pop()], axis=-1)
-  return _dense(params["out"], h)[..., 0]
+    h = relu(dense(params[f"dec{i}"], h))
+    h = xp.concatenate([h, skips.pop()], axis=-1)
+  return dense(params["out"], h)[..., 0]
 
 
 def apply_weights_numpy(params: Params, attrs: np.ndarray) -> np.ndarray:
-  """`apply_weights` in numpy float32 for host callers (no JAX program to trace, lower and
-  load): the same layers, equal up to float32 rounding (the matrix products sum in another
-  order). attrs (..., K, A) -> weights (..., K). numpy's BLAS runs on one thread here
-  (`search.grid.serial_blas`)."""
-  def dense(layer, h):
-    return h @ np.asarray(layer["kernel"], np.float32) + np.asarray(layer["bias"], np.float32)
-
+  """`apply_weights` in numpy float32 (`xp=np, dtype=np.float32`) for host callers (no JAX
+  program to trace, lower and load): attrs (..., K, A) -> weights (..., K) float32. numpy's BLAS
+  runs on one thread here (`search.grid.serial_blas`): threaded BLAS beside numba's threads was
+  up to 25x slower on 2 cores."""
   from lrf_jax.search.grid import serial_blas  # pylint: disable=import-outside-toplevel
-  n_enc = _num_enc(params)
-  h = np.asarray(attrs, np.float32)
-  skips = []
-  with serial_blas():  # threaded BLAS beside numba's threads: up to 25x slower on 2 cores
-    for i in range(n_enc):
-      h = np.maximum(dense(params[f"enc{i}"], h), 0.0)
-      skips.append(h)
-    skips.pop()
-    for i in range(n_enc - 1):
-      h = np.concatenate([np.maximum(dense(params[f"dec{i}"], h), 0.0), skips.pop()], axis=-1)
-    return dense(params["out"], h)[..., 0]
+  with serial_blas():
+    return apply_weights(params, attrs, np, np.float32)
 
 
 def _num_enc(params: Params) -> int:

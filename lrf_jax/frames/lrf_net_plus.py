@@ -230,11 +230,11 @@ def patch_areas(points: np.ndarray, patches: Patches,
   key = (pts,) if faces is None else (pts, np.asarray(faces))
   per_point = cache_last("point_area", key, compute)
   idx = np.asarray(patches.indices)
-  a = np.append(per_point, 0.0)[idx]  # padding (index -1) reads the appended 0
-  count = np.count_nonzero(idx >= 0, axis=1)[:, None]
+  a = np.append(per_point, 0.0).take(idx)  # padding (index -1) reads the appended 0
+  count = np.count_nonzero(np.asarray(patches.mask), axis=1)[:, None]
   mean = a.sum(1, keepdims=True) / np.maximum(count, 1)
-  np.divide(a, np.where(mean > 0, mean, 1.0), out=a)
-  return a.astype(np.float32)
+  out = np.empty(a.shape, np.float32)  # each a / mean in float64, rounded once to float32
+  return np.divide(a, np.where(mean > 0, mean, 1.0), out=out, casting="same_kind")
 
 
 # ------------------------------------------------------------------------------ sign confidence

@@ -273,10 +273,13 @@ def revisited(pose: np.ndarray, recent: list[np.ndarray], max_distance: float,
   `point_to_plane_icp` stops there and keeps the cycle's pose of least mean squared distance.
   """
   for i, old in enumerate(recent):
+    moved = np.linalg.norm(pose[:3, 3] - old[:3, 3]) / max_distance
+    if moved >= tolerance:  # the angle below is >= 0: this pose is not a return
+      continue
     rel = pose[:3, :3] @ old[:3, :3].T
     axis = np.array([rel[2, 1] - rel[1, 2], rel[0, 2] - rel[2, 0], rel[1, 0] - rel[0, 1]])
     angle = np.arctan2(0.5 * np.linalg.norm(axis), 0.5 * (np.trace(rel) - 1.0))  # exact near 0
-    if angle + np.linalg.norm(pose[:3, 3] - old[:3, 3]) / max_distance < tolerance:
+    if angle + moved < tolerance:
       return i
   return None
 

@@ -208,6 +208,12 @@ def _check_index(index: Any, points: np.ndarray) -> None:
                      "SearchIndex(points, seed) from these points")
 
 
+def _check_choice(name: str, value: Any, choices: tuple[str, ...]) -> None:
+  """Raise a ValueError naming `name` unless `value` is one of `choices` (strings)."""
+  if not (isinstance(value, str) and value in choices):
+    raise ValueError(f"{name}: expected {' or '.join(repr(c) for c in choices)}, got {value!r}")
+
+
 def _check_call(spec: MethodSpec, faces: Any, chunk_size: Any, k: Any, options: dict,
                 return_confidence: bool) -> None:
   """`compute_frames`' checks of the method's needs and of chunk_size, k, the options and
@@ -324,6 +330,8 @@ def compute_frames(
   _check_call(spec, cloud.faces, chunk_size, k, options, return_confidence)
   seed = validate_seed(seed)
   viewpoint = validate_viewpoint(viewpoint)
+  _check_choice("kernel", kernel, ("auto", "host", "jit"))  # also with no keypoints
+  _check_choice("search", search, ("auto", "host", "device"))
   return _frames_checked(method, cloud, keypoints, radius, params=params, k=k, seed=seed,
                          viewpoint=viewpoint, chunk_size=chunk_size, progress=progress,
                          search=search, kernel=kernel, return_confidence=return_confidence,
@@ -527,9 +535,9 @@ def host_frames(points: np.ndarray, keypoints: np.ndarray, radius: float, method
 
 def _use_host_kernel(spec: MethodSpec, kernel: str, k: int | None, options: dict,
                      search: str) -> bool:
-  """Whether `compute_frames(kernel=...)` runs the method's host fast path (validated)."""
-  if kernel not in ("auto", "host", "jit"):
-    raise ValueError(f"kernel: expected 'auto', 'host' or 'jit', got {kernel!r}")
+  """Whether `compute_frames(kernel=...)` runs the method's host fast path (`kernel` one of
+  "auto", "host", "jit", checked by `compute_frames`; a ValueError for "host" where there is
+  none)."""
   applies = spec.host_frames is not None and k is None and not options
   if kernel == "host" and not applies and spec.host_patch_frames is None:
     raise ValueError(f"kernel='host': method {spec.name!r} has no host fast path for these "
@@ -558,10 +566,8 @@ def _use_host_patch_kernel(spec: MethodSpec, kernel: str, options: dict, search:
 
 def _patch_search(points: np.ndarray, spec: MethodSpec, radius: float, k: int | None, seed: int,
                   search: str, host_kernel: bool = False) -> _PatchSearch:
-  """The search `compute_frames(search=...)` asks for (validated; on the host for a host
-  kernel)."""
-  if search not in ("auto", "host", "device"):
-    raise ValueError(f"search: expected 'auto', 'host' or 'device', got {search!r}")
+  """The search `compute_frames(search=...)` asks for ("auto", "host" or "device", checked by
+  `compute_frames`; on the host for a host kernel)."""
   if host_kernel:
     return _PatchSearch(points, spec, radius, k, seed, False)
   if search == "device" and k is None:

@@ -8,6 +8,7 @@ import pytest
 
 import lrf_jax
 from lrf_jax import datasets, io
+from lrf_jax.descriptors import compute_descriptors
 
 
 @pytest.fixture(scope="module")
@@ -122,3 +123,38 @@ def test_clear_caches_empties_them(demo):
   assert normals._CACHE and api._TABLES and api._jitted.cache_info().currsize
   lrf_jax.clear_caches()
   assert not normals._CACHE and not api._TABLES and api._jitted.cache_info().currsize == 0
+
+
+def test_kernel_and_search_are_checked_with_no_keypoints_too(demo):
+  pts, _, mr = demo
+  none = np.zeros(0, np.int64)
+  with pytest.raises(ValueError, match="kernel: expected"):
+    lrf_jax.compute_frames(pts, none, radius=15 * mr, method="toldi", kernel="gpu")
+  with pytest.raises(ValueError, match="search: expected"):
+    lrf_jax.compute_frames(pts, none, radius=15 * mr, method="toldi", search="kdtree")
+  with pytest.raises(ValueError, match="kernel: expected"):
+    compute_descriptors(pts, none, 15 * mr, np.zeros((0, 3, 3)), np.zeros(0, bool),
+                                kernel="gpu")
+  frames, valid = lrf_jax.compute_frames(pts, none, radius=15 * mr, method="toldi")
+  assert frames.shape == (0, 3, 3) and valid.shape == (0,)
+
+
+def test_descriptors_refuse_an_index_of_another_cloud(demo):
+  from lrf_jax.search.neighborhoods import SearchIndex
+  pts, _, mr = demo
+  kp = np.arange(0, len(pts), 50)
+  frames, valid = lrf_jax.compute_frames(pts, kp, radius=15 * mr, method="toldi")
+  other = pts + np.array([0.5, 0.0, 0.0])  # the same size, other points
+  with pytest.raises(ValueError, match="index: expected a SearchIndex built from these points"):
+    compute_descriptors(pts, kp, 15 * mr, frames, valid, index=SearchIndex(other, 0))
+  with pytest.raises(ValueError, match="got dict"):
+    compute_descriptors(pts, kp, 15 * mr, frames, valid, index={})
+  own = compute_descriptors(pts, kp, 15 * mr, frames, valid, index=SearchIndex(pts, 0))
+  fresh = compute_descriptors(pts, kp, 15 * mr, frames, valid)
+  np.testing.assert_array_equal(np.asarray(own[0]), np.asarray(fresh[0]))
+
+
+def test_default_params_refuses_a_name_without_shipped_weights():
+  with pytest.raises(ValueError, match="no shipped weights named 'lrf_nett'.*lrf_net, lrf_net_plus"):
+    lrf_jax.default_params("lrf_nett")
+  assert set(lrf_jax.default_params("lrf_net")) == set(lrf_jax.init_params(0))

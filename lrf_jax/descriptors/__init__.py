@@ -272,9 +272,20 @@ def compute_descriptors(
   frames, valid = validate_frames(frames, valid, keypoints.shape[0])
   if int(chunk_size) < 1:
     raise ValueError(f"chunk_size: expected a positive integer, got {chunk_size!r}")
+  if kernel not in ("auto", "host", "jit"):  # here, so that it holds with no keypoints too
+    raise ValueError(f"kernel: expected 'auto', 'host' or 'jit', got {kernel!r}")
+  if index is not None and not (isinstance(index, SearchIndex) and index.matches(points)):
+    raise ValueError("index: expected a SearchIndex built from these points (SearchIndex(points, "
+                     f"seed)), got {_index_description(index)}")
   return _descriptors_checked(descriptor, points, keypoints, radius, frames, valid, faces=faces,
                               normals=normals, k=k, seed=seed, chunk_size=chunk_size,
                               index=index, kernel=kernel, options=options)
+
+
+def _index_description(index: Any) -> str:
+  if not isinstance(index, SearchIndex):
+    return type(index).__name__
+  return f"an index of another cloud ({index.points.shape[0]} points)"
 
 
 def _descriptors_checked(descriptor: str, points: np.ndarray, keypoints: np.ndarray,
@@ -285,8 +296,7 @@ def _descriptors_checked(descriptor: str, points: np.ndarray, keypoints: np.ndar
                          options: dict | None = None) -> tuple[jax.Array, jax.Array]:
   """`compute_descriptors` after its argument checks: the same arguments (and defaults), already
   checked by `compute_descriptors` (or by `register`, for the clouds it read, the keypoints it
-  drew and the frames `compute_frames` gave). Only `kernel` is checked here, where it is first
-  read (after the empty-keypoints return, as always).
+  drew and the frames `compute_frames` gave), `kernel` and `index` included.
 
   Args:
     descriptor: a key of `DESCRIPTORS`.
@@ -307,8 +317,6 @@ def _descriptors_checked(descriptor: str, points: np.ndarray, keypoints: np.ndar
     return jnp.zeros((0, spec.dim), jnp.float32), jnp.zeros((0,), bool)
   if index is None or index.seed != seed or index.points.shape != points.shape:
     index = SearchIndex(points, seed)
-  if kernel not in ("auto", "host", "jit"):
-    raise ValueError(f"kernel: expected 'auto', 'host' or 'jit', got {kernel!r}")
   applies = spec.host_descriptors is not None and k is None
   if kernel == "host" and not applies:
     raise ValueError(f"kernel='host': descriptor {descriptor!r} has no host fast path for these "

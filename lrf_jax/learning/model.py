@@ -148,18 +148,25 @@ def load_params(path: str | Path) -> Params:
 @functools.lru_cache(maxsize=8)
 def _default_params_cached(name: str) -> Params:
   path = WEIGHTS_DIR / f"{name}.msgpack"
+  if not path.exists():
+    shipped = sorted(p.stem for p in WEIGHTS_DIR.glob("*.msgpack"))
+    raise ValueError(f"default_params: no shipped weights named {name!r} (expected one of "
+                     f"{', '.join(shipped) or 'none: the package was installed without its weights'}"
+                     f", from {WEIGHTS_DIR}); init_params(seed) gives an untrained network")
   # Concrete arrays even when the first call happens inside a jit trace: the cache would
   # otherwise keep (and later leak) that trace's tracers.
   with jax.ensure_compile_time_eval():
-    if path.exists():
-      return load_params(path)
-    return init_params(0)
+    return load_params(path)
 
 
 def default_params(name: str = "lrf_net") -> Params:
   """The shipped weights `lrf_jax/weights/<name>.msgpack` ("lrf_net": the paper's model trained
-  with the default config; "lrf_net_plus": see that method), or, where none are shipped, the
-  seeded initialisation `init_params(0)`."""
+  with the default config; "lrf_net_plus" and "lrf_net_plus_points": see that method).
+
+  Raises:
+    ValueError: no weights of that name are shipped (the message lists those that are; an
+      untrained network is `init_params(seed)`, never given in their place).
+  """
   return _default_params_cached(name)
 
 

@@ -7,8 +7,7 @@ import inspect
 import warnings
 from typing import TYPE_CHECKING, Any, cast
 
-import jax
-import jax.numpy as jnp
+from lrf_jax._jax import backend_is_cpu, jax, jit, jnp
 import numpy as np
 
 from lrf_jax import _deprecated
@@ -17,7 +16,7 @@ from lrf_jax.search.chunks import map_chunks
 from lrf_jax.geometry.resolution import mesh_resolution as _mesh_resolution
 from lrf_jax.frames import METHODS, MethodSpec
 from lrf_jax.inputs import CloudInput, as_cloud
-from lrf_jax.learning.model import default_params
+from lrf_jax.learning.model import default_params, default_params_numpy
 from lrf_jax.search.neighborhoods import (Patches, SearchIndex, _patches_checked, unit_scaled,
                                           validate_keypoints, validate_radius, validate_seed,
                                           validate_viewpoint)
@@ -84,7 +83,7 @@ def _patch_frames_checked(spec: MethodSpec, patches: Patches, params: Any, extra
 _TABLES: list[tuple[Any, int, bool, Any]] = []  # (params, size, host, table), newest last
 
 
-@functools.partial(jax.jit, static_argnums=1)
+@jit(static_argnums=1)
 def _jit_weight_table(params: Any, size: int) -> Any:
   from lrf_jax.frames.lrf_net import weight_table
   return weight_table(params, size)
@@ -332,10 +331,12 @@ def compute_frames(
   viewpoint = validate_viewpoint(viewpoint)
   _check_choice("kernel", kernel, ("auto", "host", "jit"))  # also with no keypoints
   _check_choice("search", search, ("auto", "host", "device"))
-  return _frames_checked(method, cloud, keypoints, radius, params=params, k=k, seed=seed,
-                         viewpoint=viewpoint, chunk_size=chunk_size, progress=progress,
-                         search=search, kernel=kernel, return_confidence=return_confidence,
-                         options=options)
+  out = _frames_checked(method, cloud, keypoints, radius, params=params, k=k, seed=seed,
+                        viewpoint=viewpoint, chunk_size=chunk_size, progress=progress,
+                        search=search, kernel=kernel, return_confidence=return_confidence,
+                        options=options)
+  return cast("tuple[jax.Array, jax.Array] | tuple[jax.Array, jax.Array, jax.Array]",
+              tuple(jnp.asarray(a) for a in out))  # the host paths' numpy arrays too
 
 
 def _frames_checked(
@@ -354,7 +355,7 @@ def _frames_checked(
     kernel: str = "auto",
     return_confidence: bool = False,
     options: dict | None = None,
-) -> tuple[jax.Array, jax.Array] | tuple[jax.Array, jax.Array, jax.Array]:
+) -> tuple[AnyArray, ...]:
   """`compute_frames` after its argument checks: the same arguments (and defaults), already
   checked by `compute_frames` (or by `register`, for the clouds it read and the keypoints it
   drew). Only `search` and `kernel` are checked here, where they are first read (after the
@@ -372,7 +373,8 @@ def _frames_checked(
     params, progress, search, kernel: as `compute_frames` takes them.
 
   Returns:
-    As `compute_frames`.
+    As `compute_frames`, as numpy arrays where a host kernel computed them (JAX arrays on the
+    jitted path): `register` reads them without importing JAX.
   """
   spec = METHODS[method]
   options = {} if options is None else options
@@ -384,14 +386,15 @@ def _frames_checked(
   k = spec.default_k if k == "default" else k
   if k is not None:
     k = min(int(k), patch_size_cap(points.shape[0]))
-  if spec.needs_params and params is None:
-    params = default_params(spec.weights)
   m = keypoints.shape[0]
   if m == 0:
     empty = jnp.zeros((0, 3, 3), jnp.float32), jnp.zeros((0,), bool)
     return (*empty, jnp.zeros((0,), jnp.float32)) if return_confidence else empty
   on_host = _use_host_kernel(spec, kernel, k, options, search) and not return_confidence
   host_patches = _use_host_patch_kernel(spec, kernel, options, search)
+  if spec.needs_params and params is None:  # the host kernels read numpy (no JAX to import)
+    params = (default_params_numpy(spec.weights) if on_host or host_patches
+              else default_params(spec.weights))
   search_patches = _patch_search(points, spec, radius, k, seed, search, on_host or host_patches)
   _warn_on_ball_size(search_patches.index, points, keypoints, radius, unit)
   normals = method_normals(spec, points, radius, faces=faces, normals=normals,
@@ -427,7 +430,7 @@ def _frames_checked(
       return (*out, np.asarray(conf) if host_patches else conf)
     return out
 
-  n_dev = jax.local_device_count()
+  n_dev = 1 if host else jax.local_device_count()
   chunk = min(int(chunk_size), -(-m // n_dev) * n_dev)  # a multiple of the devices: shardable
   show = bool(progress) or (progress is None and -(-m // chunk) > 4)
   out = map_chunks(run, m, chunk, pad=not host, progress=show, desc=f"{method} frames")
@@ -435,8 +438,7 @@ def _frames_checked(
     return out
   back = np.empty_like(visit)
   back[visit] = np.arange(m)
-  return cast("tuple[jax.Array, jax.Array] | tuple[jax.Array, jax.Array, jax.Array]",
-              tuple(jnp.asarray(np.asarray(a)[back]) for a in out))  # as many as `run` gives
+  return tuple(np.asarray(a)[back] for a in out)  # numpy, as many as `run` gives
 
 
 def _in_callers_order(order: np.ndarray, frames: Any, valid: Any) -> tuple[np.ndarray, np.ndarray]:
@@ -550,7 +552,7 @@ def _host_requested(kernel: str, search: str) -> bool:
   """A host kernel that applies runs: always with kernel="host", with "auto" on a CPU backend
   unless the search runs on the device."""
   return kernel == "host" or (kernel == "auto" and search != "device"
-                              and jax.default_backend() == "cpu")
+                              and backend_is_cpu())
 
 
 def _use_host_patch_kernel(spec: MethodSpec, kernel: str, options: dict, search: str) -> bool:
@@ -574,5 +576,5 @@ def _patch_search(points: np.ndarray, spec: MethodSpec, radius: float, k: int | 
     raise ValueError(f"search='device' needs an integer patch size; method {spec.name!r} uses "
                      "every neighbor (k=None): use search='host'")
   on_device = k is not None and (search == "device" or (
-      search == "auto" and jax.default_backend() != "cpu"))
+      search == "auto" and not backend_is_cpu()))
   return _PatchSearch(points, spec, radius, k, seed, on_device)

@@ -34,7 +34,8 @@ NOTICE = ("lrf_jax: compiling kernels for this machine (first run only, up to a 
           "runs load them from {where}) ...")
 _JAX_COMPILE_NOTICE_SECS = 1.0  # with JAX's cache off, a compile this long is worth the note
 
-_state: dict[str, Any] = {"announced": False, "numba": None, "jax": False, "stream": None}
+_state: dict[str, Any] = {"announced": False, "numba": None, "jax": False, "stream": None,
+                         "jax_cache": None}
 
 
 def cache_root() -> Path:
@@ -90,21 +91,40 @@ def enable(directory: str | os.PathLike | None = None) -> Path | None:
   created leaves the cache off (the program still runs, only slower to start). Also turns on
   `announce_compiles()`.
 
+  JAX is not imported here: when it is not imported yet, the settings wait and are applied
+  when the package first uses it (`jax_imported`; a run on the host kernels never imports it).
+
   Returns:
     The directory in use, or None when the cache stays off.
   """
-  import jax
-
   announce_compiles()
   path = Path(directory).expanduser() if directory is not None else cache_dir()
   try:
     path.mkdir(parents=True, exist_ok=True)
   except OSError:
     return None
-  jax.config.update("jax_compilation_cache_dir", str(path))
+  _state["jax_cache"] = str(path)
+  if "jax" in sys.modules:
+    _configure_jax()
+  return path
+
+
+def _configure_jax() -> None:
+  if _state["jax_cache"] is None:
+    return
+  import jax  # pylint: disable=import-outside-toplevel
+
+  jax.config.update("jax_compilation_cache_dir", _state["jax_cache"])
   jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
   jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
-  return path
+
+
+def jax_imported() -> None:
+  """Apply the package's JAX settings now that JAX is imported (called once, by `lrf_jax._jax`
+  when a module first uses JAX): the persistent cache of `enable()`, if it was called, and the
+  compile notice of `announce_compiles()`."""
+  announce_compiles()
+  _configure_jax()
 
 
 def _announce(stream: TextIO | None = None) -> None:

@@ -12,6 +12,7 @@ import textwrap
 import time
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 import lrf_jax
@@ -20,11 +21,12 @@ from lrf_jax import compilation_cache
 HEAVY = ("jax", "numba", "flax", "orbax", "matplotlib", "optax", "scipy")
 
 
-def _python(code: str, env: dict[str, str], cwd: Path | None = None) -> subprocess.CompletedProcess:
+def _python(code: str, env: dict[str, str], cwd: Path | None = None,
+            timeout: float = 120) -> subprocess.CompletedProcess:
   full = {k: v for k, v in os.environ.items() if k not in ("NUMBA_CACHE_DIR", "XDG_CACHE_HOME")}
   full.update(env)
   return subprocess.run([sys.executable, "-c", textwrap.dedent(code)], capture_output=True,
-                        text=True, env=full, cwd=cwd, timeout=120)
+                        text=True, env=full, cwd=cwd, timeout=timeout)
 
 
 def test_import_is_light_and_exports_are_lazy(tmp_path):
@@ -155,3 +157,72 @@ def test_one_specialisation_per_kernel(tmp_path):
                        timeout=1200)
   assert out.returncode == 0, out.stderr[-3000:]
   assert "MANY []" in out.stdout, out.stdout[-2000:]
+
+
+def test_register_on_the_cpu_imports_no_jax():
+  """The host path (numba kernels, numpy) runs without JAX: a fresh `lrf-register` does not pay
+  its import (about a second). The user's cache root, so that the kernels the suite compiled
+  are loaded, not compiled again."""
+  out = _python("""
+      import sys
+      import numpy as np
+      import lrf_jax
+      from lrf_jax import compilation_cache, datasets
+      compilation_cache.enable()  # as the command-line programs do
+      pair = datasets.make_demo_pair(0, seed=0, partial=False)
+      res = lrf_jax.register(pair.model_points, pair.model_points @ np.diag([1.0, -1.0, -1.0]),
+                             n_keypoints=400, n_correspondences=200, seed=0)
+      assert "jax" not in sys.modules, "JAX was imported"
+      print(res.success, np.round(res.transform[:3, :3]).astype(int).ravel().tolist())
+      """, {k: v for k, v in os.environ.items() if k in ("NUMBA_CACHE_DIR", "XDG_CACHE_HOME")},
+      timeout=900)
+  assert out.returncode == 0, out.stderr
+  assert out.stdout.split()[0] == "True", out.stdout  # a half turn about x, found
+  assert out.stdout.split(maxsplit=1)[1].strip() == "[1, 0, 0, 0, -1, 0, 0, 0, -1]", out.stdout
+
+
+def test_jax_settings_wait_for_jax(tmp_path):
+  """`compilation_cache.enable()` before JAX is imported keeps the cache directory and applies
+  it when the package first uses JAX."""
+  out = _python("""
+      import sys
+      from lrf_jax import compilation_cache
+      path = compilation_cache.enable()
+      assert "jax" not in sys.modules
+      from lrf_jax._jax import jnp
+      assert float(jnp.ones(3).sum()) == 3.0
+      import jax
+      assert jax.config.jax_compilation_cache_dir == str(path), jax.config.jax_compilation_cache_dir
+      print("ok")
+      """, {"XDG_CACHE_HOME": str(tmp_path)})
+  assert out.returncode == 0 and out.stdout.strip() == "ok", out.stderr
+
+
+def test_lazy_jax_helpers():
+  import jax
+  import jax.numpy as real_jnp
+  from lrf_jax import _jax
+  assert _jax.jnp.float32 is real_jnp.float32  # every attribute is the real module's
+  assert _jax.is_jax_numpy(_jax.jnp) and _jax.is_jax_numpy(real_jnp)
+  assert not _jax.is_jax_numpy(np)
+  assert _jax.is_jax_array(real_jnp.zeros(2)) and not _jax.is_jax_array(np.zeros(2))
+  assert _jax.backend_is_cpu() == (jax.default_backend() == "cpu")
+
+  def double(x, n):
+    return x * n
+
+  lazy = _jax.jit(static_argnums=1)(double)
+  np.testing.assert_array_equal(lazy(real_jnp.arange(3), 2), jax.jit(double, static_argnums=1)(
+      real_jnp.arange(3), 2))
+  assert lazy.__name__ == "double"
+
+
+def test_compute_frames_returns_jax_arrays_from_the_host_kernels_too():
+  import jax
+  from lrf_jax import datasets
+  pair = datasets.make_demo_pair(0, seed=0, partial=False)
+  kp = np.arange(0, len(pair.model_points), 40)
+  for kernel in ("host", "jit"):
+    frames, valid = lrf_jax.compute_frames(pair.model_points, kp, radius_mr=15, method="toldi",
+                                           kernel=kernel)
+    assert isinstance(frames, jax.Array) and isinstance(valid, jax.Array), kernel

@@ -26,8 +26,7 @@ import functools
 from typing import Any
 from collections.abc import Callable
 
-import jax
-import jax.numpy as jnp
+from lrf_jax._jax import backend_is_cpu, jax, jnp
 import numpy as np
 
 from lrf_jax import _deprecated
@@ -321,7 +320,7 @@ def _descriptors_checked(descriptor: str, points: np.ndarray, keypoints: np.ndar
   if kernel == "host" and not applies:
     raise ValueError(f"kernel='host': descriptor {descriptor!r} has no host fast path for these "
                      "arguments (it needs DESCRIPTORS[descriptor].host_descriptors and k=None)")
-  if kernel == "host" or (kernel == "auto" and applies and jax.default_backend() == "cpu"):
+  if kernel == "host" or (kernel == "auto" and applies and backend_is_cpu()):
     assert spec.host_descriptors is not None  # applies (kernel="host" raised above otherwise)
     host = spec.host_descriptors
     run_host = lambda idx, n_real: host(points, keypoints[idx], radius, frames[idx], valid[idx],

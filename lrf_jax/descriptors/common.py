@@ -7,8 +7,7 @@ ball, `k=None`, as the original descriptors use) and frames from ANY LRF method,
 
 from __future__ import annotations
 
-import jax
-import jax.numpy as jnp
+from lrf_jax._jax import jax, jnp
 import numpy as np
 
 from lrf_jax.search import engine

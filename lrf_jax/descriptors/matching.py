@@ -28,12 +28,10 @@ References:
 
 from __future__ import annotations
 
-import functools
 from concurrent.futures import ThreadPoolExecutor
 from typing import NamedTuple
 
-import jax
-import jax.numpy as jnp
+from lrf_jax._jax import jax, jit, jnp
 import numba as nb
 import numpy as np
 
@@ -65,7 +63,7 @@ def _d2(query: jax.Array, ref: jax.Array, ref_ok: jax.Array) -> jax.Array:
   return jnp.where(ref_ok[None, :], jnp.maximum(d2, 0.0), jnp.inf)
 
 
-@functools.partial(jax.jit, static_argnames="k")
+@jit(static_argnames="k")
 def _block(query: jax.Array, ref: jax.Array, ref_ok: jax.Array, k: int = 2
            ) -> tuple[jax.Array, jax.Array]:
   """The k nearest references of each query: squared distances (b, k) and indices (b, k),
@@ -74,7 +72,7 @@ def _block(query: jax.Array, ref: jax.Array, ref_ok: jax.Array, k: int = 2
   return -neg, idx
 
 
-@functools.partial(jax.jit, static_argnames=("k", "kc"))
+@jit(static_argnames=("k", "kc"))
 def _block_both(query: jax.Array, query_ok: jax.Array, ref: jax.Array, ref_ok: jax.Array, k: int,
                 kc: int) -> tuple[jax.Array, ...]:
   """`_block`'s k nearest references of each query, and the kc nearest valid queries of the

@@ -38,8 +38,7 @@ from __future__ import annotations
 
 import math
 
-import jax
-import jax.numpy as jnp
+from lrf_jax._jax import jax, jnp
 
 from lrf_jax.descriptors.common import local_coordinates, sanitize_inputs
 from lrf_jax.search.neighborhoods import Patches

@@ -28,8 +28,7 @@ References:
 
 from __future__ import annotations
 
-import jax
-import jax.numpy as jnp
+from lrf_jax._jax import jax, jnp
 
 from lrf_jax.descriptors.common import local_coordinates, sanitize_inputs
 from lrf_jax.search.neighborhoods import Patches

@@ -14,8 +14,7 @@ x-axis, given z:
 
 from __future__ import annotations
 
-import jax
-import jax.numpy as jnp
+from lrf_jax._jax import jax, jnp
 
 from lrf_jax.geometry import ops as geometry
 from lrf_jax.frames.lrf_net import attributes, frame_from_weights, z_axes

@@ -22,8 +22,7 @@ from __future__ import annotations
 from typing import TYPE_CHECKING, Any, NamedTuple
 from collections.abc import Callable
 
-import jax
-import jax.numpy as jnp
+from lrf_jax._jax import is_jax_numpy, jax, jnp
 import numpy as np
 
 from lrf_jax import _deprecated
@@ -99,7 +98,7 @@ def z_axes(patches: Patches) -> tuple[jax.Array, jax.Array]:
   return jax.lax.stop_gradient(z), ok
 
 
-WeightFn = Callable[["AnyArray", jax.Array, "AnyArray"], jax.Array]  # (offsets, z, radius)
+WeightFn = Callable[["AnyArray", "jax.Array", "AnyArray"], "jax.Array"]  # (offsets, z, radius)
 
 
 def ball_sign(z: jax.Array, offsets: AnyArray, mask: AnyArray) -> jax.Array:
@@ -226,7 +225,7 @@ def weight_table(params: Params, size: int = 257, xp: Any = jnp) -> WeightTable:
     `WeightTable` with values (size, size) [i, j] = w(i / (size - 1), 2 j / (size - 1) - 1),
     an `xp` array (float32 for numpy).
   """
-  dtype = None if xp is jnp else np.float32  # jax.numpy: its default float
+  dtype = None if is_jax_numpy(xp) else np.float32  # jax.numpy: its default float
   grid = xp.linspace(0.0, 1.0, size, dtype=dtype)
   cgrid = xp.linspace(-1.0, 1.0, size, dtype=dtype)
   attrs = xp.stack(xp.meshgrid(grid, cgrid, indexing="ij"), -1)

@@ -21,8 +21,7 @@ from __future__ import annotations
 
 from typing import TYPE_CHECKING, NamedTuple
 
-import jax
-import jax.numpy as jnp
+from lrf_jax._jax import jax, jnp
 import numpy as np
 
 from lrf_jax import _deprecated

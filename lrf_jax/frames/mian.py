@@ -27,8 +27,7 @@ from __future__ import annotations
 
 from typing import TYPE_CHECKING, Any
 
-import jax
-import jax.numpy as jnp
+from lrf_jax._jax import jax, jnp
 import numba as nb
 import numpy as np
 

@@ -28,8 +28,7 @@ from __future__ import annotations
 
 from typing import Any
 
-import jax
-import jax.numpy as jnp
+from lrf_jax._jax import jax, jnp
 import numba as nb
 import numpy as np
 

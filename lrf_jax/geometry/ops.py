@@ -14,13 +14,12 @@ from __future__ import annotations
 
 from typing import TYPE_CHECKING
 
-import jax
-import jax.numpy as jnp
+from lrf_jax._jax import jax, jnp
 
 if TYPE_CHECKING:
   from lrf_jax.search.neighborhoods import AnyArray, Patches
 
-Array = jax.Array
+  Array = jax.Array  # annotations only (they are strings here): no JAX import for it
 
 # Relative tolerance below which a vector or an eigenvalue gap counts as degenerate.
 DEGENERATE_EPS = 1e-6

@@ -27,8 +27,7 @@ from pathlib import Path
 from typing import Any
 from collections.abc import Sequence
 
-import jax
-import jax.numpy as jnp
+from lrf_jax._jax import is_jax_numpy, jax, jnp
 import msgpack
 import numpy as np
 
@@ -78,7 +77,7 @@ def apply_weights(params: Params, attrs: Any, xp: Any = jnp, dtype: Any = None) 
   Returns:
     (..., K) weights (dimensionless, any sign), an `xp` array.
   """
-  relu = jax.nn.relu if xp is jnp else (lambda h: np.maximum(h, 0.0))
+  relu = jax.nn.relu if is_jax_numpy(xp) else (lambda h: np.maximum(h, 0.0))
 
   def dense(layer, h):
     return h @ xp.asarray(layer["kernel"], dtype) + xp.asarray(layer["bias"], dtype)
@@ -122,12 +121,17 @@ def save_params(params: Params, path: str | Path) -> None:
 
 
 def load_params(path: str | Path) -> Params:
-  """Read parameters written by `save_params`.
+  """Read parameters written by `save_params`, as arrays on JAX's default device.
 
   Raises:
     FileNotFoundError: when `path` does not exist.
     ValueError: when the file is not a parameter file of this network.
   """
+  return jax.device_put(load_params_numpy(path))
+
+
+def load_params_numpy(path: str | Path) -> Params:
+  """`load_params` as numpy arrays (no JAX: what the host kernels read). Raises as it does."""
   path = Path(path)
   if not path.exists():
     raise FileNotFoundError(f"{path}: no such parameter file")
@@ -142,21 +146,33 @@ def load_params(path: str | Path) -> Params:
     raise ValueError(f"{path}: expected WeightNet parameters (enc*/dec*/out) or ablation "
                      f"parameters (weights/x_reg/z_reg), got keys "
                      f"{sorted(params) if isinstance(params, dict) else type(params)}")
-  return jax.device_put(params)
+  return params
 
 
 @functools.lru_cache(maxsize=8)
-def _default_params_cached(name: str) -> Params:
+def _default_params_numpy(name: str) -> Params:
   path = WEIGHTS_DIR / f"{name}.msgpack"
   if not path.exists():
     shipped = sorted(p.stem for p in WEIGHTS_DIR.glob("*.msgpack"))
     raise ValueError(f"default_params: no shipped weights named {name!r} (expected one of "
                      f"{', '.join(shipped) or 'none: the package was installed without its weights'}"
                      f", from {WEIGHTS_DIR}); init_params(seed) gives an untrained network")
+  return load_params_numpy(path)
+
+
+@functools.lru_cache(maxsize=8)
+def _default_params_cached(name: str) -> Params:
+  params = _default_params_numpy(name)
   # Concrete arrays even when the first call happens inside a jit trace: the cache would
   # otherwise keep (and later leak) that trace's tracers.
   with jax.ensure_compile_time_eval():
-    return load_params(path)
+    return jax.device_put(params)
+
+
+def default_params_numpy(name: str = "lrf_net") -> Params:
+  """`default_params(name)` as numpy arrays, read once per process (no JAX: the host kernels'
+  form). Raises as `default_params` does."""
+  return _default_params_numpy(name)
 
 
 def default_params(name: str = "lrf_net") -> Params:

@@ -21,11 +21,9 @@ References:
 
 from __future__ import annotations
 
-import functools
 from typing import Any, NamedTuple
 
-import jax
-import jax.numpy as jnp
+from lrf_jax._jax import jax, jit, jnp
 import numpy as np
 
 from lrf_jax.geometry.ops import kabsch
@@ -87,7 +85,7 @@ def _inlier_mask(r: jax.Array, t: jax.Array, src: jax.Array, dst: jax.Array,
   return jnp.sum(res * res, axis=-1) <= threshold * threshold
 
 
-@functools.partial(jax.jit, static_argnames=("refine",))
+@jit(static_argnames=("refine",))
 def _select_and_refine(rs: jax.Array, ts: jax.Array, src: jax.Array, dst: jax.Array,
                        threshold: jax.Array, refine: bool):
   masks = jax.vmap(lambda r, t: _inlier_mask(r, t, src, dst, threshold))(rs, ts)  # (H, M)
@@ -187,13 +185,13 @@ def lrf_ransac(src_points: Any, dst_points: Any, src_frames: Any, dst_frames: An
   return _finish(r, t, mask, best, count)
 
 
-@jax.jit
+@jit
 def _lrf_hypotheses(ps, fs, qs, fd, scale):
   return jax.vmap(lambda p, f, q, g: pose_from_correspondence(p, f, q, g, scale=scale))(
       ps, fs, qs, fd)
 
 
-@jax.jit
+@jit
 def _kabsch_batch(a: jax.Array, b: jax.Array):
   return jax.vmap(kabsch)(a, b)
 

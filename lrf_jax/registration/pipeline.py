@@ -655,8 +655,8 @@ def _side_frames(side: _Side, setup: _Setup, method: str, params: Any
              if spec.uses_viewpoint and side.viewpoint is None and side.faces is None else {})
   _check_options(method, options, spec)  # options of register's own choosing: checked here
   cloud = CloudInput(side.points, side.faces, None if spec.uses_viewpoint else side.normals)
-  # two arrays: no return_confidence (compute_frames' return type admits three)
-  frames, valid = _frames_checked(  # type: ignore[misc]
+  # two arrays (no return_confidence); numpy from the host kernels, so no JAX is imported
+  frames, valid = _frames_checked(
       method, cloud, side.keypoints, setup.radius, params=params, seed=setup.seed,
       viewpoint=side.viewpoint, options=options)
   return np.asarray(frames), np.asarray(valid)

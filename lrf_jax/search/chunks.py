@@ -5,7 +5,7 @@ from __future__ import annotations
 from typing import Any
 from collections.abc import Callable
 
-import jax.numpy as jnp
+from lrf_jax._jax import jnp
 import numpy as np
 
 

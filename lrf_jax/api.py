@@ -358,8 +358,7 @@ def _frames_checked(
 ) -> tuple[AnyArray, ...]:
   """`compute_frames` after its argument checks: the same arguments (and defaults), already
   checked by `compute_frames` (or by `register`, for the clouds it read and the keypoints it
-  drew). Only `search` and `kernel` are checked here, where they are first read (after the
-  empty-keypoints return, as always).
+  drew), `search` and `kernel` included.
 
   Args:
     method: a key of `METHODS`.

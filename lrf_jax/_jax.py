@@ -9,8 +9,6 @@ attribute of it). Type checkers see the real modules.
 Also here:
   * `jit`: `jax.jit` for a module-level decorator, applied at the function's first call;
   * `is_jax_numpy(xp)`: whether an array-module argument is jax.numpy (the proxy or the module);
-  * `is_jax_array(x)`: `isinstance(x, jax.Array)` without importing JAX (an array of a library
-    that was never imported cannot be passed in);
   * `backend_is_cpu()`: `jax.default_backend() == "cpu"`, without importing JAX where no
     accelerator plugin is installed (JAX's default backend is then the CPU).
 
@@ -81,11 +79,6 @@ def jit(fun: Callable | None = None, **kwargs: Any) -> Any:
 def is_jax_numpy(xp: Any) -> bool:
   """Whether the array module `xp` is jax.numpy (this module's `jnp` or the real one)."""
   return getattr(xp, "__name__", None) == "jax.numpy"
-
-
-def is_jax_array(x: Any) -> bool:
-  """`isinstance(x, jax.Array)`, False without importing JAX when it was never imported."""
-  return "jax" in sys.modules and isinstance(x, sys.modules["jax"].Array)
 
 
 # JAX's accelerator plugins (CUDA, ROCm, TPU): where none is installed and JAX_PLATFORMS does not

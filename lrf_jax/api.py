@@ -18,8 +18,8 @@ from lrf_jax.frames import METHODS, MethodSpec
 from lrf_jax.inputs import CloudInput, as_cloud
 from lrf_jax.learning.model import default_params, default_params_numpy
 from lrf_jax.search.neighborhoods import (Patches, SearchIndex, _patches_checked, unit_scaled,
-                                          validate_keypoints, validate_radius, validate_seed,
-                                          validate_viewpoint)
+                                          validate_choice, validate_index, validate_keypoints,
+                                          validate_radius, validate_seed, validate_viewpoint)
 from lrf_jax.prepare import method_normals, prepare_extra
 
 if TYPE_CHECKING:
@@ -193,26 +193,6 @@ def patch_size_cap(n_points: int) -> int:
   return 1 << max(int(n_points) - 1, 0).bit_length()
 
 
-def _check_index(index: Any, points: np.ndarray) -> None:
-  """Raise unless `index` is a `SearchIndex` of exactly these points (same object, or the same
-  shape and values): an index of another cloud would silently answer with its points."""
-  if not isinstance(index, SearchIndex):
-    raise ValueError(f"index: expected a SearchIndex of the points, got {type(index).__name__}")
-  own = index.points
-  if own is points:
-    return
-  if own.shape != points.shape or not np.array_equal(own, points):
-    raise ValueError(f"index: a SearchIndex of a different cloud ({own.shape[0]} points, "
-                     f"not equal to the {points.shape[0]} points given); build it with "
-                     "SearchIndex(points, seed) from these points")
-
-
-def _check_choice(name: str, value: Any, choices: tuple[str, ...]) -> None:
-  """Raise a ValueError naming `name` unless `value` is one of `choices` (strings)."""
-  if not (isinstance(value, str) and value in choices):
-    raise ValueError(f"{name}: expected {' or '.join(repr(c) for c in choices)}, got {value!r}")
-
-
 def _check_call(spec: MethodSpec, faces: Any, chunk_size: Any, k: Any, options: dict,
                 return_confidence: bool) -> None:
   """`compute_frames`' checks of the method's needs and of chunk_size, k, the options and
@@ -329,8 +309,8 @@ def compute_frames(
   _check_call(spec, cloud.faces, chunk_size, k, options, return_confidence)
   seed = validate_seed(seed)
   viewpoint = validate_viewpoint(viewpoint)
-  _check_choice("kernel", kernel, ("auto", "host", "jit"))  # also with no keypoints
-  _check_choice("search", search, ("auto", "host", "device"))
+  validate_choice("kernel", kernel, ("auto", "host", "jit"))  # also with no keypoints
+  validate_choice("search", search, ("auto", "host", "device"))
   out = _frames_checked(method, cloud, keypoints, radius, params=params, k=k, seed=seed,
                         viewpoint=viewpoint, chunk_size=chunk_size, progress=progress,
                         search=search, kernel=kernel, return_confidence=return_confidence,
@@ -525,7 +505,7 @@ def host_frames(points: np.ndarray, keypoints: np.ndarray, radius: float, method
   spec = _spec(method)
   if spec.host_frames is None:
     raise ValueError(f"method {method!r} has no host fast path (METHODS[method].host_frames)")
-  _check_index(index, points)
+  validate_index(index, points)
   kp = np.asarray(keypoints, np.int64)
   order = engine.query_order(index.grid(radius), points[kp])  # cache-friendly, as compute_frames
   counts = None if ball_counts is None else np.asarray(ball_counts)[order]

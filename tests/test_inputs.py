@@ -145,7 +145,7 @@ def test_descriptors_refuse_an_index_of_another_cloud(demo):
   kp = np.arange(0, len(pts), 50)
   frames, valid = lrf_jax.compute_frames(pts, kp, radius=15 * mr, method="toldi")
   other = pts + np.array([0.5, 0.0, 0.0])  # the same size, other points
-  with pytest.raises(ValueError, match="index: expected a SearchIndex built from these points"):
+  with pytest.raises(ValueError, match="index: a SearchIndex of a different cloud"):
     compute_descriptors(pts, kp, 15 * mr, frames, valid, index=SearchIndex(other, 0))
   with pytest.raises(ValueError, match="got dict"):
     compute_descriptors(pts, kp, 15 * mr, frames, valid, index={})

@@ -44,7 +44,8 @@ from lrf_jax.descriptors.shot import shot_descriptors
 from lrf_jax.descriptors.snapshots import snapshot_descriptors
 from lrf_jax.descriptors.toldi import toldi_descriptors
 from lrf_jax.search.neighborhoods import (Patches, SearchIndex, _patches_checked,
-                                          validate_cloud, validate_keypoints, validate_radius)
+                                          validate_choice, validate_cloud, validate_index,
+                                          validate_keypoints, validate_radius)
 from lrf_jax.frames.normal_based import prepare_normals
 
 
@@ -271,20 +272,12 @@ def compute_descriptors(
   frames, valid = validate_frames(frames, valid, keypoints.shape[0])
   if int(chunk_size) < 1:
     raise ValueError(f"chunk_size: expected a positive integer, got {chunk_size!r}")
-  if kernel not in ("auto", "host", "jit"):  # here, so that it holds with no keypoints too
-    raise ValueError(f"kernel: expected 'auto', 'host' or 'jit', got {kernel!r}")
-  if index is not None and not (isinstance(index, SearchIndex) and index.matches(points)):
-    raise ValueError("index: expected a SearchIndex built from these points (SearchIndex(points, "
-                     f"seed)), got {_index_description(index)}")
+  validate_choice("kernel", kernel, ("auto", "host", "jit"))  # also with no keypoints
+  if index is not None:
+    validate_index(index, points)
   return _descriptors_checked(descriptor, points, keypoints, radius, frames, valid, faces=faces,
                               normals=normals, k=k, seed=seed, chunk_size=chunk_size,
                               index=index, kernel=kernel, options=options)
-
-
-def _index_description(index: Any) -> str:
-  if not isinstance(index, SearchIndex):
-    return type(index).__name__
-  return f"an index of another cloud ({index.points.shape[0]} points)"
 
 
 def _descriptors_checked(descriptor: str, points: np.ndarray, keypoints: np.ndarray,

@@ -20,7 +20,7 @@ multi-threaded), which writes the arrays of `Patches` directly.
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING, NamedTuple
+from typing import TYPE_CHECKING, Any, NamedTuple
 
 import numpy as np
 
@@ -328,6 +328,27 @@ def _round_up(k: int) -> int:
     size *= 2
 
 
+def validate_choice(name: str, value: Any, choices: tuple[str, ...]) -> str:
+  """`value` if it is one of the strings `choices`, else a ValueError naming `name`."""
+  if not (isinstance(value, str) and value in choices):
+    listed = ", ".join(repr(c) for c in choices[:-1]) + f" or {choices[-1]!r}"
+    raise ValueError(f"{name}: expected {listed}, got {value!r}")
+  return value
+
+
+def validate_index(index: Any, points: np.ndarray) -> None:
+  """Raise a ValueError unless `index` is a `SearchIndex` of exactly these points (the same
+  array, or the same shape and values, `SearchIndex.matches`): an index of another cloud would
+  silently answer with its points."""
+  if not isinstance(index, SearchIndex):
+    raise ValueError("index: expected a SearchIndex built from these points (SearchIndex(points, "
+                     f"seed)), got {type(index).__name__}")
+  if not index.matches(points):
+    raise ValueError(f"index: a SearchIndex of a different cloud ({index.points.shape[0]} "
+                     f"points, not equal to the {np.shape(points)[0]} points given); build it "
+                     "with SearchIndex(points, seed) from these points")
+
+
 def build_patches(
     points: np.ndarray,
     keypoints: np.ndarray,
@@ -386,9 +407,8 @@ def build_patches(
     z_ratio = validate_radius(z_ratio, "z_ratio")
     if k is not None and (int(k) != k or k < 1):
       raise ValueError(f"k: expected a positive integer patch size or None, got {k!r}")
-    if index is not None and not index.matches(points):
-      raise ValueError("index: a SearchIndex of a different cloud (its points differ from "
-                       "`points`); build it with SearchIndex(points, seed)")
+    if index is not None:
+      validate_index(index, points)
   return _patches_checked(points, keypoints, radius, k, seed=seed, z_ratio=z_ratio, index=index,
                           max_k=max_k, shells=shells, into=into, stats_from=stats_from)
 

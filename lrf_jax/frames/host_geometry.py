@@ -119,7 +119,7 @@ def x_axis_sum_of(weight):
   Returns of `x_axis_sum`:
     (ok, s): s (3,) float64, unnormalised (cloud units); ok is False when s vanishes relative
     to Σ_t |w_t| |v_t| (|s| <= x_eps Σ_t |w_t| |v_t|: a symmetric patch, or all weights 0).
-    Neighbours of weight 0 are skipped (they add exactly nothing), so a padding slot of weight
+    Neighbors of weight 0 are skipped (they add exactly nothing), so a padding slot of weight
     0 may hold any offset.
 
   One definition for both kernels, specialised per weight by this factory rather than written

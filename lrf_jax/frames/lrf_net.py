@@ -225,13 +225,13 @@ def weight_table(params: Params, size: int = 257, xp: Any = jnp) -> WeightTable:
     `WeightTable` with values (size, size) [i, j] = w(i / (size - 1), 2 j / (size - 1) - 1),
     an `xp` array (float32 for numpy).
   """
-  dtype = None if is_jax_numpy(xp) else np.float32  # jax.numpy: its default float
+  host = not is_jax_numpy(xp)
+  dtype = np.float32 if host else None  # jax.numpy: its default float
   grid = xp.linspace(0.0, 1.0, size, dtype=dtype)
   cgrid = xp.linspace(-1.0, 1.0, size, dtype=dtype)
   attrs = xp.stack(xp.meshgrid(grid, cgrid, indexing="ij"), -1)
-  if xp is np:  # one BLAS thread beside numba's (`model.apply_weights_numpy`)
-    return WeightTable(apply_weights_numpy(params, attrs))
-  return WeightTable(apply_weights(params, attrs))
+  # numpy: one BLAS thread beside numba's (`model.apply_weights_numpy`)
+  return WeightTable(apply_weights_numpy(params, attrs) if host else apply_weights(params, attrs))
 
 
 def weight_table_numpy(params: Params, size: int = 257) -> WeightTable:

@@ -24,12 +24,13 @@ EXTRAS = {
     "train": ("flax", "optax", "orbax-checkpoint", "matplotlib"),
     "eval": ("matplotlib", "fast-simplification", "flax"),
     "plot": ("matplotlib",),
+    "ray": ("ray",),
 }
 
 
 # The module each extra's package is imported as.
 _MODULES = {"flax": "flax", "optax": "optax", "orbax-checkpoint": "orbax.checkpoint",
-            "matplotlib": "matplotlib", "fast-simplification": "fast_simplification"}
+            "matplotlib": "matplotlib", "fast-simplification": "fast_simplification", "ray": "ray"}
 
 
 class MissingExtraError(ImportError):

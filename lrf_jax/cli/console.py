@@ -1,4 +1,4 @@
-"""Console-script entry points (`lrf-register`, `lrf-frames`): run a CLI's `main` and leave.
+"""Console-script entry points (`lrf-register`, `lrf-frames`, `lrf-batch`): run a CLI's `main` and leave.
 
 A process that has used JAX and numba spends about half a second in the interpreter's teardown
 (destroying the XLA runtime, its thread pools and every module) after the answer is written;
@@ -31,6 +31,12 @@ def run(main: Callable[[], int]) -> NoReturn:
 def register() -> NoReturn:
   """`lrf-register`: `lrf_jax.cli.register.main`."""
   from lrf_jax.cli.register import main
+  run(main)
+
+
+def batch() -> NoReturn:
+  """`lrf-batch`: `lrf_jax.cli.batch.main`."""
+  from lrf_jax.cli.batch import main
   run(main)
 
 

@@ -89,9 +89,25 @@ def npz_path(out: str) -> str:
 
 def _check(args: argparse.Namespace) -> str | None:
   """What is wrong with the arguments, before any work (None: fine)."""
+  from lrf_jax.io.atomic import output_problem, same_file
+  problem = check_options(args)
+  if problem:
+    return problem
+  inputs = [("cloud", args.cloud), ("--pair", args.pair), ("--gt", args.gt)]
+  if Path(args.out).expanduser().is_dir():
+    return f"--out: {args.out} is a folder; expected a file path (e.g. {Path(args.out) / 'frames.npz'})"
+  problem = output_problem(npz_path(args.out), "--out", inputs)
+  if problem is None and args.png is not None:
+    problem = output_problem(args.png, "--png", inputs)
+    if problem is None and same_file(args.png, npz_path(args.out)):
+      problem = f"--png: {args.png} is also the --out file; pick two paths"
+  return problem
+
+
+def check_options(args: argparse.Namespace) -> str | None:
+  """What is wrong with the options of `args` other than the output paths (None: fine)."""
   from lrf_jax.descriptors import DESCRIPTORS
   from lrf_jax.frames import METHODS
-  from lrf_jax.io.atomic import output_problem, same_file
   if args.method not in METHODS:
     return f"--method: unknown method {args.method!r}; expected one of {sorted(METHODS)}"
   if args.descriptor is not None and args.descriptor not in DESCRIPTORS:
@@ -121,15 +137,7 @@ def _check(args: argparse.Namespace) -> str | None:
   for name, value in (("--pair", args.pair), ("--gt", args.gt)):
     if value is not None and not Path(value).expanduser().is_file():
       return f"{name}: {value} is not a file"
-  inputs = [("cloud", args.cloud), ("--pair", args.pair), ("--gt", args.gt)]
-  if Path(args.out).expanduser().is_dir():
-    return f"--out: {args.out} is a folder; expected a file path (e.g. {Path(args.out) / 'frames.npz'})"
-  problem = output_problem(npz_path(args.out), "--out", inputs)
-  if problem is None and args.png is not None:
-    problem = output_problem(args.png, "--png", inputs)
-    if problem is None and same_file(args.png, npz_path(args.out)):
-      problem = f"--png: {args.png} is also the --out file; pick two paths"
-  return problem
+  return None
 
 
 def select_keypoints(points: np.ndarray, how: str, voxel: float | None, seed: int,
@@ -224,7 +232,7 @@ def pair_keypoints(points: np.ndarray, pair_points: np.ndarray, transform: np.nd
   return kp.astype(np.int64), nearest[kp].astype(np.int64)
 
 
-def _frames_and_outputs(args: argparse.Namespace) -> tuple[dict, object, object]:
+def frames_outputs(args: argparse.Namespace) -> tuple[dict, object, object]:
   """Read the inputs, compute what `args` asks for; (npz fields, cloud, pair cloud or None)."""
   import lrf_jax
   from lrf_jax.inputs import as_cloud
@@ -295,7 +303,7 @@ def main(argv: list[str] | None = None) -> int:
   from lrf_jax.io.atomic import WriteError, atomic_write
   out_path = npz_path(args.out)
   try:
-    out, cloud, other = _frames_and_outputs(args)
+    out, cloud, other = frames_outputs(args)
   except (ValueError, FileNotFoundError) as e:
     print(f"error: {e}", file=sys.stderr)
     return 2

@@ -77,16 +77,43 @@ def build_parser() -> argparse.ArgumentParser:
   return ap
 
 
+# lrf-register's options (argparse dests) -> the keywords of `lrf_jax.register` they set.
+REGISTER_KEYWORDS = {"mr": "mr", "radius_mr": "radius_mr", "keypoints": "n_keypoints",
+                     "correspondences": "n_correspondences", "inlier_mr": "inlier_mr",
+                     "estimator": "estimator", "iterations": "iterations",
+                     "icp_iterations": "icp_iterations", "seed": "seed", "method": "method",
+                     "source_viewpoint": "source_viewpoint",
+                     "target_viewpoint": "target_viewpoint", "detector": "keypoints",
+                     "mutual": "mutual", "ratio": "ratio", "icp": "icp_mode"}
+
+
+def register_options(args: argparse.Namespace) -> dict[str, Any]:
+  """The keywords of `lrf_jax.register` that the options present in `args` set (an option
+  parsed with its default suppressed and not given is left out)."""
+  return {kw: getattr(args, dest) for dest, kw in REGISTER_KEYWORDS.items()
+          if hasattr(args, dest)}
+
+
+def check_options(args: argparse.Namespace) -> str | None:
+  """What is wrong with --seed or --keypoints where present (None: fine)."""
+  seed = getattr(args, "seed", 0)
+  if not 0 <= seed < 2**32:
+    return f"--seed: expected an integer in [0, 2**32), got {seed}"
+  keypoints = getattr(args, "keypoints", 1)
+  if keypoints < 1:
+    return f"--keypoints: expected a positive integer, got {keypoints}"
+  return None
+
+
 def _check_paths(args: argparse.Namespace) -> str | None:
   """What is wrong with --out, --checkpoint, --init, --seed or --keypoints, checked before any
   work is done (None: fine)."""
   from pathlib import Path
 
   from lrf_jax.io.atomic import output_problem
-  if not 0 <= args.seed < 2**32:
-    return f"--seed: expected an integer in [0, 2**32), got {args.seed}"
-  if args.keypoints < 1:
-    return f"--keypoints: expected a positive integer, got {args.keypoints}"
+  problem = check_options(args)
+  if problem:
+    return problem
   if args.out:
     inputs = [("SOURCE", args.source), ("TARGET", args.target), ("--init", args.init)]
     problem = output_problem(args.out, "--out", inputs)
@@ -148,14 +175,8 @@ def main(argv: list[str] | None = None) -> int:
         params, _ = restore_params(args.checkpoint, "best")
       except (ValueError, FileNotFoundError) as e:
         raise ValueError(f"--checkpoint: {e}") from None
-    reg = register(args.source, args.target, mr=args.mr, radius_mr=args.radius_mr,
-                   n_keypoints=args.keypoints, n_correspondences=args.correspondences,
-                   inlier_mr=args.inlier_mr, estimator=args.estimator,
-                   iterations=args.iterations, icp_iterations=args.icp_iterations,
-                   params=params, seed=args.seed, method=args.method,
-                   source_viewpoint=args.source_viewpoint,
-                   target_viewpoint=args.target_viewpoint, keypoints=args.detector,
-                   mutual=args.mutual, ratio=args.ratio, icp_mode=args.icp, **extra)
+    reg = register(args.source, args.target, params=params, **register_options(args),
+                   **extra)
   except (ValueError, FileNotFoundError) as e:
     print(f"error: {e}", file=sys.stderr)
     return 2
@@ -163,7 +184,8 @@ def main(argv: list[str] | None = None) -> int:
     print(f"error: could not read {e.filename or 'an input'}: {e.strerror or e}",
           file=sys.stderr)
     return 2
-  text = "\n".join(" ".join(f"{v:.9g}" for v in row) for row in reg.transform)
+  from lrf_jax.io.poses import format_matrix
+  text = format_matrix(reg.transform)
   print(text)
   print("\n".join(f"# {line}" for line in reg.summary().splitlines()), file=sys.stderr)
   if args.png:

@@ -11,7 +11,7 @@ no read permission). A normal that is not finite (NaN/inf) is read as a NaN row,
 normal, and keeps its point (`check_normals`).
 """
 
-from lrf_jax.io.cloud import Cloud, read_npy
+from lrf_jax.io.cloud import Cloud, read_kitti_bin, read_npy
 from lrf_jax.io.pcd import read_pcd
 from lrf_jax.io.ply import PlyMesh, read_ply, write_ply
 from lrf_jax.io.poses import (LogEntry, quaternion_to_matrix, read_3dmatch_log,
@@ -30,6 +30,7 @@ __all__ = [
     "quaternion_to_matrix",
     "read_3dmatch_log",
     "read_cloud",
+    "read_kitti_bin",
     "read_npy",
     "read_pcd",
     "read_ply",

@@ -87,6 +87,17 @@ def read_xf(path: str | os.PathLike, *, atol: float = RIGID_ATOL) -> np.ndarray:
   return check_rigid(_parse_rows(lines, p, "matrix"), p, "matrix", atol)
 
 
+def format_matrix(matrix: np.ndarray, digits: int = 9) -> str:
+  """A matrix as text, a row per line, `digits` significant digits (`lrf-register --out`'s
+  layout; `numpy.loadtxt` reads it back). No trailing newline.
+
+  Args:
+    matrix: (r, c) numbers, e.g. a (4, 4) transform.
+    digits: significant digits of each number.
+  """
+  return "\n".join(" ".join(f"{v:.{digits}g}" for v in row) for row in np.asarray(matrix))
+
+
 def write_xf(path: str | os.PathLike, transform: np.ndarray) -> Path:
   """Writes a rigid (4, 4) matrix as a `.xf` text file (full float64 precision).
 

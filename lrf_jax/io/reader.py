@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import os
 
-from lrf_jax.io.cloud import Cloud, read_npy
+from lrf_jax.io.cloud import Cloud, read_kitti_bin, read_npy
 from lrf_jax.io.pcd import read_pcd
 from lrf_jax.io.ply import read_ply
 from lrf_jax.io.text import read_xyz
@@ -17,8 +17,9 @@ _TEXT_SUFFIXES = (".xyz", ".txt", ".pts", ".asc")
 def read_cloud(path: str | os.PathLike) -> Cloud:
   """Reads any supported point-cloud or mesh file, choosing the reader by suffix.
 
-  Supported: `.ply` (`read_ply`), `.pcd` (`read_pcd`), `.npy` (`read_npy`) and whitespace text
-  `.xyz/.txt/.pts/.asc`, optionally gzip-compressed with a further `.gz` (`read_xyz`).
+  Supported: `.ply` (`read_ply`), `.pcd` (`read_pcd`), `.npy` (`read_npy`), KITTI Velodyne
+  sweeps `.bin` (`read_kitti_bin`) and whitespace text `.xyz/.txt/.pts/.asc`, optionally
+  gzip-compressed with a further `.gz` (`read_xyz`).
 
   Args:
     path: the file.
@@ -46,5 +47,7 @@ def read_cloud(path: str | os.PathLike) -> Cloud:
     return read_npy(p)
   if last in _TEXT_SUFFIXES:
     return read_xyz(p)
-  raise bad_input(p, "suffix", "one of .ply, .pcd, .npy, " + ", ".join(_TEXT_SUFFIXES)
+  if last == ".bin":
+    return read_kitti_bin(p)
+  raise bad_input(p, "suffix", "one of .ply, .pcd, .npy, .bin, " + ", ".join(_TEXT_SUFFIXES)
                   + " (text optionally .gz)", repr("".join(p.suffixes) or "(none)"))

@@ -1,0 +1,126 @@
+"""The work of one item of a data-set job: pure functions of an input file (or two) and options.
+
+Each function takes a payload dict (paths and options: cheap to ship to a worker) and returns a
+dict: `status` "done" with the results, or "error" with `error` naming the file and what is wrong
+with it; an item's own failure never raises, so one bad scan costs one row, not the job.
+"""
+
+from __future__ import annotations
+
+import inspect
+import time
+from typing import Any
+
+import numpy as np
+
+__all__ = ["FRAMES_OPTIONS", "check_frames_options", "check_register_options", "frames_of_scan",
+           "register_pair", "transform_text"]
+
+# `run_frames` keywords -> lrf-frames flags (the item is lrf-frames' own computation).
+FRAMES_OPTIONS = {"keypoints": "--keypoints", "voxel_mr": "--voxel-mr", "method": "--method",
+                  "radius_mr": "--radius-mr", "viewpoint": "--viewpoint",
+                  "descriptor": "--descriptor", "seed": "--seed"}
+# `register` keywords a job cannot take: not plain data (a parameter tree, a per-pair pose).
+_NOT_JOB_OPTIONS = ("source", "target", "params", "init")
+
+
+def transform_text(transform: np.ndarray) -> str:
+  """A 4 x 4 transform as `lrf-register --out` writes it (9 significant digits a number)."""
+  from lrf_jax.io.poses import format_matrix
+  return format_matrix(transform)
+
+
+def _error(e: BaseException, t0: float) -> dict[str, Any]:
+  text = str(e) if isinstance(e, (ValueError, OSError)) else f"{type(e).__name__}: {e}"
+  return dict(status="error", error=text, seconds=time.perf_counter() - t0)
+
+
+def check_register_options(options: dict[str, Any]) -> None:
+  """ValueError unless every key is a keyword of `lrf_jax.register` a job can take and every
+  value is plain data (numbers, strings, booleans, None, lists of them)."""
+  from lrf_jax.registration import register
+  known = [k for k in inspect.signature(register).parameters if k not in _NOT_JOB_OPTIONS]
+  for key, value in options.items():
+    if key not in known:
+      raise ValueError(f"{key}: not an option of a registration job; expected one of "
+                       f"{sorted(known)}")
+    if not _plain(value):
+      raise ValueError(f"{key}: expected a number, string, boolean, None or a list of them, "
+                       f"got {type(value).__name__}")
+
+
+def _plain(value: Any) -> bool:
+  if isinstance(value, (list, tuple)):
+    return all(_plain(v) for v in value)
+  return value is None or isinstance(value, (bool, int, float, str))
+
+
+def register_pair(payload: dict[str, Any]) -> dict[str, Any]:
+  """`lrf_jax.register(source, target, **options)` of one pair.
+
+  Args:
+    payload: {"source": path, "target": path, "options": register's keywords}.
+
+  Returns:
+    {"status": "done", "transform": 4 x 4 nested lists (float64, exact), "success": bool,
+    "reason": str, "seconds": float} or {"status": "error", "error": str, "seconds": float}.
+  """
+  t0 = time.perf_counter()
+  try:
+    from lrf_jax.registration import register
+    reg = register(payload["source"], payload["target"], **payload["options"])
+  except Exception as e:  # noqa: BLE001 -- a bad pair is a row, the job goes on
+    return _error(e, t0)
+  return dict(status="done", transform=np.asarray(reg.transform, np.float64).tolist(),
+              success=bool(reg.success), reason=str(reg.reason),
+              seconds=time.perf_counter() - t0)
+
+
+def _frames_argv(scan: str, options: dict[str, Any]) -> list[str]:
+  argv = [scan, "--out", "unused.npz"]
+  for key, value in options.items():
+    flag = FRAMES_OPTIONS[key]
+    argv += [flag, *map(str, value)] if key == "viewpoint" else [flag, str(value)]
+  return argv
+
+
+def check_frames_options(options: dict[str, Any]) -> None:
+  """ValueError unless `options` are lrf-frames options (`FRAMES_OPTIONS`) it accepts."""
+  from lrf_jax.cli import frames as frames_cli
+  for key, value in options.items():
+    if key not in FRAMES_OPTIONS:
+      raise ValueError(f"{key}: not an option of a frames job; expected one of "
+                       f"{sorted(FRAMES_OPTIONS)}")
+    if key == "viewpoint" and (not isinstance(value, (list, tuple)) or len(value) != 3):
+      raise ValueError(f"viewpoint: expected three numbers, got {value!r}")
+    if not _plain(value):
+      raise ValueError(f"{key}: expected a number or a string, got {type(value).__name__}")
+  try:
+    args = frames_cli.build_parser().parse_args(_frames_argv("scan", options))
+  except SystemExit:
+    raise ValueError(f"frames options: lrf-frames refuses {options}") from None
+  problem = frames_cli.check_options(args)
+  if problem:
+    raise ValueError(problem)
+
+
+def frames_of_scan(payload: dict[str, Any]) -> dict[str, Any]:
+  """lrf-frames' computation for one scan (`lrf_jax.cli.frames.frames_outputs`).
+
+  Args:
+    payload: {"scan": path, "options": `FRAMES_OPTIONS` keywords}.
+
+  Returns:
+    {"status": "done", "arrays": the .npz fields lrf-frames writes, "keypoints": int,
+    "valid": int, "seconds": float} or {"status": "error", "error": str, "seconds": float}.
+  """
+  t0 = time.perf_counter()
+  try:
+    from lrf_jax.cli import frames as frames_cli
+    args = frames_cli.build_parser().parse_args(_frames_argv(payload["scan"], payload["options"]))
+    arrays, _, _ = frames_cli.frames_outputs(args)
+  except Exception as e:  # noqa: BLE001 -- a bad scan is a row, the job goes on
+    return _error(e, t0)
+  arrays = {k: np.asarray(v) for k, v in arrays.items()}
+  return dict(status="done", arrays=arrays, keypoints=int(len(arrays["keypoints"])),
+              valid=int(arrays["valid"].sum()), seconds=time.perf_counter() - t0)

@@ -1,0 +1,123 @@
+"""`lrf-batch frames SCANS... --out DIR` and `lrf-batch register PAIRS.tsv --out DIR`: a data set's
+frames or registrations, on this machine (`--engine local`) or a Ray cluster (`--engine ray`).
+
+`frames` writes `DIR/<scan>.npz` as `lrf-frames` writes it and takes lrf-frames' options;
+`register` writes `DIR/<name>.txt` (the 4 x 4 source->target, as `lrf-register --out` writes it,
+for every done pair whatever its verdict) and takes lrf-register's options except --out, --png,
+--checkpoint and --init. Both write `DIR/results.tsv` after each item and skip, when run again,
+every item whose inputs (by content) and options are unchanged. Exit codes: 0 every item done, 3
+some failed (their rows say why), 2 a bad command line, 130 interrupted. This file is thin: the
+work is `lrf_jax.batch`.
+
+    lrf-batch register pairs.tsv --out reg/ --engine ray --address 127.0.0.1:6379
+    lrf-batch frames scans/*.ply --out frames/ --keypoints 2000
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from typing import Any
+
+from lrf_jax.cli.help import DefaultsHelpFormatter
+
+_NOT_BATCH = ("out", "png", "checkpoint", "init")  # lrf-register options a job cannot take
+
+
+def _common(p: argparse.ArgumentParser) -> None:
+  p.add_argument("--out", required=True, metavar="DIR", help="the output folder (created)")
+  p.add_argument("--engine", choices=("local", "ray"), default="local",
+                 help="local: in this process; ray: tasks on a Ray cluster")
+  p.add_argument("--address", default=None,
+                 help="the Ray cluster (HOST:PORT) with --engine ray; default: RAY_ADDRESS if "
+                      "set, else a new Ray instance of this machine on 127.0.0.1")
+  p.add_argument("--no-progress", action="store_true", help="no progress bar")
+  p.add_argument("--retry-errors", action="store_true",
+                 help="run again the items whose last run failed (default: keep their error)")
+
+
+def build_parser() -> argparse.ArgumentParser:
+  ap = argparse.ArgumentParser(prog="lrf-batch", description="Frames of every scan, or "
+                               "registrations of every listed pair, of a data set; resumable.",
+                               formatter_class=DefaultsHelpFormatter)
+  sub = ap.add_subparsers(dest="job", required=True)
+  fr = sub.add_parser("frames", help="frames (and descriptors) of every scan, as lrf-frames",
+                      formatter_class=DefaultsHelpFormatter)
+  fr.add_argument("scans", nargs="+", metavar="SCAN", help="cloud or mesh files")
+  _common(fr)
+  fr.add_argument("--keypoints", default=argparse.SUPPRESS,
+                  help="as lrf-frames: N, 'all' or 'iss' (default 1000)")
+  fr.add_argument("--voxel-mr", type=float, default=argparse.SUPPRESS, help="as lrf-frames")
+  fr.add_argument("--method", default=argparse.SUPPRESS, help="as lrf-frames (lrf_net_plus)")
+  fr.add_argument("--radius-mr", type=float, default=argparse.SUPPRESS,
+                  help="as lrf-frames (15)")
+  fr.add_argument("--viewpoint", type=float, nargs=3, default=argparse.SUPPRESS,
+                  metavar=("X", "Y", "Z"), help="as lrf-frames (one for every scan)")
+  fr.add_argument("--descriptor", default=argparse.SUPPRESS, help="as lrf-frames")
+  fr.add_argument("--seed", type=int, default=argparse.SUPPRESS, help="as lrf-frames (0)")
+  rg = sub.add_parser("register", help="registration of every pair of a PAIRS.tsv",
+                      formatter_class=DefaultsHelpFormatter,
+                      epilog="Any option of lrf-register but --out, --png, --checkpoint and "
+                             "--init may follow (lrf-register --help lists them); options not "
+                             "given keep register's defaults. PAIRS.tsv: tab-separated, a "
+                             "header with the columns source and target (paths, relative to "
+                             "the TSV's folder) and optionally name (default: the row number).")
+  rg.add_argument("pairs", metavar="PAIRS.tsv", help="the pairs to register")
+  _common(rg)
+  return ap
+
+
+def _register_options(rest: list[str]) -> dict[str, Any]:
+  """register's keywords from lrf-register options in `rest` (only those given)."""
+  from lrf_jax.cli import register as register_cli
+  p = register_cli.build_parser()
+  p.prog = "lrf-batch register"
+  for action in p._actions:  # noqa: SLF001 -- argparse has no public way to suppress defaults
+    if action.dest not in ("help", "source", "target"):
+      action.default = argparse.SUPPRESS
+  args = p.parse_args(["SOURCE", "TARGET", *rest])
+  given = [d for d in _NOT_BATCH if hasattr(args, d)]
+  if given:
+    p.error(f"--{given[0]} is not an option of lrf-batch register (each pair's transform is "
+            "DIR/<name>.txt)")
+  problem = register_cli.check_options(args)
+  if problem:
+    p.error(problem)
+  return register_cli.register_options(args)
+
+
+def main(argv: list[str] | None = None) -> int:
+  """Run lrf-batch with `argv` (default: the command line); returns the exit code."""
+  ap = build_parser()
+  args, rest = ap.parse_known_args(argv)
+  if args.job == "frames" and rest:
+    ap.error(f"unrecognized arguments: {' '.join(rest)}")
+  from lrf_jax import batch, compilation_cache
+  common = dict(engine=args.engine, address=args.address, progress=not args.no_progress,
+                retry_errors=args.retry_errors)
+  try:
+    if args.job == "register":
+      options = _register_options(rest)
+      compilation_cache.enable()
+      result = batch.run_register(args.pairs, args.out, **common, **options)
+    else:
+      options = {k: getattr(args, k) for k in batch.items.FRAMES_OPTIONS if hasattr(args, k)}
+      compilation_cache.enable()
+      result = batch.run_frames(args.scans, args.out, **common, **options)
+  except KeyboardInterrupt:
+    print("interrupted: the finished items are kept; the same command resumes", file=sys.stderr)
+    return 130
+  except (ValueError, FileNotFoundError, ImportError) as e:
+    print(f"error: {e}", file=sys.stderr)
+    return 2
+  done = sum(r["status"] == "done" for r in result.rows)
+  claimed = sum(r.get("success") == "True" for r in result.rows)
+  print(f"{len(result.rows)} items: {done} done"
+        + (f" ({claimed} claimed)" if args.job == "register" else "")
+        + f", {result.failed} failed; {result.ran} run, {result.skipped} already done "
+        f"-> {result.out / 'results.tsv'} ({result.seconds:.1f} s)", file=sys.stderr)
+  return result.exit_code
+
+
+if __name__ == "__main__":
+  sys.exit(main())

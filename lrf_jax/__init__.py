@@ -54,8 +54,8 @@ _EXPORTS: dict[str, str] = {
 }
 
 # subpackages and modules reachable as attributes after a bare `import lrf_jax`.
-_SUBMODULES = frozenset({"cli", "datasets", "descriptors", "engine", "evaluation", "frames",
-                         "geometry", "io", "learning", "registration", "search"})
+_SUBMODULES = frozenset({"cli", "datasets", "descriptors", "evaluation", "frames", "geometry",
+                         "io", "learning", "registration", "search"})
 
 __all__ = sorted([*_EXPORTS, "search"])
 
@@ -110,8 +110,6 @@ def _load(module: str) -> Any:
       import lrf_jax.learning as m
     case "cli":
       import lrf_jax.cli as m
-    case "engine":  # deprecated alias of lrf_jax.search.engine (removed in the next release)
-      import lrf_jax.engine as m
     case _:
       raise KeyError(module)
   return m
@@ -137,7 +135,6 @@ def __dir__() -> list[str]:
 if TYPE_CHECKING:  # for type checkers and IDEs; at run time these come from __getattr__
   from lrf_jax import (cli, datasets, descriptors, evaluation, frames, geometry, io,  # noqa: F401
                        learning, registration, search)
-  from lrf_jax.search import engine  # noqa: F401
   from lrf_jax.api import compute_frames, frames_from_patches, mesh_resolution  # noqa: F401
   from lrf_jax.caches import clear_caches  # noqa: F401
   from lrf_jax.search.engine import set_num_threads  # noqa: F401

@@ -34,7 +34,6 @@ _EXPORTS: dict[str, str] = {
     "METHODS": "frames",
     "MethodSpec": "frames",
     "add_method": "frames",
-    "register_method": "frames",  # deprecated: add_method
     "lrf_net_frames": "frames.lrf_net",
     "iss_keypoints": "geometry.keypoints",
     "batched_chamfer": "learning.losses",

@@ -1,6 +1,7 @@
-"""The 0.7 paths are gone in 0.8: each old module path fails to import (ModuleNotFoundError) and
-each old name fails to resolve (AttributeError); each new home exists; nothing of the project's
-own (package, tests, benchmarks, scripts, README) mentions an old path.
+"""The pre-0.7 paths and names, forwarded with a DeprecationWarning in 0.7, are gone in 0.8:
+each old module path fails to import (ModuleNotFoundError) and each old name fails to resolve
+(AttributeError); each new home exists; nothing of the project's own (package, tests,
+benchmarks, scripts, README) mentions an old module path.
 
 The tables below are the record of what 0.8 removed (CHANGELOG.md, "0.8.0", lists the same).
 """
@@ -61,6 +62,48 @@ MOVED: dict[str, str] = {
 }
 
 
+# The names 0.7 forwarded with a warning: old dotted name -> its home since 0.7.
+_OPS_HELPERS = (
+    "DEGENERATE_EPS", "all_finite_rows", "centered_covariance", "directed_tangent_axis",
+    "disambiguate_sign", "eigen_frame", "finite_or_zero", "frame_from_zx",
+    "identity_where_invalid", "kabsch", "lexicographic_argmax", "majority_balance", "orient_like",
+    "safe_norm", "safe_normalize", "sanitize", "smallest_eigvec", "tangent_projection",
+    "toldi_normal", "weighted_covariance",
+)
+_REGISTRATION_MODULE_NAMES = {  # the pre-0.7 module `lrf_jax.registration`, outside `__all__`
+    "pipeline": ("ESTIMATORS", "KEYPOINTS", "fine_distance", "ICP_FINE_FACTOR", "ICP_FINE_MIN_MR",
+                 "ICP_POINTS", "GRAPH_ANGLE_DEG", "GRAPH_SEEDS", "GRAPH_CONSENSUS",
+                 "GRAPH_NMS_RADII"),
+    "evidence": ("VERDICT_FACTOR", "VERDICT_MARGIN", "VERDICT_CONTRAST", "VERDICT_FITNESS",
+                 "VERDICT_GRAPH_FACTOR", "VERDICT_GRAPH_MARGIN", "VERDICT_GRAPH_FITNESS",
+                 "CHANCE_SHUFFLES", "RIVAL_DEG", "Evidence", "overlap_contrast", "verdict"),
+}
+RENAMED: dict[str, str] = {
+    **{f"lrf_jax.geometry.{n}": f"lrf_jax.geometry.ops.{n}" for n in _OPS_HELPERS},
+    "lrf_jax.geometry.Array": "jax.Array",  # 0.7 forwarded it to ops, which no longer had it
+    **{f"lrf_jax.registration.{n}": f"lrf_jax.registration.{home}.{n}"
+       for home, names in _REGISTRATION_MODULE_NAMES.items() for n in names},
+    # "neighbour" -> "neighbor", one name per radius fraction
+    "lrf_jax.api.HOST_NEIGHBOUR_BUDGET": "lrf_jax.api.HOST_NEIGHBOR_BUDGET",
+    "lrf_jax.frames.board.MARGIN": "lrf_jax.frames.board.MARGIN_RATIO",
+    "lrf_jax.frames.board.MIN_Z_NEIGHBOURS": "lrf_jax.frames.board.MIN_Z_NEIGHBORS",
+    "lrf_jax.frames.flare.MARGIN": "lrf_jax.frames.flare.MARGIN_RATIO",
+    "lrf_jax.frames.flare.MIN_Z_NEIGHBOURS": "lrf_jax.frames.flare.MIN_Z_NEIGHBORS",
+    "lrf_jax.frames.flare.MIN_TANGENT_NEIGHBOURS": "lrf_jax.frames.flare.MIN_TANGENT_NEIGHBORS",
+    "lrf_jax.frames.lrf_net.MIN_Z_NEIGHBOURS": "lrf_jax.frames.lrf_net.MIN_Z_NEIGHBORS",
+    "lrf_jax.frames.lrf_net_plus.AREA_NEIGHBOURS": "lrf_jax.frames.lrf_net_plus.AREA_NEIGHBORS",
+    "lrf_jax.frames.mian.MIN_NEIGHBOURS": "lrf_jax.frames.mian.MIN_NEIGHBORS",
+    "lrf_jax.frames.ps.CONTOUR_RATIO": "lrf_jax.frames.ps.MARGIN_RATIO",
+    "lrf_jax.frames.shot.MIN_NEIGHBOURS": "lrf_jax.frames.shot.MIN_NEIGHBORS",
+    # the registry's verb (`register` means aligning scans)
+    "lrf_jax.register_method": "lrf_jax.add_method",
+    "lrf_jax.frames.register_method": "lrf_jax.frames.add_method",
+    "lrf_jax.frames.register": "lrf_jax.frames.add_method",
+    "lrf_jax.descriptors.DescriptorSpec.host_fn":
+        "lrf_jax.descriptors.DescriptorSpec.host_descriptors",
+}
+
+
 @pytest.fixture
 def this_checkout_only(monkeypatch):
   """Imports resolve in this checkout's lrf_jax alone: a meta-path finder that answers for
@@ -97,6 +140,38 @@ def test_old_module_is_no_attribute_of_the_package(old):
 @pytest.mark.parametrize("new", sorted(set(MOVED.values())))
 def test_new_home_exists(new):
   assert importlib.util.find_spec(new) is not None, new
+
+
+def _resolve(dotted: str):
+  """The object `dotted` names: its longest importable module prefix, then attributes."""
+  parts = dotted.split(".")
+  for i in range(len(parts), 0, -1):
+    try:
+      obj = importlib.import_module(".".join(parts[:i]))
+    except ModuleNotFoundError:
+      continue
+    for name in parts[i:]:
+      obj = getattr(obj, name)
+    return obj
+  raise ModuleNotFoundError(dotted)
+
+
+@pytest.mark.parametrize("old", sorted(RENAMED))
+def test_old_name_does_not_resolve(old, this_checkout_only):
+  parent = _resolve(old.rpartition(".")[0])  # the module (or class) is there, the name is not
+  with pytest.raises(AttributeError):
+    getattr(parent, old.rpartition(".")[2])
+
+
+@pytest.mark.parametrize("old", sorted(RENAMED))
+def test_new_name_resolves(old):
+  _resolve(RENAMED[old])  # raises if it does not (`host_descriptors`' class default is None)
+
+
+def test_the_registry_verb_is_add_method():
+  import lrf_jax
+  from lrf_jax.frames import spec
+  assert lrf_jax.add_method is lrf_jax.frames.add_method is spec.add_method
 
 
 def _sources() -> list[Path]:

@@ -22,8 +22,6 @@ from lrf_jax import compilation_cache as _compilation_cache
 
 _compilation_cache.configure_numba_cache()
 
-__version__ = "0.6.0"
-
 # public name -> the module (under lrf_jax) that defines it; loaded on first access.
 _EXPORTS: dict[str, str] = {
     "compute_frames": "api",
@@ -114,9 +112,23 @@ def _load(module: str) -> Any:
   return m
 
 
+def _version() -> str:
+  """The installed distribution's version (pyproject.toml's `version`, the one place it is
+  written); "0+unknown" when lrf_jax runs from a source tree that was never installed."""
+  from importlib import metadata
+  try:
+    return metadata.version("lrf_jax")
+  except metadata.PackageNotFoundError:
+    return "0+unknown"
+
+
 def __getattr__(name: str) -> Any:
-  """A public name or subpackage of lrf_jax, imported on first access (then cached here)."""
-  if name in _EXPORTS:
+  """A public name or subpackage of lrf_jax, imported on first access (then cached here);
+  `__version__` too (read from the package metadata on first access: importlib.metadata is
+  not free to import)."""
+  if name == "__version__":
+    value: Any = _version()
+  elif name in _EXPORTS:
     value = getattr(_load(_EXPORTS[name]), name)
   elif name in _SUBMODULES:
     value = _load(name)
@@ -128,10 +140,11 @@ def __getattr__(name: str) -> Any:
 
 def __dir__() -> list[str]:
   """The module's names, the lazily loaded ones included."""
-  return sorted({*globals(), *_EXPORTS, *_SUBMODULES})
+  return sorted({*globals(), *_EXPORTS, *_SUBMODULES, "__version__"})
 
 
 if TYPE_CHECKING:  # for type checkers and IDEs; at run time these come from __getattr__
+  __version__: str
   from lrf_jax import (cli, datasets, descriptors, evaluation, frames, geometry, io,  # noqa: F401
                        learning, registration, search)
   from lrf_jax.api import compute_frames, frames_from_patches, mesh_resolution  # noqa: F401

@@ -22,8 +22,6 @@ from lrf_jax import compilation_cache as _compilation_cache
 
 _compilation_cache.configure_numba_cache()
 
-__version__ = "0.6.0"
-
 # public name -> the module (under lrf_jax) that defines it; loaded on first access.
 _EXPORTS: dict[str, str] = {
     "compute_frames": "api",
@@ -34,7 +32,6 @@ _EXPORTS: dict[str, str] = {
     "METHODS": "frames",
     "MethodSpec": "frames",
     "add_method": "frames",
-    "register_method": "frames",  # deprecated: add_method
     "lrf_net_frames": "frames.lrf_net",
     "iss_keypoints": "geometry.keypoints",
     "batched_chamfer": "learning.losses",
@@ -54,8 +51,8 @@ _EXPORTS: dict[str, str] = {
 }
 
 # subpackages and modules reachable as attributes after a bare `import lrf_jax`.
-_SUBMODULES = frozenset({"cli", "datasets", "descriptors", "engine", "evaluation", "frames",
-                         "geometry", "io", "learning", "registration", "search"})
+_SUBMODULES = frozenset({"cli", "datasets", "descriptors", "evaluation", "frames", "geometry",
+                         "io", "learning", "registration", "search"})
 
 __all__ = sorted([*_EXPORTS, "search"])
 
@@ -110,16 +107,28 @@ def _load(module: str) -> Any:
       import lrf_jax.learning as m
     case "cli":
       import lrf_jax.cli as m
-    case "engine":  # deprecated alias of lrf_jax.search.engine (removed in the next release)
-      import lrf_jax.engine as m
     case _:
       raise KeyError(module)
   return m
 
 
+def _version() -> str:
+  """The installed distribution's version (pyproject.toml's `version`, the one place it is
+  written); "0+unknown" when lrf_jax runs from a source tree that was never installed."""
+  from importlib import metadata
+  try:
+    return metadata.version("lrf_jax")
+  except metadata.PackageNotFoundError:
+    return "0+unknown"
+
+
 def __getattr__(name: str) -> Any:
-  """A public name or subpackage of lrf_jax, imported on first access (then cached here)."""
-  if name in _EXPORTS:
+  """A public name or subpackage of lrf_jax, imported on first access (then cached here);
+  `__version__` too (read from the package metadata on first access: importlib.metadata is
+  not free to import)."""
+  if name == "__version__":
+    value: Any = _version()
+  elif name in _EXPORTS:
     value = getattr(_load(_EXPORTS[name]), name)
   elif name in _SUBMODULES:
     value = _load(name)
@@ -131,13 +140,13 @@ def __getattr__(name: str) -> Any:
 
 def __dir__() -> list[str]:
   """The module's names, the lazily loaded ones included."""
-  return sorted({*globals(), *_EXPORTS, *_SUBMODULES})
+  return sorted({*globals(), *_EXPORTS, *_SUBMODULES, "__version__"})
 
 
 if TYPE_CHECKING:  # for type checkers and IDEs; at run time these come from __getattr__
+  __version__: str
   from lrf_jax import (cli, datasets, descriptors, evaluation, frames, geometry, io,  # noqa: F401
                        learning, registration, search)
-  from lrf_jax.search import engine  # noqa: F401
   from lrf_jax.api import compute_frames, frames_from_patches, mesh_resolution  # noqa: F401
   from lrf_jax.caches import clear_caches  # noqa: F401
   from lrf_jax.search.engine import set_num_threads  # noqa: F401

@@ -10,7 +10,6 @@ from typing import TYPE_CHECKING, Any, cast
 from lrf_jax._jax import backend_is_cpu, jax, jit, jnp
 import numpy as np
 
-from lrf_jax import _deprecated
 from lrf_jax.search import engine
 from lrf_jax.search.chunks import map_chunks
 from lrf_jax.geometry.resolution import mesh_resolution as _mesh_resolution
@@ -458,8 +457,6 @@ class _PatchSearch:
 
 # Ball-list entries (8 bytes each) a host fast path holds at a time.
 HOST_NEIGHBOR_BUDGET = 1 << 24
-# The pre-0.7 names of this module's constants (`_deprecated.RENAMED`), for one release.
-__getattr__ = _deprecated.renamed(__name__, globals())
 
 
 def _host_frames_in_budget(spec: MethodSpec, points: np.ndarray, kp: np.ndarray, radius: float,

@@ -275,8 +275,8 @@ def test_bad_arguments_name_the_argument():
 
 
 def test_the_fine_gate_is_the_clipped_median_residual():
-  """`registration.fine_distance` against cKDTree: 1.5 x the median nearest distance of the moved
-  source over the pairs within the first gate, clipped to [1 mr, first gate]."""
+  """`registration.pipeline.fine_distance` against cKDTree: 1.5 x the median nearest distance of
+  the moved source over the pairs within the first gate, clipped to [1 mr, first gate]."""
   from lrf_jax.registration.pipeline import ICP_FINE_FACTOR, ICP_FINE_MIN_MR, fine_distance
   source, _ = _height_field(3000, 0)
   target, _ = _height_field(4000, 1)

@@ -204,20 +204,6 @@ def test_adding_a_method_as_the_readme_says():
   assert "centroid" not in lrf_jax.METHODS
 
 
-@pytest.mark.parametrize("alias", ["register", "register_method"])
-def test_register_aliases_are_deprecated(alias):
-  """`register` means aligning scans; the registry's verb is `add_method`."""
-  from lrf_jax import frames
-  spec = frames.MethodSpec("tmp_alias", lambda patches, extra: None)
-  try:
-    with pytest.warns(DeprecationWarning, match="add_method"):
-      assert getattr(frames, alias)(spec) is spec
-    assert lrf_jax.METHODS["tmp_alias"] is spec
-    assert lrf_jax.add_method is frames.add_method
-  finally:
-    lrf_jax.METHODS.pop("tmp_alias", None)
-
-
 def test_method_spec_rejects_an_undeclared_extra():
   from typing import NamedTuple
 

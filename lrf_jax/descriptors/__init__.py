@@ -29,7 +29,6 @@ from collections.abc import Callable
 from lrf_jax._jax import backend_is_cpu, jax, jnp
 import numpy as np
 
-from lrf_jax import _deprecated
 from lrf_jax.search.chunks import map_chunks
 from lrf_jax.descriptors import rops as _rops
 from lrf_jax.descriptors import shot as _shot
@@ -68,8 +67,7 @@ class DescriptorSpec:
     host_descriptors: optional host fast path `host_descriptors(points, keypoints, radius,
       frames, valid, index, **options) -> (desc, valid)` over every neighbor (k=None), numpy and
       compiled engine code, the same descriptors as `fn`; `compute_descriptors` runs it by
-      default on a CPU backend. Named as `MethodSpec.host_frames` is: `host_` + what it returns
-      (0.7; `host_fn`, its old name, still reads it with a warning for one release).
+      default on a CPU backend. Named as `MethodSpec.host_frames` is: `host_` + what it returns.
   """
 
   name: str
@@ -79,12 +77,6 @@ class DescriptorSpec:
   prepare: Callable[..., Any] | None = None
   description: str = ""
   host_descriptors: Callable[..., Any] | None = None
-
-  @property
-  def host_fn(self) -> Callable[..., Any] | None:
-    """Deprecated (0.7): `host_descriptors`."""
-    _deprecated.warn_moved("DescriptorSpec.host_fn", "DescriptorSpec.host_descriptors")
-    return self.host_descriptors
 
 
 def _snap(patches, frames, valid, extra, **options):

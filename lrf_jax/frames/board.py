@@ -35,7 +35,6 @@ from lrf_jax._jax import jax, jnp
 import numba as nb
 import numpy as np
 
-from lrf_jax import _deprecated
 from lrf_jax.geometry import ops as geometry
 from lrf_jax.frames import host_geometry as hg
 from lrf_jax.frames.normal_based import NormalExtra, prepare_normals, usable_normals
@@ -52,8 +51,6 @@ if TYPE_CHECKING:
 Z_RATIO = 1.0 / 3.0
 MARGIN_RATIO = 0.85
 MIN_Z_NEIGHBORS = 6
-# The pre-0.7 names of this module's constants (`_deprecated.RENAMED`), for one release.
-__getattr__ = _deprecated.renamed(__name__, globals())
 
 
 def normals_mean(normals: jax.Array, use: jax.Array) -> tuple[jax.Array, jax.Array]:

@@ -33,7 +33,6 @@ from lrf_jax._jax import jax, jnp
 import numba as nb
 import numpy as np
 
-from lrf_jax import _deprecated
 from lrf_jax.geometry import ops as geometry
 from lrf_jax.frames import host_geometry as hg
 from lrf_jax.frames.board import normals_mean
@@ -52,8 +51,6 @@ Z_RATIO = 1.0 / 3.0
 MARGIN_RATIO = 0.85
 MIN_Z_NEIGHBORS = 6
 MIN_TANGENT_NEIGHBORS = 6
-# The pre-0.7 names of this module's constants (`_deprecated.RENAMED`), for one release.
-__getattr__ = _deprecated.renamed(__name__, globals())
 
 
 def flare_frame(offsets, mask, index, radius, count, z_cov, z_count, normals, kp_normal):

@@ -25,7 +25,6 @@ from collections.abc import Callable
 from lrf_jax._jax import is_jax_numpy, jax, jnp
 import numpy as np
 
-from lrf_jax import _deprecated
 from lrf_jax.geometry import ops as geometry
 from lrf_jax.frames.spec import HostPatchKernel, MethodSpec
 from lrf_jax.learning.model import Params, apply_weights, apply_weights_numpy
@@ -37,8 +36,6 @@ if TYPE_CHECKING:
 # |Σ w v| must exceed this fraction of Σ |w| |v| for x to be defined (symmetric patches fail).
 X_EPS = 1e-5
 MIN_Z_NEIGHBORS = 3
-# The pre-0.7 names of this module's constants (`_deprecated.RENAMED`), for one release.
-__getattr__ = _deprecated.renamed(__name__, globals())
 
 
 def attributes(offsets: AnyArray, z: jax.Array, radius: AnyArray) -> jax.Array:

@@ -24,7 +24,6 @@ from typing import TYPE_CHECKING, NamedTuple
 from lrf_jax._jax import jax, jnp
 import numpy as np
 
-from lrf_jax import _deprecated
 from lrf_jax.geometry import ops as geometry
 from lrf_jax.search import engine
 from lrf_jax.frames.lrf_net import (MIN_Z_NEIGHBORS, X_EPS, lrf_net_frames,
@@ -183,8 +182,6 @@ def _finish_view(view: np.ndarray, trust: np.ndarray | None) -> tuple[np.ndarray
 
 
 AREA_NEIGHBORS = 8
-# The pre-0.7 names of this module's constants (`_deprecated.RENAMED`), for one release.
-__getattr__ = _deprecated.renamed(__name__, globals())
 
 
 def vertex_areas(points: np.ndarray, faces: np.ndarray) -> np.ndarray:

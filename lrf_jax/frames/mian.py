@@ -31,7 +31,6 @@ from lrf_jax._jax import jax, jnp
 import numba as nb
 import numpy as np
 
-from lrf_jax import _deprecated
 from lrf_jax.geometry import ops as geometry
 from lrf_jax.frames import host_geometry as hg
 from lrf_jax.frames.normal_based import NormalExtra, prepare_normals, usable_normals
@@ -43,8 +42,6 @@ if TYPE_CHECKING:
   from lrf_jax.search.neighborhoods import AnyArray
 
 MIN_NEIGHBORS = 5
-# The pre-0.7 names of this module's constants (`_deprecated.RENAMED`), for one release.
-__getattr__ = _deprecated.renamed(__name__, globals())
 
 
 def mian_frame(offsets, mask, kp_normal, center: str = "centroid"):

@@ -32,7 +32,6 @@ from lrf_jax._jax import jax, jnp
 import numba as nb
 import numpy as np
 
-from lrf_jax import _deprecated
 from lrf_jax.geometry import ops as geometry
 from lrf_jax.frames import host_geometry as hg
 from lrf_jax.frames.spec import MethodSpec
@@ -40,8 +39,6 @@ from lrf_jax.geometry.ops import sanitize
 from lrf_jax.search.neighborhoods import Patches
 
 MIN_NEIGHBORS = 5
-# The pre-0.7 names of this module's constants (`_deprecated.RENAMED`), for one release.
-__getattr__ = _deprecated.renamed(__name__, globals())
 TIE_VOTERS = 5
 
 

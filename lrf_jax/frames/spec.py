@@ -15,7 +15,6 @@ its axes are indexed, so that generic code and tests can permute, pad or slice i
 from __future__ import annotations
 
 import dataclasses
-import warnings
 from typing import Any
 from collections.abc import Callable
 
@@ -202,16 +201,3 @@ def add_method(spec: MethodSpec) -> MethodSpec:
   METHODS[spec.name] = spec
   return spec
 
-
-def register_method(spec: MethodSpec) -> MethodSpec:
-  """Deprecated alias of `add_method` (kept for one release)."""
-  warnings.warn("lrf_jax.register_method is deprecated: use lrf_jax.add_method",
-                DeprecationWarning, stacklevel=2)
-  return add_method(spec)
-
-
-def register(spec: MethodSpec) -> MethodSpec:
-  """Deprecated alias of `add_method` (kept for one release)."""
-  warnings.warn("lrf_jax.frames.register is deprecated: use lrf_jax.add_method",
-                DeprecationWarning, stacklevel=2)
-  return add_method(spec)

@@ -34,7 +34,7 @@ def kabsch_batch(src: np.ndarray, dst: np.ndarray, weights: np.ndarray | None = 
 
   Returns:
     (R (H, 3, 3) float64 rotations with det +1, t (H, 3) float64); a reflection of the SVD is
-    flipped on its smallest singular direction, as `lrf_jax.geometry.kabsch` does.
+    flipped on its smallest singular direction, as `lrf_jax.geometry.ops.kabsch` does.
   """
   a = np.asarray(src, np.float64)
   b = np.asarray(dst, np.float64)
@@ -51,7 +51,7 @@ def proper_rotation(h: np.ndarray) -> np.ndarray:
   """Kabsch's rotation from a cross-covariance: R = V diag(1, 1, d) Uᵀ for h = U S Vᵀ, d the sign
   of det(V Uᵀ) (1 where it is 0), the rotation (det +1) that maximises trace(R h); the one
   host (float64) form, used by `kabsch_batch` and point-to-point ICP
-  (`lrf_jax.geometry.kabsch` is its jitted float32 counterpart).
+  (`lrf_jax.geometry.ops.kabsch` is its jitted float32 counterpart).
 
   Args:
     h: (..., 3, 3) sum of (a - ca)(b - cb)ᵀ over the pairs (weighted or not).

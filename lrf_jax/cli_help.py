@@ -1,6 +1,0 @@
-"""Deprecated alias of `lrf_jax.cli.help` (moved there in 0.7); removed in the next release."""
-
-from lrf_jax import _deprecated
-from lrf_jax.cli import help as _new
-
-__getattr__, __dir__, __all__ = _deprecated.alias(__name__, _new)

@@ -6,6 +6,10 @@ from __future__ import annotations
 
 import json
 import os
+import signal
+import subprocess
+import sys
+import time
 from pathlib import Path
 
 import numpy as np
@@ -205,3 +209,49 @@ def test_cli_frames_writes_what_lrf_frames_writes(tmp_path, scans):
   assert rows[0]["keypoints"] == "200" and int(rows[0]["valid"]) > 0
   rerun = batch.run_frames([scans[0], scans[2]], out, progress=False, keypoints="200")
   assert rerun.ran == 0 and rerun.skipped == 2
+
+
+def test_a_rerun_with_nothing_to_do_starts_no_engine(tmp_path, scans):
+  tsv = pairs_tsv(scans[0].parent, scans)
+  out = tmp_path / "out"
+  assert batch.run_register(tsv, out, progress=False, **OPTS).exit_code == 0
+  # Nothing listens there: joining it would fail. Nothing to do, so nothing is joined.
+  again = batch.run_register(tsv, out, engine="ray", address="127.0.0.1:9", progress=False,
+                             **OPTS)
+  assert (again.ran, again.skipped, again.exit_code) == (0, 2, 0)
+
+
+def _batch_process(tsv: Path, out: Path) -> subprocess.Popen:
+  return subprocess.Popen([sys.executable, "-m", "lrf_jax.cli.batch", "register", str(tsv),
+                           "--out", str(out), "--no-progress", *CLI_OPTS],
+                          stderr=subprocess.PIPE, text=True)
+
+
+def _wait_for_record(out: Path, proc: subprocess.Popen, timeout: float = 300) -> None:
+  records = out / jobs.STATE / "records"
+  t0 = time.monotonic()
+  while not (records.is_dir() and any(records.glob("*.json"))):
+    assert proc.poll() is None, proc.stderr.read() if proc.stderr else ""
+    assert time.monotonic() - t0 < timeout
+    time.sleep(0.05)
+
+
+@pytest.mark.parametrize("sig, code", [(signal.SIGINT, 130), (signal.SIGKILL, -9)])
+def test_an_interrupted_or_killed_job_resumes_where_it_stopped(tmp_path, sig, code):
+  scans = make_scans(tmp_path / "scans", 3)
+  s, m = scans[:3], scans[3:]
+  tsv = write_pairs(tmp_path / "p.tsv", [(f"p{k}", str(s[k]), str(m[k])) for k in range(3)]
+                    + [(f"q{k}", str(m[k]), str(s[k])) for k in range(3)])
+  out = tmp_path / "out"
+  proc = _batch_process(tsv, out)
+  _wait_for_record(out, proc)
+  proc.send_signal(sig)
+  assert proc.wait(timeout=120) == code
+  if sig == signal.SIGINT:
+    assert "interrupted" in proc.stderr.read()
+  assert not list(out.glob(".*.tmp")) and not list(out.glob("*.tmp"))
+  kept = len(list((out / jobs.STATE / "records").glob("*.json")))
+  assert 1 <= kept < 6
+  resumed = batch.run_register(tsv, out, progress=False, **OPTS)
+  assert (resumed.ran, resumed.skipped, resumed.exit_code) == (6 - kept, kept, 0)
+  assert len(tsv_rows(out / "results.tsv")) == 6

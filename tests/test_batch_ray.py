@@ -108,3 +108,12 @@ def test_every_item_records_the_node_and_version(tmp_path):
   b = np.load(Path(local.out) / "scene0.npz")
   for key in a.files:
     assert np.array_equal(a[key], b[key]), key
+
+
+def test_each_worker_uses_the_cpus_its_task_was_given():
+  def threads(_):
+    from lrf_jax.search import grid
+    return os.environ.get("LRF_JAX_NUM_THREADS"), grid.num_threads()
+
+  outcomes = list(engines.RayEngine(cpus_per_task=1).run(threads, [0, 1]))
+  assert {o.value for o in outcomes} == {("1", 1)}

@@ -53,6 +53,10 @@ REGISTER_COLUMNS = ("name", "source", "target", "status", "success", "reason", "
 FRAMES_COLUMNS = ("name", "scan", "status", "keypoints", "valid", "seconds", "node", "attempt",
                   "version", "error")
 _MAX_NAME_BYTES = 200  # leaves room for a suffix and the temporary file's decorations
+# results.tsv is rewritten after every item; a table this large at most every so many seconds
+# (rewriting 10^4 rows after each of 10^4 items would write gigabytes).
+_LARGE_TABLE = 1000
+_LARGE_TABLE_SECONDS = 2.0
 
 
 @dataclasses.dataclass(frozen=True)
@@ -311,6 +315,7 @@ class _Job:
                   for name, ins in named_inputs]
     hashes.save()
     self.recs: dict[str, dict[str, Any]] = {}
+    self._last_write = -np.inf
     for it in self.items:
       rec = _read_record(self.records / f"{it.name}.json")
       if rec is not None and rec.get("key") == it.key:
@@ -339,13 +344,21 @@ class _Job:
         self.kind.write(self.out / (item.name + self.kind.suffix), value)
     atomic.write_text(self.records / f"{item.name}.json", json.dumps(rec))
     self.recs[item.name] = rec
-    self.write_results()
+    self.write_results(force=False)
     return rec
 
   def rows(self) -> list[dict[str, Any]]:
     return [self.kind.row(it, self.recs[it.name]) for it in self.items if it.name in self.recs]
 
-  def write_results(self) -> None:
+  def write_results(self, force: bool = True) -> None:
+    """Rewrite results.tsv (atomically) if its content changed. With `force` False (after an
+    item) a table of over `_LARGE_TABLE` rows is rewritten at most every `_LARGE_TABLE_SECONDS`
+    (each item's record is on disk already; the end of the job rewrites it in any case)."""
+    now = time.monotonic()
+    if (not force and len(self.recs) > _LARGE_TABLE
+        and now - self._last_write < _LARGE_TABLE_SECONDS):
+      return
+    self._last_write = now
     text = _tsv(self.kind.columns, self.rows())
     path = self.out / "results.tsv"
     try:
@@ -387,7 +400,9 @@ def _run(kind: _Kind, named_inputs: Sequence[tuple[str, tuple[str, ...]]],
     finally:
       bar.close()
       runner.close()
-  job.write_results()
+      job.write_results()
+  else:
+    job.write_results()
   rows = job.rows()
   return JobResult(rows, len(pending), skipped, sum(r["status"] != "done" for r in rows),
                    time.perf_counter() - t0, job.out)

@@ -20,6 +20,7 @@ few points, a pair that raised) has an `error` record naming the file and why; i
 again with unchanged inputs and options unless `retry_errors`. Every file is written atomically
 (`lrf_jax.io.atomic`), by the driver only: workers read scans and return results.
 
+Items are handed out largest inputs first (the long ones start early, the tail is short).
 Before the engine gets the items, the driver runs the first pending one itself, which compiles
 the kernels the items need into the on-disk cache; the workers then load them instead of
 compiling at the same time. Each item is a pure function of its inputs and options, so the
@@ -216,6 +217,13 @@ class _Hashes:
       self.changed = False
 
 
+def _size(path: str) -> int:
+  try:
+    return os.stat(path).st_size
+  except OSError:
+    return 0
+
+
 def _canonical(options: dict[str, Any]) -> str:
   return json.dumps(options, sort_keys=True, default=lambda v: np.asarray(v).tolist())
 
@@ -377,6 +385,8 @@ def _run(kind: _Kind, named_inputs: Sequence[tuple[str, tuple[str, ...]]],
   job = _Job(kind, named_inputs, out, options)
   pending = [it for it in job.items if not job.is_settled(it, retry_errors)]
   skipped = len(job.items) - len(pending)
+  # Largest inputs first: the long items start early and the last ones to finish are short.
+  pending.sort(key=lambda it: -sum(_size(p) for p in it.inputs))
   if pending:
     from tqdm.auto import tqdm
     bar = tqdm(total=len(pending), desc=f"lrf-batch {kind.name}", unit="item",

@@ -321,7 +321,7 @@ class _Job:
     hashes = _Hashes(self.state / "hashes.json")
     self.items = [Item(name, ins, _key(kind.name, map(hashes, ins), options))
                   for name, ins in named_inputs]
-    hashes.save()
+    self.hashes = hashes  # saved when items run: a rerun with nothing to do writes nothing
     self.recs: dict[str, dict[str, Any]] = {}
     self._last_write = -np.inf
     for it in self.items:
@@ -400,6 +400,7 @@ def _run(kind: _Kind, named_inputs: Sequence[tuple[str, tuple[str, ...]]],
       bar.update(1)
       bar.set_postfix(failed=failed, refresh=False)
 
+    job.hashes.save()
     try:
       payloads = [kind.payload(it, options) for it in pending]
       # The first item on the driver: it compiles the kernels the others load.

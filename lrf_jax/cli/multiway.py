@@ -75,7 +75,7 @@ def _check(args: argparse.Namespace) -> str | None:
   """What is wrong with the arguments, before any work (None: fine)."""
   from pathlib import Path
 
-  from lrf_jax.io.atomic import output_problem
+  from lrf_jax.io.atomic import output_problem, path_problem
   from lrf_jax.registration.multiway import output_paths, scan_names
   if len(args.scans) < 2:
     return f"expected at least 2 scans, got {len(args.scans)}"
@@ -86,10 +86,14 @@ def _check(args: argparse.Namespace) -> str | None:
     if val is not None and not (np.isfinite(val) and val > 0):
       return f"--{name.replace('_', '-')}: expected a positive number, got {val}"
   for s in args.scans:
+    if path_problem(s):
+      return f"{s}: {path_problem(s)}"
     if not Path(s).expanduser().is_file():
       return f"{s}: no such file"
   if args.out_dir is None:
     return None
+  if path_problem(args.out_dir):  # before the checks that look at the disk
+    return f"--out-dir: {args.out_dir} {path_problem(args.out_dir)}"
   d = Path(args.out_dir).expanduser()
   if d.exists() and not d.is_dir():
     return f"--out-dir: {args.out_dir} is not a folder"

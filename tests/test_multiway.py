@@ -421,6 +421,28 @@ def test_cli_names_collide_no_more_and_reruns_are_clean(tmp_path, capsys, monkey
   assert _files(other) == ["mine.txt"]
 
 
+def test_pairs_without_a_hypothesis_are_no_edges_and_the_run_goes_on():
+  """`register` raised IndexError when its graph built no hypothesis (here: one correspondence
+  per pair), which ended the multiway run. Such a pair now gives a not-estimated registration
+  (the identity): an "error" edge with its reason, no edge in the graph; the other pairs make
+  the model."""
+  clouds, poses, mr = _views(3)
+  res = multiway.register_all(clouds, mr=mr, refine=False, n_keypoints=10, n_correspondences=1)
+  assert [e.verdict for e in res.edges] == ["error"] * 3
+  assert all(e.reason.startswith("no pose hypothesis") and not e.accepted for e in res.edges)
+  assert res.in_model.tolist() == [True, False, False] and res.left_out == ["scan1", "scan2"]
+  oracle = _oracle(clouds, poses)
+
+  def some_without(src, dst, **kw):  # the pair (0, 1) builds no hypothesis
+    if src.points.shape == clouds[0].shape and dst.points.shape == clouds[1].shape:
+      return SimpleNamespace(transform=np.eye(4), success=False, reason="no pose hypothesis",
+                             n_inliers=0, overlap=0.1, rmse=1.0, estimated=False)
+    return oracle(src, dst, **kw)
+  res = multiway.register_all(clouds, mr=mr, pairwise=some_without, refine=False)
+  assert [e.verdict for e in res.edges] == ["error", "success", "success"]
+  assert np.isnan(res.edges[0].transform).all() and res.edges[0].reason == "no pose hypothesis"
+
+
 def test_cli_end_to_end_into_a_tmp_dir(tmp_path, capsys):
   """`lrf-register a b c --out-dir D` with the real pairwise registration on three small views
   of the demo blob: poses right, every output written, refusing an input as an output."""

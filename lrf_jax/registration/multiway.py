@@ -76,7 +76,8 @@ class MultiwayEdge:
     j: the target scan.
     transform: (4, 4) float64, the pairwise estimate mapping scan i into scan j's frame (NaN
       when the pair could not be registered).
-    verdict: "success", "not sure" (`Registration.success` False) or "error" (no estimate).
+    verdict: "success", "not sure" (`Registration.success` False) or "error" (no estimate: the
+      registration raised a ValueError or built no hypothesis, `Registration.estimated`).
     reason: the pairwise verdict's reason, or the error message.
     n_inliers: coarse inliers of the pairwise estimate.
     overlap: its estimated overlap (fraction of scan i on scan j after ICP).
@@ -338,7 +339,12 @@ def _pairwise(clouds, pairs, *, mr, seed, viewpoints, pairwise, icp_mr, progress
       reg = run(clouds[i], clouds[j], mr=mr, seed=seed, source_viewpoint=viewpoints[i],
                 target_viewpoint=viewpoints[j], **register_kw)
     except ValueError as e:
-      edges.append(MultiwayEdge(i, j, np.full((4, 4), np.nan), "error", str(e), 0, 0.0,
+      reg = None
+      reason = str(e)
+    else:
+      reason = str(getattr(reg, "reason", ""))
+    if reg is None or not getattr(reg, "estimated", True):  # no pose: no edge
+      edges.append(MultiwayEdge(i, j, np.full((4, 4), np.nan), "error", reason, 0, 0.0,
                                 float("inf"), float("inf"), False))
       points.append(np.zeros((0, 3)))
       continue
@@ -347,7 +353,7 @@ def _pairwise(clouds, pairs, *, mr, seed, viewpoints, pairwise, icp_mr, progress
     t = np.asarray(reg.transform, np.float64)
     points.append(_overlap_points(clouds[i].points, grids[j], t, icp_mr * mr, rng))
     edges.append(MultiwayEdge(i, j, t, "success" if reg.success else "not sure",
-                              str(reg.reason), int(reg.n_inliers), float(reg.overlap),
+                              reason, int(reg.n_inliers), float(reg.overlap),
                               float(reg.rmse), float("inf"), False))
   return edges, points
 
@@ -466,7 +472,8 @@ def register_all(scans: Sequence[Any], *, names: Sequence[str] | None = None,
     pairwise: the pairwise registration (default `lrf_jax.register`): called as
       `pairwise(source_cloud, target_cloud, mr=, seed=, source_viewpoint=, target_viewpoint=,
       **register_kw)`, returning an object with `transform`, `success`, `reason`,
-      `n_inliers`, `overlap`, `rmse`; a ValueError marks the pair "error".
+      `n_inliers`, `overlap`, `rmse` (and optionally `estimated`); a ValueError, or
+      `estimated` False, marks the pair "error" (no edge).
     **register_kw: passed to `register` (e.g. `n_keypoints`, `radius_mr`, `method`, `params`).
 
   Returns:

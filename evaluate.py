@@ -126,7 +126,7 @@ OUTPUT_FILES = ("results.json", "report.md", "partial_records.jsonl",
 
 def _check(args: argparse.Namespace) -> str | None:
   """What is wrong with the arguments, before any work (None: fine)."""
-  from lrf_jax.io.atomic import same_file
+  from lrf_jax.io.atomic import path_problem, same_file
   unknown = [m for m in (args.methods or []) if m not in METHODS]
   if unknown:
     return f"--methods: unknown method(s) {unknown}; expected any of {sorted(METHODS)}"
@@ -141,6 +141,8 @@ def _check(args: argparse.Namespace) -> str | None:
   if not 0 <= args.seed < 2**32:
     return f"--seed: expected an integer in [0, 2**32), got {args.seed}"
   out = Path(args.out).expanduser()
+  if path_problem(out):
+    return f"--out: {args.out} {path_problem(out)}"
   if out.exists() and not out.is_dir():
     return f"--out: {args.out} is a file; expected a folder (it is created if missing)"
   existing = next(p for p in [out, *out.absolute().parents] if p.exists())

@@ -103,8 +103,10 @@ def main(argv=None) -> int:
 def _check_workdir(workdir: Path, config_arg: str) -> str | None:
   """What is wrong with --workdir, before any work (None: fine): a file, not creatable or not
   writable, or holding the --config file under the name of an output."""
-  from lrf_jax.io.atomic import same_file
+  from lrf_jax.io.atomic import path_problem, same_file
   from lrf_jax.learning import train_lib
+  if path_problem(workdir):
+    return f"--workdir: {workdir} {path_problem(workdir)}"
   if workdir.exists() and not workdir.is_dir():
     return f"--workdir: {workdir} is a file; expected a folder (new, or a run's to resume)"
   existing = next((p for p in [workdir, *workdir.absolute().parents] if p.exists()), None)

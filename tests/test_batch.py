@@ -80,10 +80,15 @@ def test_read_pairs_paths_names_and_errors(tmp_path):
     jobs.read_pairs(tmp_path / "none.tsv")
 
 
-def test_scan_names_are_unique_and_never_take_another_scans_name():
-  names = jobs.scan_names(["d/a.ply", "d/a_2.ply", "e/a.ply", "f/a.txt.gz", "g/b.bin"])
-  assert names == ["a", "a_2", "a_3", "a_4", "b"]
-  assert len(set(names)) == len(names)
+def test_frames_jobs_name_scans_as_multiway_does(tmp_path):
+  folders = [tmp_path / d for d in "def"]
+  scans = []
+  for folder, name in zip(folders, ("a.npy", "a_2.npy", "a.npy")):
+    scans += make_scans(folder, 1)[:1]
+    scans[-1] = scans[-1].rename(folder / name)
+  res = batch.run_frames(scans, tmp_path / "out", progress=False, keypoints="20")
+  assert [r["name"] for r in res.rows] == ["a", "a_2", "a_3"]
+  assert all((tmp_path / "out" / f"{n}.npz").is_file() for n in ("a", "a_2", "a_3"))
 
 
 def test_register_job_equals_register_bit_for_bit_and_isolates_a_corrupt_scan(tmp_path, scans):

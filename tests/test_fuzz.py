@@ -1388,3 +1388,21 @@ def test_regression_compute_frames_arguments(kw: dict, name: str) -> None:
 def test_regression_register_arguments(kw: dict, name: str) -> None:
   args = {"source": _PTS, "target": _PTS + 0.1} | kw
   _rejects(lambda: lrf_jax.register(**args), name, file=False)
+
+
+@pytest.mark.parametrize("kw", [
+    {"n_keypoints": 10, "n_correspondences": 1, "inlier_mr": 1e-6, "ratio": 0.9},
+    {"n_keypoints": 200, "n_correspondences": 40, "inlier_mr": 1e-9},
+])
+def test_regression_register_without_a_hypothesis(kw: dict) -> None:
+  """The graph estimator builds no hypothesis when no two correspondences are compatible (one
+  correspondence, or a tiny inlier distance): `register` raised IndexError in its verification.
+  It returns the identity, not sure, with the reason, and `estimated` False."""
+  pair = lrf_jax.datasets.make_demo_pair(0)
+  reg = lrf_jax.register(pair.model_points, pair.scene_points, **kw)
+  assert not reg.estimated and not reg.success and reg.n_inliers == 0
+  np.testing.assert_array_equal(reg.transform, np.eye(4))
+  np.testing.assert_array_equal(reg.coarse_transform, np.eye(4))
+  assert reg.reason.startswith("no pose hypothesis: ") and "identity" in reg.reason
+  assert len(reg.correspondences) == len(reg.inliers) and not reg.inliers.any()
+  assert 0.0 <= reg.overlap <= 1.0 and "no pose hypothesis" in reg.summary()

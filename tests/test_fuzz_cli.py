@@ -147,6 +147,64 @@ def test_register_refuses_to_overwrite_an_input(cloud_npy, tmp_path, capsys):
   assert src.read_bytes() == before
 
 
+def test_outputs_refuse_a_fifo_before_any_work(cloud_npy, tmp_path, capsys, monkeypatch):
+  """`lrf-register a b --out F` with F a FIFO (or a device such as /dev/null) replaced it with a
+  regular file by the atomic rename. Every output option refuses what is neither a regular
+  file nor a new name: one `error:` line naming the option and the path, exit code 2, before
+  any work, the FIFO left as it was."""
+  from lrf_jax import registration
+  monkeypatch.setattr(registration, "register", lambda *a, **k: pytest.fail("register ran"))
+  fifo, fifo_npz, fifo_png = tmp_path / "T.txt", tmp_path / "f.npz", tmp_path / "f.png"
+  for f in (fifo, fifo_npz, fifo_png):
+    os.mkfifo(f)
+  link = tmp_path / "link.txt"
+  link.symlink_to(fifo)
+  cases = [
+      (register_cli.main, [str(cloud_npy), str(cloud_npy), "--out", str(fifo)], "--out", fifo),
+      (register_cli.main, [str(cloud_npy), str(cloud_npy), "--out", str(link)], "--out", link),
+      (register_cli.main, [str(cloud_npy), str(cloud_npy), "--png", str(fifo_png)], "--png",
+       fifo_png),
+      (frames_cli.main, [str(cloud_npy), "--out", str(fifo_npz)], "--out", fifo_npz),
+      (frames_cli.main, [str(cloud_npy), "--out", str(fifo_npz)[:-4]], "--out", fifo_npz),
+      (frames_cli.main, [str(cloud_npy), "--out", str(tmp_path / "x.npz"), "--png",
+                         str(fifo_png)], "--png", fifo_png),
+  ]
+  for main, argv, option, path in cases:
+    assert main(argv) == 2, argv
+    err = _error(capsys)
+    assert err == (f"error: {option}: {path} is a FIFO (named pipe); expected a regular file or "
+                   "a new name\n"), err
+  assert all(f.is_fifo() for f in (fifo, fifo_npz, fifo_png))
+  assert _listing(tmp_path) == ["T.txt", "f.npz", "f.png", "link.txt"]
+
+
+def test_output_names_too_long_are_one_error_line(cloud_npy, tmp_path, capsys):
+  """An output name over 255 bytes was a traceback (ENAMETOOLONG) in lrf-frames --out,
+  lrf-register --out-dir, train.py --workdir and evaluate.py --out; now one `error:` line naming
+  the option, exit code 2, before any work."""
+  long = str(tmp_path / ("n" * 256))
+  cases = [
+      (register_cli.main, [str(cloud_npy), str(cloud_npy), "--out", long], "--out"),
+      (register_cli.main, [str(cloud_npy), str(cloud_npy), "--png", long + ".png"], "--png"),
+      (register_cli.main, [str(cloud_npy), str(cloud_npy), "--init", long], "--init"),
+      (register_cli.main, [str(cloud_npy), str(cloud_npy), "--checkpoint", long],
+       "--checkpoint"),
+      (register_cli.main, [str(cloud_npy), str(cloud_npy), "--out-dir", long], "--out-dir"),
+      (register_cli.main, [str(cloud_npy), str(cloud_npy), "--out-dir", long + "/sub"],
+       "--out-dir"),
+      (frames_cli.main, [str(cloud_npy), "--out", long], "--out"),
+      (frames_cli.main, [str(cloud_npy), "--out", str(tmp_path / "f.npz"), "--png",
+                         long + ".png"], "--png"),
+      (train.main, ["--config", "smoke", "--workdir", long], "--workdir"),
+      (evaluate.main, ["--datasets", "demo", "--out", long], "--out"),
+  ]
+  for main, argv, option in cases:
+    assert main(argv) == 2, argv
+    err = _error(capsys)
+    assert err.startswith(f"error: {option}: ") and "at most 255 bytes" in err, err
+  assert _listing(tmp_path) == []
+
+
 def test_register_checkpoint_without_checkpoints(cloud_npy, tmp_path, capsys):
   empty = tmp_path / "empty"
   empty.mkdir()

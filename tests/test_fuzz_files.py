@@ -123,6 +123,62 @@ def test_figure_that_fails_to_save_keeps_the_old_png(tmp_path):
   _only(tmp_path, "curves.png")
 
 
+def _socket_file(path: Path):
+  """A Unix socket bound at `path` (a file of another kind than FIFO or device, made without
+  privileges); close it when done."""
+  import socket
+  sock = socket.socket(socket.AF_UNIX)
+  sock.bind(str(path))
+  return sock
+
+
+def test_only_a_regular_file_or_a_new_name_is_replaced(tmp_path):
+  """The rename of an atomic write replaced a FIFO or a device (/dev/null, as root) with a
+  regular file. Each is refused before anything is written, as an `OutputPathError` (a
+  `WriteError` for the programs' `error:` line and a `ValueError` for a library caller) naming
+  the path; a symbolic link is followed to what it points to."""
+  fifo = tmp_path / "pipe"
+  os.mkfifo(fifo)
+  link = tmp_path / "link.txt"
+  link.symlink_to(fifo)
+  sock = _socket_file(tmp_path / "sock")
+  try:
+    for path, kind in ((fifo, "FIFO"), (link, "FIFO"), (tmp_path / "sock", "socket")):
+      for write, data in ((atomic.write_text, "x"), (atomic.write_bytes, b"x"),
+                          (atomic.append_line, "x")):
+        with pytest.raises(atomic.OutputPathError, match=kind) as e:
+          write(path, data)
+        assert isinstance(e.value, ValueError) and isinstance(e.value, atomic.WriteError)
+        assert str(e.value).startswith(f"could not write {os.path.realpath(path)}: is a")
+    assert fifo.is_fifo() and link.is_symlink() and (tmp_path / "sock").is_socket()
+    _only(tmp_path, "pipe", "link.txt", "sock")
+    # The programs' check before any work says the same, /dev/null included (only looked at).
+    for path, kind in ((fifo, "a FIFO (named pipe)"), (tmp_path / "sock", "a socket"),
+                       ("/dev/null", "a character device")):
+      assert atomic.output_problem(path, "--out") == (
+          f"--out: {path} is {kind}; expected a regular file or a new name")
+    assert atomic.output_problem(tmp_path / "new.txt", "--out") is None
+  finally:
+    sock.close()
+
+
+def test_names_too_long_are_refused_and_a_long_one_still_written(tmp_path):
+  """A 256-byte file name was a traceback (ENAMETOOLONG) in every program; a 255-byte one
+  failed too, on the longer temporary name beside it."""
+  long = tmp_path / ("é" * 128)  # 256 bytes in UTF-8
+  with pytest.raises(atomic.OutputPathError, match="256 bytes; a file or folder name may be at "
+                                                     "most 255 bytes"):
+    atomic.write_text(long, "x")
+  assert "256 bytes" in atomic.output_problem(long, "--out")
+  assert "256 bytes" in atomic.output_problem(long / "sub.txt", "--out")
+  assert "4096 bytes" in atomic.path_problem("a/" * 2048)
+  assert "NUL" in atomic.path_problem("a\0b")
+  for name in ("x" * 255, "y" * 250 + ".png", "z" * 200 + "." + "s" * 54):
+    atomic.write_text(tmp_path / name, "kept")
+    assert (tmp_path / name).read_text() == "kept"
+  _only(tmp_path, "x" * 255, "y" * 250 + ".png", "z" * 200 + "." + "s" * 54)
+
+
 _KILLED_WRITER = """
 import importlib.util, sys, time
 spec = importlib.util.spec_from_file_location("atomic", sys.argv[1])

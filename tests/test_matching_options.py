@@ -280,3 +280,88 @@ def test_occupancy_form_matches_its_definition(seed):
                                              rv), (q - 200.0, r, qv, rv)]
   for c in cases:
     assert _occupancy_form(*c) == _form_reference(*c)
+
+
+@pytest.mark.parametrize("opts", OPTIONS, ids=str)
+@pytest.mark.parametrize("form", ["dense", "occupancy"])
+def test_non_finite_rows_never_match_and_never_capture(opts, form):
+  """One reference row holding NaN or inf was the nearest neighbor of every query (NaN
+  distances), and a NaN query matched with ratio 1.0. A row holding NaN or inf is invalid:
+  the result is the reference's on the other rows, on both searches."""
+  rng = np.random.default_rng(8)
+  if form == "dense":
+    q, r = rng.normal(size=(120, 12)).astype(np.float32), rng.normal(size=(100, 12)).astype(
+        np.float32)
+  else:
+    q, r = _occupancy_like(rng, 120), _occupancy_like(rng, 100)
+  qv, rv = rng.random(120) > 0.1, rng.random(100) > 0.1
+  r[5] = np.nan
+  r[6, 2] = np.inf
+  r[7, 0] = -np.inf
+  q[8] = np.nan
+  q[9, 3] = np.inf
+  fq, fr = np.isfinite(q).all(axis=1), np.isfinite(r).all(axis=1)
+  clean_q, clean_r = np.where(fq[:, None], q, 0), np.where(fr[:, None], r, 0)
+  for search in ("dense", "auto"):
+    qi, ri, score = select_correspondences(q, r, qv, rv, search=search, **opts)
+    eqi, eri, escore = reference_select(clean_q, clean_r, qv & fq, rv & fr, **opts)
+    np.testing.assert_array_equal(qi, eqi)
+    np.testing.assert_array_equal(ri, eri)
+    np.testing.assert_allclose(score, escore, rtol=1e-5, atol=1e-6)
+    assert not set(ri.tolist()) & {5, 6, 7} and not set(qi.tolist()) & {8, 9}
+  m = match_descriptors(q, r, qv, rv)
+  assert (m.nearest[[8, 9]] == -1).all() and np.isinf(m.distance[[8, 9]]).all()
+  assert np.isinf(m.ratio[[8, 9]]).all() and not np.isin(m.nearest, [5, 6, 7]).any()
+
+
+@pytest.mark.parametrize("opts", OPTIONS, ids=str)
+@pytest.mark.parametrize("form", ["dense", "occupancy"])
+def test_a_common_scale_does_not_change_the_matches(opts, form):
+  """Descriptors scaled by 1e19 (float32 squares overflow: every distance NaN) or 1e-20 (squares
+  underflow to 0: every distance a tie) matched differently from the same descriptors at scale
+  1. The search runs in a power-of-two unit of their size: at a power-of-two scale the result
+  is bit-identical (distances scaled), at any other scale it is the reference's."""
+  rng = np.random.default_rng(9)
+  if form == "dense":
+    q = rng.normal(size=(140, 12)).astype(np.float32)
+    r = np.concatenate([q[:70] + 0.1 * rng.normal(size=(70, 12)), rng.normal(size=(60, 12))]
+                       ).astype(np.float32)
+  else:
+    q, r = _occupancy_like(rng, 140), _occupancy_like(rng, 130)
+    r[:70] = np.where(q[:70] == 100, 100, np.clip(q[:70] + 0.02 * rng.normal(size=(70, 70)), 0,
+                                                   1))
+  qv, rv = rng.random(140) > 0.1, rng.random(130) > 0.1
+  for search in ("dense", "auto"):
+    base = select_correspondences(q, r, qv, rv, search=search, **opts)
+    assert len(base[0]) > 0
+    for e in (63, -66, 100, -100):
+      s = np.float32(2.0 ** e)
+      qi, ri, score = select_correspondences(q * s, r * s, qv, rv, search=search, **opts)
+      np.testing.assert_array_equal(qi, base[0])
+      np.testing.assert_array_equal(ri, base[1])
+      np.testing.assert_array_equal(score, base[2] if opts["k"] == 1 else base[2] * s)
+    if form == "occupancy" and search == "dense":
+      continue  # its float32 expansion swaps near ties on such data at any scale (see above)
+    for s in (1, 1e19, 1e-20, 1e30, 1e-30):  # ratios of close matches: float32 expansion
+      _check((q * s).astype(np.float32), (r * s).astype(np.float32), qv, rv, search=search,
+             rtol=1e-4, **opts)
+  m, ms = match_descriptors(q, r, qv, rv), match_descriptors(q * 2.0 ** 63, r * 2.0 ** 63, qv, rv)
+  np.testing.assert_array_equal(ms.nearest, m.nearest)
+  np.testing.assert_array_equal(ms.ratio, m.ratio)
+  np.testing.assert_array_equal(ms.distance, m.distance * np.float32(2.0 ** 63))
+
+
+def test_mutual_k_above_the_reference_count_is_capped():
+  """`select_correspondences(k=K, mutual=True)` held m x K x K integers (and K padded
+  references) for any K: K = 10**6 on 20 queries asked for 160 TB. K is capped at the valid
+  references (the mutual check's queries at the valid queries), the result unchanged."""
+  rng = np.random.default_rng(10)
+  q, r = rng.normal(size=(20, 6)), rng.normal(size=(9, 6))
+  rv = np.arange(9) != 4
+  for mutual in (False, True):
+    big = select_correspondences(q, r, None, rv, k=10**6, mutual=mutual)
+    small = select_correspondences(q, r, None, rv, k=20, mutual=mutual)
+    for a, b in zip(big, small):
+      np.testing.assert_array_equal(a, b)
+    _check(q, r, None, rv, k=20, mutual=mutual)
+    _check(q[:3], r, None, rv, k=10**6, mutual=mutual)

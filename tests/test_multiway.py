@@ -5,6 +5,10 @@ from __future__ import annotations
 
 import functools
 import itertools
+import json
+import os
+import re
+from pathlib import Path
 from types import SimpleNamespace
 
 import numpy as np
@@ -233,6 +237,210 @@ def test_scan_names_and_bad_input_names_the_file(tmp_path):
     multiway.register_all([np.zeros((20, 3)), str(bad)])
   with pytest.raises(ValueError, match="at least 2 scans"):
     multiway.register_all([np.zeros((20, 3))])
+
+
+def test_scan_names_are_distinct_and_keep_every_natural_name():
+  """`d/a.ply d/a_2.ply e/a.ply` were named a, a_2, a_2: two scans, one pose file. A repeated
+  name now takes the first "_k" that is no scan's natural name and not given yet; equal
+  ignoring case counts as repeated (one file on a case-insensitive file system)."""
+  assert multiway.scan_names(["d/a.ply", "d/a_2.ply", "e/a.ply"]) == ["a", "a_2", "a_3"]
+  assert multiway.scan_names(["d/a.ply", "e/a.ply", "d/a_2.ply"]) == ["a", "a_3", "a_2"]
+  assert multiway.scan_names(["A.ply", "a.ply", "x/a.ply"]) == ["A", "a_2", "a_3"]
+  assert multiway.scan_names(["scan1.ply", np.zeros((3, 3))]) == ["scan1", "scan1_2"]
+  assert multiway.scan_names(["d/..", "a\tb.ply", "c\n.npy"]) == ["scan0", "a_b", "c_"]
+  long = ["x" * 253 + ".gz", "d/" + "x" * 251 + ".ply", "é" * 127 + ".ply"]
+  names = multiway.scan_names(long)
+  assert names[0] == "x" * 251 and names[1] == "x" * 249 + "_2" and names[2] == "é" * 125
+  rng = np.random.default_rng(0)
+  for _ in range(300):  # any mix of repeated, suffixed and case-varied names
+    scans = [f"{rng.choice(['d', 'e'])}/{rng.choice(['a', 'A', 'a_2', 'a_3', 'b'])}"
+             f"{rng.choice(['', '_2'])}.ply" for _ in range(rng.integers(2, 9))]
+    names = multiway.scan_names(scans)
+    assert len({n.casefold() for n in names}) == len(names), (scans, names)
+    assert multiway.check_names(names) == names
+    first = {}
+    for scan, name in zip(scans, names):
+      natural = Path(scan).stem
+      first.setdefault(natural.casefold(), name)
+      assert first[natural.casefold()] == natural or name != natural  # first keeps it
+
+
+@pytest.mark.parametrize("name,fragment", [
+    ("../../victim", "path separator"), ("a/b", "path separator"), ("..", "'.' or '..'"),
+    (".", "'.' or '..'"), ("", "non-empty"), (3, "non-empty string"), ("a\tb", "control"),
+    ("a\nb", "control"), ("x" * 252, "252 bytes"), ("é" * 126, "252 bytes"),
+    ("B", "scan 0 too"),
+])
+def test_names_that_are_not_file_names_are_refused(tmp_path, name, fragment):
+  """`register_all(names=['../../victim', ...])` then `write_outputs` wrote ../../victim.txt,
+  outside the folder; a 252-byte name failed on its 256-byte file name. Refused as ValueError
+  naming the argument and the name, before any work and before anything is written."""
+  names = ["b", name]
+  with pytest.raises(ValueError, match=r"names\[1\]: .*" + re.escape(fragment)):
+    multiway.register_all([np.zeros((20, 3)), np.zeros((20, 3))], names=names,
+                          pairwise=lambda *a, **k: pytest.fail("registered"))
+  res = _result(names, [True, True])
+  out = tmp_path / "a" / "b"
+  with pytest.raises(ValueError, match=r"result.names\[1\]: .*" + re.escape(fragment)):
+    multiway.write_outputs(res, [np.zeros((3, 3))] * 2, out, figures=False)
+  with pytest.raises(ValueError, match=re.escape(fragment)):
+    multiway.output_paths(names, out)
+  assert list(tmp_path.iterdir()) == []
+
+
+def _result(names, in_model, mr=1.0) -> multiway.MultiwayResult:
+  """A result of `register_all` with identity poses for the scans in the model."""
+  n = len(names)
+  poses = np.where(np.asarray(in_model)[:, None, None], np.tile(np.eye(4), (n, 1, 1)), np.nan)
+  return multiway.MultiwayResult(names=tuple(names), poses=poses, in_model=np.asarray(in_model),
+                                 reference=0, edges=(), mr=mr, seconds=0.0)
+
+
+def _clouds(n):
+  return [np.random.default_rng(k).normal(size=(50, 3)) for k in range(n)]
+
+
+def _files(folder):
+  return sorted(p.name for p in folder.iterdir())
+
+
+def test_a_rerun_leaves_only_its_own_files(tmp_path):
+  """A rerun into an --out-dir kept the pose file of a scan it left out, and the figures of the
+  earlier run: the folder showed a model that no run made. The run lists its files in
+  manifest.json; a rerun removes the earlier run's files it does not write, and replaces the
+  others; files no manifest lists are never touched."""
+  out = tmp_path / "model"
+  written = multiway.write_outputs(_result(["a", "b", "c"], [True] * 3), _clouds(3), out)
+  assert _files(out) == ["a.txt", "b.txt", "c.txt", "edges.tsv", "graph.png", "manifest.json",
+                         "merged.ply", "merged.png"]
+  manifest = json.loads((out / "manifest.json").read_text())
+  assert sorted(manifest["files"]) == sorted(p.name for p in written)
+  (out / "notes.md").write_text("mine")  # the user's, in an earlier run's folder: kept
+  multiway.write_outputs(_result(["a", "b", "c"], [True, False, True]), _clouds(3), out,
+                         figures=False)
+  assert _files(out) == ["a.txt", "c.txt", "edges.tsv", "manifest.json", "merged.ply",
+                         "notes.md"]
+  assert sorted(json.loads((out / "manifest.json").read_text())["files"]) == [
+      "a.txt", "c.txt", "edges.tsv", "merged.ply"]
+  multiway.write_outputs(_result(["x", "y"], [True, True]), _clouds(2), out, figures=False)
+  assert _files(out) == ["edges.tsv", "manifest.json", "merged.ply", "notes.md", "x.txt",
+                         "y.txt"]
+  assert (out / "notes.md").read_text() == "mine"
+
+
+def test_an_interrupted_rerun_is_cleaned_up_by_the_next(tmp_path, monkeypatch):
+  """Until a run ends, its manifest lists both runs' files: whatever an interrupted run leaves,
+  the next run removes."""
+  out = tmp_path / "model"
+  multiway.write_outputs(_result(["a", "b"], [True, True]), _clouds(2), out, figures=False)
+
+  def broken(*a, **k):
+    raise KeyboardInterrupt
+  with monkeypatch.context() as m:
+    m.setattr(multiway, "write_merged_ply", broken)
+    with pytest.raises(KeyboardInterrupt):
+      multiway.write_outputs(_result(["c", "d"], [True, True]), _clouds(2), out, figures=False)
+  listed = json.loads((out / "manifest.json").read_text())["files"]
+  assert set(_files(out)) - {"manifest.json"} <= set(listed)
+  multiway.write_outputs(_result(["e", "f"], [True, True]), _clouds(2), out, figures=False)
+  assert _files(out) == ["e.txt", "edges.tsv", "f.txt", "manifest.json", "merged.ply"]
+
+
+def test_a_folder_no_run_wrote_is_refused(tmp_path):
+  """A non-empty folder without an earlier run's manifest, or with a manifest that is not one
+  (unreadable, or listing a path outside the folder), is refused before anything is written;
+  an output path that is a FIFO too."""
+  res, clouds = _result(["a", "b"], [True, True]), _clouds(2)
+  out = tmp_path / "photos"
+  out.mkdir()
+  (out / "holiday.jpg").write_bytes(b"jpeg")
+  with pytest.raises(ValueError, match="out_dir: .*photos is not empty and holds no "
+                                       "manifest.json"):
+    multiway.write_outputs(res, clouds, out, figures=False)
+  assert _files(out) == ["holiday.jpg"]
+  victim = tmp_path / "victim.txt"
+  victim.write_text("keep me")
+  for text in ("{not json", json.dumps({"files": ["holiday.jpg"]}),
+               json.dumps({"kind": multiway.MANIFEST_KIND, "files": ["../victim.txt"]})):
+    (out / "manifest.json").write_text(text)
+    with pytest.raises(ValueError, match="is not a manifest of an earlier run"):
+      multiway.write_outputs(res, clouds, out, figures=False)
+  assert victim.read_text() == "keep me" and _files(out) == ["holiday.jpg", "manifest.json"]
+  earlier = tmp_path / "earlier"
+  multiway.write_outputs(res, clouds, earlier, figures=False)
+  (earlier / "b.txt").unlink()
+  os.mkfifo(earlier / "b.txt")
+  before = (earlier / "manifest.json").read_bytes()
+  with pytest.raises(ValueError, match="out_dir: .*b.txt is a FIFO"):
+    multiway.write_outputs(res, clouds, earlier, figures=False)
+  assert (earlier / "b.txt").is_fifo() and (earlier / "manifest.json").read_bytes() == before
+  with pytest.raises(ValueError, match="out_dir: .*is not a folder"):
+    multiway.write_outputs(res, clouds, victim, figures=False)
+
+
+def _fake_register_all(monkeypatch, in_model=None):
+  """`lrf-register a b c --out-dir D` with `register_all` replaced by identity poses (the
+  scans in `in_model`, default all): these tests are about the outputs."""
+  def run(clouds, *, names, **kw):
+    return _result(names, in_model or [True] * len(names))
+  monkeypatch.setattr(multiway, "register_all", run)
+
+
+def _npy_scans(folder, *rel):
+  paths = []
+  for k, r in enumerate(rel):
+    path = folder / r
+    path.parent.mkdir(parents=True, exist_ok=True)
+    np.save(path, np.random.default_rng(k).normal(size=(30, 3)))
+    paths.append(str(path))
+  return paths
+
+
+def test_cli_names_collide_no_more_and_reruns_are_clean(tmp_path, capsys, monkeypatch):
+  from lrf_jax.cli.register import main
+  scans = _npy_scans(tmp_path / "in", "d/a.npy", "d/a_2.npy", "e/a.npy")
+  out = tmp_path / "model"
+  _fake_register_all(monkeypatch)
+  assert main([*scans, "--out-dir", str(out), "--quiet", "--no-figures"]) == 0
+  assert _files(out) == ["a.txt", "a_2.txt", "a_3.txt", "edges.tsv", "manifest.json",
+                         "merged.ply"]
+  _fake_register_all(monkeypatch, [True, False, True])  # scan a_2 left out this time
+  assert main([*scans, "--out-dir", str(out), "--quiet", "--no-figures"]) == 3
+  assert _files(out) == ["a.txt", "a_3.txt", "edges.tsv", "manifest.json", "merged.ply"]
+  capsys.readouterr()
+  other = tmp_path / "other"
+  other.mkdir()
+  (other / "mine.txt").write_text("x")
+  os.mkfifo(out / "a_2.txt")
+  for folder, fragment in ((other, "is not empty and holds no manifest.json"),
+                           (out, "a_2.txt is a FIFO (named pipe); expected a regular file")):
+    monkeypatch.setattr(multiway, "register_all", lambda *a, **k: pytest.fail("registered"))
+    assert main([*scans, "--out-dir", str(folder), "--quiet"]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("error: --out-dir: ") and fragment in err, err
+  assert _files(other) == ["mine.txt"]
+
+
+def test_pairs_without_a_hypothesis_are_no_edges_and_the_run_goes_on():
+  """`register` raised IndexError when its graph built no hypothesis (here: one correspondence
+  per pair), which ended the multiway run. Such a pair now gives a not-estimated registration
+  (the identity): an "error" edge with its reason, no edge in the graph; the other pairs make
+  the model."""
+  clouds, poses, mr = _views(3)
+  res = multiway.register_all(clouds, mr=mr, refine=False, n_keypoints=10, n_correspondences=1)
+  assert [e.verdict for e in res.edges] == ["error"] * 3
+  assert all(e.reason.startswith("no pose hypothesis") and not e.accepted for e in res.edges)
+  assert res.in_model.tolist() == [True, False, False] and res.left_out == ["scan1", "scan2"]
+  oracle = _oracle(clouds, poses)
+
+  def some_without(src, dst, **kw):  # the pair (0, 1) builds no hypothesis
+    if src.points.shape == clouds[0].shape and dst.points.shape == clouds[1].shape:
+      return SimpleNamespace(transform=np.eye(4), success=False, reason="no pose hypothesis",
+                             n_inliers=0, overlap=0.1, rmse=1.0, estimated=False)
+    return oracle(src, dst, **kw)
+  res = multiway.register_all(clouds, mr=mr, pairwise=some_without, refine=False)
+  assert [e.verdict for e in res.edges] == ["error", "success", "success"]
+  assert np.isnan(res.edges[0].transform).all() and res.edges[0].reason == "no pose hypothesis"
 
 
 def test_cli_end_to_end_into_a_tmp_dir(tmp_path, capsys):

@@ -11,8 +11,8 @@ a Ray cluster, resumable, every file written atomically (`lrf-batch`).
 
 from lrf_jax.batch.engines import ENGINES, LocalEngine, Outcome, RayEngine, make_engine
 from lrf_jax.batch.jobs import (FRAMES_COLUMNS, REGISTER_COLUMNS, JobResult, read_pairs,
-                                run_frames, run_register, scan_names)
+                                run_frames, run_register)
 
 __all__ = ["ENGINES", "FRAMES_COLUMNS", "JobResult", "LocalEngine", "Outcome",
            "REGISTER_COLUMNS", "RayEngine", "make_engine", "read_pairs", "run_frames",
-           "run_register", "scan_names"]
+           "run_register"]

@@ -44,9 +44,10 @@ import numpy as np
 from lrf_jax.batch import engines as engines_mod
 from lrf_jax.batch import items as items_mod
 from lrf_jax.io import atomic
+from lrf_jax.registration.multiway import scan_names
 
 __all__ = ["JobResult", "REGISTER_COLUMNS", "FRAMES_COLUMNS", "STATE", "read_pairs",
-           "run_frames", "run_register", "scan_names"]
+           "run_frames", "run_register"]
 
 STATE = ".lrf-batch"
 REGISTER_COLUMNS = ("name", "source", "target", "status", "success", "reason", "seconds",
@@ -103,32 +104,6 @@ def check_name(name: str, where: str) -> str:
     raise ValueError(f"{where}: expected a file name without a folder, not starting with '.', "
                      f"at most {_MAX_NAME_BYTES} bytes, got {name!r}")
   return name
-
-
-def _stem(path: str) -> str:
-  name = Path(path).name
-  for suffix in (".gz",):
-    if name.lower().endswith(suffix):
-      name = name[:-len(suffix)]
-  return Path(name).stem or name
-
-
-def scan_names(paths: Sequence[str]) -> list[str]:
-  """One output name per scan: its file name without suffixes; a name taken by an earlier scan
-  gets `_2`, `_3`, ... (never one that another scan has as its own), so that names are unique."""
-  natural = [_stem(p) for p in paths]
-  taken: set[str] = set()
-  reserved = set(natural)
-  out = []
-  for stem in natural:
-    name = stem
-    k = 2
-    while name in taken or (name != stem and name in reserved):
-      name = f"{stem}_{k}"
-      k += 1
-    taken.add(name)
-    out.append(check_name(name, f"scan {stem!r}"))
-  return out
 
 
 def read_pairs(path: str | os.PathLike) -> list[tuple[str, str, str]]:
@@ -455,7 +430,8 @@ def run_frames(scans: Sequence[str | os.PathLike], out: str | os.PathLike, *,
                engine: str = "local", address: str | None = None, progress: bool = True,
                retry_errors: bool = False, **options: Any) -> JobResult:
   """Frames (and with `descriptor=`, descriptors) of every scan: `DIR/<name>.npz` as
-  `lrf-frames` writes them, names from `scan_names`, and `DIR/results.tsv`.
+  `lrf-frames` writes them, named as `lrf-register --out-dir` names scans
+  (`registration.multiway.scan_names`), and `DIR/results.tsv`.
 
   Args:
     scans: the scan files.
@@ -472,6 +448,6 @@ def run_frames(scans: Sequence[str | os.PathLike], out: str | os.PathLike, *,
   """
   items_mod.check_frames_options(options)
   paths = [str(Path(s).expanduser().resolve()) for s in scans]
-  names = scan_names(paths)
+  names = [check_name(n, f"scan {p}") for n, p in zip(scan_names(paths), paths)]
   return _run(FRAMES, [(n, (p,)) for n, p in zip(names, paths)], out, options, engine=engine,
               address=address, progress=progress, retry_errors=retry_errors)

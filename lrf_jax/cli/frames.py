@@ -89,11 +89,14 @@ def npz_path(out: str) -> str:
 
 def _check(args: argparse.Namespace) -> str | None:
   """What is wrong with the arguments, before any work (None: fine)."""
-  from lrf_jax.io.atomic import output_problem, same_file
+  from lrf_jax.io.atomic import output_problem, path_problem, same_file
   problem = check_options(args)
   if problem:
     return problem
   inputs = [("cloud", args.cloud), ("--pair", args.pair), ("--gt", args.gt)]
+  for name, value in (("--out", npz_path(args.out)), ("--png", args.png)):
+    if value is not None and path_problem(value):  # before the checks that look at the disk
+      return f"{name}: {value} {path_problem(value)}"
   if Path(args.out).expanduser().is_dir():
     return f"--out: {args.out} is a folder; expected a file path (e.g. {Path(args.out) / 'frames.npz'})"
   problem = output_problem(npz_path(args.out), "--out", inputs)
@@ -108,6 +111,7 @@ def check_options(args: argparse.Namespace) -> str | None:
   """What is wrong with the options of `args` other than the output paths (None: fine)."""
   from lrf_jax.descriptors import DESCRIPTORS
   from lrf_jax.frames import METHODS
+  from lrf_jax.io.atomic import path_problem
   if args.method not in METHODS:
     return f"--method: unknown method {args.method!r}; expected one of {sorted(METHODS)}"
   if args.descriptor is not None and args.descriptor not in DESCRIPTORS:
@@ -135,6 +139,8 @@ def check_options(args: argparse.Namespace) -> str | None:
     return ("--pair and --gt go together: --pair B names the second scan, --gt T the 4x4 "
             "transform mapping the cloud onto it")
   for name, value in (("--pair", args.pair), ("--gt", args.gt)):
+    if value is not None and path_problem(value):
+      return f"{name}: {value} {path_problem(value)}"
     if value is not None and not Path(value).expanduser().is_file():
       return f"{name}: {value} is not a file"
   return None

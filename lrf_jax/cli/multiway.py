@@ -6,8 +6,11 @@ every file atomically): `<stem>.txt` per scan in the model (the 4x4 that maps th
 the reference scan's frame: the first scan's, unless the first scan is left out, then the
 first scan that is in the model), `merged.ply` (the merged cloud coloured by scan, `--voxel`
 mr voxels if given), `edges.tsv` (pair, verdict, inliers, overlap, residual, accepted or
-rejected; also printed) and the figures `merged.png` and `graph.png`. Without `--out-dir` the
-edge table and the poses are only printed. No output may be one of the inputs.
+rejected; also printed), the figures `merged.png` and `graph.png`, and `manifest.json`, the list
+of these files. D must be new, empty or an earlier run's output folder (it holds that run's
+manifest): the files the earlier run listed are replaced or removed, so that D holds this run's
+files only (a folder of other files is refused). Without `--out-dir` the edge table and the
+poses are only printed. No output may be one of the inputs, or a FIFO or a device.
 
 Exit code 0: every scan is in the model; 3: some scans were left out (named on stderr; their
 poses are not written); 2: bad input or an unwritable output (one `error:` line naming it).
@@ -75,8 +78,8 @@ def _check(args: argparse.Namespace) -> str | None:
   """What is wrong with the arguments, before any work (None: fine)."""
   from pathlib import Path
 
-  from lrf_jax.io.atomic import output_problem
-  from lrf_jax.registration.multiway import output_paths, scan_names
+  from lrf_jax.io.atomic import output_problem, path_problem, same_file
+  from lrf_jax.registration.multiway import check_out_dir, output_paths, scan_names
   if len(args.scans) < 2:
     return f"expected at least 2 scans, got {len(args.scans)}"
   if not 0 <= args.seed < 2**32:
@@ -86,14 +89,24 @@ def _check(args: argparse.Namespace) -> str | None:
     if val is not None and not (np.isfinite(val) and val > 0):
       return f"--{name.replace('_', '-')}: expected a positive number, got {val}"
   for s in args.scans:
+    if path_problem(s):
+      return f"{s}: {path_problem(s)}"
     if not Path(s).expanduser().is_file():
       return f"{s}: no such file"
   if args.out_dir is None:
     return None
+  try:  # new, empty, or an earlier run's (its manifest lists the files it wrote)
+    earlier = check_out_dir(args.out_dir, "--out-dir")
+  except ValueError as e:
+    return str(e)
   d = Path(args.out_dir).expanduser()
-  if d.exists() and not d.is_dir():
-    return f"--out-dir: {args.out_dir} is not a folder"
   inputs = [(f"scan {k + 1}", s) for k, s in enumerate(args.scans)]
+  for name in earlier:  # an earlier run's file, replaced or removed
+    clash = next((f"--out-dir: {d / name} is the input {n} ({s}), a file an earlier run wrote "
+                  "there; refusing to overwrite it" for n, s in inputs
+                  if same_file(d / name, s)), None)
+    if clash:
+      return clash
   for path in output_paths(scan_names(args.scans), d).values():
     if d.is_dir():
       problem = output_problem(path, "--out-dir", inputs)
@@ -153,8 +166,8 @@ def main(argv: list[str] | None = None) -> int:
       write_outputs(res, [c.points for c in clouds], args.out_dir,
                     voxel=None if args.voxel is None else args.voxel * res.mr,
                     figures=not args.no_figures)
-    except WriteError as e:
-      print(f"error: {e}", file=sys.stderr)
+    except (WriteError, ValueError) as e:  # e.g. the folder changed during the run
+      print(f"error: {str(e).replace('out_dir: ', '--out-dir: ', 1)}", file=sys.stderr)
       return 2
   return 3 if res.left_out else 0
 

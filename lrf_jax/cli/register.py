@@ -3,7 +3,8 @@
 Prints the 4 x 4 transform that maps SRC onto TGT (rows, 9 significant digits), the inlier count
 of the coarse estimate, the final overlap (fitness) and RMSE and the verdict
 (`Registration.success`; exit code 3 when it failed, 2 for bad input); `--out` also writes the matrix as
-text (`numpy.loadtxt` reads it back), atomically, and may not be one of the inputs. `--init`
+text (`numpy.loadtxt` reads it back), atomically; it may not be one of the inputs, and must be
+a regular file or a new name (a FIFO or a device such as /dev/null is refused). `--init`
 gives an initial source->target transform (a 4x4 text file as `lrf_jax.io.read_xf` reads, or
 a (4, 4) .npy) that `register` then only refines. Inputs: any cloud or mesh
 `lrf_jax.io.read_cloud` reads (PLY, PCD, XYZ/TXT(.gz), NPY). Every length is in mesh
@@ -110,7 +111,10 @@ def _check_paths(args: argparse.Namespace) -> str | None:
   work is done (None: fine)."""
   from pathlib import Path
 
-  from lrf_jax.io.atomic import output_problem
+  from lrf_jax.io.atomic import output_problem, path_problem
+  for name, value in (("--checkpoint", args.checkpoint), ("--init", args.init)):
+    if value is not None and path_problem(value):  # before the checks that look at the disk
+      return f"{name}: {value} {path_problem(value)}"
   problem = check_options(args)
   if problem:
     return problem

@@ -21,6 +21,15 @@ searches give the same neighbors:
   query instead of all of them). `search="auto"` (the default) takes it when the descriptors
   have that form (`_occupancy_form`).
 
+Robustness (none of it changes a result on ordinary descriptors): a row holding NaN or inf is
+invalid, as if its valid flag were False (it never matches and is never matched); descriptors
+whose typical size (the median over the valid rows of their largest entry) lies outside
+[2^-20, 2^20] are searched scaled by a power of two that brings it to [0.5, 1) (`_unit`), an
+exact scaling: the same matches and ratios as at scale 1, where float32 squares of 1e19 would
+overflow and those of 1e-20 vanish; a distance that overflows anyway (a row far larger than
+the others) counts as infinite, never as NaN; and `k` is capped at the number of valid
+references (the mutual check's queries at the number of valid queries).
+
 References:
   Lowe, "Distinctive image features from scale-invariant keypoints", IJCV 2004 (the ratio test);
   Tombari et al. 2010 and Guo et al. 2016 (its use for recall vs 1-precision).
@@ -56,11 +65,12 @@ class Matches(NamedTuple):
 
 
 def _d2(query: jax.Array, ref: jax.Array, ref_ok: jax.Array) -> jax.Array:
-  """(b, n) squared L2 distances, inf where the reference is invalid."""
+  """(b, n) squared L2 distances, inf where the reference is invalid or the expansion is NaN
+  (float32 overflow of a row far larger than the others: inf - inf)."""
   q2 = jnp.sum(query * query, axis=1)
   r2 = jnp.sum(ref * ref, axis=1)
   d2 = q2[:, None] + r2[None, :] - 2.0 * query @ ref.T
-  return jnp.where(ref_ok[None, :], jnp.maximum(d2, 0.0), jnp.inf)
+  return jnp.where(ref_ok[None, :] & ~jnp.isnan(d2), jnp.maximum(d2, 0.0), jnp.inf)
 
 
 @jit(static_argnames="k")
@@ -84,6 +94,8 @@ def _block_both(query: jax.Array, query_ok: jax.Array, ref: jax.Array, ref_ok: j
 
 
 def _check_inputs(query, reference, query_valid, reference_valid):
+  """float32 descriptors and bool valid flags; a row holding NaN or inf is invalid (and zeroed,
+  so that it cannot turn another row's distances into NaN)."""
   q = np.asarray(query, np.float32)
   r = np.asarray(reference, np.float32)
   if q.ndim != 2 or r.ndim != 2 or q.shape[1] != r.shape[1]:
@@ -94,7 +106,50 @@ def _check_inputs(query, reference, query_valid, reference_valid):
   if qv.shape != (len(q),) or rv.shape != (len(r),):
     raise ValueError(f"valid flags: expected shapes ({len(q)},) and ({len(r)},), got {qv.shape} "
                      f"and {rv.shape}")
+  q, qv = _finite_rows(q, qv)
+  r, rv = _finite_rows(r, rv)
   return q, r, qv, rv
+
+
+def _finite_rows(x: np.ndarray, valid: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+  """`x` and `valid` as they are when every row is finite; else copies with the other rows
+  zeroed and invalid."""
+  finite = np.isfinite(x).all(axis=1)
+  if finite.all():
+    return x, valid
+  return np.where(finite[:, None], x, np.float32(0.0)), valid & finite
+
+
+# `_unit`: descriptors whose typical size lies in this range are searched as they are.
+UNIT_RANGE = (2.0 ** -20, 2.0 ** 20)
+
+
+def _unit(q: np.ndarray, r: np.ndarray, qv: np.ndarray, rv: np.ndarray) -> float:
+  """The power of two u the descriptors are searched in units of (the search sees x / u): 1
+  when their typical size (the median over the valid rows of the largest absolute entry) lies
+  in `UNIT_RANGE` or is 0, else 2^e with the size / 2^e in [0.5, 1). Dividing by a power of two
+  is exact, so the neighbors and ratios do not depend on a common scale of the descriptors."""
+  sizes = np.concatenate([np.abs(x[v]).max(axis=1) for x, v in ((q, qv), (r, rv))
+                          if v.any() and x.shape[1]])
+  sizes = sizes[sizes > 0]
+  if not len(sizes):
+    return 1.0
+  size = float(np.median(sizes))
+  if UNIT_RANGE[0] <= size <= UNIT_RANGE[1]:
+    return 1.0
+  return float(np.ldexp(1.0, int(np.frexp(size)[1])))
+
+
+def _in_units(x: np.ndarray, unit: float) -> np.ndarray:
+  return x if unit == 1.0 else (x / np.float32(unit)).astype(np.float32)
+
+
+def _distance(d2: np.ndarray, unit: float) -> np.ndarray:
+  """L2 distances in the descriptors' units from squared ones in `unit`s (float32, as before
+  for unit 1)."""
+  if unit == 1.0:
+    return np.sqrt(d2)
+  return (np.sqrt(d2.astype(np.float64)) * unit).astype(np.float32)
 
 
 def _pad_rows(a: np.ndarray, rows: int) -> np.ndarray:
@@ -306,8 +361,9 @@ def match_descriptors(query: np.ndarray, reference: np.ndarray, query_valid=None
   Args:
     query: (m, D) descriptors.
     reference: (n, D) descriptors.
-    query_valid: (m,) bool (None: all valid).
-    reference_valid: (n,) bool (None: all valid); invalid references are never matched.
+    query_valid: (m,) bool (None: all valid); a row holding NaN or inf is invalid too.
+    reference_valid: (n,) bool (None: all valid); invalid references (and rows holding NaN or
+      inf) are never matched.
     block: queries per jitted call of the dense search (memory: block x n floats).
     search: "auto" (default: the occupancy search for descriptors of its form, such as TOLDI's,
       else the dense one), "dense" or "occupancy" (the module docstring); all exact, they
@@ -328,13 +384,17 @@ def match_descriptors(query: np.ndarray, reference: np.ndarray, query_valid=None
   if m == 0 or not rv.any():
     return Matches(nearest, dist, ratio)
   _check_search(search)
-  d2, idx = _nearest(q, r, qv, rv, 2, 0, block, search)
+  unit = _unit(q, r, qv, rv)
+  d2, idx = _nearest(_in_units(q, unit), _in_units(r, unit), qv, rv, 2, 0, block, search)
   nearest[:] = idx[:, 0]
-  dist[:] = np.sqrt(d2[:, 0])
+  dist[:] = np.sqrt(d2[:, 0])  # float32 (the occupancy search's float64 rounded), in units
   ratio[:] = _ratio(dist, np.sqrt(d2[:, 1]))
-  nearest[~qv] = -1
-  dist[~qv] = np.inf
-  ratio[~qv] = np.inf
+  if unit != 1.0:
+    dist[:] = _distance(d2[:, 0], unit)
+  none = ~qv | ~np.isfinite(d2[:, 0])  # invalid, or no reference at a finite distance
+  nearest[none] = -1
+  dist[none] = np.inf
+  ratio[none] = np.inf
   return Matches(nearest, dist, ratio)
 
 
@@ -411,12 +471,15 @@ def select_correspondences(query: np.ndarray, reference: np.ndarray, query_valid
   Args:
     query: (m, D) descriptors.
     reference: (r, D) descriptors.
-    query_valid: (m,) bool (None: all valid); invalid queries propose nothing.
-    reference_valid: (r,) bool (None: all valid); invalid references are never matched.
+    query_valid: (m,) bool (None: all valid); invalid queries (and rows holding NaN or inf)
+      propose nothing.
+    reference_valid: (r,) bool (None: all valid); invalid references (and rows holding NaN or
+      inf) are never matched.
     n: keep at most this many, the best (None: all).
     mutual: keep mutual nearest neighbors only.
     ratio: the ratio-test threshold in (0, 1] (None: no test).
-    k: proposals per query (fewer where fewer valid references exist).
+    k: proposals per query (fewer where fewer valid references exist: k is capped at their
+      number).
     block: queries per jitted call of the dense search (memory: block x r floats).
     search: "auto" (default), "dense" or "occupancy", as `match_descriptors`.
 
@@ -434,11 +497,17 @@ def select_correspondences(query: np.ndarray, reference: np.ndarray, query_valid
   if len(q) == 0 or not rv.any() or not qv.any():
     return np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0, np.float32)
   _check_search(search)
-  found = _nearest(q, r, qv, rv, max(k, 2), k if mutual else 0, block, search)
+  # proposals past the valid references (and, for the mutual check, queries past the valid
+  # ones) are never kept: capped, a large k costs no memory (the mutual check's m x k x k)
+  kc = min(k, int(qv.sum())) if mutual else 0
+  k = min(k, int(rv.sum()))
+  unit = _unit(q, r, qv, rv)
+  found = _nearest(_in_units(q, unit), _in_units(r, unit), qv, rv, max(k, 2), kc, block,
+                   search)
   d2, idx = found[0][:, :k], found[1][:, :k].astype(np.int64)
   ok = np.isfinite(d2) & qv[:, None]
   if mutual:  # i among the k nearest queries of its reference
-    back = found[3][np.where(ok, idx, 0)]  # (m, k, k)
+    back = found[3][np.where(ok, idx, 0)]  # (m, k, kc)
     ok &= (back == np.arange(len(q))[:, None, None]).any(axis=2)
   dist = np.sqrt(d2)
   if k == 1:
@@ -451,7 +520,7 @@ def select_correspondences(query: np.ndarray, reference: np.ndarray, query_valid
     score, dist = score[qi, 0], dist[qi, 0]
     order = np.lexsort((qi, dist, score))
   else:
-    score = dist[qi, slot]
+    score = _distance(d2[qi, slot], unit)
     order = np.lexsort((ri, qi, d2[qi, slot]))
   order = order if n is None else order[:n]
   return qi[order].astype(np.int64), ri[order], score[order].astype(np.float32)

@@ -19,21 +19,35 @@ evaluation tables) goes through one of these helpers:
 
 A write that fails with an `OSError` raises `WriteError` ("could not write PATH: REASON", e.g.
 "No space left on device"), an `OSError` itself, which the command-line programs print as one
-`error:` line. `output_problem` and `same_file` are the checks a program makes on its output
+`error:` line. Only a regular file or a new name is ever replaced: a path naming a FIFO, a
+device (such as /dev/null), a socket or a folder, or whose name is longer than `NAME_MAX`
+bytes, raises `OutputPathError` (a `WriteError` and a `ValueError`) before anything is
+written; the rename would otherwise put a regular file in the place of the device.
+`output_problem`, `path_problem` and `same_file` are the checks a program makes on its output
 paths before doing any work.
 """
 
 from __future__ import annotations
 
 import contextlib
+import errno
 import os
+import stat
 import tempfile
 from pathlib import Path
 from typing import IO, Any
 from collections.abc import Iterable, Iterator
 
-__all__ = ["WriteError", "append_line", "atomic_path", "atomic_write", "output_problem",
-           "same_file", "save_figure", "write_bytes", "write_text"]
+__all__ = ["NAME_MAX", "OutputPathError", "WriteError", "append_line", "atomic_path",
+           "atomic_write", "file_kind", "output_problem", "path_problem", "same_file",
+           "save_figure", "write_bytes", "write_text"]
+
+# The longest file name (one path component), in bytes, on the usual file systems (ext4, XFS,
+# btrfs, tmpfs, APFS); a longer one fails with ENAMETOOLONG.
+NAME_MAX = 255
+# The longest path a system call takes, in bytes (Linux's PATH_MAX, its terminating NUL
+# included).
+PATH_MAX = 4096
 
 
 class WriteError(OSError):
@@ -49,10 +63,73 @@ class WriteError(OSError):
     return f"could not write {self.path}: {self.reason}"
 
 
+class OutputPathError(WriteError, ValueError):
+  """The path cannot be written as a file: it names a FIFO, a device, a socket or a folder, or
+  its name is too long; raised before anything is written. Both a `WriteError` (what the
+  programs print as an `error:` line) and a `ValueError` (a bad argument), as
+  `io.UnsupportedOperation` is both an `OSError` and a `ValueError`."""
+
+  def __init__(self, path: str | os.PathLike, reason: str, code: int = errno.EINVAL):
+    super().__init__(path, OSError(code, reason))
+
+
+def path_problem(path: str | os.PathLike) -> str | None:
+  """What makes `path` impossible as a file name, without touching the disk (None: fine): a NUL
+  character, a path component longer than `NAME_MAX` bytes, or a path of `PATH_MAX` bytes or
+  more. The message does not repeat the path."""
+  text = os.fspath(path)
+  if "\0" in text:
+    return "holds a NUL character"
+  raw = os.fsencode(text)
+  if len(raw) >= PATH_MAX:
+    return f"is {len(raw)} bytes long; a path must be shorter than {PATH_MAX} bytes"
+  for part in raw.split(b"/"):
+    if len(part) > NAME_MAX:
+      shown = os.fsdecode(part[:24]) + "..."
+      return (f"has a name ({shown!r}) of {len(part)} bytes; a file or folder name may be at "
+              f"most {NAME_MAX} bytes")
+  return None
+
+
+_KINDS = ((stat.S_ISFIFO, "a FIFO (named pipe)"), (stat.S_ISCHR, "a character device"),
+          (stat.S_ISBLK, "a block device"), (stat.S_ISSOCK, "a socket"),
+          (stat.S_ISDIR, "a folder"))
+
+
+def file_kind(path: str | os.PathLike) -> str | None:
+  """What `path` (symbolic links followed) is when it exists and is not a regular file: "a
+  folder", "a FIFO (named pipe)", "a character device", "a block device", "a socket" or "not
+  a regular file"; None for a regular file or a name that does not exist (or cannot be looked
+  at: the write then reports why)."""
+  try:
+    mode = os.stat(Path(path).expanduser()).st_mode
+  except (OSError, ValueError):
+    return None
+  if stat.S_ISREG(mode):
+    return None
+  return next((what for test, what in _KINDS if test(mode)), "not a regular file")
+
+
+def _check_writable_name(target: Path) -> None:
+  """Raise `OutputPathError` unless `target` is a regular file or a new name."""
+  problem = path_problem(target)
+  if problem:
+    raise OutputPathError(target, problem, errno.ENAMETOOLONG)
+  kind = file_kind(target)
+  if kind == "a folder":
+    raise OutputPathError(target, "is a folder, expected a file path", errno.EISDIR)
+  if kind:
+    raise OutputPathError(target, f"is {kind}, not a regular file; expected a regular file or "
+                                  "a new name")
+
+
 def _target(path: str | os.PathLike) -> Path:
   """`path`, or the file a symbolic link at `path` points to (the link itself is kept)."""
   p = Path(path).expanduser()
-  return Path(os.path.realpath(p)) if p.is_symlink() else p
+  try:
+    return Path(os.path.realpath(p)) if p.is_symlink() else p
+  except (OSError, ValueError):  # a name too long to look at: `_check_writable_name` says so
+    return p
 
 
 def _file_mode(target: Path) -> int:
@@ -63,6 +140,22 @@ def _file_mode(target: Path) -> int:
     umask = os.umask(0)
     os.umask(umask)
     return 0o666 & ~umask
+
+
+def _temporary_affixes(name: str) -> tuple[str, str]:
+  """mkstemp's prefix and suffix for a temporary file beside the file `name`: ".NAME." and
+  ".tmpSUFFIX" (the suffix kept, so that writers that read the format from it still can),
+  NAME cut so that the whole name (8 random characters included) stays within `NAME_MAX`
+  bytes; a suffix longer than 16 bytes is not kept."""
+  suffix = Path(name).suffix
+  if len(os.fsencode(suffix)) > 16:
+    suffix = ""
+  suffix = f".tmp{suffix}"
+  room = NAME_MAX - 8 - 2 - len(os.fsencode(suffix))
+  head = name
+  while len(os.fsencode(head)) > room:
+    head = head[:-1]
+  return f".{head}.", suffix
 
 
 @contextlib.contextmanager
@@ -76,16 +169,17 @@ def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
     The temporary file's path (same folder, same suffix as `path`), for the caller to write.
 
   Raises:
-    WriteError: `path` is a folder, or creating, writing or renaming the file failed with an
-      `OSError` (the message names `path` and the reason). `path` is then unchanged and the
-      temporary file removed; any other exception propagates after the same clean-up.
+    OutputPathError: `path` (a symbolic link: the file it points to) is a folder, a FIFO, a
+      device or a socket, or its name is too long (`path_problem`); nothing is written.
+    WriteError: creating, writing or renaming the file failed with an `OSError` (the message
+      names `path` and the reason). `path` is then unchanged and the temporary file removed;
+      any other exception propagates after the same clean-up.
   """
   target = _target(path)
-  if target.is_dir():
-    raise WriteError(target, IsADirectoryError(21, "is a folder, expected a file path"))
+  _check_writable_name(target)
+  prefix, suffix = _temporary_affixes(target.name)
   try:
-    fd, tmp_name = tempfile.mkstemp(prefix=f".{target.name}.", suffix=f".tmp{target.suffix}",
-                                    dir=target.parent)
+    fd, tmp_name = tempfile.mkstemp(prefix=prefix, suffix=suffix, dir=target.parent)
   except OSError as e:
     raise WriteError(target, e) from e
   os.close(fd)
@@ -149,10 +243,12 @@ def append_line(path: str | os.PathLike, text: str) -> None:
   """Append `text` plus a newline to `path` (created if missing) with one write and an fsync.
 
   Raises:
+    OutputPathError: `path` is not a regular file or a new name (`atomic_path`).
     WriteError: the write failed (e.g. a full disk); the file is truncated back to its previous
       length, so it holds exactly the lines it held before.
   """
   target = _target(path)
+  _check_writable_name(target)
   data = (text.rstrip("\n") + "\n").encode()
   try:
     f = open(target, "ab")
@@ -204,16 +300,23 @@ def output_problem(path: str | os.PathLike, option: str,
     inputs: (name, path) of the files the program reads; `path` may not be one of them.
 
   Returns:
-    A message naming `option`: `path` is one of the inputs, a folder, in a folder that does not
-    exist or is not writable; or None.
+    A message naming `option`: `path` is too long a name (`path_problem`), one of the inputs, a
+    folder, a FIFO, a device or a socket (`file_kind`: only a regular file or a new name is
+    replaced), in a folder that does not exist or is not writable; or None.
   """
+  problem = path_problem(path)
+  if problem:
+    return f"{option}: {path} {problem}"
   p = Path(path).expanduser()
   for name, src in inputs:
     if src is not None and same_file(p, src):
       return (f"{option}: {path} is the input {name} ({src}); refusing to overwrite it, pick "
               "another output path")
-  if p.is_dir():
+  kind = file_kind(p)
+  if kind == "a folder":
     return f"{option}: {path} is a folder; expected a file path"
+  if kind:
+    return f"{option}: {path} is {kind}; expected a regular file or a new name"
   parent = p.resolve().parent
   if not parent.is_dir():
     return f"{option}: the folder {parent} does not exist (create it, or pick another path)"

@@ -52,9 +52,9 @@ from lrf_jax.inputs import as_cloud
 from lrf_jax.io.cloud import Cloud
 from lrf_jax.geometry.resolution import mesh_resolution
 
-__all__ = ["MultiwayEdge", "MultiwayResult", "candidate_pairs", "edges_table", "load_scans",
-           "merged_cloud", "output_paths", "refine_poses", "register_all", "scan_names", "shape_signature",
-           "write_outputs"]
+__all__ = ["MANIFEST", "MultiwayEdge", "MultiwayResult", "candidate_pairs", "check_names",
+           "check_out_dir", "edges_table", "load_scans", "merged_cloud", "output_paths",
+           "refine_poses", "register_all", "scan_names", "shape_signature", "write_outputs"]
 
 # Scans up to this many: every pair is a candidate.
 ALL_PAIRS_MAX = 12
@@ -76,7 +76,8 @@ class MultiwayEdge:
     j: the target scan.
     transform: (4, 4) float64, the pairwise estimate mapping scan i into scan j's frame (NaN
       when the pair could not be registered).
-    verdict: "success", "not sure" (`Registration.success` False) or "error" (no estimate).
+    verdict: "success", "not sure" (`Registration.success` False) or "error" (no estimate: the
+      registration raised a ValueError or built no hypothesis, `Registration.estimated`).
     reason: the pairwise verdict's reason, or the error message.
     n_inliers: coarse inliers of the pairwise estimate.
     overlap: its estimated overlap (fraction of scan i on scan j after ICP).
@@ -129,21 +130,85 @@ class MultiwayResult:
     return [n for n, m in zip(self.names, self.in_model) if not m]
 
 
+# The longest name: its pose file "<name>.txt" fits in one file name (`atomic.NAME_MAX` bytes).
+NAME_BYTES = 251
+
+
+def _fit(name: str, tail: str = "") -> str:
+  """`name` cut (whole characters) so that name + tail is at most NAME_BYTES bytes, + tail."""
+  room = NAME_BYTES - len(os.fsencode(tail))
+  while len(os.fsencode(name)) > room:
+    name = name[:-1]
+  return name + tail
+
+
+def _natural_name(scan: Any, k: int) -> str:
+  """A path's file name without its cloud suffixes, control characters as "_", cut to
+  NAME_BYTES; else (an array, or a path without a usable name) "scan<k>"."""
+  if isinstance(scan, (str, os.PathLike)):
+    name = Path(scan).name
+    while Path(name).suffix.lower() in SUFFIXES and Path(name).stem:
+      name = Path(name).stem
+    name = _fit("".join("_" if ord(c) < 32 or ord(c) == 127 else c for c in name))
+    if name not in ("", ".", ".."):
+      return name
+  return f"scan{k}"
+
+
 def scan_names(scans: Sequence[Any]) -> list[str]:
-  """Unique names: a path's file name without its cloud suffixes (".txt.gz" included), else
-  "scan<k>"; repeated names get "_2", "_3", ... in order."""
-  out: list[str]
-  seen: dict[str, int]
-  out, seen = [], {}
-  for k, s in enumerate(scans):
-    if isinstance(s, (str, os.PathLike)):
-      name = Path(s).name
-      while Path(name).suffix.lower() in SUFFIXES and Path(name).stem:
-        name = Path(name).stem
+  """Distinct names, each usable as a file name (`check_names`): a path's file name without its
+  cloud suffixes (".txt.gz" included; control characters replaced by "_", cut to fit a file
+  name), else "scan<k>". Each natural name is kept by its first scan; a later scan with the
+  same name (equal ignoring case: one file on a case-insensitive file system) gets "_2", "_3",
+  ..., the first of them that is no scan's natural name and not given yet: `d/a.ply d/a_2.ply
+  e/a.ply` are a, a_2, a_3."""
+  natural = [_natural_name(s, k) for k, s in enumerate(scans)]
+  taken = {n.casefold() for n in natural}
+  out: list[str] = []
+  given: set[str] = set()
+  for name in natural:
+    if name.casefold() not in given:
+      out.append(name)
     else:
-      name = f"scan{k}"
-    seen[name] = seen.get(name, 0) + 1
-    out.append(name if seen[name] == 1 else f"{name}_{seen[name]}")
+      k = 2
+      while _fit(name, f"_{k}").casefold() in taken:
+        k += 1
+      out.append(_fit(name, f"_{k}"))
+      taken.add(out[-1].casefold())
+    given.add(out[-1].casefold())
+  return out
+
+
+def check_names(names: Sequence[Any], argument: str = "names") -> list[str]:
+  """`names` as a list, when each can name its pose file "<name>.txt" in the output folder.
+
+  Raises:
+    ValueError: naming `argument`: a name that is not a non-empty string, is "." or "..",
+      holds a path separator or a control character (a tab or a newline would also break
+      edges.tsv), is longer than NAME_BYTES bytes in UTF-8 (its file name would exceed 255
+      bytes), or equals another one (ignoring case: one file on a case-insensitive file
+      system).
+  """
+  out = list(names)
+  seen: dict[str, int] = {}
+  for k, name in enumerate(out):
+    problem = None
+    if not isinstance(name, str) or not name:
+      problem = "expected a non-empty string"
+    elif name in (".", "..") or any(sep and sep in name for sep in ("/", os.sep, os.altsep)):
+      problem = "expected a file name without a path separator, not '.' or '..'"
+    elif any(ord(c) < 32 or ord(c) == 127 for c in name):
+      problem = "expected a name without control characters (tabs, newlines)"
+    elif len(name.encode("utf-8", "surrogateescape")) > NAME_BYTES:
+      problem = (f"is {len(name.encode('utf-8', 'surrogateescape'))} bytes long; expected at "
+                 f"most {NAME_BYTES} (its file <name>.txt may be at most 255 bytes)")
+    elif name.casefold() in seen:
+      problem = (f"is the name of scan {seen[name.casefold()]} too (ignoring case); expected "
+                 "distinct names, one pose file each")
+    if problem:
+      shown = name if not isinstance(name, str) or len(name) <= 40 else name[:40] + "..."
+      raise ValueError(f"{argument}[{k}]: {shown!r} {problem}")
+    seen[name.casefold()] = k
   return out
 
 
@@ -274,7 +339,12 @@ def _pairwise(clouds, pairs, *, mr, seed, viewpoints, pairwise, icp_mr, progress
       reg = run(clouds[i], clouds[j], mr=mr, seed=seed, source_viewpoint=viewpoints[i],
                 target_viewpoint=viewpoints[j], **register_kw)
     except ValueError as e:
-      edges.append(MultiwayEdge(i, j, np.full((4, 4), np.nan), "error", str(e), 0, 0.0,
+      reg = None
+      reason = str(e)
+    else:
+      reason = str(getattr(reg, "reason", ""))
+    if reg is None or not getattr(reg, "estimated", True):  # no pose: no edge
+      edges.append(MultiwayEdge(i, j, np.full((4, 4), np.nan), "error", reason, 0, 0.0,
                                 float("inf"), float("inf"), False))
       points.append(np.zeros((0, 3)))
       continue
@@ -283,7 +353,7 @@ def _pairwise(clouds, pairs, *, mr, seed, viewpoints, pairwise, icp_mr, progress
     t = np.asarray(reg.transform, np.float64)
     points.append(_overlap_points(clouds[i].points, grids[j], t, icp_mr * mr, rng))
     edges.append(MultiwayEdge(i, j, t, "success" if reg.success else "not sure",
-                              str(reg.reason), int(reg.n_inliers), float(reg.overlap),
+                              reason, int(reg.n_inliers), float(reg.overlap),
                               float(reg.rmse), float("inf"), False))
   return edges, points
 
@@ -383,7 +453,8 @@ def register_all(scans: Sequence[Any], *, names: Sequence[str] | None = None,
   Args:
     scans: n >= 2 scans: paths of any cloud/mesh `lrf_jax.io` reads, (m, 3) arrays, `Cloud`s or
       objects with `.points`, each in its own frame.
-    names: n names for the result and the outputs (default `scan_names(scans)`).
+    names: n distinct names for the result and the outputs, each usable as a file name
+      (`check_names`; default `scan_names(scans)`).
     mr: mesh resolution in the clouds' units (None: the median of the scans' own).
     all_pairs_max: up to this many scans every pair is registered (`candidate_pairs`).
     neighbors: otherwise, pairs with this many next scans in the given order...
@@ -401,7 +472,8 @@ def register_all(scans: Sequence[Any], *, names: Sequence[str] | None = None,
     pairwise: the pairwise registration (default `lrf_jax.register`): called as
       `pairwise(source_cloud, target_cloud, mr=, seed=, source_viewpoint=, target_viewpoint=,
       **register_kw)`, returning an object with `transform`, `success`, `reason`,
-      `n_inliers`, `overlap`, `rmse`; a ValueError marks the pair "error".
+      `n_inliers`, `overlap`, `rmse` (and optionally `estimated`); a ValueError, or
+      `estimated` False, marks the pair "error" (no edge).
     **register_kw: passed to `register` (e.g. `n_keypoints`, `radius_mr`, `method`, `params`).
 
   Returns:
@@ -410,7 +482,8 @@ def register_all(scans: Sequence[Any], *, names: Sequence[str] | None = None,
 
   Raises:
     ValueError: fewer than 2 scans, an unreadable or malformed scan (the message names it),
-      `names` of the wrong length, a non-positive mr or distance.
+      `names` of the wrong length or a name `check_names` refuses, a non-positive mr or
+      distance.
     FileNotFoundError: a path that does not exist.
 
   Example:
@@ -421,7 +494,7 @@ def register_all(scans: Sequence[Any], *, names: Sequence[str] | None = None,
   timings = {}
   if len(scans) < 2:
     raise ValueError(f"scans: expected at least 2 scans, got {len(scans)}")
-  names = list(scan_names(scans) if names is None else names)
+  names = scan_names(scans) if names is None else check_names(names, "names")
   if len(names) != len(scans):
     raise ValueError(f"names: expected {len(scans)} names, got {len(names)}")
   for label, val in (("reject_mr", reject_mr), ("robust_mr", robust_mr), ("icp_mr", icp_mr)):
@@ -540,13 +613,82 @@ def write_merged_ply(path: str | os.PathLike, points: np.ndarray, scan: np.ndarr
   return Path(path)
 
 
+# The list of the files a run wrote into its folder (`write_outputs`), and what it says it is.
+MANIFEST = "manifest.json"
+MANIFEST_KIND = "lrf_jax multiway outputs"
+FIXED_OUTPUTS = ("merged.ply", "edges.tsv", "merged.png", "graph.png")
+
+
 def output_paths(names: Sequence[str], out_dir: str | os.PathLike) -> dict[str, Path]:
   """Every file `write_outputs` may write, keyed by role: "<name>.txt" per scan, "merged.ply",
-  "edges.tsv", "merged.png", "graph.png"."""
+  "edges.tsv", "merged.png", "graph.png" and the manifest ("manifest.json").
+
+  Raises:
+    ValueError: a name `check_names` refuses (the message names "names").
+  """
   d = Path(out_dir)
-  out = {f"pose:{n}": d / f"{n}.txt" for n in names}
-  out.update({k: d / k for k in ("merged.ply", "edges.tsv", "merged.png", "graph.png")})
+  out = {f"pose:{n}": d / f"{n}.txt" for n in check_names(names)}
+  out.update({k: d / k for k in FIXED_OUTPUTS})
+  out["manifest"] = d / MANIFEST
   return out
+
+
+def _read_manifest(path: Path) -> list[str] | None:
+  """The file names a manifest lists; None when it is not one `write_outputs` wrote (unreadable,
+  not its JSON, or an entry that is not a plain file name: nothing outside the folder is ever
+  listed)."""
+  import json
+  try:
+    data = json.loads(path.read_text(encoding="utf-8"))
+  except (OSError, ValueError):
+    return None
+  if not isinstance(data, dict) or data.get("kind") != MANIFEST_KIND:
+    return None
+  files = data.get("files")
+  if not isinstance(files, list):
+    return None
+  for f in files:
+    if (not isinstance(f, str) or f in ("", ".", "..", MANIFEST) or "\0" in f
+        or any(sep and sep in f for sep in ("/", os.sep, os.altsep))):
+      return None
+  return list(files)
+
+
+def check_out_dir(out_dir: str | os.PathLike, argument: str = "out_dir") -> list[str]:
+  """The files an earlier run listed in `out_dir`'s manifest (what `write_outputs` replaces or
+  removes); [] for a new or empty folder.
+
+  Raises:
+    ValueError: naming `argument`: `out_dir` is not a folder, its name is too long, or it holds
+      files but no manifest of an earlier run (a folder of other files is never written into:
+      afterwards it would hold a mix of this run's files and files no run wrote), or a manifest
+      that is not one `write_outputs` wrote.
+  """
+  from lrf_jax.io.atomic import path_problem
+  d = Path(out_dir).expanduser()
+  problem = path_problem(d)
+  if problem:
+    raise ValueError(f"{argument}: {out_dir} {problem}")
+  if not d.exists():
+    return []
+  if not d.is_dir():
+    raise ValueError(f"{argument}: {out_dir} is not a folder")
+  manifest = d / MANIFEST
+  if not manifest.exists() and not manifest.is_symlink():
+    try:
+      empty = next(d.iterdir(), None) is None
+    except OSError as e:
+      raise ValueError(f"{argument}: could not list {out_dir}: {e.strerror or e}") from None
+    if empty:
+      return []
+    raise ValueError(f"{argument}: {out_dir} is not empty and holds no {MANIFEST} of an earlier "
+                     "run; expected a new or empty folder, or one an earlier run wrote (its "
+                     "files are then replaced)")
+  files = _read_manifest(manifest) if manifest.is_file() else None
+  if files is None:
+    raise ValueError(f"{argument}: {manifest} is not a manifest of an earlier run's outputs; "
+                     "expected a new or empty folder, or one an earlier run wrote")
+  return files
 
 
 def write_outputs(result: MultiwayResult, clouds: Sequence[np.ndarray],
@@ -558,7 +700,14 @@ def write_outputs(result: MultiwayResult, clouds: Sequence[np.ndarray],
   significant digits; `numpy.loadtxt` reads it), for the scans in the model only;
   `merged.ply`: the merged cloud (`merged_cloud`, `voxel` in cloud units), coloured by scan;
   `edges.tsv`: `edges_table`; with `figures`, `merged.png` and `graph.png`
-  (`lrf_jax.registration.multiway_figures`).
+  (`lrf_jax.registration.multiway_figures`); `manifest.json`: the list of these files.
+
+  The folder ends up holding this run's files only: `out_dir` must be new, empty, or a folder
+  an earlier run wrote (`check_out_dir`: it holds that run's manifest). The files the earlier
+  run listed and this one does not write (the pose of a scan left out this time, figures) are
+  removed, the others replaced; files that no manifest lists are never touched. At every
+  moment the manifest lists every file a run may have left, so a run interrupted midway is
+  cleaned up by the next one.
 
   Args:
     result: `register_all`'s result.
@@ -571,25 +720,58 @@ def write_outputs(result: MultiwayResult, clouds: Sequence[np.ndarray],
     The paths written.
 
   Raises:
-    WriteError: a file could not be written (the message names it).
+    ValueError: `out_dir` as `check_out_dir` refuses it, a name `check_names` refuses, or an
+      output path that is a folder, a FIFO, a device or a socket (the message names `out_dir`
+      and the path); nothing is written then.
+    WriteError: a file could not be written or an earlier run's file removed (the message
+      names it).
   """
-  from lrf_jax.io.atomic import WriteError, write_text
+  import json
+
+  from lrf_jax.io.atomic import WriteError, file_kind, write_text
   d = Path(out_dir)
+  check_names(result.names, "result.names")
+  earlier = check_out_dir(d)
+  paths = output_paths(result.names, d)
+  wanted = [paths[f"pose:{n}"] for n, m in zip(result.names, result.in_model) if m]
+  wanted += [paths["merged.ply"], paths["edges.tsv"]]
+  if figures:
+    wanted += [paths["merged.png"], paths["graph.png"]]
+  for path in wanted + [paths["manifest"]]:
+    kind = file_kind(path)
+    if kind:
+      raise ValueError(f"out_dir: {path} is {kind}; expected a regular file or a new name")
+  points, scan = merged_cloud(clouds, result, voxel=voxel)
   try:
     d.mkdir(parents=True, exist_ok=True)
   except OSError as e:
     raise WriteError(d, e) from e
-  paths = output_paths(result.names, d)
+
+  def manifest(files: list[str]) -> None:
+    write_text(paths["manifest"], json.dumps({"kind": MANIFEST_KIND, "files": files},
+                                             indent=1) + "\n")
+
+  new = [p.name for p in wanted]
+  manifest(list(dict.fromkeys(earlier + new)))  # covers both runs' files until the end
+  for name in earlier:  # an earlier run's file this run does not write: removed
+    old = d / name
+    if name not in new and (old.is_symlink() or old.is_file()):
+      try:
+        old.unlink()
+      except FileNotFoundError:
+        pass
+      except OSError as e:
+        raise WriteError(old, e) from e
   written = []
   for k, name in enumerate(result.names):
     if result.in_model[k]:
       text = "\n".join(" ".join(f"{v:.9g}" for v in row) for row in result.poses[k]) + "\n"
       written.append(write_text(paths[f"pose:{name}"], text))
-  points, scan = merged_cloud(clouds, result, voxel=voxel)
   written.append(write_merged_ply(paths["merged.ply"], points, scan, len(result.names)))
   written.append(write_text(paths["edges.tsv"], edges_table(result)))
   if figures:
     from lrf_jax.registration import multiway_figures
     written.append(multiway_figures.merged_figure(points, scan, result, paths["merged.png"]))
     written.append(multiway_figures.graph_figure(result, clouds, paths["graph.png"]))
+  manifest(new)
   return written

@@ -80,6 +80,10 @@ class Registration:
       the target under `transform` (the same number as `fitness`).
     rival_inliers: the most inliers outside the winner's of a hypothesis distinct from the winner
     (`_rival_inliers`).
+    estimated: False when no pose hypothesis could be built from the correspondences (the graph
+      estimator finds no two of them compatible, e.g. at a tiny `inlier_mr`): `transform` and
+      `coarse_transform` are then the identity, not an estimate, `success` is False and
+      `reason` says why; `lrf_jax.register_all` makes no edge of such a pair.
   """
 
   transform: np.ndarray
@@ -99,6 +103,7 @@ class Registration:
   reason: str = ""
   overlap: float = 0.0
   rival_inliers: int = 0
+  estimated: bool = True
 
   def summary(self, gt: Any = None) -> str:
     """A few lines a person reads: the verdict and its reason, the estimated overlap and RMSE,
@@ -289,6 +294,10 @@ def register(source: Any, target: Any, *, mr: float | None = None, radius_mr: fl
     src, dst, cs, cd = _centred(p, q)
     rs, ts = _hypotheses(src, dst, f_s[qi], f_t[ri], estimator, iterations, setup.radius, seed,
                          float(threshold))
+  if len(rs) == 0:
+    return _not_estimated(setup, np.stack([kp_s[qi], kp_t[ri]], axis=1), estimator, inlier_mr,
+                          icp_mr, timer)
+  with timer("hypotheses"), serial_blas():
     counts = host.count_inliers(rs, ts, src, dst, threshold)
     chance = _chance_inliers(src, dst, f_s[qi], f_t[ri], estimator, iterations, setup.radius,
                              seed, float(threshold))
@@ -473,6 +482,34 @@ def _refine_only(source, target, init, *, mr, icp_iterations, icp_mr, seed, time
                       reason=("not verified: refined from init only (ICP keeps the nearest "
                               f"optimum); {fitness:.0%} of the source lies on the target"),
                       overlap=fitness)
+
+def _not_estimated(setup: _Setup, correspondences: np.ndarray, estimator: str, inlier_mr: float,
+                   icp_mr: float, timer: _StageTimer) -> Registration:
+  """`register`'s result when no hypothesis could be built: the identity, not sure, and why
+  (its overlap and rmse are the identity's, measured as for an estimate)."""
+  with timer("icp"):
+    src_pts, dst_pts = setup.sides[0].points, setup.sides[1].points
+    icp_src = src_pts
+    if len(src_pts) > ICP_POINTS:
+      icp_src = src_pts[np.sort(setup.rng.choice(len(src_pts), ICP_POINTS, replace=False))]
+    _, fitness, rmse = icp(icp_src, dst_pts, np.eye(4), max_distance=icp_mr * setup.mr,
+                           iterations=0)
+  n = len(correspondences)
+  if estimator != "graph":
+    why = f"the {estimator} estimator built none from {n} correspondences"
+  elif n < 2:
+    why = f"the graph estimator needs two compatible correspondences, and there is {n}"
+  else:
+    why = f"no two of the {n} correspondences are compatible within inlier_mr = {inlier_mr:g} mr"
+  return Registration(transform=np.eye(4), coarse_transform=np.eye(4),
+                      inliers=np.zeros(n, bool), n_inliers=0,
+                      correspondences=np.asarray(correspondences, np.int64), fitness=fitness,
+                      rmse=rmse, mr=float(setup.mr), seconds=timer.total(),
+                      timings=dict(timer.seconds), success=False,
+                      reason=(f"no pose hypothesis: {why}; the transform is the identity, not an "
+                              "estimate"),
+                      overlap=fitness, estimated=False)
+
 
 # Source points ICP pairs per iteration (a seeded subset of larger clouds; in the second pass,
 # of the part within the overlap distance, `overlap_points`); fitness and rmse are measured on

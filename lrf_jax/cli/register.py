@@ -39,7 +39,14 @@ def build_parser() -> argparse.ArgumentParser:
   ap.add_argument("target", help="the cloud to align it to")
   ap.add_argument("--out", default=None, help="write the 4x4 source->target matrix here")
   ap.add_argument("--mr", type=float, default=None,
-                  help="mesh resolution in the clouds' units (default: measured on SOURCE)")
+                  help="the working resolution in the clouds' units, the unit of every length "
+                       "(default: measured: SOURCE's point spacing; on a raw, uneven cloud such "
+                       "as a LiDAR sweep the area-weighted median spacing; for clouds of "
+                       "different densities the coarser one)")
+  ap.add_argument("--voxel-size", type=float, default=None,
+                  help="thin both clouds by voxel averaging first, voxels of this edge in the "
+                       "clouds' units (0: keep every point; default: thin a cloud far denser "
+                       "than the working resolution, such as a raw LiDAR sweep, at it)")
   ap.add_argument("--radius-mr", type=float, default=15.0, help="support radius in mr")
   ap.add_argument("--keypoints", type=int, default=3000, help="keypoints per cloud")
   ap.add_argument("--correspondences", type=int, default=1000,
@@ -85,7 +92,8 @@ REGISTER_KEYWORDS = {"mr": "mr", "radius_mr": "radius_mr", "keypoints": "n_keypo
                      "icp_iterations": "icp_iterations", "seed": "seed", "method": "method",
                      "source_viewpoint": "source_viewpoint",
                      "target_viewpoint": "target_viewpoint", "detector": "keypoints",
-                     "mutual": "mutual", "ratio": "ratio", "icp": "icp_mode"}
+                     "mutual": "mutual", "ratio": "ratio", "icp": "icp_mode",
+                     "voxel_size": "voxel_size"}
 
 
 def register_options(args: argparse.Namespace) -> dict[str, Any]:

@@ -13,20 +13,22 @@ from typing import Any
 
 import numpy as np
 
-__all__ = ["voxel_downsample"]
+__all__ = ["voxel_downsample", "voxel_groups"]
 
 # Cells per axis beyond which the integer cell coordinates would lose precision.
 _MAX_CELLS = 2**40
 
 
-def voxel_downsample(points: Any, size: float) -> np.ndarray:
+def voxel_downsample(points: Any, size: float, *, return_index: bool = False
+                     ) -> np.ndarray | tuple[np.ndarray, np.ndarray]:
   """The centroid of the points of each occupied voxel of edge `size`.
 
   Deterministic: voxel (i, j, k) holds the points p with
   `floor((p - points.min(0)) / size) == (i, j, k)`; the output row of a voxel is the mean of its
-  points (float64), and the rows are sorted by (i, j, k) lexicographically. A voxel holding one
-  point returns that point exactly. Reordering the input rows changes the result only by
-  float rounding of the means (about 1e-16 relative).
+  points (float64, summed in input order), and the rows are sorted by (i, j, k)
+  lexicographically. A voxel holding one point returns that point exactly. Reordering the input
+  rows changes the result only by float rounding of the means (about 1e-16 relative). The
+  voxels are found by sorting one integer key per point (O(n log n)), not by comparing rows.
 
   Args:
     points: the cloud: an (n, 3) array of finite floats (any units), an `lrf_jax.io.Cloud`, a
@@ -34,9 +36,12 @@ def voxel_downsample(points: Any, size: float) -> np.ndarray:
       takes; `lrf_jax.inputs.as_cloud`). Faces and normals are ignored.
     size: the voxel edge, in the cloud's units (> 0). `lrf_jax.mesh_resolution(points)` gives
       the cloud's point spacing: `size = 2 * mr` keeps about one point in 4 to 8 on a surface.
+    return_index: also return, per output row, the index of the first input point (in input
+      order) of its voxel: a representative input point.
 
   Returns:
-    (m, 3) float64 centroids, m = the number of occupied voxels (1 <= m <= n).
+    (m, 3) float64 centroids, m = the number of occupied voxels (1 <= m <= n); with
+    `return_index`, also (m,) int64 input indices.
 
   Raises:
     ValueError: `points` is not a non-empty (n, 3) cloud of finite floats, `size` is not a
@@ -58,15 +63,35 @@ def voxel_downsample(points: Any, size: float) -> np.ndarray:
   if cells.max(initial=0) >= _MAX_CELLS:
     raise ValueError(f"voxel_downsample: size {size:g} is too small for a cloud of extent "
                      f"{np.ptp(pts, axis=0).max():g} (more than 2**40 voxels along an axis)")
-  _, inverse, counts = np.unique(cells.astype(np.int64), axis=0, return_inverse=True,
-                                 return_counts=True)
-  inverse = inverse.ravel()
-  sums = np.zeros((len(counts), 3))
-  np.add.at(sums, inverse, pts)
-  out = sums / counts[:, None]
+  inverse, first = voxel_groups(cells.astype(np.int64))
+  counts = np.bincount(inverse)
+  out = np.stack([np.bincount(inverse, weights=pts[:, a], minlength=len(counts))
+                  for a in range(3)], axis=1) / counts[:, None]
   single = counts == 1  # one point: return it exactly (no division rounding)
-  if single.any():
-    first = np.empty(len(counts), np.int64)
-    first[inverse[::-1]] = np.arange(len(pts))[::-1]
-    out[single] = pts[first[single]]
-  return out
+  out[single] = pts[first[single]]
+  return (out, first) if return_index else out
+
+
+def voxel_groups(cells: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+  """The occupied cells of integer cell coordinates, in lexicographic order of (i, j, k).
+
+  Args:
+    cells: (n, 3) int64 non-negative cell coordinates, each below 2**40.
+
+  Returns:
+    (inverse (n,): each point's cell number, first (m,): the first point (in input order) of each
+    cell), int64.
+  """
+  span = cells.max(0, initial=0) + 1
+  if float(span[0]) * float(span[1]) * float(span[2]) < 2.0**62:  # one exact integer key
+    key = (cells[:, 0] * span[1] + cells[:, 1]) * span[2] + cells[:, 2]
+    order = np.argsort(key, kind="stable")
+    sk = key[order]
+    new = np.empty(len(sk), bool)
+    new[:1] = True
+    np.not_equal(sk[1:], sk[:-1], out=new[1:])
+    inverse = np.empty(len(sk), np.int64)
+    inverse[order] = np.cumsum(new) - 1
+    return inverse, order[new]
+  _, first, inverse = np.unique(cells, axis=0, return_index=True, return_inverse=True)
+  return inverse.ravel().astype(np.int64), first.astype(np.int64)

@@ -31,7 +31,9 @@ from lrf_jax.descriptors import DESCRIPTORS, _descriptors_checked, select_corres
 from lrf_jax.frames import METHODS
 from lrf_jax.geometry.keypoints import iss_keypoints
 from lrf_jax.geometry.normals import NORMAL_RADIUS_RATIO, estimate_normals
-from lrf_jax.geometry.resolution import mesh_resolution
+from lrf_jax.geometry.resolution import (pair_resolution, thinning_voxel,
+                                         working_resolution)
+from lrf_jax.geometry.sampling import voxel_downsample
 from lrf_jax.inputs import CloudInput, as_cloud
 from lrf_jax.registration import graph, host, icp_host
 from lrf_jax.registration.errors import _check_transform, pose_errors
@@ -84,6 +86,9 @@ class Registration:
       estimator finds no two of them compatible, e.g. at a tiny `inlier_mr`): `transform` and
       `coarse_transform` are then the identity, not an estimate, `success` is False and
       `reason` says why; `lrf_jax.register_all` makes no edge of such a pair.
+    voxel_size: the voxel edge (cloud units) the clouds were thinned with before the work (0:
+      every point kept); `correspondences` index the input clouds all the same (each voxel's
+      first input point).
   """
 
   transform: np.ndarray
@@ -104,6 +109,7 @@ class Registration:
   overlap: float = 0.0
   rival_inliers: int = 0
   estimated: bool = True
+  voxel_size: float = 0.0
 
   def summary(self, gt: Any = None) -> str:
     """A few lines a person reads: the verdict and its reason, the estimated overlap and RMSE,
@@ -184,7 +190,7 @@ def register(source: Any, target: Any, *, mr: float | None = None, radius_mr: fl
              source_viewpoint: Any = None, target_viewpoint: Any = None,
              init: Any = None, keypoints: str = "random", mutual: bool = False,
              ratio: float | None = None, icp_mode: str = "point_to_plane",
-             icp_fine: bool = True) -> Registration:
+             icp_fine: bool = True, voxel_size: float | None = None) -> Registration:
   """Rigidly register `source` onto `target` with learned LRFs and a compatibility graph.
 
   Pipeline (every length in mr: the source's mean edge length for a mesh, mean nearest-neighbor
@@ -223,7 +229,11 @@ def register(source: Any, target: Any, *, mr: float | None = None, radius_mr: fl
       reads (PLY, PCD, XYZ/TXT(.gz), NPY), or an object with `.points` (e.g. Open3D's), as
       `compute_frames` takes (`lrf_jax.inputs.as_cloud`).
     target: the same for the target.
-    mr: mesh resolution in the clouds' units (None: measured on the source).
+    mr: the working resolution in the clouds' units, the unit of every length below (None:
+      measured, `geometry.resolution.working_resolution` and `pair_resolution`: the source's
+      mean point spacing or mean edge length; on a raw, uneven cloud such as a LiDAR sweep the
+      area-weighted median spacing; for a pair whose resolutions differ over 2-fold, the
+      coarser one).
     radius_mr: support radius of the LRFs and descriptors, in mr (the paper: 15).
     n_keypoints: keypoints per cloud (fewer when a cloud has fewer points).
     n_correspondences: correspondences kept (and LRF hypotheses).
@@ -250,6 +260,10 @@ def register(source: Any, target: Any, *, mr: float | None = None, radius_mr: fl
     icp_mode: "point_to_plane" (default) or "point_to_point" (`icp`).
     icp_fine: run the second ICP pass at the adaptive gate (False: one pass at icp_mr mr, the
       behaviour before it).
+    voxel_size: thin the clouds by voxel averaging first (`voxel_downsample`), voxels of this
+      edge in cloud units; 0 keeps every point; None (default) thins a cloud at the working
+      resolution where its mean spacing is under half of it (a raw sweep's near field, a
+      full-density fragment against a coarser one) and keeps clean clouds as they are.
 
   Returns:
     `Registration`; `transform` maps source points into the target's frame.
@@ -271,7 +285,7 @@ def register(source: Any, target: Any, *, mr: float | None = None, radius_mr: fl
   if init is not None:
     return _refine_only(source, target, init, mr=mr, icp_iterations=icp_iterations,
                         icp_mr=icp_mr, seed=seed, timer=timer, icp_mode=icp_mode,
-                        icp_fine=icp_fine)
+                        icp_fine=icp_fine, voxel_size=voxel_size)
   with timer("prepare"):
     setup = _prepare(source, target, mr=mr, radius_mr=radius_mr, n_keypoints=n_keypoints,
                      n_correspondences=n_correspondences, iterations=iterations,
@@ -279,7 +293,8 @@ def register(source: Any, target: Any, *, mr: float | None = None, radius_mr: fl
                      icp_iterations=icp_iterations, icp_mr=icp_mr, method=method,
                      descriptor=descriptor, seed=seed, views=(source_viewpoint,
                                                               target_viewpoint),
-                     keypoints=keypoints, mutual=mutual, ratio=ratio, icp_mode=icp_mode)
+                     keypoints=keypoints, mutual=mutual, ratio=ratio, icp_mode=icp_mode,
+                     voxel_size=voxel_size)
   with timer("frames"):
     frames = [_side_frames(side, setup, method, params) for side in setup.sides]
   with timer("descriptors"):
@@ -295,8 +310,8 @@ def register(source: Any, target: Any, *, mr: float | None = None, radius_mr: fl
     rs, ts = _hypotheses(src, dst, f_s[qi], f_t[ri], estimator, iterations, setup.radius, seed,
                          float(threshold))
   if len(rs) == 0:
-    return _not_estimated(setup, np.stack([kp_s[qi], kp_t[ri]], axis=1), estimator, inlier_mr,
-                          icp_mr, timer)
+    return _not_estimated(setup, _input_indices(setup, kp_s[qi], kp_t[ri]), estimator,
+                          inlier_mr, icp_mr, timer)
   with timer("hypotheses"), serial_blas():
     counts = host.count_inliers(rs, ts, src, dst, threshold)
     chance = _chance_inliers(src, dst, f_s[qi], f_t[ri], estimator, iterations, setup.radius,
@@ -323,7 +338,8 @@ def register(source: Any, target: Any, *, mr: float | None = None, radius_mr: fl
   success, reason = verdict(evidence)
   return Registration(transform=final, coarse_transform=res.transform, inliers=res.inliers,
                       n_inliers=res.n_inliers,
-                      correspondences=np.stack([kp_s[qi], kp_t[ri]], axis=1).astype(np.int64),
+                      correspondences=_input_indices(setup, kp_s[qi], kp_t[ri]),
+                      voxel_size=setup.voxel_size,
                       fitness=fitness, rmse=rmse, mr=float(setup.mr), seconds=timer.total(),
                       timings=dict(timer.seconds), success=success,
                       inlier_ratio=res.n_inliers / max(n_corr, 1), chance_inliers=chance,
@@ -444,7 +460,7 @@ ICP_FINE_MIN_MR = 1.0
 
 
 def _refine_only(source, target, init, *, mr, icp_iterations, icp_mr, seed, timer, icp_mode,
-                 icp_fine=True
+                 icp_fine=True, voxel_size=None
                  ) -> Registration:
   """`register(..., init=T)`: ICP from T and nothing else (no keypoints, frames or matching).
 
@@ -463,10 +479,10 @@ def _refine_only(source, target, init, *, mr, icp_iterations, icp_mr, seed, time
     if not _is_count(icp_iterations, 0):
       raise ValueError(f"icp_iterations: expected a non-negative integer, got {icp_iterations!r}")
     seed = validate_seed(seed)
-    if mr is None:
-      mr, _ = mesh_resolution(src_pts, src_faces)
-    elif not _is_positive(mr):
-      raise ValueError(f"mr: expected a positive mesh resolution, got {mr!r}")
+    dst_faces = None  # ICP reads the target's points only
+    mr, thinned, voxel = _working_clouds((src_pts, src_faces), (dst_pts, dst_faces), mr,
+                                         voxel_size)
+    src_pts, dst_pts = thinned[0][0], thinned[1][0]
     rng = np.random.default_rng(seed)
   with timer("icp"):
     distance = icp_mr * mr
@@ -481,7 +497,7 @@ def _refine_only(source, target, init, *, mr, icp_iterations, icp_mr, seed, time
                       timings=dict(timer.seconds), success=False,
                       reason=("not verified: refined from init only (ICP keeps the nearest "
                               f"optimum); {fitness:.0%} of the source lies on the target"),
-                      overlap=fitness)
+                      overlap=fitness, voxel_size=voxel)
 
 def _not_estimated(setup: _Setup, correspondences: np.ndarray, estimator: str, inlier_mr: float,
                    icp_mr: float, timer: _StageTimer) -> Registration:
@@ -580,6 +596,7 @@ class _Side(NamedTuple):
   viewpoint: np.ndarray | None
   keypoints: np.ndarray        # (k,) sorted indices
   normals: np.ndarray | None   # estimated towards the viewpoint when a method or SHOT needs them
+  input_index: np.ndarray | None  # each working point's input point (thinned clouds), or None
 
 
 class _Setup(NamedTuple):
@@ -590,12 +607,13 @@ class _Setup(NamedTuple):
   radius: float                # the support radius (cloud units), `validate_radius`'s range
   rng: np.random.Generator
   seed: int                    # `validate_seed`'s
+  voxel_size: float            # the clouds' thinning voxel (0: none)
 
 
 def _prepare(source: Any, target: Any, *, mr, radius_mr, n_keypoints, n_correspondences,
              iterations, inlier_mr, verify, estimator, icp_iterations, icp_mr, method,
              descriptor, seed, views, keypoints="random", mutual=False, ratio=None,
-             icp_mode="point_to_plane") -> _Setup:
+             icp_mode="point_to_plane", voxel_size=None) -> _Setup:
   """Stage "prepare": read and check the inputs, measure mr, pick keypoints, estimate normals.
 
   Where `register` checks its inputs (`icp_fine` aside): the later stages hand the checked clouds,
@@ -639,14 +657,12 @@ def _prepare(source: Any, target: Any, *, mr, radius_mr, n_keypoints, n_correspo
     raise ValueError(f"method {method!r} needs triangle meshes on both sides")
   checked = [validate_viewpoint(vp, name)
              for name, vp in zip(("source_viewpoint", "target_viewpoint"), views)]
-  if mr is None:
-    mr, _ = mesh_resolution(src_pts, src_faces)
-  elif not _is_positive(mr):
-    raise ValueError(f"mr: expected a positive mesh resolution, got {mr!r}")
+  mr, thinned, voxel = _working_clouds((src_pts, src_faces), (dst_pts, dst_faces), mr,
+                                       voxel_size)
   radius = radius_mr * mr
   rng = np.random.default_rng(seed)
   sides = []
-  for pts, faces, vp in ((src_pts, src_faces, checked[0]), (dst_pts, dst_faces, checked[1])):
+  for (pts, faces, index), vp in zip(thinned, checked):
     if keypoints == "iss":
       kp = iss_keypoints(pts, mr=mr, max_keypoints=int(n_keypoints))
     else:
@@ -654,10 +670,51 @@ def _prepare(source: Any, target: Any, *, mr, radius_mr, n_keypoints, n_correspo
     normals = None
     if vp is not None and (spec.needs_normals or descriptor == "shot"):
       normals = estimate_normals(pts, NORMAL_RADIUS_RATIO * radius, faces, vp)
-    sides.append(_Side(pts, faces, vp, kp, normals))
+    sides.append(_Side(pts, faces, vp, kp, normals, index))
   # checked last, where `compute_frames` checked it: the same ValueError after the same steps
   radius = validate_radius(radius)
-  return _Setup(cast("tuple[_Side, _Side]", tuple(sides)), float(mr), radius, rng, seed)
+  return _Setup(cast("tuple[_Side, _Side]", tuple(sides)), float(mr), radius, rng, seed, voxel)
+
+
+def _working_clouds(source: tuple, target: tuple, mr: Any, voxel_size: Any
+                    ) -> tuple[float, list[tuple[np.ndarray, Any, np.ndarray | None]], float]:
+  """The working resolution of a pair and the clouds `register` works on: (mr, [(points,
+  faces, index into the input points or None) for source and target], the thinning voxel edge
+  or 0).
+
+  `mr` None: `pair_resolution` of the two `working_resolution`s. `voxel_size` None: a cloud (not
+  a mesh) whose mean spacing is under half the working resolution is thinned at it
+  (`thinning_voxel`); 0: none is; a positive number: both clouds are thinned at it (meshes
+  included, which lose their faces).
+  """
+  if not (voxel_size is None or (_is_positive(voxel_size) or
+                                 (not isinstance(voxel_size, bool) and voxel_size == 0))):
+    raise ValueError(f"voxel_size: expected None, 0 or a positive voxel edge in the clouds' "
+                     f"units, got {voxel_size!r}")
+  resolutions = [working_resolution(p, f) for p, f in (source, target)]
+  if mr is None:
+    mr = pair_resolution(*resolutions)
+  elif not _is_positive(mr):
+    raise ValueError(f"mr: expected a positive mesh resolution, got {mr!r}")
+  out, used = [], 0.0
+  for (pts, faces), res in zip((source, target), resolutions):
+    voxel = (float(voxel_size) if voxel_size is not None
+             else (None if faces is not None else thinning_voxel(res, float(mr))))
+    if voxel:
+      thin, index = voxel_downsample(pts, voxel, return_index=True)
+      out.append((thin, None, index))
+      used = voxel
+    else:
+      out.append((pts, faces, None))
+  return float(mr), out, used
+
+
+def _input_indices(setup: _Setup, src: np.ndarray, dst: np.ndarray) -> np.ndarray:
+  """(C, 2) int64 correspondences as input point indices (a thinned side's working points map
+  to their voxel's first input point)."""
+  cols = [idx if side.input_index is None else side.input_index[idx]
+          for side, idx in zip(setup.sides, (src, dst))]
+  return np.stack(cols, axis=1).astype(np.int64)
 
 
 def _is_positive(val: Any) -> bool:

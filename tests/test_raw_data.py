@@ -1,0 +1,174 @@
+"""Raw, uneven clouds: the working resolution, thinning at the door, one resolution per pair,
+units, scale invariance, KITTI sweeps."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from lrf_jax import datasets
+from lrf_jax.geometry import resolution
+from lrf_jax.geometry.sampling import voxel_downsample, voxel_groups
+from lrf_jax.registration import register, rotation_error_deg
+
+
+def sweep(sensor=(0.0, 0.0, 0.0), n_az=720, n_el=32, seed=0) -> np.ndarray:
+  """A synthetic raw LiDAR sweep of a street seen from `sensor` (metres, in the world frame):
+  rays on an azimuth x elevation grid hit the ground (z = -1.7), two walls (y = +-8) and boxes,
+  so the points are dense near the sensor and sparse far away, as a spinning LiDAR's are."""
+  rng = np.random.default_rng(seed)
+  az = np.linspace(-np.pi, np.pi, n_az, endpoint=False)
+  el = np.deg2rad(np.linspace(-24.0, 2.0, n_el))
+  a, e = np.meshgrid(az, el)
+  d = np.stack([np.cos(e) * np.cos(a), np.cos(e) * np.sin(a), np.sin(e)], -1).reshape(-1, 3)
+  o = np.asarray(sensor, float)
+  t = np.full(len(d), np.inf)
+  with np.errstate(divide="ignore", invalid="ignore"):
+    tg = (-1.7 - o[2]) / d[:, 2]
+    t = np.where((tg > 0) & (tg < 60), np.minimum(t, tg), t)
+    for wall in (8.0, -8.0):
+      tw = (wall - o[1]) / d[:, 1]
+      hit = o[2] + tw * d[:, 2]
+      t = np.where((tw > 0) & (hit < 4) & (tw < t), tw, t)
+    for cx, cy, h in ((6.0, 4.0, 1.5), (-9.0, -5.0, 2.5), (15.0, -3.0, 1.0), (-4.0, 3.5, 2.0),
+                      (25.0, 5.0, 3.0)):  # boxes of 2 x 2 m: hit their x faces
+      for fx in (cx - 1.0, cx + 1.0):
+        tb = (fx - o[0]) / d[:, 0]
+        p = o + tb[:, None] * d
+        inside = (np.abs(p[:, 1] - cy) < 1.0) & (p[:, 2] < -1.7 + h) & (tb > 0) & (tb < t)
+        t = np.where(inside, tb, t)
+  hit = np.isfinite(t) & (t < 60.0)  # the sensor's range
+  pts = o + t[hit, None] * d[hit]
+  return pts + rng.normal(scale=0.01, size=pts.shape)
+
+
+@pytest.fixture(scope="module")
+def sweeps():
+  a = sweep((0.0, 0.0, 0.0), seed=0)
+  b_world = sweep((1.5, 0.3, 0.0), seed=1)
+  c, s = np.cos(0.05), np.sin(0.05)
+  r = np.array([[c, -s, 0], [s, c, 0], [0, 0, 1]])
+  gt = np.eye(4)  # maps b (in its own frame) onto a
+  gt[:3, :3], gt[:3, 3] = r, [1.5, 0.3, 0.0]
+  b = (b_world - gt[:3, 3]) @ r  # b in its own (rotated, moved) frame: gt maps it back
+  return a, b, gt
+
+
+def test_a_raw_sweep_is_uneven_and_clean_clouds_keep_their_resolution(sweeps):
+  res = resolution.working_resolution(sweeps[0])
+  assert res.uneven and res.mr == res.area_spacing > resolution.UNEVEN_RATIO * res.mean_spacing
+  pair = datasets.make_demo_pair(0, seed=0, noise_mr=0.1, partial=True)
+  for pts in (pair.model_points, pair.scene_points):
+    clean = resolution.working_resolution(pts)
+    assert not clean.uneven
+    assert clean.mr == resolution.mesh_resolution(pts)[0]  # exactly today's mr
+
+
+def test_area_median_weights_points_by_their_area():
+  d = np.array([1.0] * 90 + [10.0] * 10)  # 90 dense points, 10 sparse ones holding most area
+  assert resolution.area_median(d) == 10.0 and np.median(d) == 1.0
+  assert resolution.area_median(np.full(7, 0.5)) == 0.5
+  assert resolution.area_median(np.zeros(3)) == 0.0
+
+
+def test_pair_resolution_rules():
+  even = resolution.Resolution(1.0, 1.0, 1.1, "mean_nn_distance")
+  coarse = resolution.Resolution(3.0, 3.0, 3.2, "mean_nn_distance")
+  uneven = resolution.Resolution(0.5, 0.1, 0.5, "area_median_nn_distance")
+  assert resolution.pair_resolution(even, even) == 1.0
+  assert resolution.pair_resolution(even, dataclasses_replace(even, mr=1.9)) == 1.0
+  assert resolution.pair_resolution(even, coarse) == 3.0  # a raw fragment vs a coarser one
+  assert resolution.pair_resolution(coarse, even) == 3.0
+  assert resolution.pair_resolution(uneven, dataclasses_replace(uneven, mr=0.3)) == 0.5
+  mm = resolution.Resolution(500.0, 500.0, 510.0, "mean_nn_distance")
+  with pytest.raises(ValueError, match=r"differ 500-fold.*same units.*0.001"):
+    resolution.pair_resolution(even, mm)
+  assert resolution.thinning_voxel(uneven, 0.5) == 0.5
+  assert resolution.thinning_voxel(even, 1.0) is None
+
+
+def dataclasses_replace(res, **kw):
+  import dataclasses
+  return dataclasses.replace(res, **kw)
+
+
+def test_a_raw_sweep_pair_registers_with_the_defaults(sweeps):
+  a, b, gt = sweeps
+  reg = register(b, a)
+  assert reg.voxel_size == reg.mr > 0  # thinned at the working resolution
+  assert rotation_error_deg(reg.transform[:3, :3], gt[:3, :3]) < 1.0
+  assert np.linalg.norm(reg.transform[:3, 3] - gt[:3, 3]) < 0.1
+  assert reg.success
+  c = reg.correspondences  # indices into the input clouds
+  assert c[:, 0].max() < len(b) and c[:, 1].max() < len(a)
+  moved = b[c[reg.inliers, 0]] @ gt[:3, :3].T + gt[:3, 3]
+  assert np.median(np.linalg.norm(moved - a[c[reg.inliers, 1]], axis=1)) < 5 * reg.mr
+
+
+@pytest.mark.parametrize("k", [1e-3, 1e3])
+def test_scaling_both_clouds_scales_only_the_translation(sweeps, k):
+  a, b, _ = sweeps
+  base = register(b, a, n_keypoints=1000)
+  scaled = register(k * b, k * a, n_keypoints=1000)
+  assert scaled.success == base.success
+  assert rotation_error_deg(scaled.transform[:3, :3], base.transform[:3, :3]) < 1e-3
+  assert np.allclose(scaled.transform[:3, 3] / k, base.transform[:3, 3], atol=1e-4)
+  assert scaled.mr / k == pytest.approx(base.mr, rel=1e-9)
+
+
+def test_voxel_size_zero_keeps_every_point_and_a_bad_one_is_refused(sweeps):
+  a, b, _ = sweeps
+  pair = datasets.make_demo_pair(0, seed=0, noise_mr=0.1, partial=True)
+  kept = register(pair.model_points, pair.scene_points, voxel_size=0, n_keypoints=500)
+  default = register(pair.model_points, pair.scene_points, n_keypoints=500)
+  assert kept.voxel_size == default.voxel_size == 0.0  # a clean pair is not thinned
+  assert np.array_equal(kept.transform, default.transform)
+  for bad in (-1.0, np.nan, "x", True):
+    with pytest.raises(ValueError, match="voxel_size"):
+      register(b, a, voxel_size=bad)
+
+
+def test_clouds_in_different_units_are_refused_with_both_figures():
+  pair = datasets.make_demo_pair(0, seed=0, noise_mr=0.0, partial=True)
+  with pytest.raises(ValueError, match="same units"):
+    register(1000.0 * pair.model_points, pair.scene_points)
+
+
+def test_voxel_groups_matches_unique_rows():
+  rng = np.random.default_rng(0)
+  cells = rng.integers(0, 5, size=(500, 3))
+  inverse, first = voxel_groups(cells)
+  u, f, inv = np.unique(cells, axis=0, return_index=True, return_inverse=True)
+  assert np.array_equal(inverse, inv.ravel()) and np.array_equal(first, f)
+  big = cells * (2**39)  # past one integer key: the row-wise fallback
+  inverse2, first2 = voxel_groups(big)
+  assert np.array_equal(inverse2, inverse) and np.array_equal(first2, first)
+
+
+def test_voxel_downsample_index_is_each_voxels_first_point():
+  pts = np.array([[0.1, 0.1, 0.1], [2.5, 0.1, 0.1], [0.2, 0.3, 0.1], [2.6, 0.2, 0.4]])
+  out, idx = voxel_downsample(pts, 1.0, return_index=True)
+  assert idx.tolist() == [0, 1]
+  assert np.allclose(out, [pts[[0, 2]].mean(0), pts[[1, 3]].mean(0)])
+
+
+def test_kitti_bin_reader_checks_the_record_size(tmp_path):
+  from lrf_jax.io import read_cloud
+  pts = np.array([[1, 2, 3, 0.5], [4, 5, 6, 0.1]], "<f4")
+  pts.tofile(tmp_path / "s.bin")
+  assert np.array_equal(read_cloud(tmp_path / "s.bin").points, pts[:, :3].astype(float))
+  (tmp_path / "bad.bin").write_bytes(b"\0" * 20)
+  with pytest.raises(ValueError, match=r"bad.bin: size: expected a whole number of 16-byte"):
+    read_cloud(tmp_path / "bad.bin")
+
+
+def test_raw_kitti_sweeps_register_with_the_defaults(data_root):
+  """The pair the default resolution used to lose (5 -> 0, 3.5 m apart; 124k points each)."""
+  folder = data_root / "lidar_kitti00"
+  poses = np.loadtxt(folder / "poses_DERIVED.txt").reshape(-1, 3, 4)
+  pose = [np.vstack([p, [0, 0, 0, 1]]) for p in poses]
+  gt = np.linalg.inv(pose[0]) @ pose[5]
+  reg = register(str(folder / "000005.bin"), str(folder / "000000.bin"))
+  assert reg.success and reg.voxel_size > 0
+  assert rotation_error_deg(reg.transform[:3, :3], gt[:3, :3]) < 0.2
+  assert np.linalg.norm(reg.transform[:3, 3] - gt[:3, 3]) < 0.05

@@ -139,8 +139,10 @@ def working_resolution(points: np.ndarray, faces: np.ndarray | None = None) -> R
     mr, definition = mesh_resolution(points, faces)
     return Resolution(mr, mr, mr, definition)
   pts = np.asarray(points, dtype=np.float64)
-  mean, _ = mesh_resolution(pts)
-  d, _ = engine.knn(engine.knn_grid(pts, 2), pts, 2)
+  if pts.ndim != 2 or pts.shape[1] != 3 or len(pts) < 2:
+    mesh_resolution(pts)  # its ValueError
+  d, _ = engine.knn(engine.knn_grid(pts, 2), pts, 2)  # as mesh_resolution: the same mean
+  mean = float(d[:, 1].mean())
   area = area_median(d[:, 1])
   if mean > 0 and area > UNEVEN_RATIO * mean:
     return Resolution(area, mean, area, "area_median_nn_distance")

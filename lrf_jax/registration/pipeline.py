@@ -31,7 +31,7 @@ from lrf_jax.descriptors import DESCRIPTORS, _descriptors_checked, select_corres
 from lrf_jax.frames import METHODS
 from lrf_jax.geometry.keypoints import iss_keypoints
 from lrf_jax.geometry.normals import NORMAL_RADIUS_RATIO, estimate_normals
-from lrf_jax.geometry.resolution import (pair_resolution, thinning_voxel,
+from lrf_jax.geometry.resolution import (mesh_resolution, pair_resolution, thinning_voxel,
                                          working_resolution)
 from lrf_jax.geometry.sampling import voxel_downsample
 from lrf_jax.inputs import CloudInput, as_cloud
@@ -683,9 +683,10 @@ def _working_clouds(source: tuple, target: tuple, mr: Any, voxel_size: Any
   or 0).
 
   `mr` None: `pair_resolution` of the two `working_resolution`s. `voxel_size` None: a cloud (not
-  a mesh) whose mean spacing is under half the working resolution is thinned at it
-  (`thinning_voxel`); 0: none is; a positive number: both clouds are thinned at it (meshes
-  included, which lose their faces).
+  a mesh) whose mean spacing is under half the working resolution (`thinning_voxel`) is thinned
+  by the voxel whose centroids come out spaced mr apart (a voxel of mr leaves them closer, about
+  0.7 mr: the voxel is scaled by mr over the spacing that gives, measured); 0: none is; a
+  positive number: both clouds are thinned at it (meshes included, which lose their faces).
   """
   if not (voxel_size is None or (_is_positive(voxel_size) or
                                  (not isinstance(voxel_size, bool) and voxel_size == 0))):
@@ -700,6 +701,9 @@ def _working_clouds(source: tuple, target: tuple, mr: Any, voxel_size: Any
   for (pts, faces), res in zip((source, target), resolutions):
     voxel = (float(voxel_size) if voxel_size is not None
              else (None if faces is not None else thinning_voxel(res, float(mr))))
+    if voxel and voxel_size is None:  # the voxel whose centroids are spaced mr apart
+      spacing = mesh_resolution(np.asarray(voxel_downsample(pts, voxel)))[0]
+      voxel = voxel * float(mr) / spacing if spacing > 0 else voxel
     if voxel:
       thin, index = voxel_downsample(pts, voxel, return_index=True)
       out.append((thin, None, index))

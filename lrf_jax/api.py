@@ -15,7 +15,7 @@ from lrf_jax.search.chunks import map_chunks
 from lrf_jax.geometry.resolution import mesh_resolution as _mesh_resolution
 from lrf_jax.frames import METHODS, MethodSpec
 from lrf_jax.inputs import CloudInput, as_cloud
-from lrf_jax.learning.model import default_params, default_params_numpy
+from lrf_jax.frames.weights import default_params, default_params_numpy
 from lrf_jax.search.neighborhoods import (Patches, SearchIndex, _patches_checked, unit_scaled,
                                           validate_choice, validate_index, validate_keypoints,
                                           validate_radius, validate_seed, validate_viewpoint)

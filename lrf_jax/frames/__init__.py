@@ -6,7 +6,8 @@ the order `METHODS` lists them. Every method returns `(frames (N, 3, 3), valid (
 x, y, z, det +1, identity where invalid; `lrf_jax.compute_frames` is the one public entry that
 does the search, the preparation and the jitted, chunked evaluation for any of them. The LRF-Net
 family shares its construction (`lrf_net.py`: lrf_net and uniform; `ablation.py`: the paper's
-variants; `lrf_net_plus.py`: its host hooks and entry).
+variants; `lrf_net_plus.py`: its host hooks and entry; `weights.py`: the weight network's
+forward pass, parameter files and shipped weights). `metrics.py`: MeanCos, how repeatable frames are.
 """
 
 from __future__ import annotations

@@ -8,5 +8,4 @@
                     cloud's `SearchIndex`, the inputs' validation
   device.py         the same `Patches` from jitted voxel grids on the accelerator
   chunks.py         the one pad / run / slice loop over keypoint chunks
-  kernel_cache.py   numba's cache keys: a kernel's sources and the helpers it inlines
 """

@@ -35,7 +35,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from lrf_jax.search.neighborhoods import Patches, SearchIndex, _patches_checked, validate_scale
+from lrf_jax.checks import validate_scale
+from lrf_jax.search.neighborhoods import Patches, SearchIndex, _patches_checked
 
 _OFFS = np.stack(np.meshgrid(*[np.arange(-1, 2)] * 3, indexing="ij"), -1).reshape(-1, 3)
 

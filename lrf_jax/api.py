@@ -18,7 +18,8 @@ from lrf_jax.geometry.cloud import CheckedCloud, as_cloud
 from lrf_jax.frames.weights import default_params, default_params_numpy
 from lrf_jax.checks import (validate_choice, validate_keypoints, validate_radius, validate_seed,
                             validate_viewpoint)
-from lrf_jax.search.neighborhoods import Patches, SearchIndex, _patches_checked, unit_scaled, validate_index
+from lrf_jax.search.neighborhoods import (Patches, SearchIndex, build_patches, unit_scaled,
+                                          validate_index)
 from lrf_jax.prepare import method_normals, prepare_extra
 
 if TYPE_CHECKING:
@@ -442,9 +443,9 @@ class _PatchSearch:
       patches, _ = build_patches_device(self.points, kp, self.radius, k, seed=self.seed,
                                         z_ratio=spec.z_ratio, index=self.device)
       return patches
-    return _patches_checked(self.points, kp, self.radius, k, seed=self.seed,
-                            z_ratio=spec.z_ratio, index=self.index,
-                            shells=spec.shells if k is None else None)
+    return build_patches(self.points, kp, self.radius, k, seed=self.seed,
+                         z_ratio=spec.z_ratio, index=self.index,
+                         shells=spec.shells if k is None else None, validate=False)
 
 
 # Ball-list entries (8 bytes each) a host fast path holds at a time.

@@ -43,7 +43,7 @@ from lrf_jax.descriptors.snapshots import snapshot_descriptors
 from lrf_jax.descriptors.toldi import toldi_descriptors
 from lrf_jax.checks import (validate_choice, validate_cloud, validate_frames, validate_keypoints,
                             validate_radius)
-from lrf_jax.search.neighborhoods import Patches, SearchIndex, _patches_checked, validate_index
+from lrf_jax.search.neighborhoods import Patches, SearchIndex, build_patches, validate_index
 from lrf_jax.frames.normal_based import prepare_normals
 
 
@@ -316,7 +316,7 @@ def _descriptors_checked(descriptor: str, points: np.ndarray, keypoints: np.ndar
     if k is None:  # the whole ball: one plain radius search
       patches = ball_patches(index, points, kp, radius)
     else:
-      patches = _patches_checked(points, kp, radius, k, seed=seed, index=index)
+      patches = build_patches(points, kp, radius, k, seed=seed, index=index, validate=False)
     return describe_patches(patches, frames[idx], valid[idx], descriptor, points=points,
                             keypoints=kp, radius=radius, faces=faces, normals=normals,
                             chunk_size=len(idx), **options)

@@ -11,7 +11,7 @@ from lrf_jax._jax import jax, jnp
 import numpy as np
 
 from lrf_jax.search import engine
-from lrf_jax.search.neighborhoods import Patches, SearchIndex, _patches_checked
+from lrf_jax.search.neighborhoods import Patches, SearchIndex, build_patches
 
 
 def local_coordinates(offsets: jax.Array, frames: jax.Array) -> jax.Array:
@@ -109,4 +109,4 @@ def ball_patches(index: SearchIndex, points: np.ndarray, keypoints: np.ndarray,
   grid = index.grid(radius)
   counts = engine.ball_counts(grid, centers, radius)
   k = bucket_k(int(counts.max()) if len(keypoints) else 1)
-  return _patches_checked(points, keypoints, radius, k, seed=index.seed, index=index)
+  return build_patches(points, keypoints, radius, k, seed=index.seed, index=index, validate=False)

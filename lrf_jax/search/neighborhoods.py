@@ -224,8 +224,11 @@ def build_patches(
     seed: seed of the subsample.
     z_ratio: the normal support radius as a fraction of r (1/3: TOLDI, LRF-Net).
     index: an optional prebuilt `SearchIndex(points, seed)` to reuse across calls.
-    validate: check the inputs (disable only for already validated arrays: the same as
-      `_patches_checked`, which the package's own callers call).
+    validate: check the inputs; False only for arguments the caller has checked already
+      (`compute_frames`, `compute_descriptors`, the training batches, the device search):
+      a finite (n, 3) cloud, (m,) integer indices into it, positive `radius` and `z_ratio`,
+      `k` a positive integer or None, `index` None or an index of `points`. The cloud is read
+      as float64 and the keypoints as int64 (no copy when they already are).
     max_k: with `k=None`, an upper bound on K: larger balls keep their `max_k` points of smallest
       priority (the same seeded subsample as an integer k). None = no bound.
     shells: (a, b) fractions of r: the patch holds only the neighbors within a * r or beyond
@@ -255,29 +258,6 @@ def build_patches(
       raise ValueError(f"k: expected a positive integer patch size or None, got {k!r}")
     if index is not None:
       validate_index(index, points)
-  return _patches_checked(points, keypoints, radius, k, seed=seed, z_ratio=z_ratio, index=index,
-                          max_k=max_k, shells=shells, into=into, stats_from=stats_from)
-
-
-def _patches_checked(
-    points: np.ndarray,
-    keypoints: np.ndarray,
-    radius: float,
-    k: int | None = 256,
-    *,
-    seed: int = 0,
-    z_ratio: float = 1.0 / 3.0,
-    index: SearchIndex | None = None,
-    max_k: int | None = None,
-    shells: tuple[float, float] | None = None,
-    into: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None,
-    stats_from: Patches | None = None,
-) -> Patches:
-  """`build_patches` without its checks (`build_patches(validate=False)`): the same arguments
-  (and defaults), already checked by the caller (`build_patches`, `compute_frames`,
-  `compute_descriptors`, ...): a finite (n, 3) cloud, (m,) integer indices into it, positive
-  `radius` and `z_ratio`, `k` a positive integer or None, `index` None or an index of `points`.
-  The cloud is read as float64 and the keypoints as int64 (no copy when they already are)."""
   points = np.asarray(points, np.float64)
   keypoints = np.asarray(keypoints, np.int64)
   if index is None or index.seed != seed or index.points.shape != points.shape:
@@ -315,3 +295,5 @@ def _patches_checked(
       z_mean=z_mean,
       z_count=z_count,
   )
+
+

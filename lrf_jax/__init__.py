@@ -37,12 +37,12 @@ _EXPORTS: dict[str, str] = {
     "batched_chamfer": "learning.losses",
     "chamfer": "learning.losses",
     "siamese_loss": "learning.losses",
-    "meancos": "evaluation.metrics",
-    "repeatability_summary": "evaluation.metrics",
-    "default_params": "learning.model",
+    "meancos": "frames.metrics",
+    "repeatability_summary": "frames.metrics",
+    "default_params": "frames.weights",
     "init_params": "learning.model",
-    "load_params": "learning.model",
-    "save_params": "learning.model",
+    "load_params": "frames.weights",
+    "save_params": "frames.weights",
     "Patches": "search.neighborhoods",
     "build_patches": "search.neighborhoods",
     "register": "registration",
@@ -79,8 +79,10 @@ def _load(module: str) -> Any:
       import lrf_jax.geometry.keypoints as m
     case "learning.losses":
       import lrf_jax.learning.losses as m
-    case "evaluation.metrics":
-      import lrf_jax.evaluation.metrics as m
+    case "frames.metrics":
+      import lrf_jax.frames.metrics as m
+    case "frames.weights":
+      import lrf_jax.frames.weights as m
     case "learning.model":
       import lrf_jax.learning.model as m
     case "search.neighborhoods":
@@ -154,8 +156,9 @@ if TYPE_CHECKING:  # for type checkers and IDEs; at run time these come from __g
   from lrf_jax.frames.lrf_net import lrf_net_frames  # noqa: F401
   from lrf_jax.geometry.keypoints import iss_keypoints  # noqa: F401
   from lrf_jax.learning.losses import batched_chamfer, chamfer, siamese_loss  # noqa: F401
-  from lrf_jax.evaluation.metrics import meancos, repeatability_summary  # noqa: F401
-  from lrf_jax.learning.model import default_params, init_params, load_params, save_params  # noqa: F401
+  from lrf_jax.frames.metrics import meancos, repeatability_summary  # noqa: F401
+  from lrf_jax.frames.weights import default_params, load_params, save_params  # noqa: F401
+  from lrf_jax.learning.model import init_params  # noqa: F401
   from lrf_jax.search.neighborhoods import Patches, build_patches  # noqa: F401
   from lrf_jax.registration.multiway import register_all  # noqa: F401
   from lrf_jax.registration import register  # noqa: F401

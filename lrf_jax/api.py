@@ -13,12 +13,13 @@ import numpy as np
 from lrf_jax.search import engine
 from lrf_jax.search.chunks import map_chunks
 from lrf_jax.geometry.resolution import mesh_resolution as _mesh_resolution
-from lrf_jax.frames import METHODS, MethodSpec
-from lrf_jax.inputs import CloudInput, as_cloud
-from lrf_jax.learning.model import default_params, default_params_numpy
-from lrf_jax.search.neighborhoods import (Patches, SearchIndex, _patches_checked, unit_scaled,
-                                          validate_choice, validate_index, validate_keypoints,
-                                          validate_radius, validate_seed, validate_viewpoint)
+from lrf_jax.frames import METHODS, MethodSpec, method_spec
+from lrf_jax.geometry.cloud import CheckedCloud, as_cloud
+from lrf_jax.frames.weights import default_params, default_params_numpy
+from lrf_jax.checks import (validate_choice, validate_keypoints, validate_radius, validate_seed,
+                            validate_viewpoint)
+from lrf_jax.search.neighborhoods import (Patches, SearchIndex, build_patches, unit_scaled,
+                                          validate_index)
 from lrf_jax.prepare import method_normals, prepare_extra
 
 if TYPE_CHECKING:
@@ -52,7 +53,7 @@ def frames_from_patches(patches: Patches, method: str = "lrf_net_plus", *, param
   Returns:
     (frames (N, 3, 3), valid (N,)).
   """
-  spec = _spec(method)
+  spec = method_spec(method)
   _check_options(method, options, spec)
   return _patch_frames_checked(spec, patches, params, extra, options)
 
@@ -107,12 +108,6 @@ def _weight_table(params: Any, size: int, host: bool = False) -> Any:
   return table
 
 
-def _spec(method: str) -> MethodSpec:
-  if not isinstance(method, str) or method not in METHODS:
-    raise ValueError(f"method: unknown LRF method {method!r}; expected one of {sorted(METHODS)}")
-  return METHODS[method]
-
-
 def mesh_resolution(points: Any, faces: Any = None) -> float:
   """The length unit of support radii and noise: mean edge length of a mesh (with `faces`), mean
   nearest-neighbor distance of a cloud (without), as the datasets measure it.
@@ -124,13 +119,12 @@ def mesh_resolution(points: Any, faces: Any = None) -> float:
   Returns:
     mr in the cloud's units. `compute_frames(..., radius_mr=15)` is the paper's support radius.
   """
-  pts, f, _ = as_cloud(points, "points", faces=faces)
-  return float(_mesh_resolution(pts, f)[0])
+  return float(as_cloud(points, "points", faces=faces).resolution)
 
 
 def method_options(method: str) -> list[str]:
   """The option names `method` accepts (keyword arguments of its frame function)."""
-  return _option_names(_spec(method))
+  return _option_names(method_spec(method))
 
 
 def _option_names(spec: MethodSpec) -> list[str]:
@@ -147,15 +141,14 @@ def _check_options(method: str, options: dict, spec: MethodSpec) -> None:
                      f"are {valid or 'none'}")
 
 
-def _resolve_radius(points: np.ndarray, faces: Any, radius: Any, radius_mr: Any) -> float:
+def _resolve_radius(cloud: CheckedCloud, radius: Any, radius_mr: Any) -> float:
   if (radius is None) == (radius_mr is None):
     raise ValueError("radius, radius_mr: expected exactly one of them (radius in cloud units, "
                      f"or radius_mr in mesh resolutions), got radius={radius!r}, "
                      f"radius_mr={radius_mr!r}")
   if radius is not None:
     return validate_radius(radius)
-  mr, _ = _mesh_resolution(points, faces)
-  return validate_radius(validate_radius(radius_mr, "radius_mr") * mr)
+  return validate_radius(validate_radius(radius_mr, "radius_mr") * cloud.resolution)
 
 
 def _warn_on_ball_size(index: SearchIndex, points: np.ndarray, keypoints: np.ndarray,
@@ -242,7 +235,7 @@ def compute_frames(
     points: the cloud: an (n, 3) array of finite floats (any units), an `lrf_jax.io.Cloud`, a
       path any `lrf_jax.io` reader opens, or an object with `.points` (or `.vertices` and
       `.triangles`), e.g. Open3D's; its faces and normals are used unless `faces=` /
-      `normals=` are given (`lrf_jax.inputs.as_cloud`).
+      `normals=` are given (`lrf_jax.geometry.cloud.CheckedCloud`).
     keypoints: (m,) integer indices into `points`.
     radius: support radius r in the cloud's units (the paper: 15 mesh resolutions); give this or
       `radius_mr`.
@@ -301,10 +294,10 @@ def compute_frames(
   Example:
     >>> frames, valid = compute_frames(points, np.arange(100), radius=0.02)
   """
-  spec = _spec(method)
+  spec = method_spec(method)
   cloud = as_cloud(points, "points", faces=faces, normals=normals)
   keypoints = validate_keypoints(keypoints, cloud.points.shape[0])
-  radius = _resolve_radius(cloud.points, cloud.faces, radius, radius_mr)
+  radius = _resolve_radius(cloud, radius, radius_mr)
   _check_call(spec, cloud.faces, chunk_size, k, options, return_confidence)
   seed = validate_seed(seed)
   viewpoint = validate_viewpoint(viewpoint)
@@ -320,7 +313,7 @@ def compute_frames(
 
 def _frames_checked(
     method: str,
-    cloud: CloudInput,
+    cloud: CheckedCloud,
     keypoints: np.ndarray,
     radius: float,
     *,
@@ -341,8 +334,8 @@ def _frames_checked(
 
   Args:
     method: a key of `METHODS`.
-    cloud: the checked cloud (`as_cloud`: (n, 3) finite float64 points, faces (f, 3) int64 into
-      them or None, normals (n, 3) or None).
+    cloud: the `CheckedCloud` ((n, 3) finite float64 points, faces (f, 3) int64 into them or
+      None, normals (n, 3) or None).
     keypoints: (m,) int64 indices into `cloud.points`.
     radius: support radius r (cloud units; `validate_radius`'s range).
     seed: a non-negative int.
@@ -356,7 +349,7 @@ def _frames_checked(
   """
   spec = METHODS[method]
   options = {} if options is None else options
-  points, faces, normals = cloud
+  points, faces, normals = cloud.points, cloud.faces, cloud.normals
   # Every method works in units of the radius (frames are directions): the same arithmetic at
   # any scale of cloud and radius (1e-30..1e30, `validate_radius`; `unit_scaled`).
   unit = radius
@@ -450,9 +443,9 @@ class _PatchSearch:
       patches, _ = build_patches_device(self.points, kp, self.radius, k, seed=self.seed,
                                         z_ratio=spec.z_ratio, index=self.device)
       return patches
-    return _patches_checked(self.points, kp, self.radius, k, seed=self.seed,
-                            z_ratio=spec.z_ratio, index=self.index,
-                            shells=spec.shells if k is None else None)
+    return build_patches(self.points, kp, self.radius, k, seed=self.seed,
+                         z_ratio=spec.z_ratio, index=self.index,
+                         shells=spec.shells if k is None else None, validate=False)
 
 
 # Ball-list entries (8 bytes each) a host fast path holds at a time.
@@ -499,7 +492,7 @@ def host_frames(points: np.ndarray, keypoints: np.ndarray, radius: float, method
   Raises:
     ValueError: a method without a host fast path, or an `index` not built from `points`.
   """
-  spec = _spec(method)
+  spec = method_spec(method)
   if spec.host_frames is None:
     raise ValueError(f"method {method!r} has no host fast path (METHODS[method].host_frames)")
   validate_index(index, points)

@@ -5,7 +5,7 @@
 | `normals.cache_last` | the last estimated normals, areas, grids, curvature (one per kind) | one entry per kind (about 8) |
 | `api._TABLES` | lrf_net / lrf_net_plus weight tables (257 x 257) | 4 |
 | `api._jitted`, `descriptors._jitted` | jitted frame / descriptor functions per option set | 64 / 32 |
-| `model._default_params_cached`, `model._default_params_numpy` | the shipped weights (on the device; numpy) | 8 / 8 |
+| `weights._default_params_cached`, `weights._default_params_numpy` | the shipped weights (on the device; numpy) | 8 / 8 |
 | `datasets.cache._load` | meshes and clouds read by the dataset loaders | 64 |
 | `datasets.synthetic.icosphere` | the demo set's base spheres | 8 |
 
@@ -16,7 +16,7 @@ cleared here.
 from __future__ import annotations
 
 from lrf_jax import api, descriptors
-from lrf_jax.learning import model
+from lrf_jax.frames import weights
 from lrf_jax.geometry import normals
 
 
@@ -28,7 +28,7 @@ def clear_caches() -> None:
   api._TABLES.clear()
   api._jitted.cache_clear()
   descriptors._jitted.cache_clear()
-  model._default_params_cached.cache_clear()
-  model._default_params_numpy.cache_clear()
+  weights._default_params_cached.cache_clear()
+  weights._default_params_numpy.cache_clear()
   dataset_cache._load.cache_clear()
   synthetic.icosphere.cache_clear()

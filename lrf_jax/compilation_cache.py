@@ -8,7 +8,7 @@ Two caches share one per-user root, `cache_root()` (`$XDG_CACHE_HOME/lrf_jax`, e
   set it. numba would otherwise write next to the package's sources, which fails for a read-only
   install (it then falls back to its own per-user directory). lrf_jax's kernels are keyed by the
   contents of every source they are compiled from and not by the install's path
-  (`search.kernel_cache`): an edited helper recompiles the kernels that call it, and a second
+  (`kernel_cache`): an edited helper recompiles the kernels that call it, and a second
   install of the same code loads the first one's kernels.
 * JAX's persistent compilation cache in `cache_root()/jax` (or `$LRF_JAX_CACHE_DIR`):
   `enable()`, called by the command-line programs. A fresh `lrf-register` or `lrf-frames` would
@@ -170,7 +170,7 @@ def announce_compiles(stream: TextIO | None = None) -> None:
 
   Hooks numba's compile event (fired on a cache miss only) when numba is imported, and JAX's
   monitoring events when JAX is imported; idempotent, cheap, and it imports neither library.
-  With numba it also installs lrf_jax's cache locator (`search.kernel_cache.install`): every
+  With numba it also installs lrf_jax's cache locator (`kernel_cache.install`): every
   module that defines a cached kernel calls this first.
   """
   if stream is not None:
@@ -178,7 +178,7 @@ def announce_compiles(stream: TextIO | None = None) -> None:
   if _state["numba"] is None and "numba" in sys.modules:
     from numba.core import event
 
-    from lrf_jax.search import kernel_cache
+    from lrf_jax import kernel_cache
     kernel_cache.install()
     _state["numba"] = _numba_listener()
     event.register("numba:compile", _state["numba"])

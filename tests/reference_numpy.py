@@ -3,7 +3,7 @@
 It exists to check the JAX implementation formula by formula (tests) and to be the baseline of
 the speed benchmark. It shares nothing with the JAX path except the definition of the seeded
 subsample (`neighborhoods.hash_priority`) and the weight network's forward pass
-(`model.apply_weights` in numpy float64, itself held equal to the flax module
+(`weights.apply_weights` in numpy float64, itself held equal to the flax module
 `networks.WeightNet` by tests/test_shipped_weights.py).
 """
 
@@ -14,7 +14,7 @@ from typing import Any
 import numpy as np
 from scipy.spatial import cKDTree
 
-from lrf_jax.learning.model import apply_weights
+from lrf_jax.frames.weights import apply_weights
 from lrf_jax.search.neighborhoods import hash_priority
 
 

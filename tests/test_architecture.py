@@ -1,5 +1,6 @@
-"""The package's shape: no import cycle (function-level imports included), no dynamic imports
-hiding one, and no function over 80 code lines."""
+"""The package's shape: no import cycle between modules nor between the package's parts
+(`lrf_jax.X`: a subpackage or a module beside `lrf_jax/__init__.py`), function-level imports
+included; no dynamic imports hiding one; no function over 80 code lines."""
 
 from __future__ import annotations
 
@@ -108,10 +109,56 @@ def find_cycles(graph: dict[str, set[str]]) -> list[list[str]]:
   return out
 
 
+def package_of(module: str) -> str:
+  """The part of the package `module` belongs to: `lrf_jax.X` for `lrf_jax.X` and everything
+  under it."""
+  return ".".join(module.split(".")[:2])
+
+
+def package_graph(modules: dict[str, set[str]] | None = None) -> dict[str, set[str]]:
+  """`lrf_jax.X` -> the other parts of the package its modules import (anywhere in a module,
+  inside functions included; the facade `lrf_jax` itself left out, as in `import_graph`), from
+  `modules` (default: `import_graph()`)."""
+  graph: dict[str, set[str]] = {}
+  for module, targets in (import_graph() if modules is None else modules).items():
+    if module == "lrf_jax":
+      continue
+    part = package_of(module)
+    graph.setdefault(part, set()).update(
+        package_of(t) for t in targets if t != "lrf_jax" and package_of(t) != part)
+  return graph
+
+
+# Package cycles still there, each with what it takes to remove it; the test fails on any other
+# cycle and when one of these is gone (then delete its entry).
+KNOWN_PACKAGE_CYCLES: list[list[str]] = [
+    # batch.items runs lrf-frames' own parser and computation (cli.frames.build_parser,
+    # check_options, frames_outputs) for a scan item, and cli.batch is lrf-batch over `batch`:
+    # those three functions belong in a library module that both import.
+    ["lrf_jax.batch", "lrf_jax.cli"],
+]
+
+
 def test_import_graph_has_no_cycle():
   graph = import_graph()
   assert len(graph) > 40 and graph["lrf_jax.api"]  # the walk sees the package
   assert find_cycles(graph) == []
+
+
+def test_package_graph_has_no_cycle():
+  graph = package_graph()
+  assert {"lrf_jax.frames", "lrf_jax.learning", "lrf_jax.search", "lrf_jax.api"} <= set(graph)
+  assert "lrf_jax.frames" in graph["lrf_jax.learning"]  # the walk sees the edges
+  assert find_cycles(graph) == KNOWN_PACKAGE_CYCLES
+
+
+def test_package_graph_counts_function_level_imports_and_merges_subpackages():
+  parts = package_graph({"lrf_jax.a.x": {"lrf_jax.b.y"}, "lrf_jax.b.y": {"lrf_jax.a"},
+                         "lrf_jax.a": {"lrf_jax.a.x"}, "lrf_jax": {"lrf_jax.a", "lrf_jax.b"}})
+  assert parts == {"lrf_jax.a": {"lrf_jax.b"}, "lrf_jax.b": {"lrf_jax.a"}}
+  assert find_cycles(parts) == [["lrf_jax.a", "lrf_jax.b"]]
+  src = "def f():\n  import lrf_jax.frames.weights\n"
+  assert "lrf_jax.frames.weights" in _imports(ast.parse(src), "lrf_jax.learning.model", False)
 
 
 def test_cycle_detection_sees_function_level_imports():

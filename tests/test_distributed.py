@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 
 from lrf_jax.learning import checkpoints
-from lrf_jax.learning.model import load_params
+from lrf_jax.frames.weights import load_params
 
 REPO = Path(__file__).resolve().parents[1]
 TIMEOUT_S = 300

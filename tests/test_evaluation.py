@@ -172,7 +172,7 @@ def test_plus_ablation_switches_and_figure(tmp_path):
 @pytest.mark.slow
 def test_plus_with_switches_off_is_the_ball_sign_construction(demo_pair):
   from lrf_jax.frames.lrf_net import lrf_net_frames
-  from lrf_jax.learning.model import default_params
+  from lrf_jax.frames.weights import default_params
   from lrf_jax.search.neighborhoods import build_patches
 
   pts = demo_pair.scene_points

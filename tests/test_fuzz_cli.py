@@ -99,7 +99,7 @@ def test_frames_out_in_a_read_only_folder(cloud_npy, tmp_path, capsys, monkeypat
 def test_frames_unreadable_input(cloud_npy, tmp_path, capsys, monkeypatch):
   bad = tmp_path / "locked.ply"
   bad.write_bytes(b"ply\n")
-  from lrf_jax import inputs
+  from lrf_jax.geometry import cloud as inputs
 
   def denied(source, name):
     raise PermissionError(13, "Permission denied", str(bad))

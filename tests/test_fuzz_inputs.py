@@ -324,6 +324,6 @@ def test_build_patches_refuses_an_index_of_another_cloud():
 
 
 def test_uint64_keypoint_out_of_range_is_reported_exactly():
-  from lrf_jax.search.neighborhoods import validate_keypoints
+  from lrf_jax.checks import validate_keypoints
   with pytest.raises(ValueError, match="9223372036854775813"):
     validate_keypoints(np.array([2**63 + 5], np.uint64), 100)

@@ -1,4 +1,4 @@
-"""numba's cache keys for lrf_jax's kernels (`lrf_jax.search.kernel_cache`): every cached kernel
+"""numba's cache keys for lrf_jax's kernels (`lrf_jax.kernel_cache`): every cached kernel
 keyed by the sources it is compiled from, shared by installs at different paths, and recompiled
 when a helper it inlines from another file changes."""
 
@@ -20,7 +20,7 @@ import lrf_jax.geometry.keypoints  # noqa: F401  (modules with cached kernels, f
 import lrf_jax.geometry.mesh  # noqa: F401
 import lrf_jax.geometry.normals  # noqa: F401
 import lrf_jax.registration  # noqa: F401
-from lrf_jax.search import kernel_cache
+from lrf_jax import kernel_cache
 
 PACKAGE = Path(lrf_jax.__file__).parent
 

@@ -1,9 +1,11 @@
-"""The pre-0.7 paths and names, forwarded with a DeprecationWarning in 0.7, are gone in 0.8:
+"""The pre-0.7 paths and names, forwarded with a DeprecationWarning in 0.7, are gone in 0.8 (and
+so are the few paths 0.8 moved, without an alias):
 each old module path fails to import (ModuleNotFoundError) and each old name fails to resolve
 (AttributeError); each new home exists; nothing of the project's own (package, tests,
 benchmarks, scripts, README) mentions an old module path.
 
-The tables below are the record of what 0.8 removed (CHANGELOG.md, "0.8.0", lists the same).
+The tables below are the record of what 0.8 removed or moved (CHANGELOG.md, "0.8.0", lists the
+same).
 """
 
 from __future__ import annotations
@@ -42,8 +44,8 @@ MOVED: dict[str, str] = {
     "lrf_jax.icp_host": "lrf_jax.registration.icp_host",
     "lrf_jax.keypoints": "lrf_jax.geometry.keypoints",
     "lrf_jax.losses": "lrf_jax.learning.losses",
-    "lrf_jax.metrics": "lrf_jax.evaluation.metrics",
-    "lrf_jax.model": "lrf_jax.learning.model",
+    "lrf_jax.metrics": "lrf_jax.frames.metrics",  # in lrf_jax.evaluation in 0.7
+    "lrf_jax.model": "lrf_jax.frames.weights",  # lrf_jax.learning.model in 0.7 (init_params still)
     "lrf_jax.multiway": "lrf_jax.registration.multiway",
     "lrf_jax.multiway_cli": "lrf_jax.cli.multiway",
     "lrf_jax.multiway_figures": "lrf_jax.registration.multiway_figures",
@@ -59,6 +61,9 @@ MOVED: dict[str, str] = {
     "lrf_jax.sampling": "lrf_jax.geometry.sampling",
     "lrf_jax.train_lib": "lrf_jax.learning.train_lib",
     "lrf_jax.train_step": "lrf_jax.learning.train_step",
+    # moved in 0.8, without an alias (no package-level import cycle)
+    "lrf_jax.evaluation.metrics": "lrf_jax.frames.metrics",
+    "lrf_jax.search.kernel_cache": "lrf_jax.kernel_cache",
 }
 
 
@@ -69,6 +74,10 @@ _OPS_HELPERS = (
     "identity_where_invalid", "kabsch", "lexicographic_argmax", "majority_balance", "orient_like",
     "safe_norm", "safe_normalize", "sanitize", "smallest_eigvec", "tangent_projection",
     "toldi_normal", "weighted_covariance",
+)
+_WEIGHTS_NAMES = (
+    "DEFAULT_WEIGHTS", "WEIGHTS_DIR", "apply_weights", "apply_weights_numpy", "default_params",
+    "default_params_numpy", "load_params", "load_params_numpy", "save_params",
 )
 _REGISTRATION_MODULE_NAMES = {  # the pre-0.7 module `lrf_jax.registration`, outside `__all__`
     "pipeline": ("ESTIMATORS", "KEYPOINTS", "fine_distance", "ICP_FINE_FACTOR", "ICP_FINE_MIN_MR",
@@ -101,6 +110,10 @@ RENAMED: dict[str, str] = {
     "lrf_jax.frames.register": "lrf_jax.frames.add_method",
     "lrf_jax.descriptors.DescriptorSpec.host_fn":
         "lrf_jax.descriptors.DescriptorSpec.host_descriptors",
+    # moved in 0.8, without an alias: the weight network's inference half left the training
+    # package (frames no longer import learning); its initialisation stayed
+    **{f"lrf_jax.learning.model.{n}": f"lrf_jax.frames.weights.{n}" for n in _WEIGHTS_NAMES},
+    "lrf_jax.frames.ablation.init_variant_params": "lrf_jax.learning.model.init_variant_params",
 }
 
 

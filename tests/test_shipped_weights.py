@@ -9,7 +9,7 @@ import pytest
 import lrf_jax
 from lrf_jax import datasets
 from lrf_jax.evaluation import MethodRun, evaluate_pair
-from lrf_jax.learning.model import DEFAULT_WEIGHTS, WEIGHTS_DIR, load_params
+from lrf_jax.frames.weights import DEFAULT_WEIGHTS, WEIGHTS_DIR, load_params
 
 
 def test_shipped_weights_are_the_default_and_documented():
@@ -44,7 +44,7 @@ def test_points_only_weights_load_and_are_documented():
 
 
 def test_default_params_first_called_inside_jit_do_not_leak_tracers():
-  from lrf_jax.learning.model import _default_params_cached
+  from lrf_jax.frames.weights import _default_params_cached
   _default_params_cached.cache_clear()
   jax.jit(lambda x: x + jax.tree.leaves(lrf_jax.default_params("lrf_net_plus"))[0].sum())(1.0)
   for leaf in jax.tree.leaves(lrf_jax.default_params("lrf_net_plus")):
@@ -90,13 +90,14 @@ def test_lrf_net_plus_beats_lrf_net_and_uniform_on_noisy_br(data_root):
 
 
 def test_flax_free_forward_and_reader_equal_flax():
-  # model.apply_weights and model.load_params avoid importing flax; they must be the flax
+  # weights.apply_weights and weights.load_params avoid importing flax; they must be the flax
   # module's forward pass (the definition of the network) and flax's msgpack reader, on every
   # shipped file and a fresh save; apply_weights in jax.numpy, and in numpy as the host
   # kernels' weight table (float32) and the tests' reference (float64) evaluate it.
   from flax import serialization
 
-  from lrf_jax.learning import model
+  from lrf_jax.frames import weights as model
+  from lrf_jax.learning.model import init_params
   from lrf_jax.learning.networks import WeightNet
   files = sorted(model.WEIGHTS_DIR.rglob("*.msgpack"))
   assert files
@@ -109,7 +110,7 @@ def test_flax_free_forward_and_reader_equal_flax():
       np.testing.assert_array_equal(np.asarray(a), b)
   attrs = jax.random.uniform(jax.random.key(1), (5, 7, 2), minval=-1.0, maxval=1.0)
   for widths in [(16, 32, 64), (8, 4)]:
-    params = model.init_params(3, 2, widths)
+    params = init_params(3, 2, widths)
     want = WeightNet(widths=widths).apply({"params": params}, attrs)
     np.testing.assert_allclose(model.apply_weights(params, attrs), want, rtol=1e-6, atol=1e-7)
     for dtype in (np.float32, np.float64):
@@ -128,3 +129,18 @@ def test_inference_imports_neither_flax_nor_the_datasets(tmp_path):
           "if m in sys.modules); print(heavy); sys.exit(1 if heavy else 0)")
   out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
   assert out.returncode == 0, out.stdout + out.stderr
+
+
+def test_flax_free_regressor_equals_flax():
+  """The ablation's "dr" regressor: `frames.ablation.apply_regressor` (no flax) is the flax
+  module's forward pass, padded points and an empty patch included."""
+  from lrf_jax.frames.ablation import apply_regressor
+  from lrf_jax.learning.networks import PointRegressor, init_regressor
+  feats = jax.random.normal(jax.random.key(2), (4, 9, 6))
+  mask = jax.random.uniform(jax.random.key(3), (4, 9)) < 0.7
+  mask = mask.at[0].set(False)
+  for f in (6, 3):
+    params = init_regressor(5, f)
+    want = PointRegressor().apply({"params": params}, feats[..., :f], mask)
+    got = jax.jit(apply_regressor)(params, feats[..., :f], mask)
+    np.testing.assert_array_equal(np.asarray(got), np.asarray(want))

@@ -18,7 +18,7 @@ from lrf_jax.learning import train_lib
 from lrf_jax.learning import train_step
 from lrf_jax.learning.batches import BatchMaker, crop_patches
 from lrf_jax.learning.losses import siamese_loss
-from lrf_jax.learning.model import load_params
+from lrf_jax.frames.weights import load_params
 
 REPO = Path(__file__).resolve().parents[1]
 

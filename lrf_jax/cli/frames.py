@@ -241,7 +241,7 @@ def pair_keypoints(points: np.ndarray, pair_points: np.ndarray, transform: np.nd
 def frames_outputs(args: argparse.Namespace) -> tuple[dict, object, object]:
   """Read the inputs, compute what `args` asks for; (npz fields, cloud, pair cloud or None)."""
   import lrf_jax
-  from lrf_jax.inputs import as_cloud
+  from lrf_jax.geometry.cloud import as_cloud
   cloud = as_cloud(args.cloud, "cloud")
   mr = lrf_jax.mesh_resolution(cloud.points, cloud.faces)
   voxel = None if args.voxel_mr is None else args.voxel_mr * mr

@@ -222,7 +222,7 @@ def correspondence_figure(args: argparse.Namespace, reg) -> str | None:
   from pathlib import Path
 
   from lrf_jax.cli import plot
-  from lrf_jax.inputs import as_cloud
+  from lrf_jax.geometry.cloud import as_cloud
   from lrf_jax.io.atomic import WriteError
   src, dst = as_cloud(args.source, "SOURCE").points, as_cloud(args.target, "TARGET").points
   verdict = "success" if reg.success else "not sure"

@@ -34,17 +34,16 @@ from lrf_jax.descriptors import rops as _rops
 from lrf_jax.descriptors import shot as _shot
 from lrf_jax.descriptors import snapshots as _snapshots
 from lrf_jax.descriptors import toldi as _toldi
-from lrf_jax.descriptors.common import (ball_patches, bucket_k, local_coordinates, pad_patches,
-                                       validate_frames)
+from lrf_jax.descriptors.common import ball_patches, bucket_k, local_coordinates, pad_patches
 from lrf_jax.descriptors.matching import (Matches, match_descriptors, select_correspondences,
                                           top_correspondences)
 from lrf_jax.descriptors.rops import rops_descriptors
 from lrf_jax.descriptors.shot import shot_descriptors
 from lrf_jax.descriptors.snapshots import snapshot_descriptors
 from lrf_jax.descriptors.toldi import toldi_descriptors
-from lrf_jax.search.neighborhoods import (Patches, SearchIndex, _patches_checked,
-                                          validate_choice, validate_cloud, validate_index,
-                                          validate_keypoints, validate_radius)
+from lrf_jax.checks import (validate_choice, validate_cloud, validate_frames, validate_keypoints,
+                            validate_radius)
+from lrf_jax.search.neighborhoods import Patches, SearchIndex, build_patches, validate_index
 from lrf_jax.frames.normal_based import prepare_normals
 
 
@@ -317,7 +316,7 @@ def _descriptors_checked(descriptor: str, points: np.ndarray, keypoints: np.ndar
     if k is None:  # the whole ball: one plain radius search
       patches = ball_patches(index, points, kp, radius)
     else:
-      patches = _patches_checked(points, kp, radius, k, seed=seed, index=index)
+      patches = build_patches(points, kp, radius, k, seed=seed, index=index, validate=False)
     return describe_patches(patches, frames[idx], valid[idx], descriptor, points=points,
                             keypoints=kp, radius=radius, faces=faces, normals=normals,
                             chunk_size=len(idx), **options)

@@ -11,7 +11,7 @@ from lrf_jax._jax import jax, jnp
 import numpy as np
 
 from lrf_jax.search import engine
-from lrf_jax.search.neighborhoods import Patches, SearchIndex, _patches_checked
+from lrf_jax.search.neighborhoods import Patches, SearchIndex, build_patches
 
 
 def local_coordinates(offsets: jax.Array, frames: jax.Array) -> jax.Array:
@@ -89,26 +89,6 @@ def bucket_k(k: int) -> int:
   return b
 
 
-def validate_frames(frames, valid, n: int) -> tuple[np.ndarray, np.ndarray]:
-  """Check frames (n, 3, 3) and valid (n,) for n keypoints; return them as float32 / bool arrays.
-
-  Raises:
-    ValueError: naming the argument, the expected and the found shape.
-  """
-  f = np.asarray(frames)
-  if f.dtype.kind not in "fiu" or f.shape != (n, 3, 3):
-    raise ValueError(f"frames: expected a float array of shape ({n}, 3, 3) (one frame per "
-                     f"keypoint, rows x, y, z), got shape {f.shape} and dtype {f.dtype}")
-  if valid is None:
-    v = np.all(np.isfinite(f), axis=(1, 2))
-  else:
-    v = np.asarray(valid)
-    if v.shape != (n,):
-      raise ValueError(f"valid: expected shape ({n},) (one flag per keypoint), got {v.shape}")
-    v = v.astype(bool)
-  return f.astype(np.float32), v
-
-
 def ball_patches(index: SearchIndex, points: np.ndarray, keypoints: np.ndarray,
                  radius: float) -> Patches:
   """Patches with EVERY neighbor within `radius` (the engine's radius search), K bucketed.
@@ -129,4 +109,4 @@ def ball_patches(index: SearchIndex, points: np.ndarray, keypoints: np.ndarray,
   grid = index.grid(radius)
   counts = engine.ball_counts(grid, centers, radius)
   k = bucket_k(int(counts.max()) if len(keypoints) else 1)
-  return _patches_checked(points, keypoints, radius, k, seed=index.seed, index=index)
+  return build_patches(points, keypoints, radius, k, seed=index.seed, index=index, validate=False)

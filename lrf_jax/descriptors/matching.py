@@ -46,7 +46,7 @@ import numpy as np
 
 from lrf_jax.search.bits import pack_rows, popcount
 from lrf_jax.search.grid import num_threads
-from lrf_jax.search.nearest import _insert
+from lrf_jax.search.nearest import insert_sorted
 
 
 class Matches(NamedTuple):
@@ -276,7 +276,7 @@ def _occupancy_knn_kernel(a_bits, b_bits, a, b, a_ok, b_ok, k, lower, upper, spr
       for t in range(dim):
         diff = np.float64(a[i, t]) - np.float64(b[j, t])
         d2 += diff * diff
-      _insert(bd, bi, k, d2, j)
+      insert_sorted(bd, bi, k, d2, j)
     for s in range(k):
       out_d2[i, s] = bd[s]
       out_idx[i, s] = bi[s] if bd[s] < np.inf else 0

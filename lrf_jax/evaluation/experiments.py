@@ -42,7 +42,7 @@ def plus_ablation_runs() -> list[MethodRun]:
   `density` (weights times the area per point), the softmax x with its own weights (off = the
   paper's linear weights with the LRF-Net weights) and its patch size (512; 256 = LRF-Net's).
   LRF-Net as published is the reference."""
-  from lrf_jax.learning.model import default_params
+  from lrf_jax.frames.weights import default_params
 
   paper_x = dict(params=default_params("lrf_net"), options=(("x_mode", "sum"),))
   return [MethodRun("LRF-Net (paper)", "lrf_net", options=EXACT_NETWORK),
@@ -117,7 +117,7 @@ ABLATION_X = ("Sum1", "Sum2", "DR", "Max")
 def ablation_runs() -> list[MethodRun]:
   """The 8 variants of the paper's section 3.3 with the shipped ablation weights
   (lrf_jax/weights/ablation/, reduced schedule); "Max" reuses the Sum1 weights of its z."""
-  from lrf_jax.learning.model import WEIGHTS_DIR, load_params
+  from lrf_jax.frames.weights import WEIGHTS_DIR, load_params
 
   runs = []
   for z in ABLATION_Z:

@@ -29,7 +29,7 @@ from lrf_jax.api import frames_from_patches, host_frames
 from lrf_jax.datasets import Pair, repeatability_keypoints, transform_points
 from lrf_jax.frames import METHODS
 from lrf_jax.io import atomic
-from lrf_jax.evaluation.metrics import meancos
+from lrf_jax.frames.metrics import meancos
 from lrf_jax.search.neighborhoods import Patches, SearchIndex, build_patches
 from lrf_jax.geometry.normals import NORMAL_RADIUS_RATIO, estimate_normals
 from lrf_jax.prepare import method_normals, prepare_extra

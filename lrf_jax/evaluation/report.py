@@ -281,7 +281,7 @@ def weights_figure(pair: Any, params: Any, out: Path, *, n: int = 4, radius_mr: 
 
   from lrf_jax.datasets import repeatability_keypoints
   from lrf_jax.frames.lrf_net import frames_with_weight_fn, lrf_net_weights
-  from lrf_jax.learning.model import default_params
+  from lrf_jax.frames.weights import default_params
   from lrf_jax.search.neighborhoods import build_patches
 
   params = default_params() if params is None else params
@@ -308,7 +308,7 @@ def weight_maps_figure(out: Path, maps: dict[str, tuple[Any, str]] | None = None
   import jax.numpy as jnp
   plt = pyplot("eval", "evaluate.py's figures")
 
-  from lrf_jax.learning.model import apply_weights, default_params
+  from lrf_jax.frames.weights import apply_weights, default_params
 
   if maps is None:
     maps = {"LRF-Net (linear weights)": (default_params("lrf_net"), "sum"),

@@ -28,7 +28,7 @@ from lrf_jax.evaluation.repeatability import (EXACT_NETWORK, MethodRun, PatchCac
                                               paper_options)
 from lrf_jax.frames import METHODS
 from lrf_jax.io import atomic
-from lrf_jax.learning.model import load_params
+from lrf_jax.frames.weights import load_params
 
 # Experiments that sweep one nuisance: the number of settings per clean pair.
 SWEEPS = {"noise": len(NOISE_LEVELS), "decimation": len(DECIMATIONS), "radius": len(RADII_MR),

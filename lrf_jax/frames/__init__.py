@@ -6,7 +6,8 @@ the order `METHODS` lists them. Every method returns `(frames (N, 3, 3), valid (
 x, y, z, det +1, identity where invalid; `lrf_jax.compute_frames` is the one public entry that
 does the search, the preparation and the jitted, chunked evaluation for any of them. The LRF-Net
 family shares its construction (`lrf_net.py`: lrf_net and uniform; `ablation.py`: the paper's
-variants; `lrf_net_plus.py`: its host hooks and entry).
+variants; `lrf_net_plus.py`: its host hooks and entry; `weights.py`: the weight network's
+forward pass, parameter files and shipped weights). `metrics.py`: MeanCos, how repeatable frames are.
 """
 
 from __future__ import annotations
@@ -22,7 +23,7 @@ from lrf_jax.frames.ps import ps_frames
 from lrf_jax.frames.rops import rops_frames
 from lrf_jax.frames.shot import shot_frames
 from lrf_jax.frames.spec import (DEFAULT_METHOD, KEYPOINT, SLOT, TRIANGLE, TRIANGLE_MASK, METHODS,
-                                 MethodRegistry, MethodSpec, add_method)
+                                 MethodRegistry, MethodSpec, add_method, method_spec)
 from lrf_jax.frames.toldi import toldi_frames
 
 for _spec in (lrf_net.SPEC, ablation.SPEC, lrf_net_plus.SPEC, lrf_net.UNIFORM_SPEC, toldi.SPEC,
@@ -31,5 +32,5 @@ for _spec in (lrf_net.SPEC, ablation.SPEC, lrf_net_plus.SPEC, lrf_net.UNIFORM_SP
 del _spec
 
 __all__ = ["DEFAULT_METHOD", "KEYPOINT", "METHODS", "MethodRegistry", "MethodSpec", "SLOT", "TRIANGLE",
-           "TRIANGLE_MASK", "add_method", "board_frames", "flare_frames", "gframes_frames", "lrf_net_frames",
+           "TRIANGLE_MASK", "add_method", "method_spec", "board_frames", "flare_frames", "gframes_frames", "lrf_net_frames",
            "mian_frames", "ps_frames", "rops_frames", "shot_frames", "toldi_frames", "uniform_frames"]

@@ -9,10 +9,14 @@ x-axis, given z:
   "max"  the tangent projection of the neighbor with the largest Sum1 weight (no gradient
          through the argmax, so it reuses weights trained for "sum1").
 (normal, sum1) is exactly `lrf_net_frames`. Parameters are a dict with the parts a variant uses:
-"weights" (WeightNet), "z_reg" / "x_reg" (PointRegressor).
+"weights" (WeightNet), "z_reg" / "x_reg" (PointRegressor). The networks are defined and
+initialised in flax (`lrf_jax.learning.networks`, `lrf_jax.learning.model.init_variant_params`);
+their forward passes here need no flax (`apply_weights`, `apply_regressor`).
 """
 
 from __future__ import annotations
+
+from typing import TYPE_CHECKING
 
 from lrf_jax._jax import jax, jnp
 
@@ -20,8 +24,11 @@ from lrf_jax.geometry import ops as geometry
 from lrf_jax.frames.lrf_net import attributes, frame_from_weights, z_axes
 from lrf_jax.frames.spec import MethodSpec
 from lrf_jax.geometry.ops import sanitize
-from lrf_jax.learning.model import Params, apply_weights, init_params
+from lrf_jax.frames.weights import Params, apply_weights
 from lrf_jax.search.neighborhoods import Patches
+
+if TYPE_CHECKING:
+  from lrf_jax.search.neighborhoods import AnyArray
 
 Z_MODES = ("normal", "dr")
 X_MODES = ("sum1", "sum2", "dr", "max")
@@ -34,30 +41,29 @@ def check_modes(z_mode: str, x_mode: str) -> None:
     raise ValueError(f"x_mode: expected one of {X_MODES}, got {x_mode!r}")
 
 
-def init_variant_params(seed: int, z_mode: str, x_mode: str,
-                        widths: tuple[int, ...] = (16, 32, 64)) -> dict[str, Params]:
-  """Seeded parameters of one ablation variant."""
-  check_modes(z_mode, x_mode)
-  params = {}
-  if x_mode in ("sum1", "max"):
-    params["weights"] = init_params(seed, 2, widths)
-  elif x_mode == "sum2":
-    params["weights"] = init_params(seed, 6, widths)
-  else:
-    from lrf_jax.learning.networks import init_regressor  # flax: only the "dr" variants need it
-    params["x_reg"] = init_regressor(seed + 1, 6)
-  if z_mode == "dr":
-    from lrf_jax.learning.networks import init_regressor
-    params["z_reg"] = init_regressor(seed + 2, 3)
-  return params
+def apply_regressor(params: Params, feats: AnyArray, mask: AnyArray) -> jax.Array:
+  """The forward pass of `learning.networks.PointRegressor` without flax: (..., K, F) features and
+  (..., K) mask -> (..., 3). The same operations as flax's `Dense` (`lax.dot_general` over the
+  last axis, then the bias); `tests/test_shipped_weights.py` holds the two equal."""
+
+  def dense(layer, h):
+    dtype = jnp.result_type(h, layer["kernel"], layer["bias"])  # flax's promote_dtype
+    h, kernel, bias = (jnp.asarray(a, dtype) for a in (h, layer["kernel"], layer["bias"]))
+    y = jax.lax.dot_general(h, kernel, (((h.ndim - 1,), (0,)), ((), ())))
+    return y + jnp.reshape(bias, (1,) * (y.ndim - 1) + (-1,))
+
+  h = jax.nn.relu(dense(params["p0"], feats))
+  h = jax.nn.relu(dense(params["p1"], h))
+  h = jnp.max(jnp.where(mask[..., None], h, -1e9), axis=-2)
+  h = jnp.where(jnp.any(mask, axis=-1, keepdims=True), h, 0.0)
+  h = jax.nn.relu(dense(params["g0"], h))
+  return dense(params["g1"], h)
 
 
 def variant_frames(params: dict[str, Params], patches: Patches, *, z_mode: str = "normal",
                    x_mode: str = "sum1") -> tuple[jax.Array, jax.Array]:
   """Frames of an ablation variant for a batch of patches: (N, 3, 3) rows x, y, z; (N,) valid."""
   check_modes(z_mode, x_mode)
-  if "dr" in (z_mode, x_mode):
-    from lrf_jax.learning.networks import apply_regressor  # flax: only the "dr" variants need it
   patches, finite = sanitize(patches)
   rel = patches.offsets / patches.radius[:, None, None]
   if z_mode == "normal":

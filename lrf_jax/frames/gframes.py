@@ -36,7 +36,8 @@ import numpy as np
 
 from lrf_jax.geometry import ops as geometry
 from lrf_jax.frames import host_geometry as hg
-from lrf_jax.frames.rops import gather_triangles, validate_faces, vertex_faces
+from lrf_jax.checks import validate_faces
+from lrf_jax.frames.rops import gather_triangles, vertex_faces
 from lrf_jax.frames.normal_based import usable_normals
 from lrf_jax.frames.spec import KEYPOINT, TRIANGLE, TRIANGLE_MASK, MethodSpec
 from lrf_jax.geometry.ops import sanitize

@@ -5,7 +5,7 @@ For one keypoint p with radius neighbors q_i (offsets pq_i = q_i - p):
 * z: `geometry.toldi_normal` over all neighbors within r/3 (its sign makes Σ (p - q_i)·z >= 0);
 * attributes (eq. `eq_attrib`): a_dist = |pq_i| / r, a_angle = cos(z, pq_i) (0 for the keypoint
   itself, whose direction is undefined);
-* weights w_i = WeightNet(a_i) (model.py);
+* weights w_i = WeightNet(a_i) (weights.py);
 * x (eqs. `eq_vector_x`, `eq_axis_x`): normalised Σ w_i v_i with v_i = pq_i - (pq_i·z) z;
 * y = z × x (eq. `eq_lrf`), rows (x, y, z).
 
@@ -27,7 +27,7 @@ import numpy as np
 
 from lrf_jax.geometry import ops as geometry
 from lrf_jax.frames.spec import HostPatchKernel, MethodSpec
-from lrf_jax.learning.model import Params, apply_weights, apply_weights_numpy
+from lrf_jax.frames.weights import Params, apply_weights, apply_weights_numpy
 from lrf_jax.search.neighborhoods import Patches
 
 if TYPE_CHECKING:
@@ -208,7 +208,7 @@ class WeightTable(NamedTuple):
 
 
 def weight_table(params: Params, size: int = 257, xp: Any = jnp) -> WeightTable:
-  """Evaluate the network (`model.apply_weights`) once on the lut grid: size² evaluations
+  """Evaluate the network (`weights.apply_weights`) once on the lut grid: size² evaluations
   (about 25 ms for 257 on 2 CPU cores, worth caching when a call has only a few thousand
   keypoints).
 
@@ -227,7 +227,7 @@ def weight_table(params: Params, size: int = 257, xp: Any = jnp) -> WeightTable:
   grid = xp.linspace(0.0, 1.0, size, dtype=dtype)
   cgrid = xp.linspace(-1.0, 1.0, size, dtype=dtype)
   attrs = xp.stack(xp.meshgrid(grid, cgrid, indexing="ij"), -1)
-  # numpy: one BLAS thread beside numba's (`model.apply_weights_numpy`)
+  # numpy: one BLAS thread beside numba's (`weights.apply_weights_numpy`)
   return WeightTable(apply_weights_numpy(params, attrs) if host else apply_weights(params, attrs))
 
 
@@ -277,7 +277,7 @@ def lrf_net_frames(params: Params, patches: Patches, *, x_mode: str = "sum",
   """LRF-Net frames for a batch of patches (pure; jit it or call through `compute_frames`).
 
   Args:
-    params: WeightNet parameters (`model.default_params()` for the shipped ones).
+    params: WeightNet parameters (`weights.default_params()` for the shipped ones).
     patches: `Patches` (N keypoints, K neighbors).
     x_mode: "sum" (the paper), "softmax" (`softmax_weights`, lrf_net_plus) or "max" (ablation).
     z_sign: "toldi" (the paper) or "ball" (lrf_net_plus, see `ball_sign`).

@@ -38,6 +38,7 @@ from lrf_jax._jax import jax, jnp
 import numba as nb
 import numpy as np
 
+from lrf_jax.checks import validate_faces
 from lrf_jax.search import engine
 from lrf_jax.geometry import mesh
 from lrf_jax.geometry import ops as geometry
@@ -61,18 +62,6 @@ def vertex_faces(faces: np.ndarray, n_points: int) -> tuple[np.ndarray, np.ndarr
   ptr = np.zeros(n_points + 1, np.int64)
   ptr[1:] = np.cumsum(np.bincount(flat, minlength=n_points))
   return ptr, (order // 3).astype(np.int64)
-
-
-def validate_faces(faces: np.ndarray, n_points: int) -> np.ndarray:
-  """Check that `faces` is an (f, 3) integer array of indices into `n_points` vertices."""
-  f = np.asarray(faces)
-  if f.ndim != 2 or f.shape[1] != 3 or (f.size and f.dtype.kind not in "iu"):
-    raise ValueError(f"faces: expected an (f, 3) integer array of triangle vertex indices, got "
-                     f"shape {f.shape} and dtype {f.dtype}")
-  f = f.astype(np.int64)
-  if f.size and (f.min() < 0 or f.max() >= n_points):
-    raise ValueError(f"faces: indices must lie in [0, {n_points}), got [{f.min()}, {f.max()}]")
-  return f
 
 
 def gather_triangles(points: np.ndarray, keypoints: np.ndarray, faces: np.ndarray, radius: float,

@@ -189,6 +189,17 @@ class MethodRegistry(dict):
 METHODS: MethodRegistry = MethodRegistry()
 
 
+def method_spec(method: Any) -> MethodSpec:
+  """The registered `MethodSpec` of `method` (the one check of a method name).
+
+  Raises:
+    ValueError: `method` is not a key of `METHODS` (the message lists them).
+  """
+  if not isinstance(method, str) or method not in METHODS:
+    raise ValueError(f"method: unknown LRF method {method!r}; expected one of {sorted(METHODS)}")
+  return METHODS[method]
+
+
 def add_method(spec: MethodSpec) -> MethodSpec:
   """Add a method to `METHODS` under `spec.name` (replacing one of that name) and return it.
 

@@ -37,7 +37,7 @@ from typing import Any
 import numpy as np
 
 from lrf_jax.search import engine
-from lrf_jax.inputs import as_cloud
+from lrf_jax.geometry.cloud import as_cloud
 from lrf_jax.geometry.resolution import mesh_resolution
 
 SALIENT_RADIUS_MR = 6.0
@@ -115,7 +115,7 @@ def iss_keypoints(points: Any, *, salient_radius: float | None = None,
   """ISS keypoints of a cloud (the module docstring gives the definition).
 
   Args:
-    points: (n, 3) cloud, or anything `lrf_jax.inputs.as_cloud` reads (a `Cloud`, a path, an
+    points: (n, 3) cloud, or anything `lrf_jax.geometry.cloud.CheckedCloud` reads (a `Cloud`, a path, an
       Open3D `PointCloud`); faces are ignored.
     salient_radius: radius of the scatter-matrix balls, cloud units (default 6 mr).
     non_max_radius: radius of the non-maximum suppression, cloud units (default 4 mr).

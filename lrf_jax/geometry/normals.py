@@ -39,7 +39,7 @@ import numba as nb
 import numpy as np
 
 from lrf_jax.search import engine
-from lrf_jax.search.neighborhoods import validate_viewpoint
+from lrf_jax.checks import validate_viewpoint
 
 # Default normal radius as a fraction of the support radius r (3 mr at r = 15 mr).
 NORMAL_RADIUS_RATIO = 0.2

@@ -33,7 +33,7 @@ def voxel_downsample(points: Any, size: float, *, return_index: bool = False
   Args:
     points: the cloud: an (n, 3) array of finite floats (any units), an `lrf_jax.io.Cloud`, a
       path `lrf_jax.io.read_cloud` opens, or an object with `.points` (as `compute_frames`
-      takes; `lrf_jax.inputs.as_cloud`). Faces and normals are ignored.
+      takes; `lrf_jax.geometry.cloud.CheckedCloud`). Faces and normals are ignored.
     size: the voxel edge, in the cloud's units (> 0). `lrf_jax.mesh_resolution(points)` gives
       the cloud's point spacing: `size = 2 * mr` keeps about one point in 4 to 8 on a surface.
     return_index: also return, per output row, the index of the first input point (in input
@@ -51,7 +51,7 @@ def voxel_downsample(points: Any, size: float, *, return_index: bool = False
   Example:
     >>> small = lrf_jax.voxel_downsample(points, 2 * lrf_jax.mesh_resolution(points))
   """
-  from lrf_jax.inputs import as_cloud
+  from lrf_jax.geometry.cloud import as_cloud
   pts = np.asarray(as_cloud(points, "points").points, np.float64)
   try:
     size = float(size)

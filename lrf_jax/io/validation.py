@@ -1,7 +1,9 @@
 """Checks shared by the readers: every bad input becomes a ValueError that names the file,
 the field and what was expected versus found.
 
-Message format (one line): ``"<file>: <field>: expected <expected>, found <found>"``.
+Message format (one line): ``"<file>: <field>: expected <expected>, found <found>"``; the
+coordinates are checked by the package's one cloud check (`lrf_jax.checks.validate_cloud`,
+``"<file>: <field>: expected <expected>, got <found>"``).
 """
 
 from __future__ import annotations
@@ -10,6 +12,8 @@ import os
 from pathlib import Path
 
 import numpy as np
+
+from lrf_jax.checks import validate_cloud
 
 # A pose's rotation block must satisfy |RᵀR - I| <= atol and |det R - 1| <= atol. The real
 # ground-truth files are written with 6 decimals (worst case in the shipped data: 6.4e-6).
@@ -79,20 +83,9 @@ def check_points(points: np.ndarray, source: object, field: str = "points",
 
   Raises:
     ValueError: wrong shape, zero rows, or non-finite values (the message gives their count
-      and the first offending row).
+      and the first offending row): `lrf_jax.checks.validate_cloud`, named by file and field.
   """
-  arr = np.asarray(points)
-  if arr.ndim != 2 or arr.shape[1] != columns:
-    raise bad_input(source, field, f"an (n, {columns}) array", f"shape {arr.shape}")
-  if arr.shape[0] == 0:
-    raise bad_input(source, field, "at least one point", "an empty cloud (0 points)")
-  arr = np.ascontiguousarray(arr, dtype=np.float64)
-  finite = np.isfinite(arr).all(axis=1)
-  if not finite.all():
-    bad = np.flatnonzero(~finite)
-    raise bad_input(source, field, "finite coordinates",
-                    f"{bad.size} rows with NaN/inf (first: row {bad[0]} = {arr[bad[0]].tolist()})")
-  return arr
+  return np.ascontiguousarray(validate_cloud(points, f"{source}: {field}", columns))
 
 
 def check_rigid(transform: np.ndarray, source: object, field: str = "transform",

@@ -1,6 +1,6 @@
 """Weakly supervised training of LRF-Net (the paper's Siamese Chamfer loss).
 
-  model.py         the weight network's parameters: forward pass in jax.numpy, parameter files
+  model.py         seeded initial parameters (the weight network, the ablation variants)
   networks.py      its flax.linen modules (layers, initialisation; inference never imports flax)
   losses.py        Chamfer (eq_cham) and the Siamese training loss
   config.py        `TrainConfig`, presets (`configs/NAME.py`), CLI overrides

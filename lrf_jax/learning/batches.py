@@ -21,7 +21,7 @@ from jax.sharding import NamedSharding
 
 from lrf_jax.frames.lrf_net_plus import points_only_normals, points_only_view
 from lrf_jax.learning.config import TrainConfig
-from lrf_jax.search.neighborhoods import Patches, _patches_checked
+from lrf_jax.search.neighborhoods import Patches, build_patches
 
 if TYPE_CHECKING:
   from lrf_jax.search.neighborhoods import AnyArray
@@ -187,7 +187,7 @@ class BatchMaker:
       seed = _mix(cfg.seed, 3, epoch, side)
       # The large fields are written in place by the search where a cloud's rows are one run
       # (the usual layout) and nothing rewrites them; the others are scattered below.
-      # Uninitialised: _patches_checked (or the copy below) writes every row whole.
+      # Uninitialised: build_patches (or the copy below) writes every row whole.
       big = (np.empty((n, k, 3), np.float32), np.empty((n, k), bool), np.empty((n, k), np.int32))
       parts, rows, views = [], [], []
       for c in np.unique(kp[:, 0]):
@@ -197,10 +197,10 @@ class BatchMaker:
         pts, level = self.side_points(epoch, side, int(c))
         in_place = isinstance(sel, slice) and cfg.crop_p <= 0
         stats = self._stats.get((side, int(c))) if level == 0 else None
-        part = _patches_checked(pts, kp[sel, 1], float(self.clouds.radii[c]), k, seed=seed,
-                                into=cast("tuple[np.ndarray, np.ndarray, np.ndarray]",  # big's 3
-                                          tuple(a[sel] for a in big)) if in_place else None,
-                                stats_from=stats)
+        part = build_patches(pts, kp[sel, 1], float(self.clouds.radii[c]), k, seed=seed,
+                             into=cast("tuple[np.ndarray, np.ndarray, np.ndarray]",  # big's 3
+                                       tuple(a[sel] for a in big)) if in_place else None,
+                             stats_from=stats, validate=False)
         if level == 0:
           # Only what `stats_from` reads is kept: the seed-dependent fields are dropped (None).
           self._stats[side, int(c)] = part._replace(

@@ -8,7 +8,7 @@ import jax
 import jax.numpy as jnp
 
 from lrf_jax.frames.lrf_net import lrf_net_frames
-from lrf_jax.learning.model import Params
+from lrf_jax.frames.weights import Params
 from lrf_jax.search.neighborhoods import Patches
 
 if TYPE_CHECKING:

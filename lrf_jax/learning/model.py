@@ -1,42 +1,17 @@
-"""The LRF-Net weight network: its parameters, its forward pass and the shipped weights.
+"""The trainable parameters: seeded initial values of LRF-Net's weight network and of the
+ablation variants.
 
-The paper (section 3.1, "a U-Net with MLP layers only") feeds each radius neighbor's two invariant
-attributes (distance / r, cos(z, pq)) through per-point MLP layers and predicts one weight per
-neighbor. The figure with its layer sizes is missing from our copy, so the sizes are ours:
-
-    encoder   2 -> 16 -> 32 -> 64          (Dense + ReLU, per point)
-    decoder  64 -> 32 (concat enc 32) -> 16 (concat enc 16) -> 1
-
-about 6.6k parameters. Why this size: the network maps a 2-D input to a scalar, so it only needs
-the capacity to draw a smooth 2-D weight map w(d, cos θ), and every extra width costs K x width
-FLOPs per keypoint on the hot path. The
-output is linear (signed weights): TOLDI's own weight (r - d)² sign(h) h² is signed, and a positive
-activation could not express it. The weights only matter up to a positive scale (x is normalised).
-lrf_net_plus reads the same output as a log-weight (`frames.lrf_net.softmax_weights`).
-
-The layers are defined as flax.linen modules in `networks.py`; this module evaluates them from
-the parameter dict without flax (`apply_weights`, in `jax.numpy` or numpy) and reads parameter
-files with `msgpack` (flax's format), so inference never imports flax; initialising and saving
-do.
+The networks are defined in flax (`networks.py`); their forward passes for inference, the
+parameter files and the shipped weights are `lrf_jax.frames.weights` (no flax there), and the
+ablation variants' frames are `lrf_jax.frames.ablation.variant_frames`.
 """
 
 from __future__ import annotations
 
-import functools
-from pathlib import Path
-from typing import Any
 from collections.abc import Sequence
 
-from lrf_jax._jax import is_jax_numpy, jax, jnp
-import msgpack
-import numpy as np
-
-from lrf_jax.extras import missing_extra
-
-Params = Any
-
-WEIGHTS_DIR = Path(__file__).resolve().parents[1] / "weights"  # lrf_jax/weights
-DEFAULT_WEIGHTS = WEIGHTS_DIR / "lrf_net.msgpack"
+from lrf_jax.frames.ablation import check_modes
+from lrf_jax.frames.weights import Params
 
 
 def init_params(seed: int = 0, num_attributes: int = 2,
@@ -55,141 +30,19 @@ def init_params(seed: int = 0, num_attributes: int = 2,
   return init_weight_net(seed, num_attributes, widths)
 
 
-def apply_weights(params: Params, attrs: Any, xp: Any = jnp, dtype: Any = None) -> Any:
-  """Weights (..., K) for attributes (..., K, A): the forward pass of `networks.WeightNet` (the
-  definition, in flax) without flax; `tests/test_shipped_weights.py` holds the two equal.
-
-  Encoder Dense+ReLU layers enc0..enc{m-1}, decoder Dense+ReLU layers dec0..dec{m-2} each
-  concatenated with the encoder output of the same width, and a linear Dense "out" to one
-  value; the widths are read from `params`. Every caller evaluates the network through this
-  function: the jitted frames and training (jax.numpy), the host kernels' weight table
-  (`lrf_net.weight_table(..., xp=np)`, numpy float32: no JAX program to trace and load in a
-  fresh process) and the tests' float64 reference (`tests/reference_numpy.py`).
-
-  Args:
-    params: WeightNet parameters, {"enc<i>", "dec<i>", "out"} each {"kernel", "bias"}.
-    attrs: (..., K, A) per-neighbor attributes (`lrf_net.attributes`: |pq|/r and cos(z, pq),
-      dimensionless).
-    xp: the array module, jax.numpy (traceable and differentiable) or numpy.
-    dtype: the float type the parameters and attributes are cast to first (None: as given);
-      numpy callers give np.float32 or np.float64.
-
-  Returns:
-    (..., K) weights (dimensionless, any sign), an `xp` array.
-  """
-  relu = jax.nn.relu if is_jax_numpy(xp) else (lambda h: np.maximum(h, 0.0))
-
-  def dense(layer, h):
-    return h @ xp.asarray(layer["kernel"], dtype) + xp.asarray(layer["bias"], dtype)
-
-  n_enc = _num_enc(params)
-  h = xp.asarray(attrs, dtype)
-  skips = []
-  for i in range(n_enc):
-    h = relu(dense(params[f"enc{i}"], h))
-    skips.append(h)
-  skips.pop()  # the bottleneck is not concatenated with itself
-  for i in range(n_enc - 1):
-    h = relu(dense(params[f"dec{i}"], h))
-    h = xp.concatenate([h, skips.pop()], axis=-1)
-  return dense(params["out"], h)[..., 0]
-
-
-def apply_weights_numpy(params: Params, attrs: np.ndarray) -> np.ndarray:
-  """`apply_weights` in numpy float32 (`xp=np, dtype=np.float32`) for host callers (no JAX
-  program to trace, lower and load): attrs (..., K, A) -> weights (..., K) float32. numpy's BLAS
-  runs on one thread here (`search.grid.serial_blas`): threaded BLAS beside numba's threads was
-  up to 25x slower on 2 cores."""
-  from lrf_jax.search.grid import serial_blas  # pylint: disable=import-outside-toplevel
-  with serial_blas():
-    return apply_weights(params, attrs, np, np.float32)
-
-
-def _num_enc(params: Params) -> int:
-  return sum(1 for name in params if name.startswith("enc"))
-
-
-def save_params(params: Params, path: str | Path) -> None:
-  """Write parameters as flax msgpack (a few KB)."""
-  try:
-    from flax import serialization  # only to write
-  except ImportError as e:
-    raise missing_extra(e.name, "train", "save_params (writing flax msgpack)") from e
-  Path(path).parent.mkdir(parents=True, exist_ok=True)
-  from lrf_jax.io import atomic  # pylint: disable=import-outside-toplevel
-  atomic.write_bytes(path, serialization.msgpack_serialize(jax.device_get(params)))
-
-
-def load_params(path: str | Path) -> Params:
-  """Read parameters written by `save_params`, as arrays on JAX's default device.
-
-  Raises:
-    FileNotFoundError: when `path` does not exist.
-    ValueError: when the file is not a parameter file of this network.
-  """
-  return jax.device_put(load_params_numpy(path))
-
-
-def load_params_numpy(path: str | Path) -> Params:
-  """`load_params` as numpy arrays (no JAX: what the host kernels read). Raises as it does."""
-  path = Path(path)
-  if not path.exists():
-    raise FileNotFoundError(f"{path}: no such parameter file")
-  try:
-    params = msgpack.unpackb(path.read_bytes(), ext_hook=_unpack_array, raw=False)
-  except Exception as e:  # msgpack raises several types on garbage
-    raise ValueError(f"{path}: not a flax msgpack parameter file ({e})") from e
-  weightnet = isinstance(params, dict) and "out" in params and _num_enc(params) > 0
-  variant = (isinstance(params, dict) and params
-             and set(params) <= {"weights", "x_reg", "z_reg"})  # ablation variants
-  if not (weightnet or variant):
-    raise ValueError(f"{path}: expected WeightNet parameters (enc*/dec*/out) or ablation "
-                     f"parameters (weights/x_reg/z_reg), got keys "
-                     f"{sorted(params) if isinstance(params, dict) else type(params)}")
+def init_variant_params(seed: int, z_mode: str, x_mode: str,
+                        widths: tuple[int, ...] = (16, 32, 64)) -> dict[str, Params]:
+  """Seeded parameters of one ablation variant (`lrf_jax.frames.ablation`)."""
+  check_modes(z_mode, x_mode)
+  params = {}
+  if x_mode in ("sum1", "max"):
+    params["weights"] = init_params(seed, 2, widths)
+  elif x_mode == "sum2":
+    params["weights"] = init_params(seed, 6, widths)
+  else:
+    from lrf_jax.learning.networks import init_regressor  # flax: only the "dr" variants need it
+    params["x_reg"] = init_regressor(seed + 1, 6)
+  if z_mode == "dr":
+    from lrf_jax.learning.networks import init_regressor
+    params["z_reg"] = init_regressor(seed + 2, 3)
   return params
-
-
-@functools.lru_cache(maxsize=8)
-def _default_params_numpy(name: str) -> Params:
-  path = WEIGHTS_DIR / f"{name}.msgpack"
-  if not path.exists():
-    shipped = sorted(p.stem for p in WEIGHTS_DIR.glob("*.msgpack"))
-    raise ValueError(f"default_params: no shipped weights named {name!r} (expected one of "
-                     f"{', '.join(shipped) or 'none: the package was installed without its weights'}"
-                     f", from {WEIGHTS_DIR}); init_params(seed) gives an untrained network")
-  return load_params_numpy(path)
-
-
-@functools.lru_cache(maxsize=8)
-def _default_params_cached(name: str) -> Params:
-  params = _default_params_numpy(name)
-  # Concrete arrays even when the first call happens inside a jit trace: the cache would
-  # otherwise keep (and later leak) that trace's tracers.
-  with jax.ensure_compile_time_eval():
-    return jax.device_put(params)
-
-
-def default_params_numpy(name: str = "lrf_net") -> Params:
-  """`default_params(name)` as numpy arrays, read once per process (no JAX: the host kernels'
-  form). Raises as `default_params` does."""
-  return _default_params_numpy(name)
-
-
-def default_params(name: str = "lrf_net") -> Params:
-  """The shipped weights `lrf_jax/weights/<name>.msgpack` ("lrf_net": the paper's model trained
-  with the default config; "lrf_net_plus" and "lrf_net_plus_points": see that method).
-
-  Raises:
-    ValueError: no weights of that name are shipped (the message lists those that are; an
-      untrained network is `init_params(seed)`, never given in their place).
-  """
-  return _default_params_cached(name)
-
-
-def _unpack_array(code: int, data: bytes) -> Any:
-  """flax.serialization's msgpack extension types: 1 an ndarray, 3 a numpy scalar."""
-  if code not in (1, 3):
-    raise ValueError(f"msgpack extension type {code} (expected 1, an array, or 3, a scalar)")
-  shape, dtype, buffer = msgpack.unpackb(data, raw=True)
-  arr = np.frombuffer(buffer, dtype=np.dtype(dtype.decode())).reshape(shape)
-  return arr if code == 1 else arr[()]

@@ -52,7 +52,7 @@ except ImportError as e:  # the [train] extra
   raise missing_extra(e.name, "train", "training (lrf_jax.learning.train_lib)") from e
 
 from lrf_jax.learning import data_sources
-from lrf_jax.evaluation import metrics as metrics_lib
+from lrf_jax.frames import metrics as metrics_lib
 from lrf_jax.learning.batches import Batch, BatchMaker, TrainingClouds, global_batch
 from lrf_jax.learning.checkpoints import (is_primary, nonfinite_leaves, restore_params, resume,
                                  save_checkpoint)
@@ -62,7 +62,7 @@ from lrf_jax.frames.lrf_net import MIN_Z_NEIGHBORS
 from lrf_jax.frames.lrf_net_plus import points_only_view
 from lrf_jax.io import atomic
 from lrf_jax.learning.losses import frames_with_view
-from lrf_jax.learning.model import save_params
+from lrf_jax.frames.weights import save_params
 from lrf_jax.search.neighborhoods import Patches, build_patches
 from lrf_jax.learning.train_step import TrainState, create_state, frames_fn, make_train_step
 
@@ -273,7 +273,7 @@ def _write_results(state: TrainState, mngr: ocp.CheckpointManager, workdir: Path
 
 
 def _save_params(params: Any, path: Path) -> None:
-  """`model.save_params` into a temporary file renamed to `path` (atomic)."""
+  """`weights.save_params` into a temporary file renamed to `path` (atomic)."""
   with atomic.atomic_path(path) as tmp:
     save_params(params, tmp)
 

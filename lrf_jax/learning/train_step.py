@@ -23,10 +23,10 @@ except ImportError as e:  # the [train] extra
 
 from lrf_jax.learning.batches import Batch
 from lrf_jax.learning.config import TrainConfig
-from lrf_jax.frames.ablation import init_variant_params, variant_frames
+from lrf_jax.frames.ablation import variant_frames
 from lrf_jax.frames.lrf_net import lrf_net_frames
 from lrf_jax.learning.losses import siamese_loss
-from lrf_jax.learning.model import init_params
+from lrf_jax.learning.model import init_params, init_variant_params
 
 
 class TrainState(train_state.TrainState):

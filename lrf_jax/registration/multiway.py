@@ -48,7 +48,7 @@ import numpy as np
 from lrf_jax.search import engine
 from lrf_jax.registration import pose_graph
 from lrf_jax.registration.icp_host import estimate_target_normals
-from lrf_jax.inputs import as_cloud
+from lrf_jax.geometry.cloud import as_cloud
 from lrf_jax.io.cloud import Cloud
 from lrf_jax.geometry.resolution import mesh_resolution
 

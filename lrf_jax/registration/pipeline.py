@@ -31,10 +31,10 @@ from lrf_jax.descriptors import DESCRIPTORS, _descriptors_checked, select_corres
 from lrf_jax.frames import METHODS
 from lrf_jax.geometry.keypoints import iss_keypoints
 from lrf_jax.geometry.normals import NORMAL_RADIUS_RATIO, estimate_normals
+from lrf_jax.geometry.cloud import CloudInput, as_cloud
 from lrf_jax.geometry.resolution import (mesh_resolution, pair_resolution, thinning_voxel,
                                          working_resolution)
 from lrf_jax.geometry.sampling import voxel_downsample
-from lrf_jax.inputs import CloudInput, as_cloud
 from lrf_jax.registration import graph, host, icp_host
 from lrf_jax.registration.errors import _check_transform, pose_errors
 from lrf_jax.registration.estimators import _centred, _finish, _triples, _uncentre
@@ -43,7 +43,7 @@ from lrf_jax.registration.evidence import (CHANCE_SHUFFLES, RIVAL_DEG, Evidence,
 from lrf_jax.registration.icp_host import icp
 from lrf_jax.search import engine
 from lrf_jax.search.grid import serial_blas
-from lrf_jax.search.neighborhoods import validate_radius, validate_seed, validate_viewpoint
+from lrf_jax.checks import validate_radius, validate_seed, validate_viewpoint
 
 # ------------------------------------------------------------------------------------------------
 # register: the user-facing pipeline

@@ -5,8 +5,7 @@
   balls.py          ball counts and moments, the patch kernel, ball lists, any-within
   nearest.py        k nearest neighbors, the ICP kernels' pairing step
   neighborhoods.py  `build_patches` -> `Patches` (offsets, mask, r/3 normal statistics), the
-                    cloud's `SearchIndex`, the inputs' validation
+                    cloud's `SearchIndex` (the arguments' checks: `lrf_jax.checks`)
   device.py         the same `Patches` from jitted voxel grids on the accelerator
   chunks.py         the one pad / run / slice loop over keypoint chunks
-  kernel_cache.py   numba's cache keys: a kernel's sources and the helpers it inlines
 """

@@ -35,7 +35,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from lrf_jax.search.neighborhoods import Patches, SearchIndex, _patches_checked, validate_scale
+from lrf_jax.checks import validate_scale
+from lrf_jax.search.neighborhoods import Patches, SearchIndex, build_patches
 
 _OFFS = np.stack(np.meshgrid(*[np.arange(-1, 2)] * 3, indexing="ij"), -1).reshape(-1, 3)
 
@@ -202,8 +203,8 @@ def build_patches_device(points: np.ndarray, keypoints: np.ndarray, radius: floa
   inexact = ~np.asarray(exact)
   if fallback and inexact.any():
     redo = np.flatnonzero(inexact)
-    host = _patches_checked(points, kp[redo], radius, k, seed=seed, z_ratio=z_ratio,
-                            index=index.host)
+    host = build_patches(points, kp[redo], radius, k, seed=seed, z_ratio=z_ratio,
+                         index=index.host, validate=False)
     patches = Patches(*[jnp.asarray(a).at[redo].set(jnp.asarray(h))
                         for a, h in zip(patches, host)])
   return patches, inexact

@@ -14,8 +14,9 @@ from lrf_jax.search.grid import _BLOCK, _PRUNE_MARGIN, Grid, _cell, _centers
 
 
 @nb.njit(inline="always")
-def _insert(bd, bi, k, d2, j):
-  """Insert (d2, j) into the ascending arrays bd, bi of length k (ties: smaller j first)."""
+def insert_sorted(bd, bi, k, d2, j):
+  """Insert (d2, j) into the ascending arrays bd, bi of length k (ties: smaller j first); shared
+  by the k-NN kernels here and the descriptor matching kernel."""
   if d2 > bd[k - 1] or (d2 == bd[k - 1] and j >= bi[k - 1]):
     return
   p = k - 1
@@ -43,7 +44,7 @@ def _knn_cells(pts, slot_index, starts, base, z0, z1, qx, qy, qz, max_d2, bd, bi
     dz = pts[2, j] - qz
     d2 = dx * dx + dy * dy + dz * dz
     if d2 <= max_d2:
-      _insert(bd, bi, k, d2, slot_index[j])
+      insert_sorted(bd, bi, k, d2, slot_index[j])
 
 
 @nb.njit(inline="always")

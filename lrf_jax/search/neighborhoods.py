@@ -24,6 +24,8 @@ from typing import TYPE_CHECKING, Any, NamedTuple
 
 import numpy as np
 
+from lrf_jax.checks import (validate_cloud, validate_keypoints, validate_radius,
+                            validate_scale)
 from lrf_jax.search import engine
 
 if TYPE_CHECKING:
@@ -41,12 +43,6 @@ _MIX2 = np.uint64(0x94D049BB133111EB)
 _GOLDEN = np.uint64(0x9E3779B97F4A7C15)
 # Grid cells per support radius (cell side r / 3).
 CELLS_PER_RADIUS = 3.0
-# The support radii the frames' arithmetic supports (cloud units), and how far from the origin,
-# in support radii, a cloud may reach (float64 offsets q - p keep ~4 significant digits more
-# than the float32 frames need up to there).
-MIN_SCALE = 1e-30
-MAX_SCALE = 1e30
-MAX_RADII_FROM_ORIGIN = 1e12
 
 
 class Patches(NamedTuple):
@@ -81,85 +77,6 @@ class Patches(NamedTuple):
     return self.offsets.shape[1]
 
 
-def validate_cloud(points: np.ndarray, name: str = "points") -> np.ndarray:
-  """Check that `points` is a non-empty (n, 3) array of finite floats and return it as float64.
-
-  Raises:
-    ValueError: naming what was wrong and what was expected.
-  """
-  try:
-    arr = np.asarray(points)
-  except (TypeError, ValueError):  # e.g. rows of different lengths
-    raise ValueError(f"{name}: expected a numeric (n, 3) array of floats, got "
-                     f"{type(points).__name__} {points!r:.80} (not an array)") from None
-  if arr.dtype.kind not in "fiu":
-    raise ValueError(f"{name}: expected a numeric (n, 3) array of floats, got dtype {arr.dtype}")
-  if arr.ndim != 2 or arr.shape[1] != 3:
-    raise ValueError(f"{name}: expected shape (n, 3), got {arr.shape}")
-  if arr.shape[0] == 0:
-    raise ValueError(f"{name}: the cloud is empty (shape {arr.shape}); expected at least one point")
-  arr = arr.astype(np.float64, copy=False)
-  bad = ~np.isfinite(arr).all(axis=1)
-  if bad.any():
-    first = int(np.flatnonzero(bad)[0])
-    raise ValueError(
-        f"{name}: {int(bad.sum())} point(s) have non-finite coordinates (first at row {first}: "
-        f"{arr[first].tolist()}); expected finite floats")
-  return arr
-
-
-def validate_keypoints(keypoints: np.ndarray, n_points: int, name: str = "keypoints") -> np.ndarray:
-  """Check that `keypoints` is a 1-D array of integer indices into a cloud of `n_points`."""
-  try:
-    kp = np.asarray(keypoints)
-  except (TypeError, ValueError):  # e.g. nested lists of different lengths
-    raise ValueError(f"{name}: expected a 1-D array of point indices, got "
-                     f"{type(keypoints).__name__} {keypoints!r:.80} (not an array)") from None
-  if kp.ndim != 1:
-    raise ValueError(f"{name}: expected a 1-D array of point indices, got shape {kp.shape}")
-  if kp.size and kp.dtype.kind not in "iu":
-    raise ValueError(f"{name}: expected integer point indices, got dtype {kp.dtype}")
-  # the range is checked in the input's own dtype: a uint64 above 2**63 must not wrap negative
-  if kp.size and (kp.min() < 0 or kp.max() >= n_points):
-    bad = kp[(kp < 0) | (kp >= n_points)][0]
-    raise ValueError(
-        f"{name}: index {int(bad)} is out of range; expected indices in [0, {n_points}) "
-        f"for a cloud of {n_points} points")
-  return kp.astype(np.int64)
-
-
-def validate_radius(radius: float, name: str = "radius") -> float:
-  """Check that the support radius is a positive finite number (not a string or bool)."""
-  if isinstance(radius, (str, bytes, bool, np.bool_)):
-    raise ValueError(f"{name}: expected a positive number, got {radius!r}")
-  try:
-    r = float(radius)
-  except (TypeError, ValueError):
-    raise ValueError(f"{name}: expected a positive number, got {radius!r}") from None
-  if not np.isfinite(r) or r <= 0:
-    raise ValueError(f"{name}: expected a positive finite number (cloud units), got {radius!r}")
-  if not MIN_SCALE <= r <= MAX_SCALE:
-    raise ValueError(f"{name}: {r:.6g} is outside the supported scale {MIN_SCALE:g} .. "
-                     f"{MAX_SCALE:g}; rescale the cloud (frames do not depend on its unit)")
-  return r
-
-
-def validate_scale(max_abs: float, radius: float, name: str = "points") -> None:
-  """Check that a cloud whose largest absolute coordinate is `max_abs` can be searched at
-  `radius`: the radius within `MIN_SCALE` .. `MAX_SCALE` and the cloud within
-  `MAX_RADII_FROM_ORIGIN` radii of the origin (beyond, offsets lose their precision and grid
-  cell indices overflow).
-
-  Raises:
-    ValueError: naming `name` and the scale.
-  """
-  validate_radius(radius)
-  if not max_abs <= MAX_RADII_FROM_ORIGIN * radius:
-    raise ValueError(f"{name}: coordinates reach {max_abs:.6g}, more than "
-                     f"{MAX_RADII_FROM_ORIGIN:g} support radii ({radius:.6g}) from the origin: "
-                     "outside the supported scale; centre the cloud or use a larger radius")
-
-
 def unit_scaled(points: np.ndarray, radius: float, viewpoint: np.ndarray | None = None
                 ) -> tuple[np.ndarray, float, np.ndarray | None]:
   """A cloud, its support radius and sensor position in units of the radius (radius 1).
@@ -184,69 +101,6 @@ def unit_scaled(points: np.ndarray, radius: float, viewpoint: np.ndarray | None 
   r = validate_radius(radius)
   vp = None if viewpoint is None else np.asarray(viewpoint, np.float64) / r
   return np.asarray(points, np.float64) / r, 1.0, vp
-
-
-def validate_faces(faces: object, n_points: int, name: str = "faces") -> np.ndarray:
-  """Check that `faces` is an (f, 3) integer array of indices into `n_points` vertices.
-
-  Returns:
-    The faces as int64.
-  """
-  try:
-    f = np.asarray(faces)
-  except (TypeError, ValueError):  # e.g. rows of different lengths
-    raise ValueError(f"{name}: expected an (f, 3) integer array of triangle vertex indices, got "
-                     f"{type(faces).__name__} {faces!r:.80} (not an array)") from None
-  if f.ndim != 2 or f.shape[1] != 3 or (f.size and f.dtype.kind not in "iu"):
-    raise ValueError(f"{name}: expected an (f, 3) integer array of triangle vertex indices, got "
-                     f"shape {f.shape} and dtype {f.dtype}")
-  f = f.astype(np.int64)
-  if f.size and (f.min() < 0 or f.max() >= n_points):
-    raise ValueError(f"{name}: indices must lie in [0, {n_points}), got [{f.min()}, {f.max()}]")
-  return f
-
-
-def validate_normals(normals: object, n_points: int, name: str = "normals") -> np.ndarray:
-  """Check that `normals` is an (n_points, 3) array of real numbers. NaN rows are allowed: they
-  mark missing normals, and the frames that need them come out invalid.
-
-  Returns:
-    The normals as an array (dtype unchanged).
-  """
-  try:
-    nrm = np.asarray(normals)
-  except (TypeError, ValueError):  # e.g. rows of different lengths
-    nrm = np.empty(())  # reported as shape ()
-  if nrm.shape != (n_points, 3):
-    raise ValueError(f"{name}: expected shape {(n_points, 3)} (one per point), got {nrm.shape}")
-  if nrm.dtype.kind not in "fiu":
-    raise ValueError(f"{name}: expected real numbers, got dtype {nrm.dtype}")
-  return nrm
-
-
-def validate_seed(seed: object, name: str = "seed") -> int:
-  """Check that a seed is a non-negative integer (numpy's and jax's generators need one)."""
-  if (isinstance(seed, (bool, np.bool_)) or not isinstance(seed, (int, np.integer))
-      or seed < 0):
-    raise ValueError(f"{name}: expected a non-negative integer, got {seed!r}")
-  return int(seed)
-
-
-def validate_viewpoint(viewpoint: object, name: str = "viewpoint") -> np.ndarray | None:
-  """None, or the sensor position as a finite (3,) float64 array.
-
-  Raises:
-    ValueError: naming `name`, when it is not a finite (3,) position.
-  """
-  if viewpoint is None:
-    return None
-  try:
-    vp = np.asarray(viewpoint, np.float64)
-  except (TypeError, ValueError):
-    raise ValueError(f"{name}: expected a finite (3,) sensor position, got {viewpoint!r}") from None
-  if vp.shape != (3,) or not np.all(np.isfinite(vp)):
-    raise ValueError(f"{name}: expected a finite (3,) sensor position, got {viewpoint!r}")
-  return vp
 
 
 def hash_priority(seed: int, point: np.ndarray) -> np.ndarray:
@@ -328,14 +182,6 @@ def _round_up(k: int) -> int:
     size *= 2
 
 
-def validate_choice(name: str, value: Any, choices: tuple[str, ...]) -> str:
-  """`value` if it is one of the strings `choices`, else a ValueError naming `name`."""
-  if not (isinstance(value, str) and value in choices):
-    listed = ", ".join(repr(c) for c in choices[:-1]) + f" or {choices[-1]!r}"
-    raise ValueError(f"{name}: expected {listed}, got {value!r}")
-  return value
-
-
 def validate_index(index: Any, points: np.ndarray) -> None:
   """Raise a ValueError unless `index` is a `SearchIndex` of exactly these points (the same
   array, or the same shape and values, `SearchIndex.matches`): an index of another cloud would
@@ -378,8 +224,11 @@ def build_patches(
     seed: seed of the subsample.
     z_ratio: the normal support radius as a fraction of r (1/3: TOLDI, LRF-Net).
     index: an optional prebuilt `SearchIndex(points, seed)` to reuse across calls.
-    validate: check the inputs (disable only for already validated arrays: the same as
-      `_patches_checked`, which the package's own callers call).
+    validate: check the inputs; False only for arguments the caller has checked already
+      (`compute_frames`, `compute_descriptors`, the training batches, the device search):
+      a finite (n, 3) cloud, (m,) integer indices into it, positive `radius` and `z_ratio`,
+      `k` a positive integer or None, `index` None or an index of `points`. The cloud is read
+      as float64 and the keypoints as int64 (no copy when they already are).
     max_k: with `k=None`, an upper bound on K: larger balls keep their `max_k` points of smallest
       priority (the same seeded subsample as an integer k). None = no bound.
     shells: (a, b) fractions of r: the patch holds only the neighbors within a * r or beyond
@@ -409,29 +258,6 @@ def build_patches(
       raise ValueError(f"k: expected a positive integer patch size or None, got {k!r}")
     if index is not None:
       validate_index(index, points)
-  return _patches_checked(points, keypoints, radius, k, seed=seed, z_ratio=z_ratio, index=index,
-                          max_k=max_k, shells=shells, into=into, stats_from=stats_from)
-
-
-def _patches_checked(
-    points: np.ndarray,
-    keypoints: np.ndarray,
-    radius: float,
-    k: int | None = 256,
-    *,
-    seed: int = 0,
-    z_ratio: float = 1.0 / 3.0,
-    index: SearchIndex | None = None,
-    max_k: int | None = None,
-    shells: tuple[float, float] | None = None,
-    into: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None,
-    stats_from: Patches | None = None,
-) -> Patches:
-  """`build_patches` without its checks (`build_patches(validate=False)`): the same arguments
-  (and defaults), already checked by the caller (`build_patches`, `compute_frames`,
-  `compute_descriptors`, ...): a finite (n, 3) cloud, (m,) integer indices into it, positive
-  `radius` and `z_ratio`, `k` a positive integer or None, `index` None or an index of `points`.
-  The cloud is read as float64 and the keypoints as int64 (no copy when they already are)."""
   points = np.asarray(points, np.float64)
   keypoints = np.asarray(keypoints, np.int64)
   if index is None or index.seed != seed or index.points.shape != points.shape:
@@ -469,3 +295,5 @@ def _patches_checked(
       z_mean=z_mean,
       z_count=z_count,
   )
+
+

@@ -35,7 +35,7 @@ from numba.core import config
 from numba.core import caching
 from numba.core.caching import UserProvidedCacheLocator
 
-PACKAGE_ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))  # .../lrf_jax
+PACKAGE_ROOT = os.path.dirname(os.path.abspath(__file__))  # .../lrf_jax
 
 
 def _cache_dir() -> str:

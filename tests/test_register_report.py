@@ -6,7 +6,7 @@ import pytest
 from lrf_jax import datasets, io
 from lrf_jax.cli.register import build_parser, main
 from lrf_jax.registration import Registration
-from lrf_jax.registration.evidence import Evidence, verdict
+from lrf_jax.registration.evidence import Evidence
 
 
 def _registration(**kw):
@@ -40,11 +40,12 @@ def test_summary_says_verdict_reason_overlap_inliers_time_and_errors_when_known(
   assert _registration(success=False).summary().startswith("verdict: NOT SURE")
 
 
-def test_verdict_names_the_overlap_contrast_in_words():
-  ok, reason = verdict(Evidence(7, 7, 0, 0.42, 2.1, "lrf"))
-  assert ok and "99th percentile" in reason and "contrast" not in reason
-  ok, reason = verdict(Evidence(7, 7, 0, 0.42, 1.03, "lrf"))
-  assert not ok and "99th percentile" in reason and "contrast" not in reason
+def test_verdict_says_what_decided_in_words_and_as_a_code():
+  from lrf_jax.registration.evidence import decide
+  d = decide(Evidence(7, 7, 0, 0.42, 2.1, "lrf"))
+  assert not d.success and d.code == "chance" and "contrast" not in d.reason
+  d = decide(Evidence(40, 3, 2, 0.42, 1.03, "lrf"))
+  assert d.success and d.code == "claimed" and d.reason.startswith("40 consistent")
 
 
 @pytest.fixture(scope="module")

@@ -36,8 +36,8 @@ from lrf_jax.inputs import CloudInput, as_cloud
 from lrf_jax.registration import graph, host, icp_host
 from lrf_jax.registration.errors import _check_transform, pose_errors
 from lrf_jax.registration.estimators import _centred, _finish, _triples, _uncentre
-from lrf_jax.registration.evidence import (CHANCE_SHUFFLES, RIVAL_DEG, Evidence, overlap_contrast,
-                                           verdict)
+from lrf_jax.registration.evidence import (CHANCE_SHUFFLES, RIVAL_DEG, Evidence, Verdict,
+                                           constraint_spectrum, decide, overlap_contrast)
 from lrf_jax.registration.icp_host import icp
 from lrf_jax.search import engine
 from lrf_jax.search.grid import serial_blas
@@ -80,6 +80,12 @@ class Registration:
       the target under `transform` (the same number as `fitness`).
     rival_inliers: the most inliers outside the winner's of a hypothesis distinct from the winner
     (`_rival_inliers`).
+    reason_code: what decided `success`, machine-readable (a key of
+      `lrf_jax.registration.evidence.REASON_CODES`): "claimed" (the only code of a success),
+      "low_overlap", "degenerate", "chance", "rival", "no_hypothesis", "init_only".
+    evidence_inliers: the winner's inliers among the evidence correspondences (the default
+      matching's, `_evidence_matches`), the count the verdict compares with `chance_inliers`
+      and `rival_inliers`; `n_inliers` when no option changed the matching.
   """
 
   transform: np.ndarray
@@ -99,6 +105,8 @@ class Registration:
   reason: str = ""
   overlap: float = 0.0
   rival_inliers: int = 0
+  reason_code: str = ""
+  evidence_inliers: int = 0
 
   def summary(self, gt: Any = None) -> str:
     """A few lines a person reads: the verdict and its reason, the estimated overlap and RMSE,
@@ -281,6 +289,9 @@ def register(source: Any, target: Any, *, mr: float | None = None, radius_mr: fl
     descs = [_side_descriptors(side, f, setup, descriptor) for side, f in zip(setup.sides, frames)]
   with timer("matching"):
     qi, ri = _match(frames, descs, estimator, n_correspondences, radius_mr, mutual, ratio)
+    # The evidence: the default matching's correspondences, whatever chose the hypotheses' own.
+    own = estimator == "graph" and not mutual and ratio is None
+    eqi, eri = (qi, ri) if own else _evidence_matches(frames, descs, n_correspondences)
   (kp_s, (f_s, v_s)), (kp_t, (f_t, v_t)) = zip((s.keypoints for s in setup.sides), frames)
   src_pts, dst_pts = setup.sides[0].points, setup.sides[1].points
   p, q = src_pts[kp_s[qi]], dst_pts[kp_t[ri]]
@@ -289,9 +300,17 @@ def register(source: Any, target: Any, *, mr: float | None = None, radius_mr: fl
     src, dst, cs, cd = _centred(p, q)
     rs, ts = _hypotheses(src, dst, f_s[qi], f_t[ri], estimator, iterations, setup.radius, seed,
                          float(threshold))
+    no_hypothesis = len(rs) == 0
+    if no_hypothesis:  # no two correspondences agree: the one-correspondence poses, not sure
+      rs, ts = host.lrf_hypotheses(src, f_s[qi], dst, f_t[ri], float(setup.radius))
     counts = host.count_inliers(rs, ts, src, dst, threshold)
-    chance = _chance_inliers(src, dst, f_s[qi], f_t[ri], estimator, iterations, setup.radius,
-                             seed, float(threshold))
+    if own:
+      ev = _EvidenceSet(src, dst, cs, cd, f_s[qi], f_t[ri], rs, ts)
+      chance = _chance_inliers(src, dst, f_s[qi], f_t[ri], "graph", iterations, setup.radius,
+                               seed, float(threshold))
+    else:
+      ev, chance = _evidence_set(src_pts[kp_s[eqi]], dst_pts[kp_t[eri]], f_s[eqi], f_t[eri],
+                                 iterations, setup.radius, seed, float(threshold))
   with timer("verification"), serial_blas():
     overlap_distance = icp_mr * setup.mr
     target_grid = engine.Grid(dst_pts, overlap_distance)
@@ -299,7 +318,23 @@ def register(source: Any, target: Any, *, mr: float | None = None, radius_mr: fl
                          0 if estimator == "graph" else verify, setup.rng)
     r, t, mask = host.select_and_refine(rs[best], ts[best], src, dst, threshold)
     res = _finish(*_uncentre(r, t, cs, cd), mask, best, counts[best])
-    rival = _rival_inliers(rs, ts, src, dst, threshold, r, t, mask, setup.radius)
+    # the winner in the evidence's centred coordinates, its inliers there, and its rivals: the
+    # evidence's graph hypotheses, those of the correspondences outside the winner's inliers
+    # (`_rest_hypotheses`), and the estimator's own
+    r_w, t_w = _uncentre(r, t, cs, cd)
+    t_e = t_w - ev.cd + r_w @ ev.cs
+    ev_mask = mask if own else host.inlier_mask(r_w, t_e, ev.src, ev.dst, threshold)
+    pool_r, pool_t = [ev.rs], [ev.ts]
+    if not own:
+      pool_r.append(np.asarray(rs, np.float64))
+      pool_t.append(np.asarray(ts, np.float64) + (cd - ev.cd)
+                    - np.einsum("hij,j->hi", np.asarray(rs, np.float64), cs - ev.cs))
+    rest_r, rest_t = _rest_hypotheses(ev, ev_mask, iterations, setup.radius, seed,
+                                      float(threshold))
+    pool_r.append(rest_r)
+    pool_t.append(rest_t)
+    rival = _rival_inliers(np.concatenate(pool_r), np.concatenate(pool_t), ev.src, ev.dst,
+                           threshold, r_w, t_e, ev_mask, setup.radius)
   with timer("icp"):
     icp_src = src_pts
     if len(src_pts) > ICP_POINTS:
@@ -307,19 +342,27 @@ def register(source: Any, target: Any, *, mr: float | None = None, radius_mr: fl
     final, fitness, rmse = _refine(icp_src, dst_pts, res.transform, overlap_distance,
                                    icp_fine, setup.mr, icp_iterations, target_grid, icp_mode,
                                    pool=src_pts, rng=setup.rng)
+  with timer("verification"), serial_blas():
+    degeneracy, free = _overlap_constraints(icp_src, dst_pts, target_grid, final,
+                                            overlap_distance)
   n_corr = len(qi)
   contrast = overlap_contrast(fits)
-  evidence = Evidence(n_inliers=res.n_inliers, chance_inliers=chance, rival_inliers=rival,
-                      fitness=fitness, contrast=contrast, estimator=estimator)
-  success, reason = verdict(evidence)
+  evidence = Evidence(n_inliers=int(np.sum(ev_mask)), chance_inliers=chance,
+                      rival_inliers=rival, fitness=fitness, contrast=contrast,
+                      estimator=estimator, degeneracy=degeneracy, free_direction=free)
+  decision = decide(evidence)
+  if no_hypothesis:
+    decision = Verdict(False, f"not sure: no two of the {len(qi)} correspondences agree on a "
+                              "pose", "no_hypothesis")
   return Registration(transform=final, coarse_transform=res.transform, inliers=res.inliers,
                       n_inliers=res.n_inliers,
                       correspondences=np.stack([kp_s[qi], kp_t[ri]], axis=1).astype(np.int64),
                       fitness=fitness, rmse=rmse, mr=float(setup.mr), seconds=timer.total(),
-                      timings=dict(timer.seconds), success=success,
+                      timings=dict(timer.seconds), success=decision.success,
                       inlier_ratio=res.n_inliers / max(n_corr, 1), chance_inliers=chance,
-                      overlap_contrast=contrast, reason=reason, overlap=fitness,
-                      rival_inliers=rival)
+                      overlap_contrast=contrast, reason=decision.reason, overlap=fitness,
+                      rival_inliers=rival, reason_code=decision.code,
+                      evidence_inliers=evidence.n_inliers)
 
 
 ESTIMATORS = ("graph", "lrf", "3point")
@@ -472,7 +515,7 @@ def _refine_only(source, target, init, *, mr, icp_iterations, icp_mr, seed, time
                       timings=dict(timer.seconds), success=False,
                       reason=("not verified: refined from init only (ICP keeps the nearest "
                               f"optimum); {fitness:.0%} of the source lies on the target"),
-                      overlap=fitness)
+                      overlap=fitness, reason_code="init_only")
 
 # Source points ICP pairs per iteration (a seeded subset of larger clouds; in the second pass,
 # of the part within the overlap distance, `overlap_points`); fitness and rmse are measured on
@@ -480,6 +523,83 @@ def _refine_only(source, target, init, *, mr, icp_iterations, icp_mr, seed, time
 ICP_POINTS = 5000
 
 
+
+
+class _EvidenceSet(NamedTuple):
+  """The correspondences the verdict counts on (centred float32, as `_centred` gives them) and
+  the compatibility graph's hypotheses on them (centred coordinates)."""
+
+  src: np.ndarray
+  dst: np.ndarray
+  cs: np.ndarray
+  cd: np.ndarray
+  f_src: np.ndarray
+  f_dst: np.ndarray
+  rs: np.ndarray
+  ts: np.ndarray
+
+
+def _evidence_matches(frames, descs, n_correspondences: int) -> tuple[np.ndarray, np.ndarray]:
+  """The default matching (`_match` for estimator "graph", no mutual or ratio test): the
+  correspondences the verdict counts on whatever option chose the hypotheses'; none when there
+  is none with two valid frames."""
+  try:
+    return _match(frames, descs, "graph", n_correspondences, 0.0)
+  except ValueError:
+    return np.zeros(0, np.int64), np.zeros(0, np.int64)
+
+
+def _evidence_set(p, q, f_p, f_q, iterations, radius, seed, threshold
+                  ) -> tuple[_EvidenceSet, int]:
+  """The evidence of an option's winner: the default matching's correspondences (p, q world
+  points with their frames), the compatibility graph's hypotheses on them and its chance level
+  (`_chance_inliers`), as the default computes them."""
+  if len(p) == 0:
+    z = np.zeros((0, 3))
+    e3 = np.zeros((0, 3, 3), np.float32)
+    return _EvidenceSet(z.astype(np.float32), z.astype(np.float32), np.zeros(3), np.zeros(3),
+                        e3, e3, np.zeros((0, 3, 3)), z), 0
+  src, dst, cs, cd = _centred(p, q)
+  rs, ts = _hypotheses(src, dst, f_p, f_q, "graph", iterations, radius, seed, threshold)
+  chance = _chance_inliers(src, dst, f_p, f_q, "graph", iterations, radius, seed, threshold)
+  return _EvidenceSet(src, dst, cs, cd, f_p, f_q, np.asarray(rs, np.float64),
+                      np.asarray(ts, np.float64)), chance
+
+
+def _rest_hypotheses(ev: _EvidenceSet, winner_mask, iterations, radius, seed, threshold
+                     ) -> tuple[np.ndarray, np.ndarray]:
+  """The compatibility graph's hypotheses on the evidence correspondences that are NOT the
+  winner's inliers: the best other explanation of the rest. Where one source region is matched
+  into two places (two identical objects side by side, a repeated structure) the winner's seeds
+  suppress the second place's (seeds are spread over source points), and its correspondences
+  are a minority of the spectral score; without the winner's they seed their own pose, which the
+  rival count then sees. Centred coordinates, (H, 3, 3) and (H, 3)."""
+  rest = ~np.asarray(winner_mask, bool)
+  if rest.sum() < 2:
+    return np.zeros((0, 3, 3)), np.zeros((0, 3))
+  return _hypotheses(ev.src[rest], ev.dst[rest], ev.f_src[rest], ev.f_dst[rest], "graph",
+                     iterations, radius, seed, threshold)
+
+
+def _overlap_constraints(source, target, grid, transform, distance) -> tuple[float, str]:
+  """`constraint_spectrum` of the overlap under `transform`: the `source` points within
+  `distance` of the target, with the target's PCA normals at their nearest points (radius as
+  `icp_host.estimate_target_normals`, computed at those points only)."""
+  moved = np.asarray(source, np.float64) @ transform[:3, :3].T + transform[:3, 3]
+  d, idx = engine.knn(grid, moved, 1, distance)
+  ok = np.isfinite(d[:, 0])
+  if ok.sum() < 6:
+    return 1.0, ""
+  near = np.asarray(target, np.float64)[np.unique(idx[ok, 0])]
+  gaps = engine.knn(grid, near, 2)[0][:, 1]
+  spacing = float(np.mean(gaps[np.isfinite(gaps)])) if np.isfinite(gaps).any() else 0.0
+  radius = icp_host.NORMAL_RADIUS_RATIO * float(distance)
+  if spacing > 0:
+    radius = min(radius, icp_host.NORMAL_RADIUS_SPACING * spacing)
+  count, _, cov = engine.ball_stats(grid, near, radius)
+  _, vec = np.linalg.eigh(cov)
+  normals = np.where((count >= 3)[:, None], vec[:, :, 0], np.nan)
+  return constraint_spectrum(near, normals)
 
 
 def _rival_inliers(rs, ts, src, dst, threshold, r, t, winner_mask, radius) -> int:

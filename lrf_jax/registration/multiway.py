@@ -78,6 +78,8 @@ class MultiwayEdge:
       when the pair could not be registered).
     verdict: "success", "not sure" (`Registration.success` False) or "error" (no estimate).
     reason: the pairwise verdict's reason, or the error message.
+    reason_code: the pairwise verdict's `Registration.reason_code` ("claimed", "rival", ...;
+      "error" when the pair could not be registered; "" when `pairwise` gives none).
     n_inliers: coarse inliers of the pairwise estimate.
     overlap: its estimated overlap (fraction of scan i on scan j after ICP).
     rmse: its ICP RMS distance, cloud units.
@@ -96,6 +98,7 @@ class MultiwayEdge:
   rmse: float
   residual_mr: float
   accepted: bool
+  reason_code: str = ""
 
 
 @dataclasses.dataclass(frozen=True)
@@ -275,7 +278,7 @@ def _pairwise(clouds, pairs, *, mr, seed, viewpoints, pairwise, icp_mr, progress
                 target_viewpoint=viewpoints[j], **register_kw)
     except ValueError as e:
       edges.append(MultiwayEdge(i, j, np.full((4, 4), np.nan), "error", str(e), 0, 0.0,
-                                float("inf"), float("inf"), False))
+                                float("inf"), float("inf"), False, "error"))
       points.append(np.zeros((0, 3)))
       continue
     if j not in grids:
@@ -284,7 +287,8 @@ def _pairwise(clouds, pairs, *, mr, seed, viewpoints, pairwise, icp_mr, progress
     points.append(_overlap_points(clouds[i].points, grids[j], t, icp_mr * mr, rng))
     edges.append(MultiwayEdge(i, j, t, "success" if reg.success else "not sure",
                               str(reg.reason), int(reg.n_inliers), float(reg.overlap),
-                              float(reg.rmse), float("inf"), False))
+                              float(reg.rmse), float("inf"), False,
+                              str(getattr(reg, "reason_code", ""))))
   return edges, points
 
 
@@ -501,18 +505,20 @@ def merged_cloud(clouds: Sequence[np.ndarray], result: MultiwayResult, *,
   return mean, np.argmax(votes.reshape(len(counts), n_scans), axis=1).astype(np.int64)
 
 
-EDGE_COLUMNS = ("source", "target", "verdict", "inliers", "overlap", "residual_mr", "graph",
-                "reason")
+EDGE_COLUMNS = ("source", "target", "verdict", "reason_code", "inliers", "overlap", "residual_mr",
+                "graph", "reason")
 
 
 def edges_table(result: MultiwayResult) -> str:
   """The edges as tab-separated text, a header line first (`EDGE_COLUMNS`): the pair (source
-  moved onto target), the pairwise verdict, inliers, overlap, the residual under the final
+  moved onto target), the pairwise verdict and its `reason_code` ("-" when none), inliers,
+  overlap, the residual under the final
   poses in mr ("-" when a scan is not in the model) and "accepted" or "rejected"."""
   lines = ["\t".join(EDGE_COLUMNS)]
   for e in result.edges:
     res = f"{e.residual_mr:.3f}" if np.isfinite(e.residual_mr) else "-"
-    lines.append("\t".join([result.names[e.i], result.names[e.j], e.verdict, str(e.n_inliers),
+    lines.append("\t".join([result.names[e.i], result.names[e.j], e.verdict,
+                            e.reason_code or "-", str(e.n_inliers),
                             f"{e.overlap:.3f}", res, "accepted" if e.accepted else "rejected",
                             " ".join(e.reason.split())]))
   return "\n".join(lines) + "\n"

@@ -86,6 +86,9 @@ class Registration:
     evidence_inliers: the winner's inliers among the evidence correspondences (the default
       matching's, `_evidence_matches`), the count the verdict compares with `chance_inliers`
       and `rival_inliers`; `n_inliers` when no option changed the matching.
+    degeneracy: how well the overlap pins the pose down (`evidence.constraint_spectrum`: the
+      weakest direction of the point-to-plane constraints over the strongest; below
+      `evidence.DEGENERATE_RATIO` the verdict is "degenerate").
   """
 
   transform: np.ndarray
@@ -107,6 +110,7 @@ class Registration:
   rival_inliers: int = 0
   reason_code: str = ""
   evidence_inliers: int = 0
+  degeneracy: float = 1.0
 
   def summary(self, gt: Any = None) -> str:
     """A few lines a person reads: the verdict and its reason, the estimated overlap and RMSE,
@@ -212,9 +216,16 @@ def register(source: Any, target: Any, *, mr: float | None = None, radius_mr: fl
      seeded source points; with `icp_fine` (default) a second pass at an adaptive gate
      (`fine_distance`: 1.5 x the median residual, 1 mr to icp_mr mr) on up to `ICP_POINTS`
      source points drawn among those within icp_mr mr of the target (`overlap_points`);
-  6. the verdict (`verdict`): "graph" claims success when the winner's inliers are at least
-     `VERDICT_GRAPH_FACTOR` times (+ `VERDICT_GRAPH_MARGIN`) both what chance alignment reaches
-     on the correspondences shuffled and what the best distinct pose explains outside them.
+  6. the verdict (`evidence.decide`), one rule for every estimator and option: it claims
+     success when the winner's inliers are at least `VERDICT_GRAPH_FACTOR` times (+
+     `VERDICT_GRAPH_MARGIN`) both what chance alignment reaches on the correspondences
+     shuffled and what the best distinct pose explains outside them, ICP pairs enough of the
+     source and the overlap leaves no motion free (`evidence.constraint_spectrum`). Whatever
+     chose the hypotheses (estimator, ratio, mutual), the evidence is counted on the default
+     matching's correspondences with the compatibility graph's hypotheses (plus the
+     estimator's own and the graph's on the correspondences outside the winner's inliers, as
+     rivals), so no option claims what the default's evidence would not.
+     `Registration.reason_code` says which test decided.
 
   With `init` (a (4, 4) rigid transform) steps 1-4 are skipped: ICP refines `init`, as Open3D's
   `registration_icp` does, and `success` is False (nothing checks `init`; `reason` says so).
@@ -329,12 +340,13 @@ def register(source: Any, target: Any, *, mr: float | None = None, radius_mr: fl
       pool_r.append(np.asarray(rs, np.float64))
       pool_t.append(np.asarray(ts, np.float64) + (cd - ev.cd)
                     - np.einsum("hij,j->hi", np.asarray(rs, np.float64), cs - ev.cs))
-    rest_r, rest_t = _rest_hypotheses(ev, ev_mask, iterations, setup.radius, seed,
-                                      float(threshold))
-    pool_r.append(rest_r)
-    pool_t.append(rest_t)
     rival = _rival_inliers(np.concatenate(pool_r), np.concatenate(pool_t), ev.src, ev.dst,
                            threshold, r_w, t_e, ev_mask, setup.radius)
+    near = host.inlier_mask(r_w, t_e, ev.src, ev.dst, REST_FACTOR * threshold)
+    rest_r, rest_t = _rest_hypotheses(ev, near, iterations, setup.radius, seed,
+                                      float(threshold))
+    rival = _rest_rival(rest_r, rest_t, ev, threshold, r_w, t_e, near, setup.radius, rival,
+                        src_pts, target_grid, overlap_distance, seed)
   with timer("icp"):
     icp_src = src_pts
     if len(src_pts) > ICP_POINTS:
@@ -362,7 +374,7 @@ def register(source: Any, target: Any, *, mr: float | None = None, radius_mr: fl
                       inlier_ratio=res.n_inliers / max(n_corr, 1), chance_inliers=chance,
                       overlap_contrast=contrast, reason=decision.reason, overlap=fitness,
                       rival_inliers=rival, reason_code=decision.code,
-                      evidence_inliers=evidence.n_inliers)
+                      evidence_inliers=evidence.n_inliers, degeneracy=degeneracy)
 
 
 ESTIMATORS = ("graph", "lrf", "3point")
@@ -568,8 +580,10 @@ def _evidence_set(p, q, f_p, f_q, iterations, radius, seed, threshold
 
 def _rest_hypotheses(ev: _EvidenceSet, winner_mask, iterations, radius, seed, threshold
                      ) -> tuple[np.ndarray, np.ndarray]:
-  """The compatibility graph's hypotheses on the evidence correspondences that are NOT the
-  winner's inliers: the best other explanation of the rest. Where one source region is matched
+  """The compatibility graph's hypotheses on the evidence correspondences outside `winner_mask`
+  (`register` passes the winner's inliers at `REST_FACTOR` times the inlier distance: the
+  correspondences just beyond it are the winner's too, and a pose turned about them would count
+  them as a rival): the best other explanation of the rest. Where one source region is matched
   into two places (two identical objects side by side, a repeated structure) the winner's seeds
   suppress the second place's (seeds are spread over source points), and its correspondences
   are a minority of the spectral score; without the winner's they seed their own pose, which the
@@ -579,6 +593,37 @@ def _rest_hypotheses(ev: _EvidenceSet, winner_mask, iterations, radius, seed, th
     return np.zeros((0, 3, 3)), np.zeros((0, 3))
   return _hypotheses(ev.src[rest], ev.dst[rest], ev.f_src[rest], ev.f_dst[rest], "graph",
                      iterations, radius, seed, threshold)
+
+
+def _rest_rival(rs, ts, ev: _EvidenceSet, threshold, r, t, near, radius, rival, src_pts,
+                target_grid, distance, seed) -> int:
+  """`rival`, or more: the most correspondences outside `near` (the winner's within
+  `REST_FACTOR` x the inlier distance) that a hypothesis of `_rest_hypotheses` (rs, ts) distinct
+  from the winner (r, t) explains, counted only when that hypothesis also puts the source onto
+  the target: an overlap (`overlap_scores`, 1000 seeded source points) of at least
+  `REST_OVERLAP` x the winner's. A second copy of the object overlaps as well as the first; a
+  pose that only lines up some floor or wall matches of a room does not. (Evidence coordinates,
+  centred.)"""
+  rs = np.asarray(rs, np.float64)
+  ts = np.asarray(ts, np.float64)
+  if len(rs) == 0:
+    return rival
+  cos = (np.einsum("hij,ij->h", rs, r) - 1.0) / 2.0
+  far = (cos < np.cos(np.radians(RIVAL_DEG))) | (np.linalg.norm(ts - t, axis=1) > radius)
+  masks = host.inlier_masks(rs[far], ts[far], ev.src, ev.dst, threshold)
+  counts = np.sum(masks & ~np.asarray(near, bool), axis=1)
+  more = counts > rival
+  if not more.any():
+    return rival
+  cand_r, counts = rs[far][more], counts[more]
+  cand_t = ts[far][more] + ev.cd - np.einsum("hij,j->hi", cand_r, ev.cs)
+  rng = np.random.default_rng([seed, 11])  # its own stream: ICP's draws stay as they were
+  sub = src_pts[np.sort(rng.choice(len(src_pts), min(1000, len(src_pts)), replace=False))]
+  fits = overlap_scores(np.concatenate([r[None], cand_r]),
+                        np.concatenate([(t + ev.cd - r @ ev.cs)[None], cand_t]), sub,
+                        target_grid, distance)
+  ok = fits[1:] >= REST_OVERLAP * fits[0]
+  return max(rival, int(counts[ok].max())) if ok.any() else rival
 
 
 def _overlap_constraints(source, target, grid, transform, distance) -> tuple[float, str]:
@@ -830,6 +875,13 @@ def _hypotheses(src, dst, f_src, f_dst, estimator: str, iterations: int, radius:
   return np.concatenate([gr, rs[seeds]]), np.concatenate([gt, ts[seeds]])
 
 
+# The rivals of the correspondences outside the winner's (`_rest_hypotheses`): those within
+# REST_FACTOR x the inlier distance of the winner belong to it and are left out, and are not
+# counted for these rivals.
+REST_FACTOR = 2.0
+# ... and such a rival counts only when its overlap is at least REST_OVERLAP x the winner's
+# (`_rest_rival`).
+REST_OVERLAP = 0.5
 # estimator="graph" (`graph.graph_hypotheses`): the LRF rotation agreement bound, the
 # seeds, the consensus set of each and the seeds' suppression radius in support radii.
 GRAPH_ANGLE_DEG = 45.0

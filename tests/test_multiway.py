@@ -365,3 +365,30 @@ def test_a_scan_joined_by_not_sure_edges_stays_when_confirmed_and_says_so(capsys
   import sys
   _print_result(res, sys.stdout)
   assert "placed only through not-sure edges" in capsys.readouterr().err
+
+
+def test_cli_writes_poses_only_for_the_scans_in_the_model(tmp_path, capsys, monkeypatch):
+  """`lrf-register SCANS... --out-dir D --seed S --no-figures` writes `D/<stem>.txt` for the
+  scans placed in the model only: the foreign scan that two agreeing "not sure" edges nominate
+  gets no pose file, the command exits 3 and says so."""
+  import lrf_jax.registration as registration
+  from lrf_jax import io
+  from lrf_jax.cli.register import main
+  clouds, poses, mr = _views(4)
+  wrong = poses.copy()
+  wrong[3] = _wrong(pose_graph.PoseEdge(3, 0, poses[3], np.zeros((1, 3)))).transform
+  monkeypatch.setattr(registration, "register",
+                      _weak_run(clouds, wrong, {(0, 3), (1, 3)}, foreign=3,
+                                confirm_success=False))
+  paths = []
+  for k, name in enumerate("abcx"):
+    paths.append(tmp_path / f"{name}.ply")
+    io.write_ply(paths[-1], clouds[k], dtype="float64")
+  out = tmp_path / "model"
+  rc = main([*map(str, paths), "--out-dir", str(out), "--seed", "3", "--quiet",
+             "--no-figures", "--mr", str(mr), "--no-refine"])
+  captured = capsys.readouterr()
+  assert rc == 3 and "left out (not merged, no pose written): x" in captured.err
+  assert sorted(p.name for p in out.glob("*.txt")) == ["a.txt", "b.txt", "c.txt"]
+  head = (out / "edges.tsv").read_text().splitlines()[0].split("\t")
+  assert head[:4] == ["source", "target", "verdict", "reason_code"] and "placement" in head

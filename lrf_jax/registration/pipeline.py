@@ -616,7 +616,10 @@ def _rest_rival(rs, ts, ev: _EvidenceSet, threshold, r, t, near, radius, rival, 
   if not more.any():
     return rival
   cand_r, counts = rs[far][more], counts[more]
-  cand_t = ts[far][more] + ev.cd - np.einsum("hij,j->hi", cand_r, ev.cs)
+  top = np.argsort(-counts, kind="stable")[:REST_CANDIDATES]  # the best few decide
+  cand_r, counts = cand_r[top], counts[top]
+  cand_t_c = ts[far][more][top]
+  cand_t = cand_t_c + ev.cd - np.einsum("hij,j->hi", cand_r, ev.cs)
   rng = np.random.default_rng([seed, 11])  # its own stream: ICP's draws stay as they were
   sub = src_pts[np.sort(rng.choice(len(src_pts), min(1000, len(src_pts)), replace=False))]
   fits = overlap_scores(np.concatenate([r[None], cand_r]),
@@ -630,7 +633,9 @@ def _overlap_constraints(source, target, grid, transform, distance) -> tuple[flo
   """`constraint_spectrum` of the overlap under `transform`: the `source` points within
   `distance` of the target, with the target's PCA normals at their nearest points (radius as
   `icp_host.estimate_target_normals`, computed at those points only)."""
-  moved = np.asarray(source, np.float64) @ transform[:3, :3].T + transform[:3, 3]
+  source = np.asarray(source, np.float64)
+  source = source[::max(1, -(-len(source) // CONSTRAINT_POINTS))]  # an even, deterministic subset
+  moved = source @ transform[:3, :3].T + transform[:3, 3]
   d, idx = engine.knn(grid, moved, 1, distance)
   ok = np.isfinite(d[:, 0])
   if ok.sum() < 6:
@@ -882,6 +887,10 @@ REST_FACTOR = 2.0
 # ... and such a rival counts only when its overlap is at least REST_OVERLAP x the winner's
 # (`_rest_rival`).
 REST_OVERLAP = 0.5
+# ... of the REST_CANDIDATES such rivals with the most correspondences.
+REST_CANDIDATES = 16
+# Points of the overlap the degeneracy test (`_overlap_constraints`) reads at most.
+CONSTRAINT_POINTS = 2000
 # estimator="graph" (`graph.graph_hypotheses`): the LRF rotation agreement bound, the
 # seeds, the consensus set of each and the seeds' suppression radius in support radii.
 GRAPH_ANGLE_DEG = 45.0

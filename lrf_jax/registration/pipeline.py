@@ -346,7 +346,7 @@ def register(source: Any, target: Any, *, mr: float | None = None, radius_mr: fl
     rest_r, rest_t = _rest_hypotheses(ev, near, iterations, setup.radius, seed,
                                       float(threshold))
     rival = _rest_rival(rest_r, rest_t, ev, threshold, r_w, t_e, near, setup.radius, rival,
-                        src_pts, target_grid, overlap_distance, seed)
+                        src_pts, target_grid, overlap_distance, seed, int(np.sum(ev_mask)))
   with timer("icp"):
     icp_src = src_pts
     if len(src_pts) > ICP_POINTS:
@@ -596,14 +596,16 @@ def _rest_hypotheses(ev: _EvidenceSet, winner_mask, iterations, radius, seed, th
 
 
 def _rest_rival(rs, ts, ev: _EvidenceSet, threshold, r, t, near, radius, rival, src_pts,
-                target_grid, distance, seed) -> int:
+                target_grid, distance, seed, n_winner) -> int:
   """`rival`, or more: the most correspondences outside `near` (the winner's within
   `REST_FACTOR` x the inlier distance) that a hypothesis of `_rest_hypotheses` (rs, ts) distinct
-  from the winner (r, t) explains, counted only when that hypothesis also puts the source onto
-  the target: an overlap (`overlap_scores`, 1000 seeded source points) of at least
-  `REST_OVERLAP` x the winner's. A second copy of the object overlaps as well as the first; a
-  pose that only lines up some floor or wall matches of a room does not. (Evidence coordinates,
-  centred.)"""
+  from the winner (r, t) explains, counted only for a split of the correspondences: at least
+  `REST_SHARE` x the winner's `n_winner` inliers, and a pose that also puts the source onto the
+  target (an overlap, `overlap_scores` of 1000 seeded source points, of at least `REST_OVERLAP`
+  x the winner's). A second copy of the object is supported and overlaps as well as the first;
+  a pose that lines up some floor or wall matches of a room overlaps little, and the
+  sensor-fixed ring pattern of a LiDAR's ground (an identity pose) has fewer matches than the
+  motion. (Evidence coordinates, centred.)"""
   rs = np.asarray(rs, np.float64)
   ts = np.asarray(ts, np.float64)
   if len(rs) == 0:
@@ -612,7 +614,7 @@ def _rest_rival(rs, ts, ev: _EvidenceSet, threshold, r, t, near, radius, rival, 
   far = (cos < np.cos(np.radians(RIVAL_DEG))) | (np.linalg.norm(ts - t, axis=1) > radius)
   masks = host.inlier_masks(rs[far], ts[far], ev.src, ev.dst, threshold)
   counts = np.sum(masks & ~np.asarray(near, bool), axis=1)
-  more = counts > rival
+  more = (counts > rival) & (counts >= REST_SHARE * n_winner)
   if not more.any():
     return rival
   cand_r, counts = rs[far][more], counts[more]
@@ -887,6 +889,8 @@ REST_FACTOR = 2.0
 # ... and such a rival counts only when its overlap is at least REST_OVERLAP x the winner's
 # (`_rest_rival`).
 REST_OVERLAP = 0.5
+# ... and explains at least REST_SHARE x the winner's inliers (a split of the correspondences) ...
+REST_SHARE = 0.8
 # ... of the REST_CANDIDATES such rivals with the most correspondences.
 REST_CANDIDATES = 16
 # Points of the overlap the degeneracy test (`_overlap_constraints`) reads at most.

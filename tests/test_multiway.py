@@ -392,3 +392,21 @@ def test_cli_writes_poses_only_for_the_scans_in_the_model(tmp_path, capsys, monk
   assert sorted(p.name for p in out.glob("*.txt")) == ["a.txt", "b.txt", "c.txt"]
   head = (out / "edges.tsv").read_text().splitlines()[0].split("\t")
   assert head[:4] == ["source", "target", "verdict", "reason_code"] and "placement" in head
+
+
+@pytest.mark.data
+@pytest.mark.parametrize("seed", [0, 1])
+def test_a_foreign_scan_among_real_bunny_scans_is_never_placed(data_root, seed):
+  """Four real bunny scans and a UWA3M T-rex view (mm -> m): the T-rex view is left out with no
+  pose, whatever its "not sure" edges say, and the bunny scans are all placed."""
+  import gzip
+  from lrf_jax import io
+  folder = data_root / "stanford_bunny_scans"
+  scans = [io.read_cloud(folder / f"{n}.ply").points
+           for n in ("bun000", "bun045", "bun315", "chin")]
+  with gzip.open(data_root / "uwa_3d_modeling_views" / "T-rex_view001.txt.gz") as f:
+    trex = np.loadtxt(f) / 1000.0
+  res = multiway.register_all([*scans, trex], names=["bun000", "bun045", "bun315", "chin",
+                                                     "trex"], seed=seed, refine=False)
+  assert res.left_out == ["trex"] and np.isnan(res.poses[4]).all()
+  assert not any(e.accepted for e in res.edges if 4 in (e.i, e.j))

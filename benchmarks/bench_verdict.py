@@ -1,8 +1,14 @@
 """Registration verdict: `lrf_jax.register(...).success` on pairs that must register (the 9
 consecutive Stanford bunny scans, BR scenes at 0.3 mr) and pairs that must not (two Gaussian blobs,
-a mirrored scan, two different BR models, two disjoint halves of one scan); prints a Markdown table.
+a mirrored scan, two different BR models, two disjoint halves of one scan, two identical copies of
+an object side by side, a plane against the same plane shifted within itself); prints a Markdown
+table with the verdict's `reason_code`.
 
-    LRF_DATA=/path/to/data python benchmarks/bench_verdict.py
+    LRF_DATA=/path/to/data python benchmarks/bench_verdict.py [--options]
+
+With `--options` the must-not pairs run again under every option that chooses the hypotheses
+differently (estimator "lrf" and "3point", ratio=0.9, mutual, ISS keypoints): the verdict is one
+for all, so none of them may claim success either.
 """
 
 import sys
@@ -11,30 +17,75 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 import numpy as np  # noqa: E402
+from scipy.spatial.transform import Rotation  # noqa: E402
+
 from lrf_jax import datasets  # noqa: E402
 from lrf_jax.registration import register, rotation_error_deg  # noqa: E402
-print("| pair | expected | inliers | chance | rival | fitness | err_r deg | success | reason |")
-print("|---|---|---:|---:|---:|---:|---:|---|---|")
+
+OPTIONS = ({"estimator": "lrf"}, {"estimator": "3point"}, {"ratio": 0.9}, {"mutual": True},
+           {"keypoints": "iss"})
+print("| pair | options | expected | inliers | chance | rival | fitness | err_r deg | success | "
+      "code | reason |")
+print("|---|---|---|---:|---:|---:|---:|---:|---|---|---|")
+
+
 def run(name, a, b, expect, gt=None, **kw):
-  r = register(a, b, **kw)
+  opts = ", ".join(f"{k}={v}" for k, v in kw.items() if k != "mr") or "default"
+  try:
+    r = register(a, b, **kw)
+  except ValueError as e:
+    print(f"| {name} | {opts} | {expect} | - | - | - | - | - | False | error | {e} |", flush=True)
+    return
   e = f"{rotation_error_deg(r.transform[:3,:3], gt[:3,:3]):.2f}" if gt is not None else "-"
-  print(f"| {name} | {expect} | {r.n_inliers} | {r.chance_inliers} | {r.rival_inliers} | {r.fitness:.3f} | {e} | {r.success} | {r.reason} |", flush=True)
+  print(f"| {name} | {opts} | {expect} | {r.evidence_inliers} | {r.chance_inliers} | "
+        f"{r.rival_inliers} | {r.fitness:.3f} | {e} | {r.success} | {r.reason_code} | "
+        f"{r.reason} |", flush=True)
+
+
 pairs = datasets.load_bunny_pairs(None)
 for p in pairs:
   run("bunny " + p.name, p.model_points, p.scene_points, "success", p.transform)
 for p in datasets.load_br(None, 0.3)[:6]:
   run("BR " + p.name, p.model_points, p.scene_points, "success", p.transform)
-rng = np.random.default_rng(0)
-a = rng.normal(size=(20000, 3))
-b = rng.normal(size=(20000, 3))
-run("two Gaussian blobs", a, b, "failure", mr=float(datasets.mesh_resolution(a)[0]))
-p0 = pairs[0]
-run("bun000 -> mirrored bun045", p0.model_points, p0.scene_points * [-1, 1, 1], "failure")
-m1 = datasets.load_br_model("bunny", None).points
-m2 = datasets.load_br_model("dragon", None).points
-run("BR bunny -> BR dragon", m1, m2, "failure")
-m3 = datasets.load_br_model("armadillo", None).points
-run("BR armadillo -> BR bunny", m3, m1, "failure")
-pts = p0.model_points
-half = pts[:, 0] < np.median(pts[:, 0])
-run("bun000: disjoint halves", pts[half], pts[~half], "failure")
+
+
+def failures():
+  """(name, source, target, keywords) of the pairs that must not register."""
+  rng = np.random.default_rng(0)
+  a = rng.normal(size=(20000, 3))
+  b = rng.normal(size=(20000, 3))
+  yield "two Gaussian blobs", a, b, {"mr": float(datasets.mesh_resolution(a)[0])}
+  p0 = pairs[0]
+  yield "bun000 -> mirrored bun045", p0.model_points, p0.scene_points * [-1, 1, 1], {}
+  m1 = datasets.load_br_model("bunny", None).points
+  m2 = datasets.load_br_model("dragon", None).points
+  yield "BR bunny -> BR dragon", m1, m2, {}
+  m3 = datasets.load_br_model("armadillo", None).points
+  yield "BR armadillo -> BR bunny", m3, m1, {}
+  pts = p0.model_points
+  half = pts[:, 0] < np.median(pts[:, 0])
+  yield "bun000: disjoint halves", pts[half], pts[~half], {}
+  # two identical copies of bun000 side by side: the correspondences split between them; as
+  # scanned (independent noise of 0.1 mr on each copy) and as exact digital copies (then ISS
+  # picks the same points on both, every descriptor ties and all matches go to one copy)
+  r = Rotation.from_euler("xyz", [30, 50, 10], degrees=True).as_matrix()
+  copy = pts @ r.T
+  shift = 1.5 * float(np.ptp(pts, axis=0).max())
+  mr = float(datasets.mesh_resolution(pts)[0])
+  g = np.random.default_rng(2)
+  scanned = [copy + g.normal(scale=0.1 * mr, size=copy.shape) + [dx, 0, 0] for dx in (0, shift)]
+  yield "bun000 -> two scanned copies side by side", pts, np.concatenate(scanned), {}
+  yield "bun000 -> two exact copies side by side", pts, np.concatenate([copy, copy + [shift, 0, 0]]), {}
+  # a plane against the same plane shifted within itself: every in-plane shift fits
+  g = np.random.default_rng(1)
+  plane_a = np.c_[g.uniform(-20, 20, size=(20000, 2)), 0.02 * g.normal(size=20000)]
+  plane_b = np.c_[g.uniform(-20, 20, size=(20000, 2)) + [8, 0], 0.02 * g.normal(size=20000)]
+  yield "plane -> plane shifted within itself", plane_a, plane_b, {}
+
+
+for name, a, b, kw in failures():
+  run(name, a, b, "failure", **kw)
+if "--options" in sys.argv[1:]:
+  for options in OPTIONS:
+    for name, a, b, kw in failures():
+      run(name, a, b, "failure", **kw, **options)

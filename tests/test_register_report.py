@@ -6,7 +6,7 @@ import pytest
 from lrf_jax import datasets, io
 from lrf_jax.cli.register import build_parser, main
 from lrf_jax.registration import Registration
-from lrf_jax.registration.evidence import Evidence, verdict
+from lrf_jax.registration.evidence import Evidence
 
 
 def _registration(**kw):
@@ -40,11 +40,12 @@ def test_summary_says_verdict_reason_overlap_inliers_time_and_errors_when_known(
   assert _registration(success=False).summary().startswith("verdict: NOT SURE")
 
 
-def test_verdict_names_the_overlap_contrast_in_words():
-  ok, reason = verdict(Evidence(7, 7, 0, 0.42, 2.1, "lrf"))
-  assert ok and "99th percentile" in reason and "contrast" not in reason
-  ok, reason = verdict(Evidence(7, 7, 0, 0.42, 1.03, "lrf"))
-  assert not ok and "99th percentile" in reason and "contrast" not in reason
+def test_verdict_says_what_decided_in_words_and_as_a_code():
+  from lrf_jax.registration.evidence import decide
+  d = decide(Evidence(7, 7, 0, 0.42, 2.1, "lrf"))
+  assert not d.success and d.code == "chance" and "contrast" not in d.reason
+  d = decide(Evidence(40, 3, 2, 0.42, 1.03, "lrf"))
+  assert d.success and d.code == "claimed" and d.reason.startswith("40 consistent")
 
 
 @pytest.fixture(scope="module")
@@ -82,3 +83,22 @@ def test_help_shows_the_defaults():
   text = " ".join(build_parser().format_help().split())
   assert "(default: 3000)" in text and "(default: graph)" in text
   assert "(default: None)" not in text
+
+
+def test_cli_out_is_written_on_success_only_unless_best_guess(demo_files, tmp_path, capsys):
+  """A script that does not read exit codes used the transform of a "not sure" pair: --out now
+  writes nothing on exit 3 unless --best-guess asks for the transform anyway."""
+  a, b, _ = demo_files
+  rng = np.random.default_rng(0)
+  blob_a, blob_b = tmp_path / "blob_a.ply", tmp_path / "blob_b.ply"
+  io.write_ply(blob_a, rng.normal(size=(3000, 3)), dtype="float64")
+  io.write_ply(blob_b, rng.normal(size=(3000, 3)), dtype="float64")
+  small = ["--keypoints", "600", "--correspondences", "300"]
+  out = tmp_path / "T.txt"
+  assert main([str(blob_a), str(blob_b), "--out", str(out), *small]) == 3
+  assert not out.exists() and "--best-guess" in capsys.readouterr().err
+  assert main([str(blob_a), str(blob_b), "--out", str(out), "--best-guess", *small]) == 3
+  assert np.loadtxt(out).shape == (4, 4)
+  good = tmp_path / "good.txt"
+  assert main([str(a), str(b), "--out", str(good), *small]) == 0
+  assert np.loadtxt(good).shape == (4, 4)

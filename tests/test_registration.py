@@ -289,15 +289,18 @@ def test_pose_protocol_on_a_rigidly_moved_cloud():
 
 
 def test_verdict_rule_of_the_one_point_estimator():
+  """"lrf" answers to the default's rule: far above both chance and the best distinct pose (its
+  old overlap-contrast escape claimed blobs and mirror images)."""
   from lrf_jax.registration.evidence import Evidence, verdict
 
-  def ok(n, chance, fitness, contrast):
-    return verdict(Evidence(n, chance, 0, fitness, contrast, "lrf"))[0]
+  def ok(n, chance, fitness, contrast, rival=0):
+    return verdict(Evidence(n, chance, rival, fitness, contrast, "lrf"))[0]
   assert ok(40, 5, 0.6, 1.0)            # far above the chance level
-  assert ok(7, 7, 0.42, 2.1)            # few inliers, but the overlap stands out
+  assert not ok(7, 7, 0.42, 2.1)        # few inliers: an overlap that stands out is not enough
   assert not ok(54, 36, 0.98, 1.0)      # blobs: chance reaches nearly as many inliers
   assert not ok(9, 5, 0.37, 1.3)        # a mirror image
-  assert not ok(400, 5, 0.1, 3.0)       # ICP pairs almost nothing
+  assert not ok(40, 5, 0.6, 1.0, 20)    # a distinct pose explains 20 others
+  assert not ok(400, 5, 0.04, 3.0)      # ICP pairs almost nothing
 
 
 def test_register_verdict_on_a_real_pair_and_on_unrelated_blobs(tmp_path, capsys):

@@ -4,7 +4,9 @@ Prints the 4 x 4 transform that maps SRC onto TGT (rows, 9 significant digits), 
 of the coarse estimate, the final overlap (fitness) and RMSE and the verdict
 (`Registration.success`; exit code 3 when it failed, 2 for bad input); `--out` also writes the matrix as
 text (`numpy.loadtxt` reads it back), atomically; it may not be one of the inputs, and must be
-a regular file or a new name (a FIFO or a device such as /dev/null is refused). `--init`
+a regular file or a new name (a FIFO or a device such as /dev/null is refused); on a "not
+sure" verdict (exit 3) it writes nothing unless `--best-guess` is given (then it writes the
+transform and still exits 3), so a script that ignores exit codes never reads a wrong pose. `--init`
 gives an initial source->target transform (a 4x4 text file as `lrf_jax.io.read_xf` reads, or
 a (4, 4) .npy) that `register` then only refines. Inputs: any cloud or mesh
 `lrf_jax.io.read_cloud` reads (PLY, PCD, XYZ/TXT(.gz), NPY). Every length is in mesh
@@ -37,7 +39,12 @@ def build_parser() -> argparse.ArgumentParser:
                                formatter_class=DefaultsHelpFormatter)
   ap.add_argument("source", help="the cloud to move (PLY, PCD, XYZ/TXT(.gz), NPY)")
   ap.add_argument("target", help="the cloud to align it to")
-  ap.add_argument("--out", default=None, help="write the 4x4 source->target matrix here")
+  ap.add_argument("--out", default=None,
+                  help="write the 4x4 source->target matrix here (only on success, exit 0, "
+                       "unless --best-guess)")
+  ap.add_argument("--best-guess", action="store_true",
+                  help="write --out even when the verdict is 'not sure' (the exit code is "
+                       "still 3)")
   ap.add_argument("--mr", type=float, default=None,
                   help="the working resolution in the clouds' units, the unit of every length "
                        "(default: measured: SOURCE's point spacing; on a raw, uneven cloud such "
@@ -205,7 +212,10 @@ def main(argv: list[str] | None = None) -> int:
     if problem:
       print(f"error: {problem}", file=sys.stderr)
       return 2
-  if args.out:
+  if args.out and not (reg.success or args.best_guess):
+    print(f"# --out {args.out} not written: the verdict is not sure (pass --best-guess to "
+          "write the transform anyway)", file=sys.stderr)
+  elif args.out:
     from lrf_jax.io.atomic import WriteError, atomic_write
     try:
       with atomic_write(args.out, "w") as f:

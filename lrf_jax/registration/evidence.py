@@ -1,7 +1,10 @@
 """Whether `register` believes its result: the evidence it gathered and the thresholds.
 
-The winner must be well supported (inliers far above what chance alignment and any distinct pose
-reach) and ICP must pair enough of the source; `verdict` says which test decided.
+One verdict for every estimator and option: the winner must be well supported (inliers far above
+what chance alignment and any distinct pose reach, counted on the same correspondences and with
+the same hypotheses whatever produced the winner), the aligned clouds must overlap, and the
+overlap must pin the pose down (no free direction); `decide` says which test decided, in words
+and as a `REASON_CODES` code.
 """
 
 from __future__ import annotations
@@ -10,37 +13,59 @@ from typing import NamedTuple
 
 import numpy as np
 
-# The verdict (`verdict`). ICP pairs at least VERDICT_FITNESS of the source (VERDICT_GRAPH_FITNESS
-# for estimator="graph", whose evidence does not need the overlap to be large).
-# estimator="graph": the winner's inliers reach VERDICT_GRAPH_FACTOR times the best of what
-# chance alignment reaches on the same correspondences shuffled and what any distinct pose
-# reaches on the real ones, plus VERDICT_GRAPH_MARGIN. "lrf" and "3point": the inliers beat
-# chance by VERDICT_FACTOR and VERDICT_MARGIN, or the overlap stands out from the other
-# hypotheses' by VERDICT_CONTRAST.
+# The verdict (`decide`). ICP pairs at least VERDICT_GRAPH_FITNESS of the source; the winner's
+# inliers reach VERDICT_GRAPH_FACTOR times the best of what chance alignment reaches on the same
+# correspondences shuffled and what any distinct pose reaches on the real ones, plus
+# VERDICT_GRAPH_MARGIN. The rule is the same for every estimator (it was "graph"'s alone).
+VERDICT_GRAPH_FACTOR = 3.0
+VERDICT_GRAPH_MARGIN = 3
+VERDICT_GRAPH_FITNESS = 0.05
+# The rule of estimator="lrf" and "3point" before the verdict was one for all (inliers over
+# chance by VERDICT_FACTOR and VERDICT_MARGIN, or an overlap contrast of VERDICT_CONTRAST, and a
+# fitness of VERDICT_FITNESS): it claimed blobs and mirror images. No longer read by `decide`;
+# kept because 0.7 forwarded these names.
 VERDICT_FACTOR = 2.0
 VERDICT_MARGIN = 3
 VERDICT_CONTRAST = 1.6
 VERDICT_FITNESS = 0.2
-VERDICT_GRAPH_FACTOR = 3.0
-VERDICT_GRAPH_MARGIN = 3
-VERDICT_GRAPH_FITNESS = 0.05
 CHANCE_SHUFFLES = 4
 # A hypothesis is distinct from the winner (a rival) when their rotations differ by more than
 # RIVAL_DEG degrees or their translations (at the source centroid) by more than the support
 # radius.
 RIVAL_DEG = 10.0
+# The overlap leaves the pose free (`constraint_spectrum`) when the weakest direction of the
+# point-to-plane constraints holds less than DEGENERATE_RATIO of the strongest's: a plane slid
+# within itself, a sphere or cylinder turned about its centre or axis.
+DEGENERATE_RATIO = 0.01
+
+# `Registration.reason_code`: what decided the verdict.
+REASON_CODES = {
+    "claimed": "success: the winner's support is far above chance and every distinct pose's",
+    "low_overlap": "not sure: too little of the source lies on the target after ICP",
+    "degenerate": "not sure: the overlap leaves a direction of motion free (a plane, a sphere, "
+                  "an axis of symmetry)",
+    "chance": "not sure: chance alignment of the same correspondences reaches nearly as many",
+    "rival": "not sure: a distinct pose explains nearly as many other correspondences",
+    "no_hypothesis": "not sure: no two correspondences agree, so there was no hypothesis",
+    "init_only": "not verified: refined from `init` only",
+}
 
 
 class Evidence(NamedTuple):
-  """What `verdict` decides on (all counts are correspondences within the inlier distance).
+  """What `decide` reads (all counts are correspondences within the inlier distance, on the
+  evidence correspondences: the default matching's, whatever option chose the hypotheses' own).
 
   n_inliers: inliers of the refitted winner.
-  chance_inliers: the most inliers any hypothesis reaches on the correspondences shuffled.
+  chance_inliers: the most inliers any hypothesis of the compatibility graph reaches on the
+    correspondences shuffled.
   rival_inliers: the most inliers outside the winner's of a hypothesis distinct from the winner
     (`_rival_inliers`).
   fitness: fraction of the ICP's source points within icp_mr mr of the target after ICP.
-  contrast: `overlap_contrast` of the verified hypotheses (0 when none were verified).
-  estimator: the estimator that produced them.
+  contrast: `overlap_contrast` of the verified hypotheses (0 when none were verified; reported,
+    not decisive).
+  estimator: the estimator that produced the winner.
+  degeneracy: `constraint_spectrum`'s ratio of the overlap (1: fully constrained).
+  free_direction: the least constrained motion, in words ("" when not computed).
   """
 
   n_inliers: int
@@ -49,6 +74,16 @@ class Evidence(NamedTuple):
   fitness: float
   contrast: float
   estimator: str
+  degeneracy: float = 1.0
+  free_direction: str = ""
+
+
+class Verdict(NamedTuple):
+  """`decide`'s answer: `Registration.success`, `.reason` and `.reason_code`."""
+
+  success: bool
+  reason: str
+  code: str
 
 
 def overlap_contrast(fits: np.ndarray) -> float:
@@ -61,31 +96,82 @@ def overlap_contrast(fits: np.ndarray) -> float:
   return float(fits.max() / max(np.percentile(fits, 99), 1e-12))
 
 
+def constraint_spectrum(points: np.ndarray, normals: np.ndarray) -> tuple[float, str]:
+  """How well point-to-plane pairs pin a rigid motion down: the 6 x 6 normal matrix of the
+  point-to-plane residuals (rows [(p - c) x n / L, n], c the points' centroid, L their RMS
+  distance from it, so rotations and translations weigh alike), its smallest eigenvalue over its
+  largest, and the eigenvector of the smallest in words.
+
+  Args:
+    points: (k, 3) points of the overlap (in any one frame).
+    normals: (k, 3) unit surface normals there (NaN rows are skipped).
+
+  Returns:
+    (ratio, direction): ratio in [0, 1] (0: a motion that no pair resists; 1 with fewer than 6
+    usable pairs: nothing to say), and e.g. "translation along (0.00, 0.00, 1.00)" or
+    "rotation about (0.00, 1.00, 0.00)" (the dominant half of the eigenvector).
+  """
+  p = np.asarray(points, np.float64)
+  n = np.asarray(normals, np.float64)
+  ok = np.all(np.isfinite(n), axis=1) & np.all(np.isfinite(p), axis=1)
+  p, n = p[ok], n[ok]
+  if len(p) < 6:
+    return 1.0, ""
+  c = p.mean(axis=0)
+  lever = float(np.sqrt(np.mean(np.sum((p - c) ** 2, axis=1))))
+  if lever <= 0:
+    return 0.0, "rotation about any axis"
+  rows = np.concatenate([np.cross(p - c, n) / lever, n], axis=1)
+  h = rows.T @ rows / len(rows)
+  w, v = np.linalg.eigh(h)
+  if w[-1] <= 0:
+    return 0.0, "any motion"
+  vec = v[:, 0]
+  rot, trans = vec[:3], vec[3:]
+  kind, axis = (("translation along", trans) if np.linalg.norm(trans) >= np.linalg.norm(rot)
+                else ("rotation about", rot))
+  axis = axis / max(float(np.linalg.norm(axis)), 1e-30)
+  axis = axis * (1.0 if axis[np.argmax(np.abs(axis))] >= 0 else -1.0)
+  words = f"{kind} ({axis[0]:.2f}, {axis[1]:.2f}, {axis[2]:.2f})"
+  return float(max(w[0], 0.0) / w[-1]), words
+
+
+def decide(evidence: Evidence) -> Verdict:
+  """`Registration.success`, `.reason` and `.reason_code` from the evidence (module constants).
+
+  In order: "low_overlap" (ICP pairs under VERDICT_GRAPH_FITNESS of the source),
+  "degenerate" (the overlap leaves a motion free, `constraint_spectrum` under
+  DEGENERATE_RATIO), then "claimed" when the inliers reach VERDICT_GRAPH_FACTOR x the larger of
+  chance and the best distinct pose + VERDICT_GRAPH_MARGIN, else "rival" or "chance" (whichever
+  is larger; "rival" on a tie). The same rule for every estimator.
+  """
+  e = evidence
+  floor = VERDICT_GRAPH_FITNESS
+  if e.fitness < floor:
+    return Verdict(False, f"not sure: only {e.fitness:.0%} of the source lies on the target "
+                          f"after ICP (needs {floor:.0%})", "low_overlap")
+  if e.degeneracy < DEGENERATE_RATIO:
+    free = f" ({e.free_direction})" if e.free_direction else ""
+    return Verdict(False, f"not sure: the overlap leaves a motion free{free}; its weakest "
+                          f"direction holds {e.degeneracy:.2g} of the strongest's (needs "
+                          f"{DEGENERATE_RATIO:g})", "degenerate")
+  level = max(e.chance_inliers, e.rival_inliers)
+  need = VERDICT_GRAPH_FACTOR * level + VERDICT_GRAPH_MARGIN
+  if e.n_inliers >= need:
+    return Verdict(True, f"{e.n_inliers} consistent correspondences; chance gives "
+                         f"{e.chance_inliers}, the best distinct pose {e.rival_inliers}",
+                   "claimed")
+  rival = e.rival_inliers >= e.chance_inliers
+  which = "a distinct pose" if rival else "chance"
+  return Verdict(False, f"not sure: {e.n_inliers} consistent correspondences, {which} gives "
+                        f"{level} (needs {need:g})", "rival" if rival else "chance")
+
+
 def verdict(evidence: Evidence) -> tuple[bool, str]:
-  """`Registration.success` and `.reason` from the evidence (module constants `VERDICT_*`).
+  """`decide`'s success and reason (without the code).
 
   Returns:
     (success, reason): reason is a short sentence saying what decided.
   """
-  e = evidence
-  floor = VERDICT_GRAPH_FITNESS if e.estimator == "graph" else VERDICT_FITNESS
-  if e.fitness < floor:
-    return False, (f"not sure: only {e.fitness:.0%} of the source lies on the target after "
-                   f"ICP (needs {floor:.0%})")
-  if e.estimator == "graph":
-    level = max(e.chance_inliers, e.rival_inliers)
-    need = VERDICT_GRAPH_FACTOR * level + VERDICT_GRAPH_MARGIN
-    if e.n_inliers >= need:
-      return True, (f"{e.n_inliers} consistent correspondences; chance gives "
-                    f"{e.chance_inliers}, the best distinct pose {e.rival_inliers}")
-    which = "a distinct pose" if e.rival_inliers >= e.chance_inliers else "chance"
-    return False, (f"not sure: {e.n_inliers} consistent correspondences, {which} gives {level} "
-                   f"(needs {need:g})")
-  if e.n_inliers >= VERDICT_FACTOR * e.chance_inliers + VERDICT_MARGIN:
-    return True, f"{e.n_inliers} inliers; chance gives {e.chance_inliers}"
-  if e.contrast >= VERDICT_CONTRAST:
-    return True, (f"the overlap stands out from the other hypotheses' (the best is "
-                  f"{e.contrast:.2f}x their 99th percentile)")
-  return False, (f"not sure: {e.n_inliers} inliers, chance gives {e.chance_inliers}, and the "
-                 f"best overlap is only {e.contrast:.2f}x the other hypotheses' 99th "
-                 f"percentile (needs {VERDICT_CONTRAST:g}x)")
+  d = decide(evidence)
+  return d.success, d.reason

@@ -38,8 +38,7 @@ from lrf_jax.geometry.sampling import voxel_downsample
 from lrf_jax.registration import graph, host, icp_host
 from lrf_jax.registration.errors import _check_transform, pose_errors
 from lrf_jax.registration.estimators import _centred, _finish, _triples, _uncentre
-from lrf_jax.registration.evidence import (CHANCE_SHUFFLES, RIVAL_DEG, Evidence, overlap_contrast,
-                                           verdict)
+from lrf_jax.registration.evidence import (CHANCE_SHUFFLES, RIVAL_DEG, Evidence, constraint_spectrum, decide, overlap_contrast)
 from lrf_jax.registration.icp_host import icp
 from lrf_jax.search import engine
 from lrf_jax.search.grid import serial_blas
@@ -89,6 +88,15 @@ class Registration:
     voxel_size: the voxel edge (cloud units) the clouds were thinned with before the work (0:
       every point kept); `correspondences` index the input clouds all the same (each voxel's
       first input point).
+    reason_code: what decided `success`, machine-readable (a key of
+      `lrf_jax.registration.evidence.REASON_CODES`): "claimed" (the only code of a success),
+      "low_overlap", "degenerate", "chance", "rival", "no_hypothesis", "init_only".
+    evidence_inliers: the winner's inliers among the evidence correspondences (the default
+      matching's, `_evidence_matches`), the count the verdict compares with `chance_inliers`
+      and `rival_inliers`; `n_inliers` when no option changed the matching.
+    degeneracy: how well the overlap pins the pose down (`evidence.constraint_spectrum`: the
+      weakest direction of the point-to-plane constraints over the strongest; below
+      `evidence.DEGENERATE_RATIO` the verdict is "degenerate").
   """
 
   transform: np.ndarray
@@ -110,6 +118,9 @@ class Registration:
   rival_inliers: int = 0
   estimated: bool = True
   voxel_size: float = 0.0
+  reason_code: str = ""
+  evidence_inliers: int = 0
+  degeneracy: float = 1.0
 
   def summary(self, gt: Any = None) -> str:
     """A few lines a person reads: the verdict and its reason, the estimated overlap and RMSE,
@@ -215,9 +226,16 @@ def register(source: Any, target: Any, *, mr: float | None = None, radius_mr: fl
      seeded source points; with `icp_fine` (default) a second pass at an adaptive gate
      (`fine_distance`: 1.5 x the median residual, 1 mr to icp_mr mr) on up to `ICP_POINTS`
      source points drawn among those within icp_mr mr of the target (`overlap_points`);
-  6. the verdict (`verdict`): "graph" claims success when the winner's inliers are at least
-     `VERDICT_GRAPH_FACTOR` times (+ `VERDICT_GRAPH_MARGIN`) both what chance alignment reaches
-     on the correspondences shuffled and what the best distinct pose explains outside them.
+  6. the verdict (`evidence.decide`), one rule for every estimator and option: it claims
+     success when the winner's inliers are at least `VERDICT_GRAPH_FACTOR` times (+
+     `VERDICT_GRAPH_MARGIN`) both what chance alignment reaches on the correspondences
+     shuffled and what the best distinct pose explains outside them, ICP pairs enough of the
+     source and the overlap leaves no motion free (`evidence.constraint_spectrum`). Whatever
+     chose the hypotheses (estimator, ratio, mutual), the evidence is counted on the default
+     matching's correspondences with the compatibility graph's hypotheses (plus the
+     estimator's own and the graph's on the correspondences outside the winner's inliers, as
+     rivals), so no option claims what the default's evidence would not.
+     `Registration.reason_code` says which test decided.
 
   With `init` (a (4, 4) rigid transform) steps 1-4 are skipped: ICP refines `init`, as Open3D's
   `registration_icp` does, and `success` is False (nothing checks `init`; `reason` says so).
@@ -301,6 +319,9 @@ def register(source: Any, target: Any, *, mr: float | None = None, radius_mr: fl
     descs = [_side_descriptors(side, f, setup, descriptor) for side, f in zip(setup.sides, frames)]
   with timer("matching"):
     qi, ri = _match(frames, descs, estimator, n_correspondences, radius_mr, mutual, ratio)
+    # The evidence: the default matching's correspondences, whatever chose the hypotheses' own.
+    own = estimator == "graph" and not mutual and ratio is None
+    eqi, eri = (qi, ri) if own else _evidence_matches(frames, descs, n_correspondences)
   (kp_s, (f_s, v_s)), (kp_t, (f_t, v_t)) = zip((s.keypoints for s in setup.sides), frames)
   src_pts, dst_pts = setup.sides[0].points, setup.sides[1].points
   p, q = src_pts[kp_s[qi]], dst_pts[kp_t[ri]]
@@ -309,13 +330,17 @@ def register(source: Any, target: Any, *, mr: float | None = None, radius_mr: fl
     src, dst, cs, cd = _centred(p, q)
     rs, ts = _hypotheses(src, dst, f_s[qi], f_t[ri], estimator, iterations, setup.radius, seed,
                          float(threshold))
-  if len(rs) == 0:
-    return _not_estimated(setup, _input_indices(setup, kp_s[qi], kp_t[ri]), estimator,
-                          inlier_mr, icp_mr, timer)
-  with timer("hypotheses"), serial_blas():
+    if len(rs) == 0:  # no two correspondences agree: no pose to verify
+      return _not_estimated(setup, _input_indices(setup, kp_s[qi], kp_t[ri]), estimator,
+                            inlier_mr, icp_mr, timer)
     counts = host.count_inliers(rs, ts, src, dst, threshold)
-    chance = _chance_inliers(src, dst, f_s[qi], f_t[ri], estimator, iterations, setup.radius,
-                             seed, float(threshold))
+    if own:
+      ev = _EvidenceSet(src, dst, cs, cd, f_s[qi], f_t[ri], rs, ts)
+      chance = _chance_inliers(src, dst, f_s[qi], f_t[ri], "graph", iterations, setup.radius,
+                               seed, float(threshold))
+    else:
+      ev, chance = _evidence_set(src_pts[kp_s[eqi]], dst_pts[kp_t[eri]], f_s[eqi], f_t[eri],
+                                 iterations, setup.radius, seed, float(threshold))
   with timer("verification"), serial_blas():
     overlap_distance = icp_mr * setup.mr
     target_grid = engine.Grid(dst_pts, overlap_distance)
@@ -323,7 +348,24 @@ def register(source: Any, target: Any, *, mr: float | None = None, radius_mr: fl
                          0 if estimator == "graph" else verify, setup.rng)
     r, t, mask = host.select_and_refine(rs[best], ts[best], src, dst, threshold)
     res = _finish(*_uncentre(r, t, cs, cd), mask, best, counts[best])
-    rival = _rival_inliers(rs, ts, src, dst, threshold, r, t, mask, setup.radius)
+    # the winner in the evidence's centred coordinates, its inliers there, and its rivals: the
+    # evidence's graph hypotheses, those of the correspondences outside the winner's inliers
+    # (`_rest_hypotheses`), and the estimator's own
+    r_w, t_w = _uncentre(r, t, cs, cd)
+    t_e = t_w - ev.cd + r_w @ ev.cs
+    ev_mask = mask if own else host.inlier_mask(r_w, t_e, ev.src, ev.dst, threshold)
+    pool_r, pool_t = [ev.rs], [ev.ts]
+    if not own:
+      pool_r.append(np.asarray(rs, np.float64))
+      pool_t.append(np.asarray(ts, np.float64) + (cd - ev.cd)
+                    - np.einsum("hij,j->hi", np.asarray(rs, np.float64), cs - ev.cs))
+    rival = _rival_inliers(np.concatenate(pool_r), np.concatenate(pool_t), ev.src, ev.dst,
+                           threshold, r_w, t_e, ev_mask, setup.radius)
+    near = host.inlier_mask(r_w, t_e, ev.src, ev.dst, REST_FACTOR * threshold)
+    rest_r, rest_t = _rest_hypotheses(ev, near, iterations, setup.radius, seed,
+                                      float(threshold))
+    rival = _rest_rival(rest_r, rest_t, ev, threshold, r_w, t_e, near, setup.radius, rival,
+                        src_pts, target_grid, overlap_distance, seed, int(np.sum(ev_mask)))
   with timer("icp"):
     icp_src = src_pts
     if len(src_pts) > ICP_POINTS:
@@ -331,20 +373,25 @@ def register(source: Any, target: Any, *, mr: float | None = None, radius_mr: fl
     final, fitness, rmse = _refine(icp_src, dst_pts, res.transform, overlap_distance,
                                    icp_fine, setup.mr, icp_iterations, target_grid, icp_mode,
                                    pool=src_pts, rng=setup.rng)
+  with timer("verification"), serial_blas():
+    degeneracy, free = _overlap_constraints(icp_src, dst_pts, target_grid, final,
+                                            overlap_distance)
   n_corr = len(qi)
   contrast = overlap_contrast(fits)
-  evidence = Evidence(n_inliers=res.n_inliers, chance_inliers=chance, rival_inliers=rival,
-                      fitness=fitness, contrast=contrast, estimator=estimator)
-  success, reason = verdict(evidence)
+  evidence = Evidence(n_inliers=int(np.sum(ev_mask)), chance_inliers=chance,
+                      rival_inliers=rival, fitness=fitness, contrast=contrast,
+                      estimator=estimator, degeneracy=degeneracy, free_direction=free)
+  decision = decide(evidence)
   return Registration(transform=final, coarse_transform=res.transform, inliers=res.inliers,
                       n_inliers=res.n_inliers,
                       correspondences=_input_indices(setup, kp_s[qi], kp_t[ri]),
                       voxel_size=setup.voxel_size,
                       fitness=fitness, rmse=rmse, mr=float(setup.mr), seconds=timer.total(),
-                      timings=dict(timer.seconds), success=success,
+                      timings=dict(timer.seconds), success=decision.success,
                       inlier_ratio=res.n_inliers / max(n_corr, 1), chance_inliers=chance,
-                      overlap_contrast=contrast, reason=reason, overlap=fitness,
-                      rival_inliers=rival)
+                      overlap_contrast=contrast, reason=decision.reason, overlap=fitness,
+                      rival_inliers=rival, reason_code=decision.code,
+                      evidence_inliers=evidence.n_inliers, degeneracy=degeneracy)
 
 
 ESTIMATORS = ("graph", "lrf", "3point")
@@ -497,7 +544,7 @@ def _refine_only(source, target, init, *, mr, icp_iterations, icp_mr, seed, time
                       timings=dict(timer.seconds), success=False,
                       reason=("not verified: refined from init only (ICP keeps the nearest "
                               f"optimum); {fitness:.0%} of the source lies on the target"),
-                      overlap=fitness, voxel_size=voxel)
+                      overlap=fitness, voxel_size=voxel, reason_code="init_only")
 
 def _not_estimated(setup: _Setup, correspondences: np.ndarray, estimator: str, inlier_mr: float,
                    icp_mr: float, timer: _StageTimer) -> Registration:
@@ -524,7 +571,7 @@ def _not_estimated(setup: _Setup, correspondences: np.ndarray, estimator: str, i
                       timings=dict(timer.seconds), success=False,
                       reason=(f"no pose hypothesis: {why}; the transform is the identity, not an "
                               "estimate"),
-                      overlap=fitness, estimated=False)
+                      overlap=fitness, estimated=False, reason_code="no_hypothesis")
 
 
 # Source points ICP pairs per iteration (a seeded subset of larger clouds; in the second pass,
@@ -533,6 +580,123 @@ def _not_estimated(setup: _Setup, correspondences: np.ndarray, estimator: str, i
 ICP_POINTS = 5000
 
 
+
+
+class _EvidenceSet(NamedTuple):
+  """The correspondences the verdict counts on (centred float32, as `_centred` gives them) and
+  the compatibility graph's hypotheses on them (centred coordinates)."""
+
+  src: np.ndarray
+  dst: np.ndarray
+  cs: np.ndarray
+  cd: np.ndarray
+  f_src: np.ndarray
+  f_dst: np.ndarray
+  rs: np.ndarray
+  ts: np.ndarray
+
+
+def _evidence_matches(frames, descs, n_correspondences: int) -> tuple[np.ndarray, np.ndarray]:
+  """The default matching (`_match` for estimator "graph", no mutual or ratio test): the
+  correspondences the verdict counts on whatever option chose the hypotheses'; none when there
+  is none with two valid frames."""
+  try:
+    return _match(frames, descs, "graph", n_correspondences, 0.0)
+  except ValueError:
+    return np.zeros(0, np.int64), np.zeros(0, np.int64)
+
+
+def _evidence_set(p, q, f_p, f_q, iterations, radius, seed, threshold
+                  ) -> tuple[_EvidenceSet, int]:
+  """The evidence of an option's winner: the default matching's correspondences (p, q world
+  points with their frames), the compatibility graph's hypotheses on them and its chance level
+  (`_chance_inliers`), as the default computes them."""
+  if len(p) == 0:
+    z = np.zeros((0, 3))
+    e3 = np.zeros((0, 3, 3), np.float32)
+    return _EvidenceSet(z.astype(np.float32), z.astype(np.float32), np.zeros(3), np.zeros(3),
+                        e3, e3, np.zeros((0, 3, 3)), z), 0
+  src, dst, cs, cd = _centred(p, q)
+  rs, ts = _hypotheses(src, dst, f_p, f_q, "graph", iterations, radius, seed, threshold)
+  chance = _chance_inliers(src, dst, f_p, f_q, "graph", iterations, radius, seed, threshold)
+  return _EvidenceSet(src, dst, cs, cd, f_p, f_q, np.asarray(rs, np.float64),
+                      np.asarray(ts, np.float64)), chance
+
+
+def _rest_hypotheses(ev: _EvidenceSet, winner_mask, iterations, radius, seed, threshold
+                     ) -> tuple[np.ndarray, np.ndarray]:
+  """The compatibility graph's hypotheses on the evidence correspondences outside `winner_mask`
+  (`register` passes the winner's inliers at `REST_FACTOR` times the inlier distance: the
+  correspondences just beyond it are the winner's too, and a pose turned about them would count
+  them as a rival): the best other explanation of the rest. Where one source region is matched
+  into two places (two identical objects side by side, a repeated structure) the winner's seeds
+  suppress the second place's (seeds are spread over source points), and its correspondences
+  are a minority of the spectral score; without the winner's they seed their own pose, which the
+  rival count then sees. Centred coordinates, (H, 3, 3) and (H, 3)."""
+  rest = ~np.asarray(winner_mask, bool)
+  if rest.sum() < 2:
+    return np.zeros((0, 3, 3)), np.zeros((0, 3))
+  return _hypotheses(ev.src[rest], ev.dst[rest], ev.f_src[rest], ev.f_dst[rest], "graph",
+                     iterations, radius, seed, threshold)
+
+
+def _rest_rival(rs, ts, ev: _EvidenceSet, threshold, r, t, near, radius, rival, src_pts,
+                target_grid, distance, seed, n_winner) -> int:
+  """`rival`, or more: the most correspondences outside `near` (the winner's within
+  `REST_FACTOR` x the inlier distance) that a hypothesis of `_rest_hypotheses` (rs, ts) distinct
+  from the winner (r, t) explains, counted only for a split of the correspondences: at least
+  `REST_SHARE` x the winner's `n_winner` inliers, and a pose that also puts the source onto the
+  target (an overlap, `overlap_scores` of 1000 seeded source points, of at least `REST_OVERLAP`
+  x the winner's). A second copy of the object is supported and overlaps as well as the first;
+  a pose that lines up some floor or wall matches of a room overlaps little, and the
+  sensor-fixed ring pattern of a LiDAR's ground (an identity pose) has fewer matches than the
+  motion. (Evidence coordinates, centred.)"""
+  rs = np.asarray(rs, np.float64)
+  ts = np.asarray(ts, np.float64)
+  if len(rs) == 0:
+    return rival
+  cos = (np.einsum("hij,ij->h", rs, r) - 1.0) / 2.0
+  far = (cos < np.cos(np.radians(RIVAL_DEG))) | (np.linalg.norm(ts - t, axis=1) > radius)
+  masks = host.inlier_masks(rs[far], ts[far], ev.src, ev.dst, threshold)
+  counts = np.sum(masks & ~np.asarray(near, bool), axis=1)
+  more = (counts > rival) & (counts >= REST_SHARE * n_winner)
+  if not more.any():
+    return rival
+  cand_r, counts = rs[far][more], counts[more]
+  top = np.argsort(-counts, kind="stable")[:REST_CANDIDATES]  # the best few decide
+  cand_r, counts = cand_r[top], counts[top]
+  cand_t_c = ts[far][more][top]
+  cand_t = cand_t_c + ev.cd - np.einsum("hij,j->hi", cand_r, ev.cs)
+  rng = np.random.default_rng([seed, 11])  # its own stream: ICP's draws stay as they were
+  sub = src_pts[np.sort(rng.choice(len(src_pts), min(1000, len(src_pts)), replace=False))]
+  fits = overlap_scores(np.concatenate([r[None], cand_r]),
+                        np.concatenate([(t + ev.cd - r @ ev.cs)[None], cand_t]), sub,
+                        target_grid, distance)
+  ok = fits[1:] >= REST_OVERLAP * fits[0]
+  return max(rival, int(counts[ok].max())) if ok.any() else rival
+
+
+def _overlap_constraints(source, target, grid, transform, distance) -> tuple[float, str]:
+  """`constraint_spectrum` of the overlap under `transform`: the `source` points within
+  `distance` of the target, with the target's PCA normals at their nearest points (radius as
+  `icp_host.estimate_target_normals`, computed at those points only)."""
+  source = np.asarray(source, np.float64)
+  source = source[::max(1, -(-len(source) // CONSTRAINT_POINTS))]  # an even, deterministic subset
+  moved = source @ transform[:3, :3].T + transform[:3, 3]
+  d, idx = engine.knn(grid, moved, 1, distance)
+  ok = np.isfinite(d[:, 0])
+  if ok.sum() < 6:
+    return 1.0, ""
+  near = np.asarray(target, np.float64)[np.unique(idx[ok, 0])]
+  gaps = engine.knn(grid, near, 2)[0][:, 1]
+  spacing = float(np.mean(gaps[np.isfinite(gaps)])) if np.isfinite(gaps).any() else 0.0
+  radius = icp_host.NORMAL_RADIUS_RATIO * float(distance)
+  if spacing > 0:
+    radius = min(radius, icp_host.NORMAL_RADIUS_SPACING * spacing)
+  count, _, cov = engine.ball_stats(grid, near, radius)
+  _, vec = np.linalg.eigh(cov)
+  normals = np.where((count >= 3)[:, None], vec[:, :, 0], np.nan)
+  return constraint_spectrum(near, normals)
 
 
 def _rival_inliers(rs, ts, src, dst, threshold, r, t, winner_mask, radius) -> int:
@@ -808,6 +972,19 @@ def _hypotheses(src, dst, f_src, f_dst, estimator: str, iterations: int, radius:
   return np.concatenate([gr, rs[seeds]]), np.concatenate([gt, ts[seeds]])
 
 
+# The rivals of the correspondences outside the winner's (`_rest_hypotheses`): those within
+# REST_FACTOR x the inlier distance of the winner belong to it and are left out, and are not
+# counted for these rivals.
+REST_FACTOR = 2.0
+# ... and such a rival counts only when its overlap is at least REST_OVERLAP x the winner's
+# (`_rest_rival`).
+REST_OVERLAP = 0.5
+# ... and explains at least REST_SHARE x the winner's inliers (a split of the correspondences) ...
+REST_SHARE = 0.8
+# ... of the REST_CANDIDATES such rivals with the most correspondences.
+REST_CANDIDATES = 16
+# Points of the overlap the degeneracy test (`_overlap_constraints`) reads at most.
+CONSTRAINT_POINTS = 2000
 # estimator="graph" (`graph.graph_hypotheses`): the LRF rotation agreement bound, the
 # seeds, the consensus set of each and the seeds' suppression radius in support radii.
 GRAPH_ANGLE_DEG = 45.0

@@ -1,0 +1,125 @@
+"""One verdict for every estimator and option: `Registration.success` and `.reason_code`.
+
+The evidence (the inliers of the winner, chance alignment, the best distinct pose, the aligned
+overlap and whether it pins the pose down) is counted the same way whatever produced the winner,
+so no option claims what the default's evidence would not.
+"""
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from lrf_jax import datasets
+from lrf_jax.registration import register
+from lrf_jax.registration.evidence import (REASON_CODES, Evidence, constraint_spectrum, decide,
+                                           verdict)
+
+KW = dict(n_keypoints=800, n_correspondences=200)
+
+
+def _evidence(**change):
+  base = dict(n_inliers=40, chance_inliers=5, rival_inliers=4, fitness=0.5, contrast=0.0,
+              estimator="graph")
+  return Evidence(**{**base, **change})
+
+
+@pytest.mark.parametrize("estimator", ["graph", "lrf", "3point"])
+def test_decide_gives_one_code_per_branch_and_the_same_rule_for_every_estimator(estimator):
+  assert decide(_evidence(estimator=estimator)).code == "claimed"
+  assert decide(_evidence(estimator=estimator, fitness=0.04)).code == "low_overlap"
+  assert decide(_evidence(estimator=estimator, chance_inliers=20)).code == "chance"
+  assert decide(_evidence(estimator=estimator, rival_inliers=20)).code == "rival"
+  d = decide(_evidence(estimator=estimator, degeneracy=0.001,
+                       free_direction="translation along (1.00, 0.00, 0.00)"))
+  assert (d.success, d.code) == (False, "degenerate") and "translation along" in d.reason
+  # the old rule of "lrf" and "3point" claimed few inliers on an overlap contrast: no more
+  assert decide(_evidence(estimator=estimator, n_inliers=7, chance_inliers=7,
+                          contrast=2.1)).success is False
+  for change in ({}, {"fitness": 0.04}, {"rival_inliers": 20}):
+    ok, reason = verdict(_evidence(estimator=estimator, **change))
+    d = decide(_evidence(estimator=estimator, **change))
+    assert (ok, reason) == (d.success, d.reason) and d.code in REASON_CODES
+
+
+def test_constraint_spectrum_finds_the_free_motion_of_a_plane_and_none_of_a_corner():
+  rng = np.random.default_rng(0)
+  xy = rng.uniform(-1, 1, size=(500, 2))
+  plane = np.c_[xy, np.zeros(len(xy))]
+  ratio, words = constraint_spectrum(plane, np.tile([0.0, 0.0, 1.0], (len(xy), 1)))
+  assert ratio < 1e-6 and words.startswith(("translation along", "rotation about"))
+  # three walls of a box corner pin every motion down
+  pts, nrm = [], []
+  for axis in range(3):
+    p = rng.uniform(0, 1, size=(300, 3))
+    p[:, axis] = 0.0
+    n = np.zeros((300, 3))
+    n[:, axis] = 1.0
+    pts.append(p)
+    nrm.append(n)
+  ratio, _ = constraint_spectrum(np.concatenate(pts), np.concatenate(nrm))
+  assert ratio > 0.05
+  assert constraint_spectrum(plane[:3], np.tile([0.0, 0.0, 1.0], (3, 1)))[0] == 1.0
+
+
+@pytest.fixture(scope="module")
+def demo():
+  return datasets.make_demo_pair(0, seed=0, noise_mr=0.1, partial=True)
+
+
+def test_a_real_pair_is_claimed_with_its_code_and_init_says_init_only(demo):
+  reg = register(demo.model_points, demo.scene_points, mr=demo.mr, **KW)
+  assert reg.success and reg.reason_code == "claimed"
+  assert reg.evidence_inliers == reg.n_inliers  # the default: the evidence is its own matching
+  ref = register(demo.model_points, demo.scene_points, mr=demo.mr, init=reg.transform)
+  assert ref.success is False and ref.reason_code == "init_only"
+
+
+@pytest.mark.parametrize("options", [{"estimator": "lrf"}, {"estimator": "3point"},
+                                     {"ratio": 0.9}, {"mutual": True}])
+def test_no_option_claims_blobs_or_a_mirror_image(demo, options):
+  """The findings: estimator "lrf" / "3point" claimed two Gaussian blobs and a mirror image on
+  their overlap contrast; every option now answers to the default's evidence."""
+  rng = np.random.default_rng(0)
+  a, b = rng.normal(size=(4000, 3)), rng.normal(size=(4000, 3))
+  reg = register(a, b, **KW, **options)
+  assert reg.success is False and reg.reason_code in ("chance", "rival", "no_hypothesis")
+  mirrored = register(demo.model_points, demo.scene_points * [-1, 1, 1], mr=demo.mr, **KW,
+                      **options)
+  assert mirrored.success is False, (options, mirrored.reason)
+  assert mirrored.reason_code != "claimed"
+
+
+def test_graph_hypotheses_without_seeds_fall_back_to_not_sure(monkeypatch, demo):
+  """ratio=0.9 raised an IndexError where no two of the few correspondences agreed (no seed,
+  no hypothesis): now the one-correspondence poses stand in and the verdict says so."""
+  from lrf_jax.registration import graph
+  empty = (np.zeros((0, 3, 3)), np.zeros((0, 3)), np.zeros(0, np.int64), np.zeros(0))
+  monkeypatch.setattr(graph, "graph_hypotheses", lambda *a, **k: empty)
+  reg = register(demo.model_points, demo.scene_points, mr=demo.mr, **KW)
+  assert reg.success is False and reg.reason_code == "no_hypothesis"
+  assert np.all(np.isfinite(reg.transform))
+
+
+def test_two_identical_copies_side_by_side_are_a_rival_not_a_success():
+  """The correspondences split between two copies of the object: the winner's seeds used to
+  suppress the second copy's, so no hypothesis saw it and the verdict claimed one copy."""
+  pair = datasets.make_demo_pair(0, seed=0, noise_mr=0.1, partial=False)
+  src = pair.model_points
+  r = Rotation.from_euler("xyz", [30, 50, 10], degrees=True).as_matrix()
+  copy = src @ r.T
+  shift = 1.5 * np.ptp(src, axis=0).max()
+  twin = np.concatenate([copy, copy + [shift, 0, 0]])
+  reg = register(src, twin, mr=pair.mr, n_keypoints=1500, n_correspondences=500)
+  assert reg.success is False and reg.reason_code == "rival", reg.reason
+  single = register(src, copy, mr=pair.mr, n_keypoints=1500, n_correspondences=500)
+  assert single.success and single.reason_code == "claimed"
+
+
+@pytest.mark.parametrize("estimator", ["graph", "lrf"])
+def test_a_plane_against_itself_shifted_is_degenerate_and_names_the_free_direction(estimator):
+  rng = np.random.default_rng(0)
+  a = np.c_[rng.uniform(-20, 20, size=(6000, 2)), 0.02 * rng.normal(size=6000)]
+  b = np.c_[rng.uniform(-20, 20, size=(6000, 2)) + [8, 0], 0.02 * rng.normal(size=6000)]
+  reg = register(a, b, estimator=estimator, **KW)
+  assert reg.success is False and reg.reason_code == "degenerate", reg.reason
+  assert "translation along" in reg.reason or "rotation about" in reg.reason

@@ -125,10 +125,6 @@ def _print_result(res, out) -> None:
   print(f"# {int(res.in_model.sum())}/{len(res.names)} scans in the model (frame of "
         f"{res.names[res.reference]}), {sum(e.accepted for e in res.edges)}/{len(res.edges)} "
         f"edges accepted, mr {res.mr:.6g}, {res.seconds:.1f} s", file=sys.stderr)
-  weak = [n for n, w in zip(res.names, res.weakly_placed) if w]
-  if weak:
-    print(f"# placed only through not-sure edges (confirmed by registering them against the "
-          f"scans confident edges join): {', '.join(weak)}", file=sys.stderr)
   if res.left_out:
     print(f"# left out (not merged, no pose written): {', '.join(res.left_out)}",
           file=sys.stderr)

@@ -115,10 +115,7 @@ class MultiwayResult:
     edges: every candidate pair, in the order registered.
     mr: the mesh resolution used as the unit (cloud units).
     seconds: wall time of the call.
-    timings: seconds per stage: "load", "pairwise", "graph", "confirm", "refine".
-    weakly_placed: (n,) bool, the scans of the model placed only through "not sure" edges (not
-      joined to the model's core by confident edges); each was confirmed by registering it,
-      with the scans confident edges join it to, against the core (`_confirm_weak`).
+    timings: seconds per stage: "load", "pairwise", "graph", "refine".
   """
 
   names: tuple[str, ...]
@@ -129,7 +126,6 @@ class MultiwayResult:
   mr: float
   seconds: float
   timings: dict = dataclasses.field(default_factory=dict)
-  weakly_placed: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros(0, bool))
 
   @property
   def left_out(self) -> list[str]:
@@ -449,66 +445,6 @@ def _model(component: np.ndarray) -> int:
   return int(labels[np.argmax(counts)])  # np.unique sorts, argmax takes the first maximum
 
 
-def _core(label: np.ndarray, in_model: np.ndarray) -> int:
-  """The label of the model's largest group of scans joined by confident edges (ties: the
-  earliest scan)."""
-  labels, counts = np.unique(label[in_model], return_counts=True)
-  return int(labels[np.argmax(counts)])
-
-
-def _confirm_weak(clouds, edges, accepted, poses, *, run, mr, seed, reject_mr, register_kw
-                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-  """Stage "confirm": a group of scans that "not sure" edges alone join to the model stays only
-  when evidence two wrong edges cannot give each other confirms it.
-
-  Two wrong "not sure" edges can agree (a foreign fragment matched twice onto the same wall of
-  two overlapping scans), so their agreement alone never places a scan. The model's core is its
-  largest group joined by confident edges; every other group of the model (joined to the core
-  by accepted "not sure" edges only) is registered as one cloud, in the pose the graph gives it,
-  against the core's scans merged in theirs: it stays when that registration is confident
-  ("success") and agrees with the graph (its points within `reject_mr` mr of where the graph
-  puts them); otherwise the accepted edges between it and the rest of the model are withdrawn,
-  and it leaves the model (or forms a component of its own).
-
-  Returns:
-    (accepted (E,), component (n,) labels of the final accepted edges, weakly_placed (n,)).
-  """
-  n = len(clouds)
-  accepted = accepted.copy()
-  component = pose_graph.components(n, [(e.i, e.j) for e, a in zip(edges, accepted) if a])
-  strong = pose_graph.components(n, [(e.i, e.j) for e, a in zip(edges, accepted)
-                                     if a and e.verdict == "success"])
-  weakly = np.zeros(n, bool)
-  model = component == _model(component)
-  if len(np.unique(strong[model])) < 2:
-    return accepted, component, weakly
-  core = _core(strong, model)
-  core_pts = np.concatenate([_apply(poses[k], clouds[k]) for k in np.flatnonzero(strong == core)])
-  for g in np.unique(strong[model]):
-    if g == core:
-      continue
-    members = np.flatnonzero(strong == g)
-    group = np.concatenate([_apply(poses[k], clouds[k]) for k in members])
-    ok = False
-    try:
-      reg = run(group, core_pts, mr=mr, seed=seed, **register_kw)
-      moved = _apply(np.asarray(reg.transform, np.float64), group)
-      rms = float(np.sqrt(np.mean(np.sum((moved - group) ** 2, axis=1))))
-      ok = bool(reg.success) and rms <= reject_mr * mr
-    except ValueError:
-      ok = False
-    if ok:
-      weakly[members] = True
-      continue
-    inside = np.isin(np.arange(n), members)
-    for k, e in enumerate(edges):
-      if accepted[k] and inside[e.i] != inside[e.j]:
-        accepted[k] = False
-  component = pose_graph.components(n, [(e.i, e.j) for e, a in zip(edges, accepted) if a])
-  weakly &= component == _model(component)
-  return accepted, component, weakly
-
-
 def register_all(scans: Sequence[Any], *, names: Sequence[str] | None = None,
                  mr: float | None = None, all_pairs_max: int = ALL_PAIRS_MAX,
                  neighbors: int = 1, loop_candidates: int = 3, reject_mr: float = 5.0,
@@ -587,16 +523,9 @@ def register_all(scans: Sequence[Any], *, names: Sequence[str] | None = None,
   t = time.perf_counter()
   poses, accepted, errors, component = _graph(n, edges, points, mr=mr, reject_mr=reject_mr,
                                               robust_mr=robust_mr, seed=seed)
-  timings["graph"] = time.perf_counter() - t
-  t = time.perf_counter()
-  from lrf_jax.registration import register
-  accepted, component, weakly = _confirm_weak(
-      [c.points for c in clouds], edges, accepted, poses, run=pairwise or register, mr=mr,
-      seed=seed, reject_mr=reject_mr, register_kw=register_kw)
   reference = _model(component)
   in_model = component == reference
-  poses = np.linalg.inv(poses[reference]) @ poses  # the model's earliest scan is its gauge
-  timings["confirm"] = time.perf_counter() - t
+  timings["graph"] = time.perf_counter() - t
   t = time.perf_counter()
   kept = [(e.i, e.j) for e, a in zip(edges, accepted) if a and in_model[e.i]]
   if refine and kept:
@@ -614,8 +543,7 @@ def register_all(scans: Sequence[Any], *, names: Sequence[str] | None = None,
     final.append(dataclasses.replace(e, accepted=bool(a), residual_mr=res))
   return MultiwayResult(names=tuple(names), poses=poses, in_model=in_model,
                         reference=reference, edges=tuple(final), mr=float(mr),
-                        seconds=time.perf_counter() - t0, timings=timings,
-                        weakly_placed=weakly & in_model)
+                        seconds=time.perf_counter() - t0, timings=timings)
 
 
 def merged_cloud(clouds: Sequence[np.ndarray], result: MultiwayResult, *,
@@ -652,29 +580,21 @@ def merged_cloud(clouds: Sequence[np.ndarray], result: MultiwayResult, *,
 
 
 EDGE_COLUMNS = ("source", "target", "verdict", "reason_code", "inliers", "overlap", "residual_mr",
-                "graph", "placement", "reason")
+                "graph", "reason")
 
 
 def edges_table(result: MultiwayResult) -> str:
   """The edges as tab-separated text, a header line first (`EDGE_COLUMNS`): the pair (source
   moved onto target), the pairwise verdict and its `reason_code` ("-" when none), inliers,
-  overlap, the residual under the final poses in mr ("-" when a scan is not in the model),
-  "accepted" or "rejected", the placement of its scans ("confident": both joined to the model's
-  core by confident edges; "weak:<names>": those of its scans placed only through "not sure"
-  edges, `MultiwayResult.weakly_placed`; "-": a scan not in the model) and the reason."""
+  overlap, the residual under the final
+  poses in mr ("-" when a scan is not in the model) and "accepted" or "rejected"."""
   lines = ["\t".join(EDGE_COLUMNS)]
-  weak = (result.weakly_placed if len(result.weakly_placed) == len(result.names)
-          else np.zeros(len(result.names), bool))
   for e in result.edges:
     res = f"{e.residual_mr:.3f}" if np.isfinite(e.residual_mr) else "-"
-    placement = "-"
-    if result.in_model[e.i] and result.in_model[e.j]:
-      names = [result.names[k] for k in (e.i, e.j) if weak[k]]
-      placement = "weak:" + ",".join(names) if names else "confident"
     lines.append("\t".join([result.names[e.i], result.names[e.j], e.verdict,
                             e.reason_code or "-", str(e.n_inliers),
                             f"{e.overlap:.3f}", res, "accepted" if e.accepted else "rejected",
-                            placement, " ".join(e.reason.split())]))
+                            " ".join(e.reason.split())]))
   return "\n".join(lines) + "\n"
 
 

@@ -47,8 +47,8 @@ def validate_cloud(points: np.ndarray, name: str = "points", columns: int = 3) -
   if bad.any():
     first = int(np.flatnonzero(bad)[0])
     raise ValueError(
-        f"{name}: expected finite coordinates, got {int(bad.sum())} point(s) with NaN or inf "
-        f"(first at row {first}: {arr[first].tolist()})")
+        f"{name}: expected finite coordinates, got {int(bad.sum())} non-finite point(s) (NaN or "
+        f"inf; first at row {first}: {arr[first].tolist()})")
   return arr
 
 

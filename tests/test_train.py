@@ -323,3 +323,83 @@ def test_smoke_run_tells_the_user_what_it_does_and_hides_orbax_noise(tmp_path, s
                "final_params.msgpack", "best_params.msgpack"):
     assert str(tmp_path / name) in wrote
   assert "{" not in out.out  # no raw dict
+
+
+def _flip_bytes_in_largest_file(step_dir: Path) -> Path:
+  """16 bytes flipped at 10 % of the largest file of a checkpoint (a corrupt array file that
+  still decodes)."""
+  largest = max((p for p in step_dir.rglob("*") if p.is_file()), key=lambda p: p.stat().st_size)
+  data = bytearray(largest.read_bytes())
+  at = len(data) // 10
+  data[at:at + 16] = bytes(b ^ 0xFF for b in data[at:at + 16])
+  largest.write_bytes(bytes(data))
+  return largest
+
+
+def test_checkpoint_with_flipped_bytes_is_set_aside_and_named(tmp_path, smoke, capfd):
+  """A checkpoint whose array file was corrupted (finite but wrong numbers can decode) fails its
+  checksum: the run resumes from the previous one, names it, and `restore_params` raises."""
+  cfg = config_lib.replace(smoke, epochs=2)
+  train_lib.train_and_evaluate(cfg, tmp_path, progress=False, stop_after_steps=12)
+  assert (tmp_path / "checkpoints" / "12" / "checksum").is_dir()
+  _flip_bytes_in_largest_file(tmp_path / "checkpoints" / "12" / "state")
+  with pytest.raises(checkpoints.ChecksumError, match=r"checkpoints/12\b.*checksum"):
+    checkpoints.restore_params(tmp_path, "latest")
+  capfd.readouterr()
+  with pytest.warns(UserWarning, match=r"checkpoints/12 \(ChecksumError\).*resumed from "
+                                       r"checkpoints/8"):
+    final = train_lib.train_and_evaluate(cfg, tmp_path, progress=False)
+  err = capfd.readouterr().err
+  assert "resuming from step 8 " in err and "Traceback" not in err, err[:2000]
+  assert final["step"] == cfg.total_steps
+  assert (tmp_path / "checkpoints" / "12.unreadable").is_dir()
+  params = load_params(tmp_path / "final_params.msgpack")
+  assert max(float(np.abs(x).max()) for x in jax.tree.leaves(params)) < 1e3
+
+
+def test_state_checksum_sees_one_changed_element(smoke):
+  state = jax.tree.map(np.array, checkpoints._state_target(train_step.create_state(smoke)))
+  before = checkpoints.state_checksum(state)
+  assert checkpoints.state_checksum(jax.tree.map(np.copy, state)) == before
+  leaf = jax.tree.leaves(state["params"])[0]
+  leaf.reshape(-1)[0] += 1
+  assert checkpoints.state_checksum(state) != before
+
+
+def test_second_run_in_a_locked_workdir_is_one_error_naming_the_holder(tmp_path, capsys):
+  """Two train.py in one workdir: the second stops before any work (exit 2, one error: line
+  naming the workdir and the holder's pid)."""
+  holder = subprocess.Popen(
+      [sys.executable, "-c", "import sys, time; from pathlib import Path; "
+       "from lrf_jax.learning.train_lib import workdir_lock\n"
+       "with workdir_lock(Path(sys.argv[1])):\n  print('locked', flush=True); time.sleep(600)",
+       str(tmp_path)], stdout=subprocess.PIPE, text=True, cwd=REPO,
+      env={**os.environ, "PYTHONPATH": str(REPO)})
+  try:
+    assert holder.stdout.readline().strip() == "locked"
+    sys.path.insert(0, str(REPO))
+    import train
+    rc = train.main(["--config", "smoke", "--workdir", str(tmp_path), "--no-progress"])
+    err = capsys.readouterr().err
+    assert rc == 2, err
+    lines = err.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("error: "), err
+    assert str(tmp_path) in err and f"pid {holder.pid}" in err, err
+    assert not (tmp_path / "metrics.jsonl").exists() and not (tmp_path / "checkpoints").exists()
+  finally:
+    holder.kill()
+    holder.wait()
+
+
+def test_stale_workdir_lock_is_taken_over(tmp_path):
+  dead = subprocess.Popen([sys.executable, "-c", "pass"])
+  dead.wait()
+  (tmp_path / train_lib.LOCK_FILE).write_text(f"{dead.pid}\n")
+  with train_lib.workdir_lock(tmp_path):
+    assert (tmp_path / train_lib.LOCK_FILE).read_text() == f"{os.getpid()}\n"
+    with pytest.raises(train_lib.WorkdirLockedError, match=rf"pid {os.getpid()}\b"):
+      with train_lib.workdir_lock(tmp_path):
+        pass
+  assert not (tmp_path / train_lib.LOCK_FILE).exists()  # removed at the end of the block
+  with train_lib.workdir_lock(tmp_path):  # and free again
+    pass

@@ -323,3 +323,44 @@ def test_smoke_run_tells_the_user_what_it_does_and_hides_orbax_noise(tmp_path, s
                "final_params.msgpack", "best_params.msgpack"):
     assert str(tmp_path / name) in wrote
   assert "{" not in out.out  # no raw dict
+
+
+def _flip_bytes_in_largest_file(step_dir: Path) -> Path:
+  """16 bytes flipped at 10 % of the largest file of a checkpoint (a corrupt array file that
+  still decodes)."""
+  largest = max((p for p in step_dir.rglob("*") if p.is_file()), key=lambda p: p.stat().st_size)
+  data = bytearray(largest.read_bytes())
+  at = len(data) // 10
+  data[at:at + 16] = bytes(b ^ 0xFF for b in data[at:at + 16])
+  largest.write_bytes(bytes(data))
+  return largest
+
+
+def test_checkpoint_with_flipped_bytes_is_set_aside_and_named(tmp_path, smoke, capfd):
+  """A checkpoint whose array file was corrupted (finite but wrong numbers can decode) fails its
+  checksum: the run resumes from the previous one, names it, and `restore_params` raises."""
+  cfg = config_lib.replace(smoke, epochs=2)
+  train_lib.train_and_evaluate(cfg, tmp_path, progress=False, stop_after_steps=12)
+  assert (tmp_path / "checkpoints" / "12" / "checksum").is_dir()
+  _flip_bytes_in_largest_file(tmp_path / "checkpoints" / "12" / "state")
+  with pytest.raises(checkpoints.ChecksumError, match=r"checkpoints/12\b.*checksum"):
+    checkpoints.restore_params(tmp_path, "latest")
+  capfd.readouterr()
+  with pytest.warns(UserWarning, match=r"checkpoints/12 \(ChecksumError\).*resumed from "
+                                       r"checkpoints/8"):
+    final = train_lib.train_and_evaluate(cfg, tmp_path, progress=False)
+  err = capfd.readouterr().err
+  assert "resuming from step 8 " in err and "Traceback" not in err, err[:2000]
+  assert final["step"] == cfg.total_steps
+  assert (tmp_path / "checkpoints" / "12.unreadable").is_dir()
+  params = load_params(tmp_path / "final_params.msgpack")
+  assert max(float(np.abs(x).max()) for x in jax.tree.leaves(params)) < 1e3
+
+
+def test_state_checksum_sees_one_changed_element(smoke):
+  state = jax.tree.map(np.array, checkpoints._state_target(train_step.create_state(smoke)))
+  before = checkpoints.state_checksum(state)
+  assert checkpoints.state_checksum(jax.tree.map(np.copy, state)) == before
+  leaf = jax.tree.leaves(state["params"])[0]
+  leaf.reshape(-1)[0] += 1
+  assert checkpoints.state_checksum(state) != before

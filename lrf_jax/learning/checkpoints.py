@@ -6,10 +6,17 @@ The `CheckpointManager` keeps the latest two checkpoints and the best one by val
 finished run. A checkpoint holds the state's params, opt_state and step (host arrays) and the
 run's `TrainConfig` as JSON. In a multi-process run every process takes part in each save and
 restore (orbax works collectively); only process 0 (`is_primary`) renames files and warns.
+
+Each checkpoint also holds a checksum item: the SHA-256 of the state's leaves (path, dtype,
+shape and bytes) as saved. A restore recomputes it from what was read and refuses a checkpoint
+whose arrays differ (`ChecksumError`): a flipped byte in an array file can decode to finite but
+wrong numbers that no other check sees. Checkpoints written before the checksum existed are
+restored without it.
 """
 
 from __future__ import annotations
 
+import hashlib
 import json
 import logging
 import warnings
@@ -61,7 +68,42 @@ def checkpoint_manager(workdir: Path, create: bool = True) -> ocp.CheckpointMana
       preservation_policy=policy, best_fn=lambda m: m["val_meancos"], best_mode="max",
       create=create)
   return ocp.CheckpointManager((Path(workdir) / "checkpoints").absolute(), options=options,
-                               item_names=("state", "config"))
+                               item_names=("state", "config", "checksum"))
+
+
+class ChecksumError(ValueError):
+  """A checkpoint's arrays differ from the checksum saved with them (a corrupt file)."""
+
+
+def state_checksum(target: Any) -> str:
+  """SHA-256 (hex) of a checkpointed state (`_state_target`): each leaf's path, shape and values,
+  in tree order. Integer leaves are hashed as int64 (the restore target's step counter may be
+  int64 where the trained one is int32); floating leaves in their own dtype, bit for bit."""
+  h = hashlib.sha256()
+  for path, leaf in jax.tree_util.tree_flatten_with_path(target)[0]:
+    a = np.asarray(leaf)
+    if not np.issubdtype(a.dtype, np.floating):
+      a = a.astype(np.int64)
+    h.update(f"{jax.tree_util.keystr(path)}|{a.dtype.str}|{a.shape}|".encode())
+    h.update(np.ascontiguousarray(a).tobytes())
+  return h.hexdigest()
+
+
+def _restore_state(mngr: ocp.CheckpointManager, step: int, target: dict[str, Any]) -> dict[str, Any]:
+  """The state of checkpoint `step`, verified against its saved checksum (when it has one).
+
+  Raises:
+    ChecksumError: the arrays read differ from those saved (the message names the step).
+  """
+  restored = mngr.restore(step, args=ocp.args.Composite(
+      state=ocp.args.StandardRestore(target)))["state"]
+  if (Path(mngr.directory) / str(step) / "checksum").is_dir():
+    saved = mngr.restore(step, args=ocp.args.Composite(
+        checksum=ocp.args.JsonRestore()))["checksum"]
+    if not isinstance(saved, dict) or saved.get("sha256") != state_checksum(restored):
+      raise ChecksumError(f"checkpoints/{step}: its arrays differ from the checksum saved with "
+                          "them (a corrupt file)")
+  return restored
 
 
 def check_compatible(saved: dict[str, Any], config: TrainConfig, where: Path) -> None:
@@ -82,6 +124,8 @@ def restore_params(workdir: str | Path, which: str = "best") -> tuple[Any, Train
   Raises:
     FileNotFoundError: `workdir` has no checkpoints/ folder, or no checkpoint (for "best": none
       ranked by validation) in it.
+    ChecksumError: that checkpoint's arrays differ from its saved checksum (a corrupt file); the
+      message names the workdir and the step.
   """
   root = Path(workdir) / "checkpoints"
   if not root.is_dir():
@@ -94,9 +138,11 @@ def restore_params(workdir: str | Path, which: str = "best") -> tuple[Any, Train
   cfg_dict = mngr.restore(step, args=ocp.args.Composite(config=ocp.args.JsonRestore()))["config"]
   config = TrainConfig.from_dict({k: tuple(v) if isinstance(v, list) else v
                                   for k, v in cfg_dict.items()})
-  restored = mngr.restore(step, args=ocp.args.Composite(
-      state=ocp.args.StandardRestore(_state_target(create_state(config)))))
-  return restored["state"]["params"], config
+  try:
+    restored = _restore_state(mngr, step, _state_target(create_state(config)))
+  except ChecksumError as e:
+    raise ChecksumError(f"{workdir}: {e}") from None
+  return restored["params"], config
 
 
 def save_checkpoint(mngr: ocp.CheckpointManager, step: int, state: TrainState,
@@ -106,9 +152,11 @@ def save_checkpoint(mngr: ocp.CheckpointManager, step: int, state: TrainState,
   metrics: {"val_meancos": ...} to rank it among the best, or None (kept as one of the latest
   only).
   """
+  target = _state_target(state)
   mngr.save(step, args=ocp.args.Composite(
-      state=ocp.args.StandardSave(_state_target(state)),
-      config=ocp.args.JsonSave(json.loads(config.to_json()))), metrics=metrics)
+      state=ocp.args.StandardSave(target),
+      config=ocp.args.JsonSave(json.loads(config.to_json())),
+      checksum=ocp.args.JsonSave({"sha256": state_checksum(target)})), metrics=metrics)
 
 
 def _state_target(state: TrainState) -> dict[str, Any]:
@@ -131,7 +179,8 @@ def restore_readable(mngr: ocp.CheckpointManager, state: TrainState, config: Tra
                      workdir: Path) -> tuple[ocp.CheckpointManager, TrainState]:
   """Restore the newest readable checkpoint, newest first.
 
-  An unreadable one (a corrupt file, non-finite parameters) is renamed
+  An unreadable one (a corrupt file, arrays that differ from the checksum saved with them,
+  non-finite parameters) is renamed
   `checkpoints/<step>.unreadable` (kept, out of the way of the steps replayed over it) with one
   warning naming it. A checkpoint written under an incompatible config is an error, not skipped.
   In a multi-process run process 0 renames and warns, and the others wait for it.
@@ -156,8 +205,7 @@ def restore_readable(mngr: ocp.CheckpointManager, state: TrainState, config: Tra
       continue
     check_compatible(saved["config"], config, workdir)
     try:
-      restored = mngr.restore(step, args=ocp.args.Composite(
-          state=ocp.args.StandardRestore(_state_target(state))))["state"]
+      restored = _restore_state(mngr, step, _state_target(state))
       bad = nonfinite_leaves(restored["params"])
       if bad:
         raise FloatingPointError(f"non-finite parameters in {bad}")

@@ -9,7 +9,8 @@
 Overrides are `key=value` fields of `lrf_jax.learning.config.TrainConfig`. A run restarted with the same
 --workdir resumes from its latest checkpoint, under the same config: another config is an
 error naming the fields that differ, unless --replace-config (config.json is kept, the new
-config is written as config.<n>.json and noted in metrics.jsonl). Every bad argument, config or
+config is written as config.<n>.json and noted in metrics.jsonl). One run at a time holds a
+workdir (`train.lock`): a second run there is refused, naming the first one's pid. Every bad argument, config or
 unwritable file is one `error:` line and exit code 2 (1: the run diverged). With --coordinator, the processes join one
 `jax.distributed` job (gloo collectives on CPU), the batch is split over the devices of all of
 them, the workdir must be shared, and only process 0 prints and writes files besides the

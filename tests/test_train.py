@@ -364,3 +364,41 @@ def test_state_checksum_sees_one_changed_element(smoke):
   leaf = jax.tree.leaves(state["params"])[0]
   leaf.reshape(-1)[0] += 1
   assert checkpoints.state_checksum(state) != before
+
+
+def test_second_run_in_a_locked_workdir_is_one_error_naming_the_holder(tmp_path, capsys):
+  """Two train.py in one workdir: the second stops before any work (exit 2, one error: line
+  naming the workdir and the holder's pid)."""
+  holder = subprocess.Popen(
+      [sys.executable, "-c", "import sys, time; from pathlib import Path; "
+       "from lrf_jax.learning.train_lib import workdir_lock\n"
+       "with workdir_lock(Path(sys.argv[1])):\n  print('locked', flush=True); time.sleep(600)",
+       str(tmp_path)], stdout=subprocess.PIPE, text=True, cwd=REPO,
+      env={**os.environ, "PYTHONPATH": str(REPO)})
+  try:
+    assert holder.stdout.readline().strip() == "locked"
+    sys.path.insert(0, str(REPO))
+    import train
+    rc = train.main(["--config", "smoke", "--workdir", str(tmp_path), "--no-progress"])
+    err = capsys.readouterr().err
+    assert rc == 2, err
+    lines = err.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("error: "), err
+    assert str(tmp_path) in err and f"pid {holder.pid}" in err, err
+    assert not (tmp_path / "metrics.jsonl").exists() and not (tmp_path / "checkpoints").exists()
+  finally:
+    holder.kill()
+    holder.wait()
+
+
+def test_stale_workdir_lock_is_taken_over(tmp_path):
+  dead = subprocess.Popen([sys.executable, "-c", "pass"])
+  dead.wait()
+  (tmp_path / train_lib.LOCK_FILE).write_text(f"{dead.pid}\n")
+  with train_lib.workdir_lock(tmp_path):
+    assert (tmp_path / train_lib.LOCK_FILE).read_text() == f"{os.getpid()}\n"
+    with pytest.raises(train_lib.WorkdirLockedError, match=rf"pid {os.getpid()}\b"):
+      with train_lib.workdir_lock(tmp_path):
+        pass
+  with train_lib.workdir_lock(tmp_path):  # released at the end of the block
+    pass

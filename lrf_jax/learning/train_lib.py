@@ -25,19 +25,26 @@ the state, optimiser and step in `lrf_jax.learning.train_step`, checkpoints in `
   leaves the previous file and raises `WriteError`. metrics.jsonl is appended one record at a
   time (one write, flush and fsync; a failed append is truncated away); a torn last line left
   by a killed process is dropped when the run resumes.
+* One run per workdir: process 0 holds an exclusive lock (`fcntl.flock`) on
+  `<workdir>/train.lock` for the whole run, with its pid written inside; a second run in the
+  same workdir stops at once with `WorkdirLockedError` naming the holder's pid. The lock dies
+  with its process, so the lock file of a killed run (a dead pid) is simply taken over.
 """
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
+import fcntl
 import json
 import math
+import os
 import sys
 import textwrap
 import time
 from pathlib import Path
 from typing import Any, NamedTuple
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 
 import jax
 import jax.numpy as jnp
@@ -157,6 +164,7 @@ def train_and_evaluate(config: TrainConfig, workdir: str | Path, *,
     {"step", "loss", "val_meancos", ...} of the last step.
 
   Raises:
+    WorkdirLockedError: another run holds the workdir (a ValueError).
     ValueError: `workdir` is a file, its run was started under another config (without
       `replace_config`), or its checkpoints are incompatible or unreadable.
     FloatingPointError: the run diverged (see `check_finite`).
@@ -166,6 +174,54 @@ def train_and_evaluate(config: TrainConfig, workdir: str | Path, *,
   if workdir.exists() and not workdir.is_dir():
     raise ValueError(f"--workdir: {workdir} is a file; expected a folder (new or a run's)")
   workdir.mkdir(parents=True, exist_ok=True)
+  with workdir_lock(workdir):
+    return _train(config, workdir, clouds=clouds, val_pairs=val_pairs,
+                  stop_after_steps=stop_after_steps, progress=progress,
+                  replace_config=replace_config)
+
+
+LOCK_FILE = "train.lock"
+
+
+class WorkdirLockedError(ValueError):
+  """Another train.py holds the workdir's lock (the message names the workdir and its pid)."""
+
+
+@contextlib.contextmanager
+def workdir_lock(workdir: Path) -> Iterator[None]:
+  """Hold `<workdir>/train.lock` (process 0 only; the other processes of a multi-process run
+  share the workdir with it) for the duration of the block.
+
+  Raises:
+    WorkdirLockedError: another process holds it.
+  """
+  if not is_primary():
+    yield
+    return
+  path = Path(workdir) / LOCK_FILE
+  fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o644)
+  try:
+    try:
+      fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except BlockingIOError:
+      holder = os.pread(fd, 64, 0).decode("ascii", "replace").strip() or "unknown"
+      raise WorkdirLockedError(
+          f"--workdir: {workdir} is in use by another train.py (pid {holder}); wait for it to "
+          "finish, stop it, or choose another --workdir") from None
+    os.ftruncate(fd, 0)
+    os.pwrite(fd, f"{os.getpid()}\n".encode(), 0)
+    try:
+      yield
+    finally:
+      fcntl.flock(fd, fcntl.LOCK_UN)
+  finally:
+    os.close(fd)
+
+
+def _train(config: TrainConfig, workdir: Path, *, clouds: TrainingClouds | None,
+           val_pairs: list[Any] | None, stop_after_steps: int | None, progress: bool,
+           replace_config: bool) -> dict:
+  """`train_and_evaluate` once the workdir is locked."""
   replaced = resume_config(workdir, config, replace_config)
   maker, val = _training_data(config, clouds, val_pairs)
   mesh = _mesh(config)

@@ -507,3 +507,13 @@ def test_bunny_scans_within_a_degree_and_two_mm(data_root):
   for k, n in enumerate(names):
     err_r, err_t = pose_errors(res.poses[k], np.linalg.inv(world["bun000"]) @ world[n], 1e-3)
     assert err_r < 1.0 and err_t < 2.0, (n, err_r, err_t)
+
+
+@pytest.mark.parametrize("all_pairs_max", [0, 1, 2])
+def test_candidate_pairs_never_pair_a_scan_with_itself(all_pairs_max):
+  """Fewer scans than loop candidates + 1 (3 scans, 3 candidates): every pair (i, j), i < j,
+  once; a scan's own distance (inf) was taken as its third candidate, (0, 0) an edge that
+  `register_all` refused after the pairwise work."""
+  clouds = [np.random.default_rng(k).random((200, 3)) * (1 + k) for k in range(3)]
+  pairs = multiway.candidate_pairs(clouds, all_pairs_max=all_pairs_max)
+  assert pairs == [(0, 1), (0, 2), (1, 2)]

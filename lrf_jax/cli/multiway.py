@@ -42,7 +42,9 @@ def build_parser() -> argparse.ArgumentParser:
   ap.add_argument("--mr", type=float, default=None,
                   help="mesh resolution in the clouds' units (default: median over the scans)")
   ap.add_argument("--radius-mr", type=float, default=15.0, help="support radius in mr (15)")
-  ap.add_argument("--keypoints", type=int, default=3000, help="keypoints per scan (3000)")
+  ap.add_argument("--keypoints", default="3000", metavar="N|DETECTOR",
+                  help="keypoints per scan: a count of seeded random points (3000), or a "
+                       "detector name: 'iss' (ISS keypoints, at most 3000) or 'random'")
   ap.add_argument("--method", default="lrf_net_plus", help="LRF method (lrf_net_plus)")
   ap.add_argument("--viewpoint", type=float, nargs=3, default=None, metavar=("X", "Y", "Z"),
                   help="sensor position of every scan, in each scan's own frame")
@@ -88,6 +90,9 @@ def _check(args: argparse.Namespace) -> str | None:
     val = getattr(args, name)
     if val is not None and not (np.isfinite(val) and val > 0):
       return f"--{name.replace('_', '-')}: expected a positive number, got {val}"
+  problem = _check_register_options(args)
+  if problem:
+    return problem
   for s in args.scans:
     if path_problem(s):
       return f"{s}: {path_problem(s)}"
@@ -119,6 +124,25 @@ def _check(args: argparse.Namespace) -> str | None:
   return None
 
 
+def _check_register_options(args: argparse.Namespace) -> str | None:
+  """What is wrong with --all-pairs-max and the options passed to every pairwise registration
+  (--keypoints, --method, --radius-mr, --viewpoint), before any work (None: fine)."""
+  from lrf_jax.cli.register import option_message, parse_keypoints
+  from lrf_jax.registration.multiway import check_counts
+  from lrf_jax.registration.pipeline import check_register_options
+  names = {"all_pairs_max": "all_pairs_max", "n_keypoints": "keypoints",
+           "keypoints": "keypoints", "radius_mr": "radius_mr", "method": "method",
+           "source_viewpoint": "viewpoint", "target_viewpoint": "viewpoint"}
+  try:
+    check_counts(all_pairs_max=args.all_pairs_max)
+    check_register_options(radius_mr=args.radius_mr, method=args.method,
+                           source_viewpoint=args.viewpoint, seed=args.seed,
+                           **parse_keypoints(args.keypoints))
+  except ValueError as e:
+    return option_message(str(e), names)
+  return None
+
+
 def _print_result(res, out) -> None:
   from lrf_jax.registration.multiway import edges_table
   print(edges_table(res), end="", file=out)
@@ -138,6 +162,7 @@ def main(argv: list[str] | None = None) -> int:
     return 2
   from lrf_jax import compilation_cache
   compilation_cache.enable()
+  from lrf_jax.cli.register import parse_keypoints
   from lrf_jax.io.atomic import WriteError
   from lrf_jax.registration.multiway import load_scans, register_all, scan_names, write_outputs
   try:
@@ -146,8 +171,8 @@ def main(argv: list[str] | None = None) -> int:
     res = register_all(clouds, names=names, mr=args.mr, seed=args.seed, refine=not args.no_refine,
                        reject_mr=args.reject_mr, all_pairs_max=args.all_pairs_max,
                        viewpoints=args.viewpoint, progress=not args.quiet,
-                       radius_mr=args.radius_mr, n_keypoints=args.keypoints,
-                       method=args.method)
+                       radius_mr=args.radius_mr, method=args.method,
+                       **parse_keypoints(args.keypoints))
   except (ValueError, FileNotFoundError) as e:
     print(f"error: {e}", file=sys.stderr)
     return 2

@@ -51,6 +51,7 @@ from lrf_jax.registration.icp_host import estimate_target_normals
 from lrf_jax.inputs import as_cloud
 from lrf_jax.io.cloud import Cloud
 from lrf_jax.geometry.resolution import mesh_resolution
+from lrf_jax.search.neighborhoods import validate_viewpoint
 
 __all__ = ["MANIFEST", "MultiwayEdge", "MultiwayResult", "candidate_pairs", "check_names",
            "check_out_dir", "edges_table", "load_scans", "merged_cloud", "output_paths",
@@ -261,7 +262,7 @@ def candidate_pairs(clouds: Sequence[np.ndarray], *, all_pairs_max: int = ALL_PA
   dist = np.abs(sig[:, None, :] - sig[None, :, :]).sum(axis=2)
   np.fill_diagonal(dist, np.inf)
   for i in range(n):
-    for j in np.argsort(dist[i], kind="stable")[:loop_candidates]:
+    for j in np.argsort(dist[i], kind="stable")[:min(loop_candidates, n - 1)]:  # never i
       pairs.add((min(i, int(j)), max(i, int(j))))
   return sorted(pairs)
 
@@ -316,11 +317,19 @@ def _viewpoints(viewpoints: Any, n: int) -> list[Any]:
   arr = np.asarray(viewpoints, dtype=object if isinstance(viewpoints, (list, tuple)) and any(
       v is None for v in viewpoints) else np.float64)
   if arr.dtype != object and arr.shape == (3,):
-    return [np.asarray(viewpoints, np.float64)] * n
+    return [validate_viewpoint(np.asarray(viewpoints, np.float64), "viewpoints")] * n
   if len(viewpoints) != n:
     raise ValueError(f"viewpoints: expected None, one (3,) sensor position or one per scan "
                      f"({n}), got {len(viewpoints)}")
-  return list(viewpoints)
+  return [validate_viewpoint(v, f"viewpoints[{k}]") for k, v in enumerate(viewpoints)]
+
+
+def check_counts(**counts: Any) -> None:
+  """Raise a ValueError naming the first of `counts` (name: value) that is not a non-negative
+  integer (`register_all`'s all_pairs_max, neighbors, loop_candidates, refine_iterations)."""
+  for name, val in counts.items():
+    if isinstance(val, (bool, np.bool_)) or not isinstance(val, (int, np.integer)) or val < 0:
+      raise ValueError(f"{name}: expected a non-negative integer, got {val!r}")
 
 
 def _pairwise(clouds, pairs, *, mr, seed, viewpoints, pairwise, icp_mr, progress, register_kw
@@ -500,9 +509,15 @@ def register_all(scans: Sequence[Any], *, names: Sequence[str] | None = None,
   for label, val in (("reject_mr", reject_mr), ("robust_mr", robust_mr), ("icp_mr", icp_mr)):
     if not (isinstance(val, (int, float)) and np.isfinite(val) and val > 0):
       raise ValueError(f"{label}: expected a positive number of mesh resolutions, got {val!r}")
+  check_counts(all_pairs_max=all_pairs_max, neighbors=neighbors,
+               loop_candidates=loop_candidates, refine_iterations=refine_iterations)
+  views = _viewpoints(viewpoints, len(scans))
+  if pairwise is None:  # every option of `register`, before any pair is registered
+    from lrf_jax.registration.pipeline import check_register_options
+    check_register_options(mr=mr, seed=seed, icp_mr=icp_mr,
+                           **{k: v for k, v in register_kw.items() if k != "params"})
   clouds = load_scans(scans, names)
   n = len(clouds)
-  views = _viewpoints(viewpoints, n)
   if mr is None:
     mr = float(np.median([mesh_resolution(c.points, c.faces)[0] for c in clouds]))
   elif not (np.isfinite(mr) and mr > 0):

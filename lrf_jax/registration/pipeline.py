@@ -266,8 +266,13 @@ def register(source: Any, target: Any, *, mr: float | None = None, radius_mr: fl
     >>> aligned = points_a @ reg.transform[:3, :3].T + reg.transform[:3, 3]
   """
   timer = _StageTimer()
-  if not isinstance(icp_fine, (bool, np.bool_)):
-    raise ValueError(f"icp_fine: expected True or False, got {icp_fine!r}")
+  check_register_options(mr=mr, radius_mr=radius_mr, n_keypoints=n_keypoints,
+                         n_correspondences=n_correspondences, iterations=iterations,
+                         inlier_mr=inlier_mr, verify=verify, estimator=estimator,
+                         icp_iterations=icp_iterations, icp_mr=icp_mr, method=method,
+                         descriptor=descriptor, seed=seed, source_viewpoint=source_viewpoint,
+                         target_viewpoint=target_viewpoint, keypoints=keypoints, mutual=mutual,
+                         ratio=ratio, icp_mode=icp_mode, icp_fine=icp_fine)
   if init is not None:
     return _refine_only(source, target, init, mr=mr, icp_iterations=icp_iterations,
                         icp_mr=icp_mr, seed=seed, timer=timer, icp_mode=icp_mode,
@@ -608,32 +613,14 @@ def _prepare(source: Any, target: Any, *, mr, radius_mr, n_keypoints, n_correspo
   for name, pts in (("source", src_pts), ("target", dst_pts)):
     if len(pts) < 10:
       raise ValueError(f"{name}: expected a cloud of at least 10 points, got {len(pts)}")
-  for name, val in (("radius_mr", radius_mr), ("inlier_mr", inlier_mr), ("icp_mr", icp_mr)):
-    if not _is_positive(val):
-      raise ValueError(f"{name}: expected a positive number of mesh resolutions, got {val!r}")
-  for name, val in (("n_keypoints", n_keypoints), ("n_correspondences", n_correspondences),
-                    ("iterations", iterations)):
-    if not _is_count(val, 1):
-      raise ValueError(f"{name}: expected a positive integer, got {val!r}")
-  for name, val in (("icp_iterations", icp_iterations), ("verify", verify)):
-    if not ((val is None and name == "verify") or _is_count(val, 0)):
-      raise ValueError(f"{name}: expected a non-negative integer, got {val!r}")
+  check_register_options(mr=mr, radius_mr=radius_mr, n_keypoints=n_keypoints,
+                         n_correspondences=n_correspondences, iterations=iterations,
+                         inlier_mr=inlier_mr, verify=verify, estimator=estimator,
+                         icp_iterations=icp_iterations, icp_mr=icp_mr, method=method,
+                         descriptor=descriptor, seed=seed, source_viewpoint=views[0],
+                         target_viewpoint=views[1], keypoints=keypoints, mutual=mutual,
+                         ratio=ratio, icp_mode=icp_mode)
   seed = validate_seed(seed)
-  if estimator not in ESTIMATORS:
-    raise ValueError(f"estimator: expected one of {ESTIMATORS}, got {estimator!r}")
-  if not isinstance(method, str) or method not in METHODS:
-    raise ValueError(f"method: unknown LRF method {method!r}; expected one of {sorted(METHODS)}")
-  if not isinstance(descriptor, str) or descriptor not in DESCRIPTORS:
-    raise ValueError(f"descriptor: unknown descriptor {descriptor!r}; expected one of "
-                     f"{sorted(DESCRIPTORS)}")
-  if icp_mode not in ("point_to_plane", "point_to_point"):
-    raise ValueError(f"icp_mode: expected 'point_to_plane' or 'point_to_point', got {icp_mode!r}")
-  if keypoints not in KEYPOINTS:
-    raise ValueError(f"keypoints: expected one of {KEYPOINTS}, got {keypoints!r}")
-  if not isinstance(mutual, (bool, np.bool_)):
-    raise ValueError(f"mutual: expected True or False, got {mutual!r}")
-  if ratio is not None and not (_is_positive(ratio) and ratio <= 1):
-    raise ValueError(f"ratio: expected None or a ratio-test threshold in (0, 1], got {ratio!r}")
   spec = METHODS[method]
   if spec.needs_mesh and (src_faces is None or dst_faces is None):
     raise ValueError(f"method {method!r} needs triangle meshes on both sides")
@@ -641,8 +628,6 @@ def _prepare(source: Any, target: Any, *, mr, radius_mr, n_keypoints, n_correspo
              for name, vp in zip(("source_viewpoint", "target_viewpoint"), views)]
   if mr is None:
     mr, _ = mesh_resolution(src_pts, src_faces)
-  elif not _is_positive(mr):
-    raise ValueError(f"mr: expected a positive mesh resolution, got {mr!r}")
   radius = radius_mr * mr
   rng = np.random.default_rng(seed)
   sides = []
@@ -658,6 +643,54 @@ def _prepare(source: Any, target: Any, *, mr, radius_mr, n_keypoints, n_correspo
   # checked last, where `compute_frames` checked it: the same ValueError after the same steps
   radius = validate_radius(radius)
   return _Setup(cast("tuple[_Side, _Side]", tuple(sides)), float(mr), radius, rng, seed)
+
+
+def check_register_options(*, mr: Any = None, radius_mr: Any = 15.0, n_keypoints: Any = 3000,
+                           n_correspondences: Any = 1000, iterations: Any = 1000,
+                           inlier_mr: Any = 5.0, verify: Any = None, estimator: Any = "graph",
+                           icp_iterations: Any = 50, icp_mr: Any = 3.0,
+                           method: Any = "lrf_net_plus", descriptor: Any = "toldi",
+                           seed: Any = 0, source_viewpoint: Any = None,
+                           target_viewpoint: Any = None, keypoints: Any = "random",
+                           mutual: Any = False, ratio: Any = None,
+                           icp_mode: Any = "point_to_plane", icp_fine: Any = True) -> None:
+  """Raise a ValueError naming the first of `register`'s options (every keyword but the clouds,
+  `params` and `init`) that `register` would refuse; the defaults are `register`'s.
+
+  `register` calls it before reading the clouds (also with `init`, where most options are not
+  used), and `register_all` and `lrf-register` before any pair is registered."""
+  for name, val in (("radius_mr", radius_mr), ("inlier_mr", inlier_mr), ("icp_mr", icp_mr)):
+    if not _is_positive(val):
+      raise ValueError(f"{name}: expected a positive number of mesh resolutions, got {val!r}")
+  for name, val in (("n_keypoints", n_keypoints), ("n_correspondences", n_correspondences),
+                    ("iterations", iterations)):
+    if not _is_count(val, 1):
+      raise ValueError(f"{name}: expected a positive integer, got {val!r}")
+  for name, val in (("icp_iterations", icp_iterations), ("verify", verify)):
+    if not ((val is None and name == "verify") or _is_count(val, 0)):
+      raise ValueError(f"{name}: expected a non-negative integer, got {val!r}")
+  validate_seed(seed)
+  if estimator not in ESTIMATORS:
+    raise ValueError(f"estimator: expected one of {ESTIMATORS}, got {estimator!r}")
+  if not isinstance(method, str) or method not in METHODS:
+    raise ValueError(f"method: unknown LRF method {method!r}; expected one of {sorted(METHODS)}")
+  if not isinstance(descriptor, str) or descriptor not in DESCRIPTORS:
+    raise ValueError(f"descriptor: unknown descriptor {descriptor!r}; expected one of "
+                     f"{sorted(DESCRIPTORS)}")
+  if icp_mode not in ("point_to_plane", "point_to_point"):
+    raise ValueError(f"icp_mode: expected 'point_to_plane' or 'point_to_point', got {icp_mode!r}")
+  if keypoints not in KEYPOINTS:
+    raise ValueError(f"keypoints: expected one of {KEYPOINTS}, got {keypoints!r}")
+  if not isinstance(mutual, (bool, np.bool_)):
+    raise ValueError(f"mutual: expected True or False, got {mutual!r}")
+  if ratio is not None and not (_is_positive(ratio) and ratio <= 1):
+    raise ValueError(f"ratio: expected None or a ratio-test threshold in (0, 1], got {ratio!r}")
+  if not isinstance(icp_fine, (bool, np.bool_)):
+    raise ValueError(f"icp_fine: expected True or False, got {icp_fine!r}")
+  for name, vp in (("source_viewpoint", source_viewpoint), ("target_viewpoint", target_viewpoint)):
+    validate_viewpoint(vp, name)
+  if mr is not None and not _is_positive(mr):
+    raise ValueError(f"mr: expected a positive mesh resolution, got {mr!r}")
 
 
 def _is_positive(val: Any) -> bool:

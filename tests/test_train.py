@@ -400,5 +400,6 @@ def test_stale_workdir_lock_is_taken_over(tmp_path):
     with pytest.raises(train_lib.WorkdirLockedError, match=rf"pid {os.getpid()}\b"):
       with train_lib.workdir_lock(tmp_path):
         pass
-  with train_lib.workdir_lock(tmp_path):  # released at the end of the block
+  assert not (tmp_path / train_lib.LOCK_FILE).exists()  # removed at the end of the block
+  with train_lib.workdir_lock(tmp_path):  # and free again
     pass

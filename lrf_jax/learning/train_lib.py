@@ -27,8 +27,9 @@ the state, optimiser and step in `lrf_jax.learning.train_step`, checkpoints in `
   by a killed process is dropped when the run resumes.
 * One run per workdir: process 0 holds an exclusive lock (`fcntl.flock`) on
   `<workdir>/train.lock` for the whole run, with its pid written inside; a second run in the
-  same workdir stops at once with `WorkdirLockedError` naming the holder's pid. The lock dies
-  with its process, so the lock file of a killed run (a dead pid) is simply taken over.
+  same workdir stops at once with `WorkdirLockedError` naming the holder's pid. The file is
+  removed at the end of the run; the lock dies with its process, so the file a killed run left
+  (a dead pid) is simply taken over.
 """
 
 from __future__ import annotations
@@ -199,23 +200,33 @@ def workdir_lock(workdir: Path) -> Iterator[None]:
     yield
     return
   path = Path(workdir) / LOCK_FILE
-  fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o644)
-  try:
+  while True:
+    fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o644)
     try:
       fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
     except BlockingIOError:
       holder = os.pread(fd, 64, 0).decode("ascii", "replace").strip() or "unknown"
+      os.close(fd)
       raise WorkdirLockedError(
           f"--workdir: {workdir} is in use by another train.py (pid {holder}); wait for it to "
           "finish, stop it, or choose another --workdir") from None
+    try:  # the holder we waited on may have removed the file: lock the one at `path`
+      same = os.stat(path).st_ino == os.fstat(fd).st_ino
+    except FileNotFoundError:
+      same = False
+    if same:
+      break
+    os.close(fd)
+  try:
     os.ftruncate(fd, 0)
     os.pwrite(fd, f"{os.getpid()}\n".encode(), 0)
-    try:
-      yield
-    finally:
-      fcntl.flock(fd, fcntl.LOCK_UN)
+    yield
   finally:
-    os.close(fd)
+    try:
+      path.unlink()  # while still holding it: a later run creates and locks a new file
+    except OSError:
+      pass
+    os.close(fd)  # releases the lock
 
 
 def _train(config: TrainConfig, workdir: Path, *, clouds: TrainingClouds | None,

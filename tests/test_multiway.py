@@ -517,3 +517,23 @@ def test_candidate_pairs_never_pair_a_scan_with_itself(all_pairs_max):
   clouds = [np.random.default_rng(k).random((200, 3)) * (1 + k) for k in range(3)]
   pairs = multiway.candidate_pairs(clouds, all_pairs_max=all_pairs_max)
   assert pairs == [(0, 1), (0, 2), (1, 2)]
+
+
+def test_voxel_too_small_for_the_extent_is_refused(tmp_path, capsys, monkeypatch):
+  """`--voxel 1e-20`: the int64 voxel keys overflowed and merged.ply collapsed to a few points;
+  now one error: line naming --voxel, nothing written."""
+  from lrf_jax.cli.register import main
+  clouds = [np.random.default_rng(k).normal(size=(30, 3)) for k in range(3)]
+  res = _result(["a", "b", "c"], [True] * 3)
+  with pytest.raises(ValueError, match="voxel: 1e-20 is too small for the merged cloud's extent"):
+    multiway.merged_cloud(clouds, res, voxel=1e-20)
+  down, _ = multiway.merged_cloud(clouds, res, voxel=1e-9)  # small, still exact: every point
+  assert len(down) == 90
+  scans = _npy_scans(tmp_path / "in", "a.npy", "b.npy", "c.npy")
+  _fake_register_all(monkeypatch)
+  out = tmp_path / "model"
+  assert main([*scans, "--out-dir", str(out), "--quiet", "--no-figures", "--voxel", "1e-20"]) == 2
+  err = capsys.readouterr().err
+  errors = [line for line in err.splitlines() if line.startswith("error: ")]
+  assert len(errors) == 1 and errors[0].startswith("error: --voxel: 1e-20 mr = "), err
+  assert "too small" in err and "Traceback" not in err and not out.exists()

@@ -192,7 +192,10 @@ def main(argv: list[str] | None = None) -> int:
                     voxel=None if args.voxel is None else args.voxel * res.mr,
                     figures=not args.no_figures)
     except (WriteError, ValueError) as e:  # e.g. the folder changed during the run
-      print(f"error: {str(e).replace('out_dir: ', '--out-dir: ', 1)}", file=sys.stderr)
+      message = str(e).replace("out_dir: ", "--out-dir: ", 1)
+      if message.startswith("voxel: "):
+        message = f"--voxel: {args.voxel:g} mr = " + message[len("voxel: "):]
+      print(f"error: {message}", file=sys.stderr)
       return 2
   return 3 if res.left_out else 0
 

@@ -59,6 +59,8 @@ __all__ = ["MANIFEST", "MultiwayEdge", "MultiwayResult", "candidate_pairs", "che
 
 # Scans up to this many: every pair is a candidate.
 ALL_PAIRS_MAX = 12
+# merged_cloud's voxel keys are float64 cell indices cast to int64: exact below 2**53.
+MAX_VOXELS_PER_AXIS = float(2**53)
 # Points per edge in the pose graph's residual.
 EDGE_POINTS = 32
 # Source points a pair's overlap is looked for among.
@@ -566,6 +568,10 @@ def merged_cloud(clouds: Sequence[np.ndarray], result: MultiwayResult, *,
     voxel: optional voxel size (cloud units): one point per occupied voxel, the mean of its
       points, labelled with the scan most of them came from (ties: the earliest).
 
+  Raises:
+    ValueError: `voxel` is not positive, or so small that the merged cloud spans 2**53 voxels
+      or more along an axis (their integer keys would overflow).
+
   Returns:
     (points (m, 3) float64, scan (m,) int64 index of the scan each point came from); the scans
     left out contribute nothing.
@@ -578,6 +584,11 @@ def merged_cloud(clouds: Sequence[np.ndarray], result: MultiwayResult, *,
     return points, scan
   if not (np.isfinite(voxel) and voxel > 0):
     raise ValueError(f"voxel: expected a positive size, got {voxel!r}")
+  extent = float(np.ptp(points, axis=0).max()) if len(points) else 0.0
+  if extent / voxel >= MAX_VOXELS_PER_AXIS:  # the int64 voxel keys would overflow or round
+    raise ValueError(f"voxel: {voxel:.6g} is too small for the merged cloud's extent "
+                     f"({extent:.6g}): {extent / voxel:.3g} voxels along an axis, at most "
+                     f"{MAX_VOXELS_PER_AXIS:.3g} (2**53); choose a larger voxel")
   keys = np.floor((points - points.min(axis=0)) / voxel).astype(np.int64)
   _, inverse, counts = np.unique(keys, axis=0, return_inverse=True, return_counts=True)
   inverse = inverse.ravel()

@@ -199,10 +199,13 @@ def _warn_on_ball_size(index: SearchIndex, points: np.ndarray, keypoints: np.nda
   med = float(np.median(engine.ball_counts(index.grid(radius), points[sample], radius)))
   n = len(points)
   if med < MIN_MEDIAN_BALL:
+    try:
+      mr = f"{_mesh_resolution(points)[0] * unit:.6g}"
+    except ValueError:  # no spacing: every point duplicated
+      mr = "0"
     warnings.warn(f"radius {radius * unit:.6g}: the median ball holds {med:.0f} points (fewer "
                   f"than {MIN_MEDIAN_BALL}); most frames will be invalid. The paper uses 15 mesh "
-                  f"resolutions: radius_mr=15 (this cloud's mr is "
-                  f"{_mesh_resolution(points)[0] * unit:.6g})", stacklevel=3)
+                  f"resolutions: radius_mr=15 (this cloud's mr is {mr})", stacklevel=3)
   elif med > MAX_BALL_FRACTION * n:
     warnings.warn(f"radius {radius * unit:.6g}: the median ball holds {med:.0f} of the cloud's {n} "
                   f"points (more than {MAX_BALL_FRACTION:.0%}); the frames are not local. The "

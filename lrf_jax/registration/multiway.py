@@ -521,7 +521,8 @@ def register_all(scans: Sequence[Any], *, names: Sequence[str] | None = None,
   clouds = load_scans(scans, names)
   n = len(clouds)
   if mr is None:
-    mr = float(np.median([mesh_resolution(c.points, c.faces)[0] for c in clouds]))
+    mr = float(np.median([mesh_resolution(c.points, c.faces, name=f"scan {name}")[0]
+                          for name, c in zip(names, clouds)]))
   elif not (np.isfinite(mr) and mr > 0):
     raise ValueError(f"mr: expected a positive mesh resolution, got {mr!r}")
   timings["load"] = time.perf_counter() - t0

@@ -469,7 +469,7 @@ def _refine_only(source, target, init, *, mr, icp_iterations, icp_mr, seed, time
       raise ValueError(f"icp_iterations: expected a non-negative integer, got {icp_iterations!r}")
     seed = validate_seed(seed)
     if mr is None:
-      mr, _ = mesh_resolution(src_pts, src_faces)
+      mr, _ = mesh_resolution(src_pts, src_faces, name="source")
     elif not _is_positive(mr):
       raise ValueError(f"mr: expected a positive mesh resolution, got {mr!r}")
     rng = np.random.default_rng(seed)
@@ -627,7 +627,7 @@ def _prepare(source: Any, target: Any, *, mr, radius_mr, n_keypoints, n_correspo
   checked = [validate_viewpoint(vp, name)
              for name, vp in zip(("source_viewpoint", "target_viewpoint"), views)]
   if mr is None:
-    mr, _ = mesh_resolution(src_pts, src_faces)
+    mr, _ = mesh_resolution(src_pts, src_faces, name="source")
   radius = radius_mr * mr
   rng = np.random.default_rng(seed)
   sides = []

@@ -520,3 +520,48 @@ def test_frames_iss_keypoints(cloud_npy, tmp_path, monkeypatch):
   z = np.load(out)
   assert z["keypoints"].tolist() == [3, 5, 7] and z["keypoints"].dtype == np.int64
   assert seen["mr"] == pytest.approx(float(z["mr"]))
+
+
+# ----------------------------------------------------------------------------- Ctrl-C
+
+
+def _interrupt(*args, **kwargs):
+  raise KeyboardInterrupt
+
+
+def _interrupted(capsys) -> str:
+  err = capsys.readouterr().err
+  assert "Traceback" not in err and "KeyboardInterrupt" not in err, err
+  lines = [line for line in err.splitlines() if not line.startswith("#")]
+  assert len(lines) == 1 and lines[0].startswith("interrupted: "), err
+  return err
+
+
+@pytest.mark.parametrize("program", ["lrf-register", "multiway", "lrf-frames", "train.py",
+                                     "evaluate.py"])
+def test_ctrl_c_is_exit_130_with_one_line_and_no_partial_file(program, cloud_npy, tmp_path,
+                                                              capsys, monkeypatch):
+  """Ctrl-C in the middle of the work: one `interrupted:` line, exit 130, no traceback, no
+  output file (each program's work replaced by one that raises KeyboardInterrupt)."""
+  from lrf_jax import registration
+  from lrf_jax.evaluation import runner
+  from lrf_jax.registration import multiway
+  out = tmp_path / "out"
+  if program == "lrf-register":
+    monkeypatch.setattr(registration, "register", _interrupt)
+    rc = register_cli.main([str(cloud_npy), str(cloud_npy), "--out", str(out)])
+  elif program == "multiway":
+    monkeypatch.setattr(multiway, "register_all", _interrupt)
+    rc = register_cli.main([str(cloud_npy)] * 3 + ["--out-dir", str(out), "--quiet"])
+  elif program == "lrf-frames":
+    monkeypatch.setattr(frames_cli, "frames_outputs", _interrupt)
+    rc = frames_cli.main([str(cloud_npy), "--out", str(out)])
+  elif program == "train.py":
+    monkeypatch.setattr(train_lib, "train_and_evaluate", _interrupt)
+    rc = train.main(["--config", "smoke", "--workdir", str(out), "--no-progress"])
+  else:
+    monkeypatch.setattr(runner, "method_runs", _interrupt)
+    rc = evaluate.main(["--out", str(out), "--datasets", "demo", "--experiments", "repeatability"])
+  assert rc == 130
+  _interrupted(capsys)
+  assert not out.exists() or not any(out.iterdir())

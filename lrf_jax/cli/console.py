@@ -9,10 +9,33 @@ function is compiled, not at exit. Calling `main()` from Python (as the tests do
 
 from __future__ import annotations
 
+import functools
 import os
 import sys
-from typing import NoReturn
+from typing import Any, NoReturn, TypeVar
 from collections.abc import Callable
+
+# The exit code of a program stopped by Ctrl-C (SIGINT): 128 + 2, as a shell reports it.
+INTERRUPTED = 130
+
+_Main = TypeVar("_Main", bound=Callable[..., int])
+
+
+def interruptible(note: str) -> Callable[[_Main], _Main]:
+  """Decorate a CLI's `main(argv)`: Ctrl-C (KeyboardInterrupt) anywhere in it prints one line,
+  `interrupted: <note>`, on stderr and returns `INTERRUPTED` (130) instead of a traceback. Every
+  output is written atomically (`lrf_jax.io.atomic`), so an interrupted program leaves no
+  partial file."""
+  def wrap(main: _Main) -> _Main:
+    @functools.wraps(main)
+    def run(*args: Any, **kwargs: Any) -> int:
+      try:
+        return main(*args, **kwargs)
+      except KeyboardInterrupt:
+        print(f"interrupted: {note}", file=sys.stderr, flush=True)
+        return INTERRUPTED
+    return run  # type: ignore[return-value]
+  return wrap
 
 
 def run(main: Callable[[], int]) -> NoReturn:

@@ -26,6 +26,8 @@ import sys
 
 import numpy as np
 
+from lrf_jax.cli.console import interruptible
+
 
 def build_parser() -> argparse.ArgumentParser:
   ap = argparse.ArgumentParser(
@@ -154,12 +156,20 @@ def _print_result(res, out) -> None:
           file=sys.stderr)
 
 
+@interruptible("no partial file is left; the same command runs again")
 def main(argv: list[str] | None = None) -> int:
   args = build_parser().parse_args(argv)
   problem = _check(args)
   if problem:
     print(f"error: {problem}", file=sys.stderr)
     return 2
+  from lrf_jax.extras import MissingExtraError, require
+  figures, skipped = args.out_dir is not None and not args.no_figures, None
+  if figures:
+    try:  # checked before the work: a base install writes everything but the figures
+      require("plot", "the figures merged.png and graph.png")
+    except MissingExtraError as e:
+      figures, skipped = False, str(e)
   from lrf_jax import compilation_cache
   compilation_cache.enable()
   from lrf_jax.cli.register import parse_keypoints
@@ -190,13 +200,15 @@ def main(argv: list[str] | None = None) -> int:
     try:
       write_outputs(res, [c.points for c in clouds], args.out_dir,
                     voxel=None if args.voxel is None else args.voxel * res.mr,
-                    figures=not args.no_figures)
+                    figures=figures)
     except (WriteError, ValueError) as e:  # e.g. the folder changed during the run
       message = str(e).replace("out_dir: ", "--out-dir: ", 1)
       if message.startswith("voxel: "):
         message = f"--voxel: {args.voxel:g} mr = " + message[len("voxel: "):]
       print(f"error: {message}", file=sys.stderr)
       return 2
+    if skipped:
+      print(f"# figures skipped: {skipped} (or pass --no-figures)", file=sys.stderr)
   return 3 if res.left_out else 0
 
 

@@ -25,6 +25,7 @@ from typing import Any
 
 import numpy as np
 
+from lrf_jax.cli.console import interruptible
 from lrf_jax.cli.help import DefaultsHelpFormatter
 
 
@@ -192,6 +193,11 @@ def _check_paths(args: argparse.Namespace) -> str | None:
   if args.png:
     if Path(args.png).suffix.lower() not in (".png", ".pdf", ".svg", ".jpg", ".jpeg"):
       return f"--png: {args.png!r} has no figure suffix (.png, .pdf, .svg, .jpg)"
+    from lrf_jax.extras import MissingExtraError, require
+    try:  # before the registration, not after it
+      require("plot", "--png")
+    except MissingExtraError as e:
+      return str(e)
     problem = output_problem(args.png, "--png",
                              [("SOURCE", args.source), ("TARGET", args.target),
                               ("--init", args.init), ("--out", args.out)])
@@ -221,6 +227,7 @@ def read_init(path: str) -> np.ndarray:
   return read_transform(path, "--init")
 
 
+@interruptible("no partial file is left")
 def main(argv: list[str] | None = None) -> int:
   from lrf_jax.cli import multiway as multiway_cli
   if multiway_cli.wanted(build_parser(), argv):  # more than two scans, or --out-dir

@@ -38,6 +38,7 @@ from __future__ import annotations
 
 import dataclasses
 import os
+import sys
 import time
 from pathlib import Path
 from typing import Any
@@ -345,27 +346,33 @@ def _pairwise(clouds, pairs, *, mr, seed, viewpoints, pairwise, icp_mr, progress
   rng = np.random.default_rng(seed)
   edges, points = [], []
   bar = tqdm(pairs, desc="pairwise registration", unit="pair", disable=not progress)
-  for i, j in bar:
-    try:
-      reg = run(clouds[i], clouds[j], mr=mr, seed=seed, source_viewpoint=viewpoints[i],
-                target_viewpoint=viewpoints[j], **register_kw)
-    except ValueError as e:
-      reg = None
-      reason = str(e)
-    else:
-      reason = str(getattr(reg, "reason", ""))
-    if reg is None or not getattr(reg, "estimated", True):  # no pose: no edge
-      edges.append(MultiwayEdge(i, j, np.full((4, 4), np.nan), "error", reason, 0, 0.0,
-                                float("inf"), float("inf"), False))
-      points.append(np.zeros((0, 3)))
-      continue
-    if j not in grids:
-      grids[j] = engine.knn_grid(clouds[j].points)
-    t = np.asarray(reg.transform, np.float64)
-    points.append(_overlap_points(clouds[i].points, grids[j], t, icp_mr * mr, rng))
-    edges.append(MultiwayEdge(i, j, t, "success" if reg.success else "not sure",
-                              reason, int(reg.n_inliers), float(reg.overlap),
-                              float(reg.rmse), float("inf"), False))
+  try:
+    for i, j in bar:
+      try:
+        reg = run(clouds[i], clouds[j], mr=mr, seed=seed, source_viewpoint=viewpoints[i],
+                  target_viewpoint=viewpoints[j], **register_kw)
+      except ValueError as e:
+        reg = None
+        reason = str(e)
+      else:
+        reason = str(getattr(reg, "reason", ""))
+      if reg is None or not getattr(reg, "estimated", True):  # no pose: no edge
+        edges.append(MultiwayEdge(i, j, np.full((4, 4), np.nan), "error", reason, 0, 0.0,
+                                  float("inf"), float("inf"), False))
+        points.append(np.zeros((0, 3)))
+        continue
+      if j not in grids:
+        grids[j] = engine.knn_grid(clouds[j].points)
+      t = np.asarray(reg.transform, np.float64)
+      points.append(_overlap_points(clouds[i].points, grids[j], t, icp_mr * mr, rng))
+      edges.append(MultiwayEdge(i, j, t, "success" if reg.success else "not sure",
+                                reason, int(reg.n_inliers), float(reg.overlap),
+                                float(reg.rmse), float("inf"), False))
+  except KeyboardInterrupt:
+    if progress:  # end the bar's line: what is printed next starts a line of its own
+      bar.close()
+      print(file=sys.stderr, flush=True)
+    raise
   return edges, points
 
 
@@ -760,6 +767,9 @@ def write_outputs(result: MultiwayResult, clouds: Sequence[np.ndarray],
   check_names(result.names, "result.names")
   earlier = check_out_dir(d)
   paths = output_paths(result.names, d)
+  if figures:  # before anything is written
+    from lrf_jax.extras import require
+    require("plot", "register_all's figures (figures=False skips them)")
   wanted = [paths[f"pose:{n}"] for n, m in zip(result.names, result.in_model) if m]
   wanted += [paths["merged.ply"], paths["edges.tsv"]]
   if figures:

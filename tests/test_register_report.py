@@ -36,7 +36,9 @@ def test_summary_says_verdict_reason_overlap_inliers_time_and_errors_when_known(
   assert "error" not in text and "contrast" not in text
   gt = np.eye(4)
   gt[:3, 3] = [0.008, 0, 0]  # 2 mr away
-  assert "error against the ground truth: 0 deg, 2 mr" in reg.summary(gt=gt)
+  # in mr and in the clouds' units (mr 0.004: 2 mr is 0.008)
+  assert "error against the ground truth: 0 deg, 2 mr (0.008 in the clouds' units)" in \
+      reg.summary(gt=gt)
   assert _registration(success=False).summary().startswith("verdict: NOT SURE")
 
 

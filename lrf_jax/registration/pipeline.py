@@ -112,7 +112,7 @@ class Registration:
 
     Args:
       gt: optional (4, 4) ground-truth source -> target transform; adds the rotation error in
-        degrees and the translation error in mr (`pose_errors`).
+        degrees and the translation error in mr and in the clouds' units (`pose_errors`).
 
     Returns:
       The text, lines joined by newlines (no trailing newline).
@@ -127,7 +127,8 @@ class Registration:
                    f"{self.rival_inliers})")
     if gt is not None:
       err_r, err_t = pose_errors(self.transform, gt, self.mr)
-      lines.append(f"error against the ground truth: {err_r:.3g} deg, {err_t:.3g} mr")
+      lines.append(f"error against the ground truth: {err_r:.3g} deg, {err_t:.3g} mr "
+                   f"({err_t * self.mr:.3g} in the clouds' units)")
     stages = ", ".join(f"{k} {v:.2f}" for k, v in self.timings.items() if v >= 0.005)
     lines.append(f"time {self.seconds:.2f} s" + (f" ({stages})" if stages else ""))
     return "\n".join(lines)

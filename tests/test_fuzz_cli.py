@@ -565,3 +565,26 @@ def test_ctrl_c_is_exit_130_with_one_line_and_no_partial_file(program, cloud_npy
   assert rc == 130
   _interrupted(capsys)
   assert not out.exists() or not any(out.iterdir())
+
+
+def test_ctrl_c_inside_a_numba_kernel_call_is_still_an_interrupt(cloud_npy, capsys, monkeypatch):
+  """Ctrl-C while numba dispatches surfaces as a SystemError raised from the KeyboardInterrupt
+  (seen in a real SIGINT during multiway): still exit 130 and one line."""
+  from lrf_jax import registration
+
+  def numba_like(*args, **kwargs):
+    try:
+      raise KeyboardInterrupt
+    except KeyboardInterrupt as e:
+      raise SystemError("CPUDispatcher(<function _bin>) returned a result with an exception "
+                        "set") from e
+  monkeypatch.setattr(registration, "register", numba_like)
+  assert register_cli.main([str(cloud_npy), str(cloud_npy)]) == 130
+  _interrupted(capsys)
+  monkeypatch.setattr(registration, "register", _interrupt_not)
+  with pytest.raises(SystemError):  # any other error is not taken for an interrupt
+    register_cli.main([str(cloud_npy), str(cloud_npy)])
+
+
+def _interrupt_not(*args, **kwargs):
+  raise SystemError("a bug")

@@ -31,11 +31,29 @@ def interruptible(note: str) -> Callable[[_Main], _Main]:
     def run(*args: Any, **kwargs: Any) -> int:
       try:
         return main(*args, **kwargs)
+      except Exception as e:  # noqa: BLE001 -- re-raised unless Ctrl-C caused it
+        if not caused_by_interrupt(e):
+          raise
       except KeyboardInterrupt:
-        print(f"interrupted: {note}", file=sys.stderr, flush=True)
-        return INTERRUPTED
+        pass
+      print(f"interrupted: {note}", file=sys.stderr, flush=True)
+      return INTERRUPTED
     return run  # type: ignore[return-value]
   return wrap
+
+
+def caused_by_interrupt(error: BaseException) -> bool:
+  """Whether a KeyboardInterrupt is in `error`'s chain of causes: Ctrl-C inside a numba
+  dispatcher surfaces as a `SystemError` ("returned a result with an exception set") raised from
+  the KeyboardInterrupt."""
+  seen: set[int] = set()
+  e: BaseException | None = error
+  while e is not None and id(e) not in seen:
+    if isinstance(e, KeyboardInterrupt):
+      return True
+    seen.add(id(e))
+    e = e.__cause__ or e.__context__
+  return False
 
 
 def run(main: Callable[[], int]) -> NoReturn:

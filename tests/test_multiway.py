@@ -537,3 +537,14 @@ def test_voxel_too_small_for_the_extent_is_refused(tmp_path, capsys, monkeypatch
   errors = [line for line in err.splitlines() if line.startswith("error: ")]
   assert len(errors) == 1 and errors[0].startswith("error: --voxel: 1e-20 mr = "), err
   assert "too small" in err and "Traceback" not in err and not out.exists()
+
+
+@pytest.mark.parametrize("n", [1, 3, 10, 11, 25])
+def test_scan_colours_are_matplotlibs_without_importing_it(n):
+  """merged.ply's colours: matplotlib's tab10 / tab20 as tables (a base install writes it)."""
+  from matplotlib import colormaps
+
+  from lrf_jax.registration.multiway_figures import scan_colours
+  cmap = colormaps["tab10" if n <= 10 else "tab20"]
+  expected = (np.array([cmap(k % cmap.N)[:3] for k in range(n)]) * 255).round().astype(np.uint8)
+  np.testing.assert_array_equal(scan_colours(n), expected)

@@ -22,7 +22,7 @@ import os
 import sys
 from pathlib import Path
 
-from lrf_jax.cli.console import interruptible
+from lrf_jax.cli.interrupt import interruptible
 from lrf_jax.cli.help import DefaultsHelpFormatter
 from lrf_jax.extras import MissingExtraError
 from lrf_jax.learning import config as config_lib

@@ -32,7 +32,7 @@ from pathlib import Path
 
 import numpy as np
 
-from lrf_jax.cli.console import interruptible
+from lrf_jax.cli.interrupt import interruptible
 from lrf_jax.cli.help import DefaultsHelpFormatter
 
 

@@ -26,7 +26,7 @@ import sys
 
 import numpy as np
 
-from lrf_jax.cli.console import interruptible
+from lrf_jax.cli.interrupt import interruptible
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -129,7 +129,7 @@ def _check(args: argparse.Namespace) -> str | None:
 def _check_register_options(args: argparse.Namespace) -> str | None:
   """What is wrong with --all-pairs-max and the options passed to every pairwise registration
   (--keypoints, --method, --radius-mr, --viewpoint), before any work (None: fine)."""
-  from lrf_jax.cli.register import option_message, parse_keypoints
+  from lrf_jax.cli.options import option_message, parse_keypoints
   from lrf_jax.registration.multiway import check_counts
   from lrf_jax.registration.pipeline import check_register_options
   names = {"all_pairs_max": "all_pairs_max", "n_keypoints": "keypoints",
@@ -172,7 +172,7 @@ def main(argv: list[str] | None = None) -> int:
       figures, skipped = False, str(e)
   from lrf_jax import compilation_cache
   compilation_cache.enable()
-  from lrf_jax.cli.register import parse_keypoints
+  from lrf_jax.cli.options import parse_keypoints
   from lrf_jax.io.atomic import WriteError
   from lrf_jax.registration.multiway import load_scans, register_all, scan_names, write_outputs
   try:

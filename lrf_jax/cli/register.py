@@ -25,11 +25,9 @@ from typing import Any
 
 import numpy as np
 
-from lrf_jax.cli.console import interruptible
+from lrf_jax.cli.interrupt import interruptible
 from lrf_jax.cli.help import DefaultsHelpFormatter
-
-
-KEYPOINT_DETECTORS = ("random", "iss")
+from lrf_jax.cli.options import KEYPOINT_DETECTORS, option_message, parse_keypoints
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -98,26 +96,6 @@ REGISTER_KEYWORDS = {"mr": "mr", "radius_mr": "radius_mr",
                      "mutual": "mutual", "ratio": "ratio", "icp": "icp_mode"}
 
 
-def parse_keypoints(value: Any, option: str = "--keypoints") -> dict[str, Any]:
-  """`register`'s keywords for a --keypoints value: a count (`n_keypoints`) or a detector name
-  (`keypoints`).
-
-  Raises:
-    ValueError: neither a positive integer nor a name in `KEYPOINT_DETECTORS`.
-  """
-  text = str(value).strip()
-  if text.lower() in KEYPOINT_DETECTORS:
-    return {"keypoints": text.lower()}
-  try:
-    count = int(text)
-  except ValueError:
-    count = 0
-  if count < 1:
-    raise ValueError(f"{option}: expected a positive integer or a detector name "
-                     f"({', '.join(KEYPOINT_DETECTORS)}), got {value!r}")
-  return {"n_keypoints": count}
-
-
 def keypoint_options(args: argparse.Namespace) -> dict[str, Any]:
   """The keywords `--keypoints` and the deprecated `--detector` (where present) set.
 
@@ -164,13 +142,7 @@ def check_options(args: argparse.Namespace) -> str | None:
   return None
 
 
-def option_message(message: str, keywords: dict[str, str]) -> str:
-  """`message` of a library ValueError ("n_keypoints: ...") with its leading keyword replaced by
-  the command-line option that sets it (`keywords`: keyword -> argparse dest)."""
-  name, sep, rest = message.partition(": ")
-  if sep and name in keywords:
-    return f"--{keywords[name].replace('_', '-')}: {rest}"
-  return message
+
 
 
 def _check_paths(args: argparse.Namespace) -> str | None:

@@ -521,7 +521,7 @@ def test_candidate_pairs_never_pair_a_scan_with_itself(all_pairs_max):
 
 def test_voxel_too_small_for_the_extent_is_refused(tmp_path, capsys, monkeypatch):
   """`--voxel 1e-20`: the int64 voxel keys overflowed and merged.ply collapsed to a few points;
-  now one error: line naming --voxel, nothing written."""
+  now one error: line naming --voxel before any registration, nothing written."""
   from lrf_jax.cli.register import main
   clouds = [np.random.default_rng(k).normal(size=(30, 3)) for k in range(3)]
   res = _result(["a", "b", "c"], [True] * 3)
@@ -529,8 +529,11 @@ def test_voxel_too_small_for_the_extent_is_refused(tmp_path, capsys, monkeypatch
     multiway.merged_cloud(clouds, res, voxel=1e-20)
   down, _ = multiway.merged_cloud(clouds, res, voxel=1e-9)  # small, still exact: every point
   assert len(down) == 90
+  with pytest.raises(ValueError, match="voxel: 1e-20 is too small for the scans' extent"):
+    multiway.check_voxel(clouds, 1e-20)  # whatever the poses: before the work
+  multiway.check_voxel(clouds, 1e-9)
   scans = _npy_scans(tmp_path / "in", "a.npy", "b.npy", "c.npy")
-  _fake_register_all(monkeypatch)
+  monkeypatch.setattr(multiway, "register_all", lambda *a, **k: pytest.fail("registered"))
   out = tmp_path / "model"
   assert main([*scans, "--out-dir", str(out), "--quiet", "--no-figures", "--voxel", "1e-20"]) == 2
   err = capsys.readouterr().err

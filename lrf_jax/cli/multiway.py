@@ -174,11 +174,19 @@ def main(argv: list[str] | None = None) -> int:
   compilation_cache.enable()
   from lrf_jax.cli.options import parse_keypoints
   from lrf_jax.io.atomic import WriteError
-  from lrf_jax.registration.multiway import load_scans, register_all, scan_names, write_outputs
+  from lrf_jax.registration.multiway import (check_voxel, load_scans, median_mr, register_all,
+                                             scan_names, write_outputs)
   try:
     names = scan_names(args.scans)
     clouds = load_scans(args.scans, names)
-    res = register_all(clouds, names=names, mr=args.mr, seed=args.seed, refine=not args.no_refine,
+    mr = args.mr
+    if args.voxel is not None:  # a voxel too small whatever the poses: before the work
+      mr = median_mr(clouds, names) if mr is None else mr  # register_all's own
+      try:
+        check_voxel([c.points for c in clouds], args.voxel * mr)
+      except ValueError as e:
+        raise ValueError(f"--voxel: {args.voxel:g} mr = {str(e)[len('voxel: '):]}") from None
+    res = register_all(clouds, names=names, mr=mr, seed=args.seed, refine=not args.no_refine,
                        reject_mr=args.reject_mr, all_pairs_max=args.all_pairs_max,
                        viewpoints=args.viewpoint, progress=not args.quiet,
                        radius_mr=args.radius_mr, method=args.method,

@@ -528,8 +528,7 @@ def register_all(scans: Sequence[Any], *, names: Sequence[str] | None = None,
   clouds = load_scans(scans, names)
   n = len(clouds)
   if mr is None:
-    mr = float(np.median([mesh_resolution(c.points, c.faces, name=f"scan {name}")[0]
-                          for name, c in zip(names, clouds)]))
+    mr = median_mr(clouds, names)
   elif not (np.isfinite(mr) and mr > 0):
     raise ValueError(f"mr: expected a positive mesh resolution, got {mr!r}")
   timings["load"] = time.perf_counter() - t0
@@ -564,6 +563,28 @@ def register_all(scans: Sequence[Any], *, names: Sequence[str] | None = None,
   return MultiwayResult(names=tuple(names), poses=poses, in_model=in_model,
                         reference=reference, edges=tuple(final), mr=float(mr),
                         seconds=time.perf_counter() - t0, timings=timings)
+
+
+def median_mr(clouds: Sequence[Cloud], names: Sequence[str]) -> float:
+  """`register_all`'s mr when none is given: the median of the scans' own (`mesh_resolution`)."""
+  return float(np.median([mesh_resolution(c.points, c.faces, name=f"scan {name}")[0]
+                          for name, c in zip(names, clouds)]))
+
+
+def check_voxel(clouds: Sequence[np.ndarray], voxel: float) -> None:
+  """Refuse, before any registration, a voxel of `merged_cloud` that is too small whatever the
+  poses: the merged cloud spans at least the largest scan's diameter / sqrt(3) along some axis.
+
+  Raises:
+    ValueError: as `merged_cloud` does ("voxel: ... too small ...").
+  """
+  if not (np.isfinite(voxel) and voxel > 0):
+    raise ValueError(f"voxel: expected a positive size, got {voxel!r}")
+  extent = max(float(np.linalg.norm(np.ptp(np.asarray(c), axis=0))) for c in clouds) / np.sqrt(3)
+  if extent / voxel >= MAX_VOXELS_PER_AXIS:
+    raise ValueError(f"voxel: {voxel:.6g} is too small for the scans' extent (at least "
+                     f"{extent:.6g} along an axis): {extent / voxel:.3g} voxels, at most "
+                     f"{MAX_VOXELS_PER_AXIS:.3g} (2**53); choose a larger voxel")
 
 
 def merged_cloud(clouds: Sequence[np.ndarray], result: MultiwayResult, *,

@@ -588,3 +588,11 @@ def test_ctrl_c_inside_a_numba_kernel_call_is_still_an_interrupt(cloud_npy, caps
 
 def _interrupt_not(*args, **kwargs):
   raise SystemError("a bug")
+
+
+def test_frames_cloud_without_spacing_names_the_file(tmp_path, capsys):
+  path = tmp_path / "dup.npy"
+  np.save(path, np.ones((100, 3)))
+  assert frames_cli.main([str(path), "--out", str(tmp_path / "f.npz")]) == 2
+  err = _error(capsys)
+  assert f"{path}: the cloud has no spacing" in err and "radius" not in err, err

@@ -250,7 +250,10 @@ def frames_outputs(args: argparse.Namespace) -> tuple[dict, object, object]:
   import lrf_jax
   from lrf_jax.inputs import as_cloud
   cloud = as_cloud(args.cloud, "cloud")
-  mr = lrf_jax.mesh_resolution(cloud.points, cloud.faces)
+  try:
+    mr = lrf_jax.mesh_resolution(cloud.points, cloud.faces)
+  except ValueError as e:  # "points: the cloud has no spacing ...": name the file
+    raise ValueError(f"{args.cloud}: {str(e).removeprefix('points: ')}") from None
   voxel = None if args.voxel_mr is None else args.voxel_mr * mr
   how = args.keypoints or "1000"
   other = gt = None

@@ -345,8 +345,9 @@ def _pairwise(clouds, pairs, *, mr, seed, viewpoints, pairwise, icp_mr, progress
   grids: dict[int, engine.Grid] = {}
   rng = np.random.default_rng(seed)
   edges, points = [], []
-  bar = tqdm(pairs, desc="pairwise registration", unit="pair", disable=not progress)
+  bar = None
   try:
+    bar = tqdm(pairs, desc="pairwise registration", unit="pair", disable=not progress)
     for i, j in bar:
       try:
         reg = run(clouds[i], clouds[j], mr=mr, seed=seed, source_viewpoint=viewpoints[i],
@@ -368,10 +369,12 @@ def _pairwise(clouds, pairs, *, mr, seed, viewpoints, pairwise, icp_mr, progress
       edges.append(MultiwayEdge(i, j, t, "success" if reg.success else "not sure",
                                 reason, int(reg.n_inliers), float(reg.overlap),
                                 float(reg.rmse), float("inf"), False))
-  except KeyboardInterrupt:
+  except BaseException:  # Ctrl-C (also as a SystemError out of numba) or any error
     if progress:  # end the bar's line: what is printed next starts a line of its own
-      bar.close()
-      print(file=sys.stderr, flush=True)
+      if bar is not None:
+        bar.close()
+      else:
+        print(file=sys.stderr, flush=True)
     raise
   return edges, points
 

@@ -107,3 +107,36 @@ def test_sigint_during_multiway_is_exit_130_without_traceback(scans, tmp_path):
   assert "Traceback" not in err and lines[-1].startswith("interrupted: "), err
   assert sum(line.startswith(("interrupted", "error")) for line in lines) == 1, err
   assert not out.exists() or not any(out.iterdir())
+
+
+@pytest.mark.parametrize("when", ["starting", "checkpointed"])
+def test_sigint_during_training_is_exit_130_and_the_run_resumes(tmp_path, when):
+  """A real Ctrl-C in train.py, while it starts (its checkpoint manager made, nothing saved) or
+  once checkpoints exist: exit 130 and one line (the interpreter's teardown beside JAX's and
+  orbax's threads crashed with a segmentation fault, -11, when interrupted while starting), no
+  partial checkpoint and no lock left; what was saved restores."""
+  work = tmp_path / "run"
+  cmd = [sys.executable, "train.py", "--config", "smoke", "--workdir", str(work),
+         "--no-progress", "epochs=400"]
+  proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                          cwd=REPO, env=_env())
+  deadline = time.monotonic() + 300
+  while ((work / "checkpoints").is_dir() if when == "starting" else
+         len([p for p in (work / "checkpoints").glob("*") if p.name.isdigit()]) >= 2) is False:
+    assert proc.poll() is None and time.monotonic() < deadline, proc.communicate()
+    time.sleep(0.05)
+  if when == "starting":
+    time.sleep(1)
+  proc.send_signal(signal.SIGINT)
+  _, err = proc.communicate(timeout=300)
+  assert proc.returncode == 130, err
+  lines = [line for line in err.splitlines() if line.startswith(("interrupted", "error"))]
+  assert lines == [lines[0]] and lines[0].startswith("interrupted: "), err
+  assert "Traceback" not in err, err
+  assert not list((work / "checkpoints").glob("*tmp*")) and not (work / "train.lock").exists()
+  from lrf_jax.learning import checkpoints
+  if any(p.name.isdigit() for p in (work / "checkpoints").iterdir()):
+    params, _ = checkpoints.restore_params(work, "latest")  # intact, checksum verified
+    assert not checkpoints.nonfinite_leaves(params)
+  else:
+    assert when == "starting"

@@ -32,7 +32,7 @@ from pathlib import Path
 
 import numpy as np
 
-from lrf_jax.cli.interrupt import interruptible
+from lrf_jax.cli.interrupt import exit_with, interruptible
 from lrf_jax.cli.help import DefaultsHelpFormatter
 
 
@@ -350,4 +350,4 @@ def main(argv: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-  sys.exit(main())
+  exit_with(main())

@@ -26,7 +26,7 @@ import sys
 
 import numpy as np
 
-from lrf_jax.cli.interrupt import interruptible
+from lrf_jax.cli.interrupt import exit_with, interruptible
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -221,4 +221,4 @@ def main(argv: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-  sys.exit(main())
+  exit_with(main())

@@ -25,7 +25,7 @@ from typing import Any
 
 import numpy as np
 
-from lrf_jax.cli.interrupt import interruptible
+from lrf_jax.cli.interrupt import exit_with, interruptible
 from lrf_jax.cli.help import DefaultsHelpFormatter
 from lrf_jax.cli.options import KEYPOINT_DETECTORS, option_message, parse_keypoints
 
@@ -280,4 +280,4 @@ def correspondence_figure(args: argparse.Namespace, reg) -> str | None:
 
 
 if __name__ == "__main__":
-  sys.exit(main())
+  exit_with(main())

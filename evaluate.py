@@ -20,6 +20,7 @@ import time
 from pathlib import Path
 
 from lrf_jax import evaluation, extras
+from lrf_jax.cli.interrupt import exit_with, interruptible
 from lrf_jax.cli.help import DefaultsHelpFormatter
 from lrf_jax.evaluation import runner
 from lrf_jax.evaluation.experiments import (DATASETS, EXPERIMENTS, POINTS_ONLY_DATASETS,
@@ -67,6 +68,7 @@ def build_parser() -> argparse.ArgumentParser:
   return ap
 
 
+@interruptible("no partial file is left")
 def main(argv=None) -> int:
   args = build_parser().parse_args(argv)
   problem = _check(args)
@@ -162,4 +164,4 @@ def _check(args: argparse.Namespace) -> str | None:
 
 
 if __name__ == "__main__":
-  sys.exit(main())
+  exit_with(main())

@@ -22,6 +22,7 @@ import os
 import sys
 from pathlib import Path
 
+from lrf_jax.cli.interrupt import exit_with, interruptible
 from lrf_jax.cli.help import DefaultsHelpFormatter
 from lrf_jax.extras import MissingExtraError
 from lrf_jax.learning import config as config_lib
@@ -53,6 +54,7 @@ def build_parser() -> argparse.ArgumentParser:
   return ap
 
 
+@interruptible("the checkpoints saved so far are kept; the same command resumes")
 def main(argv=None) -> int:
   args = build_parser().parse_args(argv)
   try:
@@ -122,4 +124,4 @@ def _check_workdir(workdir: Path, config_arg: str) -> str | None:
 
 
 if __name__ == "__main__":
-  sys.exit(main())
+  exit_with(main())

@@ -5,6 +5,7 @@ from __future__ import annotations
 import functools
 import inspect
 import warnings
+from collections.abc import Mapping
 from typing import TYPE_CHECKING, Any, cast
 
 from lrf_jax._jax import backend_is_cpu, jax, jit, jnp
@@ -80,7 +81,7 @@ def _patch_frames_checked(spec: MethodSpec, patches: Patches, params: Any, extra
   return fn(jax.device_put(patches), extra, params)
 
 
-_TABLES: list[tuple[Any, int, bool, Any]] = []  # (params, size, host, table), newest last
+_TABLES: list[tuple[bytes, int, bool, Any]] = []  # (params_key, size, host, table), newest last
 
 
 @jit(static_argnums=1)
@@ -90,22 +91,53 @@ def _jit_weight_table(params: Any, size: int) -> Any:
 
 
 def _weight_table(params: Any, size: int, host: bool = False) -> Any:
-  """The `WeightTable` of `params` for `lut=size`, built once per parameter set (by identity:
-  the entry holds the parameters, so their id is not reused while cached): jitted, or with
-  `host` in numpy (`weight_table_numpy`, for the host frame kernels)."""
+  """The `WeightTable` of `params` for `lut=size`, built once per parameter content
+  (`_params_key`: a leaf replaced or written in place gives a new table): jitted, or with
+  `host` in numpy (`weight_table_numpy`, for the host frame kernels). Traced parameters (under a
+  caller's jit) are not cached."""
   from lrf_jax.frames.lrf_net import WeightTable, weight_table_numpy
   if isinstance(params, WeightTable):
     return params
-  for p, n, h, table in _TABLES:
-    if p is params and n == size and h == host:
+  key = _params_key(params)
+  for k, n, h, table in _TABLES:
+    if key is not None and k == key and n == size and h == host:
       return table
   table = weight_table_numpy(params, size) if host else _jit_weight_table(params, size)
   if host:  # shared by every later call: read-only, so no caller can write into the cache
     assert isinstance(table.values, np.ndarray)  # weight_table_numpy's
     table.values.flags.writeable = False
-  _TABLES.append((params, size, host, table))
-  del _TABLES[:-4]
+  if key is not None:
+    _TABLES.append((key, size, host, table))
+    del _TABLES[:-4]
   return table
+
+
+def _params_key(params: Any) -> bytes | None:
+  """SHA-256 of a parameter tree's structure and every leaf's dtype, shape and bytes (the nets
+  are small: LRF-Net's are 24 kB); None when a leaf is a JAX tracer. Needs no JAX import."""
+  import hashlib
+  import sys
+  tracer = getattr(getattr(sys.modules.get("jax"), "core", None), "Tracer", ())
+  h = hashlib.sha256()
+
+  def visit(node: Any) -> bool:
+    if isinstance(node, Mapping):
+      for k in sorted(node, key=repr):
+        h.update(f"{k!r}:".encode())
+        if not visit(node[k]):
+          return False
+      return True
+    if isinstance(node, (list, tuple)):
+      h.update(f"{type(node).__name__}{len(node)}[".encode())
+      return all(visit(v) for v in node)
+    if tracer and isinstance(node, tracer):
+      return False
+    a = np.asarray(node)
+    h.update(f"{a.dtype.str}{a.shape}|".encode())
+    h.update(np.ascontiguousarray(a).tobytes())
+    return True
+
+  return h.digest() if visit(params) else None
 
 
 def mesh_resolution(points: Any, faces: Any = None) -> float:
@@ -160,10 +192,13 @@ def _warn_on_ball_size(index: SearchIndex, points: np.ndarray, keypoints: np.nda
   med = float(np.median(engine.ball_counts(index.grid(radius), points[sample], radius)))
   n = len(points)
   if med < MIN_MEDIAN_BALL:
+    try:
+      mr = f"{_mesh_resolution(points)[0] * unit:.6g}"
+    except ValueError:  # no spacing: every point duplicated
+      mr = "0"
     warnings.warn(f"radius {radius * unit:.6g}: the median ball holds {med:.0f} points (fewer "
                   f"than {MIN_MEDIAN_BALL}); most frames will be invalid. The paper uses 15 mesh "
-                  f"resolutions: radius_mr=15 (this cloud's mr is "
-                  f"{_mesh_resolution(points)[0] * unit:.6g})", stacklevel=3)
+                  f"resolutions: radius_mr=15 (this cloud's mr is {mr})", stacklevel=3)
   elif med > MAX_BALL_FRACTION * n:
     warnings.warn(f"radius {radius * unit:.6g}: the median ball holds {med:.0f} of the cloud's {n} "
                   f"points (more than {MAX_BALL_FRACTION:.0%}); the frames are not local. The "

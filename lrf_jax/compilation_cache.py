@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import os
 import sys
+import threading
 from pathlib import Path
 from typing import Any, TextIO
 
@@ -34,6 +35,7 @@ NOTICE = ("lrf_jax: compiling kernels for this machine (first run only, up to a 
           "runs load them from {where}) ...")
 _JAX_COMPILE_NOTICE_SECS = 1.0  # with JAX's cache off, a compile this long is worth the note
 
+_LOCK = threading.Lock()
 _state: dict[str, Any] = {"announced": False, "numba": None, "jax": False, "stream": None,
                          "jax_cache": None}
 
@@ -128,9 +130,12 @@ def jax_imported() -> None:
 
 
 def _announce(stream: TextIO | None = None) -> None:
-  if _state["announced"]:
-    return
-  _state["announced"] = True
+  """Print the notice, once per process: numba compiles kernels from several threads (a
+  parallel kernel's gufuncs, lrf-batch's local items), so the test and the set are one step."""
+  with _LOCK:
+    if _state["announced"]:
+      return
+    _state["announced"] = True
   out = stream or _state["stream"] or sys.stderr
   print(NOTICE.format(where=cache_root()), file=out, flush=True)
 

@@ -225,3 +225,24 @@ def test_compute_frames_returns_jax_arrays_from_the_host_kernels_too():
     frames, valid = lrf_jax.compute_frames(pair.model_points, kp, radius_mr=15, method="toldi",
                                            kernel=kernel)
     assert isinstance(frames, jax.Array) and isinstance(valid, jax.Array), kernel
+
+
+def test_compile_notice_once_per_process_from_many_threads(monkeypatch):
+  """Kernels compiled at once from several threads (and a JAX compile) say it once."""
+  import threading
+  stream = io.StringIO()
+  monkeypatch.setattr(compilation_cache, "_state", dict(compilation_cache._state,
+                                                        announced=False, stream=stream))
+  start = threading.Barrier(8)
+
+  def compile_kernel():
+    start.wait()
+    for _ in range(50):
+      compilation_cache._announce()
+  threads = [threading.Thread(target=compile_kernel) for _ in range(8)]
+  for t in threads:
+    t.start()
+  for t in threads:
+    t.join()
+  compilation_cache._on_jax_event("/jax/compilation_cache/cache_misses")
+  assert stream.getvalue().count("lrf_jax: compiling kernels") == 1

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import sys
 from pathlib import Path
 
@@ -125,11 +126,87 @@ def test_frames_unreadable_file_on_disk(cloud_npy, tmp_path, capsys, suffix):
 
 @pytest.mark.parametrize("extra,fragment", [
     (["--seed", "-1"], "--seed"), (["--keypoints", "0"], "--keypoints"),
+    (["--keypoints", "sift"], "--keypoints"), (["--keypoints", "iss", "--detector", "random"],
+                                               "--detector"),
+    (["--method", "bogus"], "--method"), (["--radius-mr", "0"], "--radius-mr"),
+    (["--ratio", "1.5"], "--ratio"), (["--source-viewpoint", "nan", "0", "0"],
+                                      "--source-viewpoint"),
     (["--init", "MISSING"], "--init")])
-def test_register_bad_argument_before_any_work(cloud_npy, tmp_path, capsys, extra, fragment):
+def test_register_bad_argument_before_any_work(cloud_npy, tmp_path, capsys, monkeypatch, extra,
+                                               fragment):
+  from lrf_jax import registration
+  monkeypatch.setattr(registration, "register", lambda *a, **k: pytest.fail("work started"))
   extra = [a.replace("MISSING", str(tmp_path / "none.txt")) for a in extra]
   assert register_cli.main([str(cloud_npy), str(cloud_npy)] + extra) == 2
-  assert fragment in _error(capsys)
+  err = _error(capsys)
+  assert fragment in err and len(err.strip().splitlines()) == 1, err
+
+
+@pytest.mark.parametrize("extra,expected", [
+    ([], dict(n_keypoints=3000)), (["--keypoints", "2000"], dict(n_keypoints=2000)),
+    (["--keypoints", "iss"], dict(keypoints="iss")),
+    (["--keypoints", "random"], dict(keypoints="random")),
+    (["--detector", "iss"], dict(n_keypoints=3000, keypoints="iss")),  # the old spelling
+    (["--keypoints", "500", "--detector", "iss"], dict(n_keypoints=500, keypoints="iss"))])
+def test_register_keypoints_take_a_count_or_a_detector(cloud_npy, monkeypatch, capsys, extra,
+                                                       expected):
+  from lrf_jax import registration
+  seen = []
+  monkeypatch.setattr(registration, "register",
+                      lambda *a, **k: seen.append(k) or _FakeRegistration())
+  assert register_cli.main([str(cloud_npy), str(cloud_npy)] + extra) == 0
+  got = {k: seen[-1][k] for k in ("n_keypoints", "keypoints") if k in seen[-1]}
+  assert got == expected
+
+
+def test_register_help_names_multiway(capsys):
+  with pytest.raises(SystemExit):
+    register_cli.main(["--help"])
+  out = " ".join(capsys.readouterr().out.split())
+  assert "more than two scans" in out and "--out-dir" in out and "N|DETECTOR" in out
+  assert "--detector" not in out  # the deprecated spelling is hidden
+
+
+@pytest.mark.parametrize("extra,fragment", [
+    (["--keypoints", "0"], "--keypoints"), (["--keypoints", "sift"], "--keypoints"),
+    (["--method", "bogus"], "--method"), (["--radius-mr", "0"], "--radius-mr"),
+    (["--viewpoint", "nan", "0", "0"], "--viewpoint"),
+    (["--all-pairs-max", "-1"], "--all-pairs-max")])
+def test_multiway_bad_option_before_any_work(cloud_npy, tmp_path, capsys, monkeypatch, extra,
+                                             fragment):
+  from lrf_jax.registration import multiway
+  monkeypatch.setattr(multiway, "register_all", lambda *a, **k: pytest.fail("work started"))
+  monkeypatch.setattr(multiway, "load_scans", lambda *a, **k: pytest.fail("work started"))
+  scans = [str(cloud_npy)] * 3
+  assert register_cli.main(scans + ["--out-dir", str(tmp_path / "D")] + extra) == 2
+  err = _error(capsys)
+  assert fragment in err and len(err.strip().splitlines()) == 1, err
+  assert not (tmp_path / "D").exists()
+
+
+@pytest.mark.parametrize("bad,fragment", [
+    (dict(n_keypoints=0), "n_keypoints"), (dict(method="bogus"), "method"),
+    (dict(radius_mr=0.0), "radius_mr"), (dict(viewpoints=(np.nan, 0, 0)), "viewpoints"),
+    (dict(viewpoints=[None, (0, 0, 0), (np.inf, 0, 0)]), "viewpoints[2]"),
+    (dict(all_pairs_max=-1), "all_pairs_max"), (dict(keypoints="sift"), "keypoints")])
+def test_register_all_checks_register_options_before_any_pair(bad, fragment):
+  from lrf_jax.registration import multiway
+  clouds = [np.random.default_rng(k).random((50, 3)) for k in range(3)]
+  with pytest.raises(ValueError, match=re.escape(fragment)):
+    multiway.register_all(clouds, mr=0.05, **bad)
+
+
+@pytest.mark.parametrize("bad,fragment", [
+    (dict(method="bogus"), "method"), (dict(estimator="bogus"), "estimator"),
+    (dict(keypoints="bogus"), "keypoints"), (dict(n_keypoints=0), "n_keypoints"),
+    (dict(descriptor="bogus"), "descriptor"), (dict(ratio=2.0), "ratio"),
+    (dict(source_viewpoint=(np.nan, 0, 0)), "source_viewpoint")])
+def test_register_with_init_checks_every_option(bad, fragment):
+  """`register(init=...)` only refines by ICP, yet a bogus option is refused, not ignored."""
+  from lrf_jax.registration import register
+  pts = np.random.default_rng(0).random((200, 3))
+  with pytest.raises(ValueError, match=rf"^{re.escape(fragment)}:"):
+    register(pts, pts, init=np.eye(4), **bad)
 
 
 def test_register_refuses_to_overwrite_an_input(cloud_npy, tmp_path, capsys):
@@ -443,3 +520,79 @@ def test_frames_iss_keypoints(cloud_npy, tmp_path, monkeypatch):
   z = np.load(out)
   assert z["keypoints"].tolist() == [3, 5, 7] and z["keypoints"].dtype == np.int64
   assert seen["mr"] == pytest.approx(float(z["mr"]))
+
+
+# ----------------------------------------------------------------------------- Ctrl-C
+
+
+def _interrupt(*args, **kwargs):
+  raise KeyboardInterrupt
+
+
+def _interrupted(capsys) -> str:
+  err = capsys.readouterr().err
+  assert "Traceback" not in err and "KeyboardInterrupt" not in err, err
+  lines = [line for line in err.splitlines() if not line.startswith("#")]
+  assert len(lines) == 1 and lines[0].startswith("interrupted: "), err
+  return err
+
+
+@pytest.mark.parametrize("program", ["lrf-register", "multiway", "lrf-frames", "train.py",
+                                     "evaluate.py"])
+def test_ctrl_c_is_exit_130_with_one_line_and_no_partial_file(program, cloud_npy, tmp_path,
+                                                              capsys, monkeypatch):
+  """Ctrl-C in the middle of the work: one `interrupted:` line, exit 130, no traceback, no
+  output file (each program's work replaced by one that raises KeyboardInterrupt)."""
+  from lrf_jax import registration
+  from lrf_jax.evaluation import runner
+  from lrf_jax.registration import multiway
+  out = tmp_path / "out"
+  if program == "lrf-register":
+    monkeypatch.setattr(registration, "register", _interrupt)
+    rc = register_cli.main([str(cloud_npy), str(cloud_npy), "--out", str(out)])
+  elif program == "multiway":
+    monkeypatch.setattr(multiway, "register_all", _interrupt)
+    rc = register_cli.main([str(cloud_npy)] * 3 + ["--out-dir", str(out), "--quiet"])
+  elif program == "lrf-frames":
+    monkeypatch.setattr(frames_cli, "frames_outputs", _interrupt)
+    rc = frames_cli.main([str(cloud_npy), "--out", str(out)])
+  elif program == "train.py":
+    monkeypatch.setattr(train_lib, "train_and_evaluate", _interrupt)
+    rc = train.main(["--config", "smoke", "--workdir", str(out), "--no-progress"])
+  else:
+    monkeypatch.setattr(runner, "method_runs", _interrupt)
+    rc = evaluate.main(["--out", str(out), "--datasets", "demo", "--experiments", "repeatability"])
+  assert rc == 130
+  _interrupted(capsys)
+  assert not out.exists() or not any(out.iterdir())
+
+
+def test_ctrl_c_inside_a_numba_kernel_call_is_still_an_interrupt(cloud_npy, capsys, monkeypatch):
+  """Ctrl-C while numba dispatches surfaces as a SystemError raised from the KeyboardInterrupt
+  (seen in a real SIGINT during multiway): still exit 130 and one line."""
+  from lrf_jax import registration
+
+  def numba_like(*args, **kwargs):
+    try:
+      raise KeyboardInterrupt
+    except KeyboardInterrupt as e:
+      raise SystemError("CPUDispatcher(<function _bin>) returned a result with an exception "
+                        "set") from e
+  monkeypatch.setattr(registration, "register", numba_like)
+  assert register_cli.main([str(cloud_npy), str(cloud_npy)]) == 130
+  _interrupted(capsys)
+  monkeypatch.setattr(registration, "register", _interrupt_not)
+  with pytest.raises(SystemError):  # any other error is not taken for an interrupt
+    register_cli.main([str(cloud_npy), str(cloud_npy)])
+
+
+def _interrupt_not(*args, **kwargs):
+  raise SystemError("a bug")
+
+
+def test_frames_cloud_without_spacing_names_the_file(tmp_path, capsys):
+  path = tmp_path / "dup.npy"
+  np.save(path, np.ones((100, 3)))
+  assert frames_cli.main([str(path), "--out", str(tmp_path / "f.npz")]) == 2
+  err = _error(capsys)
+  assert f"{path}: the cloud has no spacing" in err and "radius" not in err, err

@@ -308,7 +308,7 @@ def test_ply_header_errors_keep_their_line(tmp_path):
   with pytest.raises(ValueError, match="early end-of-file"):
     io.read_ply(p)
   p.write_bytes(b"plx\n")
-  with pytest.raises(ValueError, match="header line 1: .*expected 'ply'"):
+  with pytest.raises(ValueError, match="header line 1: .*starting with 'ply', found b'plx"):
     io.read_ply(p)
 
 
@@ -327,3 +327,66 @@ def test_uint64_keypoint_out_of_range_is_reported_exactly():
   from lrf_jax.checks import validate_keypoints
   with pytest.raises(ValueError, match="9223372036854775813"):
     validate_keypoints(np.array([2**63 + 5], np.uint64), 100)
+
+
+_ASCII_HEAD = "ply\nformat ascii 1.0\nelement vertex 3\n"
+
+
+@pytest.mark.parametrize("props,rows,where,found", [
+    ("property float x\nproperty float y\nproperty float z\nproperty uchar red\n",
+     ["0 0 0 10", "1 0 0 300", "0 1 0 20"], "row 1 property 'red'", "found 300"),
+    ("property int x\nproperty int y\nproperty int z\n",
+     ["0 0 0", "1 0 0", "0 0.7 0"], "row 2 property 'y'", "found 0.69999999999999996"),
+    ("property uchar x\nproperty float y\nproperty float z\n",
+     ["0 0 0", "-1 0 0", "1 1 0"], "row 1 property 'x'", "found -1"),
+])
+def test_ascii_ply_integer_out_of_range_or_fractional_is_refused(tmp_path, props, rows, where,
+                                                                  found):
+  """An ascii `uchar` holding 300 read as 44 and an `int` holding 0.7 as 0 (plyfile raises):
+  the message names the file, element, row and property."""
+  p = tmp_path / "bad.ply"
+  p.write_text(_ASCII_HEAD + props + "end_header\n" + "\n".join(rows) + "\n")
+  with pytest.raises(ValueError, match=rf"bad\.ply: element 'vertex' {where}: expected an "
+                                       rf"integer in .*{found}"):
+    io.read_ply(p)
+
+
+def test_ascii_ply_face_index_out_of_range_is_refused(tmp_path):
+  p = tmp_path / "faces.ply"
+  p.write_text(_ASCII_HEAD + "property float x\nproperty float y\nproperty float z\n"
+               "element face 2\nproperty list uchar uchar vertex_indices\nend_header\n"
+               "0 0 0\n1 0 0\n0 1 0\n3 0 1 2\n3 0 1 258\n")
+  with pytest.raises(ValueError, match=r"element 'face' row 1 property 'vertex_indices': "
+                                       r"expected an integer in \[0, 255\].*found 258"):
+    io.read_ply(p)
+  p.write_text(p.read_text().replace("258", "2"))
+  assert io.read_ply(p).faces.tolist() == [[0, 1, 2], [0, 1, 2]]
+
+
+def test_empty_ply_says_the_file_is_empty(tmp_path):
+  p = tmp_path / "empty.ply"
+  p.write_bytes(b"")
+  with pytest.raises(ValueError, match=r"empty\.ply: header line 1: .*found an empty file"):
+    io.read_cloud(p)
+
+
+def test_npz_named_npy_is_one_clean_error(tmp_path):
+  p = tmp_path / "cloud.npy"
+  with open(p, "wb") as f:
+    np.savez(f, points=np.random.default_rng(0).random((20, 3)))
+  with pytest.raises(ValueError, match=r"cloud\.npy: array: .*found an \.npz archive "
+                                       r"\(arrays: points\)"):
+    io.read_cloud(p)
+
+
+@pytest.mark.parametrize("points,fragment", [
+    (np.ones((50, 3)), "all 50 points coincide"),
+    (np.repeat(np.random.default_rng(0).random((25, 3)), 2, axis=0),
+     "every point is duplicated (25 distinct positions among 50 points)")])
+def test_cloud_without_spacing_says_so_not_radius(points, fragment):
+  """A cloud of duplicated points said "radius: ... got 0.0" although no radius was given."""
+  with pytest.raises(ValueError, match=r"^source: the cloud has no spacing") as e:
+    lrf_jax.register(points, points)
+  assert fragment in str(e.value) and "radius" not in str(e.value)
+  with pytest.raises(ValueError, match=r"^points: the cloud has no spacing"):
+    lrf_jax.mesh_resolution(points)

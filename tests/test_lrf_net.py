@@ -539,3 +539,48 @@ def test_compute_frames_picks_the_host_patch_kernel_on_the_cpu(monkeypatch):
   assert calls == ["sum"]
   with pytest.raises(ValueError, match="no host kernel for the options"):
     lrf_jax.compute_frames(pts, kp, r, "lrf_net", lut=0, kernel="host")
+
+
+@pytest.mark.parametrize("numpy_form", [False, True])
+def test_default_params_hand_out_no_shared_dict(numpy_form):
+  """Replacing a leaf of `default_params()`'s result changed every later call (the cached dict
+  was handed out); the numpy form's arrays are read-only."""
+  from lrf_jax.frames.weights import default_params, default_params_numpy
+  get = default_params_numpy if numpy_form else default_params
+  p = get("lrf_net")
+  kernel = np.array(p["out"]["kernel"])
+  p["out"]["kernel"] = np.zeros_like(kernel)
+  np.testing.assert_array_equal(get("lrf_net")["out"]["kernel"], kernel)
+  if numpy_form:
+    with pytest.raises(ValueError, match="read-only"):
+      get("lrf_net")["out"]["bias"][...] = 0
+
+
+@pytest.mark.parametrize("host", [False, True])
+def test_weight_table_follows_the_parameters_content(host):
+  """The LRF-Net weight table was cached by the identity of `params`: a leaf replaced (or
+  written in place) kept the old table. It is keyed by content now."""
+  from lrf_jax import api
+  from lrf_jax.frames.weights import default_params_numpy
+  p = jax.tree.map(np.array, default_params_numpy("lrf_net"))  # writable copies
+  first = np.array(api._weight_table(p, 17, host=host).values)
+  same = jax.tree.map(np.array, p)
+  assert api._weight_table(same, 17, host=host).values is not None
+  np.testing.assert_array_equal(np.asarray(api._weight_table(same, 17, host=host).values), first)
+  p["out"]["bias"] = p["out"]["bias"] + 3.0  # a leaf replaced in the same dict
+  replaced = np.asarray(api._weight_table(p, 17, host=host).values)
+  assert not np.array_equal(replaced, first)
+  p["enc0"]["kernel"][...] *= -1.0  # a leaf written in place
+  written = np.asarray(api._weight_table(p, 17, host=host).values)
+  assert not np.array_equal(written, replaced)
+  fresh = jax.tree.map(np.array, p)
+  np.testing.assert_array_equal(np.asarray(api._weight_table(fresh, 17, host=host).values),
+                                written)
+
+
+def test_weight_table_under_jit_is_not_cached():
+  from lrf_jax import api
+  from lrf_jax.frames.weights import default_params
+  before = len(api._TABLES)
+  values = jax.jit(lambda p: api._weight_table(p, 9).values)(default_params("lrf_net"))
+  assert values.shape[:2] == (9, 9) and len(api._TABLES) == before

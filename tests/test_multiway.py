@@ -523,3 +523,47 @@ def test_a_foreign_scan_among_real_bunny_scans_is_never_placed(data_root, seed):
                                                      "trex"], seed=seed, refine=False)
   assert res.left_out == ["trex"] and np.isnan(res.poses[4]).all()
   assert not any(e.accepted for e in res.edges if 4 in (e.i, e.j))
+
+
+@pytest.mark.parametrize("all_pairs_max", [0, 1, 2])
+def test_candidate_pairs_never_pair_a_scan_with_itself(all_pairs_max):
+  """Fewer scans than loop candidates + 1 (3 scans, 3 candidates): every pair (i, j), i < j,
+  once; a scan's own distance (inf) was taken as its third candidate, (0, 0) an edge that
+  `register_all` refused after the pairwise work."""
+  clouds = [np.random.default_rng(k).random((200, 3)) * (1 + k) for k in range(3)]
+  pairs = multiway.candidate_pairs(clouds, all_pairs_max=all_pairs_max)
+  assert pairs == [(0, 1), (0, 2), (1, 2)]
+
+
+def test_voxel_too_small_for_the_extent_is_refused(tmp_path, capsys, monkeypatch):
+  """`--voxel 1e-20`: the int64 voxel keys overflowed and merged.ply collapsed to a few points;
+  now one error: line naming --voxel before any registration, nothing written."""
+  from lrf_jax.cli.register import main
+  clouds = [np.random.default_rng(k).normal(size=(30, 3)) for k in range(3)]
+  res = _result(["a", "b", "c"], [True] * 3)
+  with pytest.raises(ValueError, match="voxel: 1e-20 is too small for the merged cloud's extent"):
+    multiway.merged_cloud(clouds, res, voxel=1e-20)
+  down, _ = multiway.merged_cloud(clouds, res, voxel=1e-9)  # small, still exact: every point
+  assert len(down) == 90
+  with pytest.raises(ValueError, match="voxel: 1e-20 is too small for the scans' extent"):
+    multiway.check_voxel(clouds, 1e-20)  # whatever the poses: before the work
+  multiway.check_voxel(clouds, 1e-9)
+  scans = _npy_scans(tmp_path / "in", "a.npy", "b.npy", "c.npy")
+  monkeypatch.setattr(multiway, "register_all", lambda *a, **k: pytest.fail("registered"))
+  out = tmp_path / "model"
+  assert main([*scans, "--out-dir", str(out), "--quiet", "--no-figures", "--voxel", "1e-20"]) == 2
+  err = capsys.readouterr().err
+  errors = [line for line in err.splitlines() if line.startswith("error: ")]
+  assert len(errors) == 1 and errors[0].startswith("error: --voxel: 1e-20 mr = "), err
+  assert "too small" in err and "Traceback" not in err and not out.exists()
+
+
+@pytest.mark.parametrize("n", [1, 3, 10, 11, 25])
+def test_scan_colours_are_matplotlibs_without_importing_it(n):
+  """merged.ply's colours: matplotlib's tab10 / tab20 as tables (a base install writes it)."""
+  from matplotlib import colormaps
+
+  from lrf_jax.registration.multiway_figures import scan_colours
+  cmap = colormaps["tab10" if n <= 10 else "tab20"]
+  expected = (np.array([cmap(k % cmap.N)[:3] for k in range(n)]) * 255).round().astype(np.uint8)
+  np.testing.assert_array_equal(scan_colours(n), expected)

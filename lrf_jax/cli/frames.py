@@ -32,6 +32,7 @@ from pathlib import Path
 
 import numpy as np
 
+from lrf_jax.cli.interrupt import exit_with, interruptible
 from lrf_jax.cli.help import DefaultsHelpFormatter
 
 
@@ -135,6 +136,12 @@ def check_options(args: argparse.Namespace) -> str | None:
   if args.png is not None and Path(args.png).suffix.lower() not in FIGURE_SUFFIXES:
     return (f"--png: {args.png!r} has no figure suffix; expected one of "
             f"{', '.join(FIGURE_SUFFIXES)}")
+  if args.png is not None:
+    from lrf_jax.extras import MissingExtraError, require
+    try:  # before any work, not after the frames
+      require("plot", "--png")
+    except MissingExtraError as e:
+      return str(e)
   if (args.pair is None) != (args.gt is None):
     return ("--pair and --gt go together: --pair B names the second scan, --gt T the 4x4 "
             "transform mapping the cloud onto it")
@@ -243,7 +250,10 @@ def frames_outputs(args: argparse.Namespace) -> tuple[dict, object, object]:
   import lrf_jax
   from lrf_jax.geometry.cloud import as_cloud
   cloud = as_cloud(args.cloud, "cloud")
-  mr = lrf_jax.mesh_resolution(cloud.points, cloud.faces)
+  try:
+    mr = lrf_jax.mesh_resolution(cloud.points, cloud.faces)
+  except ValueError as e:  # "points: the cloud has no spacing ...": name the file
+    raise ValueError(f"{args.cloud}: {str(e).removeprefix('points: ')}") from None
   voxel = None if args.voxel_mr is None else args.voxel_mr * mr
   how = args.keypoints or "1000"
   other = gt = None
@@ -296,6 +306,7 @@ def _figure(args: argparse.Namespace, out: dict, cloud, other) -> None:
                            f"{len(mc)} keypoints, mean MeanCos {mc.mean():.3f}")
 
 
+@interruptible("no partial file is left")
 def main(argv: list[str] | None = None) -> int:
   """Run lrf-frames with `argv` (default: the command line); returns the exit code (0 done,
   2 a bad argument, unreadable input or unwritable output: one `error:` line)."""
@@ -339,4 +350,4 @@ def main(argv: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-  sys.exit(main())
+  exit_with(main())

@@ -26,6 +26,8 @@ import sys
 
 import numpy as np
 
+from lrf_jax.cli.interrupt import exit_with, interruptible
+
 
 def build_parser() -> argparse.ArgumentParser:
   ap = argparse.ArgumentParser(
@@ -42,7 +44,9 @@ def build_parser() -> argparse.ArgumentParser:
   ap.add_argument("--mr", type=float, default=None,
                   help="mesh resolution in the clouds' units (default: median over the scans)")
   ap.add_argument("--radius-mr", type=float, default=15.0, help="support radius in mr (15)")
-  ap.add_argument("--keypoints", type=int, default=3000, help="keypoints per scan (3000)")
+  ap.add_argument("--keypoints", default="3000", metavar="N|DETECTOR",
+                  help="keypoints per scan: a count of seeded random points (3000), or a "
+                       "detector name: 'iss' (ISS keypoints, at most 3000) or 'random'")
   ap.add_argument("--method", default="lrf_net_plus", help="LRF method (lrf_net_plus)")
   ap.add_argument("--viewpoint", type=float, nargs=3, default=None, metavar=("X", "Y", "Z"),
                   help="sensor position of every scan, in each scan's own frame")
@@ -88,6 +92,9 @@ def _check(args: argparse.Namespace) -> str | None:
     val = getattr(args, name)
     if val is not None and not (np.isfinite(val) and val > 0):
       return f"--{name.replace('_', '-')}: expected a positive number, got {val}"
+  problem = _check_register_options(args)
+  if problem:
+    return problem
   for s in args.scans:
     if path_problem(s):
       return f"{s}: {path_problem(s)}"
@@ -119,6 +126,25 @@ def _check(args: argparse.Namespace) -> str | None:
   return None
 
 
+def _check_register_options(args: argparse.Namespace) -> str | None:
+  """What is wrong with --all-pairs-max and the options passed to every pairwise registration
+  (--keypoints, --method, --radius-mr, --viewpoint), before any work (None: fine)."""
+  from lrf_jax.cli.options import option_message, parse_keypoints
+  from lrf_jax.registration.multiway import check_counts
+  from lrf_jax.registration.pipeline import check_register_options
+  names = {"all_pairs_max": "all_pairs_max", "n_keypoints": "keypoints",
+           "keypoints": "keypoints", "radius_mr": "radius_mr", "method": "method",
+           "source_viewpoint": "viewpoint", "target_viewpoint": "viewpoint"}
+  try:
+    check_counts(all_pairs_max=args.all_pairs_max)
+    check_register_options(radius_mr=args.radius_mr, method=args.method,
+                           source_viewpoint=args.viewpoint, seed=args.seed,
+                           **parse_keypoints(args.keypoints))
+  except ValueError as e:
+    return option_message(str(e), names)
+  return None
+
+
 def _print_result(res, out) -> None:
   from lrf_jax.registration.multiway import edges_table
   print(edges_table(res), end="", file=out)
@@ -130,24 +156,41 @@ def _print_result(res, out) -> None:
           file=sys.stderr)
 
 
+@interruptible("no partial file is left; the same command runs again")
 def main(argv: list[str] | None = None) -> int:
   args = build_parser().parse_args(argv)
   problem = _check(args)
   if problem:
     print(f"error: {problem}", file=sys.stderr)
     return 2
+  from lrf_jax.extras import MissingExtraError, require
+  figures, skipped = args.out_dir is not None and not args.no_figures, None
+  if figures:
+    try:  # checked before the work: a base install writes everything but the figures
+      require("plot", "the figures merged.png and graph.png")
+    except MissingExtraError as e:
+      figures, skipped = False, str(e)
   from lrf_jax import compilation_cache
   compilation_cache.enable()
+  from lrf_jax.cli.options import parse_keypoints
   from lrf_jax.io.atomic import WriteError
-  from lrf_jax.registration.multiway import load_scans, register_all, scan_names, write_outputs
+  from lrf_jax.registration.multiway import (check_voxel, load_scans, median_mr, register_all,
+                                             scan_names, write_outputs)
   try:
     names = scan_names(args.scans)
     clouds = load_scans(args.scans, names)
-    res = register_all(clouds, names=names, mr=args.mr, seed=args.seed, refine=not args.no_refine,
+    mr = args.mr
+    if args.voxel is not None:  # a voxel too small whatever the poses: before the work
+      mr = median_mr(clouds, names) if mr is None else mr  # register_all's own
+      try:
+        check_voxel([c.points for c in clouds], args.voxel * mr)
+      except ValueError as e:
+        raise ValueError(f"--voxel: {args.voxel:g} mr = {str(e)[len('voxel: '):]}") from None
+    res = register_all(clouds, names=names, mr=mr, seed=args.seed, refine=not args.no_refine,
                        reject_mr=args.reject_mr, all_pairs_max=args.all_pairs_max,
                        viewpoints=args.viewpoint, progress=not args.quiet,
-                       radius_mr=args.radius_mr, n_keypoints=args.keypoints,
-                       method=args.method)
+                       radius_mr=args.radius_mr, method=args.method,
+                       **parse_keypoints(args.keypoints))
   except (ValueError, FileNotFoundError) as e:
     print(f"error: {e}", file=sys.stderr)
     return 2
@@ -165,12 +208,17 @@ def main(argv: list[str] | None = None) -> int:
     try:
       write_outputs(res, [c.points for c in clouds], args.out_dir,
                     voxel=None if args.voxel is None else args.voxel * res.mr,
-                    figures=not args.no_figures)
+                    figures=figures)
     except (WriteError, ValueError) as e:  # e.g. the folder changed during the run
-      print(f"error: {str(e).replace('out_dir: ', '--out-dir: ', 1)}", file=sys.stderr)
+      message = str(e).replace("out_dir: ", "--out-dir: ", 1)
+      if message.startswith("voxel: "):
+        message = f"--voxel: {args.voxel:g} mr = " + message[len("voxel: "):]
+      print(f"error: {message}", file=sys.stderr)
       return 2
+    if skipped:
+      print(f"# figures skipped: {skipped} (or pass --no-figures)", file=sys.stderr)
   return 3 if res.left_out else 0
 
 
 if __name__ == "__main__":
-  sys.exit(main())
+  exit_with(main())

@@ -27,7 +27,9 @@ from typing import Any
 
 import numpy as np
 
+from lrf_jax.cli.interrupt import exit_with, interruptible
 from lrf_jax.cli.help import DefaultsHelpFormatter
+from lrf_jax.cli.options import KEYPOINT_DETECTORS, option_message, parse_keypoints
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -35,7 +37,10 @@ def build_parser() -> argparse.ArgumentParser:
                                description="Rigid registration of two scans with learned LRFs "
                                            "(LRF-Net frames, TOLDI matching, a compatibility "
                                            "graph of correspondences and their LRF poses, "
-                                           "point-to-plane ICP).",
+                                           "point-to-plane ICP). Given more than two scans (or "
+                                           "--out-dir) it registers them all into one model "
+                                           "(multiway; lrf-register a b c --out-dir D --help "
+                                           "lists its options).",
                                formatter_class=DefaultsHelpFormatter)
   ap.add_argument("source", help="the cloud to move (PLY, PCD, XYZ/TXT(.gz), NPY)")
   ap.add_argument("target", help="the cloud to align it to")
@@ -55,16 +60,18 @@ def build_parser() -> argparse.ArgumentParser:
                        "clouds' units (0: keep every point; default: thin a cloud far denser "
                        "than the working resolution, such as a raw LiDAR sweep, at it)")
   ap.add_argument("--radius-mr", type=float, default=15.0, help="support radius in mr")
-  ap.add_argument("--keypoints", type=int, default=3000, help="keypoints per cloud")
+  ap.add_argument("--keypoints", default="3000", metavar="N|DETECTOR",
+                  help="keypoints per cloud: a count of seeded random points, or a detector "
+                       "name: 'iss' (ISS keypoints, at most 3000) or 'random'")
   ap.add_argument("--correspondences", type=int, default=1000,
                   help="correspondences kept after matching")
   ap.add_argument("--inlier-mr", type=float, default=5.0, help="inlier distance in mr")
   ap.add_argument("--estimator", choices=("graph", "lrf", "3point"), default="graph",
                   help="compatibility graph (graph), one correspondence per hypothesis "
                        "(lrf) or classic 3-point RANSAC")
-  ap.add_argument("--detector", choices=("random", "iss"), default="random",
-                  help="keypoints: seeded random points (random) or ISS keypoints, at most "
-                       "--keypoints of them")
+  # Deprecated spelling of `--keypoints iss` (kept working, hidden): with a count in
+  # --keypoints, ISS keypoints at most that many.
+  ap.add_argument("--detector", choices=KEYPOINT_DETECTORS, default=None, help=argparse.SUPPRESS)
   ap.add_argument("--mutual", action="store_true", help="keep mutual nearest matches only")
   ap.add_argument("--ratio", type=float, default=None,
                   help="Lowe's ratio test threshold in (0, 1] (default: none)")
@@ -92,33 +99,65 @@ def build_parser() -> argparse.ArgumentParser:
   return ap
 
 
-# lrf-register's options (argparse dests) -> the keywords of `lrf_jax.register` they set.
-REGISTER_KEYWORDS = {"mr": "mr", "radius_mr": "radius_mr", "keypoints": "n_keypoints",
+# lrf-register's options (argparse dests) -> the keywords of `lrf_jax.register` they set
+# (--keypoints and --detector: `keypoint_options`).
+REGISTER_KEYWORDS = {"mr": "mr", "radius_mr": "radius_mr",
                      "correspondences": "n_correspondences", "inlier_mr": "inlier_mr",
                      "estimator": "estimator", "iterations": "iterations",
                      "icp_iterations": "icp_iterations", "seed": "seed", "method": "method",
                      "source_viewpoint": "source_viewpoint",
-                     "target_viewpoint": "target_viewpoint", "detector": "keypoints",
+                     "target_viewpoint": "target_viewpoint",
                      "mutual": "mutual", "ratio": "ratio", "icp": "icp_mode",
                      "voxel_size": "voxel_size"}
+
+
+def keypoint_options(args: argparse.Namespace) -> dict[str, Any]:
+  """The keywords `--keypoints` and the deprecated `--detector` (where present) set.
+
+  Raises:
+    ValueError: a bad --keypoints, or two detectors named.
+  """
+  out: dict[str, Any] = {}
+  if getattr(args, "keypoints", None) is not None:
+    out = parse_keypoints(args.keypoints)
+  detector = getattr(args, "detector", None)
+  if detector is not None:
+    if out.get("keypoints", detector) != detector:
+      raise ValueError(f"--keypoints {args.keypoints} and --detector {detector}: give one "
+                       "detector (--detector is the old spelling of --keypoints NAME)")
+    out["keypoints"] = detector
+  return out
 
 
 def register_options(args: argparse.Namespace) -> dict[str, Any]:
   """The keywords of `lrf_jax.register` that the options present in `args` set (an option
   parsed with its default suppressed and not given is left out)."""
-  return {kw: getattr(args, dest) for dest, kw in REGISTER_KEYWORDS.items()
-          if hasattr(args, dest)}
+  out = {kw: getattr(args, dest) for dest, kw in REGISTER_KEYWORDS.items()
+         if hasattr(args, dest)}
+  out.update(keypoint_options(args))
+  return out
 
 
 def check_options(args: argparse.Namespace) -> str | None:
-  """What is wrong with --seed or --keypoints where present (None: fine)."""
+  """What is wrong with the options present in `args`, checked before any work (None: fine):
+  --seed, --keypoints, and every value `lrf_jax.register` would refuse (named by its option)."""
   seed = getattr(args, "seed", 0)
   if not 0 <= seed < 2**32:
     return f"--seed: expected an integer in [0, 2**32), got {seed}"
-  keypoints = getattr(args, "keypoints", 1)
-  if keypoints < 1:
-    return f"--keypoints: expected a positive integer, got {keypoints}"
+  try:
+    options = register_options(args)
+  except ValueError as e:
+    return str(e)
+  from lrf_jax.registration.pipeline import check_register_options
+  try:
+    check_register_options(**options)
+  except ValueError as e:
+    return option_message(str(e), {**{kw: dest for dest, kw in REGISTER_KEYWORDS.items()},
+                                   "n_keypoints": "keypoints", "keypoints": "keypoints"})
   return None
+
+
+
 
 
 def _check_paths(args: argparse.Namespace) -> str | None:
@@ -141,6 +180,11 @@ def _check_paths(args: argparse.Namespace) -> str | None:
   if args.png:
     if Path(args.png).suffix.lower() not in (".png", ".pdf", ".svg", ".jpg", ".jpeg"):
       return f"--png: {args.png!r} has no figure suffix (.png, .pdf, .svg, .jpg)"
+    from lrf_jax.extras import MissingExtraError, require
+    try:  # before the registration, not after it
+      require("plot", "--png")
+    except MissingExtraError as e:
+      return str(e)
     problem = output_problem(args.png, "--png",
                              [("SOURCE", args.source), ("TARGET", args.target),
                               ("--init", args.init), ("--out", args.out)])
@@ -170,6 +214,7 @@ def read_init(path: str) -> np.ndarray:
   return read_transform(path, "--init")
 
 
+@interruptible("no partial file is left")
 def main(argv: list[str] | None = None) -> int:
   from lrf_jax.cli import multiway as multiway_cli
   if multiway_cli.wanted(build_parser(), argv):  # more than two scans, or --out-dir
@@ -179,6 +224,9 @@ def main(argv: list[str] | None = None) -> int:
   if problem:
     print(f"error: {problem}", file=sys.stderr)
     return 2
+  if args.detector is not None:
+    print(f"# --detector is deprecated: --keypoints takes a detector name (--keypoints "
+          f"{args.detector})", file=sys.stderr)
   from lrf_jax import compilation_cache
   compilation_cache.enable()  # a second run loads the compiled functions instead of recompiling
   from lrf_jax.registration import register
@@ -250,4 +298,4 @@ def correspondence_figure(args: argparse.Namespace, reg) -> str | None:
 
 
 if __name__ == "__main__":
-  sys.exit(main())
+  exit_with(main())

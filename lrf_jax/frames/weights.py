@@ -141,7 +141,25 @@ def _default_params_numpy(name: str) -> Params:
     raise ValueError(f"default_params: no shipped weights named {name!r} (expected one of "
                      f"{', '.join(shipped) or 'none: the package was installed without its weights'}"
                      f", from {WEIGHTS_DIR}); init_params(seed) gives an untrained network")
-  return load_params_numpy(path)
+  params = load_params_numpy(path)
+  for leaf in _leaves(params):  # shared by every caller: read-only
+    if isinstance(leaf, np.ndarray):
+      leaf.flags.writeable = False
+  return params
+
+
+def _leaves(tree: Any) -> list[Any]:
+  if isinstance(tree, dict):
+    return [x for v in tree.values() for x in _leaves(v)]
+  return [tree]
+
+
+def _fresh_containers(tree: Any) -> Any:
+  """`tree` with new dicts (the same, immutable or read-only, leaves): a caller who replaces a
+  leaf of what `default_params` handed out changes no later call's parameters."""
+  if isinstance(tree, dict):
+    return {k: _fresh_containers(v) for k, v in tree.items()}
+  return tree
 
 
 @functools.lru_cache(maxsize=8)
@@ -155,8 +173,8 @@ def _default_params_cached(name: str) -> Params:
 
 def default_params_numpy(name: str = "lrf_net") -> Params:
   """`default_params(name)` as numpy arrays, read once per process (no JAX: the host kernels'
-  form). Raises as `default_params` does."""
-  return _default_params_numpy(name)
+  form; read-only arrays in new dicts). Raises as `default_params` does."""
+  return _fresh_containers(_default_params_numpy(name))
 
 
 def default_params(name: str = "lrf_net") -> Params:
@@ -166,8 +184,11 @@ def default_params(name: str = "lrf_net") -> Params:
   Raises:
     ValueError: no weights of that name are shipped (the message lists those that are; an
       untrained network is `lrf_jax.init_params(seed)`, never given in their place).
+
+  Each call returns new dicts around the (immutable) cached arrays: replacing a leaf of the
+  result changes no later call.
   """
-  return _default_params_cached(name)
+  return _fresh_containers(_default_params_cached(name))
 
 
 def _unpack_array(code: int, data: bytes) -> Any:

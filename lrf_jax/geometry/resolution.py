@@ -39,8 +39,8 @@ def unique_edges(faces: np.ndarray) -> np.ndarray:
   return np.stack([keys // n, keys % n], axis=1)
 
 
-def mesh_resolution(points: np.ndarray,
-                    faces: np.ndarray | None = None) -> tuple[float, MrDefinition]:
+def mesh_resolution(points: np.ndarray, faces: np.ndarray | None = None, *,
+                    name: str = "points") -> tuple[float, MrDefinition]:
   """Mesh resolution of a mesh (mean unique-edge length) or a cloud (mean NN distance).
 
   Args:
@@ -52,7 +52,8 @@ def mesh_resolution(points: np.ndarray,
     "mean_nn_distance" (cloud).
 
   Raises:
-    ValueError: fewer than 2 points, or an empty face array.
+    ValueError: fewer than 2 points, an empty face array, or a cloud without spacing (mr 0:
+      all points coincide, or every point has a duplicate); the message starts with `name`.
   """
   pts = np.asarray(points, dtype=np.float64)
   if pts.ndim != 2 or pts.shape[1] != 3 or len(pts) < 2:
@@ -62,9 +63,20 @@ def mesh_resolution(points: np.ndarray,
     if faces.ndim != 2 or faces.shape[1] != 3 or len(faces) == 0:
       raise ValueError(f"faces: expected a non-empty (f, 3) array, found shape {faces.shape}")
     e = unique_edges(faces)
-    return float(np.linalg.norm(pts[e[:, 0]] - pts[e[:, 1]], axis=1).mean()), "mean_edge_length"
+    mr = float(np.linalg.norm(pts[e[:, 0]] - pts[e[:, 1]], axis=1).mean())
+    if mr == 0.0:
+      raise ValueError(f"{name}: the mesh has no spacing (mean edge length 0): its edges join "
+                       "coinciding vertices")
+    return mr, "mean_edge_length"
   d, _ = engine.knn(engine.knn_grid(pts, 2), pts, 2)  # the point itself, then its nearest
-  return float(d[:, 1].mean()), "mean_nn_distance"
+  mr = float(d[:, 1].mean())
+  if mr == 0.0:
+    distinct = len(np.unique(pts, axis=0))
+    what = (f"all {len(pts)} points coincide" if distinct == 1 else
+            f"every point is duplicated ({distinct} distinct positions among {len(pts)} points)")
+    raise ValueError(f"{name}: the cloud has no spacing (mean nearest-neighbor distance 0): "
+                     f"{what}")
+  return mr, "mean_nn_distance"
 
 
 # A cloud whose area-weighted median spacing exceeds its mean spacing by this factor is uneven
@@ -143,6 +155,8 @@ def working_resolution(points: np.ndarray, faces: np.ndarray | None = None) -> R
     mesh_resolution(pts)  # its ValueError
   d, _ = engine.knn(engine.knn_grid(pts, 2), pts, 2)  # as mesh_resolution: the same mean
   mean = float(d[:, 1].mean())
+  if mean == 0.0:
+    mesh_resolution(pts)  # its ValueError: the cloud has no spacing
   area = area_median(d[:, 1])
   if mean > 0 and area > UNEVEN_RATIO * mean:
     return Resolution(area, mean, area, "area_median_nn_distance")

@@ -5,6 +5,7 @@ from __future__ import annotations
 import dataclasses
 import os
 import tokenize
+from typing import Any
 from pathlib import Path
 
 import numpy as np
@@ -55,7 +56,14 @@ def read_npy(path: str | os.PathLike) -> Cloud:
     # numpy: SyntaxError/TokenError for a garbled header dict, OverflowError for a negative shape
     raise bad_input(p, "array", "a numeric .npy array",
                     f"an unreadable file ({type(e).__name__}: {e})") from e
-  stored = p.stat().st_size - arr.offset
+  if not isinstance(arr, np.ndarray):  # np.load opens a zip (an .npz) whatever the suffix
+    names = ", ".join(getattr(arr, "files", [])[:8]) or "none"
+    getattr(arr, "close", lambda: None)()
+    raise bad_input(p, "array", "a numeric .npy array",
+                    f"an .npz archive (arrays: {names}); save one (n, 3) array with "
+                    "numpy.save, or extract it")
+  mapped: Any = arr  # a np.memmap (mmap_mode): its header's length is `offset`
+  stored = p.stat().st_size - mapped.offset
   if stored != arr.nbytes:  # np.load ignores data after the header's shape
     raise bad_input(p, "shape", f"{arr.nbytes} bytes of data for shape {arr.shape} and dtype "
                     f"{arr.dtype} (header)", f"{stored} bytes stored")

@@ -126,8 +126,11 @@ def _header_lines(stream, p: Path) -> tuple[list[str], int]:
   """
   cap = int(MAX_HEADER_BYTES)
   head = stream.read(cap)
+  if not head:
+    raise bad_input(p, "header line 1", "a PLY file starting with 'ply'", "an empty file (0 bytes)")
   if head[:3] != b"ply":
-    raise bad_input(p, "header line 1", "a valid PLY header", "expected 'ply'")
+    raise bad_input(p, "header line 1", "a PLY file starting with 'ply'",
+                    f"{head[:16]!r} (not a PLY file?)")
   nl = b"\r\n" if head[3:5] == b"\r\n" else head[3:4]
   if nl not in (b"\n", b"\r", b"\r\n"):
     raise bad_input(p, "header line 1", "a valid PLY header", "unexpected characters after 'ply'")
@@ -319,7 +322,9 @@ def _parse_ascii_element(elt: plyfile.PlyElement, rows: list[bytes],
     if table.shape != (len(rows), len(props)):
       raise bad_input(p, f"element '{elt.name}'", f"{len(props)} values per row",
                       f"{table.shape[1]} values per row")
-    return {q.name: table[:, i].astype(q.val_dtype) for i, q in enumerate(props)}
+    return {q.name: _checked_cast(table[:, i], q.val_dtype, p, elt.name, q.name,
+                                  np.arange(len(rows)))
+            for i, q in enumerate(props)}
   if len(props) != 1:
     return None
   (prop,) = lists
@@ -337,13 +342,33 @@ def _parse_ascii_element(elt: plyfile.PlyElement, rows: list[bytes],
     raise bad_input(p, f"element '{elt.name}' row {row} property '{prop.name}'",
                     f"a length followed by that many values ({declared[row]:g})",
                     f"{max(int(counts[row]), 0)} values")
-  values = np.delete(flat, starts).astype(prop.val_dtype)
+  values = _checked_cast(np.delete(flat, starts), prop.val_dtype, p, elt.name, prop.name,
+                         np.repeat(np.arange(len(rows)), counts))
   if counts.min() == counts.max():
     return {prop.name: values.reshape(len(rows), int(counts[0]))}
   pieces = np.empty(len(rows), dtype=object)
   ends = np.cumsum(counts).tolist()
   pieces[:] = [values[a:b] for a, b in zip([0] + ends[:-1], ends)]
   return {prop.name: pieces}
+
+
+def _checked_cast(values: np.ndarray, dtype: Any, p: Path, element: str, prop: str,
+                  row: np.ndarray) -> np.ndarray:
+  """`values` (float64, parsed from text) as `dtype`, the property's declared type; for an
+  integer type every value must be a whole number in its range (plyfile raises there too: a
+  `uchar` holding 300 would wrap to 44, an `int` holding 0.7 truncate to 0). `row`: each value's
+  row, for the message."""
+  dt = np.dtype(dtype)
+  if dt.kind in "iu":
+    info = np.iinfo(dt)
+    with np.errstate(invalid="ignore"):
+      bad = ~((values == np.floor(values)) & (values >= info.min) & (values <= info.max))
+    if bad.any():
+      k = int(np.flatnonzero(bad)[0])
+      raise bad_input(p, f"element '{element}' row {int(row[k])} property '{prop}'",
+                      f"an integer in [{info.min}, {info.max}] (type {dt.name})",
+                      f"{values[k]:.17g}")
+  return values.astype(dt)
 
 
 def _tokens_per_row(text: bytes, n_rows: int) -> np.ndarray:

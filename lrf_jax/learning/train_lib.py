@@ -247,24 +247,29 @@ def _train(config: TrainConfig, workdir: Path, *, clouds: TrainingClouds | None,
   if start and is_primary():
     print(f"resuming from step {start} of {config.total_steps} ({workdir})", file=sys.stderr)
   log = _Log(workdir, config, start, total, progress, replaced)
-  for step in range(start, total):
-    epoch, in_epoch = divmod(step, config.steps_per_epoch)
-    batch = maker.batch(epoch, in_epoch)
-    state, m = step_fn(state, global_batch(batch, data_sharding))
-    log.count(config.batch_size)
-    done = step + 1
-    due = _due(config, done, total)
-    if due.check:
-      m = {k: float(v) for k, v in jax.device_get(m).items()}
-      check_finite(m, state.params, done, epoch, batch)  # before anything is logged or saved
-    if due.log:
-      m = log.stamp(m, done, done / config.steps_per_epoch)
-      if due.end_of_epoch and val is not None:
-        m.update(validate(state.params, val))
-      log.write(m)
-    if due.save:
-      save_checkpoint(mngr, done, state, config, _ranking(log.last, done, due.end_of_epoch))
-    log.advance()
+  try:
+    for step in range(start, total):
+      epoch, in_epoch = divmod(step, config.steps_per_epoch)
+      batch = maker.batch(epoch, in_epoch)
+      state, m = step_fn(state, global_batch(batch, data_sharding))
+      log.count(config.batch_size)
+      done = step + 1
+      due = _due(config, done, total)
+      if due.check:
+        m = {k: float(v) for k, v in jax.device_get(m).items()}
+        check_finite(m, state.params, done, epoch, batch)  # before anything is logged or saved
+      if due.log:
+        m = log.stamp(m, done, done / config.steps_per_epoch)
+        if due.end_of_epoch and val is not None:
+          m.update(validate(state.params, val))
+        log.write(m)
+      if due.save:
+        save_checkpoint(mngr, done, state, config, _ranking(log.last, done, due.end_of_epoch))
+      log.advance()
+  except KeyboardInterrupt:
+    log.close()
+    mngr.close()  # a save in flight is finished: no partial checkpoint is left
+    raise
   log.close()
   mngr.wait_until_finished()
   if int(jax.device_get(state.step)) >= config.total_steps:

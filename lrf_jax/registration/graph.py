@@ -39,7 +39,7 @@ from lrf_jax import compilation_cache
 from lrf_jax.registration import host
 from lrf_jax.search.bits import pack_rows
 
-compilation_cache.announce_compiles()  # numba cache keys (search.kernel_cache), the compile note
+compilation_cache.announce_compiles()  # numba cache keys (lrf_jax.kernel_cache), the compile note
 
 # Power iterations of the spectral score (enough to order the correspondences: the score only
 # picks the seeds, the consensus sets are chosen by second-order compatibility).

@@ -20,7 +20,7 @@ import numpy as np
 
 from lrf_jax import compilation_cache
 
-compilation_cache.announce_compiles()  # numba cache keys (search.kernel_cache), the compile note
+compilation_cache.announce_compiles()  # numba cache keys (lrf_jax.kernel_cache), the compile note
 
 
 def kabsch_batch(src: np.ndarray, dst: np.ndarray, weights: np.ndarray | None = None

@@ -38,6 +38,7 @@ from __future__ import annotations
 
 import dataclasses
 import os
+import sys
 import time
 from pathlib import Path
 from typing import Any
@@ -51,6 +52,7 @@ from lrf_jax.registration.icp_host import estimate_target_normals
 from lrf_jax.geometry.cloud import as_cloud
 from lrf_jax.io.cloud import Cloud
 from lrf_jax.geometry.resolution import mesh_resolution
+from lrf_jax.checks import validate_viewpoint
 
 __all__ = ["MANIFEST", "MultiwayEdge", "MultiwayResult", "candidate_pairs", "check_names",
            "check_out_dir", "edges_table", "load_scans", "merged_cloud", "output_paths",
@@ -58,6 +60,8 @@ __all__ = ["MANIFEST", "MultiwayEdge", "MultiwayResult", "candidate_pairs", "che
 
 # Scans up to this many: every pair is a candidate.
 ALL_PAIRS_MAX = 12
+# merged_cloud's voxel keys are float64 cell indices cast to int64: exact below 2**53.
+MAX_VOXELS_PER_AXIS = float(2**53)
 # Points per edge in the pose graph's residual.
 EDGE_POINTS = 32
 # Source points a pair's overlap is looked for among.
@@ -264,7 +268,7 @@ def candidate_pairs(clouds: Sequence[np.ndarray], *, all_pairs_max: int = ALL_PA
   dist = np.abs(sig[:, None, :] - sig[None, :, :]).sum(axis=2)
   np.fill_diagonal(dist, np.inf)
   for i in range(n):
-    for j in np.argsort(dist[i], kind="stable")[:loop_candidates]:
+    for j in np.argsort(dist[i], kind="stable")[:min(loop_candidates, n - 1)]:  # never i
       pairs.add((min(i, int(j)), max(i, int(j))))
   return sorted(pairs)
 
@@ -319,11 +323,19 @@ def _viewpoints(viewpoints: Any, n: int) -> list[Any]:
   arr = np.asarray(viewpoints, dtype=object if isinstance(viewpoints, (list, tuple)) and any(
       v is None for v in viewpoints) else np.float64)
   if arr.dtype != object and arr.shape == (3,):
-    return [np.asarray(viewpoints, np.float64)] * n
+    return [validate_viewpoint(np.asarray(viewpoints, np.float64), "viewpoints")] * n
   if len(viewpoints) != n:
     raise ValueError(f"viewpoints: expected None, one (3,) sensor position or one per scan "
                      f"({n}), got {len(viewpoints)}")
-  return list(viewpoints)
+  return [validate_viewpoint(v, f"viewpoints[{k}]") for k, v in enumerate(viewpoints)]
+
+
+def check_counts(**counts: Any) -> None:
+  """Raise a ValueError naming the first of `counts` (name: value) that is not a non-negative
+  integer (`register_all`'s all_pairs_max, neighbors, loop_candidates, refine_iterations)."""
+  for name, val in counts.items():
+    if isinstance(val, (bool, np.bool_)) or not isinstance(val, (int, np.integer)) or val < 0:
+      raise ValueError(f"{name}: expected a non-negative integer, got {val!r}")
 
 
 def _pairwise(clouds, pairs, *, mr, seed, viewpoints, pairwise, icp_mr, progress, register_kw
@@ -336,30 +348,39 @@ def _pairwise(clouds, pairs, *, mr, seed, viewpoints, pairwise, icp_mr, progress
   grids: dict[int, engine.Grid] = {}
   rng = np.random.default_rng(seed)
   edges, points = [], []
-  bar = tqdm(pairs, desc="pairwise registration", unit="pair", disable=not progress)
-  for i, j in bar:
-    try:
-      reg = run(clouds[i], clouds[j], mr=mr, seed=seed, source_viewpoint=viewpoints[i],
-                target_viewpoint=viewpoints[j], **register_kw)
-    except ValueError as e:
-      reg = None
-      reason = str(e)
-    else:
-      reason = str(getattr(reg, "reason", ""))
-    if reg is None or not getattr(reg, "estimated", True):  # no pose: no edge
-      code = "error" if reg is None else str(getattr(reg, "reason_code", "no_hypothesis"))
-      edges.append(MultiwayEdge(i, j, np.full((4, 4), np.nan), "error", reason, 0, 0.0,
-                                float("inf"), float("inf"), False, code))
-      points.append(np.zeros((0, 3)))
-      continue
-    if j not in grids:
-      grids[j] = engine.knn_grid(clouds[j].points)
-    t = np.asarray(reg.transform, np.float64)
-    points.append(_overlap_points(clouds[i].points, grids[j], t, icp_mr * mr, rng))
-    edges.append(MultiwayEdge(i, j, t, "success" if reg.success else "not sure",
-                              reason, int(reg.n_inliers), float(reg.overlap),
-                              float(reg.rmse), float("inf"), False,
-                              str(getattr(reg, "reason_code", ""))))
+  bar = None
+  try:
+    bar = tqdm(pairs, desc="pairwise registration", unit="pair", disable=not progress)
+    for i, j in bar:
+      try:
+        reg = run(clouds[i], clouds[j], mr=mr, seed=seed, source_viewpoint=viewpoints[i],
+                  target_viewpoint=viewpoints[j], **register_kw)
+      except ValueError as e:
+        reg = None
+        reason = str(e)
+      else:
+        reason = str(getattr(reg, "reason", ""))
+      if reg is None or not getattr(reg, "estimated", True):  # no pose: no edge
+        code = "error" if reg is None else str(getattr(reg, "reason_code", "no_hypothesis"))
+        edges.append(MultiwayEdge(i, j, np.full((4, 4), np.nan), "error", reason, 0, 0.0,
+                                  float("inf"), float("inf"), False, code))
+        points.append(np.zeros((0, 3)))
+        continue
+      if j not in grids:
+        grids[j] = engine.knn_grid(clouds[j].points)
+      t = np.asarray(reg.transform, np.float64)
+      points.append(_overlap_points(clouds[i].points, grids[j], t, icp_mr * mr, rng))
+      edges.append(MultiwayEdge(i, j, t, "success" if reg.success else "not sure",
+                                reason, int(reg.n_inliers), float(reg.overlap),
+                                float(reg.rmse), float("inf"), False,
+                                str(getattr(reg, "reason_code", ""))))
+  except BaseException:  # Ctrl-C (also as a SystemError out of numba) or any error
+    if progress:  # end the bar's line: what is printed next starts a line of its own
+      if bar is not None:
+        bar.close()
+      else:
+        print(file=sys.stderr, flush=True)
+    raise
   return edges, points
 
 
@@ -505,11 +526,17 @@ def register_all(scans: Sequence[Any], *, names: Sequence[str] | None = None,
   for label, val in (("reject_mr", reject_mr), ("robust_mr", robust_mr), ("icp_mr", icp_mr)):
     if not (isinstance(val, (int, float)) and np.isfinite(val) and val > 0):
       raise ValueError(f"{label}: expected a positive number of mesh resolutions, got {val!r}")
+  check_counts(all_pairs_max=all_pairs_max, neighbors=neighbors,
+               loop_candidates=loop_candidates, refine_iterations=refine_iterations)
+  views = _viewpoints(viewpoints, len(scans))
+  if pairwise is None:  # every option of `register`, before any pair is registered
+    from lrf_jax.registration.pipeline import check_register_options
+    check_register_options(mr=mr, seed=seed, icp_mr=icp_mr,
+                           **{k: v for k, v in register_kw.items() if k != "params"})
   clouds = load_scans(scans, names)
   n = len(clouds)
-  views = _viewpoints(viewpoints, n)
   if mr is None:
-    mr = float(np.median([mesh_resolution(c.points, c.faces)[0] for c in clouds]))
+    mr = median_mr(clouds, names)
   elif not (np.isfinite(mr) and mr > 0):
     raise ValueError(f"mr: expected a positive mesh resolution, got {mr!r}")
   timings["load"] = time.perf_counter() - t0
@@ -546,6 +573,28 @@ def register_all(scans: Sequence[Any], *, names: Sequence[str] | None = None,
                         seconds=time.perf_counter() - t0, timings=timings)
 
 
+def median_mr(clouds: Sequence[Cloud], names: Sequence[str]) -> float:
+  """`register_all`'s mr when none is given: the median of the scans' own (`mesh_resolution`)."""
+  return float(np.median([mesh_resolution(c.points, c.faces, name=f"scan {name}")[0]
+                          for name, c in zip(names, clouds)]))
+
+
+def check_voxel(clouds: Sequence[np.ndarray], voxel: float) -> None:
+  """Refuse, before any registration, a voxel of `merged_cloud` that is too small whatever the
+  poses: the merged cloud spans at least the largest scan's diameter / sqrt(3) along some axis.
+
+  Raises:
+    ValueError: as `merged_cloud` does ("voxel: ... too small ...").
+  """
+  if not (np.isfinite(voxel) and voxel > 0):
+    raise ValueError(f"voxel: expected a positive size, got {voxel!r}")
+  extent = max(float(np.linalg.norm(np.ptp(np.asarray(c), axis=0))) for c in clouds) / np.sqrt(3)
+  if extent / voxel >= MAX_VOXELS_PER_AXIS:
+    raise ValueError(f"voxel: {voxel:.6g} is too small for the scans' extent (at least "
+                     f"{extent:.6g} along an axis): {extent / voxel:.3g} voxels, at most "
+                     f"{MAX_VOXELS_PER_AXIS:.3g} (2**53); choose a larger voxel")
+
+
 def merged_cloud(clouds: Sequence[np.ndarray], result: MultiwayResult, *,
                  voxel: float | None = None) -> tuple[np.ndarray, np.ndarray]:
   """The model's scans in the reference frame, one cloud.
@@ -555,6 +604,10 @@ def merged_cloud(clouds: Sequence[np.ndarray], result: MultiwayResult, *,
     result: its result.
     voxel: optional voxel size (cloud units): one point per occupied voxel, the mean of its
       points, labelled with the scan most of them came from (ties: the earliest).
+
+  Raises:
+    ValueError: `voxel` is not positive, or so small that the merged cloud spans 2**53 voxels
+      or more along an axis (their integer keys would overflow).
 
   Returns:
     (points (m, 3) float64, scan (m,) int64 index of the scan each point came from); the scans
@@ -568,6 +621,11 @@ def merged_cloud(clouds: Sequence[np.ndarray], result: MultiwayResult, *,
     return points, scan
   if not (np.isfinite(voxel) and voxel > 0):
     raise ValueError(f"voxel: expected a positive size, got {voxel!r}")
+  extent = float(np.ptp(points, axis=0).max()) if len(points) else 0.0
+  if extent / voxel >= MAX_VOXELS_PER_AXIS:  # the int64 voxel keys would overflow or round
+    raise ValueError(f"voxel: {voxel:.6g} is too small for the merged cloud's extent "
+                     f"({extent:.6g}): {extent / voxel:.3g} voxels along an axis, at most "
+                     f"{MAX_VOXELS_PER_AXIS:.3g} (2**53); choose a larger voxel")
   keys = np.floor((points - points.min(axis=0)) / voxel).astype(np.int64)
   _, inverse, counts = np.unique(keys, axis=0, return_inverse=True, return_counts=True)
   inverse = inverse.ravel()
@@ -740,6 +798,9 @@ def write_outputs(result: MultiwayResult, clouds: Sequence[np.ndarray],
   check_names(result.names, "result.names")
   earlier = check_out_dir(d)
   paths = output_paths(result.names, d)
+  if figures:  # before anything is written
+    from lrf_jax.extras import require
+    require("plot", "register_all's figures (figures=False skips them)")
   wanted = [paths[f"pose:{n}"] for n, m in zip(result.names, result.in_model) if m]
   wanted += [paths["merged.ply"], paths["edges.tsv"]]
   if figures:

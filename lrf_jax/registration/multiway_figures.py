@@ -20,11 +20,21 @@ if TYPE_CHECKING:
 FIGURE_POINTS = 40000
 
 
+# matplotlib's qualitative colormaps tab10 and tab20 as uint8 RGB (their values, rounded): the
+# colours of merged.ply need no matplotlib (a base install writes it).
+TAB10 = ((31, 119, 180), (255, 127, 14), (44, 160, 44), (214, 39, 40), (148, 103, 189),
+         (140, 86, 75), (227, 119, 194), (127, 127, 127), (188, 189, 34), (23, 190, 207))
+TAB20 = ((31, 119, 180), (174, 199, 232), (255, 127, 14), (255, 187, 120), (44, 160, 44),
+         (152, 223, 138), (214, 39, 40), (255, 152, 150), (148, 103, 189), (197, 176, 213),
+         (140, 86, 75), (196, 156, 148), (227, 119, 194), (247, 182, 210), (127, 127, 127),
+         (199, 199, 199), (188, 189, 34), (219, 219, 141), (23, 190, 207), (158, 218, 229))
+
+
 def scan_colours(n: int) -> np.ndarray:
-  """(n, 3) uint8 distinct colours, one per scan (matplotlib's tab10, then tab20)."""
-  from matplotlib import colormaps
-  cmap = colormaps["tab10" if n <= 10 else "tab20"]
-  return (np.array([cmap(k % cmap.N)[:3] for k in range(n)]) * 255).round().astype(np.uint8)
+  """(n, 3) uint8 distinct colours, one per scan (matplotlib's tab10, then tab20; no
+  matplotlib import)."""
+  table = np.array(TAB10 if n <= 10 else TAB20, np.uint8)
+  return table[np.arange(n) % len(table)]
 
 
 def _pyplot():

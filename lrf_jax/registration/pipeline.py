@@ -299,8 +299,14 @@ def register(source: Any, target: Any, *, mr: float | None = None, radius_mr: fl
     >>> aligned = points_a @ reg.transform[:3, :3].T + reg.transform[:3, 3]
   """
   timer = _StageTimer()
-  if not isinstance(icp_fine, (bool, np.bool_)):
-    raise ValueError(f"icp_fine: expected True or False, got {icp_fine!r}")
+  check_register_options(mr=mr, radius_mr=radius_mr, n_keypoints=n_keypoints,
+                         n_correspondences=n_correspondences, iterations=iterations,
+                         inlier_mr=inlier_mr, verify=verify, estimator=estimator,
+                         icp_iterations=icp_iterations, icp_mr=icp_mr, method=method,
+                         descriptor=descriptor, seed=seed, source_viewpoint=source_viewpoint,
+                         target_viewpoint=target_viewpoint, keypoints=keypoints, mutual=mutual,
+                         ratio=ratio, icp_mode=icp_mode, icp_fine=icp_fine,
+                         voxel_size=voxel_size)
   if init is not None:
     return _refine_only(source, target, init, mr=mr, icp_iterations=icp_iterations,
                         icp_mr=icp_mr, seed=seed, timer=timer, icp_mode=icp_mode,
@@ -325,23 +331,18 @@ def register(source: Any, target: Any, *, mr: float | None = None, radius_mr: fl
     eqi, eri = (qi, ri) if own else _evidence_matches(frames, descs, n_correspondences)
   (kp_s, (f_s, v_s)), (kp_t, (f_t, v_t)) = zip((s.keypoints for s in setup.sides), frames)
   src_pts, dst_pts = setup.sides[0].points, setup.sides[1].points
-  p, q = src_pts[kp_s[qi]], dst_pts[kp_t[ri]]
   threshold = inlier_mr * setup.mr
   with timer("hypotheses"), serial_blas():
-    src, dst, cs, cd = _centred(p, q)
+    src, dst, cs, cd = _centred(src_pts[kp_s[qi]], dst_pts[kp_t[ri]])
     rs, ts = _hypotheses(src, dst, f_s[qi], f_t[ri], estimator, iterations, setup.radius, seed,
                          float(threshold))
     if len(rs) == 0:  # no two correspondences agree: no pose to verify
       return _not_estimated(setup, _input_indices(setup, kp_s[qi], kp_t[ri]), estimator,
                             inlier_mr, icp_mr, timer)
     counts = host.count_inliers(rs, ts, src, dst, threshold)
-    if own:
-      ev = _EvidenceSet(src, dst, cs, cd, f_s[qi], f_t[ri], rs, ts)
-      chance = _chance_inliers(src, dst, f_s[qi], f_t[ri], "graph", iterations, setup.radius,
-                               seed, float(threshold))
-    else:
-      ev, chance = _evidence_set(src_pts[kp_s[eqi]], dst_pts[kp_t[eri]], f_s[eqi], f_t[eri],
-                                 iterations, setup.radius, seed, float(threshold))
+    ev, chance = _evidence_and_chance(
+        own, (src, dst, cs, cd, f_s[qi], f_t[ri], rs, ts), (src_pts[kp_s[eqi]], dst_pts[kp_t[eri]],
+        f_s[eqi], f_t[eri]), iterations, setup.radius, seed, float(threshold))
   with timer("verification"), serial_blas():
     overlap_distance = icp_mr * setup.mr
     target_grid = engine.Grid(dst_pts, overlap_distance)
@@ -349,35 +350,11 @@ def register(source: Any, target: Any, *, mr: float | None = None, radius_mr: fl
                          0 if estimator == "graph" else verify, setup.rng)
     r, t, mask = host.select_and_refine(rs[best], ts[best], src, dst, threshold)
     res = _finish(*_uncentre(r, t, cs, cd), mask, best, counts[best])
-    # the winner in the evidence's centred coordinates, its inliers there, and its rivals: the
-    # evidence's graph hypotheses, those of the correspondences outside the winner's inliers
-    # (`_rest_hypotheses`), and the estimator's own
-    r_w, t_w = _uncentre(r, t, cs, cd)
-    t_e = t_w - ev.cd + r_w @ ev.cs
-    ev_mask = mask if own else host.inlier_mask(r_w, t_e, ev.src, ev.dst, threshold)
-    pool_r, pool_t = [ev.rs], [ev.ts]
-    if not own:
-      pool_r.append(np.asarray(rs, np.float64))
-      pool_t.append(np.asarray(ts, np.float64) + (cd - ev.cd)
-                    - np.einsum("hij,j->hi", np.asarray(rs, np.float64), cs - ev.cs))
-    rival = _rival_inliers(np.concatenate(pool_r), np.concatenate(pool_t), ev.src, ev.dst,
-                           threshold, r_w, t_e, ev_mask, setup.radius)
-    near = host.inlier_mask(r_w, t_e, ev.src, ev.dst, REST_FACTOR * threshold)
-    rest_r, rest_t = _rest_hypotheses(ev, near, iterations, setup.radius, seed,
-                                      float(threshold))
-    rival = _rest_rival(rest_r, rest_t, ev, threshold, r_w, t_e, near, setup.radius, rival,
-                        src_pts, target_grid, overlap_distance, seed, int(np.sum(ev_mask)))
-  with timer("icp"):
-    icp_src = src_pts
-    if len(src_pts) > ICP_POINTS:
-      icp_src = src_pts[np.sort(setup.rng.choice(len(src_pts), ICP_POINTS, replace=False))]
-    final, fitness, rmse = _refine(icp_src, dst_pts, res.transform, overlap_distance,
-                                   icp_fine, setup.mr, icp_iterations, target_grid, icp_mode,
-                                   pool=src_pts, rng=setup.rng)
-  with timer("verification"), serial_blas():
-    degeneracy, free = _overlap_constraints(icp_src, dst_pts, target_grid, final,
-                                            overlap_distance)
-  n_corr = len(qi)
+    ev_mask, rival = _evidence_rivals(ev, own, (r, t, mask), (rs, ts, cs, cd), threshold, setup,
+                                      iterations, seed, target_grid, overlap_distance)
+  final, fitness, rmse, degeneracy, free = _icp_stage(
+      setup, res.transform, target_grid, overlap_distance, icp_fine, icp_iterations, icp_mode,
+      timer)
   contrast = overlap_contrast(fits)
   evidence = Evidence(n_inliers=int(np.sum(ev_mask)), chance_inliers=chance,
                       rival_inliers=rival, fitness=fitness, contrast=contrast,
@@ -389,10 +366,70 @@ def register(source: Any, target: Any, *, mr: float | None = None, radius_mr: fl
                       voxel_size=setup.voxel_size,
                       fitness=fitness, rmse=rmse, mr=float(setup.mr), seconds=timer.total(),
                       timings=dict(timer.seconds), success=decision.success,
-                      inlier_ratio=res.n_inliers / max(n_corr, 1), chance_inliers=chance,
+                      inlier_ratio=res.n_inliers / max(len(qi), 1), chance_inliers=chance,
                       overlap_contrast=contrast, reason=decision.reason, overlap=fitness,
                       rival_inliers=rival, reason_code=decision.code,
                       evidence_inliers=evidence.n_inliers, degeneracy=degeneracy)
+
+
+def _icp_stage(setup: _Setup, coarse: np.ndarray, target_grid: engine.Grid,
+               overlap_distance: float, icp_fine: bool, icp_iterations: int, icp_mode: str,
+               timer: _StageTimer) -> tuple[np.ndarray, float, float, float, Any]:
+  """Stages "icp" (`_refine` of `coarse` on up to `ICP_POINTS` seeded source points) and the
+  overlap's constraints (`_overlap_constraints`, timed as "verification"): (transform, fitness,
+  rmse, degeneracy, free direction)."""
+  src_pts, dst_pts = setup.sides[0].points, setup.sides[1].points
+  with timer("icp"):
+    icp_src = src_pts
+    if len(src_pts) > ICP_POINTS:
+      icp_src = src_pts[np.sort(setup.rng.choice(len(src_pts), ICP_POINTS, replace=False))]
+    final, fitness, rmse = _refine(icp_src, dst_pts, coarse, overlap_distance, icp_fine,
+                                   setup.mr, icp_iterations, target_grid, icp_mode,
+                                   pool=src_pts, rng=setup.rng)
+  with timer("verification"), serial_blas():
+    degeneracy, free = _overlap_constraints(icp_src, dst_pts, target_grid, final,
+                                            overlap_distance)
+  return final, fitness, rmse, degeneracy, free
+
+
+def _evidence_and_chance(own: bool, centred: tuple, evidence: tuple, iterations: int,
+                         radius: float, seed: int, threshold: float) -> tuple[Any, int]:
+  """The evidence set and its chance level: the hypotheses' own correspondences (`centred`:
+  src, dst, cs, cd, their frames, rs, ts) when the default matching chose them (`own`), else
+  the default matching's (`evidence`: points and frames of both sides, `_evidence_set`)."""
+  if own:
+    src, dst, cs, cd, fs, ft, rs, ts = centred
+    return (_EvidenceSet(src, dst, cs, cd, fs, ft, rs, ts),
+            _chance_inliers(src, dst, fs, ft, "graph", iterations, radius, seed, threshold))
+  p, q, fp, fq = evidence
+  return _evidence_set(p, q, fp, fq, iterations, radius, seed, threshold)
+
+
+def _evidence_rivals(ev: Any, own: bool, winner: tuple, hypotheses: tuple, threshold: float,
+                     setup: _Setup, iterations: int, seed: int, target_grid: engine.Grid,
+                     overlap_distance: float) -> tuple[np.ndarray, int]:
+  """The winner (its centred (r, t) and inlier mask) in the evidence's centred coordinates, its
+  inliers there, and its rivals: the evidence's graph hypotheses, those of the correspondences
+  outside the winner's inliers (`_rest_hypotheses`), and the estimator's own (`hypotheses`: rs,
+  ts, and the centres cs, cd they are about). Returns (evidence inlier mask, rival inliers)."""
+  r, t, mask = winner
+  rs, ts, cs, cd = hypotheses
+  r_w, t_w = _uncentre(r, t, cs, cd)
+  t_e = t_w - ev.cd + r_w @ ev.cs
+  ev_mask = mask if own else host.inlier_mask(r_w, t_e, ev.src, ev.dst, threshold)
+  pool_r, pool_t = [ev.rs], [ev.ts]
+  if not own:
+    pool_r.append(np.asarray(rs, np.float64))
+    pool_t.append(np.asarray(ts, np.float64) + (cd - ev.cd)
+                  - np.einsum("hij,j->hi", np.asarray(rs, np.float64), cs - ev.cs))
+  rival = _rival_inliers(np.concatenate(pool_r), np.concatenate(pool_t), ev.src, ev.dst,
+                         threshold, r_w, t_e, ev_mask, setup.radius)
+  near = host.inlier_mask(r_w, t_e, ev.src, ev.dst, REST_FACTOR * threshold)
+  rest_r, rest_t = _rest_hypotheses(ev, near, iterations, setup.radius, seed, float(threshold))
+  rival = _rest_rival(rest_r, rest_t, ev, threshold, r_w, t_e, near, setup.radius, rival,
+                      setup.sides[0].points, target_grid, overlap_distance, seed,
+                      int(np.sum(ev_mask)))
+  return ev_mask, rival
 
 
 ESTIMATORS = ("graph", "lrf", "3point")
@@ -791,32 +828,14 @@ def _prepare(source: Any, target: Any, *, mr, radius_mr, n_keypoints, n_correspo
   for name, pts in (("source", src_pts), ("target", dst_pts)):
     if len(pts) < 10:
       raise ValueError(f"{name}: expected a cloud of at least 10 points, got {len(pts)}")
-  for name, val in (("radius_mr", radius_mr), ("inlier_mr", inlier_mr), ("icp_mr", icp_mr)):
-    if not _is_positive(val):
-      raise ValueError(f"{name}: expected a positive number of mesh resolutions, got {val!r}")
-  for name, val in (("n_keypoints", n_keypoints), ("n_correspondences", n_correspondences),
-                    ("iterations", iterations)):
-    if not _is_count(val, 1):
-      raise ValueError(f"{name}: expected a positive integer, got {val!r}")
-  for name, val in (("icp_iterations", icp_iterations), ("verify", verify)):
-    if not ((val is None and name == "verify") or _is_count(val, 0)):
-      raise ValueError(f"{name}: expected a non-negative integer, got {val!r}")
+  check_register_options(mr=mr, radius_mr=radius_mr, n_keypoints=n_keypoints,
+                         n_correspondences=n_correspondences, iterations=iterations,
+                         inlier_mr=inlier_mr, verify=verify, estimator=estimator,
+                         icp_iterations=icp_iterations, icp_mr=icp_mr, method=method,
+                         descriptor=descriptor, seed=seed, source_viewpoint=views[0],
+                         target_viewpoint=views[1], keypoints=keypoints, mutual=mutual,
+                         ratio=ratio, icp_mode=icp_mode)
   seed = validate_seed(seed)
-  if estimator not in ESTIMATORS:
-    raise ValueError(f"estimator: expected one of {ESTIMATORS}, got {estimator!r}")
-  if not isinstance(method, str) or method not in METHODS:
-    raise ValueError(f"method: unknown LRF method {method!r}; expected one of {sorted(METHODS)}")
-  if not isinstance(descriptor, str) or descriptor not in DESCRIPTORS:
-    raise ValueError(f"descriptor: unknown descriptor {descriptor!r}; expected one of "
-                     f"{sorted(DESCRIPTORS)}")
-  if icp_mode not in ("point_to_plane", "point_to_point"):
-    raise ValueError(f"icp_mode: expected 'point_to_plane' or 'point_to_point', got {icp_mode!r}")
-  if keypoints not in KEYPOINTS:
-    raise ValueError(f"keypoints: expected one of {KEYPOINTS}, got {keypoints!r}")
-  if not isinstance(mutual, (bool, np.bool_)):
-    raise ValueError(f"mutual: expected True or False, got {mutual!r}")
-  if ratio is not None and not (_is_positive(ratio) and ratio <= 1):
-    raise ValueError(f"ratio: expected None or a ratio-test threshold in (0, 1], got {ratio!r}")
   spec = METHODS[method]
   if spec.needs_mesh and (src_faces is None or dst_faces is None):
     raise ValueError(f"method {method!r} needs triangle meshes on both sides")
@@ -853,10 +872,7 @@ def _working_clouds(source: tuple, target: tuple, mr: Any, voxel_size: Any
   0.7 mr: the voxel is scaled by mr over the spacing that gives, measured); 0: none is; a
   positive number: both clouds are thinned at it (meshes included, which lose their faces).
   """
-  if not (voxel_size is None or (_is_positive(voxel_size) or
-                                 (not isinstance(voxel_size, bool) and voxel_size == 0))):
-    raise ValueError(f"voxel_size: expected None, 0 or a positive voxel edge in the clouds' "
-                     f"units, got {voxel_size!r}")
+  _check_voxel_size(voxel_size)
   resolutions = [working_resolution(p, f) for p, f in (source, target)]
   if mr is None:
     mr = pair_resolution(*resolutions)
@@ -878,12 +894,69 @@ def _working_clouds(source: tuple, target: tuple, mr: Any, voxel_size: Any
   return float(mr), out, used
 
 
+def _check_voxel_size(voxel_size: Any) -> None:
+  if not (voxel_size is None or _is_positive(voxel_size) or
+          (not isinstance(voxel_size, (bool, str)) and voxel_size == 0)):
+    raise ValueError(f"voxel_size: expected None, 0 or a positive voxel edge in the clouds' "
+                     f"units, got {voxel_size!r}")
+
+
 def _input_indices(setup: _Setup, src: np.ndarray, dst: np.ndarray) -> np.ndarray:
   """(C, 2) int64 correspondences as input point indices (a thinned side's working points map
   to their voxel's first input point)."""
   cols = [idx if side.input_index is None else side.input_index[idx]
           for side, idx in zip(setup.sides, (src, dst))]
   return np.stack(cols, axis=1).astype(np.int64)
+
+
+def check_register_options(*, mr: Any = None, radius_mr: Any = 15.0, n_keypoints: Any = 3000,
+                           n_correspondences: Any = 1000, iterations: Any = 1000,
+                           inlier_mr: Any = 5.0, verify: Any = None, estimator: Any = "graph",
+                           icp_iterations: Any = 50, icp_mr: Any = 3.0,
+                           method: Any = "lrf_net_plus", descriptor: Any = "toldi",
+                           seed: Any = 0, source_viewpoint: Any = None,
+                           target_viewpoint: Any = None, keypoints: Any = "random",
+                           mutual: Any = False, ratio: Any = None,
+                           icp_mode: Any = "point_to_plane", icp_fine: Any = True,
+                           voxel_size: Any = None) -> None:
+  """Raise a ValueError naming the first of `register`'s options (every keyword but the clouds,
+  `params` and `init`) that `register` would refuse; the defaults are `register`'s.
+
+  `register` calls it before reading the clouds (also with `init`, where most options are not
+  used), and `register_all` and `lrf-register` before any pair is registered."""
+  for name, val in (("radius_mr", radius_mr), ("inlier_mr", inlier_mr), ("icp_mr", icp_mr)):
+    if not _is_positive(val):
+      raise ValueError(f"{name}: expected a positive number of mesh resolutions, got {val!r}")
+  for name, val in (("n_keypoints", n_keypoints), ("n_correspondences", n_correspondences),
+                    ("iterations", iterations)):
+    if not _is_count(val, 1):
+      raise ValueError(f"{name}: expected a positive integer, got {val!r}")
+  for name, val in (("icp_iterations", icp_iterations), ("verify", verify)):
+    if not ((val is None and name == "verify") or _is_count(val, 0)):
+      raise ValueError(f"{name}: expected a non-negative integer, got {val!r}")
+  validate_seed(seed)
+  _check_voxel_size(voxel_size)
+  if estimator not in ESTIMATORS:
+    raise ValueError(f"estimator: expected one of {ESTIMATORS}, got {estimator!r}")
+  if not isinstance(method, str) or method not in METHODS:
+    raise ValueError(f"method: unknown LRF method {method!r}; expected one of {sorted(METHODS)}")
+  if not isinstance(descriptor, str) or descriptor not in DESCRIPTORS:
+    raise ValueError(f"descriptor: unknown descriptor {descriptor!r}; expected one of "
+                     f"{sorted(DESCRIPTORS)}")
+  if icp_mode not in ("point_to_plane", "point_to_point"):
+    raise ValueError(f"icp_mode: expected 'point_to_plane' or 'point_to_point', got {icp_mode!r}")
+  if keypoints not in KEYPOINTS:
+    raise ValueError(f"keypoints: expected one of {KEYPOINTS}, got {keypoints!r}")
+  if not isinstance(mutual, (bool, np.bool_)):
+    raise ValueError(f"mutual: expected True or False, got {mutual!r}")
+  if ratio is not None and not (_is_positive(ratio) and ratio <= 1):
+    raise ValueError(f"ratio: expected None or a ratio-test threshold in (0, 1], got {ratio!r}")
+  if not isinstance(icp_fine, (bool, np.bool_)):
+    raise ValueError(f"icp_fine: expected True or False, got {icp_fine!r}")
+  for name, vp in (("source_viewpoint", source_viewpoint), ("target_viewpoint", target_viewpoint)):
+    validate_viewpoint(vp, name)
+  if mr is not None and not _is_positive(mr):
+    raise ValueError(f"mr: expected a positive mesh resolution, got {mr!r}")
 
 
 def _is_positive(val: Any) -> bool:

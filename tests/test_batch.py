@@ -189,7 +189,8 @@ def test_cli_register_exit_codes_and_options(tmp_path, scans, capsys):
   assert (out / "p0.txt").is_file() and (out / "p1.txt").is_file()
   rec = json.loads((out / jobs.STATE / "records" / "p0.json").read_text())
   assert rec["options"] == dict(n_keypoints=600, n_correspondences=200)  # no defaults added
-  for bad in (["--png", "x.png"], ["--init", "t.txt"], ["--keypoints", "0"], ["--bogus"]):
+  for bad in (["--png", "x.png"], ["--init", "t.txt"], ["--best-guess"], ["--keypoints", "0"],
+              ["--bogus"]):
     with pytest.raises(SystemExit) as e:
       batch_cli.main(["register", str(tsv), "--out", str(out), *bad])
     assert e.value.code == 2

@@ -21,7 +21,8 @@ from typing import Any
 
 from lrf_jax.cli.help import DefaultsHelpFormatter
 
-_NOT_BATCH = ("out", "png", "checkpoint", "init")  # lrf-register options a job cannot take
+# lrf-register options a job cannot take
+_NOT_BATCH = ("out", "png", "checkpoint", "init", "best_guess")
 
 
 def _common(p: argparse.ArgumentParser) -> None:
@@ -57,8 +58,8 @@ def build_parser() -> argparse.ArgumentParser:
   fr.add_argument("--seed", type=int, default=argparse.SUPPRESS, help="as lrf-frames (0)")
   rg = sub.add_parser("register", help="registration of every pair of a PAIRS.tsv",
                       formatter_class=DefaultsHelpFormatter,
-                      epilog="Any option of lrf-register but --out, --png, --checkpoint and "
-                             "--init may follow (lrf-register --help lists them); options not "
+                      epilog="Any option of lrf-register but --out, --best-guess, --png, "
+                             "--checkpoint and --init may follow (lrf-register --help lists them); options not "
                              "given keep register's defaults. PAIRS.tsv: tab-separated, a "
                              "header with the columns source and target (paths, relative to "
                              "the TSV's folder) and optionally name (default: the row number).")
@@ -78,8 +79,8 @@ def _register_options(rest: list[str]) -> dict[str, Any]:
   args = p.parse_args(["SOURCE", "TARGET", *rest])
   given = [d for d in _NOT_BATCH if hasattr(args, d)]
   if given:
-    p.error(f"--{given[0]} is not an option of lrf-batch register (each pair's transform is "
-            "DIR/<name>.txt)")
+    p.error(f"--{given[0].replace('_', '-')} is not an option of lrf-batch register (each "
+            "pair's transform is DIR/<name>.txt, whatever its verdict)")
   problem = register_cli.check_options(args)
   if problem:
     p.error(problem)

@@ -125,7 +125,8 @@ def area_median(spacings: np.ndarray) -> float:
   return float(d[np.searchsorted(c, 0.5 * c[-1])])
 
 
-def working_resolution(points: np.ndarray, faces: np.ndarray | None = None) -> Resolution:
+def working_resolution(points: np.ndarray, faces: np.ndarray | None = None, *,
+                       name: str = "points") -> Resolution:
   """The resolution lengths are measured in: `mesh_resolution`'s, unless the cloud is uneven.
 
   A cloud's mean nearest-neighbor distance is dominated by its densest part: on a raw LiDAR sweep
@@ -140,6 +141,7 @@ def working_resolution(points: np.ndarray, faces: np.ndarray | None = None) -> R
   Args:
     points: (n, 3) coordinates, n >= 2.
     faces: (f, 3) triangles, or None for a cloud.
+    name: how errors name the cloud.
 
   Returns:
     A `Resolution`.
@@ -148,7 +150,7 @@ def working_resolution(points: np.ndarray, faces: np.ndarray | None = None) -> R
     ValueError: as `mesh_resolution`.
   """
   if faces is not None:
-    mr, definition = mesh_resolution(points, faces)
+    mr, definition = mesh_resolution(points, faces, name=name)
     return Resolution(mr, mr, mr, definition)
   pts = np.asarray(points, dtype=np.float64)
   if pts.ndim != 2 or pts.shape[1] != 3 or len(pts) < 2:
@@ -156,7 +158,7 @@ def working_resolution(points: np.ndarray, faces: np.ndarray | None = None) -> R
   d, _ = engine.knn(engine.knn_grid(pts, 2), pts, 2)  # as mesh_resolution: the same mean
   mean = float(d[:, 1].mean())
   if mean == 0.0:
-    mesh_resolution(pts)  # its ValueError: the cloud has no spacing
+    mesh_resolution(pts, name=name)  # its ValueError: the cloud has no spacing
   area = area_median(d[:, 1])
   if mean > 0 and area > UNEVEN_RATIO * mean:
     return Resolution(area, mean, area, "area_median_nn_distance")

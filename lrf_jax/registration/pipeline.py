@@ -873,7 +873,8 @@ def _working_clouds(source: tuple, target: tuple, mr: Any, voxel_size: Any
   positive number: both clouds are thinned at it (meshes included, which lose their faces).
   """
   _check_voxel_size(voxel_size)
-  resolutions = [working_resolution(p, f) for p, f in (source, target)]
+  resolutions = [working_resolution(p, f, name=n)
+                 for (p, f), n in zip((source, target), ("source", "target"))]
   if mr is None:
     mr = pair_resolution(*resolutions)
   elif not _is_positive(mr):

@@ -165,7 +165,7 @@ def test_bad_points_raise():
     iss_keypoints(pts)
   with pytest.raises(ValueError, match="points"):
     iss_keypoints(np.zeros((10, 2)))
-  with pytest.raises(ValueError, match="mr"):
+  with pytest.raises(ValueError, match="the cloud has no spacing"):
     iss_keypoints(np.repeat(bumpy_surface(50), 2, axis=0))  # every point twice: mr = 0
 
 

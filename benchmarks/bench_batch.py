@@ -81,6 +81,7 @@ def make_pairs(data: Path, out: Path) -> Path:
 def start_cluster(nodes: int):
   """A Ray cluster of `nodes` nodes of 1 CPU each on 127.0.0.1 (head first)."""
   os.environ.setdefault("RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER", "0")
+  os.environ.setdefault("RAY_USAGE_STATS_ENABLED", "0")
   from ray.cluster_utils import Cluster
   cluster = Cluster(initialize_head=True, head_node_args=dict(
       num_cpus=1, node_ip_address="127.0.0.1", include_dashboard=False))

@@ -24,6 +24,7 @@ from tests.test_batch import OPTS, make_scans, pairs_tsv, tsv_rows  # noqa: E402
 @pytest.fixture(scope="module", autouse=True)
 def ray_instance():
   os.environ.setdefault("RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER", "0")
+  os.environ.setdefault("RAY_USAGE_STATS_ENABLED", "0")  # no usage report to any address
   from ray._private import ray_constants
   ray_constants.ENABLE_RAY_CLUSTER = False  # the driver stays on loopback
   ray.init(num_cpus=2, include_dashboard=False, _node_ip_address="127.0.0.1",

@@ -156,6 +156,7 @@ class RayEngine:
   def _ray(self):
     from lrf_jax.extras import require
     require("ray", "the ray engine")
+    os.environ.setdefault("RAY_USAGE_STATS_ENABLED", "0")  # Ray reports nothing anywhere
     if is_loopback(self.address):
       os.environ.setdefault(_LOOPBACK_ENV, "0")
     import ray

@@ -14,7 +14,7 @@ from typing import Any
 import numpy as np
 
 __all__ = ["FRAMES_OPTIONS", "check_frames_options", "check_register_options", "frames_of_scan",
-           "register_pair", "transform_text"]
+           "register_pair"]
 
 # `run_frames` keywords -> lrf-frames flags (the item is lrf-frames' own computation).
 FRAMES_OPTIONS = {"keypoints": "--keypoints", "voxel_mr": "--voxel-mr", "method": "--method",
@@ -22,12 +22,6 @@ FRAMES_OPTIONS = {"keypoints": "--keypoints", "voxel_mr": "--voxel-mr", "method"
                   "descriptor": "--descriptor", "seed": "--seed"}
 # `register` keywords a job cannot take: not plain data (a parameter tree, a per-pair pose).
 _NOT_JOB_OPTIONS = ("source", "target", "params", "init")
-
-
-def transform_text(transform: np.ndarray) -> str:
-  """A 4 x 4 transform as `lrf-register --out` writes it (9 significant digits a number)."""
-  from lrf_jax.io.poses import format_matrix
-  return format_matrix(transform)
 
 
 def _error(e: BaseException, t0: float) -> dict[str, Any]:

@@ -44,6 +44,7 @@ import numpy as np
 from lrf_jax.batch import engines as engines_mod
 from lrf_jax.batch import items as items_mod
 from lrf_jax.io import atomic
+from lrf_jax.io.poses import format_matrix
 from lrf_jax.registration.multiway import scan_names
 
 __all__ = ["JobResult", "REGISTER_COLUMNS", "FRAMES_COLUMNS", "STATE", "read_pairs",
@@ -231,7 +232,7 @@ class _Kind:
 
 
 def _write_transform(path: Path, value: dict[str, Any]) -> None:
-  atomic.write_text(path, items_mod.transform_text(np.asarray(value["transform"])) + "\n")
+  atomic.write_text(path, format_matrix(np.asarray(value["transform"])) + "\n")
 
 
 def _write_npz(path: Path, value: dict[str, Any]) -> None:

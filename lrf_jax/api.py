@@ -14,7 +14,7 @@ import numpy as np
 from lrf_jax.search import engine
 from lrf_jax.search.chunks import map_chunks
 from lrf_jax.geometry.resolution import mesh_resolution as _mesh_resolution
-from lrf_jax.frames import METHODS, MethodSpec, method_spec
+from lrf_jax.frames import DEFAULT_METHOD, METHODS, MethodSpec, method_spec
 from lrf_jax.geometry.cloud import CheckedCloud, as_cloud
 from lrf_jax.frames.weights import default_params, default_params_numpy
 from lrf_jax.checks import (validate_choice, validate_keypoints, validate_radius, validate_seed,
@@ -39,7 +39,7 @@ def _jitted(spec: MethodSpec, static_items: tuple) -> Any:
   return jax.jit(lambda patches, extra, params: spec.fn(patches, extra, **static))
 
 
-def frames_from_patches(patches: Patches, method: str = "lrf_net_plus", *, params: Any = None,
+def frames_from_patches(patches: Patches, method: str = DEFAULT_METHOD, *, params: Any = None,
                         extra: Any = None, **options: Any) -> tuple[jax.Array, jax.Array]:
   """Run a registered method's jitted frame function on prepared patches.
 
@@ -242,7 +242,7 @@ def compute_frames(
     points: Any,
     keypoints: np.ndarray,
     radius: float | None = None,
-    method: str = "lrf_net_plus",
+    method: str = DEFAULT_METHOD,
     *,
     radius_mr: float | None = None,
     params: Any = None,
@@ -250,14 +250,15 @@ def compute_frames(
     seed: int = 0,
     faces: np.ndarray | None = None,
     normals: np.ndarray | None = None,
-    viewpoint: np.ndarray | None = None,
+    viewpoint: Any = None,
     chunk_size: int = 4096,
     progress: bool | None = None,
     search: str = "auto",
     kernel: str = "auto",
     return_confidence: bool = False,
+    as_numpy: bool = False,
     **options: Any,
-) -> tuple[jax.Array, jax.Array] | tuple[jax.Array, jax.Array, jax.Array]:
+) -> tuple[AnyArray, AnyArray] | tuple[AnyArray, AnyArray, AnyArray]:
   """Local reference frames of `keypoints` of a cloud, by any registered method.
 
   The radius search runs on the host (the compiled engine, `lrf_jax.search.engine`, all cores) or on the
@@ -310,10 +311,12 @@ def compute_frames(
       is the CPU, else jit).
     return_confidence: also return the confidence of each frame's z sign, for methods that
       define one (`METHODS[method].confidence`: lrf_net_plus, `sign_confidence`).
+    as_numpy: return numpy arrays (a host kernel's own: then no JAX is imported) instead of
+      JAX arrays.
     **options: method options (e.g. `x_mode`, `signed`).
 
   Returns:
-    (frames, valid): frames (m, 3, 3) float32, rows x, y, z, det +1 (the identity where invalid);
+    (frames, valid), JAX arrays (numpy with `as_numpy`): frames (m, 3, 3) float32, rows x, y, z, det +1 (the identity where invalid);
     valid (m,) bool. With `return_confidence`, (frames, valid, confidence): confidence (m,)
     float32 in [0, 1], dimensionless (0: the sign is a guess, e.g. a flat patch of a cloud
     without a viewpoint, or an invalid frame; 1: certain, e.g. z facing a given sensor).
@@ -342,8 +345,9 @@ def compute_frames(
                         viewpoint=viewpoint, chunk_size=chunk_size, progress=progress,
                         search=search, kernel=kernel, return_confidence=return_confidence,
                         options=options)
-  return cast("tuple[jax.Array, jax.Array] | tuple[jax.Array, jax.Array, jax.Array]",
-              tuple(jnp.asarray(a) for a in out))  # the host paths' numpy arrays too
+  return cast("tuple[AnyArray, AnyArray] | tuple[AnyArray, AnyArray, AnyArray]",
+              tuple(np.asarray(a) if as_numpy else jnp.asarray(a)  # the host paths' too
+                    for a in out))
 
 
 def _frames_checked(

@@ -193,3 +193,23 @@ def validate_choice(name: str, value: Any, choices: tuple[str, ...]) -> str:
     listed = ", ".join(repr(c) for c in choices[:-1]) + f" or {choices[-1]!r}"
     raise ValueError(f"{name}: expected {listed}, got {value!r}")
   return value
+
+
+def is_positive(val: Any) -> bool:
+  """A positive finite number (False for strings, bools, None, lists: no TypeError)."""
+  if isinstance(val, (str, bytes, bool, np.bool_)):
+    return False
+  try:
+    return bool(np.isfinite(val) and val > 0)
+  except (TypeError, ValueError):
+    return False
+
+
+def is_count(val: Any, minimum: int) -> bool:
+  """An integer-valued number >= minimum (1000.0 counts; strings, bools, None and 2.5 do not)."""
+  if isinstance(val, (str, bytes, bool, np.bool_)):
+    return False
+  try:
+    return bool(int(val) == val and val >= minimum)
+  except (TypeError, ValueError, OverflowError):
+    return False

@@ -129,14 +129,9 @@ def package_graph(modules: dict[str, set[str]] | None = None) -> dict[str, set[s
   return graph
 
 
-# Package cycles still there, each with what it takes to remove it; the test fails on any other
-# cycle and when one of these is gone (then delete its entry).
-KNOWN_PACKAGE_CYCLES: list[list[str]] = [
-    # batch.items runs lrf-frames' own parser and computation (cli.frames.build_parser,
-    # check_options, frames_outputs) for a scan item, and cli.batch is lrf-batch over `batch`:
-    # those three functions belong in a library module that both import.
-    ["lrf_jax.batch", "lrf_jax.cli"],
-]
+# Package cycles still there, each with what it takes to remove it (none since 0.8); the test
+# fails on any cycle not listed here and when a listed one is gone.
+KNOWN_PACKAGE_CYCLES: list[list[str]] = []
 
 
 def test_import_graph_has_no_cycle():
@@ -211,3 +206,22 @@ def longest_functions(n: int = 5) -> list[tuple[int, str]]:
 def test_no_function_over_80_code_lines():
   longest = longest_functions()
   assert longest[0][0] <= MAX_FUNCTION_LINES, longest
+
+
+def private_imports_across_packages() -> list[str]:
+  """`from lrf_jax.X... import _name` in a module outside `lrf_jax.X` (each part of the package
+  reaches another only through public names)."""
+  found = []
+  for name, path in _modules().items():
+    for node in ast.walk(ast.parse(path.read_text())):
+      if isinstance(node, ast.ImportFrom) and node.level == 0 and (node.module or "").startswith(
+          "lrf_jax."):
+        assert node.module is not None
+        for alias in node.names:
+          if alias.name.startswith("_") and package_of(node.module) != package_of(name):
+            found.append(f"{name} <- {node.module}.{alias.name}")
+  return found
+
+
+def test_no_private_name_is_imported_across_packages():
+  assert private_imports_across_packages() == []

@@ -275,9 +275,9 @@ def test_bad_arguments_name_the_argument():
 
 
 def test_the_fine_gate_is_the_clipped_median_residual():
-  """`registration.pipeline.fine_distance` against cKDTree: 1.5 x the median nearest distance of
+  """`registration.refine.fine_distance` against cKDTree: 1.5 x the median nearest distance of
   the moved source over the pairs within the first gate, clipped to [1 mr, first gate]."""
-  from lrf_jax.registration.pipeline import ICP_FINE_FACTOR, ICP_FINE_MIN_MR, fine_distance
+  from lrf_jax.registration.refine import ICP_FINE_FACTOR, ICP_FINE_MIN_MR, fine_distance
   source, _ = _height_field(3000, 0)
   target, _ = _height_field(4000, 1)
   mr = float(cKDTree(source).query(source, 2)[0][:, 1].mean())
@@ -298,7 +298,7 @@ def test_register_without_the_fine_pass_is_one_icp_pass():
   """`register(icp_fine=False)` refines the coarse pose by a single ICP pass at icp_mr mr; the
   default adds the second pass and reports fitness at icp_mr mr either way."""
   from lrf_jax import register
-  from lrf_jax.registration.pipeline import ICP_POINTS
+  from lrf_jax.registration.refine import ICP_POINTS
   cloud, _ = _height_field(4000, 3)
   gt = _pose([0.3, -1.0, 0.4], 20.0, [0.1, 0.2, -0.1])
   target = datasets.transform_points(gt, cloud[::-1])
@@ -361,7 +361,7 @@ def test_a_cycle_of_pairings_stops_at_its_best_pose(seed, monkeypatch):
 
 
 def test_overlap_points_are_the_source_within_the_distance():
-  from lrf_jax.registration.pipeline import overlap_points
+  from lrf_jax.registration.refine import overlap_points
   rng = np.random.default_rng(0)
   target = rng.uniform(0, 1, size=(2000, 3)) * [1.0, 1.0, 0.0]   # the unit square, z = 0
   source = rng.uniform(-1, 2, size=(3000, 3)) * [1.0, 1.0, 0.0]

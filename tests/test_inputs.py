@@ -18,8 +18,10 @@ def demo():
 
 
 def test_default_method_is_lrf_net_plus():
-  for fn in (lrf_jax.compute_frames, lrf_jax.frames_from_patches, lrf_jax.register):
+  for fn in (lrf_jax.compute_frames, lrf_jax.frames_from_patches):
     assert inspect.signature(fn).parameters["method"].default == "lrf_net_plus", fn
+  from lrf_jax.registration.options import DEFAULTS
+  assert DEFAULTS.method == "lrf_net_plus"
   from lrf_jax.cli.register import build_parser
   assert build_parser().get_default("method") == "lrf_net_plus"
 
@@ -106,8 +108,9 @@ def test_default_method_is_the_one_the_entry_points_use():
   from lrf_jax.frames import DEFAULT_METHOD
   from lrf_jax.cli.frames import build_parser as frames_parser
   from lrf_jax.cli.register import build_parser as register_parser
-  for fn in (lrf_jax.compute_frames, lrf_jax.register):
-    assert inspect.signature(fn).parameters["method"].default == DEFAULT_METHOD
+  from lrf_jax.registration.options import DEFAULTS
+  assert inspect.signature(lrf_jax.compute_frames).parameters["method"].default == DEFAULT_METHOD
+  assert DEFAULTS.method == DEFAULT_METHOD
   for parser in (frames_parser(), register_parser()):
     assert parser.get_default("method") == DEFAULT_METHOD
 

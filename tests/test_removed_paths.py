@@ -80,9 +80,9 @@ _WEIGHTS_NAMES = (
     "default_params_numpy", "load_params", "load_params_numpy", "save_params",
 )
 _REGISTRATION_MODULE_NAMES = {  # the pre-0.7 module `lrf_jax.registration`, outside `__all__`
-    "pipeline": ("ESTIMATORS", "KEYPOINTS", "fine_distance", "ICP_FINE_FACTOR", "ICP_FINE_MIN_MR",
-                 "ICP_POINTS", "GRAPH_ANGLE_DEG", "GRAPH_SEEDS", "GRAPH_CONSENSUS",
-                 "GRAPH_NMS_RADII"),
+    "options": ("ESTIMATORS", "KEYPOINTS"),
+    "refine": ("fine_distance", "ICP_FINE_FACTOR", "ICP_FINE_MIN_MR", "ICP_POINTS"),
+    "rivals": ("GRAPH_ANGLE_DEG", "GRAPH_SEEDS", "GRAPH_CONSENSUS", "GRAPH_NMS_RADII"),
     "evidence": ("VERDICT_FACTOR", "VERDICT_MARGIN", "VERDICT_CONTRAST", "VERDICT_FITNESS",
                  "VERDICT_GRAPH_FACTOR", "VERDICT_GRAPH_MARGIN", "VERDICT_GRAPH_FITNESS",
                  "CHANCE_SHUFFLES", "RIVAL_DEG", "Evidence", "overlap_contrast", "verdict"),
@@ -114,6 +114,18 @@ RENAMED: dict[str, str] = {
     # package (frames no longer import learning); its initialisation stayed
     **{f"lrf_jax.learning.model.{n}": f"lrf_jax.frames.weights.{n}" for n in _WEIGHTS_NAMES},
     "lrf_jax.frames.ablation.init_variant_params": "lrf_jax.learning.model.init_variant_params",
+    # moved in 0.8: `register` split into its options, stages, rivals, ICP stage and result
+    **{f"lrf_jax.registration.pipeline.{n}": f"lrf_jax.registration.{home}.{n}"
+       for home, names in (("refine", ("ICP_POINTS", "ICP_FINE_FACTOR", "ICP_FINE_MIN_MR",
+                                       "fine_distance", "overlap_points")),
+                           ("rivals", ("GRAPH_ANGLE_DEG", "GRAPH_SEEDS", "GRAPH_CONSENSUS",
+                                       "GRAPH_NMS_RADII", "REST_FACTOR")),
+                           ("options", ("ESTIMATORS", "KEYPOINTS")))
+       for n in names},
+    # lrf-frames' computation left the command line (the data-set layer runs it too)
+    **{f"lrf_jax.cli.frames.{n}": f"lrf_jax.batch.scan_frames.{n}"
+       for n in ("select_keypoints", "read_transform", "pair_keypoints")},
+    "lrf_jax.geometry.cloud.CloudInput": "lrf_jax.geometry.cloud.CheckedCloud",
 }
 
 

@@ -7,7 +7,6 @@ with it; an item's own failure never raises, so one bad scan costs one row, not 
 
 from __future__ import annotations
 
-import inspect
 import time
 from typing import Any
 
@@ -20,8 +19,6 @@ __all__ = ["FRAMES_OPTIONS", "check_frames_options", "check_register_options", "
 FRAMES_OPTIONS = {"keypoints": "--keypoints", "voxel_mr": "--voxel-mr", "method": "--method",
                   "radius_mr": "--radius-mr", "viewpoint": "--viewpoint",
                   "descriptor": "--descriptor", "seed": "--seed"}
-# `register` keywords a job cannot take: not plain data (a parameter tree, a per-pair pose).
-_NOT_JOB_OPTIONS = ("source", "target", "params", "init")
 
 
 def _error(e: BaseException, t0: float) -> dict[str, Any]:
@@ -32,8 +29,8 @@ def _error(e: BaseException, t0: float) -> dict[str, Any]:
 def check_register_options(options: dict[str, Any]) -> None:
   """ValueError unless every key is a keyword of `lrf_jax.register` a job can take and every
   value is plain data (numbers, strings, booleans, None, lists of them)."""
-  from lrf_jax.registration import register
-  known = [k for k in inspect.signature(register).parameters if k not in _NOT_JOB_OPTIONS]
+  from lrf_jax.registration.options import FIELDS
+  known = list(FIELDS)
   for key, value in options.items():
     if key not in known:
       raise ValueError(f"{key}: not an option of a registration job; expected one of "
@@ -70,17 +67,8 @@ def register_pair(payload: dict[str, Any]) -> dict[str, Any]:
               seconds=time.perf_counter() - t0)
 
 
-def _frames_argv(scan: str, options: dict[str, Any]) -> list[str]:
-  argv = [scan, "--out", "unused.npz"]
-  for key, value in options.items():
-    flag = FRAMES_OPTIONS[key]
-    argv += [flag, *map(str, value)] if key == "viewpoint" else [flag, str(value)]
-  return argv
-
-
 def check_frames_options(options: dict[str, Any]) -> None:
   """ValueError unless `options` are lrf-frames options (`FRAMES_OPTIONS`) it accepts."""
-  from lrf_jax.cli import frames as frames_cli
   for key, value in options.items():
     if key not in FRAMES_OPTIONS:
       raise ValueError(f"{key}: not an option of a frames job; expected one of "
@@ -90,16 +78,31 @@ def check_frames_options(options: dict[str, Any]) -> None:
     if not _plain(value):
       raise ValueError(f"{key}: expected a number or a string, got {type(value).__name__}")
   try:
-    args = frames_cli.build_parser().parse_args(_frames_argv("scan", options))
-  except SystemExit:
+    request = _request("scan", options)
+  except (TypeError, ValueError):
     raise ValueError(f"frames options: lrf-frames refuses {options}") from None
-  problem = frames_cli.check_options(args)
+  problem = request.problem()
   if problem:
     raise ValueError(problem)
 
 
+def _request(scan: str, options: dict[str, Any]) -> Any:
+  """The `FramesRequest` of a scan and a frames job's options (values as lrf-frames' flags
+  read them: a count of keypoints as text, numbers as numbers)."""
+  from lrf_jax.batch.scan_frames import FramesRequest
+  kw = dict(options)
+  if kw.get("keypoints") is not None:
+    kw["keypoints"] = str(kw["keypoints"])
+  for key, kind in (("voxel_mr", float), ("radius_mr", float), ("seed", int)):
+    if kw.get(key) is not None:
+      kw[key] = kind(kw[key])
+  if kw.get("viewpoint") is not None:
+    kw["viewpoint"] = tuple(float(v) for v in kw["viewpoint"])
+  return FramesRequest(cloud=scan, **kw)
+
+
 def frames_of_scan(payload: dict[str, Any]) -> dict[str, Any]:
-  """lrf-frames' computation for one scan (`lrf_jax.cli.frames.frames_outputs`).
+  """lrf-frames' computation for one scan (`lrf_jax.batch.scan_frames.frames_of_scan`).
 
   Args:
     payload: {"scan": path, "options": `FRAMES_OPTIONS` keywords}.
@@ -110,9 +113,8 @@ def frames_of_scan(payload: dict[str, Any]) -> dict[str, Any]:
   """
   t0 = time.perf_counter()
   try:
-    from lrf_jax.cli import frames as frames_cli
-    args = frames_cli.build_parser().parse_args(_frames_argv(payload["scan"], payload["options"]))
-    arrays, _, _ = frames_cli.frames_outputs(args)
+    from lrf_jax.batch import scan_frames
+    arrays, _, _ = scan_frames.frames_of_scan(_request(payload["scan"], payload["options"]))
   except Exception as e:  # noqa: BLE001 -- a bad scan is a row, the job goes on
     return _error(e, t0)
   arrays = {k: np.asarray(v) for k, v in arrays.items()}

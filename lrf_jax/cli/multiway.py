@@ -23,10 +23,13 @@ from __future__ import annotations
 
 import argparse
 import sys
+from typing import Any
 
 import numpy as np
 
 from lrf_jax.cli.interrupt import exit_with, interruptible
+from lrf_jax.cli.options import (add_register_flags, option_message, register_overrides,
+                                 register_problem)
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -41,25 +44,42 @@ def build_parser() -> argparse.ArgumentParser:
                        "D/graph.png")
   ap.add_argument("--voxel", type=float, default=None,
                   help="voxel size of merged.ply in mr (default: every point)")
+  defaults = _register_all_defaults()
   ap.add_argument("--mr", type=float, default=None,
                   help="mesh resolution in the clouds' units (default: median over the scans)")
-  ap.add_argument("--radius-mr", type=float, default=15.0, help="support radius in mr (15)")
-  ap.add_argument("--keypoints", default="3000", metavar="N|DETECTOR",
-                  help="keypoints per scan: a count of seeded random points (3000), or a "
-                       "detector name: 'iss' (ISS keypoints, at most 3000) or 'random'")
-  ap.add_argument("--method", default="lrf_net_plus", help="LRF method (lrf_net_plus)")
+  ap.add_argument("--icp-mr", type=float, default=defaults["icp_mr"],
+                  help="overlap and ICP pairing distance of the pairs and the joint ICP, in mr")
+  ap.add_argument("--seed", type=int, default=defaults["seed"],
+                  help="seed of the pairwise registrations, the samples and the pose graph")
+  add_register_flags(ap, skip=("mr", "icp_mr", "seed", "source_viewpoint", "target_viewpoint"))
   ap.add_argument("--viewpoint", type=float, nargs=3, default=None, metavar=("X", "Y", "Z"),
                   help="sensor position of every scan, in each scan's own frame")
-  ap.add_argument("--reject-mr", type=float, default=5.0,
-                  help="reject edges whose residual exceeds this many mr (5)")
-  ap.add_argument("--all-pairs-max", type=int, default=12,
-                  help="register every pair up to this many scans (12); beyond, neighbors in "
+  ap.add_argument("--reject-mr", type=float, default=defaults["reject_mr"],
+                  help="reject edges whose residual exceeds this many mr")
+  ap.add_argument("--all-pairs-max", type=int, default=defaults["all_pairs_max"],
+                  help="register every pair up to this many scans; beyond, neighbors in "
                        "the given order plus loop-closure candidates")
   ap.add_argument("--no-refine", action="store_true", help="skip the joint ICP")
   ap.add_argument("--no-figures", action="store_true", help="do not draw the PNG figures")
   ap.add_argument("--quiet", action="store_true", help="no progress bar")
-  ap.add_argument("--seed", type=int, default=0)
   return ap
+
+
+def _register_all_defaults() -> dict[str, Any]:
+  """`register_all`'s defaults of the flags that set its own arguments."""
+  from lrf_jax.registration.multiway import ALL_PAIRS_MAX, REJECT_MR
+  from lrf_jax.registration.options import DEFAULTS
+  return dict(icp_mr=DEFAULTS.icp_mr, seed=DEFAULTS.seed, reject_mr=REJECT_MR,
+              all_pairs_max=ALL_PAIRS_MAX)
+
+
+def _pairwise_options(args: argparse.Namespace) -> dict[str, Any]:
+  """The keywords of every pairwise `register` the flags set (mr, icp_mr, seed and the
+  viewpoint are `register_all`'s own arguments)."""
+  kw = register_overrides(args)
+  for name in ("mr", "icp_mr", "seed", "source_viewpoint", "target_viewpoint"):
+    kw.pop(name, None)
+  return kw
 
 
 def wanted(pairwise_parser: argparse.ArgumentParser, argv: list[str] | None) -> bool:
@@ -128,21 +148,14 @@ def _check(args: argparse.Namespace) -> str | None:
 
 def _check_register_options(args: argparse.Namespace) -> str | None:
   """What is wrong with --all-pairs-max and the options passed to every pairwise registration
-  (--keypoints, --method, --radius-mr, --viewpoint), before any work (None: fine)."""
-  from lrf_jax.cli.options import option_message, parse_keypoints
+  (the register flags, --viewpoint), before any work (None: fine)."""
   from lrf_jax.registration.multiway import check_counts
-  from lrf_jax.registration.pipeline import check_register_options
-  names = {"all_pairs_max": "all_pairs_max", "n_keypoints": "keypoints",
-           "keypoints": "keypoints", "radius_mr": "radius_mr", "method": "method",
-           "source_viewpoint": "viewpoint", "target_viewpoint": "viewpoint"}
   try:
     check_counts(all_pairs_max=args.all_pairs_max)
-    check_register_options(radius_mr=args.radius_mr, method=args.method,
-                           source_viewpoint=args.viewpoint, seed=args.seed,
-                           **parse_keypoints(args.keypoints))
   except ValueError as e:
-    return option_message(str(e), names)
-  return None
+    return option_message(str(e), {"all_pairs_max": "all_pairs_max"})
+  view = argparse.Namespace(**vars(args), source_viewpoint=args.viewpoint)
+  return register_problem(view, {"source_viewpoint": "viewpoint"})
 
 
 def _print_result(res, out) -> None:
@@ -172,7 +185,6 @@ def main(argv: list[str] | None = None) -> int:
       figures, skipped = False, str(e)
   from lrf_jax import compilation_cache
   compilation_cache.enable()
-  from lrf_jax.cli.options import parse_keypoints
   from lrf_jax.io.atomic import WriteError
   from lrf_jax.registration.multiway import (check_voxel, load_scans, median_mr, register_all,
                                              scan_names, write_outputs)
@@ -189,8 +201,7 @@ def main(argv: list[str] | None = None) -> int:
     res = register_all(clouds, names=names, mr=mr, seed=args.seed, refine=not args.no_refine,
                        reject_mr=args.reject_mr, all_pairs_max=args.all_pairs_max,
                        viewpoints=args.viewpoint, progress=not args.quiet,
-                       radius_mr=args.radius_mr, method=args.method,
-                       **parse_keypoints(args.keypoints))
+                       icp_mr=args.icp_mr, **_pairwise_options(args))
   except (ValueError, FileNotFoundError) as e:
     print(f"error: {e}", file=sys.stderr)
     return 2

@@ -29,7 +29,8 @@ import numpy as np
 
 from lrf_jax.cli.interrupt import exit_with, interruptible
 from lrf_jax.cli.help import DefaultsHelpFormatter
-from lrf_jax.cli.options import KEYPOINT_DETECTORS, option_message, parse_keypoints
+from lrf_jax.cli.options import (KEYPOINT_DETECTORS, add_register_flags, parse_keypoints,
+                                 register_overrides, register_problem)
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -50,65 +51,20 @@ def build_parser() -> argparse.ArgumentParser:
   ap.add_argument("--best-guess", action="store_true",
                   help="write --out even when the verdict is 'not sure' (the exit code is "
                        "still 3)")
-  ap.add_argument("--mr", type=float, default=None,
-                  help="the working resolution in the clouds' units, the unit of every length "
-                       "(default: measured: SOURCE's point spacing; on a raw, uneven cloud such "
-                       "as a LiDAR sweep the area-weighted median spacing; for clouds of "
-                       "different densities the coarser one)")
-  ap.add_argument("--voxel-size", type=float, default=None,
-                  help="thin both clouds by voxel averaging first, voxels of this edge in the "
-                       "clouds' units (0: keep every point; default: thin a cloud far denser "
-                       "than the working resolution, such as a raw LiDAR sweep, at it)")
-  ap.add_argument("--radius-mr", type=float, default=15.0, help="support radius in mr")
-  ap.add_argument("--keypoints", default="3000", metavar="N|DETECTOR",
-                  help="keypoints per cloud: a count of seeded random points, or a detector "
-                       "name: 'iss' (ISS keypoints, at most 3000) or 'random'")
-  ap.add_argument("--correspondences", type=int, default=1000,
-                  help="correspondences kept after matching")
-  ap.add_argument("--inlier-mr", type=float, default=5.0, help="inlier distance in mr")
-  ap.add_argument("--estimator", choices=("graph", "lrf", "3point"), default="graph",
-                  help="compatibility graph (graph), one correspondence per hypothesis "
-                       "(lrf) or classic 3-point RANSAC")
+  add_register_flags(ap)
   # Deprecated spelling of `--keypoints iss` (kept working, hidden): with a count in
   # --keypoints, ISS keypoints at most that many.
   ap.add_argument("--detector", choices=KEYPOINT_DETECTORS, default=None, help=argparse.SUPPRESS)
-  ap.add_argument("--mutual", action="store_true", help="keep mutual nearest matches only")
-  ap.add_argument("--ratio", type=float, default=None,
-                  help="Lowe's ratio test threshold in (0, 1] (default: none)")
-  ap.add_argument("--icp", choices=("point_to_plane", "point_to_point"),
-                  default="point_to_plane", help="ICP variant")
-  ap.add_argument("--iterations", type=int, default=1000, help="3-point RANSAC hypotheses")
-  ap.add_argument("--icp-iterations", type=int, default=50, help="ICP iterations (0: none)")
   ap.add_argument("--checkpoint", default=None,
                   help="a train.py workdir whose best LRF-Net parameters to use "
                        "(default: the shipped weights)")
-  ap.add_argument("--method", default="lrf_net_plus",
-                  help="LRF method, a key of lrf_jax.METHODS (lrf_net_plus: the most "
-                       "repeatable; lrf_net is the paper's LRF-Net)")
-  ap.add_argument("--source-viewpoint", type=float, nargs=3, default=None, metavar=("X", "Y", "Z"),
-                  help="sensor position of a single-view SOURCE scan (orients its normals)")
-  ap.add_argument("--target-viewpoint", type=float, nargs=3, default=None, metavar=("X", "Y", "Z"),
-                  help="sensor position of a single-view TARGET scan")
   ap.add_argument("--init", default=None, metavar="FILE",
                   help="initial source->target transform to refine: a 4x4 text file (.xf, "
                        ".txt) or a (4, 4) .npy")
-  ap.add_argument("--seed", type=int, default=0, help="seed of keypoints and sampling")
   ap.add_argument("--png", default=None, metavar="FILE",
                   help="also draw the correspondences here: inliers and outliers joining the "
                        "two clouds side by side")
   return ap
-
-
-# lrf-register's options (argparse dests) -> the keywords of `lrf_jax.register` they set
-# (--keypoints and --detector: `keypoint_options`).
-REGISTER_KEYWORDS = {"mr": "mr", "radius_mr": "radius_mr",
-                     "correspondences": "n_correspondences", "inlier_mr": "inlier_mr",
-                     "estimator": "estimator", "iterations": "iterations",
-                     "icp_iterations": "icp_iterations", "seed": "seed", "method": "method",
-                     "source_viewpoint": "source_viewpoint",
-                     "target_viewpoint": "target_viewpoint",
-                     "mutual": "mutual", "ratio": "ratio", "icp": "icp_mode",
-                     "voxel_size": "voxel_size"}
 
 
 def keypoint_options(args: argparse.Namespace) -> dict[str, Any]:
@@ -131,33 +87,22 @@ def keypoint_options(args: argparse.Namespace) -> dict[str, Any]:
 
 def register_options(args: argparse.Namespace) -> dict[str, Any]:
   """The keywords of `lrf_jax.register` that the options present in `args` set (an option
-  parsed with its default suppressed and not given is left out)."""
-  out = {kw: getattr(args, dest) for dest, kw in REGISTER_KEYWORDS.items()
-         if hasattr(args, dest)}
-  out.update(keypoint_options(args))
-  return out
+  parsed with its default suppressed and not given is left out).
+
+  Raises:
+    ValueError: a bad --keypoints, or two detectors named.
+  """
+  return {**register_overrides(args), **keypoint_options(args)}
 
 
 def check_options(args: argparse.Namespace) -> str | None:
   """What is wrong with the options present in `args`, checked before any work (None: fine):
-  --seed, --keypoints, and every value `lrf_jax.register` would refuse (named by its option)."""
-  seed = getattr(args, "seed", 0)
-  if not 0 <= seed < 2**32:
-    return f"--seed: expected an integer in [0, 2**32), got {seed}"
+  --keypoints, --detector and every value `lrf_jax.register` would refuse (named by its flag)."""
   try:
-    options = register_options(args)
+    keypoint_options(args)
   except ValueError as e:
     return str(e)
-  from lrf_jax.registration.pipeline import check_register_options
-  try:
-    check_register_options(**options)
-  except ValueError as e:
-    return option_message(str(e), {**{kw: dest for dest, kw in REGISTER_KEYWORDS.items()},
-                                   "n_keypoints": "keypoints", "keypoints": "keypoints"})
-  return None
-
-
-
+  return register_problem(args)
 
 
 def _check_paths(args: argparse.Namespace) -> str | None:
@@ -210,7 +155,7 @@ def read_init(path: str) -> np.ndarray:
   Raises:
     ValueError: not a readable (4, 4) rigid matrix; the message names the file.
   """
-  from lrf_jax.cli.frames import read_transform
+  from lrf_jax.batch.scan_frames import read_transform
   return read_transform(path, "--init")
 
 

@@ -36,6 +36,7 @@ from collections.abc import Iterable, Iterator
 
 import numpy as np
 
+from lrf_jax.defaults import RADIUS_MR
 from lrf_jax.extras import pyplot
 from lrf_jax.api import frames_from_patches
 from lrf_jax.datasets import Pair
@@ -156,7 +157,7 @@ def _frames(pts, faces, idx, radius, run: MethodRun, seed: int, cache: PatchCach
 
 
 def evaluate_description_pair(pair: Pair, runs: Iterable[DescriptionRun], *,
-                              n_keypoints: int = 1000, seed: int = 0, radius_mr: float = 15.0,
+                              n_keypoints: int = 1000, seed: int = 0, radius_mr: float = RADIUS_MR,
                               correct_mr: float = 1.0, cache: PatchCache | None = None,
                               setting: dict[str, Any] | None = None,
                               thresholds: np.ndarray = RATIO_THRESHOLDS) -> list[dict[str, Any]]:

@@ -12,6 +12,7 @@ import zlib
 from typing import Any, cast
 from collections.abc import Callable, Iterable, Iterator
 
+from lrf_jax.defaults import RADIUS_MR
 from lrf_jax import datasets
 from lrf_jax.datasets import Pair
 from lrf_jax.evaluation.repeatability import (EXACT_NETWORK, MAX_NEIGHBORS, MethodRun,
@@ -146,7 +147,7 @@ class EvalOptions:
   data_root: str | None = None
   n_keypoints: int = 1000
   seed: int = 0
-  radius_mr: float = 15.0
+  radius_mr: float = RADIUS_MR
   max_pairs: int | None = None
   max_neighbors: int | None = MAX_NEIGHBORS
 

@@ -28,6 +28,7 @@ from collections.abc import Iterable, Iterator
 
 import numpy as np
 
+from lrf_jax.defaults import RADIUS_MR
 from lrf_jax.api import frames_from_patches
 from lrf_jax.datasets import Pair, transform_points
 from lrf_jax.descriptors import (DESCRIPTORS, describe_patches, match_descriptors,
@@ -53,7 +54,7 @@ ESTIMATORS = ("lrf_ransac", "ransac_3point")
 
 def evaluate_pose_pair(pair: Pair, *, n_keypoints: int = 1000, n_correspondences: int = 100,
                        lrf_iterations: int = 100, ransac_iterations: int = 1000,
-                       inlier_mr: float = 5.0, seed: int = 0, radius_mr: float = 15.0,
+                       inlier_mr: float = 5.0, seed: int = 0, radius_mr: float = RADIUS_MR,
                        params: Any = None, descriptor: str = "toldi", lrf: str = "lrf_net",
                        cache: PatchCache | None = None,
                        setting: dict[str, Any] | None = None) -> list[dict[str, Any]]:

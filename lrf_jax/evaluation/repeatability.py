@@ -24,6 +24,7 @@ from scipy.spatial import cKDTree
 
 import jax
 
+from lrf_jax.defaults import RADIUS_MR
 from lrf_jax.search import engine
 from lrf_jax.api import frames_from_patches, host_frames
 from lrf_jax.datasets import Pair, repeatability_keypoints, transform_points
@@ -164,7 +165,7 @@ def z_flip_rate(frames_a: Any, frames_b: Any, transform: np.ndarray, valid_a: An
 
 def evaluate_pair(pair: Pair, methods: Iterable[MethodRun], *, experiment: str,
                   setting: dict[str, Any] | None = None, n_keypoints: int = 1000,
-                  seed: int = 0, radius_mr: float = 15.0, scene_first: bool = False,
+                  seed: int = 0, radius_mr: float = RADIUS_MR, scene_first: bool = False,
                   cache: PatchCache | None = None, max_neighbors: int | None = MAX_NEIGHBORS,
                   keep_frames: bool = False, kernel: str = "auto") -> list[dict[str, Any]]:
   """Repeatability records of every method on one pair.

@@ -10,6 +10,7 @@ from collections.abc import Iterable
 
 import numpy as np
 
+from lrf_jax.defaults import RADIUS_MR
 from lrf_jax.extras import matplotlib_module, pyplot
 from lrf_jax.io import atomic
 
@@ -272,7 +273,7 @@ def plot_weights(patches_xyz: list[AnyArray], weights: list[np.ndarray], frames:
   return path
 
 
-def weights_figure(pair: Any, params: Any, out: Path, *, n: int = 4, radius_mr: float = 15.0,
+def weights_figure(pair: Any, params: Any, out: Path, *, n: int = 4, radius_mr: float = RADIUS_MR,
                    seed: int = 0) -> Path:
   """The paper's weight visualisation: `n` model patches of `pair` in their LRF-Net frames with
   every neighbor coloured by its learned weight (figure `fig_weight`)."""

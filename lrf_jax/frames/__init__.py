@@ -22,7 +22,7 @@ from lrf_jax.frames.mian import mian_frames
 from lrf_jax.frames.ps import ps_frames
 from lrf_jax.frames.rops import rops_frames
 from lrf_jax.frames.shot import shot_frames
-from lrf_jax.frames.spec import (DEFAULT_METHOD, KEYPOINT, SLOT, TRIANGLE, TRIANGLE_MASK, METHODS,
+from lrf_jax.frames.spec import (DEFAULT_METHOD, RADIUS_MR, KEYPOINT, SLOT, TRIANGLE, TRIANGLE_MASK, METHODS,
                                  MethodRegistry, MethodSpec, add_method, method_spec)
 from lrf_jax.frames.toldi import toldi_frames
 
@@ -31,6 +31,6 @@ for _spec in (lrf_net.SPEC, ablation.SPEC, lrf_net_plus.SPEC, lrf_net.UNIFORM_SP
   add_method(_spec)
 del _spec
 
-__all__ = ["DEFAULT_METHOD", "KEYPOINT", "METHODS", "MethodRegistry", "MethodSpec", "SLOT", "TRIANGLE",
+__all__ = ["DEFAULT_METHOD", "RADIUS_MR", "KEYPOINT", "METHODS", "MethodRegistry", "MethodSpec", "SLOT", "TRIANGLE",
            "TRIANGLE_MASK", "add_method", "method_spec", "board_frames", "flare_frames", "gframes_frames", "lrf_net_frames",
            "mian_frames", "ps_frames", "rops_frames", "shot_frames", "toldi_frames", "uniform_frames"]

@@ -18,6 +18,8 @@ import dataclasses
 from typing import Any
 from collections.abc import Callable
 
+from lrf_jax.defaults import DEFAULT_METHOD, RADIUS_MR  # noqa: F401 -- also the frames' names
+
 KEYPOINT = "keypoint"
 SLOT = "slot"
 TRIANGLE = "triangle"
@@ -130,8 +132,6 @@ class MethodSpec:
                          f"dict giving each field one of {AXIS_KINDS}")
 
 
-# The method `compute_frames`, `register`, lrf-frames and lrf-register use when none is given.
-DEFAULT_METHOD = "lrf_net_plus"
 # Longest description shown in a `METHODS` listing (the whole one: `METHODS[name].description`).
 DESCRIPTION_WIDTH = 100
 

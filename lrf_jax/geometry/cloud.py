@@ -94,6 +94,17 @@ class CheckedCloud:
             + ("" if self.faces is None else f", {len(self.faces)} faces")
             + ("" if self.normals is None else ", normals") + ")")
 
+  def with_normals(self, normals: Any) -> CheckedCloud:
+    """The same checked points and faces with `normals` ((n, 3), checked) or without any
+    (None); the points are not checked again.
+
+    Raises:
+      ValueError: normals that are not (n, 3) real numbers.
+    """
+    if normals is not None:
+      normals = validate_normals(normals, len(self.points), "normals")
+    return _unpickle(self.points, self.faces, normals)
+
   @property
   def resolution(self) -> float:
     """The mesh resolution mr (cloud units): mean edge length with faces, mean nearest-neighbor
@@ -137,7 +148,3 @@ def as_cloud(x: Any, name: str = "points", *, faces: Any = None,
   if isinstance(x, CheckedCloud) and faces is None and normals is None:
     return x
   return CheckedCloud(x, faces, normals, name=name)
-
-
-# The name `lrf_jax.registration.pipeline` builds its sides' clouds by (points, faces, normals).
-CloudInput = CheckedCloud

@@ -44,8 +44,7 @@ import numba as nb
 import numpy as np
 
 from lrf_jax.search import engine
-from lrf_jax.search.grid import _BLOCK as _SUMS_BLOCK  # the point-to-point sums' blocks
-from lrf_jax.search.grid import Grid, _centers, writable_float64
+from lrf_jax.search.grid import Grid, writable_float64
 from lrf_jax.search.nearest import nearest_moved  # the engine's ICP pairing step (inlined)
 from lrf_jax.geometry.normals import pca_normals
 from lrf_jax.registration.errors import to_transform
@@ -53,6 +52,8 @@ from lrf_jax.registration.host import proper_rotation
 
 # Source points per parallel task of the sums kernel (a fixed partition: deterministic sums).
 _BLOCK = 256
+# Source points per block of the point-to-point sums (summed in block order: deterministic).
+_SUMS_BLOCK = 32
 # Relative Levenberg damping of the rescaled 6 x 6 normal equations.
 DAMPING = 1e-6
 # Estimated target normals: a PCA radius of this many `max_distance`, at most this many mean
@@ -414,7 +415,7 @@ def icp_sums(grid: Grid, source: np.ndarray, rotation: np.ndarray, translation: 
   Returns:
     (pairs, sum of squared pair distances, sum_a (3,), sum_b (3,), sum of a bᵀ (3, 3)).
   """
-  src = _centers(source)
+  src = writable_float64(source).reshape(-1, 3)
   r = float(max_distance)
   nblock = max(1, (len(src) + _SUMS_BLOCK - 1) // _SUMS_BLOCK)
   partial = np.empty((nblock, 17))

@@ -46,6 +46,7 @@ from collections.abc import Callable, Sequence
 
 import numpy as np
 
+from lrf_jax.registration.options import DEFAULTS
 from lrf_jax.search import engine
 from lrf_jax.registration import pose_graph
 from lrf_jax.registration.icp_host import estimate_target_normals
@@ -60,6 +61,8 @@ __all__ = ["MANIFEST", "MultiwayEdge", "MultiwayResult", "candidate_pairs", "che
 
 # Scans up to this many: every pair is a candidate.
 ALL_PAIRS_MAX = 12
+# An edge whose RMS point residual under the optimised poses exceeds this many mr is rejected.
+REJECT_MR = 5.0
 # merged_cloud's voxel keys are float64 cell indices cast to int64: exact below 2**53.
 MAX_VOXELS_PER_AXIS = float(2**53)
 # Points per edge in the pose graph's residual.
@@ -468,9 +471,10 @@ def _model(component: np.ndarray) -> int:
 
 def register_all(scans: Sequence[Any], *, names: Sequence[str] | None = None,
                  mr: float | None = None, all_pairs_max: int = ALL_PAIRS_MAX,
-                 neighbors: int = 1, loop_candidates: int = 3, reject_mr: float = 5.0,
+                 neighbors: int = 1, loop_candidates: int = 3, reject_mr: float = REJECT_MR,
                  robust_mr: float = 1.0, refine: bool = True, refine_iterations: int = 10,
-                 icp_mr: float = 3.0, viewpoints: Any = None, seed: int = 0,
+                 icp_mr: float = DEFAULTS.icp_mr, viewpoints: Any = None,
+                 seed: int = DEFAULTS.seed,
                  progress: bool = False,
                  pairwise: Callable[..., Any] | None = None, **register_kw: Any
                  ) -> MultiwayResult:

@@ -1,0 +1,239 @@
+"""lrf-frames' computation as a library function: one scan's keypoints, their frames (and a
+descriptor), and with a second scan and the ground truth their repeatability. `lrf-frames` and
+the data-set layer's frames items (`lrf_jax.batch.items`) both call `frames_of_scan`; its options
+are a frozen `FramesRequest`, whose fields the command line's flags are named after.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from lrf_jax.defaults import DEFAULT_METHOD, RADIUS_MR
+
+# Smallest --voxel-mr: voxels of a tenth of the point spacing already hold one point each.
+MIN_VOXEL_MR = 0.1
+# Keypoints drawn when neither a count nor a rule is given.
+DEFAULT_KEYPOINTS = 1000
+_ASCII_DIGITS = frozenset("0123456789")
+
+
+@dataclasses.dataclass(frozen=True)
+class FramesRequest:
+  """What lrf-frames computes for one scan (each field is the flag of the same name).
+
+  Attributes:
+    cloud: the scan's path (any file `lrf_jax.io.read_cloud` reads).
+    keypoints: a count of seeded random points, "all" or "iss" (None: `DEFAULT_KEYPOINTS`).
+    voxel_mr: instead, one keypoint per voxel of this edge in mr (the point nearest its centre).
+    method: a key of `lrf_jax.METHODS`.
+    radius_mr: the support radius in mr.
+    viewpoint: the scan's sensor position (3 numbers) or None.
+    descriptor: also this descriptor on the frames (a key of `DESCRIPTORS`) or None.
+    seed: seed of keypoints and subsamples.
+    pair, gt, pair_viewpoint: a second scan, the 4x4 transform mapping the cloud onto it (a
+      text file or .npy) and its sensor position: frames at the corresponding points too.
+  """
+
+  cloud: str
+  keypoints: str | None = None
+  voxel_mr: float | None = None
+  method: str = DEFAULT_METHOD
+  radius_mr: float = RADIUS_MR
+  viewpoint: tuple[float, float, float] | None = None
+  descriptor: str | None = None
+  seed: int = 0
+  pair: str | None = None
+  gt: str | None = None
+  pair_viewpoint: tuple[float, float, float] | None = None
+
+  @classmethod
+  def from_args(cls, args: Any) -> FramesRequest:
+    """The request of an argparse namespace (or any object) with these fields' names."""
+    return cls(**{f.name: getattr(args, f.name) for f in dataclasses.fields(cls)
+                  if hasattr(args, f.name)})
+
+  def problem(self) -> str | None:
+    """What is wrong with the options (named by lrf-frames' flags), before any work (None:
+    fine). The inputs' paths are checked to exist; the cloud's is read later."""
+    from lrf_jax.descriptors import DESCRIPTORS
+    from lrf_jax.frames import METHODS
+    if self.method not in METHODS:
+      return f"--method: unknown method {self.method!r}; expected one of {sorted(METHODS)}"
+    if self.descriptor is not None and self.descriptor not in DESCRIPTORS:
+      return f"--descriptor: unknown {self.descriptor!r}; expected one of {sorted(DESCRIPTORS)}"
+    if self.voxel_mr is not None and self.keypoints is not None:
+      return ("--voxel-mr and --keypoints: give one of them (--voxel-mr picks one keypoint per "
+              "voxel, --keypoints a number, 'all' or 'iss')")
+    kp = self.keypoints
+    if kp is not None and kp not in ("all", "iss") and (
+        not kp or not set(kp) <= _ASCII_DIGITS or int(kp) < 1):
+      return f"--keypoints: expected a positive integer, 'all' or 'iss', got {kp!r}"
+    for name in ("radius_mr", "voxel_mr"):
+      v = getattr(self, name)
+      if v is not None and not (np.isfinite(v) and v > 0):
+        return f"--{name.replace('_', '-')}: expected a positive number, got {v!r}"
+    if self.voxel_mr is not None and self.voxel_mr < MIN_VOXEL_MR:
+      return (f"--voxel-mr: {self.voxel_mr:g} mr is below {MIN_VOXEL_MR:g} mr (voxels that "
+              "small hold one point each; use --keypoints all)")
+    if not 0 <= self.seed < 2**32:
+      return f"--seed: expected an integer in [0, 2**32), got {self.seed}"
+    return self._pair_problem()
+
+  def _pair_problem(self) -> str | None:
+    from lrf_jax.io.atomic import path_problem
+    if (self.pair is None) != (self.gt is None):
+      return ("--pair and --gt go together: --pair B names the second scan, --gt T the 4x4 "
+              "transform mapping the cloud onto it")
+    for name, value in (("--pair", self.pair), ("--gt", self.gt)):
+      if value is not None and path_problem(value):
+        return f"{name}: {value} {path_problem(value)}"
+      if value is not None and not Path(value).expanduser().is_file():
+        return f"{name}: {value} is not a file"
+    return None
+
+
+def select_keypoints(points: np.ndarray, how: str, voxel: float | None, seed: int,
+                     mr: float | None = None) -> np.ndarray:
+  """Sorted keypoint indices: every point ('all'), ISS keypoints ('iss', at resolution `mr`),
+  N seeded random ones, or with `voxel` (cloud units) the point nearest the centre of each
+  occupied voxel.
+
+  Raises:
+    ValueError: `voxel` too small for the cloud's extent; 'iss' where this version has no ISS
+      detector."""
+  n = len(points)
+  if voxel is not None:
+    cells = np.floor((points - points.min(0)) / voxel)
+    if not (np.isfinite(voxel) and voxel > 0 and np.all(np.isfinite(cells))
+            and cells.max(initial=0) < 2**40):
+      raise ValueError(f"--voxel-mr: a voxel of {voxel:g} (cloud units) is too small for a "
+                       f"cloud of extent {np.ptp(points, axis=0).max():g}")
+    cells = cells.astype(np.int64)
+    centre = (cells + 0.5) * voxel + points.min(0)
+    d = np.linalg.norm(points - centre, axis=1)
+    _, inv = np.unique(cells, axis=0, return_inverse=True)
+    order = np.lexsort((d, inv.ravel()))
+    first = np.r_[True, np.diff(inv.ravel()[order]) != 0]
+    return np.sort(order[first])
+  if how == "all":
+    return np.arange(n)
+  if how == "iss":
+    try:
+      from lrf_jax.geometry.keypoints import iss_keypoints
+    except ImportError:
+      raise ValueError("--keypoints iss: this version of lrf_jax has no ISS detector "
+                       "(lrf_jax.geometry.keypoints.iss_keypoints)") from None
+    return np.sort(np.asarray(iss_keypoints(points, mr=mr), np.int64))
+  m = min(int(how), n)
+  return np.sort(np.random.default_rng(seed).choice(n, m, replace=False))
+
+
+def read_transform(path: str, option: str) -> np.ndarray:
+  """The (4, 4) rigid transform in `path`: a .npy holding one, else a text file of 4 rows of 4
+  numbers (`lrf_jax.io.read_xf`).
+
+  Raises:
+    ValueError: not a readable (4, 4) rigid matrix; the message names `option` and the file.
+  """
+  from lrf_jax.io import check_rigid, read_xf
+  if path.lower().endswith(".npy"):
+    try:
+      t = np.load(path, allow_pickle=False)
+    except (ValueError, OSError, EOFError) as e:
+      raise ValueError(f"{option} {path}: not a readable .npy file ({e})") from None
+    if not np.issubdtype(t.dtype, np.number):
+      raise ValueError(f"{option} {path}: expected a numeric (4, 4) array, got dtype {t.dtype}")
+    return check_rigid(t, path, f"{option} matrix")
+  try:
+    return read_xf(path)
+  except ValueError as e:
+    raise ValueError(f"{option}: {e}") from None
+
+
+def pair_keypoints(points: np.ndarray, pair_points: np.ndarray, transform: np.ndarray,
+                   mr: float, how: str, voxel: float | None, seed: int,
+                   max_dist_mr: float = 0.5) -> tuple[np.ndarray, np.ndarray]:
+  """Keypoints of `points` (n, 3) that the other scan `pair_points` (n', 3) also saw, and their
+  correspondences: a point is eligible when its image under `transform` (4, 4) has a point of
+  the other scan within `max_dist_mr` * `mr` (cloud units); N seeded eligible points for a
+  number `how` (the repeatability protocol's draw), else `select_keypoints`' choice
+  restricted to the eligible ones.
+
+  Returns:
+    (keypoints (m,), pair_keypoints (m,)) int64, keypoints sorted; pair_keypoints[i] is the
+    point of the other scan nearest keypoint i's image.
+
+  Raises:
+    ValueError: no point of `points` lands near the other scan (wrong --gt?)."""
+  from scipy.spatial import cKDTree
+
+  from lrf_jax.datasets.pair import transform_points
+  dist, nearest = cKDTree(pair_points).query(transform_points(transform, points),
+                                             distance_upper_bound=max_dist_mr * mr, workers=-1)
+  eligible = np.isfinite(dist)
+  if not eligible.any():
+    raise ValueError(f"--gt: no point of the cloud lands within {max_dist_mr:g} mr of a point "
+                     "of --pair under this transform (is it the cloud -> pair transform?)")
+  if voxel is None and how not in ("all", "iss"):
+    idx = np.flatnonzero(eligible)
+    kp = np.sort(np.random.default_rng(seed).choice(idx, min(int(how), len(idx)),
+                                                    replace=False))
+  else:
+    kp = select_keypoints(points, how, voxel, seed, mr)
+    kp = kp[eligible[kp]]
+  return kp.astype(np.int64), nearest[kp].astype(np.int64)
+
+
+def frames_of_scan(request: FramesRequest) -> tuple[dict, Any, Any]:
+  """Read the inputs and compute what `request` asks for: (the .npz fields lrf-frames writes, the
+  `CheckedCloud`, the pair's or None).
+
+  Raises:
+    ValueError: an unreadable input or a failed step, naming the file or the flag.
+  """
+  import lrf_jax
+  from lrf_jax.geometry.cloud import as_cloud
+  cloud = as_cloud(request.cloud, "cloud")
+  try:
+    mr = lrf_jax.mesh_resolution(cloud.points, cloud.faces)
+  except ValueError as e:  # "points: the cloud has no spacing ...": name the file
+    raise ValueError(f"{request.cloud}: {str(e).removeprefix('points: ')}") from None
+  voxel = None if request.voxel_mr is None else request.voxel_mr * mr
+  how = request.keypoints or str(DEFAULT_KEYPOINTS)
+  other = gt = None
+  if request.pair is not None:
+    assert request.gt is not None  # `problem`: --pair and --gt go together
+    gt = read_transform(request.gt, "--gt")
+    other = as_cloud(request.pair, "--pair")
+    kp, kp_b = pair_keypoints(cloud.points, other.points, gt, mr, how, voxel, request.seed)
+  else:
+    kp = select_keypoints(cloud.points, how, voxel, request.seed, mr)
+  radius = request.radius_mr * mr
+  spec = lrf_jax.METHODS[request.method]
+  conf = spec.confidence is not None
+  frames, valid, *confidence = lrf_jax.compute_frames(
+      cloud, kp, radius, request.method, seed=request.seed, viewpoint=request.viewpoint,
+      progress=len(kp) > 20000, return_confidence=conf)
+  out = dict(keypoints=kp, positions=cloud.points[kp], frames=np.asarray(frames),
+             valid=np.asarray(valid), radius=radius, mr=mr, method=request.method,
+             weights=spec.weights if spec.needs_params else "")
+  if conf:
+    out["confidence"] = np.asarray(confidence[0])
+  if request.descriptor:
+    from lrf_jax.descriptors import compute_descriptors
+    desc, _ = compute_descriptors(cloud.points, kp, radius, frames, valid, request.descriptor,
+                                  faces=cloud.faces, seed=request.seed)
+    out["descriptors"] = np.asarray(desc)
+  if other is not None:
+    fb, vb, *conf_b = lrf_jax.compute_frames(
+        other, kp_b, radius, request.method, seed=request.seed, viewpoint=request.pair_viewpoint,
+        progress=len(kp) > 20000, return_confidence=conf)
+    if conf:
+      out["pair_confidence"] = np.asarray(conf_b[0])
+    out.update(pair_keypoints=kp_b, pair_frames=np.asarray(fb), pair_valid=np.asarray(vb),
+               gt=gt, meancos=np.asarray(lrf_jax.meancos(frames, fb, gt, valid, vb)))
+  return out, cloud, other

@@ -1,0 +1,372 @@
+"""The stages of `register`, each a function of the previous stages' typed results and the
+`RegisterOptions`:
+
+  prepare      read and check the clouds, the working resolution, thinning, keypoints, normals
+  describe     the keypoints' LRFs and descriptors (`Features`)
+  match        correspondences, and the default matching's for the verdict (`Matches`)
+  hypothesize  pose hypotheses and their inlier counts, the evidence and its chance level
+  verify       the winner (refitted on its inliers) and its rivals (`Verified`)
+
+then `refine.refine_pose` (ICP) and `evidence.decide` (the verdict): `pipeline.register`. A
+stage checks nothing its inputs' types already guarantee: `prepare` builds each side's
+`CheckedCloud` once and every later stage reads it.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import time
+from typing import Any, NamedTuple, cast
+
+import numpy as np
+
+from lrf_jax.api import compute_frames
+from lrf_jax.checks import validate_radius, validate_seed, validate_viewpoint
+from lrf_jax.descriptors import compute_descriptors, select_correspondences
+from lrf_jax.frames import METHODS
+from lrf_jax.geometry.cloud import CheckedCloud, as_cloud
+from lrf_jax.geometry.keypoints import iss_keypoints
+from lrf_jax.geometry.normals import NORMAL_RADIUS_RATIO, estimate_normals
+from lrf_jax.geometry.resolution import (mesh_resolution, pair_resolution, thinning_voxel,
+                                         working_resolution)
+from lrf_jax.geometry.sampling import voxel_downsample
+from lrf_jax.registration import host
+from lrf_jax.registration.estimators import _centred, _finish, _uncentre
+from lrf_jax.registration.options import RegisterOptions, check_voxel_size
+from lrf_jax.registration.rivals import (REST_FACTOR, EvidenceSet, chance_inliers,
+                                         evidence_set, overlap_scores, pose_hypotheses,
+                                         rest_hypotheses, rest_rival, rival_inliers)
+from lrf_jax.search import engine
+
+
+class StageTimer:
+  """Wall seconds per named stage (`with timer("frames"): ...`)."""
+
+  def __init__(self):
+    self.seconds: dict[str, float] = {}
+    self._t0 = time.perf_counter()
+
+  @contextlib.contextmanager
+  def __call__(self, name: str):
+    t = time.perf_counter()
+    try:
+      yield
+    finally:
+      self.seconds[name] = self.seconds.get(name, 0.0) + time.perf_counter() - t
+
+  def total(self) -> float:
+    return time.perf_counter() - self._t0
+
+
+class Side(NamedTuple):
+  """One cloud as the stages work on it."""
+
+  cloud: CheckedCloud            # the working cloud (thinned where it was), as the frames take it
+  viewpoint: np.ndarray | None
+  keypoints: np.ndarray          # (k,) sorted int64 indices into cloud.points
+  normals: np.ndarray | None     # estimated towards the viewpoint when a method or SHOT needs them
+  input_index: np.ndarray | None  # each working point's input point (thinned clouds), or None
+
+  @property
+  def points(self) -> np.ndarray:
+    return self.cloud.points
+
+  @property
+  def faces(self) -> np.ndarray | None:
+    return self.cloud.faces
+
+
+class Prepared(NamedTuple):
+  """Stage "prepare": the checked inputs every later stage reads."""
+
+  sides: tuple[Side, Side]
+  mr: float
+  radius: float                # the support radius (cloud units), `validate_radius`'s range
+  rng: np.random.Generator
+  seed: int                    # `validate_seed`'s
+  voxel_size: float            # the clouds' thinning voxel (0: none)
+
+
+class Features(NamedTuple):
+  """Stage "describe": per side, (frames (k, 3, 3) float32, valid (k,) bool) and (descriptors
+  (k, D) float32, valid (k,) bool)."""
+
+  frames: tuple[tuple[np.ndarray, np.ndarray], tuple[np.ndarray, np.ndarray]]
+  descriptors: tuple[tuple[np.ndarray, np.ndarray], tuple[np.ndarray, np.ndarray]]
+
+
+class Matches(NamedTuple):
+  """Stage "match": correspondences as keypoint positions (source, target), best ratio first;
+  the default matching's (`evidence_*`), which the verdict counts on; and whether they are the
+  same (`own`: the default estimator and matching chose them)."""
+
+  source: np.ndarray
+  target: np.ndarray
+  evidence_source: np.ndarray
+  evidence_target: np.ndarray
+  own: bool
+
+
+class Hypotheses(NamedTuple):
+  """Stage "hypothesize": the correspondences' centred float32 coordinates (src, dst) and
+  centroids (cs, cd), the (H, 3, 3), (H, 3) poses in centred coordinates, their inlier counts,
+  the frames of the correspondences, the evidence set and its chance level."""
+
+  src: np.ndarray
+  dst: np.ndarray
+  cs: np.ndarray
+  cd: np.ndarray
+  rotations: np.ndarray
+  translations: np.ndarray
+  counts: np.ndarray
+  evidence: EvidenceSet
+  chance: int
+
+
+class Verified(NamedTuple):
+  """Stage "verify": the winner refitted on its inliers (`estimators.RansacResult`-like, from
+  `_finish`), the overlaps of the re-ranked hypotheses, the winner's evidence inliers and the
+  best rival's, and the target grid at the overlap distance (reused by ICP)."""
+
+  coarse: Any
+  fits: np.ndarray
+  evidence_mask: np.ndarray
+  rival: int
+  target_grid: engine.Grid
+  overlap_distance: float
+
+
+def prepare(source: Any, target: Any, opts: RegisterOptions) -> Prepared:
+  """Stage "prepare": read and check the clouds (each once, `CheckedCloud`), the working
+  resolution and thinning (`working_clouds`), keypoints and, where the method or descriptor
+  needs them, normals towards the viewpoints."""
+  clouds = [as_cloud(x, name) for x, name in ((source, "source"), (target, "target"))]
+  for name, cloud in zip(("source", "target"), clouds):
+    if len(cloud.points) < 10:
+      raise ValueError(f"{name}: expected a cloud of at least 10 points, got {len(cloud.points)}")
+  seed = validate_seed(opts.seed)
+  spec = METHODS[opts.method]
+  if spec.needs_mesh and any(c.faces is None for c in clouds):
+    raise ValueError(f"method {opts.method!r} needs triangle meshes on both sides")
+  views = [validate_viewpoint(vp, name) for name, vp in
+           (("source_viewpoint", opts.source_viewpoint), ("target_viewpoint", opts.target_viewpoint))]
+  mr, thinned, voxel = working_clouds(clouds[0], clouds[1], opts.mr, opts.voxel_size)
+  radius = opts.radius_mr * mr
+  rng = np.random.default_rng(seed)
+  sides = []
+  for (cloud, index), vp in zip(thinned, views):
+    pts = cloud.points
+    if cloud.normals is not None:  # normals are estimated at the support radius, not read
+      cloud = cloud.with_normals(None)
+    if opts.keypoints == "iss":
+      kp = iss_keypoints(pts, mr=mr, max_keypoints=int(opts.n_keypoints))
+    else:
+      kp = np.sort(rng.choice(len(pts), min(int(opts.n_keypoints), len(pts)), replace=False))
+    normals = None
+    if vp is not None and (spec.needs_normals or opts.descriptor == "shot"):
+      normals = estimate_normals(pts, NORMAL_RADIUS_RATIO * radius, cloud.faces, vp)
+      if not spec.uses_viewpoint:  # the frames read them too
+        cloud = cloud.with_normals(normals)
+    sides.append(Side(cloud, vp, np.asarray(kp, np.int64), normals, index))
+  # checked last, where `compute_frames` checked it: the same ValueError after the same steps
+  radius = validate_radius(radius)
+  return Prepared(cast("tuple[Side, Side]", tuple(sides)), float(mr), radius, rng, seed, voxel)
+
+
+def working_clouds(source: CheckedCloud, target: CheckedCloud, mr: Any, voxel_size: Any
+                   ) -> tuple[float, list[tuple[CheckedCloud, np.ndarray | None]], float]:
+  """The working resolution of a pair and the clouds `register` works on: (mr, [(cloud, index
+  into the input points or None) for source and target], the thinning voxel edge or 0).
+
+  `mr` None: `pair_resolution` of the two `working_resolution`s. `voxel_size` None: a cloud (not
+  a mesh) whose mean spacing is under half the working resolution (`thinning_voxel`) is thinned
+  by the voxel whose centroids come out spaced mr apart (a voxel of mr leaves them closer, about
+  0.7 mr: the voxel is scaled by mr over the spacing that gives, measured); 0: none is; a
+  positive number: both clouds are thinned at it (meshes included, which lose their faces).
+  """
+  check_voxel_size(voxel_size)
+  resolutions = [working_resolution(c.points, c.faces, name=n)
+                 for c, n in zip((source, target), ("source", "target"))]
+  if mr is None:
+    mr = pair_resolution(*resolutions)
+  out: list[tuple[CheckedCloud, np.ndarray | None]] = []
+  used = 0.0
+  for cloud, res in zip((source, target), resolutions):
+    pts = cloud.points
+    voxel = (float(voxel_size) if voxel_size is not None
+             else (None if cloud.faces is not None else thinning_voxel(res, float(mr))))
+    if voxel and voxel_size is None:  # the voxel whose centroids are spaced mr apart
+      spacing = mesh_resolution(np.asarray(voxel_downsample(pts, voxel)))[0]
+      voxel = voxel * float(mr) / spacing if spacing > 0 else voxel
+    if voxel:
+      thin, index = voxel_downsample(pts, voxel, return_index=True)
+      out.append((CheckedCloud(thin, name="thinned cloud"), index))
+      used = voxel
+    else:
+      out.append((cloud, None))
+  return float(mr), out, used
+
+
+def input_indices(prepared: Prepared, src: np.ndarray, dst: np.ndarray) -> np.ndarray:
+  """(C, 2) int64 correspondences as input point indices (a thinned side's working points map
+  to their voxel's first input point)."""
+  cols = [idx if side.input_index is None else side.input_index[idx]
+          for side, idx in zip(prepared.sides, (src, dst))]
+  return np.stack(cols, axis=1).astype(np.int64)
+
+
+def describe(prepared: Prepared, opts: RegisterOptions, params: Any, timer: StageTimer
+             ) -> Features:
+  """Stages "frames" and "descriptors": each side's LRFs (`opts.method`) and descriptors
+  (`opts.descriptor`) at its keypoints, as numpy arrays (no JAX imported where host kernels
+  compute them).
+
+  A viewpoint-aware method (lrf_net_plus) given neither a viewpoint nor a mesh takes its z sign
+  from each patch (`oriented_sign=False`) rather than from normals oriented over the whole
+  cloud: that orientation costs about a second per cloud and, measured on the registration
+  benchmark, does not register more pairs."""
+  spec = METHODS[opts.method]
+  frames, descs = [], []
+  with timer("frames"):
+    for side in prepared.sides:
+      options: dict[str, Any] = (
+          {"oriented_sign": False}
+          if spec.uses_viewpoint and side.viewpoint is None and side.faces is None else {})
+      out = compute_frames(side.cloud, side.keypoints, prepared.radius, opts.method,
+                           params=params, seed=prepared.seed, viewpoint=side.viewpoint,
+                           as_numpy=True, **options)
+      frames.append((np.asarray(out[0]), np.asarray(out[1])))
+  with timer("descriptors"):
+    for side, (f, v) in zip(prepared.sides, frames):
+      d, ok = compute_descriptors(side.points, side.keypoints, prepared.radius, f, v,
+                                  opts.descriptor, faces=side.faces, seed=prepared.seed,
+                                  normals=side.normals)
+      descs.append((np.asarray(d), np.asarray(ok)))
+  return Features(cast(Any, tuple(frames)), cast(Any, tuple(descs)))
+
+
+def _select(features: Features, estimator: str, n_correspondences: int, radius_mr: float,
+            mutual: bool = False, ratio: float | None = None) -> tuple[np.ndarray, np.ndarray]:
+  """Nearest descriptors (mutual ones only with `mutual`, those passing the ratio test with
+  `ratio`), the `n_correspondences` of smallest ratio d1/d2."""
+  (_, v_s), (_, v_t) = features.frames
+  (d_s, ok_s), (d_t, ok_t) = features.descriptors
+  need_frames = estimator != "3point"
+  qi, ri, _ = select_correspondences(d_s, d_t, ok_s & (v_s | ~need_frames),
+                                     ok_t & (v_t | ~need_frames), n=n_correspondences,
+                                     mutual=mutual, ratio=ratio)
+  if len(qi) < (1 if need_frames else 3):
+    raise ValueError(f"register: only {len(qi)} descriptor matches (valid frames: source "
+                     f"{int(v_s.sum())}, target {int(v_t.sum())}); the clouds are too small or "
+                     f"too sparse for r = {radius_mr} mr")
+  return qi, ri
+
+
+def match(features: Features, opts: RegisterOptions) -> Matches:
+  """Stage "matching": the correspondences of `opts` (`_select`) and the default matching's,
+  which the verdict counts on whatever option chose the hypotheses' (none when there is none
+  with two valid frames)."""
+  qi, ri = _select(features, opts.estimator, int(opts.n_correspondences), opts.radius_mr,
+                   opts.mutual, opts.ratio)
+  own = opts.estimator == "graph" and not opts.mutual and opts.ratio is None
+  if own:
+    return Matches(qi, ri, qi, ri, True)
+  try:
+    eqi, eri = _select(features, "graph", int(opts.n_correspondences), 0.0)
+  except ValueError:
+    eqi, eri = np.zeros(0, np.int64), np.zeros(0, np.int64)
+  return Matches(qi, ri, eqi, eri, False)
+
+
+def _keypoint_points(prepared: Prepared, features: Features, src: np.ndarray, dst: np.ndarray
+                     ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+  """The world points and frames of correspondences (keypoint positions src, dst)."""
+  (s, t), ((f_s, _), (f_t, _)) = prepared.sides, features.frames
+  return s.points[s.keypoints[src]], t.points[t.keypoints[dst]], f_s[src], f_t[dst]
+
+
+def hypothesize(prepared: Prepared, features: Features, matches: Matches,
+                opts: RegisterOptions) -> Hypotheses | None:
+  """Stage "hypotheses": poses from the correspondences (`pose_hypotheses` of `opts.estimator`),
+  their inlier counts at inlier_mr mr, and the evidence set (the default matching's, with the
+  compatibility graph's hypotheses) with its chance level. None: no hypothesis could be built."""
+  threshold = float(opts.inlier_mr * prepared.mr)
+  iterations, radius, seed = int(opts.iterations), prepared.radius, prepared.seed
+  p, q, f_p, f_q = _keypoint_points(prepared, features, matches.source, matches.target)
+  src, dst, cs, cd = _centred(p, q)
+  rs, ts = pose_hypotheses(src, dst, f_p, f_q, opts.estimator, iterations, radius, seed,
+                           threshold)
+  if len(rs) == 0:
+    return None
+  counts = host.count_inliers(rs, ts, src, dst, threshold)
+  if matches.own:
+    ev = EvidenceSet(src, dst, cs, cd, f_p, f_q, rs, ts)
+    chance = chance_inliers(src, dst, f_p, f_q, "graph", iterations, radius, seed, threshold)
+  else:
+    ev, chance = evidence_set(*_keypoint_points(prepared, features, matches.evidence_source,
+                                                matches.evidence_target),
+                              iterations, radius, seed, threshold)
+  return Hypotheses(src, dst, cs, cd, rs, ts, counts, ev, chance)
+
+
+def verify(prepared: Prepared, hyps: Hypotheses, opts: RegisterOptions, own: bool) -> Verified:
+  """Stage "verification": the winner (the most inliers for "graph"; the best overlap among the
+  `opts.verify` best-scoring hypotheses for "lrf" and "3point"), refitted by Kabsch on its
+  inliers, its inliers among the evidence correspondences and the best rival's (`_rivals`)."""
+  threshold = float(opts.inlier_mr * prepared.mr)
+  overlap_distance = opts.icp_mr * prepared.mr
+  target_grid = engine.Grid(prepared.sides[1].points, overlap_distance)
+  best, fits = _rerank(hyps, prepared.sides[0].points, target_grid, overlap_distance,
+                       0 if opts.estimator == "graph" else opts.verify, prepared.rng)
+  r, t, mask = host.select_and_refine(hyps.rotations[best], hyps.translations[best], hyps.src,
+                                      hyps.dst, threshold)
+  coarse = _finish(*_uncentre(r, t, hyps.cs, hyps.cd), mask, best, hyps.counts[best])
+  ev_mask, rival = _rivals(prepared, hyps, (r, t, mask), own, threshold, int(opts.iterations),
+                           target_grid, overlap_distance)
+  return Verified(coarse, fits, ev_mask, rival, target_grid, overlap_distance)
+
+
+def _rerank(hyps: Hypotheses, src_pts: np.ndarray, target_grid: engine.Grid, distance: float,
+            verify: int | None, rng: np.random.Generator) -> tuple[int, np.ndarray]:
+  """The hypothesis of best overlap among the `verify` best-scoring ones (None: all; 0: the
+  inlier count alone decides), and the overlaps."""
+  order = np.argsort(-hyps.counts, kind="stable")
+  best = int(order[0])
+  fits = np.zeros(0)
+  if verify is None or verify > 0:
+    cand = order if verify is None else order[:int(verify)]
+    sub = src_pts[np.sort(rng.choice(len(src_pts), min(1000, len(src_pts)), replace=False))]
+    r_c = np.asarray(hyps.rotations, np.float64)[cand]
+    t_c = (np.asarray(hyps.translations, np.float64)[cand] + hyps.cd
+           - np.einsum("hij,j->hi", r_c, hyps.cs))
+    fits = overlap_scores(r_c, t_c, sub, target_grid, distance)
+    best = int(cand[int(np.argmax(fits))])  # first maximum: the higher inlier count
+  return best, fits
+
+
+def _rivals(prepared: Prepared, hyps: Hypotheses, winner: tuple, own: bool, threshold: float,
+            iterations: int, target_grid: engine.Grid, overlap_distance: float
+            ) -> tuple[np.ndarray, int]:
+  """The winner (its centred (r, t) and inlier mask) in the evidence's centred coordinates, its
+  inliers there, and its rivals: the evidence's graph hypotheses, those of the correspondences
+  outside the winner's inliers (`rest_hypotheses`), and the estimator's own. Returns (evidence
+  inlier mask, rival inliers)."""
+  r, t, mask = winner
+  ev, rs, ts, cs, cd = hyps.evidence, hyps.rotations, hyps.translations, hyps.cs, hyps.cd
+  radius, seed = prepared.radius, prepared.seed
+  r_w, t_w = _uncentre(r, t, cs, cd)
+  t_e = t_w - ev.cd + r_w @ ev.cs
+  ev_mask = mask if own else host.inlier_mask(r_w, t_e, ev.src, ev.dst, threshold)
+  pool_r, pool_t = [ev.rs], [ev.ts]
+  if not own:
+    pool_r.append(np.asarray(rs, np.float64))
+    pool_t.append(np.asarray(ts, np.float64) + (cd - ev.cd)
+                  - np.einsum("hij,j->hi", np.asarray(rs, np.float64), cs - ev.cs))
+  rival = rival_inliers(np.concatenate(pool_r), np.concatenate(pool_t), ev.src, ev.dst,
+                        threshold, r_w, t_e, ev_mask, radius)
+  near = host.inlier_mask(r_w, t_e, ev.src, ev.dst, REST_FACTOR * threshold)
+  rest_r, rest_t = rest_hypotheses(ev, near, iterations, radius, seed, threshold)
+  rival = rest_rival(rest_r, rest_t, ev, threshold, r_w, t_e, near, radius, rival,
+                     prepared.sides[0].points, target_grid, overlap_distance, seed,
+                     int(np.sum(ev_mask)))
+  return ev_mask, rival

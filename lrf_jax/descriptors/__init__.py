@@ -210,7 +210,7 @@ def describe_patches(patches: Patches, frames: Any, valid: Any, descriptor: str,
 
 
 def compute_descriptors(
-    points: np.ndarray,
+    points: Any,
     keypoints: np.ndarray,
     radius: float,
     frames: Any,
@@ -232,7 +232,8 @@ def compute_descriptors(
   (`common.bucket_k`), so a handful of compiled shapes serve every cloud.
 
   Args:
-    points: (n, 3) cloud.
+    points: (n, 3) cloud, or a `CheckedCloud` (its points are not checked again; faces and
+      normals are given separately).
     keypoints: (m,) integer indices.
     radius: support radius r (cloud units; the paper: 15 mr, as the LRF).
     frames: (m, 3, 3) frames of the keypoints, rows x, y, z.
@@ -257,7 +258,8 @@ def compute_descriptors(
     ValueError: a bad cloud, keypoints, radius, frames or descriptor name.
   """
   _spec(descriptor)  # a ValueError for an unknown descriptor, before the other arguments
-  points = validate_cloud(points)
+  from lrf_jax.geometry.cloud import CheckedCloud
+  points = points.points if isinstance(points, CheckedCloud) else validate_cloud(points)
   keypoints = validate_keypoints(keypoints, points.shape[0])
   radius = validate_radius(radius)
   frames, valid = validate_frames(frames, valid, keypoints.shape[0])

@@ -55,12 +55,14 @@ class CheckedCloud:
   def __init__(self, x: Any, faces: Any = None, normals: Any = None, *,
                name: str = "points") -> None:
     own_faces = own_normals = None
-    if isinstance(x, (str, os.PathLike)):
+    from_file = isinstance(x, (str, os.PathLike))
+    if from_file:  # the reader checked the coordinates, naming the file and the field
       x = read_cloud(x)
     if isinstance(x, CheckedCloud):  # checked already: its arrays are kept as they are
       pts, own_faces, own_normals = x.points, x.faces, x.normals
     elif isinstance(x, Cloud):
-      pts, own_faces, own_normals = validate_cloud(x.points, name), x.faces, x.normals
+      pts = x.points if from_file else validate_cloud(x.points, name)
+      own_faces, own_normals = x.faces, x.normals
     elif hasattr(x, "vertices") and hasattr(x, "triangles"):  # a mesh object (Open3D TriangleMesh)
       pts = validate_cloud(x.vertices, name)
       tri = np.asarray(x.triangles)

@@ -238,7 +238,7 @@ def describe(prepared: Prepared, opts: RegisterOptions, params: Any, timer: Stag
       frames.append((np.asarray(out[0]), np.asarray(out[1])))
   with timer("descriptors"):
     for side, (f, v) in zip(prepared.sides, frames):
-      d, ok = compute_descriptors(side.points, side.keypoints, prepared.radius, f, v,
+      d, ok = compute_descriptors(side.cloud, side.keypoints, prepared.radius, f, v,
                                   opts.descriptor, faces=side.faces, seed=prepared.seed,
                                   normals=side.normals)
       descs.append((np.asarray(d), np.asarray(ok)))

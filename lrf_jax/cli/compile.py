@@ -24,6 +24,7 @@ import time
 from collections.abc import Callable
 
 from lrf_jax.cli.help import DefaultsHelpFormatter
+from lrf_jax.defaults import RADIUS_MR
 
 
 def _demo_pair():
@@ -48,7 +49,7 @@ def _frames(method: str) -> Callable[[], None]:
     from lrf_jax import datasets
     points, faces = datasets.make_demo_mesh("blob", seed=0)
     spec = lrf_jax.METHODS[method]
-    lrf_jax.compute_frames(points, np.arange(0, len(points), 10), radius_mr=15, method=method,
+    lrf_jax.compute_frames(points, np.arange(0, len(points), 10), radius_mr=RADIUS_MR, method=method,
                            faces=faces if spec.needs_mesh else None)
   return run
 
@@ -62,7 +63,7 @@ def _descriptor(name: str) -> Callable[[], None]:
     from lrf_jax.descriptors import compute_descriptors
     points, faces = datasets.make_demo_mesh("blob", seed=0)
     kp = np.arange(0, len(points), 10)
-    radius = 15 * lrf_jax.mesh_resolution(points, faces)
+    radius = RADIUS_MR * lrf_jax.mesh_resolution(points, faces)
     frames = lrf_jax.compute_frames(points, kp, radius)
     compute_descriptors(points, kp, radius, frames[0], frames[1], name, faces=faces)
   return run

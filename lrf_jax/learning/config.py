@@ -9,6 +9,8 @@ import math
 from pathlib import Path
 from typing import Any
 
+from lrf_jax.defaults import RADIUS_MR
+
 
 @dataclasses.dataclass(frozen=True)
 class TrainConfig:
@@ -63,7 +65,7 @@ class TrainConfig:
   data_root: str | None = None
   num_train_keypoints: int = 20_000
   patch_k: int = 256
-  radius_mr: float = 15.0
+  radius_mr: float = RADIUS_MR
   batch_size: int = 512
   epochs: int = 20
   learning_rate: float = 1e-4

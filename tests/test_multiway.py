@@ -336,8 +336,9 @@ def test_an_interrupted_rerun_is_cleaned_up_by_the_next(tmp_path, monkeypatch):
 
   def broken(*a, **k):
     raise KeyboardInterrupt
+  from lrf_jax.registration import multiway_outputs
   with monkeypatch.context() as m:
-    m.setattr(multiway, "write_merged_ply", broken)
+    m.setattr(multiway_outputs, "write_merged_ply", broken)
     with pytest.raises(KeyboardInterrupt):
       multiway.write_outputs(_result(["c", "d"], [True, True]), _clouds(2), out, figures=False)
   listed = json.loads((out / "manifest.json").read_text())["files"]

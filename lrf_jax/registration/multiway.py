@@ -21,8 +21,12 @@ Pipeline (every length in mr, the median over the scans of each one's mesh resol
    `robust_mr` over SE(3), then every edge whose RMS point residual exceeds `reject_mr` is
    rejected and the rest re-solved); weak edges join only where the graph corroborates them:
    inside a component, when they agree with it; between two components, when at least two of
-   them agree on one placement. A wrong loop closure the verdict let through contradicts the
-   cycles it closes and is rejected; a single weak edge never joins a scan.
+   them agree on one placement through independent routes: distinct scans at both ends, each
+   side's ends placed with confidence (linked by trusted edges), so that every pair closes a
+   cycle with two trusted legs. A wrong loop closure the verdict let through contradicts the
+   cycles it closes and is rejected; a single weak edge, or weak edges that share a scan (two
+   unverified edges confirming each other), never join a scan. A scan placed only through weak
+   edges is flagged (`MultiwayResult.placed_not_sure`, edges.tsv's `placement`).
 4. the model is the largest connected component of accepted edges (ties: the one with the
    earliest scan); its earliest scan is the reference frame (the first scan unless the first
    scan is left out). Scans outside it are left out: they get no pose (NaN) and are listed in
@@ -50,18 +54,18 @@ from lrf_jax.registration import pose_graph
 from lrf_jax.registration.icp_host import estimate_target_normals
 from lrf_jax.geometry.cloud import as_cloud
 from lrf_jax.io.cloud import Cloud
-from lrf_jax.geometry.resolution import mesh_resolution
+from lrf_jax.geometry.resolution import working_resolution
 from lrf_jax.checks import validate_viewpoint
 # re-exported: the outputs' names were this module's before they moved
 from lrf_jax.registration.multiway_outputs import (  # noqa: F401
     EDGE_COLUMNS, FIXED_OUTPUTS, MANIFEST, MANIFEST_KIND, MAX_VOXELS_PER_AXIS, NAME_BYTES,
-    SUFFIXES, check_names, check_out_dir,
-    check_voxel, edges_table, merged_cloud, output_paths, scan_names, write_merged_ply,
-    write_outputs)
+    POSES_FILE, SUFFIXES, check_names, check_out_dir, check_voxel, edges_table, kitti_poses,
+    merged_cloud, output_paths, scan_names, write_merged_ply, write_outputs)
 
-__all__ = ["MANIFEST", "MultiwayEdge", "MultiwayResult", "candidate_pairs", "check_names",
-           "check_out_dir", "edges_table", "load_scans", "merged_cloud", "output_paths",
-           "refine_poses", "register_all", "scan_names", "shape_signature", "write_outputs"]
+__all__ = ["MANIFEST", "POSES_FILE", "MultiwayEdge", "MultiwayResult", "candidate_pairs",
+           "check_names", "check_out_dir", "edges_table", "kitti_poses", "load_scans",
+           "merged_cloud", "output_paths", "refine_poses", "register_all", "scan_names",
+           "shape_signature", "write_outputs"]
 
 # Scans up to this many: every pair is a candidate.
 ALL_PAIRS_MAX = 12
@@ -122,6 +126,9 @@ class MultiwayResult:
     mr: the mesh resolution used as the unit (cloud units).
     seconds: wall time of the call.
     timings: seconds per stage: "load", "pairwise", "graph", "refine".
+    confident: (n,) bool, the scans in the model linked to the reference by accepted "success"
+      edges alone; a scan in the model whose placement rests on a "not sure" edge is False
+      (`placed_not_sure`). None: every scan in the model counts as confident.
   """
 
   names: tuple[str, ...]
@@ -132,11 +139,20 @@ class MultiwayResult:
   mr: float
   seconds: float
   timings: dict = dataclasses.field(default_factory=dict)
+  confident: np.ndarray | None = None
 
   @property
   def left_out(self) -> list[str]:
     """Names of the scans not in the model."""
     return [n for n, m in zip(self.names, self.in_model) if not m]
+
+  @property
+  def placed_not_sure(self) -> list[str]:
+    """Names of the scans in the model placed only through "not sure" edges (their link to the
+    reference rests on at least one): check them."""
+    if self.confident is None:
+      return []
+    return [n for n, m, c in zip(self.names, self.in_model, self.confident) if m and not c]
 
 
 def shape_signature(points: np.ndarray, *, max_distance: float, bins: int = 32,
@@ -391,7 +407,7 @@ def register_all(scans: Sequence[Any], *, names: Sequence[str] | None = None,
                  neighbors: int = 1, loop_candidates: int = 3, reject_mr: float = 5.0,
                  robust_mr: float = 1.0, refine: bool = True, refine_iterations: int = 10,
                  icp_mr: float = 3.0, viewpoints: Any = None, seed: int = 0,
-                 progress: bool = False,
+                 progress: bool = False, voxel_size: float | None = None,
                  pairwise: Callable[..., Any] | None = None, **register_kw: Any
                  ) -> MultiwayResult:
   """Register many scans of one object or scene into one frame (module docstring).
@@ -401,7 +417,8 @@ def register_all(scans: Sequence[Any], *, names: Sequence[str] | None = None,
       objects with `.points`, each in its own frame.
     names: n distinct names for the result and the outputs, each usable as a file name
       (`check_names`; default `scan_names(scans)`).
-    mr: mesh resolution in the clouds' units (None: the median of the scans' own).
+    mr: mesh resolution in the clouds' units (None: the median of the scans' working
+      resolutions, `median_mr`).
     all_pairs_max: up to this many scans every pair is registered (`candidate_pairs`).
     neighbors: otherwise, pairs with this many next scans in the given order...
     loop_candidates: ...plus this many loop-closure candidates per scan (D2 signature).
@@ -415,6 +432,10 @@ def register_all(scans: Sequence[Any], *, names: Sequence[str] | None = None,
       or n of them (None entries allowed); passed to `register`.
     seed: seed of the pairwise registrations, the samples and the pose graph's start.
     progress: show a tqdm progress bar over the pairs (stderr).
+    voxel_size: passed to every pairwise `register`: None thins a scan far denser than mr
+      as `register` chooses, 0 keeps every point, a positive edge (cloud units) thins every
+      scan by voxel averaging at it. The pose graph, the joint ICP and the outputs use the
+      scans' own points.
     pairwise: the pairwise registration (default `lrf_jax.register`): called as
       `pairwise(source_cloud, target_cloud, mr=, seed=, source_viewpoint=, target_viewpoint=,
       **register_kw)`, returning an object with `transform`, `success`, `reason`,
@@ -449,6 +470,8 @@ def register_all(scans: Sequence[Any], *, names: Sequence[str] | None = None,
   check_counts(all_pairs_max=all_pairs_max, neighbors=neighbors,
                loop_candidates=loop_candidates, refine_iterations=refine_iterations)
   views = _viewpoints(viewpoints, len(scans))
+  if voxel_size is not None:  # None is `register`'s default: a custom `pairwise` never sees it
+    register_kw = {**register_kw, "voxel_size": voxel_size}
   if pairwise is None:  # every option of `register`, before any pair is registered
     from lrf_jax.registration.pipeline import check_register_options
     check_register_options(mr=mr, seed=seed, icp_mr=icp_mr,
@@ -472,6 +495,9 @@ def register_all(scans: Sequence[Any], *, names: Sequence[str] | None = None,
                                               robust_mr=robust_mr, seed=seed)
   reference = _model(component)
   in_model = component == reference
+  sure = pose_graph.components(n, [(e.i, e.j) for e, a in zip(edges, accepted)
+                                   if a and e.verdict == "success"])
+  confident = in_model & (sure == sure[reference])
   timings["graph"] = time.perf_counter() - t
   t = time.perf_counter()
   kept = [(e.i, e.j) for e, a in zip(edges, accepted) if a and in_model[e.i]]
@@ -490,12 +516,14 @@ def register_all(scans: Sequence[Any], *, names: Sequence[str] | None = None,
     final.append(dataclasses.replace(e, accepted=bool(a), residual_mr=res))
   return MultiwayResult(names=tuple(names), poses=poses, in_model=in_model,
                         reference=reference, edges=tuple(final), mr=float(mr),
-                        seconds=time.perf_counter() - t0, timings=timings)
+                        seconds=time.perf_counter() - t0, timings=timings,
+                        confident=confident)
 
 
 def median_mr(clouds: Sequence[Cloud], names: Sequence[str]) -> float:
-  """`register_all`'s mr when none is given: the median of the scans' own (`mesh_resolution`)."""
-  return float(np.median([mesh_resolution(c.points, c.faces, name=f"scan {name}")[0]
+  """`register_all`'s mr when none is given: the median of the scans' working resolutions
+  (`working_resolution`: a clean scan's mean spacing, a raw sweep's area-weighted one)."""
+  return float(np.median([working_resolution(c.points, c.faces, name=f"scan {name}").mr
                           for name, c in zip(names, clouds)]))
 
 

@@ -16,13 +16,16 @@ import numpy as np
 if TYPE_CHECKING:
   from lrf_jax.registration.multiway import MultiwayResult
 
-__all__ = ["EDGE_COLUMNS", "MANIFEST", "check_names", "check_out_dir", "check_voxel",
-           "edges_table", "merged_cloud", "output_paths", "scan_names", "write_merged_ply",
-           "write_outputs"]
+__all__ = ["EDGE_COLUMNS", "MANIFEST", "POSES_FILE", "check_names", "check_out_dir",
+           "check_voxel", "edges_table", "kitti_poses", "merged_cloud", "output_paths",
+           "scan_names", "write_merged_ply", "write_outputs"]
 
 # merged_cloud's voxel keys are float64 cell indices cast to int64: exact below 2**53.
 MAX_VOXELS_PER_AXIS = float(2**53)
-SUFFIXES = (".gz", ".ply", ".pcd", ".xyz", ".txt", ".npy")
+SUFFIXES = (".gz", ".ply", ".pcd", ".xyz", ".txt", ".pts", ".asc", ".npy", ".bin")
+# The trajectory in KITTI's pose-file layout; no scan may be named so that its pose file is it.
+POSES_FILE = "poses.txt"
+RESERVED_NAMES = ("poses",)
 
 
 def _apply(t: np.ndarray, p: np.ndarray) -> np.ndarray:
@@ -60,11 +63,12 @@ def scan_names(scans: Sequence[Any]) -> list[str]:
   name), else "scan<k>". Each natural name is kept by its first scan; a later scan with the
   same name (equal ignoring case: one file on a case-insensitive file system) gets "_2", "_3",
   ..., the first of them that is no scan's natural name and not given yet: `d/a.ply d/a_2.ply
-  e/a.ply` are a, a_2, a_3."""
+  e/a.ply` are a, a_2, a_3. A scan named as a reserved output ("poses": its pose file would be
+  poses.txt, the trajectory) gets "poses_2" and so on."""
   natural = [_natural_name(s, k) for k, s in enumerate(scans)]
-  taken = {n.casefold() for n in natural}
+  taken = {n.casefold() for n in natural} | set(RESERVED_NAMES)
   out: list[str] = []
-  given: set[str] = set()
+  given: set[str] = set(RESERVED_NAMES)
   for name in natural:
     if name.casefold() not in given:
       out.append(name)
@@ -85,8 +89,8 @@ def check_names(names: Sequence[Any], argument: str = "names") -> list[str]:
     ValueError: naming `argument`: a name that is not a non-empty string, is "." or "..",
       holds a path separator or a control character (a tab or a newline would also break
       edges.tsv), is longer than NAME_BYTES bytes in UTF-8 (its file name would exceed 255
-      bytes), or equals another one (ignoring case: one file on a case-insensitive file
-      system).
+      bytes), is "poses" (ignoring case: its pose file would be the trajectory poses.txt), or
+      equals another one (ignoring case: one file on a case-insensitive file system).
   """
   out = list(names)
   seen: dict[str, int] = {}
@@ -101,6 +105,9 @@ def check_names(names: Sequence[Any], argument: str = "names") -> list[str]:
     elif len(name.encode("utf-8", "surrogateescape")) > NAME_BYTES:
       problem = (f"is {len(name.encode('utf-8', 'surrogateescape'))} bytes long; expected at "
                  f"most {NAME_BYTES} (its file <name>.txt may be at most 255 bytes)")
+    elif name.casefold() in RESERVED_NAMES:
+      problem = (f"is reserved (its pose file would be {POSES_FILE}, the trajectory of every "
+                 "scan); expected another name")
     elif name.casefold() in seen:
       problem = (f"is the name of scan {seen[name.casefold()]} too (ignoring case); expected "
                  "distinct names, one pose file each")
@@ -171,22 +178,54 @@ def merged_cloud(clouds: Sequence[np.ndarray], result: MultiwayResult, *,
   return mean, np.argmax(votes.reshape(len(counts), n_scans), axis=1).astype(np.int64)
 
 
+def kitti_poses(poses: np.ndarray) -> str:
+  """Poses as KITTI's pose files hold them: line k is pose k's top 3x4 block [R|t], 12 numbers
+  row-major (9 significant digits), so that a point p of scan k is R p + t in the reference
+  frame; a pose that is not finite (a scan left out) is a line of 12 `nan`.
+
+  Args:
+    poses: (n, 4, 4) poses (`MultiwayResult.poses`).
+
+  Returns:
+    n lines, each ending in a newline.
+  """
+  lines = []
+  for pose in np.asarray(poses, np.float64):
+    row = pose[:3, :4].ravel() if np.isfinite(pose).all() else np.full(12, np.nan)
+    lines.append(" ".join(f"{v:.9g}" for v in row))
+  return "".join(line + "\n" for line in lines)
+
+
 EDGE_COLUMNS = ("source", "target", "verdict", "reason_code", "inliers", "overlap", "residual_mr",
-                "graph", "reason")
+                "graph", "placement", "reason")
+
+
+def placement(result: MultiwayResult, i: int, j: int) -> str:
+  """How an edge's two scans are placed: "-" when one is not in the model; "confident" when
+  both are linked to the reference by "success" edges alone; else which of them is placed only
+  through "not sure" edges: "source_not_sure", "target_not_sure" or "both_not_sure"."""
+  if not (result.in_model[i] and result.in_model[j]):
+    return "-"
+  sure = (np.ones(len(result.names), bool) if result.confident is None
+          else np.asarray(result.confident, bool))
+  return {(True, True): "confident", (False, True): "source_not_sure",
+          (True, False): "target_not_sure", (False, False): "both_not_sure"}[
+              (bool(sure[i]), bool(sure[j]))]
 
 
 def edges_table(result: MultiwayResult) -> str:
   """The edges as tab-separated text, a header line first (`EDGE_COLUMNS`): the pair (source
   moved onto target), the pairwise verdict and its `reason_code` ("-" when none), inliers,
   overlap, the residual under the final
-  poses in mr ("-" when a scan is not in the model) and "accepted" or "rejected"."""
+  poses in mr ("-" when a scan is not in the model), "accepted" or "rejected", the placement of
+  its two scans (`placement`) and the pairwise reason."""
   lines = ["\t".join(EDGE_COLUMNS)]
   for e in result.edges:
     res = f"{e.residual_mr:.3f}" if np.isfinite(e.residual_mr) else "-"
     lines.append("\t".join([result.names[e.i], result.names[e.j], e.verdict,
                             e.reason_code or "-", str(e.n_inliers),
                             f"{e.overlap:.3f}", res, "accepted" if e.accepted else "rejected",
-                            " ".join(e.reason.split())]))
+                            placement(result, e.i, e.j), " ".join(e.reason.split())]))
   return "\n".join(lines) + "\n"
 
 
@@ -215,12 +254,12 @@ def write_merged_ply(path: str | os.PathLike, points: np.ndarray, scan: np.ndarr
 # The list of the files a run wrote into its folder (`write_outputs`), and what it says it is.
 MANIFEST = "manifest.json"
 MANIFEST_KIND = "lrf_jax multiway outputs"
-FIXED_OUTPUTS = ("merged.ply", "edges.tsv", "merged.png", "graph.png")
+FIXED_OUTPUTS = (POSES_FILE, "merged.ply", "edges.tsv", "merged.png", "graph.png")
 
 
 def output_paths(names: Sequence[str], out_dir: str | os.PathLike) -> dict[str, Path]:
-  """Every file `write_outputs` may write, keyed by role: "<name>.txt" per scan, "merged.ply",
-  "edges.tsv", "merged.png", "graph.png" and the manifest ("manifest.json").
+  """Every file `write_outputs` may write, keyed by role: "<name>.txt" per scan, "poses.txt",
+  "merged.ply", "edges.tsv", "merged.png", "graph.png" and the manifest ("manifest.json").
 
   Raises:
     ValueError: a name `check_names` refuses (the message names "names").
@@ -297,6 +336,9 @@ def write_outputs(result: MultiwayResult, clouds: Sequence[np.ndarray],
 
   `<name>.txt`: the (4, 4) pose mapping that scan into the reference scan's frame (rows, 9
   significant digits; `numpy.loadtxt` reads it), for the scans in the model only;
+  `poses.txt`: the trajectory in KITTI's pose-file layout (`kitti_poses`): line k holds scan
+  k's 3x4 pose [R|t] in the reference scan's frame, 12 numbers row-major, 12 `nan` for a scan
+  left out;
   `merged.ply`: the merged cloud (`merged_cloud`, `voxel` in cloud units), coloured by scan;
   `edges.tsv`: `edges_table`; with `figures`, `merged.png` and `graph.png`
   (`lrf_jax.registration.multiway_figures`); `manifest.json`: the list of these files.
@@ -336,7 +378,7 @@ def write_outputs(result: MultiwayResult, clouds: Sequence[np.ndarray],
     from lrf_jax.extras import require
     require("plot", "register_all's figures (figures=False skips them)")
   wanted = [paths[f"pose:{n}"] for n, m in zip(result.names, result.in_model) if m]
-  wanted += [paths["merged.ply"], paths["edges.tsv"]]
+  wanted += [paths[POSES_FILE], paths["merged.ply"], paths["edges.tsv"]]
   if figures:
     wanted += [paths["merged.png"], paths["graph.png"]]
   for path in wanted + [paths["manifest"]]:
@@ -369,6 +411,7 @@ def write_outputs(result: MultiwayResult, clouds: Sequence[np.ndarray],
     if result.in_model[k]:
       text = "\n".join(" ".join(f"{v:.9g}" for v in row) for row in result.poses[k]) + "\n"
       written.append(write_text(paths[f"pose:{name}"], text))
+  written.append(write_text(paths[POSES_FILE], kitti_poses(result.poses)))
   written.append(write_merged_ply(paths["merged.ply"], points, scan, len(result.names)))
   written.append(write_text(paths["edges.tsv"], edges_table(result)))
   if figures:

@@ -123,3 +123,19 @@ def test_a_group_joined_by_not_sure_edges_is_flagged_in_edges_tsv():
   table = {(r[0], r[1]): r[col] for r in rows[1:]}
   assert table[("a", "b")] == "confident" and table[("c", "d")] == "both_not_sure"
   assert table[("a", "c")] == "target_not_sure"
+
+
+def test_cli_names_the_scans_placed_only_through_not_sure_edges(tmp_path, monkeypatch, capsys):
+  from lrf_jax.cli.register import main
+  paths = []
+  for k in range(3):
+    paths.append(str(tmp_path / f"s{k}.npy"))
+    np.save(paths[-1], np.random.default_rng(k).normal(size=(30, 3)))
+
+  def run(clouds, *, names, **kw):
+    return multiway.MultiwayResult(names=tuple(names), poses=np.tile(np.eye(4), (3, 1, 1)),
+                                   in_model=np.ones(3, bool), reference=0, edges=(), mr=1.0,
+                                   seconds=0.0, confident=np.array([True, False, True]))
+  monkeypatch.setattr(multiway, "register_all", run)
+  assert main([*paths, "--quiet"]) == 0
+  assert 'edges (check them; edges.tsv\'s placement): s1\n' in capsys.readouterr().err

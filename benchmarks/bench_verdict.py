@@ -9,6 +9,12 @@ table with the verdict's `reason_code`.
 With `--options` the must-not pairs run again under every option that chooses the hypotheses
 differently (estimator "lrf" and "3point", ratio=0.9, mutual, ISS keypoints): the verdict is one
 for all, so none of them may claim success either.
+
+With `--multiway` (issue 41), `register_all` on sets of scans that belong together with one or
+two foreign scans mixed in (10 bunny scans + UWA3M views in metres or a 3DMatch fragment scaled
+to the bunny's size; the 3DMatch hotel pair + the home pair, a T-rex view and a bunny scan scaled
+to a room's size), seeds 0-2: a table of the foreign scans placed (must be none), the belonging
+scans placed and those placed only through "not sure" edges. Slow: 12 scans are 66 pairs.
 """
 
 import sys
@@ -89,3 +95,47 @@ if "--options" in sys.argv[1:]:
   for options in OPTIONS:
     for name, a, b, kw in failures():
       run(name, a, b, "failure", **kw, **options)
+
+
+def multiway_sets():
+  """(name, scans, names, belonging count) of the mixed sets of `--multiway`."""
+  import gzip
+
+  from lrf_jax import io
+  root = datasets.find_data_root(None)
+
+  def uwa(name, scale):
+    with gzip.open(root / "uwa_3d_modeling_views" / f"{name}.txt.gz") as f:
+      return np.loadtxt(f) * scale
+  bunny = ["bun000", "bun045", "bun090", "bun180", "bun270", "bun315", "chin", "ear_back",
+           "top2", "top3"]
+  scans = [io.read_cloud(root / "stanford_bunny_scans" / f"{n}.ply").points for n in bunny]
+  hotel = io.read_cloud(root / "threedmatch_scenes" / "hotel3_8.ply").points
+  foreign = {"trex1": uwa("T-rex_view001", 1e-3), "chef3": uwa("chef_view003", 1e-3),
+             "hotel3_8_x0.06": hotel * 0.06}
+  for extra in (["trex1"], ["chef3"], ["hotel3_8_x0.06"], ["trex1", "chef3"]):
+    yield ("bunny + " + ", ".join(extra), scans + [foreign[f] for f in extra], bunny + extra,
+           len(bunny))
+  rooms = ["hotel3_8", "hotel3_15"]
+  frags = [io.read_cloud(root / "threedmatch_scenes" / f"{n}.ply").points for n in rooms]
+  bun = io.read_cloud(root / "stanford_bunny_scans" / "bun090.ply").points * 15
+  home = [io.read_cloud(root / "threedmatch_scenes" / f"{n}.ply").points
+          for n in ("home_at_38", "home_at_41")]
+  for label, extra, names in (("T-rex view x0.01", [uwa("T-rex_view004", 1e-2)], ["trex4"]),
+                              ("bun090 x15, home_at_38", [bun, home[0]], ["bun090_x15",
+                                                                          "home_at_38"]),
+                              ("home pair", home, ["home_at_38", "home_at_41"])):
+    yield f"hotel pair + {label}", frags + extra, rooms + names, len(rooms)
+
+
+if "--multiway" in sys.argv[1:]:
+  from lrf_jax.registration.multiway import register_all
+  print("\n| set | seed | foreign placed | belonging placed | placed only through not sure |")
+  print("|---|---:|---|---:|---|")
+  for name, scans, names, n_belong in multiway_sets():
+    for seed in (0, 1, 2):
+      res = register_all(scans, names=names, seed=seed, refine=False)
+      placed = [n for n, m in zip(names, res.in_model) if m]
+      intruders = ", ".join(n for n in placed if n not in names[:n_belong]) or "none"
+      print(f"| {name} | {seed} | {intruders} | {sum(n in placed for n in names[:n_belong])}/"
+            f"{n_belong} | {', '.join(res.placed_not_sure) or '-'} |", flush=True)

@@ -312,19 +312,19 @@ def test_a_rerun_leaves_only_its_own_files(tmp_path):
   out = tmp_path / "model"
   written = multiway.write_outputs(_result(["a", "b", "c"], [True] * 3), _clouds(3), out)
   assert _files(out) == ["a.txt", "b.txt", "c.txt", "edges.tsv", "graph.png", "manifest.json",
-                         "merged.ply", "merged.png"]
+                         "merged.ply", "merged.png", "poses.txt"]
   manifest = json.loads((out / "manifest.json").read_text())
   assert sorted(manifest["files"]) == sorted(p.name for p in written)
   (out / "notes.md").write_text("mine")  # the user's, in an earlier run's folder: kept
   multiway.write_outputs(_result(["a", "b", "c"], [True, False, True]), _clouds(3), out,
                          figures=False)
   assert _files(out) == ["a.txt", "c.txt", "edges.tsv", "manifest.json", "merged.ply",
-                         "notes.md"]
+                         "notes.md", "poses.txt"]
   assert sorted(json.loads((out / "manifest.json").read_text())["files"]) == [
-      "a.txt", "c.txt", "edges.tsv", "merged.ply"]
+      "a.txt", "c.txt", "edges.tsv", "merged.ply", "poses.txt"]
   multiway.write_outputs(_result(["x", "y"], [True, True]), _clouds(2), out, figures=False)
-  assert _files(out) == ["edges.tsv", "manifest.json", "merged.ply", "notes.md", "x.txt",
-                         "y.txt"]
+  assert _files(out) == ["edges.tsv", "manifest.json", "merged.ply", "notes.md", "poses.txt",
+                         "x.txt", "y.txt"]
   assert (out / "notes.md").read_text() == "mine"
 
 
@@ -336,14 +336,16 @@ def test_an_interrupted_rerun_is_cleaned_up_by_the_next(tmp_path, monkeypatch):
 
   def broken(*a, **k):
     raise KeyboardInterrupt
+  from lrf_jax.registration import multiway_outputs
   with monkeypatch.context() as m:
-    m.setattr(multiway, "write_merged_ply", broken)
+    m.setattr(multiway_outputs, "write_merged_ply", broken)
     with pytest.raises(KeyboardInterrupt):
       multiway.write_outputs(_result(["c", "d"], [True, True]), _clouds(2), out, figures=False)
   listed = json.loads((out / "manifest.json").read_text())["files"]
   assert set(_files(out)) - {"manifest.json"} <= set(listed)
   multiway.write_outputs(_result(["e", "f"], [True, True]), _clouds(2), out, figures=False)
-  assert _files(out) == ["e.txt", "edges.tsv", "f.txt", "manifest.json", "merged.ply"]
+  assert _files(out) == ["e.txt", "edges.tsv", "f.txt", "manifest.json", "merged.ply",
+                         "poses.txt"]
 
 
 def test_a_folder_no_run_wrote_is_refused(tmp_path):
@@ -403,10 +405,11 @@ def test_cli_names_collide_no_more_and_reruns_are_clean(tmp_path, capsys, monkey
   _fake_register_all(monkeypatch)
   assert main([*scans, "--out-dir", str(out), "--quiet", "--no-figures"]) == 0
   assert _files(out) == ["a.txt", "a_2.txt", "a_3.txt", "edges.tsv", "manifest.json",
-                         "merged.ply"]
+                         "merged.ply", "poses.txt"]
   _fake_register_all(monkeypatch, [True, False, True])  # scan a_2 left out this time
   assert main([*scans, "--out-dir", str(out), "--quiet", "--no-figures"]) == 3
-  assert _files(out) == ["a.txt", "a_3.txt", "edges.tsv", "manifest.json", "merged.ply"]
+  assert _files(out) == ["a.txt", "a_3.txt", "edges.tsv", "manifest.json", "merged.ply",
+                         "poses.txt"]
   capsys.readouterr()
   other = tmp_path / "other"
   other.mkdir()

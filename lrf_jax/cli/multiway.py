@@ -4,9 +4,12 @@
 (`wanted`). It runs `lrf_jax.registration.multiway.register_all` and writes, into D (created if missing,
 every file atomically): `<stem>.txt` per scan in the model (the 4x4 that maps that scan into
 the reference scan's frame: the first scan's, unless the first scan is left out, then the
-first scan that is in the model), `merged.ply` (the merged cloud coloured by scan, `--voxel`
-mr voxels if given), `edges.tsv` (pair, verdict, inliers, overlap, residual, accepted or
-rejected; also printed), the figures `merged.png` and `graph.png`, and `manifest.json`, the list
+first scan that is in the model), `poses.txt` (every scan's pose in KITTI's pose-file layout:
+line k holds scan k's 3x4 [R|t] in that frame, 12 numbers row-major, 12 `nan` for a scan left
+out: the trajectory of a sweep sequence), `merged.ply` (the merged cloud coloured by scan,
+`--voxel` mr voxels if given), `edges.tsv` (pair, verdict, inliers, overlap, residual, accepted or
+rejected, placement: whether a scan is placed only through "not sure" edges, also said on
+stderr; the table is also printed), the figures `merged.png` and `graph.png`, and `manifest.json`, the list
 of these files. D must be new, empty or an earlier run's output folder (it holds that run's
 manifest): the files the earlier run listed are replaced or removed, so that D holds this run's
 files only (a folder of other files is refused). Without `--out-dir` the edge table and the
@@ -40,8 +43,8 @@ def build_parser() -> argparse.ArgumentParser:
   ap.add_argument("scans", nargs="+", help="the scans (PLY, PCD, XYZ/TXT(.gz), NPY), each in "
                                            "its own frame; the first one's frame is the model's")
   ap.add_argument("--out-dir", default=None, metavar="D",
-                  help="write D/<stem>.txt, D/merged.ply, D/edges.tsv, D/merged.png, "
-                       "D/graph.png")
+                  help="write D/<stem>.txt, D/poses.txt (KITTI layout), D/merged.ply, "
+                       "D/edges.tsv, D/merged.png, D/graph.png")
   ap.add_argument("--voxel", type=float, default=None,
                   help="voxel size of merged.ply in mr (default: every point)")
   defaults = _register_all_defaults()
@@ -164,6 +167,9 @@ def _print_result(res, out) -> None:
   print(f"# {int(res.in_model.sum())}/{len(res.names)} scans in the model (frame of "
         f"{res.names[res.reference]}), {sum(e.accepted for e in res.edges)}/{len(res.edges)} "
         f"edges accepted, mr {res.mr:.6g}, {res.seconds:.1f} s", file=sys.stderr)
+  if res.placed_not_sure:
+    print(f"# placed only through \"not sure\" edges (check them; edges.tsv's placement): "
+          f"{', '.join(res.placed_not_sure)}", file=sys.stderr)
   if res.left_out:
     print(f"# left out (not merged, no pose written): {', '.join(res.left_out)}",
           file=sys.stderr)

@@ -31,8 +31,13 @@ The solve (`solve`):
 5. weak edges (`trusted=False`, e.g. a pairwise verdict of "not sure") are then added where the
    graph corroborates them: inside a component when their error is within `threshold`;
    between two components when at least `support` (>= 2) of them agree on one placement of
-   the two (a cycle through both components), never on the word of one edge; then steps 3-4
-   again over everything kept.
+   the two through independent routes (`_independent`): `support` agreeing weak edges whose
+   ends are distinct scans on both sides, the ends of each side placed with confidence
+   relative to each other (one component of the trusted edges kept by step 4). Each such pair
+   of edges closes a cycle whose other two legs are trusted, so two wrong weak edges cannot
+   give each other: weak edges that share a scan (a foreign scan matched wrongly to two scans
+   that see the same surface agrees with itself twice) never place it, and a scan linked only
+   by weak edges is never placed. Then steps 3-4 again over everything kept.
 
 Why scipy's `least_squares` and not a JAX solver: the problems are small (6 unknowns per scan,
 a few thousand residuals), float64 on the host, and solved once per call, so a jitted solver
@@ -94,6 +99,8 @@ class PoseGraphResult:
     component: (n,) int64, the component of accepted edges of every scan, numbered by their
       lowest scan (0 is the component of scan 0).
     rounds: rejection rounds run.
+    confident: (n,) bool, the scans linked to their component's gauge by accepted trusted edges
+      alone (a scan whose placement rests on a weak edge is False).
   """
 
   poses: np.ndarray
@@ -101,6 +108,7 @@ class PoseGraphResult:
   errors: np.ndarray
   component: np.ndarray
   rounds: int
+  confident: np.ndarray | None = None
 
 
 def _check(n: int, edges: Sequence[PoseEdge]) -> None:
@@ -401,12 +409,32 @@ def _reject(n, edges, poses, used, scale, threshold, robust, rounds):
   return poses, used, done
 
 
+def _independent(ok, edges, label, sure, support):
+  """Whether `support` of the weak edges `ok` (indices into `edges`, each joining the same two
+  components of `label`) are independent routes: their ends are pairwise distinct scans on
+  each side, and the ends on one side lie in one component of `sure` (the trusted
+  components), as do those on the other."""
+  import itertools
+  side = label[edges[ok[0]].i] if ok else -1
+  ends = {m: (edges[m].i, edges[m].j) if label[edges[m].i] == side else (edges[m].j, edges[m].i)
+          for m in ok}
+  for group in itertools.combinations(ok, support):
+    for e in zip(*(ends[m] for m in group)):
+      if len(set(e)) < support or len({sure[k] for k in e}) > 1:
+        break
+    else:
+      return True
+  return False
+
+
 def _corroborate(n, edges, poses, used, weak, scale, threshold, support):
   """Weak edges join the graph when the graph agrees with them: inside a component, when their
   error is within `threshold`; between two components, when at least `support` of the weak
-  edges between them agree on one relative placement of the two (each edge proposes one; the
-  placement with the most agreeing edges, then the smallest summed error, wins). Components
-  are merged one at a time; returns (poses, used)."""
+  edges between them agree on one relative placement of the two through independent routes
+  (`_independent`, over the components of the trusted edges `used` holds on entry; each edge
+  proposes one placement; the one with the most agreeing edges, then the smallest summed
+  error, wins). Components are merged one at a time; returns (poses, used)."""
+  sure = components(n, [(e.i, e.j) for e, u in zip(edges, used) if u])
   used = used.copy()
   while True:
     label = components(n, [(e.i, e.j) for e, u in zip(edges, used) if u])
@@ -427,7 +455,7 @@ def _corroborate(n, edges, poses, used, weak, scale, threshold, support):
       e_err = edge_errors(trial, [edges[m] for m in between], scale)
       ok = [m for m, v in zip(between, e_err) if v <= threshold]
       score = (len(ok), -float(np.sum(e_err[e_err <= threshold])))
-      if len(ok) >= support and (best is None or score > best[0]):
+      if _independent(ok, edges, label, sure, support) and (best is None or score > best[0]):
         best = (score, trial, ok)
     if best is None:
       return poses, used
@@ -493,5 +521,6 @@ def solve(n: int, edges: Sequence[PoseEdge], *, trusted: Sequence[bool] | None =
     poses[members] = np.linalg.inv(poses[c]) @ poses[members]
   errors = edge_errors(poses, edges, scale)
   errors[final[[e.i for e in edges]] != final[[e.j for e in edges]]] = np.inf
+  sure = components(n, [(e.i, e.j) for e, a, t in zip(edges, used, trust) if a and t])
   return PoseGraphResult(poses=poses, accepted=used, errors=errors, component=final,
-                         rounds=done)
+                         rounds=done, confident=sure == sure[final])

@@ -22,6 +22,7 @@ from __future__ import annotations
 from typing import TYPE_CHECKING, NamedTuple
 
 from lrf_jax._jax import jax, jnp
+import numba as nb
 import numpy as np
 
 from lrf_jax.geometry import ops as geometry
@@ -149,6 +150,9 @@ def support_view(normals: np.ndarray, per_point: np.ndarray | None, patches: Pat
                  radius: float) -> tuple[np.ndarray, np.ndarray | None]:
   """The sum of the oriented normals of each patch's neighbors within r/3 (the z support).
 
+  One compiled pass over the patches (`_support_sums`); its sums are numpy's of the arrays
+  `tests/test_points_only.py` writes out (`support_view_reference` there), bit for bit.
+
   Args:
     normals: (n, 3) oriented normals of the cloud (NaN rows are skipped).
     per_point: (n,) trust of each normal's sign (`points_only_normals`), or None (trusted).
@@ -159,17 +163,105 @@ def support_view(normals: np.ndarray, per_point: np.ndarray | None, patches: Pat
     (view (N, 3) float64, trust (N,) float64 or None): with `per_point`, trust is its mean over
     the z support and the view is zeroed where it is below `MIN_VOTE_TRUST` (`ball_sign` then).
   """
-  nrm, trust = normals, None
   idx = np.asarray(patches.indices)
-  off = np.asarray(patches.offsets, np.float64)
-  near = (idx >= 0) & (np.einsum("nkc,nkc->nk", off, off) <= (float(radius) / 3.0) ** 2)
-  near &= np.all(np.isfinite(nrm[np.maximum(idx, 0)]), axis=-1)
-  view = np.where(near[..., None], nrm[np.maximum(idx, 0)], 0.0).sum(1)
-  if per_point is not None:
-    trust = (np.where(near, per_point[np.maximum(idx, 0)], 0.0).sum(1)
-             / np.maximum(near.sum(1), 1))
-    view = np.where((trust >= MIN_VOTE_TRUST)[:, None], view, 0.0)  # else: ball_sign
-  return view, trust
+  off = np.asarray(patches.offsets)
+  idx = idx if idx.dtype == np.int32 else idx.astype(np.int64)
+  off = off if off.dtype == np.float32 else off.astype(np.float64)
+  view = np.zeros((idx.shape[0], 3))
+  trust = np.zeros(idx.shape[0])
+  weigh = per_point is not None
+  _support_sums(np.ascontiguousarray(normals, np.float64),
+                np.ascontiguousarray(per_point if weigh else np.zeros(0), np.float64),
+                np.ascontiguousarray(idx), np.ascontiguousarray(off), (float(radius) / 3.0) ** 2,
+                weigh, MIN_VOTE_TRUST, view, trust)
+  return view, trust if weigh else None
+
+
+@nb.njit(inline="always")
+def _block_sum(a, lo, n):
+  """numpy's sum of a[lo:lo + n] for n <= 128: 8 accumulators, then the rest in order."""
+  if n < 8:
+    res = 0.0
+    for i in range(n):
+      res += a[lo + i]
+    return res
+  r0, r1, r2, r3 = a[lo], a[lo + 1], a[lo + 2], a[lo + 3]
+  r4, r5, r6, r7 = a[lo + 4], a[lo + 5], a[lo + 6], a[lo + 7]
+  i = 8
+  while i < n - n % 8:
+    r0, r1, r2, r3 = r0 + a[lo + i], r1 + a[lo + i + 1], r2 + a[lo + i + 2], r3 + a[lo + i + 3]
+    r4, r5, r6, r7 = r4 + a[lo + i + 4], r5 + a[lo + i + 5], r6 + a[lo + i + 6], r7 + a[lo + i + 7]
+    i += 8
+  res = ((r0 + r1) + (r2 + r3)) + ((r4 + r5) + (r6 + r7))
+  while i < n:
+    res += a[lo + i]
+    i += 1
+  return res
+
+
+@nb.njit(inline="always")
+def _pairwise_sum(a, n, stack):
+  """numpy's sum of a[:n] (float64, contiguous), bit for bit: its pairwise summation (blocks of
+  up to 128 values, `_block_sum`, larger runs halved at a multiple of 8), without recursion
+  (numba's cache does not reload recursive functions): `stack` (4, >= 64) holds each open
+  run's start, length, state (0 new, 1 left half done) and left half's sum."""
+  top = 0
+  stack[0, 0], stack[1, 0], stack[2, 0] = 0.0, n, 0.0
+  ret = 0.0
+  while top >= 0:
+    lo, cn = int(stack[0, top]), int(stack[1, top])
+    if cn <= 128:
+      ret = _block_sum(a, lo, cn)
+      top -= 1
+      continue
+    half = cn // 2 - (cn // 2) % 8
+    if stack[2, top] == 0.0:  # descend into the left half
+      stack[2, top] = 1.0
+      top += 1
+      stack[0, top], stack[1, top], stack[2, top] = lo, half, 0.0
+    elif stack[2, top] == 1.0:  # the left half's sum is ret: the right half
+      stack[2, top], stack[3, top] = 2.0, ret
+      top += 1
+      stack[0, top], stack[1, top], stack[2, top] = lo + half, cn - half, 0.0
+    else:  # both halves done
+      ret = stack[3, top] + ret
+      top -= 1
+  return ret
+
+
+@nb.njit(parallel=True, cache=True)
+def _support_sums(nrm, per_point, idx, off, r2, weigh, min_trust, view, trust):
+  """`support_view` into view (N, 3) and trust (N,) (zeros on entry): per patch, the finite
+  normals of the slots within sqrt(r2) summed in slot order; with `weigh`, the mean of their
+  per_point values (numpy's pairwise sum over the row, 0 off the support) and the view zeroed
+  below min_trust. The squared distance adds x² + z² first, then y², as numpy's einsum does."""
+  m, k = idx.shape
+  for i in nb.prange(m):
+    w = np.zeros(k if weigh else 0)
+    stack = np.empty((4, 64))
+    vx = vy = vz = 0.0
+    count = 0
+    for s in range(k):
+      j = idx[i, s]
+      if j < 0:
+        continue
+      x, y, z = np.float64(off[i, s, 0]), np.float64(off[i, s, 1]), np.float64(off[i, s, 2])
+      if (x * x + z * z) + y * y > r2:
+        continue
+      a, b, c = nrm[j, 0], nrm[j, 1], nrm[j, 2]
+      if not (np.isfinite(a) and np.isfinite(b) and np.isfinite(c)):
+        continue
+      vx += a
+      vy += b
+      vz += c
+      count += 1
+      if weigh:
+        w[s] = per_point[j]
+    if weigh:
+      trust[i] = (0.0 + _pairwise_sum(w, k, stack)) / max(count, 1)
+      if not trust[i] >= min_trust:
+        continue
+    view[i, 0], view[i, 1], view[i, 2] = vx, vy, vz
 
 
 def _finish_view(view: np.ndarray, trust: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
@@ -205,7 +297,7 @@ def patch_areas(points: np.ndarray, patches: Patches,
   of the local sampling density. Normalised to mean 1 over each patch's neighbors (0 in
   padding). Rotation and translation invariant.
   """
-  from lrf_jax.geometry.normals import cache_last
+  from lrf_jax.geometry.cloud_cache import cache_last, cloud_knn
 
   pts = np.asarray(points, np.float64)
 
@@ -215,8 +307,9 @@ def patch_areas(points: np.ndarray, patches: Patches,
     return np.pi * d[:, -1] ** 2 / AREA_NEIGHBORS
 
   def compute():
-    if faces is None or len(faces) == 0:
-      return estimate(np.arange(len(pts)))
+    if faces is None or len(faces) == 0:  # every point: the cloud's k-NN, which the
+      d = cloud_knn(pts, min(AREA_NEIGHBORS + 1, len(pts)))[0]  # orientation reads too
+      return np.pi * d ** 2 / AREA_NEIGHBORS
     area = vertex_areas(pts, faces)
     lone = np.flatnonzero(area <= 0)  # vertices on no triangle: the cloud estimate
     if lone.size:

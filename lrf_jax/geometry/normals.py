@@ -32,20 +32,18 @@ hands out copies of its arrays: writing into a result never changes a later one.
 
 from __future__ import annotations
 
-import hashlib
-from typing import Any
-
 import numba as nb
 import numpy as np
 
 from lrf_jax.search import engine
 from lrf_jax.checks import validate_viewpoint
+from lrf_jax.geometry.cloud_cache import _CACHE, cache_last
 from lrf_jax.geometry.orientation import (PROPAGATION_K, VOTE_EPS, VOTE_SAMPLES, knn_components,
                                           orient_by_propagation, orient_by_reference,
                                           orient_by_vote)
 
-__all__ = [  # the orientation's names stay importable from here
-    "NORMAL_RADIUS_RATIO", "PROPAGATION_K", "VOTE_EPS", "VOTE_SAMPLES", "cache_last",
+__all__ = [  # the orientation's and the cache's names stay importable from here
+    "_CACHE", "NORMAL_RADIUS_RATIO", "PROPAGATION_K", "VOTE_EPS", "VOTE_SAMPLES", "cache_last",
     "cotangent_laplacian_curvature", "default_normals", "estimate_normals", "face_cross",
     "knn_components", "mean_curvature", "orient_by_propagation", "orient_by_reference",
     "orient_by_vote", "pca_normals", "vertex_normals", "voted_normals",
@@ -55,57 +53,6 @@ __all__ = [  # the orientation's names stay importable from here
 NORMAL_RADIUS_RATIO = 0.2
 # Relative eigenvalue gap below which a PCA normal is undefined (as geometry.DEGENERATE_EPS).
 _DEGENERATE = 1e-6
-
-_CACHE: dict[str, Any] = {}
-
-
-def _digest(*arrays: Any) -> str:
-  h = hashlib.blake2b(digest_size=16)
-  for a in arrays:
-    if a is None:
-      h.update(b"none")
-    elif isinstance(a, np.ndarray):
-      a = np.ascontiguousarray(a)
-      h.update(str((a.dtype, a.shape)).encode())
-      h.update(a.data)
-    else:
-      h.update(repr(a).encode())
-  return h.hexdigest()
-
-
-def _handed_out(value: Any) -> Any:
-  """What the cache gives a caller: numpy arrays (also inside tuples and lists, recursively) as
-  fresh writable copies, anything else (e.g. an `engine.Grid`) shared as it is."""
-  if isinstance(value, np.ndarray):
-    return value.copy()
-  if isinstance(value, tuple) and hasattr(value, "_fields"):  # a NamedTuple
-    return type(value)(*(_handed_out(v) for v in value))
-  if isinstance(value, (tuple, list)):
-    return type(value)(_handed_out(v) for v in value)
-  return value
-
-
-def cache_last(kind: str, key_arrays: tuple, fn):
-  """One cached result per `kind`: `fn()` is recomputed only when the inputs' digest changes.
-
-  Every call, the first included, returns copies of the stored arrays (directly or inside
-  tuples/lists): a caller may write into what it gets without changing what a later call
-  returns. Other objects (e.g. an `engine.Grid`) are shared; callers must not modify them.
-
-  Args:
-    kind: cache slot name.
-    key_arrays: the arrays/values the result depends on.
-    fn: zero-argument function computing the result.
-
-  Returns:
-    `fn()`, or the stored result for identical inputs (arrays copied).
-  """
-  key = _digest(kind, *key_arrays)
-  hit = _CACHE.get(kind)
-  if hit is None or hit[0] != key:
-    hit = _CACHE[kind] = (key, fn())
-  return _handed_out(hit[1])
-
 
 # Below this relative gap between the two smallest eigenvalues the closed form hands over to
 # LAPACK (`np.linalg.eigh`), whose eigenvectors stay accurate as the gap closes.

@@ -18,6 +18,7 @@ import numba as nb
 import numpy as np
 
 from lrf_jax.search import engine
+from lrf_jax.geometry.cloud_cache import cloud_knn
 
 # Neighbors per point in the orientation graph of `orient_by_propagation`.
 PROPAGATION_K = 8
@@ -142,13 +143,14 @@ def _component_seed(pts, nrm, starts, adj, s, seen, queue):
 
 
 @nb.njit(cache=True)
-def _propagate_signs(pts, nrm, nbr, sign):
+def _propagate_signs(pts, nrm, nbr, sign, label):
   """Hoppe orientation over the symmetrised k-NN graph `nbr` (m, k) of unit normals `nrm`.
 
   Per connected component: the seed (`_component_seed`) takes the sign that points away from the
   centroid, then Prim's algorithm grows the minimum spanning tree of the weights 1 - |n_i · n_j|
   from it (binary heap with decrease-key) and every node takes its tree parent's sign times
-  sign(n_node · n_parent). Writes `sign` (m,) in place.
+  sign(n_node · n_parent). Writes `sign` (m,) and `label` (m,), the component of each node
+  (0, 1, ... in order of each component's smallest index, as `knn_components`), in place.
   """
   m = nbr.shape[0]
   starts, adj, wts = _knn_graph(nrm, nbr)
@@ -159,9 +161,11 @@ def _propagate_signs(pts, nrm, nbr, sign):
   pos = np.full(m, -1, np.int64)  # heap slot; -1 never queued, -2 in the tree
   hk = np.empty(m)
   hv = np.empty(m, np.int64)
+  comp = -1
   for s in range(m):
     if seen[s]:
       continue
+    comp += 1
     seed, seed_sign = _component_seed(pts, nrm, starts, adj, s, seen, queue)
     sign[seed] = seed_sign
     key[seed] = 0.0
@@ -175,6 +179,7 @@ def _propagate_signs(pts, nrm, nbr, sign):
       if hs > 0:
         _heap_sift_down(hk, hv, pos, hs)
       pos[v] = -2
+      label[v] = comp
       p = parent[v]
       if p >= 0:
         dot = nrm[v, 0] * nrm[p, 0] + nrm[v, 1] * nrm[p, 1] + nrm[v, 2] * nrm[p, 2]
@@ -218,20 +223,32 @@ def orient_by_propagation(points: np.ndarray, normals: np.ndarray, *, k: int = P
     Hoppe, DeRose, Duchamp, McDonald, Stuetzle, "Surface reconstruction from unorganized points",
     SIGGRAPH 1992, section 3.3.
   """
+  return _propagated(points, normals, k)[0]
+
+
+def _propagated(points: np.ndarray, normals: np.ndarray, k: int
+                ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+  """`orient_by_propagation`: (normals (n, 3), good (g,) indices of the finite normals, labels
+  (g,) int64: the component of each, as `knn_components(points[good], k)` numbers them). The
+  graph of a cloud whose normals are all finite is the cloud's cached k-NN (`cloud_knn`)."""
   pts = np.asarray(points, np.float64)
   nrm = np.array(normals, np.float64, copy=True)
-  good = np.all(np.isfinite(nrm), axis=1)
-  idx = np.flatnonzero(good)
+  idx = np.flatnonzero(np.all(np.isfinite(nrm), axis=1))
+  labels = np.zeros(idx.size, np.int64)
   if idx.size == 0:
-    return nrm
-  sub = np.ascontiguousarray(pts[idx])
-  sub_n = np.ascontiguousarray(nrm[idx])
+    return nrm, idx, labels
   kk = min(k + 1, idx.size)
-  _, nbr = engine.knn(engine.knn_grid(sub, kk), sub, kk)
+  if idx.size == len(pts):
+    sub = np.ascontiguousarray(pts)
+    nbr = cloud_knn(sub, kk)[1]
+  else:
+    sub = np.ascontiguousarray(pts[idx])
+    _, nbr = engine.knn(engine.knn_grid(sub, kk), sub, kk)
+  sub_n = np.ascontiguousarray(nrm[idx])
   sign = np.ones(idx.size)
-  _propagate_signs(sub, sub_n, nbr, sign)
+  _propagate_signs(sub, sub_n, nbr, sign, labels)
   nrm[idx] = sub_n * sign[:, None]
-  return nrm
+  return nrm, idx, labels
 
 
 # Points per connected component whose convexity votes fix its sign (`orient_by_vote`), and the
@@ -301,12 +318,10 @@ def orient_by_vote(points: np.ndarray, normals: np.ndarray, vote_radius: float, 
   """
   from lrf_jax.search.neighborhoods import SearchIndex, hash_priority
   pts = np.asarray(points, np.float64)
-  nrm = orient_by_propagation(pts, normals, k=k)
+  nrm, good, labels = _propagated(pts, normals, k)  # labels: the components it walked
   trust = np.zeros(len(pts))
-  good = np.flatnonzero(np.all(np.isfinite(nrm), axis=1))
   if good.size == 0:
     return nrm, trust
-  labels = knn_components(pts[good], k)  # the components the propagation walked
   order = np.lexsort((hash_priority(int(seed), good), labels))
   start = np.searchsorted(labels[order], np.arange(labels.max() + 1))
   rank = np.arange(good.size) - np.repeat(start, np.diff(np.r_[start, good.size]))

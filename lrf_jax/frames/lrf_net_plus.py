@@ -22,7 +22,6 @@ from __future__ import annotations
 from typing import TYPE_CHECKING, NamedTuple
 
 from lrf_jax._jax import jax, jnp
-import numba as nb
 import numpy as np
 
 from lrf_jax.geometry import ops as geometry
@@ -30,6 +29,7 @@ from lrf_jax.search import engine
 from lrf_jax.frames.lrf_net import (MIN_Z_NEIGHBORS, X_EPS, lrf_net_frames,
                                    table_host_supports)
 from lrf_jax.frames.spec import KEYPOINT, SLOT, HostPatchKernel, MethodSpec
+from lrf_jax.frames.lrf_net_plus_sums import relative_areas, support_sums
 from lrf_jax.search.neighborhoods import Patches
 
 if TYPE_CHECKING:
@@ -150,8 +150,9 @@ def support_view(normals: np.ndarray, per_point: np.ndarray | None, patches: Pat
                  radius: float) -> tuple[np.ndarray, np.ndarray | None]:
   """The sum of the oriented normals of each patch's neighbors within r/3 (the z support).
 
-  One compiled pass over the patches (`_support_sums`); its sums are numpy's of the arrays
-  `tests/test_points_only.py` writes out (`support_view_reference` there), bit for bit.
+  One compiled pass over the patches (`lrf_net_plus_sums.support_sums`); its sums are numpy's
+  of the arrays `tests/test_points_only.py` writes out (`support_view_reference` there), bit
+  for bit.
 
   Args:
     normals: (n, 3) oriented normals of the cloud (NaN rows are skipped).
@@ -170,98 +171,11 @@ def support_view(normals: np.ndarray, per_point: np.ndarray | None, patches: Pat
   view = np.zeros((idx.shape[0], 3))
   trust = np.zeros(idx.shape[0])
   weigh = per_point is not None
-  _support_sums(np.ascontiguousarray(normals, np.float64),
-                np.ascontiguousarray(per_point if weigh else np.zeros(0), np.float64),
-                np.ascontiguousarray(idx), np.ascontiguousarray(off), (float(radius) / 3.0) ** 2,
-                weigh, MIN_VOTE_TRUST, view, trust)
+  support_sums(np.ascontiguousarray(normals, np.float64),
+               np.ascontiguousarray(per_point if weigh else np.zeros(0), np.float64),
+               np.ascontiguousarray(idx), np.ascontiguousarray(off), (float(radius) / 3.0) ** 2,
+               weigh, MIN_VOTE_TRUST, view, trust)
   return view, trust if weigh else None
-
-
-@nb.njit(inline="always")
-def _block_sum(a, lo, n):
-  """numpy's sum of a[lo:lo + n] for n <= 128: 8 accumulators, then the rest in order."""
-  if n < 8:
-    res = 0.0
-    for i in range(n):
-      res += a[lo + i]
-    return res
-  r0, r1, r2, r3 = a[lo], a[lo + 1], a[lo + 2], a[lo + 3]
-  r4, r5, r6, r7 = a[lo + 4], a[lo + 5], a[lo + 6], a[lo + 7]
-  i = 8
-  while i < n - n % 8:
-    r0, r1, r2, r3 = r0 + a[lo + i], r1 + a[lo + i + 1], r2 + a[lo + i + 2], r3 + a[lo + i + 3]
-    r4, r5, r6, r7 = r4 + a[lo + i + 4], r5 + a[lo + i + 5], r6 + a[lo + i + 6], r7 + a[lo + i + 7]
-    i += 8
-  res = ((r0 + r1) + (r2 + r3)) + ((r4 + r5) + (r6 + r7))
-  while i < n:
-    res += a[lo + i]
-    i += 1
-  return res
-
-
-@nb.njit(inline="always")
-def _pairwise_sum(a, n, stack):
-  """numpy's sum of a[:n] (float64, contiguous), bit for bit: its pairwise summation (blocks of
-  up to 128 values, `_block_sum`, larger runs halved at a multiple of 8), without recursion
-  (numba's cache does not reload recursive functions): `stack` (4, >= 64) holds each open
-  run's start, length, state (0 new, 1 left half done) and left half's sum."""
-  top = 0
-  stack[0, 0], stack[1, 0], stack[2, 0] = 0.0, n, 0.0
-  ret = 0.0
-  while top >= 0:
-    lo, cn = int(stack[0, top]), int(stack[1, top])
-    if cn <= 128:
-      ret = _block_sum(a, lo, cn)
-      top -= 1
-      continue
-    half = cn // 2 - (cn // 2) % 8
-    if stack[2, top] == 0.0:  # descend into the left half
-      stack[2, top] = 1.0
-      top += 1
-      stack[0, top], stack[1, top], stack[2, top] = lo, half, 0.0
-    elif stack[2, top] == 1.0:  # the left half's sum is ret: the right half
-      stack[2, top], stack[3, top] = 2.0, ret
-      top += 1
-      stack[0, top], stack[1, top], stack[2, top] = lo + half, cn - half, 0.0
-    else:  # both halves done
-      ret = stack[3, top] + ret
-      top -= 1
-  return ret
-
-
-@nb.njit(parallel=True, cache=True)
-def _support_sums(nrm, per_point, idx, off, r2, weigh, min_trust, view, trust):
-  """`support_view` into view (N, 3) and trust (N,) (zeros on entry): per patch, the finite
-  normals of the slots within sqrt(r2) summed in slot order; with `weigh`, the mean of their
-  per_point values (numpy's pairwise sum over the row, 0 off the support) and the view zeroed
-  below min_trust. The squared distance adds x² + z² first, then y², as numpy's einsum does."""
-  m, k = idx.shape
-  for i in nb.prange(m):
-    w = np.zeros(k if weigh else 0)
-    stack = np.empty((4, 64))
-    vx = vy = vz = 0.0
-    count = 0
-    for s in range(k):
-      j = idx[i, s]
-      if j < 0:
-        continue
-      x, y, z = np.float64(off[i, s, 0]), np.float64(off[i, s, 1]), np.float64(off[i, s, 2])
-      if (x * x + z * z) + y * y > r2:
-        continue
-      a, b, c = nrm[j, 0], nrm[j, 1], nrm[j, 2]
-      if not (np.isfinite(a) and np.isfinite(b) and np.isfinite(c)):
-        continue
-      vx += a
-      vy += b
-      vz += c
-      count += 1
-      if weigh:
-        w[s] = per_point[j]
-    if weigh:
-      trust[i] = (0.0 + _pairwise_sum(w, k, stack)) / max(count, 1)
-      if not trust[i] >= min_trust:
-        continue
-    view[i, 0], view[i, 1], view[i, 2] = vx, vy, vz
 
 
 def _finish_view(view: np.ndarray, trust: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
@@ -319,11 +233,11 @@ def patch_areas(points: np.ndarray, patches: Patches,
   key = (pts,) if faces is None else (pts, np.asarray(faces))
   per_point = cache_last("point_area", key, compute)
   idx = np.asarray(patches.indices)
-  a = np.append(per_point, 0.0).take(idx)  # padding (index -1) reads the appended 0
-  count = np.count_nonzero(np.asarray(patches.mask), axis=1)[:, None]
-  mean = a.sum(1, keepdims=True) / np.maximum(count, 1)
-  out = np.empty(a.shape, np.float32)  # each a / mean in float64, rounded once to float32
-  return np.divide(a, np.where(mean > 0, mean, 1.0), out=out, casting="same_kind")
+  idx = np.ascontiguousarray(idx if idx.dtype == np.int32 else idx.astype(np.int64))
+  out = np.empty(idx.shape, np.float32)
+  relative_areas(np.ascontiguousarray(per_point, np.float64), idx,
+                 np.ascontiguousarray(patches.mask, np.bool_), out)
+  return out
 
 
 # ------------------------------------------------------------------------------ sign confidence

@@ -65,41 +65,96 @@ def _pairwise_sum(a, n, stack):
   return ret
 
 
+@nb.njit(inline="always")
+def _sparse_block_sum(pos, val, e, cnt, lo, n, lanes):
+  """`_block_sum` of a vector that is zero but at the sorted positions pos[e:cnt] (values val):
+  the same sums bit for bit, adding only the non-zero values (x + 0.0 = x, and no partial sum
+  is -0.0). Returns (the sum, the first entry at or beyond lo + n)."""
+  end = lo + n
+  res = 0.0
+  if n >= 8:
+    lanes[:] = 0.0
+    body = end - n % 8
+    while e < cnt and pos[e] < body:
+      lanes[(pos[e] - lo) % 8] += val[e]
+      e += 1
+    res = ((lanes[0] + lanes[1]) + (lanes[2] + lanes[3])) + ((lanes[4] + lanes[5])
+                                                             + (lanes[6] + lanes[7]))
+  while e < cnt and pos[e] < end:
+    res += val[e]
+    e += 1
+  return res, e
+
+
+@nb.njit(inline="always")
+def _sparse_pairwise_sum(pos, val, cnt, n, stack, lanes):
+  """`_pairwise_sum` of a length-n vector that is zero but at the sorted positions pos[:cnt]
+  (values val[:cnt]), bit for bit: the same runs and halves, each run's values taken in turn."""
+  top = 0
+  stack[0, 0], stack[1, 0], stack[2, 0] = 0.0, n, 0.0
+  ret = 0.0
+  e = 0
+  while top >= 0:
+    lo, cn = int(stack[0, top]), int(stack[1, top])
+    if cn <= 128:
+      ret, e = _sparse_block_sum(pos, val, e, cnt, lo, cn, lanes)
+      top -= 1
+      continue
+    half = cn // 2 - (cn // 2) % 8
+    if stack[2, top] == 0.0:
+      stack[2, top] = 1.0
+      top += 1
+      stack[0, top], stack[1, top], stack[2, top] = lo, half, 0.0
+    elif stack[2, top] == 1.0:
+      stack[2, top], stack[3, top] = 2.0, ret
+      top += 1
+      stack[0, top], stack[1, top], stack[2, top] = lo + half, cn - half, 0.0
+    else:
+      ret = stack[3, top] + ret
+      top -= 1
+  return ret
+
+
 @nb.njit(parallel=True, cache=True)
 def support_sums(nrm, per_point, idx, off, r2, weigh, min_trust, view, trust):
-  """`lrf_net_plus.support_view` into view (N, 3) and trust (N,) (zeros on entry): per patch, the finite
-  normals of the slots within sqrt(r2) summed in slot order; with `weigh`, the mean of their
-  per_point values (numpy's pairwise sum over the row, 0 off the support) and the view zeroed
-  below min_trust. The squared distance adds x² + z² first, then y², as numpy's einsum does."""
+  """`lrf_net_plus.support_view` into view (N, 3) and trust (N,) (zeros on entry): per patch,
+  the finite normals of the slots within sqrt(r2) summed in slot order; with `weigh`, the mean
+  of their per_point values (numpy's pairwise sum over the row, 0 off the support) and the view
+  zeroed below min_trust. The squared distance adds x² + z² first, then y², as numpy's einsum
+  does. The slots within sqrt(r2) are first listed by a branch-free pass (most are not)."""
   m, k = idx.shape
-  for i in nb.prange(m):
-    w = np.empty(k if weigh else 0)
+  nblock = (m + 31) // 32
+  for blk in nb.prange(nblock):
+    pos = np.empty(k, np.int64)
+    val = np.empty(k)
     stack = np.empty((4, 64))
-    vx = vy = vz = 0.0
-    count = 0
-    for s in range(k):
+    lanes = np.empty(8)
+    for i in range(blk * 32, min(m, (blk + 1) * 32)):
+      c = 0
+      for s in range(k):
+        x, y, z = np.float64(off[i, s, 0]), np.float64(off[i, s, 1]), np.float64(off[i, s, 2])
+        pos[c] = s
+        c += (idx[i, s] >= 0) & ((x * x + z * z) + y * y <= r2)
+      vx = vy = vz = 0.0
+      count = 0
+      for e in range(c):
+        s = pos[e]
+        j = idx[i, s]
+        a, b, cz = nrm[j, 0], nrm[j, 1], nrm[j, 2]
+        if not (np.isfinite(a) and np.isfinite(b) and np.isfinite(cz)):
+          continue
+        vx += a
+        vy += b
+        vz += cz
+        pos[count] = s  # count <= e: the list compacted in place to the finite normals
+        if weigh:
+          val[count] = per_point[j]
+        count += 1
       if weigh:
-        w[s] = 0.0
-      j = idx[i, s]
-      if j < 0:
-        continue
-      x, y, z = np.float64(off[i, s, 0]), np.float64(off[i, s, 1]), np.float64(off[i, s, 2])
-      if (x * x + z * z) + y * y > r2:
-        continue
-      a, b, c = nrm[j, 0], nrm[j, 1], nrm[j, 2]
-      if not (np.isfinite(a) and np.isfinite(b) and np.isfinite(c)):
-        continue
-      vx += a
-      vy += b
-      vz += c
-      count += 1
-      if weigh:
-        w[s] = per_point[j]
-    if weigh:
-      trust[i] = (0.0 + _pairwise_sum(w, k, stack)) / max(count, 1)
-      if not trust[i] >= min_trust:
-        continue
-    view[i, 0], view[i, 1], view[i, 2] = vx, vy, vz
+        trust[i] = (0.0 + _sparse_pairwise_sum(pos, val, count, k, stack, lanes)) / max(count, 1)
+        if not trust[i] >= min_trust:
+          continue
+      view[i, 0], view[i, 1], view[i, 2] = vx, vy, vz
 
 
 @nb.njit(parallel=True, cache=True)

@@ -167,6 +167,32 @@ def test_support_view_is_the_numpy_sums_bit_for_bit(scan, k):
       assert 0 < (want >= MIN_VOTE_TRUST).mean() < 1
 
 
+def test_propagation_graph_is_the_knn_lists_each_edge_once_in_first_mention_order():
+  # The graph Prim walks: every node's neighbours in the order the k-NN lists first mention
+  # them (the list of i at i's turn, i in j's list at j's turn), each once. A repeated entry
+  # would come later in both nodes' lists, where neither the walk nor Prim's strict key test
+  # (an equal weight never replaces a key) reads it: the same trees, signs and components.
+  from lrf_jax.geometry import orientation
+  from lrf_jax.geometry.cloud_cache import cloud_knn
+  rng = np.random.default_rng(5)
+  pts = np.r_[_sphere(600, np.zeros(3), rng)[0], _sphere(300, np.zeros(3), rng)[0][:50]]
+  nrm = pca_normals(pts, 0.3)
+  nbr = cloud_knn(pts, 9)[1]
+  starts, adj, wts = orientation._knn_graph(nrm, nbr)
+  want = [[] for _ in pts]
+  for i in range(len(pts)):
+    for j in nbr[i]:
+      if j != i:
+        want[i].append(j)
+        want[j].append(i)
+  for i in range(len(pts)):
+    first = list(dict.fromkeys(want[i]))
+    np.testing.assert_array_equal(adj[starts[i]:starts[i + 1]], first)
+    a, b = nrm[i], nrm[first]
+    dot = a[0] * b[:, 0] + a[1] * b[:, 1] + a[2] * b[:, 2]
+    np.testing.assert_array_equal(wts[starts[i]:starts[i + 1]], 1.0 - np.abs(dot))
+
+
 def test_propagation_walks_the_knn_components_and_reads_the_cached_knn():
   # The component labels the vote uses come from the propagation's own walk: those of
   # `knn_components`, also with NaN normals (the finite ones' graph) and several components.

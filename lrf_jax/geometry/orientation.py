@@ -70,16 +70,30 @@ def _heap_sift_down(hk, hv, pos, size):
   _heap_put(hk, hv, pos, i, kv, v)
 
 
+@nb.njit(inline="always")
+def _listed_later(nbr, i, j):
+  """Whether the edge (i, j) of the k-NN lists `nbr` was already met at j < i (i is in j's
+  list): its second mention, which adds only entries that repeat earlier ones."""
+  if j >= i:
+    return False
+  for t in range(nbr.shape[1]):
+    if nbr[j, t] == i:
+      return True
+  return False
+
+
 @nb.njit(cache=True)
 def _knn_graph(nrm, nbr):
   """CSR adjacency (starts (m + 1,), adj, weights 1 - |n_i · n_j|) of the k-NN lists `nbr`
-  (m, k), every edge in both directions (an edge listed twice is harmless)."""
+  (m, k), every edge in both directions, each node's entries in the order the lists mention
+  them; an edge both ends list is entered once (at its first mention: a repeated entry would
+  come later in both nodes' lists, where neither the walk nor Prim's strict key test reads it)."""
   m, kk = nbr.shape
   starts = np.zeros(m + 1, np.int64)
   for i in range(m):
     for t in range(kk):
       j = nbr[i, t]
-      if j != i:
+      if j != i and not _listed_later(nbr, i, j):
         starts[i + 1] += 1
         starts[j + 1] += 1
   for i in range(m):
@@ -90,7 +104,7 @@ def _knn_graph(nrm, nbr):
   for i in range(m):
     for t in range(kk):
       j = nbr[i, t]
-      if j != i:
+      if j != i and not _listed_later(nbr, i, j):
         w = 1.0 - abs(nrm[i, 0] * nrm[j, 0] + nrm[i, 1] * nrm[j, 1] + nrm[i, 2] * nrm[j, 2])
         adj[fill[i]] = j
         wts[fill[i]] = w

@@ -157,16 +157,18 @@ def support_sums(nrm, per_point, idx, off, r2, weigh, min_trust, view, trust):
       view[i, 0], view[i, 1], view[i, 2] = vx, vy, vz
 
 
-@nb.njit(parallel=True, cache=True)
+# Serial: 1 ms per 1000 patches of 512, and every lrf_net_plus call (register's too) compiles it
+# on a first run, where parallel=True took 4.1-4.8 s against 2.0 s (loaded machine).
+@nb.njit(cache=True)
 def relative_areas(per_point, idx, mask, out):
   """`lrf_net_plus.patch_areas` from the per-point areas into out (N, K) float32: each slot's
   area (0 in padding, idx -1) over the mean of its row's (numpy's pairwise sum over the K slots
   divided by the row's mask count; 1 where that mean is not positive), divided in float64 and
   rounded once to float32."""
   m, k = idx.shape
-  for i in nb.prange(m):
-    w = np.empty(k)
-    stack = np.empty((4, 64))
+  w = np.empty(k)
+  stack = np.empty((4, 64))
+  for i in range(m):
     count = 0
     for s in range(k):
       j = idx[i, s]

@@ -10,8 +10,10 @@ included), against `benchmarks/_ckdtree_patches.py` (the previous cKDTree implem
 identical output, checked here).
 
 Frames: the default call (`compute_frames(points, kp, r, method)`, plus `faces=` for the mesh
-methods), search and normals included: the normal and area caches are cleared before every timed
-call. The first call (compilation) is excluded; each figure is the median of `--repeat` calls.
+methods), search and normals included: every timed call gets the cloud under a fresh seeded rigid
+motion (rotation and translation, applied outside the timing), so that nothing kept for a cloud
+(normals, their orientation, areas, k-NN) skips work, and the caches are cleared before it too.
+The first call (compilation) is excluded; each figure is the median of `--repeat` calls.
 PCL (tools/pcl_driver, 2 threads where PCL has them): SHOT LRF (the faster of
 `SHOTLocalReferenceFrameEstimation` and its OMP class with 2 threads), BOARD and FLARE (plus PCL's
 `NormalEstimationOMP` over every point with 2 threads, the normals they need), RoPS; every other
@@ -44,14 +46,24 @@ from lrf_jax.geometry import normals as normals_cache  # noqa: E402
 PCL_SAME = {"shot": "shot_omp", "board": "board", "flare": "flare", "rops": "rops"}
 
 
-def _median_time(fn, repeat: int) -> float:
+def _median_time(fn, repeat: int, moved: np.ndarray | None = None) -> float:
+  """Median seconds of `repeat` calls of `fn()`, or of `fn(cloud)` with `moved` given: each
+  call then on `moved` under its own seeded rigid motion (made before the clock starts)."""
   times = []
-  for _ in range(repeat):
+  for i in range(repeat):
+    args = () if moved is None else (_moved(moved, i),)
     normals_cache._CACHE.clear()
     t0 = time.perf_counter()
-    fn()
+    fn(*args)
     times.append(time.perf_counter() - t0)
   return float(np.median(times))
+
+
+def _moved(points: np.ndarray, i: int) -> np.ndarray:
+  """`points` under the seeded rigid motion number i (a rotation and a translation of about the
+  cloud's size)."""
+  motion = datasets.random_rigid_motion(1000 + i, scale=float(np.ptp(points, 0).max()))
+  return np.asarray(points, np.float64) @ motion[:3, :3].T + motion[:3, 3]
 
 
 def bench_patches(data: str | None, repeat: int) -> None:
@@ -108,10 +120,11 @@ def bench_frames(data: str | None, cases: list[tuple[str, int]], methods: list[s
           pcl_rate[p] = m / (t[p] + t["normals_omp"])
     for method in methods:
       kw = {"faces": faces} if lrf_jax.METHODS[method].needs_mesh else {}
-      call = lambda: lrf_jax.compute_frames(pts, kp, r, method, progress=False,  # noqa: B023,E731
-                                            **kw)[0].block_until_ready()  # noqa: B023 (called in this iteration)
+      call = lambda cloud: lrf_jax.compute_frames(  # noqa: E731
+          cloud, kp, r, method, progress=False,  # noqa: B023 (called in this iteration)
+          **kw)[0].block_until_ready()  # noqa: B023
       lrf_jax.compute_frames(pts, kp[:min(m, 4096)], r, method, progress=False, **kw)
-      dt = _median_time(call, repeat if m <= 10_000 else 1)
+      dt = _median_time(call, repeat if m <= 10_000 else 1, moved=pts)
       peer = PCL_SAME.get(method, "shot_omp")
       name = {"shot_omp": "SHOT", "board": "BOARD + normals",
               "flare": "FLARE + normals", "rops": "RoPS"}[peer]

@@ -414,6 +414,27 @@ def test_patch_areas_follow_sampling_density():
   np.testing.assert_allclose(patch_areas(pts @ rot.T + 1.0, moved), a, rtol=1e-4)
 
 
+def test_patch_areas_are_the_numpy_expression_bit_for_bit(br_bunny):
+  # The compiled pass (`lrf_net_plus_sums.relative_areas`) against the numpy lines it replaced,
+  # on a cloud and a mesh, with padding (k=None: uneven rows) and numpy's pairwise row sums.
+  from lrf_jax.frames.lrf_net_plus import patch_areas
+  from lrf_jax.geometry.cloud_cache import cache_last
+
+  points, faces, mr, _ = br_bunny
+  kp = np.arange(0, len(points), 397)
+  for k, f in ((512, None), (None, None), (100, faces)):
+    patches = build_patches(points, kp, 15 * mr, k)
+    got = patch_areas(points, patches, f)
+    per_point = cache_last("point_area", (np.asarray(points, np.float64),) + (
+        () if f is None else (np.asarray(f),)), lambda: None)
+    a = np.append(per_point, 0.0).take(np.asarray(patches.indices))
+    count = np.count_nonzero(np.asarray(patches.mask), axis=1)[:, None]
+    mean = a.sum(1, keepdims=True) / np.maximum(count, 1)
+    want = np.divide(a, np.where(mean > 0, mean, 1.0), out=np.empty(a.shape, np.float32),
+                     casting="same_kind")
+    np.testing.assert_array_equal(got, want)
+
+
 def test_patch_areas_of_a_mesh_are_barycentric():
   """With faces, a vertex stands for a third of its triangles' area (they sum to the mesh's)."""
   from lrf_jax.frames.lrf_net_plus import patch_areas, vertex_areas

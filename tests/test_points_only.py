@@ -131,6 +131,91 @@ def test_flat_patch_has_zero_confidence_and_a_valid_or_flagged_frame():
   assert not extra.view.any() and not extra.trust.any()
 
 
+def support_view_reference(normals, per_point, patches, radius):
+  """`lrf_net_plus.support_view` in numpy, as it was written before its compiled pass: the
+  definition its kernel reproduces bit for bit."""
+  idx = np.asarray(patches.indices)
+  off = np.asarray(patches.offsets, np.float64)
+  near = (idx >= 0) & (np.einsum("nkc,nkc->nk", off, off) <= (float(radius) / 3.0) ** 2)
+  near &= np.all(np.isfinite(normals[np.maximum(idx, 0)]), axis=-1)
+  view = np.where(near[..., None], normals[np.maximum(idx, 0)], 0.0).sum(1)
+  trust = None
+  if per_point is not None:
+    trust = (np.where(near, per_point[np.maximum(idx, 0)], 0.0).sum(1)
+             / np.maximum(near.sum(1), 1))
+    view = np.where((trust >= MIN_VOTE_TRUST)[:, None], view, 0.0)
+  return view, trust
+
+
+@pytest.mark.parametrize("k", [512, 100, None])
+def test_support_view_is_the_numpy_sums_bit_for_bit(scan, k):
+  # Trust values of every magnitude (the order of the sums shows), NaN normals, padding, and
+  # patch sizes below and above numpy's pairwise block (128) and uneven ones (k=None).
+  from lrf_jax.frames.lrf_net_plus import support_view
+  pts, kp, r = scan
+  patches = build_patches(pts, kp, r, k)
+  rng = np.random.default_rng(k or 0)
+  nrm = rng.normal(size=(len(pts), 3))
+  nrm[rng.random(len(pts)) < 0.05] = np.nan
+  per_point = rng.random(len(pts)) * 10.0 ** rng.integers(-6, 3, len(pts))
+  for trust in (per_point, np.full(len(pts), 0.3), None):
+    view, got = support_view(nrm, trust, patches, r)
+    want_view, want = support_view_reference(nrm, trust, patches, r)
+    np.testing.assert_array_equal(view, want_view)
+    assert (got is None and want is None) or np.array_equal(got, want)
+    if trust is per_point:  # both sides of MIN_VOTE_TRUST: some views zeroed, some kept
+      assert 0 < (want >= MIN_VOTE_TRUST).mean() < 1
+
+
+def test_propagation_graph_is_the_knn_lists_each_edge_once_in_first_mention_order():
+  # The graph Prim walks: every node's neighbours in the order the k-NN lists first mention
+  # them (the list of i at i's turn, i in j's list at j's turn), each once. A repeated entry
+  # would come later in both nodes' lists, where neither the walk nor Prim's strict key test
+  # (an equal weight never replaces a key) reads it: the same trees, signs and components.
+  from lrf_jax.geometry import orientation
+  from lrf_jax.geometry.cloud_cache import cloud_knn
+  rng = np.random.default_rng(5)
+  pts = np.r_[_sphere(600, np.zeros(3), rng)[0], _sphere(300, np.zeros(3), rng)[0][:50]]
+  nrm = pca_normals(pts, 0.3)
+  nbr = cloud_knn(pts, 9)[1]
+  starts, adj, wts = orientation._knn_graph(nrm, nbr)
+  want = [[] for _ in pts]
+  for i in range(len(pts)):
+    for j in nbr[i]:
+      if j != i:
+        want[i].append(j)
+        want[j].append(i)
+  for i in range(len(pts)):
+    first = list(dict.fromkeys(want[i]))
+    np.testing.assert_array_equal(adj[starts[i]:starts[i + 1]], first)
+    a, b = nrm[i], nrm[first]
+    dot = a[0] * b[:, 0] + a[1] * b[:, 1] + a[2] * b[:, 2]
+    np.testing.assert_array_equal(wts[starts[i]:starts[i + 1]], 1.0 - np.abs(dot))
+
+
+def test_propagation_walks_the_knn_components_and_reads_the_cached_knn():
+  # The component labels the vote uses come from the propagation's own walk: those of
+  # `knn_components`, also with NaN normals (the finite ones' graph) and several components.
+  from lrf_jax.geometry import orientation
+  from lrf_jax.geometry.cloud_cache import cloud_knn
+  from lrf_jax.search import engine
+  rng = np.random.default_rng(3)
+  pts = np.concatenate([_sphere(800, np.array([3.0 * i, 0, 0]), rng)[0] for i in range(3)])
+  pts = pts[rng.permutation(len(pts))]
+  nrm = pca_normals(pts, 0.3)
+  for normals in (nrm, np.where(rng.random((len(pts), 1)) < 0.1, np.nan, nrm)):
+    out, good, labels = orientation._propagated(pts, normals, 8)
+    np.testing.assert_array_equal(labels, orientation.knn_components(pts[good], 8))
+    assert labels.max() == 2
+    np.testing.assert_array_equal(out, orientation.orient_by_propagation(pts, normals))
+  d, i = engine.knn(engine.knn_grid(pts, 9), pts, 9)
+  last, nbr = cloud_knn(pts, 9)
+  np.testing.assert_array_equal(last, d[:, -1])
+  np.testing.assert_array_equal(nbr, i)
+  nbr[:] = 0  # the caller's copy
+  np.testing.assert_array_equal(cloud_knn(pts, 9)[1], i)
+
+
 def _patches_and_extra(scan, n=24):
   pts, kp, r = scan
   kp = kp[:n]

@@ -29,6 +29,7 @@ from lrf_jax.search import engine
 from lrf_jax.frames.lrf_net import (MIN_Z_NEIGHBORS, X_EPS, lrf_net_frames,
                                    table_host_supports)
 from lrf_jax.frames.spec import KEYPOINT, SLOT, HostPatchKernel, MethodSpec
+from lrf_jax.frames.lrf_net_plus_sums import relative_areas, support_sums
 from lrf_jax.search.neighborhoods import Patches
 
 if TYPE_CHECKING:
@@ -149,6 +150,10 @@ def support_view(normals: np.ndarray, per_point: np.ndarray | None, patches: Pat
                  radius: float) -> tuple[np.ndarray, np.ndarray | None]:
   """The sum of the oriented normals of each patch's neighbors within r/3 (the z support).
 
+  One compiled pass over the patches (`lrf_net_plus_sums.support_sums`); its sums are numpy's
+  of the arrays `tests/test_points_only.py` writes out (`support_view_reference` there), bit
+  for bit.
+
   Args:
     normals: (n, 3) oriented normals of the cloud (NaN rows are skipped).
     per_point: (n,) trust of each normal's sign (`points_only_normals`), or None (trusted).
@@ -159,17 +164,18 @@ def support_view(normals: np.ndarray, per_point: np.ndarray | None, patches: Pat
     (view (N, 3) float64, trust (N,) float64 or None): with `per_point`, trust is its mean over
     the z support and the view is zeroed where it is below `MIN_VOTE_TRUST` (`ball_sign` then).
   """
-  nrm, trust = normals, None
   idx = np.asarray(patches.indices)
-  off = np.asarray(patches.offsets, np.float64)
-  near = (idx >= 0) & (np.einsum("nkc,nkc->nk", off, off) <= (float(radius) / 3.0) ** 2)
-  near &= np.all(np.isfinite(nrm[np.maximum(idx, 0)]), axis=-1)
-  view = np.where(near[..., None], nrm[np.maximum(idx, 0)], 0.0).sum(1)
-  if per_point is not None:
-    trust = (np.where(near, per_point[np.maximum(idx, 0)], 0.0).sum(1)
-             / np.maximum(near.sum(1), 1))
-    view = np.where((trust >= MIN_VOTE_TRUST)[:, None], view, 0.0)  # else: ball_sign
-  return view, trust
+  off = np.asarray(patches.offsets)
+  idx = idx if idx.dtype == np.int32 else idx.astype(np.int64)
+  off = off if off.dtype == np.float32 else off.astype(np.float64)
+  view = np.zeros((idx.shape[0], 3))
+  trust = np.zeros(idx.shape[0])
+  weigh = per_point is not None
+  support_sums(np.ascontiguousarray(normals, np.float64),
+               np.ascontiguousarray(per_point if weigh else np.zeros(0), np.float64),
+               np.ascontiguousarray(idx), np.ascontiguousarray(off), (float(radius) / 3.0) ** 2,
+               weigh, MIN_VOTE_TRUST, view, trust)
+  return view, trust if weigh else None
 
 
 def _finish_view(view: np.ndarray, trust: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
@@ -205,7 +211,7 @@ def patch_areas(points: np.ndarray, patches: Patches,
   of the local sampling density. Normalised to mean 1 over each patch's neighbors (0 in
   padding). Rotation and translation invariant.
   """
-  from lrf_jax.geometry.normals import cache_last
+  from lrf_jax.geometry.cloud_cache import cache_last, cloud_knn
 
   pts = np.asarray(points, np.float64)
 
@@ -215,8 +221,9 @@ def patch_areas(points: np.ndarray, patches: Patches,
     return np.pi * d[:, -1] ** 2 / AREA_NEIGHBORS
 
   def compute():
-    if faces is None or len(faces) == 0:
-      return estimate(np.arange(len(pts)))
+    if faces is None or len(faces) == 0:  # every point: the cloud's k-NN, which the
+      d = cloud_knn(pts, min(AREA_NEIGHBORS + 1, len(pts)))[0]  # orientation reads too
+      return np.pi * d ** 2 / AREA_NEIGHBORS
     area = vertex_areas(pts, faces)
     lone = np.flatnonzero(area <= 0)  # vertices on no triangle: the cloud estimate
     if lone.size:
@@ -226,11 +233,11 @@ def patch_areas(points: np.ndarray, patches: Patches,
   key = (pts,) if faces is None else (pts, np.asarray(faces))
   per_point = cache_last("point_area", key, compute)
   idx = np.asarray(patches.indices)
-  a = np.append(per_point, 0.0).take(idx)  # padding (index -1) reads the appended 0
-  count = np.count_nonzero(np.asarray(patches.mask), axis=1)[:, None]
-  mean = a.sum(1, keepdims=True) / np.maximum(count, 1)
-  out = np.empty(a.shape, np.float32)  # each a / mean in float64, rounded once to float32
-  return np.divide(a, np.where(mean > 0, mean, 1.0), out=out, casting="same_kind")
+  idx = np.ascontiguousarray(idx if idx.dtype == np.int32 else idx.astype(np.int64))
+  out = np.empty(idx.shape, np.float32)
+  relative_areas(np.ascontiguousarray(per_point, np.float64), idx,
+                 np.ascontiguousarray(patches.mask, np.bool_), out)
+  return out
 
 
 # ------------------------------------------------------------------------------ sign confidence

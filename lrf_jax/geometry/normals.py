@@ -1,7 +1,7 @@
 """Host-side surface normals and mesh quantities shared by the hand-crafted LRFs.
 
-Everything here runs once per cloud on the host (numpy, numba kernels and the engine, float64;
-scipy only for the orientation graph's connected components); the LRF functions in
+Everything here runs once per cloud on the host (numpy, numba kernels and the engine, float64);
+the LRF functions in
 `lrf_jax.frames` then receive per-keypoint gathers of these arrays through their `prepare` hook
 (`frames.normal_based.prepare_normals`, `frames.rops.prepare_triangles`).
 
@@ -15,12 +15,12 @@ Normals (`estimate_normals`, used when `compute_frames` is called without `norma
   move with the cloud):
   - with a mesh (`faces`): the sign that agrees with the area-weighted vertex normal of the faces,
     i.e. with the triangles' winding;
-  - without: Hoppe et al. (1992) propagation. Over a k-nearest-neighbor graph weighted by
-    1 - |n_i · n_j|, the minimum spanning tree is grown (Prim) from one seed per connected
-    component; each child takes the sign that agrees with its parent. The seed is the component's
-    point farthest from the component's centroid, oriented away from that centroid (outward for a
-    closed surface). For a single-view scan pass normals oriented towards the sensor instead
+  - without: Hoppe et al. (1992) propagation (`orientation.orient_by_propagation`; lrf_net_plus
+    adds a convexity vote per component, `orientation.orient_by_vote`, via `voted_normals`). For
+    a single-view scan pass normals oriented towards the sensor instead
     (`pca_normals(..., viewpoint=...)`, PCL's `flipNormalTowardsViewpoint`).
+
+The orientation's names (`lrf_jax.geometry.orientation`) are importable from here too.
 
 Mesh quantities: `vertex_normals` (area-weighted face normals) and `mean_curvature` (cotangent
 Laplacian, Meyer et al. 2003), the scalar function of GFrames.
@@ -32,72 +32,27 @@ hands out copies of its arrays: writing into a result never changes a later one.
 
 from __future__ import annotations
 
-import hashlib
-from typing import Any
-
 import numba as nb
 import numpy as np
 
 from lrf_jax.search import engine
 from lrf_jax.checks import validate_viewpoint
+from lrf_jax.geometry.cloud_cache import _CACHE, cache_last
+from lrf_jax.geometry.orientation import (PROPAGATION_K, VOTE_EPS, VOTE_SAMPLES, knn_components,
+                                          orient_by_propagation, orient_by_reference,
+                                          orient_by_vote)
+
+__all__ = [  # the orientation's and the cache's names stay importable from here
+    "_CACHE", "NORMAL_RADIUS_RATIO", "PROPAGATION_K", "VOTE_EPS", "VOTE_SAMPLES", "cache_last",
+    "cotangent_laplacian_curvature", "default_normals", "estimate_normals", "face_cross",
+    "knn_components", "mean_curvature", "orient_by_propagation", "orient_by_reference",
+    "orient_by_vote", "pca_normals", "vertex_normals", "voted_normals",
+]
 
 # Default normal radius as a fraction of the support radius r (3 mr at r = 15 mr).
 NORMAL_RADIUS_RATIO = 0.2
-# Neighbors per point in the orientation graph of `orient_by_propagation`.
-PROPAGATION_K = 8
 # Relative eigenvalue gap below which a PCA normal is undefined (as geometry.DEGENERATE_EPS).
 _DEGENERATE = 1e-6
-
-_CACHE: dict[str, Any] = {}
-
-
-def _digest(*arrays: Any) -> str:
-  h = hashlib.blake2b(digest_size=16)
-  for a in arrays:
-    if a is None:
-      h.update(b"none")
-    elif isinstance(a, np.ndarray):
-      a = np.ascontiguousarray(a)
-      h.update(str((a.dtype, a.shape)).encode())
-      h.update(a.data)
-    else:
-      h.update(repr(a).encode())
-  return h.hexdigest()
-
-
-def _handed_out(value: Any) -> Any:
-  """What the cache gives a caller: numpy arrays (also inside tuples and lists, recursively) as
-  fresh writable copies, anything else (e.g. an `engine.Grid`) shared as it is."""
-  if isinstance(value, np.ndarray):
-    return value.copy()
-  if isinstance(value, tuple) and hasattr(value, "_fields"):  # a NamedTuple
-    return type(value)(*(_handed_out(v) for v in value))
-  if isinstance(value, (tuple, list)):
-    return type(value)(_handed_out(v) for v in value)
-  return value
-
-
-def cache_last(kind: str, key_arrays: tuple, fn):
-  """One cached result per `kind`: `fn()` is recomputed only when the inputs' digest changes.
-
-  Every call, the first included, returns copies of the stored arrays (directly or inside
-  tuples/lists): a caller may write into what it gets without changing what a later call
-  returns. Other objects (e.g. an `engine.Grid`) are shared; callers must not modify them.
-
-  Args:
-    kind: cache slot name.
-    key_arrays: the arrays/values the result depends on.
-    fn: zero-argument function computing the result.
-
-  Returns:
-    `fn()`, or the stored result for identical inputs (arrays copied).
-  """
-  key = _digest(kind, *key_arrays)
-  hit = _CACHE.get(kind)
-  if hit is None or hit[0] != key:
-    hit = _CACHE[kind] = (key, fn())
-  return _handed_out(hit[1])
-
 
 # Below this relative gap between the two smallest eigenvalues the closed form hands over to
 # LAPACK (`np.linalg.eigh`), whose eigenvectors stay accurate as the gap closes.
@@ -235,308 +190,6 @@ def vertex_normals(points: np.ndarray, faces: np.ndarray) -> np.ndarray:
   pts = np.ascontiguousarray(points, np.float64)
   f = np.ascontiguousarray(faces, np.int64)
   return _vertex_normals(pts, f)
-
-
-def orient_by_reference(normals: np.ndarray, reference: np.ndarray) -> np.ndarray:
-  """Flip normals where they disagree with a reference field (n · ref < 0); NaN stays NaN."""
-  out = np.array(normals, np.float64, copy=True)
-  flip = np.einsum("ij,ij->i", np.nan_to_num(out), np.nan_to_num(reference)) < 0
-  out[flip] *= -1.0
-  return out
-
-
-@nb.njit(inline="always")
-def _heap_put(hk, hv, pos, i, kv, v):
-  """Slot i of the binary min-heap (keys hk, nodes hv, pos[node] = slot) := (kv, v)."""
-  hk[i] = kv
-  hv[i] = v
-  pos[v] = i
-
-
-@nb.njit(inline="always")
-def _heap_sift_up(hk, hv, pos, i, kv, v):
-  """Insert (kv, v) at slot i (a free slot or v's own) and move it up to its place."""
-  while i > 0:
-    p = (i - 1) >> 1
-    if hk[p] <= kv:
-      break
-    _heap_put(hk, hv, pos, i, hk[p], hv[p])
-    i = p
-  _heap_put(hk, hv, pos, i, kv, v)
-
-
-@nb.njit(inline="always")
-def _heap_sift_down(hk, hv, pos, size):
-  """Re-insert the heap's last entry (slot `size`) from the root after the root was popped."""
-  kv = hk[size]
-  v = hv[size]
-  i = 0
-  while True:
-    c = 2 * i + 1
-    if c >= size:
-      break
-    if c + 1 < size and hk[c + 1] < hk[c]:
-      c += 1
-    if kv <= hk[c]:
-      break
-    _heap_put(hk, hv, pos, i, hk[c], hv[c])
-    i = c
-  _heap_put(hk, hv, pos, i, kv, v)
-
-
-@nb.njit(cache=True)
-def _knn_graph(nrm, nbr):
-  """CSR adjacency (starts (m + 1,), adj, weights 1 - |n_i · n_j|) of the k-NN lists `nbr`
-  (m, k), every edge in both directions (an edge listed twice is harmless)."""
-  m, kk = nbr.shape
-  starts = np.zeros(m + 1, np.int64)
-  for i in range(m):
-    for t in range(kk):
-      j = nbr[i, t]
-      if j != i:
-        starts[i + 1] += 1
-        starts[j + 1] += 1
-  for i in range(m):
-    starts[i + 1] += starts[i]
-  fill = starts[:-1].copy()
-  adj = np.empty(starts[m], np.int64)
-  wts = np.empty(starts[m])
-  for i in range(m):
-    for t in range(kk):
-      j = nbr[i, t]
-      if j != i:
-        w = 1.0 - abs(nrm[i, 0] * nrm[j, 0] + nrm[i, 1] * nrm[j, 1] + nrm[i, 2] * nrm[j, 2])
-        adj[fill[i]] = j
-        wts[fill[i]] = w
-        fill[i] += 1
-        adj[fill[j]] = i
-        wts[fill[j]] = w
-        fill[j] += 1
-  return starts, adj, wts
-
-
-@nb.njit(inline="always")
-def _component_seed(pts, nrm, starts, adj, s, seen, queue):
-  """Mark the component of s as seen (breadth first into queue); return its seed (the point
-  farthest from the component's centroid, smallest index on a tie) and the seed's sign
-  (+1 where its normal points away from the centroid)."""
-  m = pts.shape[0]
-  seen[s] = True
-  size = 1
-  head = 0
-  queue[0] = s
-  cx = 0.0
-  cy = 0.0
-  cz = 0.0
-  while head < size:
-    v = queue[head]
-    head += 1
-    cx += pts[v, 0]
-    cy += pts[v, 1]
-    cz += pts[v, 2]
-    for e in range(starts[v], starts[v + 1]):
-      u = adj[e]
-      if not seen[u]:
-        seen[u] = True
-        queue[size] = u
-        size += 1
-  cx /= size
-  cy /= size
-  cz /= size
-  best = -1.0
-  seed = m
-  for h in range(size):
-    v = queue[h]
-    d = (pts[v, 0] - cx) ** 2 + (pts[v, 1] - cy) ** 2 + (pts[v, 2] - cz) ** 2
-    if d > best or (d == best and v < seed):
-      best = d
-      seed = v
-  out = (nrm[seed, 0] * (pts[seed, 0] - cx) + nrm[seed, 1] * (pts[seed, 1] - cy)
-         + nrm[seed, 2] * (pts[seed, 2] - cz))
-  return seed, 1.0 if out >= 0 else -1.0
-
-
-@nb.njit(cache=True)
-def _propagate_signs(pts, nrm, nbr, sign):
-  """Hoppe orientation over the symmetrised k-NN graph `nbr` (m, k) of unit normals `nrm`.
-
-  Per connected component: the seed (`_component_seed`) takes the sign that points away from the
-  centroid, then Prim's algorithm grows the minimum spanning tree of the weights 1 - |n_i · n_j|
-  from it (binary heap with decrease-key) and every node takes its tree parent's sign times
-  sign(n_node · n_parent). Writes `sign` (m,) in place.
-  """
-  m = nbr.shape[0]
-  starts, adj, wts = _knn_graph(nrm, nbr)
-  seen = np.zeros(m, np.bool_)
-  queue = np.empty(m, np.int64)
-  key = np.full(m, np.inf)
-  parent = np.full(m, -1, np.int64)
-  pos = np.full(m, -1, np.int64)  # heap slot; -1 never queued, -2 in the tree
-  hk = np.empty(m)
-  hv = np.empty(m, np.int64)
-  for s in range(m):
-    if seen[s]:
-      continue
-    seed, seed_sign = _component_seed(pts, nrm, starts, adj, s, seen, queue)
-    sign[seed] = seed_sign
-    key[seed] = 0.0
-    hk[0] = 0.0
-    hv[0] = seed
-    pos[seed] = 0
-    hs = 1
-    while hs > 0:  # Prim
-      v = hv[0]
-      hs -= 1
-      if hs > 0:
-        _heap_sift_down(hk, hv, pos, hs)
-      pos[v] = -2
-      p = parent[v]
-      if p >= 0:
-        dot = nrm[v, 0] * nrm[p, 0] + nrm[v, 1] * nrm[p, 1] + nrm[v, 2] * nrm[p, 2]
-        sign[v] = sign[p] if dot >= 0 else -sign[p]
-      for e in range(starts[v], starts[v + 1]):
-        u = adj[e]
-        pu = pos[u]
-        if pu == -2:
-          continue
-        w = wts[e]
-        if w < key[u]:
-          key[u] = w
-          parent[u] = v
-          if pu == -1:
-            pu = hs
-            hs += 1
-          _heap_sift_up(hk, hv, pos, pu, w, u)
-
-
-def orient_by_propagation(points: np.ndarray, normals: np.ndarray, *, k: int = PROPAGATION_K
-                          ) -> np.ndarray:
-  """Consistent orientation by minimum-spanning-tree propagation (Hoppe et al. 1992).
-
-  The graph joins every point to its k nearest neighbors (both directions), weighted by
-  1 - |n_i · n_j|. Per connected component the seed is the point farthest from the component's
-  centroid (smallest index on a tie), oriented away from the centroid (outward for a closed
-  surface); the minimum spanning tree is grown from it by Prim's algorithm (one compiled pass)
-  and each point takes the sign that agrees with its tree parent. Where several spanning trees
-  are minimal (equal weights) the heap's order picks one, deterministically for a given point
-  order. Equivariant: the graph, the weights and the seed rule all move with the cloud.
-
-  Args:
-    points: (n, 3) cloud.
-    normals: (n, 3) unit normals of arbitrary sign; NaN rows are left NaN (and not traversed).
-    k: neighbors per point in the graph (the engine's k-NN; ties broken by index).
-
-  Returns:
-    (n, 3) float64 consistently oriented normals.
-
-  References:
-    Hoppe, DeRose, Duchamp, McDonald, Stuetzle, "Surface reconstruction from unorganized points",
-    SIGGRAPH 1992, section 3.3.
-  """
-  pts = np.asarray(points, np.float64)
-  nrm = np.array(normals, np.float64, copy=True)
-  good = np.all(np.isfinite(nrm), axis=1)
-  idx = np.flatnonzero(good)
-  if idx.size == 0:
-    return nrm
-  sub = np.ascontiguousarray(pts[idx])
-  sub_n = np.ascontiguousarray(nrm[idx])
-  kk = min(k + 1, idx.size)
-  _, nbr = engine.knn(engine.knn_grid(sub, kk), sub, kk)
-  sign = np.ones(idx.size)
-  _propagate_signs(sub, sub_n, nbr, sign)
-  nrm[idx] = sub_n * sign[:, None]
-  return nrm
-
-
-# Points per connected component whose convexity votes fix its sign (`orient_by_vote`), and the
-# vote (a centroid height in units of the vote radius) below which a vote counts as undecided.
-VOTE_SAMPLES = 256
-VOTE_EPS = 1e-3
-
-
-def knn_components(points: np.ndarray, k: int = PROPAGATION_K) -> np.ndarray:
-  """(n,) int64 connected-component label of every point in the symmetrised k-nearest-neighbor
-  graph (each point joined to its k nearest others), labels 0, 1, ... in order of each
-  component's smallest point index: the components `orient_by_propagation` orients one by one.
-  An empty cloud gives an empty array."""
-  from scipy.sparse import coo_matrix
-  from scipy.sparse.csgraph import connected_components
-  pts = np.asarray(points, np.float64)
-  n = len(pts)
-  if n == 0:
-    return np.zeros(0, np.int64)
-  kk = min(k + 1, n)
-  _, nbr = engine.knn(engine.knn_grid(pts, kk), pts, kk)
-  rows = np.repeat(np.arange(n), kk)
-  graph = coo_matrix((np.ones(rows.size), (rows, nbr.ravel())), shape=(n, n))
-  _, labels = connected_components(graph, directed=False)
-  first = np.full(labels.max() + 1, n, np.int64)
-  np.minimum.at(first, labels, np.arange(n))
-  rank = np.empty_like(first)
-  rank[np.argsort(first, kind="stable")] = np.arange(first.size)
-  return rank[labels].astype(np.int64)
-
-
-def orient_by_vote(points: np.ndarray, normals: np.ndarray, vote_radius: float, *,
-                   k: int = PROPAGATION_K, samples: int = VOTE_SAMPLES, seed: int = 0
-                   ) -> tuple[np.ndarray, np.ndarray]:
-  """Consistent orientation with a global sign from the points alone: Hoppe propagation
-  (`orient_by_propagation`) makes the normals of each connected component agree with each
-  other, then each component takes the sign that the majority of its convexity votes picks.
-
-  Vote of a point i (one of the component's `samples` points of smallest
-  `neighborhoods.hash_priority(seed, i)`: a subsample that depends on indices and the seed
-  only): v_i = -(c_i - p_i) · n_i / vote_radius, with c_i the centroid of the points within
-  `vote_radius` of p_i; positive where the surface around p_i lies behind its normal (the
-  normal points out of a convex patch: TOLDI's sign rule, Σ (p - q)·n >= 0). The component is
-  flipped where Σ v_i < 0. A single patch's convexity is a weak cue (saddles, flat parts, the
-  cut edges of a partial scan flip it); thousands of patches tied together by the propagation
-  are a strong one. Equivariant: the graph, the propagation, the subsample and the votes all
-  move with the cloud.
-
-  Args:
-    points: (n, 3) cloud.
-    normals: (n, 3) unit normals of arbitrary sign; NaN rows stay NaN.
-    vote_radius: radius of the convexity votes (cloud units; lrf_net_plus uses its support
-      radius r).
-    k: neighbors per point of the propagation graph.
-    samples: votes per component (all of its points when it has fewer).
-    seed: seed of the vote subsample.
-
-  Returns:
-    (normals (n, 3) float64, trust (n,) float64): trust is the component's vote margin
-    |Σ v_i| / (Σ |v_i| + VOTE_EPS · n_votes) in [0, 1] (0: the votes cancel or vanish, e.g. a
-    plane; 1: unanimous and decisive), 0 where the normal is NaN.
-
-  References:
-    Hoppe, DeRose, Duchamp, McDonald, Stuetzle, "Surface reconstruction from unorganized points",
-    SIGGRAPH 1992, section 3.3 (the propagation); Yang et al., "TOLDI", Pattern
-    Recognition 2017 (the sign rule of one patch).
-  """
-  from lrf_jax.search.neighborhoods import SearchIndex, hash_priority
-  pts = np.asarray(points, np.float64)
-  nrm = orient_by_propagation(pts, normals, k=k)
-  trust = np.zeros(len(pts))
-  good = np.flatnonzero(np.all(np.isfinite(nrm), axis=1))
-  if good.size == 0:
-    return nrm, trust
-  labels = knn_components(pts[good], k)  # the components the propagation walked
-  order = np.lexsort((hash_priority(int(seed), good), labels))
-  start = np.searchsorted(labels[order], np.arange(labels.max() + 1))
-  rank = np.arange(good.size) - np.repeat(start, np.diff(np.r_[start, good.size]))
-  voters = order[rank < int(samples)]  # positions in `good`
-  centers = pts[good[voters]]
-  _, offset, _ = engine.ball_stats(SearchIndex(pts, 0).grid(float(vote_radius)), centers,
-                                   float(vote_radius))
-  votes = -np.einsum("nc,nc->n", offset, nrm[good[voters]]) / float(vote_radius)
-  total = np.bincount(labels[voters], votes, labels.max() + 1)
-  size = np.bincount(labels[voters], np.abs(votes), labels.max() + 1)
-  flip = np.where(total < 0, -1.0, 1.0)
-  nrm[good] *= flip[labels][:, None]
-  count = np.bincount(labels[voters], None, labels.max() + 1)
-  trust[good] = (np.abs(total) / (size + VOTE_EPS * count))[labels]
-  return nrm, trust
 
 
 def voted_normals(points: np.ndarray, normal_radius: float, vote_radius: float

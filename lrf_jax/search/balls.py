@@ -1,4 +1,5 @@
-"""The compiled engine's ball queries: counts, moment statistics, patches, ball lists.
+"""The compiled engine's ball queries: counts, moment statistics, patches (the ball lists and
+any-within are in `ball_lists.py`).
 
 * A ball query of radius r visits the columns (x cell, y cell) within ceil(r / h) cells whose
   box comes within r of the centre, and in each column only the run of consecutive z cells the
@@ -12,14 +13,12 @@
   limit misses is collected again without it), then bucket-sorted by rank. The subsample is
   therefore exactly the one of `neighborhoods.hash_priority`: the same indices whatever the
   search order, the thread count or the cloud's pose.
-* "Any point within r" (overlap scores) visits the ball's columns and stops at the first point
-  found.
 
 Compile time: the patch kernel calls its ball-query helpers as functions (`*_called`, the same
 code compiled on its own) instead of inlining them: numba's `inline="always"` re-types each call
 site inside a parallel kernel, which tripled the patch kernel's compile (18.7 -> 6.8 s of CPU on
 a first `build_patches`), for the same results and speed. The other kernels keep the inlined
-helpers: without them the ball lists, normals and k-NN queries run 1.3-5x slower.
+helpers: without them the ball lists (`ball_lists.py`), normals and k-NN queries run 1.3-5x slower.
 """
 
 from __future__ import annotations
@@ -521,97 +520,3 @@ def patches(grid: Grid, centers: np.ndarray, radius: float, k: int, inner_radius
                 _reach(grid, rz), *_keep(r, shells), known, out["offsets"], out["mask"],
                 out["indices"], out["count"], *z)
   return out
-
-
-@nb.njit(parallel=True, cache=True)
-def _any_within(pts, starts, origin, h, dims, queries, r, reach):
-  m = queries.shape[0]
-  out = np.zeros(m, np.bool_)
-  r2 = r * r
-  ncol = (2 * reach + 1) ** 2
-  nblock = (m + _BLOCK - 1) // _BLOCK
-  for blk in nb.prange(nblock):
-    js = np.empty(ncol, np.int64)
-    je = np.empty(ncol, np.int64)
-    for i in range(blk * _BLOCK, min(m, (blk + 1) * _BLOCK)):
-      cx, cy, cz = queries[i, 0], queries[i, 1], queries[i, 2]
-      nr = _columns(cx, cy, cz, origin, h, dims, starts, r, reach, js, je)
-      found = False
-      for q in range(nr):
-        for j in range(starts[js[q]], starts[je[q]]):
-          dx = pts[0, j] - cx
-          dy = pts[1, j] - cy
-          dz = pts[2, j] - cz
-          if dx * dx + dy * dy + dz * dz <= r2:
-            found = True
-            break
-        if found:
-          break
-      out[i] = found
-  return out
-
-
-def any_within(grid: Grid, queries: np.ndarray, radius: float) -> np.ndarray:
-  """(m,) bool: whether any grid point lies within `radius` of each query (stops at the first)."""
-  r = float(radius)
-  return _any_within(grid.xyz, grid.starts, grid.origin, grid.h, grid.dims, _centers(queries), r,
-                     _reach(grid, r))
-
-
-@nb.njit(parallel=True, cache=True)
-def _ball_fill(pts, slot_index, starts, origin, h, dims, centers, order, r, reach, kin2, kout2,
-               ptr, out):
-  """The in-ball point indices of each centre (as `_ball_counts` counts them) into out[ptr[i]:],
-  centres visited in `order`."""
-  m = centers.shape[0]
-  r2 = r * r
-  ncol = (2 * reach + 1) ** 2
-  nblock = (m + _BLOCK - 1) // _BLOCK
-  for blk in nb.prange(nblock):
-    js = np.empty(ncol, np.int64)
-    je = np.empty(ncol, np.int64)
-    for t in range(blk * _BLOCK, min(m, (blk + 1) * _BLOCK)):
-      i = order[t]
-      cx, cy, cz = centers[i, 0], centers[i, 1], centers[i, 2]
-      nr = _columns(cx, cy, cz, origin, h, dims, starts, r, reach, js, je)
-      w = ptr[i]
-      for q in range(nr):
-        for j in range(starts[js[q]], starts[je[q]]):
-          dx = pts[0, j] - cx
-          dy = pts[1, j] - cy
-          dz = pts[2, j] - cz
-          d2 = dx * dx + dy * dy + dz * dz
-          if d2 <= r2 and (d2 <= kin2 or d2 > kout2):
-            out[w] = slot_index[j]
-            w += 1
-
-
-def ball_lists(grid: Grid, centers: np.ndarray, radius: float,
-               shells: tuple[float, float] | None = None, with_counts: bool = False
-               ) -> tuple[np.ndarray, ...]:
-  """Every grid point within `radius` of each centre, as compressed rows.
-
-  Args:
-    grid: a `Grid` of the cloud.
-    centers: (m, 3) ball centres.
-    radius: r.
-    shells: (a, b): keep only the points within a * r or beyond b * r (as `ball_counts`).
-    with_counts: also return the number of points within `radius` of each centre (all of them,
-      whatever `shells`), counted in the same pass.
-
-  Returns:
-    (ptr (m + 1,) int64, indices (ptr[-1],) int64): the point indices of ball i are
-    indices[ptr[i]:ptr[i + 1]], in the grid's slot order (cell, then rank); with `with_counts`,
-    (ptr, indices, counts (m,) int64).
-  """
-  c = _centers(centers)
-  r = float(radius)
-  order, reach, keep = query_order(grid, c), _reach(grid, r), _keep(r, shells)
-  full, counts = _ball_counts(grid.xyz, grid.starts, grid.origin, grid.h, grid.dims, c, order, r,
-                              reach, *keep)
-  ptr = np.zeros(len(c) + 1, np.int64)
-  np.cumsum(counts, out=ptr[1:])
-  out = np.empty(int(ptr[-1]), np.int64)
-  _ball_fill(grid.xyz, grid.slot_index, grid.starts, grid.origin, grid.h, grid.dims, c, order, r,
-             reach, *keep, ptr, out)
-  return (ptr, out, full) if with_counts else (ptr, out)

@@ -53,8 +53,7 @@ from lrf_jax.registration.options import DEFAULTS
 from lrf_jax.search import engine
 from lrf_jax.registration import pose_graph
 from lrf_jax.registration.icp_host import estimate_target_normals
-from lrf_jax.geometry.cloud import as_cloud
-from lrf_jax.io.cloud import Cloud
+from lrf_jax.geometry.cloud import CheckedCloud, as_cloud
 from lrf_jax.geometry.resolution import working_resolution
 from lrf_jax.checks import validate_viewpoint
 # re-exported: the outputs' names were this module's before they moved
@@ -239,10 +238,10 @@ def _overlap_points(src: np.ndarray, grid: engine.Grid, transform: np.ndarray, d
   return _farthest(near, EDGE_POINTS) if len(near) else near
 
 
-def load_scans(scans: Sequence[Any], names: Sequence[str]) -> list[Cloud]:
-  """Each scan (a path, array, `Cloud` or object with `.points`) as a `Cloud` of float64
-  points; a bad scan raises ValueError naming its path (or its name), FileNotFoundError for a
-  missing path."""
+def load_scans(scans: Sequence[Any], names: Sequence[str]) -> list[CheckedCloud]:
+  """Each scan (a path, array, `Cloud` or object with `.points`) as a `CheckedCloud` (checked
+  once here: every pair it is in takes it as it is); a bad scan raises ValueError naming its
+  path (or its name), FileNotFoundError for a missing path."""
   out = []
   for scan, name in zip(scans, names):
     label = str(scan) if isinstance(scan, (str, os.PathLike)) else name
@@ -252,7 +251,7 @@ def load_scans(scans: Sequence[Any], names: Sequence[str]) -> list[Cloud]:
       raise ValueError(e if label in str(e) else f"{label}: {e}") from None
     if len(c.points) < 10:
       raise ValueError(f"{label}: expected a cloud of at least 10 points, got {len(c.points)}")
-    out.append(Cloud(np.asarray(c.points, np.float64), c.faces, c.normals))
+    out.append(c)
   return out
 
 
@@ -524,7 +523,7 @@ def register_all(scans: Sequence[Any], *, names: Sequence[str] | None = None,
                         confident=confident)
 
 
-def median_mr(clouds: Sequence[Cloud], names: Sequence[str]) -> float:
+def median_mr(clouds: Sequence[CheckedCloud], names: Sequence[str]) -> float:
   """`register_all`'s mr when none is given: the median of the scans' working resolutions
   (`working_resolution`: a clean scan's mean spacing, a raw sweep's area-weighted one)."""
   return float(np.median([working_resolution(c.points, c.faces, name=f"scan {name}").mr

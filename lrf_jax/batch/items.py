@@ -25,6 +25,12 @@ _NOT_JOB_OPTIONS = ("source", "target", "params", "init")
 
 
 def _error(e: BaseException, t0: float) -> dict[str, Any]:
+  """The error record of an item that raised `e`; Ctrl-C is not an item's error: a
+  KeyboardInterrupt that surfaced as another exception (numba turns one inside a kernel into a
+  SystemError) is raised again, so that the job stops and the item stays pending."""
+  from lrf_jax.cli.interrupt import caused_by_interrupt
+  if caused_by_interrupt(e):
+    raise KeyboardInterrupt from e
   text = str(e) if isinstance(e, (ValueError, OSError)) else f"{type(e).__name__}: {e}"
   return dict(status="error", error=text, seconds=time.perf_counter() - t0)
 

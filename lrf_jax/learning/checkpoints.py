@@ -10,8 +10,9 @@ restore (orbax works collectively); only process 0 (`is_primary`) renames files 
 Each checkpoint also holds a checksum item: the SHA-256 of the state's leaves (path, dtype,
 shape and bytes) as saved. A restore recomputes it from what was read and refuses a checkpoint
 whose arrays differ (`ChecksumError`): a flipped byte in an array file can decode to finite but
-wrong numbers that no other check sees. Checkpoints written before the checksum existed are
-restored without it.
+wrong numbers that no other check sees. A checkpoint whose metadata names the checksum item
+but whose checksum is missing or unreadable is refused too (a partial copy would otherwise skip
+the check). Checkpoints written before the checksum existed are restored without it.
 """
 
 from __future__ import annotations
@@ -93,17 +94,46 @@ def _restore_state(mngr: ocp.CheckpointManager, step: int, target: dict[str, Any
   """The state of checkpoint `step`, verified against its saved checksum (when it has one).
 
   Raises:
-    ChecksumError: the arrays read differ from those saved (the message names the step).
+    ChecksumError: the arrays read differ from those saved, or the checksum saved with them is
+      missing or unreadable (the message names the step).
   """
+  expected = _saved_checksum(mngr, step)
   restored = mngr.restore(step, args=ocp.args.Composite(
       state=ocp.args.StandardRestore(target)))["state"]
-  if (Path(mngr.directory) / str(step) / "checksum").is_dir():
+  if expected is not None and expected != state_checksum(restored):
+    raise ChecksumError(f"checkpoints/{step}: its arrays differ from the checksum saved with "
+                        "them (a corrupt file)")
+  return restored
+
+
+def _saved_checksum(mngr: ocp.CheckpointManager, step: int) -> str | None:
+  """The checksum saved with checkpoint `step`, or None for a checkpoint saved without one (its
+  `_CHECKPOINT_METADATA` names no "checksum" item).
+
+  Raises:
+    ChecksumError: the metadata names a checksum item that is missing or unreadable.
+  """
+  step_dir = Path(mngr.directory) / str(step)
+  try:
+    meta = json.loads((step_dir / "_CHECKPOINT_METADATA").read_text())
+    declared = "checksum" in (meta.get("item_handlers") or {})
+  except (OSError, ValueError, AttributeError, TypeError):
+    declared = False  # unreadable metadata: orbax's own restore reports it
+  if not (step_dir / "checksum").is_dir():
+    if declared:
+      raise ChecksumError(f"checkpoints/{step}: the checksum saved with it is missing (it was "
+                          "saved with one)")
+    return None
+  try:
     saved = mngr.restore(step, args=ocp.args.Composite(
         checksum=ocp.args.JsonRestore()))["checksum"]
-    if not isinstance(saved, dict) or saved.get("sha256") != state_checksum(restored):
-      raise ChecksumError(f"checkpoints/{step}: its arrays differ from the checksum saved with "
-                          "them (a corrupt file)")
-  return restored
+  except Exception as e:  # noqa: BLE001 -- orbax raises JSON, Key, Value and OS errors here
+    raise ChecksumError(f"checkpoints/{step}: the checksum saved with it is unreadable "
+                        f"({type(e).__name__})") from None
+  if not isinstance(saved, dict) or not isinstance(saved.get("sha256"), str):
+    raise ChecksumError(f"checkpoints/{step}: the checksum saved with it is unreadable (expected "
+                        f'{{"sha256": ...}}, found {str(saved)[:60]})')
+  return saved["sha256"]
 
 
 def check_compatible(saved: dict[str, Any], config: TrainConfig, where: Path) -> None:

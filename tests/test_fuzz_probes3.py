@@ -386,3 +386,37 @@ def smoke():
 def _smoke2(smoke):
   from lrf_jax.learning import config as config_lib
   return config_lib.replace(smoke, epochs=2)
+
+
+# --- numba's CPU target and the kernel cache ---------------------------------------------------
+
+_MATCH = """
+import numpy as np
+from lrf_jax.descriptors import select_correspondences
+rng = np.random.default_rng(0)
+q = np.where(rng.random((40, 30)) < 0.5, 100.0, rng.random((40, 30))).astype(np.float32)
+select_correspondences(q, q[::-1], n=10)
+"""
+
+
+def _compiles(cache: Path, cpu: str | None) -> bool:
+  env = {k: v for k, v in _env().items() if k not in ("NUMBA_CPU_NAME", "NUMBA_CPU_FEATURES")}
+  env["NUMBA_CACHE_DIR"] = str(cache)
+  if cpu is not None:
+    env["NUMBA_CPU_NAME"] = cpu
+  out = subprocess.run([sys.executable, "-c", _MATCH], env=env, capture_output=True, text=True,
+                       timeout=600)
+  assert out.returncode == 0, out.stderr
+  return "compiling kernels" in out.stderr
+
+
+def test_kernels_compiled_for_one_cpu_target_are_never_loaded_for_another(tmp_path):
+  """A user's NUMBA_CPU_NAME (here "generic", as for a cache shipped to other machines) is
+  respected: lrf_jax's locator keys a kernel by its sources, and numba's index keys each entry
+  by the target (triple, CPU name, features), so one cache holds both builds side by side and
+  each run loads only its own."""
+  cache = tmp_path / "cache"
+  assert _compiles(cache, "generic")
+  assert _compiles(cache, None)  # native: not the generic build
+  assert not _compiles(cache, "generic")
+  assert not _compiles(cache, None)

@@ -420,3 +420,16 @@ def test_kernels_compiled_for_one_cpu_target_are_never_loaded_for_another(tmp_pa
   assert _compiles(cache, None)  # native: not the generic build
   assert not _compiles(cache, "generic")
   assert not _compiles(cache, None)
+
+
+@pytest.mark.parametrize("cache", ["[]", "null", '{"X": 5}', '{"X": [1, 2, 3, 4]}',
+                                   '{"X": [true, 2, 3, "h"]}'])
+def test_a_damaged_hash_cache_costs_a_rehash_not_the_job(tmp_path, fake_frames, cache):
+  """Before: a hashes.json holding a list, null or a malformed entry raised AttributeError or
+  TypeError out of every later run of the job."""
+  s0, _ = _scans(tmp_path)
+  out = tmp_path / "out"
+  jobs.run_frames([s0], out, progress=False)
+  (out / jobs.STATE / "hashes.json").write_text(cache.replace("X", str(s0)))
+  again = jobs.run_frames([s0], out, progress=False)
+  assert (again.ran, again.skipped, again.exit_code) == (0, 1, 0)

@@ -229,9 +229,12 @@ class _Hashes:
   def __init__(self, path: Path):
     self.path = path
     try:
-      self.cache = json.loads(path.read_text())
+      cache = json.loads(path.read_text())
     except (OSError, ValueError):
-      self.cache = {}
+      cache = {}
+    # Only well-formed entries: a damaged or hand-edited cache costs a re-hash, not the job.
+    self.cache = {k: v for k, v in cache.items() if _cache_entry(v)} \
+        if isinstance(cache, dict) else {}
     self.changed = False
 
   def __call__(self, file: str) -> str:
@@ -260,6 +263,13 @@ class _Hashes:
     if self.changed:
       atomic.write_text(self.path, json.dumps(self.cache))
       self.changed = False
+
+
+def _cache_entry(value: Any) -> bool:
+  """Whether `value` is a hash cache entry: [size, mtime_ns, inode, sha256 hex]."""
+  return (isinstance(value, list) and len(value) == 4
+          and all(isinstance(v, int) and not isinstance(v, bool) for v in value[:3])
+          and isinstance(value[3], str))
 
 
 def _size(path: str) -> int:

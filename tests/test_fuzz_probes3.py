@@ -433,3 +433,15 @@ def test_a_damaged_hash_cache_costs_a_rehash_not_the_job(tmp_path, fake_frames, 
   (out / jobs.STATE / "hashes.json").write_text(cache.replace("X", str(s0)))
   again = jobs.run_frames([s0], out, progress=False)
   assert (again.ran, again.skipped, again.exit_code) == (0, 1, 0)
+
+
+@pytest.mark.parametrize("viewpoint", [["nan", "0", "0"], ["0", "inf", "0"]])
+def test_a_non_finite_viewpoint_is_refused_before_the_work(tmp_path, viewpoint, capsys):
+  """Before: every scan of the job ran and failed on it (exit 3, one error row per scan)."""
+  s0, s1 = _scans(tmp_path)
+  out = tmp_path / "out"
+  rc = batch_cli.main(["frames", str(s0), str(s1), "--out", str(out), "--no-progress",
+                       "--viewpoint", *viewpoint])
+  err = capsys.readouterr().err
+  assert rc == 2 and err.startswith("error: viewpoint: expected three finite"), err
+  assert not out.exists()

@@ -84,6 +84,15 @@ def _frames_argv(scan: str, options: dict[str, Any]) -> list[str]:
   return argv
 
 
+def _finite_point(value: Any) -> bool:
+  """Whether `value` is a list or tuple of three finite real numbers (lrf-frames checks a
+  viewpoint only when it reads the cloud: a job checks it before its first item)."""
+  if not isinstance(value, (list, tuple)) or len(value) != 3:
+    return False
+  return all(isinstance(v, (int, float)) and not isinstance(v, bool) and np.isfinite(v)
+             for v in value)
+
+
 def check_frames_options(options: dict[str, Any]) -> None:
   """ValueError unless `options` are lrf-frames options (`FRAMES_OPTIONS`) it accepts."""
   from lrf_jax.cli import frames as frames_cli
@@ -91,8 +100,9 @@ def check_frames_options(options: dict[str, Any]) -> None:
     if key not in FRAMES_OPTIONS:
       raise ValueError(f"{key}: not an option of a frames job; expected one of "
                        f"{sorted(FRAMES_OPTIONS)}")
-    if key == "viewpoint" and (not isinstance(value, (list, tuple)) or len(value) != 3):
-      raise ValueError(f"viewpoint: expected three numbers, got {value!r}")
+    if key == "viewpoint" and not _finite_point(value):
+      raise ValueError(f"viewpoint: expected three finite numbers (the sensor's position), got "
+                       f"{value!r}")
     if not _plain(value):
       raise ValueError(f"{key}: expected a number or a string, got {type(value).__name__}")
   try:

@@ -445,3 +445,15 @@ def test_a_non_finite_viewpoint_is_refused_before_the_work(tmp_path, viewpoint, 
   err = capsys.readouterr().err
   assert rc == 2 and err.startswith("error: viewpoint: expected three finite"), err
   assert not out.exists()
+
+
+def test_a_nuscenes_pcd_bin_is_refused_not_misread_as_kitti(tmp_path):
+  """Before: 8 points of 5 float32 (160 bytes, a multiple of 16) read as 10 KITTI points of
+  shuffled columns, silently."""
+  from lrf_jax.io import read_cloud
+  sweep = np.arange(40, dtype="<f4").reshape(8, 5)
+  sweep.tofile(tmp_path / "n008__LIDAR_TOP__1.pcd.bin")
+  with pytest.raises(ValueError, match=r"nuScenes-style \.pcd\.bin"):
+    read_cloud(tmp_path / "n008__LIDAR_TOP__1.pcd.bin")
+  sweep[:, :4].tofile(tmp_path / "kitti.bin")  # a KITTI layout still reads
+  assert read_cloud(tmp_path / "kitti.bin").points.shape == (8, 3)

@@ -457,3 +457,21 @@ def test_a_nuscenes_pcd_bin_is_refused_not_misread_as_kitti(tmp_path):
     read_cloud(tmp_path / "n008__LIDAR_TOP__1.pcd.bin")
   sweep[:, :4].tofile(tmp_path / "kitti.bin")  # a KITTI layout still reads
   assert read_cloud(tmp_path / "kitti.bin").points.shape == (8, 3)
+
+
+def test_lrf_compile_into_a_cache_it_cannot_write_is_one_error_before_the_work(tmp_path,
+                                                                                monkeypatch,
+                                                                                capsys):
+  """Before: with a read-only NUMBA_CACHE_DIR, lrf-compile compiled for 40 s, said "compiled 1
+  of 1 groups ... into <that folder>" and exited 0, keeping nothing."""
+  from lrf_jax.cli import compile as compile_cli
+  blocker = tmp_path / "file"
+  blocker.write_text("x")  # a folder under a file cannot be created, even by root
+  monkeypatch.setenv("NUMBA_CACHE_DIR", str(blocker / "numba"))
+  monkeypatch.setattr(compile_cli, "groups",
+                      lambda: {"g": lambda: pytest.fail("the work started")})
+  monkeypatch.setattr(compile_cli, "_run_group", lambda name: pytest.fail("the work started"))
+  rc = compile_cli.main(["--jobs", "1"])
+  err = capsys.readouterr().err
+  assert rc == 2 and err.startswith("error: the cache of numba's kernels"), err
+  assert str(blocker / "numba") in err and "not writable" in err

@@ -109,6 +109,25 @@ def _run_group(name: str) -> tuple[str, float, str | None]:
   return name, time.perf_counter() - t0, None
 
 
+def _unwritable_cache() -> str | None:
+  """Why the caches cannot take the compiled code (a read-only or missing folder), or None.
+  Without this, a compile into a read-only cache "succeeded" (numba only warns, and the groups
+  run with warnings off) and the next run compiled everything again."""
+  import tempfile
+
+  from lrf_jax import compilation_cache
+  for what, folder in (("numba's kernels (NUMBA_CACHE_DIR)", compilation_cache.numba_cache_dir()),
+                       ("JAX's programs (LRF_JAX_CACHE_DIR)", compilation_cache.cache_dir())):
+    try:
+      folder.mkdir(parents=True, exist_ok=True)
+      with tempfile.TemporaryFile(dir=folder):
+        pass
+    except OSError as e:
+      return (f"the cache of {what}, {folder}, is not writable ({e.strerror or e}); nothing "
+              "compiled would be kept")
+  return None
+
+
 def _stop(pool) -> None:
   """End a pool's workers now: a Ctrl-C sent to this process only (`kill -INT`, a supervisor)
   would otherwise wait for every running group to finish (minutes)."""
@@ -149,6 +168,10 @@ def main(argv: list[str] | None = None) -> int:
     names = [n for n in names if n in args.only]
   if args.jobs < 1:
     print(f"error: --jobs: expected a positive integer, got {args.jobs}", file=sys.stderr)
+    return 2
+  problem = _unwritable_cache()
+  if problem:
+    print(f"error: {problem}", file=sys.stderr)
     return 2
   import multiprocessing as mp
   from concurrent.futures import ProcessPoolExecutor, as_completed

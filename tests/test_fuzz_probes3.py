@@ -475,3 +475,21 @@ def test_lrf_compile_into_a_cache_it_cannot_write_is_one_error_before_the_work(t
   err = capsys.readouterr().err
   assert rc == 2 and err.startswith("error: the cache of numba's kernels"), err
   assert str(blocker / "numba") in err and "not writable" in err
+
+
+def test_a_step_set_aside_twice_keeps_both_copies(checkpointed, tmp_path, smoke):
+  """Before: a step replayed over a set-aside checkpoint and corrupted again could not be set
+  aside (`OSError: Directory not empty: checkpoints/12 -> checkpoints/12.unreadable`): the run
+  could not resume at all."""
+  from lrf_jax.learning import checkpoints, train_step
+
+  def again(step: Path) -> None:
+    shutil.copytree(step, step.parent / "12.unreadable")  # the first time it was set aside
+    shutil.rmtree(step / "checksum")
+  work = _damaged(checkpointed, tmp_path, again)
+  cfg = _smoke2(smoke)
+  with pytest.warns(UserWarning, match=r"kept as 12\.unreadable-2; resumed from checkpoints/8"):
+    mngr, state = checkpoints.resume(work, train_step.create_state(cfg), cfg)
+  mngr.close()
+  assert int(state.step) == 8
+  assert {"12.unreadable", "12.unreadable-2"} <= {p.name for p in (work / "checkpoints").iterdir()}

@@ -211,8 +211,8 @@ def restore_readable(mngr: ocp.CheckpointManager, state: TrainState, config: Tra
 
   An unreadable one (a corrupt file, arrays that differ from the checksum saved with them,
   non-finite parameters) is renamed
-  `checkpoints/<step>.unreadable` (kept, out of the way of the steps replayed over it) with one
-  warning naming it. A checkpoint written under an incompatible config is an error, not skipped.
+  `checkpoints/<step>.unreadable` (`-2`, `-3`, ... when that name is taken; kept, out of the
+  way of the steps replayed over it) with one warning naming it. A checkpoint written under an incompatible config is an error, not skipped.
   In a multi-process run process 0 renames and warns, and the others wait for it.
 
   Returns:
@@ -277,15 +277,27 @@ def _set_aside(mngr: ocp.CheckpointManager, skipped: list[tuple[int, Exception]]
   root = workdir / "checkpoints"
   mngr.close()
   if is_primary():
+    kept = []
     for bad_step, _ in skipped:
-      (root / str(bad_step)).rename(root / f"{bad_step}.unreadable")
+      kept.append(_free_name(root, f"{bad_step}.unreadable"))
+      (root / str(bad_step)).rename(root / kept[-1])
     names = ", ".join(f"checkpoints/{s} ({type(e).__name__})" for s, e in skipped)
     # stacklevel: _set_aside < restore_readable < resume < train_and_evaluate < its caller.
-    warnings.warn(f"{names}: unreadable, kept as <step>.unreadable; resumed from "
+    warnings.warn(f"{names}: unreadable, kept as {', '.join(kept)}; resumed from "
                   f"checkpoints/{resumed}", stacklevel=5)
   if jax.process_count() > 1:
     multihost_utils.sync_global_devices("lrf_jax: unreadable checkpoints renamed")
   return checkpoint_manager(workdir)
+
+
+def _free_name(root: Path, name: str) -> str:
+  """`name`, or `name-2`, `name-3`, ... the first not taken in `root`: a step replayed over a
+  set-aside checkpoint can be set aside again (its first copy is kept)."""
+  k, out = 1, name
+  while (root / out).exists() or (root / out).is_symlink():
+    k += 1
+    out = f"{name}-{k}"
+  return out
 
 
 def nonfinite_leaves(tree: Any) -> list[str]:

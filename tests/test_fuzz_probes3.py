@@ -493,3 +493,23 @@ def test_a_step_set_aside_twice_keeps_both_copies(checkpointed, tmp_path, smoke)
   mngr.close()
   assert int(state.step) == 8
   assert {"12.unreadable", "12.unreadable-2"} <= {p.name for p in (work / "checkpoints").iterdir()}
+
+
+def test_files_of_someone_else_in_the_out_folder_are_not_overwritten(tmp_path, fake_frames,
+                                                                     capsys):
+  """Before: `--out` onto a folder holding a user's s0.npz (or results.tsv) replaced it
+  silently. A previous job's folder (it has .lrf-batch/) is still resumed and updated."""
+  s0, s1 = _scans(tmp_path)
+  out = tmp_path / "mine"
+  out.mkdir()
+  (out / "s0.npz").write_bytes(b"my own file")
+  rc = batch_cli.main(["frames", str(s0), str(s1), "--out", str(out), "--no-progress"])
+  err = capsys.readouterr().err
+  assert rc == 2 and "holds s0.npz" in err and "not an lrf-batch job's folder" in err, err
+  assert (out / "s0.npz").read_bytes() == b"my own file"
+  assert sorted(p.name for p in out.iterdir()) == ["s0.npz"]
+  (tmp_path / "scans_here").mkdir()  # a folder with other files but no clash is fine
+  (tmp_path / "scans_here" / "notes.txt").write_text("x")
+  assert jobs.run_frames([s0], tmp_path / "scans_here", progress=False).exit_code == 0
+  s0.write_bytes(s0.read_bytes())  # a job's own folder: resumed (and redone where changed)
+  assert jobs.run_frames([s0, s1], tmp_path / "scans_here", progress=False).exit_code == 0

@@ -372,6 +372,7 @@ class _Job:
                          "another output folder")
     _check_unique([name for name, _ in named_inputs])
     self.state = self.out / STATE
+    self._check_not_foreign([name + kind.suffix for name, _ in named_inputs])
     self.records = self.state / "records"
     try:
       self.records.mkdir(parents=True, exist_ok=True)
@@ -396,6 +397,20 @@ class _Job:
     if rec["status"] == "done":
       return (self.out / (item.name + self.kind.suffix)).is_file()
     return not retry_errors
+
+  def _check_not_foreign(self, outputs: list[str]) -> None:
+    """ValueError when the folder holds files the job would overwrite and no job state: they
+    are someone else's (a previous job's folder always has its state: it is made before any
+    output is written)."""
+    if self.state.is_dir() or not self.out.is_dir():
+      return
+    clash = [n for n in (*outputs, "results.tsv")
+             if (self.out / n).exists() or (self.out / n).is_symlink()]
+    if clash:
+      more = f" (and {len(clash) - 1} more)" if len(clash) > 1 else ""
+      raise ValueError(f"out: {self.out} holds {clash[0]}{more}, which this job would "
+                       f"overwrite, and is not an lrf-batch job's folder (no {STATE}/); choose "
+                       "another folder or move those files away")
 
   def changed_inputs(self, item: Item) -> list[str]:
     """The inputs of `item` whose content is not the one its key was made from (re-hashed

@@ -167,8 +167,9 @@ def _tsv_header(p: Path, lines: list[tuple[int, list[str]]]) -> list[str]:
 def read_pairs(path: str | os.PathLike) -> list[tuple[str, str, str]]:
   """The pairs of a PAIRS.tsv: a tab-separated file (UTF-8; blank lines skipped) with a header
   naming the columns `source` and `target` (paths; relative ones are relative to the TSV's
-  folder) and optionally `name` (default: the data row's number, 1-based, zero-padded to at
-  least 4 digits). Other columns are ignored.
+  folder) and optionally `name` (default: the data row's number, 1-based, zero-padded to 4
+  digits: 0001, ..., 9999, 10000; a name that does not change when pairs are appended). Other
+  columns are ignored.
 
   Returns:
     [(name, source, target)], paths absolute.
@@ -186,7 +187,6 @@ def read_pairs(path: str | os.PathLike) -> list[tuple[str, str, str]]:
     raise FileNotFoundError(f"{path}: {what} (expected a PAIRS.tsv)")
   lines = _tsv_lines(p)
   header = _tsv_header(p, lines)
-  width = max(4, len(str(len(lines) - 1)))
   out: list[tuple[str, str, str]] = []
   seen: dict[str, int] = {}
   for row, (lineno, fields) in enumerate(lines[1:], start=1):
@@ -198,7 +198,9 @@ def read_pairs(path: str | os.PathLike) -> list[tuple[str, str, str]]:
     for col in ("source", "target"):
       if not rec.get(col):
         raise ValueError(f"{where}: column {col}: expected a path, found nothing")
-    name = check_name(rec.get("name") or f"{row:0{width}d}", f"{where}: column name")
+    # Zero-padded to 4 digits whatever the number of rows: appending the 10000th pair must not
+    # rename (and so redo) the 9999 before it.
+    name = check_name(rec.get("name") or f"{row:04d}", f"{where}: column name")
     if name.casefold() in seen:
       raise ValueError(f"{where}: column name: {name!r} is also the name of line "
                        f"{seen[name.casefold()]} (ignoring case); names must be unique")

@@ -513,3 +513,34 @@ def test_files_of_someone_else_in_the_out_folder_are_not_overwritten(tmp_path, f
   assert jobs.run_frames([s0], tmp_path / "scans_here", progress=False).exit_code == 0
   s0.write_bytes(s0.read_bytes())  # a job's own folder: resumed (and redone where changed)
   assert jobs.run_frames([s0, s1], tmp_path / "scans_here", progress=False).exit_code == 0
+
+
+_LOST_CTRL_C = """
+import gc, sys, time
+from lrf_jax.cli.interrupt import interruptible
+
+class Finalized:
+  def __del__(self):
+    raise KeyboardInterrupt  # Ctrl-C arriving while Python runs a finalizer or a gc callback
+
+@interruptible("stopped")
+def main():
+  Finalized()  # dropped at once: its __del__ runs here, and Python must ignore what it raises
+  t0 = time.monotonic()
+  while time.monotonic() - t0 < 60:  # the work goes on
+    time.sleep(0.01)
+  return 0
+
+sys.exit(main())
+"""
+
+
+def test_a_ctrl_c_python_had_to_drop_in_a_finalizer_still_stops_the_program():
+  """Seen in the suite (train.py under NUMBA_CPU_NAME=generic): a SIGINT that landed in JAX's
+  `_xla_gc_callback` was printed as "Exception ignored in ..." and lost; training went on (the
+  test's 300 s timeout). Before: this program ran its 60 s and exited 0."""
+  t0 = time.monotonic()
+  proc = subprocess.run([sys.executable, "-c", _LOST_CTRL_C], capture_output=True, text=True,
+                        env=_env(), timeout=120)
+  assert proc.returncode == 130 and proc.stderr.strip() == "interrupted: stopped", proc.stderr
+  assert time.monotonic() - t0 < 50

@@ -54,6 +54,16 @@ def cache_dir() -> Path:
   return cache_root() / "jax"
 
 
+def cache_locations() -> str:
+  """Where compiled code is kept, in words: `cache_root()`, or the folders in use when
+  `NUMBA_CACHE_DIR` or `LRF_JAX_CACHE_DIR` puts one elsewhere."""
+  root = cache_root()
+  places = [numba_cache_dir(), cache_dir()]
+  if all(root in (p, *p.parents) for p in places):
+    return str(root)
+  return " and ".join(dict.fromkeys(map(str, places)))
+
+
 def numba_cache_dir() -> Path:
   """numba's cache directory: `$NUMBA_CACHE_DIR` when set, else `cache_root()/numba`."""
   explicit = os.environ.get(NUMBA_ENV_VAR)
@@ -137,7 +147,7 @@ def _announce(stream: TextIO | None = None) -> None:
       return
     _state["announced"] = True
   out = stream or _state["stream"] or sys.stderr
-  print(NOTICE.format(where=cache_root()), file=out, flush=True)
+  print(NOTICE.format(where=cache_locations()), file=out, flush=True)
 
 
 def _numba_listener() -> Any:

@@ -233,15 +233,16 @@ def _batch_process(tsv: Path, out: Path) -> subprocess.Popen:
                           stderr=subprocess.PIPE, text=True)
 
 
-def _records(folder: Path) -> list[Path]:
+def _records(out: Path) -> list[Path]:
+  """The item records written (not an atomic write's `.NAME.XXXX.tmp.json` in flight: waiting
+  for one of those and signalling raced with its rename)."""
+  folder = out / jobs.STATE / "records"
   return [p for p in folder.glob("*.json") if not p.name.startswith(".")]
 
 
 def _wait_for_record(out: Path, proc: subprocess.Popen, timeout: float = 300) -> None:
-  records = out / jobs.STATE / "records"
   t0 = time.monotonic()
-  # a record written, not one being written (the temporary `.NAME.XXXX.tmp.json` matches too)
-  while not (records.is_dir() and _records(records)):
+  while not _records(out):
     assert proc.poll() is None, proc.stderr.read() if proc.stderr else ""
     assert time.monotonic() - t0 < timeout
     time.sleep(0.05)
@@ -261,7 +262,7 @@ def test_an_interrupted_or_killed_job_resumes_where_it_stopped(tmp_path, sig, co
   if sig == signal.SIGINT:
     assert "interrupted" in proc.stderr.read()
   assert not list(out.glob(".*.tmp")) and not list(out.glob("*.tmp"))
-  kept = len(_records(out / jobs.STATE / "records"))
+  kept = len(_records(out))
   assert 1 <= kept < 6
   resumed = batch.run_register(tsv, out, progress=False, **OPTS)
   assert (resumed.ran, resumed.skipped, resumed.exit_code) == (6 - kept, kept, 0)

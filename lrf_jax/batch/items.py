@@ -22,6 +22,12 @@ FRAMES_OPTIONS = {"keypoints": "--keypoints", "voxel_mr": "--voxel-mr", "method"
 
 
 def _error(e: BaseException, t0: float) -> dict[str, Any]:
+  """The error record of an item that raised `e`; Ctrl-C is not an item's error: a
+  KeyboardInterrupt that surfaced as another exception (numba turns one inside a kernel into a
+  SystemError) is raised again, so that the job stops and the item stays pending."""
+  from lrf_jax.io.atomic import caused_by_interrupt
+  if caused_by_interrupt(e):
+    raise KeyboardInterrupt from e
   text = str(e) if isinstance(e, (ValueError, OSError)) else f"{type(e).__name__}: {e}"
   return dict(status="error", error=text, seconds=time.perf_counter() - t0)
 
@@ -67,14 +73,24 @@ def register_pair(payload: dict[str, Any]) -> dict[str, Any]:
               seconds=time.perf_counter() - t0)
 
 
+def _finite_point(value: Any) -> bool:
+  """Whether `value` is a list or tuple of three finite real numbers (lrf-frames checks a
+  viewpoint only when it reads the cloud: a job checks it before its first item)."""
+  if not isinstance(value, (list, tuple)) or len(value) != 3:
+    return False
+  return all(isinstance(v, (int, float)) and not isinstance(v, bool) and np.isfinite(v)
+             for v in value)
+
+
 def check_frames_options(options: dict[str, Any]) -> None:
   """ValueError unless `options` are lrf-frames options (`FRAMES_OPTIONS`) it accepts."""
   for key, value in options.items():
     if key not in FRAMES_OPTIONS:
       raise ValueError(f"{key}: not an option of a frames job; expected one of "
                        f"{sorted(FRAMES_OPTIONS)}")
-    if key == "viewpoint" and (not isinstance(value, (list, tuple)) or len(value) != 3):
-      raise ValueError(f"viewpoint: expected three numbers, got {value!r}")
+    if key == "viewpoint" and not _finite_point(value):
+      raise ValueError(f"viewpoint: expected three finite numbers (the sensor's position), got "
+                       f"{value!r}")
     if not _plain(value):
       raise ValueError(f"{key}: expected a number or a string, got {type(value).__name__}")
   try:

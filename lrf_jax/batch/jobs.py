@@ -29,11 +29,12 @@ engine, the number of workers and their order do not change a result.
 
 from __future__ import annotations
 
-import csv
 import dataclasses
 import hashlib
 import json
 import os
+import re
+import stat
 import time
 from pathlib import Path
 from typing import Any
@@ -98,73 +99,144 @@ class JobResult:
 # --- names and inputs -------------------------------------------------------------------------
 
 def check_name(name: str, where: str) -> str:
-  """`name` if it can name an output file in the job's folder, else ValueError naming `where`."""
+  """`name` if it can name an output file in the job's folder, else ValueError naming `where`:
+  empty, "." or "..", starting with ".", a path separator, a control character (a tab or a
+  newline would also break results.tsv) or over `_MAX_NAME_BYTES` bytes."""
   bad = (not name or name in (".", "..") or name.startswith(".") or "/" in name or "\\" in name
-         or "\0" in name or len(name.encode("utf-8", "surrogateescape")) > _MAX_NAME_BYTES)
+         or any(ord(ch) < 32 or ord(ch) == 127 for ch in name)
+         or len(name.encode("utf-8", "surrogateescape")) > _MAX_NAME_BYTES)
   if bad:
-    raise ValueError(f"{where}: expected a file name without a folder, not starting with '.', "
-                     f"at most {_MAX_NAME_BYTES} bytes, got {name!r}")
+    raise ValueError(f"{where}: expected a file name without a folder or control characters, "
+                     f"not starting with '.', at most {_MAX_NAME_BYTES} bytes, got {name!r}")
   return name
 
 
+def _tsv_text(p: Path) -> str:
+  """The text of a PAIRS.tsv: UTF-8 (a byte-order mark dropped), or UTF-16 with its mark (a
+  spreadsheet's "Unicode text"); ValueError naming the file and the line of a bad byte."""
+  try:
+    data = p.read_bytes()
+  except OSError as e:
+    raise ValueError(f"{p}: could not read it ({e.strerror or e})") from None
+  encoding = "utf-16" if data[:2] in (b"\xff\xfe", b"\xfe\xff") else "utf-8-sig"
+  try:
+    text = data.decode(encoding)
+  except UnicodeDecodeError as e:
+    line = data[:e.start].count(b"\n") + 1
+    raise ValueError(f"{p}: line {line}: expected UTF-8 text, found the byte "
+                     f"0x{data[e.start]:02x}") from None
+  if "\0" in text:
+    line = text[:text.index("\0")].count("\n") + 1
+    raise ValueError(f"{p}: line {line}: expected text, found a NUL byte")
+  return text
+
+
+def _tsv_lines(p: Path) -> list[tuple[int, list[str]]]:
+  """(line number, fields) of each non-blank line of a PAIRS.tsv. Fields are split at tabs
+  only and stripped; a field wholly in double quotes (as spreadsheets quote) is unquoted, ""
+  standing for one quote; any other quote is part of the field (no field spans lines)."""
+  out = []
+  for lineno, line in enumerate(re.split(r"\r\n|\r|\n", _tsv_text(p)), start=1):
+    fields = []
+    for field in line.split("\t"):
+      field = field.strip()
+      if len(field) >= 2 and field[0] == field[-1] == '"':
+        field = field[1:-1].replace('""', '"')
+      fields.append(field)
+    if any(fields):
+      out.append((lineno, fields))
+  return out
+
+
+def _tsv_header(p: Path, lines: list[tuple[int, list[str]]]) -> list[str]:
+  if not lines:
+    raise ValueError(f"{p}: expected a header line naming the columns source and target, "
+                     "found an empty file")
+  lineno, header = lines[0]
+  for col in ("source", "target"):
+    if col not in header:
+      raise ValueError(f"{p}: line {lineno}: expected a header with the columns source and "
+                       f"target (tab-separated), found {header}")
+  named = [c for c in header if c]
+  twice = sorted({c for c in named if named.count(c) > 1})
+  if twice:
+    raise ValueError(f"{p}: line {lineno}: column {twice[0]!r} appears twice in the header")
+  return header
+
+
 def read_pairs(path: str | os.PathLike) -> list[tuple[str, str, str]]:
-  """The pairs of a PAIRS.tsv: a tab-separated file with a header naming the columns `source`
-  and `target` (paths; relative ones are relative to the TSV's folder) and optionally `name`
-  (default: the data row's number, 1-based, zero-padded to at least 4 digits).
+  """The pairs of a PAIRS.tsv: a tab-separated file (UTF-8; blank lines skipped) with a header
+  naming the columns `source` and `target` (paths; relative ones are relative to the TSV's
+  folder) and optionally `name` (default: the data row's number, 1-based, zero-padded to 4
+  digits: 0001, ..., 9999, 10000; a name that does not change when pairs are appended). Other
+  columns are ignored.
 
   Returns:
     [(name, source, target)], paths absolute.
 
   Raises:
     FileNotFoundError: no such file.
-    ValueError: a missing column, an empty field, a name that cannot name a file or a repeated
-      name; the message names the file, the line and the field.
+    ValueError: not text, a missing or repeated column, a row with more fields than the
+      header, an empty field, a name that cannot name a file or a repeated name (also ignoring
+      case: one file on a case-insensitive file system); the message names the file, the line
+      and the field.
   """
   p = Path(path).expanduser()
   if not p.is_file():
-    raise FileNotFoundError(f"{path}: no such file (expected a PAIRS.tsv)")
-  with open(p, newline="", encoding="utf-8") as f:
-    rows = list(csv.reader(f, delimiter="\t"))
-  rows = [r for r in rows if any(c.strip() for c in r)]
-  if not rows:
-    raise ValueError(f"{p}: expected a header line naming the columns source and target, "
-                     "found an empty file")
-  header = [c.strip() for c in rows[0]]
-  for col in ("source", "target"):
-    if col not in header:
-      raise ValueError(f"{p}: line 1: expected a header with the columns source and target "
-                       f"(tab-separated), found {header}")
-  width = max(4, len(str(len(rows) - 1)))
+    what = "not a regular file" if p.exists() else "no such file"
+    raise FileNotFoundError(f"{path}: {what} (expected a PAIRS.tsv)")
+  lines = _tsv_lines(p)
+  header = _tsv_header(p, lines)
   out: list[tuple[str, str, str]] = []
   seen: dict[str, int] = {}
-  for lineno, row in enumerate(rows[1:], start=2):
-    rec = dict(zip(header, (c.strip() for c in row)))
+  for row, (lineno, fields) in enumerate(lines[1:], start=1):
+    where = f"{p}: line {lineno}"
+    if any(fields[len(header):]):
+      raise ValueError(f"{where}: {len(fields)} tab-separated fields, but the header names "
+                       f"{len(header)} columns")
+    rec = dict(zip(header, fields))
     for col in ("source", "target"):
       if not rec.get(col):
-        raise ValueError(f"{p}: line {lineno}: column {col}: expected a path, found nothing")
-    name = rec.get("name") or f"{lineno - 1:0{width}d}"
-    check_name(name, f"{p}: line {lineno}: column name")
-    if name in seen:
-      raise ValueError(f"{p}: line {lineno}: column name: {name!r} is also the name of line "
-                       f"{seen[name]}; names must be unique")
-    seen[name] = lineno
+        raise ValueError(f"{where}: column {col}: expected a path, found nothing")
+    # Zero-padded to 4 digits whatever the number of rows: appending the 10000th pair must not
+    # rename (and so redo) the 9999 before it.
+    name = check_name(rec.get("name") or f"{row:04d}", f"{where}: column name")
+    if name.casefold() in seen:
+      raise ValueError(f"{where}: column name: {name!r} is also the name of line "
+                       f"{seen[name.casefold()]} (ignoring case); names must be unique")
+    seen[name.casefold()] = lineno
     src, tgt = ((p.parent / Path(rec[c]).expanduser()).resolve() for c in ("source", "target"))
     out.append((name, str(src), str(tgt)))
   return out
+
+
+def _check_unique(names: Sequence[str]) -> None:
+  """ValueError when two items share a name, also ignoring case (their outputs would be one
+  file on a case-insensitive file system)."""
+  seen: dict[str, str] = {}
+  for name in names:
+    if name.casefold() in seen:
+      raise ValueError(f"names: {seen[name.casefold()]!r} and {name!r} would name the same "
+                       "output file; names must be unique (also ignoring case)")
+    seen[name.casefold()] = name
 
 
 # --- hashes and records -----------------------------------------------------------------------
 
 class _Hashes:
   """Content hashes (sha256) of input files, cached by (size, mtime_ns, inode) in the job's
-  state folder; a missing or unreadable file hashes to a marker saying so."""
+  state folder; a missing or unreadable file, or one that is not a regular file (a folder, a
+  FIFO: never opened, reading one would wait for a writer), hashes to a marker saying so."""
 
   def __init__(self, path: Path):
     self.path = path
     try:
-      self.cache = json.loads(path.read_text())
+      cache = json.loads(path.read_text())
     except (OSError, ValueError):
-      self.cache = {}
+      cache = {}
+    # Only well-formed entries: a damaged or hand-edited cache costs a re-hash, not the job.
+    self.cache = {k: v for k, v in cache.items() if _cache_entry(v)} \
+        if isinstance(cache, dict) else {}
     self.changed = False
 
   def __call__(self, file: str) -> str:
@@ -172,6 +244,8 @@ class _Hashes:
       st = os.stat(file)
     except OSError as e:
       return f"missing:{e.strerror}"
+    if not stat.S_ISREG(st.st_mode):
+      return f"not a regular file:{stat.S_IFMT(st.st_mode)}"
     stamp = [st.st_size, st.st_mtime_ns, st.st_ino]
     hit = self.cache.get(file)
     if hit and hit[:3] == stamp:
@@ -191,6 +265,13 @@ class _Hashes:
     if self.changed:
       atomic.write_text(self.path, json.dumps(self.cache))
       self.changed = False
+
+
+def _cache_entry(value: Any) -> bool:
+  """Whether `value` is a hash cache entry: [size, mtime_ns, inode, sha256 hex]."""
+  return (isinstance(value, list) and len(value) == 4
+          and all(isinstance(v, int) and not isinstance(v, bool) for v in value[:3])
+          and isinstance(value[3], str))
 
 
 def _size(path: str) -> int:
@@ -291,18 +372,24 @@ class _Job:
       if str(target.resolve()) in all_inputs:
         raise ValueError(f"out: {target} would overwrite the input of the same path; pick "
                          "another output folder")
+    _check_unique([name for name, _ in named_inputs])
     self.state = self.out / STATE
+    self._check_not_foreign([name + kind.suffix for name, _ in named_inputs])
     self.records = self.state / "records"
-    self.records.mkdir(parents=True, exist_ok=True)
+    try:
+      self.records.mkdir(parents=True, exist_ok=True)
+    except OSError as e:  # a read-only or full disk, a file in the way: one error, no work
+      raise atomic.WriteError(self.records, e) from e
     hashes = _Hashes(self.state / "hashes.json")
-    self.items = [Item(name, ins, _key(kind.name, map(hashes, ins), options))
+    self.input_hashes = {p: hashes(p) for _, ins in named_inputs for p in ins}
+    self.items = [Item(name, ins, _key(kind.name, (self.input_hashes[p] for p in ins), options))
                   for name, ins in named_inputs]
     self.hashes = hashes  # saved when items run: a rerun with nothing to do writes nothing
     self.recs: dict[str, dict[str, Any]] = {}
     self._last_write = -np.inf
     for it in self.items:
       rec = _read_record(self.records / f"{it.name}.json")
-      if rec is not None and rec.get("key") == it.key:
+      if rec is not None and rec.get("key") == it.key and rec.get("status") in ("done", "error"):
         self.recs[it.name] = rec
 
   def is_settled(self, item: Item, retry_errors: bool) -> bool:
@@ -313,6 +400,25 @@ class _Job:
       return (self.out / (item.name + self.kind.suffix)).is_file()
     return not retry_errors
 
+  def _check_not_foreign(self, outputs: list[str]) -> None:
+    """ValueError when the folder holds files the job would overwrite and no job state: they
+    are someone else's (a previous job's folder always has its state: it is made before any
+    output is written)."""
+    if self.state.is_dir() or not self.out.is_dir():
+      return
+    clash = [n for n in (*outputs, "results.tsv")
+             if (self.out / n).exists() or (self.out / n).is_symlink()]
+    if clash:
+      more = f" (and {len(clash) - 1} more)" if len(clash) > 1 else ""
+      raise ValueError(f"out: {self.out} holds {clash[0]}{more}, which this job would "
+                       f"overwrite, and is not an lrf-batch job's folder (no {STATE}/); choose "
+                       "another folder or move those files away")
+
+  def changed_inputs(self, item: Item) -> list[str]:
+    """The inputs of `item` whose content is not the one its key was made from (re-hashed
+    only when their size, mtime or inode changed)."""
+    return [p for p in item.inputs if self.hashes(p) != self.input_hashes[p]]
+
   def finish(self, item: Item, outcome: engines_mod.Outcome) -> dict[str, Any]:
     """Write an item's output and record (and results.tsv); its record."""
     value = outcome.value
@@ -320,8 +426,12 @@ class _Job:
                                key=item.key, options=json.loads(_canonical(self.options)),
                                node=outcome.node, attempt=outcome.attempt,
                                version=outcome.version)
+    changed = self.changed_inputs(item)
     if outcome.error is not None:
       rec.update(status="error", error=outcome.error)
+    elif changed:  # read while it changed: the result may be of neither content
+      rec.update(status="error", key=f"changed:{item.key}", error=f"{changed[0]}: changed "
+                 "while the job read it; the next run redoes this item")
     else:
       rec.update({k: v for k, v in value.items() if k != "arrays"})
       if rec["status"] == "done":
@@ -384,10 +494,17 @@ def _run(kind: _Kind, named_inputs: Sequence[tuple[str, tuple[str, ...]]],
       done(pending[0], dataclasses.replace(first, node=runner.driver_node()))
       for outcome in runner.run(kind.fn, payloads[1:]):
         done(pending[1 + outcome.index], outcome)
-    finally:
+    except BaseException:
       bar.close()
       runner.close()
-      job.write_results()
+      try:  # best effort: the error in flight (Ctrl-C, a full disk) is the one to report
+        job.write_results()
+      except OSError:
+        pass
+      raise
+    bar.close()
+    runner.close()
+    job.write_results()
   else:
     job.write_results()
   rows = job.rows()

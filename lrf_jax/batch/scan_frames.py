@@ -81,6 +81,11 @@ class FramesRequest:
               "small hold one point each; use --keypoints all)")
     if not 0 <= self.seed < 2**32:
       return f"--seed: expected an integer in [0, 2**32), got {self.seed}"
+    for name in ("viewpoint", "pair_viewpoint"):
+      vp = getattr(self, name)
+      if vp is not None and not np.all(np.isfinite(np.asarray(vp, np.float64))):
+        return (f"--{name.replace('_', '-')}: expected three finite numbers (the sensor's "
+                f"position), got {' '.join(map(str, vp))}")
     return self._pair_problem()
 
   def _pair_problem(self) -> str | None:

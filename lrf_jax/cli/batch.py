@@ -20,6 +20,7 @@ import sys
 from typing import Any
 
 from lrf_jax.cli.help import DefaultsHelpFormatter
+from lrf_jax.cli.interrupt import interruptible
 
 # lrf-register options a job cannot take
 _NOT_BATCH = ("out", "png", "checkpoint", "init", "best_guess")
@@ -87,6 +88,7 @@ def _register_options(rest: list[str]) -> dict[str, Any]:
   return register_cli.register_options(args)
 
 
+@interruptible("the finished items are kept; the same command resumes")
 def main(argv: list[str] | None = None) -> int:
   """Run lrf-batch with `argv` (default: the command line); returns the exit code."""
   ap = build_parser()
@@ -105,11 +107,11 @@ def main(argv: list[str] | None = None) -> int:
       options = {k: getattr(args, k) for k in batch.items.FRAMES_OPTIONS if hasattr(args, k)}
       compilation_cache.enable()
       result = batch.run_frames(args.scans, args.out, **common, **options)
-  except KeyboardInterrupt:
-    print("interrupted: the finished items are kept; the same command resumes", file=sys.stderr)
-    return 130
   except (ValueError, FileNotFoundError, ImportError) as e:
     print(f"error: {e}", file=sys.stderr)
+    return 2
+  except OSError as e:  # a WriteError (a read-only or full disk): the finished items are kept
+    print(f"error: {e}; the finished items are kept", file=sys.stderr)
     return 2
   done = sum(r["status"] == "done" for r in result.rows)
   claimed = sum(r.get("success") == "True" for r in result.rows)

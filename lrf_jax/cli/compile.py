@@ -8,8 +8,9 @@ calls that needs its own kernels (a registration with the default options, with 
 estimator and option, the frames of each method, each descriptor, a multiway run). They write
 into the same caches (`lrf_jax.compilation_cache`: numba's writes are atomic, a kernel
 compiled twice is stored twice with the same content). Nothing is compiled that a later run
-would not load: the calls are the library's own, on small procedural clouds. Exit code 0, or 1
-when a group failed (its error is printed). The workers end with the command.
+would not load: the calls are the library's own, on small procedural clouds. Exit code 0, 3 when
+a group failed (its error is printed: the others are compiled), 2 a bad command line, 130
+interrupted. The workers end with the command, Ctrl-C included.
 
     lrf-compile               # every group, one worker per core
     lrf-compile --jobs 1 --only register frames:lrf_net_plus
@@ -109,6 +110,36 @@ def _run_group(name: str) -> tuple[str, float, str | None]:
   return name, time.perf_counter() - t0, None
 
 
+def _unwritable_cache() -> str | None:
+  """Why the caches cannot take the compiled code (a read-only or missing folder), or None.
+  Without this, a compile into a read-only cache "succeeded" (numba only warns, and the groups
+  run with warnings off) and the next run compiled everything again."""
+  import tempfile
+
+  from lrf_jax import compilation_cache
+  for what, folder in (("numba's kernels (NUMBA_CACHE_DIR)", compilation_cache.numba_cache_dir()),
+                       ("JAX's programs (LRF_JAX_CACHE_DIR)", compilation_cache.cache_dir())):
+    try:
+      folder.mkdir(parents=True, exist_ok=True)
+      with tempfile.TemporaryFile(dir=folder):
+        pass
+    except OSError as e:
+      return (f"the cache of {what}, {folder}, is not writable ({e.strerror or e}); nothing "
+              "compiled would be kept")
+  return None
+
+
+def _stop(pool) -> None:
+  """End a pool's workers now: a Ctrl-C sent to this process only (`kill -INT`, a supervisor)
+  would otherwise wait for every running group to finish (minutes)."""
+  processes = list((getattr(pool, "_processes", None) or {}).values())  # no public handle
+  pool.shutdown(wait=False, cancel_futures=True)
+  for proc in processes:
+    proc.terminate()
+  for proc in processes:
+    proc.join(timeout=10)
+
+
 def build_parser() -> argparse.ArgumentParser:
   ap = argparse.ArgumentParser(prog="lrf-compile", description="Compile every lrf_jax kernel for "
                                "this machine into the on-disk caches, in parallel.",
@@ -122,7 +153,8 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
-  """Run lrf-compile; returns the exit code (0 all compiled, 1 a group failed, 2 usage)."""
+  """Run lrf-compile; returns the exit code (0 all compiled, 3 a group failed, 2 usage, 130
+  interrupted)."""
   args = build_parser().parse_args(argv)
   names = list(groups())
   if args.list:
@@ -138,6 +170,10 @@ def main(argv: list[str] | None = None) -> int:
   if args.jobs < 1:
     print(f"error: --jobs: expected a positive integer, got {args.jobs}", file=sys.stderr)
     return 2
+  problem = _unwritable_cache()
+  if problem:
+    print(f"error: {problem}", file=sys.stderr)
+    return 2
   import multiprocessing as mp
   from concurrent.futures import ProcessPoolExecutor, as_completed
 
@@ -148,9 +184,9 @@ def main(argv: list[str] | None = None) -> int:
   failed = 0
   seconds: dict[str, float] = {}
   ctx = mp.get_context("spawn")  # fresh interpreters: no inherited threads or JAX state
+  pool = ProcessPoolExecutor(max_workers=min(args.jobs, len(names)), mp_context=ctx)
   try:
-    with ProcessPoolExecutor(max_workers=min(args.jobs, len(names)), mp_context=ctx) as pool, \
-        tqdm(total=len(names), desc="lrf-compile", unit="group") as bar:
+    with tqdm(total=len(names), desc="lrf-compile", unit="group") as bar:
       futures = [pool.submit(_run_group, n) for n in names]
       for fut in as_completed(futures):
         name, secs, error = fut.result()
@@ -160,15 +196,17 @@ def main(argv: list[str] | None = None) -> int:
           failed += 1
           tqdm.write(f"error: {name}: {error}", file=sys.stderr)
   except KeyboardInterrupt:
-    print("interrupted", file=sys.stderr)
+    _stop(pool)
+    print("interrupted: the kernels compiled so far are kept", file=sys.stderr)
     return 130
+  pool.shutdown()
   slowest = sorted(seconds, key=seconds.get, reverse=True)[:5]  # type: ignore[arg-type]
   print("slowest groups: " + ", ".join(f"{n} {seconds[n]:.1f} s" for n in slowest),
         file=sys.stderr)
   print(f"compiled {len(names) - failed} of {len(names)} groups with {args.jobs} worker(s) in "
-        f"{time.perf_counter() - t0:.1f} s into {compilation_cache.cache_root()}",
+        f"{time.perf_counter() - t0:.1f} s into {compilation_cache.cache_locations()}",
         file=sys.stderr)
-  return 1 if failed else 0
+  return 3 if failed else 0
 
 
 if __name__ == "__main__":

@@ -16,9 +16,13 @@ from collections.abc import Callable
 
 
 def run(main: Callable[[], int]) -> NoReturn:
-  """Call `main()`, flush stdout and stderr, and end the process with its return code."""
+  """Call `main()`, flush stdout and stderr, and end the process with its return code; Ctrl-C
+  before the program's own handler (while its modules are imported) is one line and 130."""
   try:
     rc = main()
+  except KeyboardInterrupt:
+    print("interrupted", file=sys.stderr)
+    rc = 130
   except SystemExit as e:  # argparse's --help and usage errors
     rc = e.code if isinstance(e.code, int) else (0 if e.code is None else 1)
     if not isinstance(e.code, (int, type(None))):
@@ -30,23 +34,39 @@ def run(main: Callable[[], int]) -> NoReturn:
 
 def register() -> NoReturn:
   """`lrf-register`: `lrf_jax.cli.register.main`."""
-  from lrf_jax.cli.register import main
-  run(main)
+  run(_register_main)
+
+
+def _register_main() -> int:
+  from lrf_jax.cli.register import main  # inside run: Ctrl-C while importing is handled
+  return main()
 
 
 def batch() -> NoReturn:
   """`lrf-batch`: `lrf_jax.cli.batch.main`."""
-  from lrf_jax.cli.batch import main
-  run(main)
+  run(_batch_main)
+
+
+def _batch_main() -> int:
+  from lrf_jax.cli.batch import main  # inside run: Ctrl-C while importing is handled
+  return main()
 
 
 def compile_all() -> NoReturn:
   """`lrf-compile`: `lrf_jax.cli.compile.main`."""
-  from lrf_jax.cli.compile import main
-  run(main)
+  run(_compile_all_main)
+
+
+def _compile_all_main() -> int:
+  from lrf_jax.cli.compile import main  # inside run: Ctrl-C while importing is handled
+  return main()
 
 
 def frames() -> NoReturn:
   """`lrf-frames`: `lrf_jax.cli.frames.main`."""
-  from lrf_jax.cli.frames import main
-  run(main)
+  run(_frames_main)
+
+
+def _frames_main() -> int:
+  from lrf_jax.cli.frames import main  # inside run: Ctrl-C while importing is handled
+  return main()

@@ -9,9 +9,13 @@ from __future__ import annotations
 
 import functools
 import os
+import signal
 import sys
+import threading
 from typing import Any, TypeVar
 from collections.abc import Callable
+
+from lrf_jax.io.atomic import caused_by_interrupt
 
 # The exit code of a program stopped by Ctrl-C (SIGINT): 128 + 2, as a shell reports it.
 INTERRUPTED = 130
@@ -27,6 +31,7 @@ def interruptible(note: str) -> Callable[[_Main], _Main]:
   def wrap(main: _Main) -> _Main:
     @functools.wraps(main)
     def run(*args: Any, **kwargs: Any) -> int:
+      redeliver_lost_interrupts()
       try:
         return main(*args, **kwargs)
       except Exception as e:  # noqa: BLE001 -- re-raised unless Ctrl-C caused it
@@ -40,18 +45,29 @@ def interruptible(note: str) -> Callable[[_Main], _Main]:
   return wrap
 
 
-def caused_by_interrupt(error: BaseException) -> bool:
-  """Whether a KeyboardInterrupt is in `error`'s chain of causes: Ctrl-C inside a numba
-  dispatcher surfaces as a `SystemError` ("returned a result with an exception set") raised from
-  the KeyboardInterrupt."""
-  seen: set[int] = set()
-  e: BaseException | None = error
-  while e is not None and id(e) not in seen:
-    if isinstance(e, KeyboardInterrupt):
-      return True
-    seen.add(id(e))
-    e = e.__cause__ or e.__context__
-  return False
+def redeliver_lost_interrupts() -> None:
+  """Make a Ctrl-C that Python had to drop count (idempotent).
+
+  A KeyboardInterrupt raised while Python runs a finalizer or a garbage-collection callback
+  (JAX's `_xla_gc_callback`, a `__del__`) cannot propagate: Python prints "Exception ignored
+  in ..." and goes on, and the Ctrl-C is lost (train.py went on training, seen in the suite).
+  The hook installed here sends SIGINT again from a helper thread a moment later, when the main
+  thread is back in ordinary code; other unraisable exceptions keep Python's own report."""
+  if getattr(sys.unraisablehook, "_lrf_jax_redeliver", False):
+    return
+  previous = sys.unraisablehook
+
+  def hook(unraisable: Any) -> None:
+    if isinstance(unraisable.exc_value, KeyboardInterrupt) and \
+        threading.current_thread() is threading.main_thread():
+      timer = threading.Timer(0.05, os.kill, (os.getpid(), signal.SIGINT))
+      timer.daemon = True
+      timer.start()
+      return
+    previous(unraisable)
+
+  hook._lrf_jax_redeliver = True  # type: ignore[attr-defined]
+  sys.unraisablehook = hook
 
 
 def exit_with(rc: int) -> None:

@@ -331,3 +331,17 @@ def save_figure(fig, path: str | os.PathLike, **savefig_kw) -> Path:
   with atomic_path(path) as tmp:
     fig.savefig(tmp, **savefig_kw)
   return Path(path)
+
+
+def caused_by_interrupt(error: BaseException) -> bool:
+  """Whether a KeyboardInterrupt is in `error`'s chain of causes: Ctrl-C inside a numba
+  dispatcher surfaces as a `SystemError` ("returned a result with an exception set") raised from
+  the KeyboardInterrupt."""
+  seen: set[int] = set()
+  e: BaseException | None = error
+  while e is not None and id(e) not in seen:
+    if isinstance(e, KeyboardInterrupt):
+      return True
+    seen.add(id(e))
+    e = e.__cause__ or e.__context__
+  return False

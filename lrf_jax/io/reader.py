@@ -18,8 +18,9 @@ def read_cloud(path: str | os.PathLike) -> Cloud:
   """Reads any supported point-cloud or mesh file, choosing the reader by suffix.
 
   Supported: `.ply` (`read_ply`), `.pcd` (`read_pcd`), `.npy` (`read_npy`), KITTI Velodyne
-  sweeps `.bin` (`read_kitti_bin`) and whitespace text `.xyz/.txt/.pts/.asc`, optionally
-  gzip-compressed with a further `.gz` (`read_xyz`).
+  sweeps `.bin` (`read_kitti_bin`; nuScenes' `.pcd.bin`, five floats a point, is refused) and
+  whitespace text `.xyz/.txt/.pts/.asc`, optionally gzip-compressed with a further `.gz`
+  (`read_xyz`).
 
   Args:
     path: the file.
@@ -48,6 +49,12 @@ def read_cloud(path: str | os.PathLike) -> Cloud:
   if last in _TEXT_SUFFIXES:
     return read_xyz(p)
   if last == ".bin":
+    if suffixes[-2:] == [".pcd", ".bin"]:  # nuScenes' sweeps: 20 bytes a point, not KITTI's 16
+      raise bad_input(p, "suffix", "a KITTI .bin (float32 x, y, z, reflectance)",
+                      "a nuScenes-style .pcd.bin (float32 x, y, z, intensity, ring: read as "
+                      "KITTI's records it would give wrong points whenever its size is a "
+                      "multiple of 16); save its first three columns as .npy: "
+                      "np.fromfile(path, '<f4').reshape(-1, 5)[:, :3]")
     return read_kitti_bin(p)
   raise bad_input(p, "suffix", "one of .ply, .pcd, .npy, .bin, " + ", ".join(_TEXT_SUFFIXES)
                   + " (text optionally .gz)", repr("".join(p.suffixes) or "(none)"))

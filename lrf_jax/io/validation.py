@@ -45,14 +45,19 @@ def require_file(path: str | os.PathLike) -> Path:
     The path.
 
   Raises:
-    FileNotFoundError: `path` does not exist or is not a regular file.
+    FileNotFoundError: `path` does not exist or is not a regular file (the message says which).
     ValueError: the file exists but cannot be opened for reading (e.g. no read permission).
   """
   if not os.fspath(path):  # Path("") is ".", the working directory
     raise FileNotFoundError("'': an empty path, not a file")
   p = Path(path)
   if not p.is_file():
-    what = "is a directory, not a file" if p.is_dir() else "no such file"
+    if p.is_dir():
+      what = "is a directory, not a file"
+    elif p.exists():  # a FIFO, a socket, a device: reading one may wait forever or never end
+      what = "is not a regular file (a FIFO, a socket or a device)"
+    else:
+      what = "no such file"
     raise FileNotFoundError(f"{p}: {what}")
   try:  # permissions and the like: a ValueError naming the file, as for any bad file
     with open(p, "rb"):

@@ -10,8 +10,9 @@ restore (orbax works collectively); only process 0 (`is_primary`) renames files 
 Each checkpoint also holds a checksum item: the SHA-256 of the state's leaves (path, dtype,
 shape and bytes) as saved. A restore recomputes it from what was read and refuses a checkpoint
 whose arrays differ (`ChecksumError`): a flipped byte in an array file can decode to finite but
-wrong numbers that no other check sees. Checkpoints written before the checksum existed are
-restored without it.
+wrong numbers that no other check sees. A checkpoint whose metadata names the checksum item
+but whose checksum is missing or unreadable is refused too (a partial copy would otherwise skip
+the check). Checkpoints written before the checksum existed are restored without it.
 """
 
 from __future__ import annotations
@@ -93,17 +94,46 @@ def _restore_state(mngr: ocp.CheckpointManager, step: int, target: dict[str, Any
   """The state of checkpoint `step`, verified against its saved checksum (when it has one).
 
   Raises:
-    ChecksumError: the arrays read differ from those saved (the message names the step).
+    ChecksumError: the arrays read differ from those saved, or the checksum saved with them is
+      missing or unreadable (the message names the step).
   """
+  expected = _saved_checksum(mngr, step)
   restored = mngr.restore(step, args=ocp.args.Composite(
       state=ocp.args.StandardRestore(target)))["state"]
-  if (Path(mngr.directory) / str(step) / "checksum").is_dir():
+  if expected is not None and expected != state_checksum(restored):
+    raise ChecksumError(f"checkpoints/{step}: its arrays differ from the checksum saved with "
+                        "them (a corrupt file)")
+  return restored
+
+
+def _saved_checksum(mngr: ocp.CheckpointManager, step: int) -> str | None:
+  """The checksum saved with checkpoint `step`, or None for a checkpoint saved without one (its
+  `_CHECKPOINT_METADATA` names no "checksum" item).
+
+  Raises:
+    ChecksumError: the metadata names a checksum item that is missing or unreadable.
+  """
+  step_dir = Path(mngr.directory) / str(step)
+  try:
+    meta = json.loads((step_dir / "_CHECKPOINT_METADATA").read_text())
+    declared = "checksum" in (meta.get("item_handlers") or {})
+  except (OSError, ValueError, AttributeError, TypeError):
+    declared = False  # unreadable metadata: orbax's own restore reports it
+  if not (step_dir / "checksum").is_dir():
+    if declared:
+      raise ChecksumError(f"checkpoints/{step}: the checksum saved with it is missing (it was "
+                          "saved with one)")
+    return None
+  try:
     saved = mngr.restore(step, args=ocp.args.Composite(
         checksum=ocp.args.JsonRestore()))["checksum"]
-    if not isinstance(saved, dict) or saved.get("sha256") != state_checksum(restored):
-      raise ChecksumError(f"checkpoints/{step}: its arrays differ from the checksum saved with "
-                          "them (a corrupt file)")
-  return restored
+  except Exception as e:  # noqa: BLE001 -- orbax raises JSON, Key, Value and OS errors here
+    raise ChecksumError(f"checkpoints/{step}: the checksum saved with it is unreadable "
+                        f"({type(e).__name__})") from None
+  if not isinstance(saved, dict) or not isinstance(saved.get("sha256"), str):
+    raise ChecksumError(f"checkpoints/{step}: the checksum saved with it is unreadable (expected "
+                        f'{{"sha256": ...}}, found {str(saved)[:60]})')
+  return saved["sha256"]
 
 
 def check_compatible(saved: dict[str, Any], config: TrainConfig, where: Path) -> None:
@@ -181,8 +211,8 @@ def restore_readable(mngr: ocp.CheckpointManager, state: TrainState, config: Tra
 
   An unreadable one (a corrupt file, arrays that differ from the checksum saved with them,
   non-finite parameters) is renamed
-  `checkpoints/<step>.unreadable` (kept, out of the way of the steps replayed over it) with one
-  warning naming it. A checkpoint written under an incompatible config is an error, not skipped.
+  `checkpoints/<step>.unreadable` (`-2`, `-3`, ... when that name is taken; kept, out of the
+  way of the steps replayed over it) with one warning naming it. A checkpoint written under an incompatible config is an error, not skipped.
   In a multi-process run process 0 renames and warns, and the others wait for it.
 
   Returns:
@@ -247,15 +277,27 @@ def _set_aside(mngr: ocp.CheckpointManager, skipped: list[tuple[int, Exception]]
   root = workdir / "checkpoints"
   mngr.close()
   if is_primary():
+    kept = []
     for bad_step, _ in skipped:
-      (root / str(bad_step)).rename(root / f"{bad_step}.unreadable")
+      kept.append(_free_name(root, f"{bad_step}.unreadable"))
+      (root / str(bad_step)).rename(root / kept[-1])
     names = ", ".join(f"checkpoints/{s} ({type(e).__name__})" for s, e in skipped)
     # stacklevel: _set_aside < restore_readable < resume < train_and_evaluate < its caller.
-    warnings.warn(f"{names}: unreadable, kept as <step>.unreadable; resumed from "
+    warnings.warn(f"{names}: unreadable, kept as {', '.join(kept)}; resumed from "
                   f"checkpoints/{resumed}", stacklevel=5)
   if jax.process_count() > 1:
     multihost_utils.sync_global_devices("lrf_jax: unreadable checkpoints renamed")
   return checkpoint_manager(workdir)
+
+
+def _free_name(root: Path, name: str) -> str:
+  """`name`, or `name-2`, `name-3`, ... the first not taken in `root`: a step replayed over a
+  set-aside checkpoint can be set aside again (its first copy is kept)."""
+  k, out = 1, name
+  while (root / out).exists() or (root / out).is_symlink():
+    k += 1
+    out = f"{name}-{k}"
+  return out
 
 
 def nonfinite_leaves(tree: Any) -> list[str]:

@@ -36,10 +36,12 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
+import errno
 import fcntl
 import json
 import math
 import os
+import stat
 import sys
 import textwrap
 import time
@@ -195,13 +197,15 @@ def workdir_lock(workdir: Path) -> Iterator[None]:
 
   Raises:
     WorkdirLockedError: another process holds it.
+    ValueError: `train.lock` is not a regular file (a symbolic link: the pid written into the
+      lock would truncate the file it points to; a folder, a FIFO).
   """
   if not is_primary():
     yield
     return
   path = Path(workdir) / LOCK_FILE
   while True:
-    fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o644)
+    fd = _open_lock(path)
     try:
       fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
     except BlockingIOError:
@@ -227,6 +231,23 @@ def workdir_lock(workdir: Path) -> Iterator[None]:
     except OSError:
       pass
     os.close(fd)  # releases the lock
+
+
+def _open_lock(path: Path) -> int:
+  """A descriptor of the lock file at `path` (created if missing), never following a symbolic
+  link and only for a regular file (ValueError otherwise)."""
+  refusal = (f"--workdir: {path} is not a regular file; it is {LOCK_FILE}, the workdir's "
+             "lock: remove it (nothing else writes there)")
+  try:
+    fd = os.open(path, os.O_RDWR | os.O_CREAT | os.O_NOFOLLOW | os.O_NONBLOCK, 0o644)
+  except OSError as e:
+    if e.errno in (errno.ELOOP, errno.EISDIR, errno.ENXIO):
+      raise ValueError(refusal) from None
+    raise
+  if not stat.S_ISREG(os.fstat(fd).st_mode):
+    os.close(fd)
+    raise ValueError(refusal)
+  return fd
 
 
 def _train(config: TrainConfig, workdir: Path, *, clouds: TrainingClouds | None,

@@ -45,14 +45,15 @@ def _fit(name: str, tail: str = "") -> str:
 
 
 def _natural_name(scan: Any, k: int) -> str:
-  """A path's file name without its cloud suffixes, control characters as "_", cut to
-  NAME_BYTES; else (an array, or a path without a usable name) "scan<k>"."""
+  """A path's file name without its cloud suffixes and leading dots, control characters as
+  "_", cut to NAME_BYTES; else (an array, or a path without a usable name) "scan<k>"."""
   if isinstance(scan, (str, os.PathLike)):
     name = Path(scan).name
     while Path(name).suffix.lower() in SUFFIXES and Path(name).stem:
       name = Path(name).stem
     name = _fit("".join("_" if ord(c) < 32 or ord(c) == 127 else c for c in name))
-    if name not in ("", ".", ".."):
+    name = name.lstrip(".")  # a hidden file's name would write hidden outputs
+    if name:
       return name
   return f"scan{k}"
 

@@ -199,7 +199,14 @@ def working_clouds(source: CheckedCloud, target: CheckedCloud, mr: Any, voxel_si
       spacing = mesh_resolution(np.asarray(voxel_downsample(pts, voxel)))[0]
       voxel = voxel * float(mr) / spacing if spacing > 0 else voxel
     if voxel:
-      thin, index = voxel_downsample(pts, voxel, return_index=True)
+      try:
+        thin, index = voxel_downsample(pts, voxel, return_index=True)
+      except ValueError as e:  # named by the option that chose the voxel
+        raise ValueError(f"voxel_size: {str(e).removeprefix('voxel_downsample: ')}") from None
+      if len(thin) < 10:
+        raise ValueError(f"voxel_size: voxels of {voxel:.6g} leave {len(thin)} points of the "
+                         f"{len(pts)} of a cloud (at least 10 needed); give a smaller "
+                         "voxel_size, or 0 to keep every point")
       out.append((CheckedCloud(thin, name="thinned cloud"), index))
       used = voxel
     else:

@@ -66,6 +66,7 @@ class Evidence(NamedTuple):
   estimator: the estimator that produced the winner.
   degeneracy: `constraint_spectrum`'s ratio of the overlap (1: fully constrained).
   free_direction: the least constrained motion, in words ("" when not computed).
+  effort: the `register` effort that gathered it (the next step `decide` suggests).
   """
 
   n_inliers: int
@@ -76,6 +77,7 @@ class Evidence(NamedTuple):
   estimator: str
   degeneracy: float = 1.0
   free_direction: str = ""
+  effort: str = "normal"
 
 
 class Verdict(NamedTuple):
@@ -164,7 +166,15 @@ def decide(evidence: Evidence) -> Verdict:
   rival = e.rival_inliers >= e.chance_inliers
   which = "a distinct pose" if rival else "chance"
   return Verdict(False, f"not sure: {e.n_inliers} consistent correspondences, {which} gives "
-                        f"{level} (needs {need:g})", "rival" if rival else "chance")
+                        f"{level} (needs {need:g}); {next_step(e.effort)}",
+                 "rival" if rival else "chance")
+
+
+def next_step(effort: str) -> str:
+  """What may settle a "not sure" for lack of support (`decide`'s "chance" and "rival")."""
+  if effort == "high":
+    return "an init may settle it"
+  return "effort='high' (more keypoints, pooled seeds) or an init may settle it"
 
 
 def verdict(evidence: Evidence) -> tuple[bool, str]:

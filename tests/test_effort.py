@@ -40,6 +40,8 @@ def test_not_sure_names_the_next_step_and_high_effort_only_an_init():
   assert normal.code == "rival" and "effort='high'" in normal.reason
   high = decide(Evidence(**base, effort="high"))
   assert high.code == "rival" and "effort='high'" not in high.reason and "init" in high.reason
+  twins = decide(Evidence(**{**base, "rival_inliers": 19}))  # two copies: more finds both
+  assert twins.code == "rival" and "effort" not in twins.reason and "init" in twins.reason
   low = decide(Evidence(**{**base, "fitness": 0.01}))
   assert "effort" not in low.reason  # more keypoints do not make the clouds overlap
 

@@ -37,6 +37,9 @@ RIVAL_DEG = 10.0
 # point-to-plane constraints holds less than DEGENERATE_RATIO of the strongest's: a plane slid
 # within itself, a sphere or cylinder turned about its centre or axis.
 DEGENERATE_RATIO = 0.01
+# A "not sure" whose best distinct pose explains at least AMBIGUOUS_SHARE of the winner's inliers
+# is ambiguous: `next_step` does not suggest more keypoints for it.
+AMBIGUOUS_SHARE = 0.8
 
 # `Registration.reason_code`: what decided the verdict.
 REASON_CODES = {
@@ -166,13 +169,17 @@ def decide(evidence: Evidence) -> Verdict:
   rival = e.rival_inliers >= e.chance_inliers
   which = "a distinct pose" if rival else "chance"
   return Verdict(False, f"not sure: {e.n_inliers} consistent correspondences, {which} gives "
-                        f"{level} (needs {need:g}); {next_step(e.effort)}",
+                        f"{level} (needs {need:g}); {next_step(e)}",
                  "rival" if rival else "chance")
 
 
-def next_step(effort: str) -> str:
-  """What may settle a "not sure" for lack of support (`decide`'s "chance" and "rival")."""
-  if effort == "high":
+def next_step(evidence: Evidence) -> str:
+  """What may settle a "not sure" for lack of support (`decide`'s "chance" and "rival"): more
+  keypoints and pooled seeds (`effort="high"`) unless they were used or a distinct pose explains
+  nearly as many correspondences as the winner (at least AMBIGUOUS_SHARE of them: two copies of
+  an object, which more correspondences find again), and an init."""
+  if (evidence.effort == "high"
+      or evidence.rival_inliers >= AMBIGUOUS_SHARE * evidence.n_inliers):
     return "an init may settle it"
   return "effort='high' (more keypoints, pooled seeds) or an init may settle it"
 

@@ -8,9 +8,11 @@ table with the verdict's `reason_code`.
 
 With `--options` the must-not pairs run again under every option that chooses the hypotheses
 differently (estimator "lrf" and "3point", ratio=0.9, mutual, ISS keypoints): the verdict is one
-for all, so none of them may claim success either.
+for all, so none of them may claim success either. `--effort high` runs every row with
+`register(..., effort="high")` (more keypoints and seeds, pooled). The last lines count the
+claims of the must-register rows and the false claims of the must-not rows.
 
-With `--multiway` (issue 41), `register_all` on sets of scans that belong together with one or
+With `--multiway`, `register_all` on sets of scans that belong together with one or
 two foreign scans mixed in (10 bunny scans + UWA3M views in metres or a 3DMatch fragment scaled
 to the bunny's size; the 3DMatch hotel pair + the home pair, a T-rex view and a bunny scan scaled
 to a room's size), seeds 0-2: a table of the foreign scans placed (must be none), the belonging
@@ -28,6 +30,8 @@ from scipy.spatial.transform import Rotation  # noqa: E402
 from lrf_jax import datasets  # noqa: E402
 from lrf_jax.registration import register, rotation_error_deg  # noqa: E402
 
+EFFORT = sys.argv[sys.argv.index("--effort") + 1] if "--effort" in sys.argv else "normal"
+TALLY = {"success": [0, 0], "failure": [0, 0]}  # expected -> [claimed, rows]
 OPTIONS = ({"estimator": "lrf"}, {"estimator": "3point"}, {"ratio": 0.9}, {"mutual": True},
            {"keypoints": "iss"})
 print("| pair | options | expected | inliers | chance | rival | fitness | err_r deg | success | "
@@ -37,11 +41,13 @@ print("|---|---|---|---:|---:|---:|---:|---:|---|---|---|")
 
 def run(name, a, b, expect, gt=None, **kw):
   opts = ", ".join(f"{k}={v}" for k, v in kw.items() if k != "mr") or "default"
+  TALLY[expect][1] += 1
   try:
-    r = register(a, b, **kw)
+    r = register(a, b, effort=EFFORT, **kw)
   except ValueError as e:
     print(f"| {name} | {opts} | {expect} | - | - | - | - | - | False | error | {e} |", flush=True)
     return
+  TALLY[expect][0] += int(r.success)
   e = f"{rotation_error_deg(r.transform[:3,:3], gt[:3,:3]):.2f}" if gt is not None else "-"
   print(f"| {name} | {opts} | {expect} | {r.evidence_inliers} | {r.chance_inliers} | "
         f"{r.rival_inliers} | {r.fitness:.3f} | {e} | {r.success} | {r.reason_code} | "
@@ -95,6 +101,10 @@ if "--options" in sys.argv[1:]:
   for options in OPTIONS:
     for name, a, b, kw in failures():
       run(name, a, b, "failure", **kw, **options)
+
+print(f"\neffort={EFFORT}: must register: {TALLY['success'][0]} of {TALLY['success'][1]} "
+      f"claimed; must not: {TALLY['failure'][0]} of {TALLY['failure'][1]} claimed (false "
+      "successes)")
 
 
 def multiway_sets():

@@ -37,6 +37,9 @@ RIVAL_DEG = 10.0
 # point-to-plane constraints holds less than DEGENERATE_RATIO of the strongest's: a plane slid
 # within itself, a sphere or cylinder turned about its centre or axis.
 DEGENERATE_RATIO = 0.01
+# A "not sure" whose best distinct pose explains at least AMBIGUOUS_SHARE of the winner's inliers
+# is ambiguous: `next_step` does not suggest more keypoints for it.
+AMBIGUOUS_SHARE = 0.8
 
 # `Registration.reason_code`: what decided the verdict.
 REASON_CODES = {
@@ -66,6 +69,7 @@ class Evidence(NamedTuple):
   estimator: the estimator that produced the winner.
   degeneracy: `constraint_spectrum`'s ratio of the overlap (1: fully constrained).
   free_direction: the least constrained motion, in words ("" when not computed).
+  effort: the `register` effort that gathered it (the next step `decide` suggests).
   """
 
   n_inliers: int
@@ -76,6 +80,7 @@ class Evidence(NamedTuple):
   estimator: str
   degeneracy: float = 1.0
   free_direction: str = ""
+  effort: str = "normal"
 
 
 class Verdict(NamedTuple):
@@ -164,7 +169,19 @@ def decide(evidence: Evidence) -> Verdict:
   rival = e.rival_inliers >= e.chance_inliers
   which = "a distinct pose" if rival else "chance"
   return Verdict(False, f"not sure: {e.n_inliers} consistent correspondences, {which} gives "
-                        f"{level} (needs {need:g})", "rival" if rival else "chance")
+                        f"{level} (needs {need:g}); {next_step(e)}",
+                 "rival" if rival else "chance")
+
+
+def next_step(evidence: Evidence) -> str:
+  """What may settle a "not sure" for lack of support (`decide`'s "chance" and "rival"): more
+  keypoints and pooled seeds (`effort="high"`) unless they were used or a distinct pose explains
+  nearly as many correspondences as the winner (at least AMBIGUOUS_SHARE of them: two copies of
+  an object, which more correspondences find again), and an init."""
+  if (evidence.effort == "high"
+      or evidence.rival_inliers >= AMBIGUOUS_SHARE * evidence.n_inliers):
+    return "an init may settle it"
+  return "effort='high' (more keypoints, pooled seeds) or an init may settle it"
 
 
 def verdict(evidence: Evidence) -> tuple[bool, str]:

@@ -24,6 +24,7 @@ from lrf_jax.defaults import DEFAULT_METHOD, RADIUS_MR
 ESTIMATORS = ("graph", "lrf", "3point")
 KEYPOINTS = ("random", "iss")
 ICP_MODES = ("point_to_plane", "point_to_point")
+EFFORTS = ("normal", "high")
 DEFAULT_DESCRIPTOR = "toldi"
 
 
@@ -83,6 +84,10 @@ class RegisterOptions:
       "its normals and lrf_net_plus's z)", metavar=("X", "Y", "Z"))
   target_viewpoint: tuple[float, float, float] | None = _option(
       None, "sensor position of a single-view target scan", metavar=("X", "Y", "Z"))
+  effort: str = _option(
+      "normal", "high: more keypoints per cloud and several seeds, their correspondences "
+      "pooled before the same hypotheses and verdict (a few times slower; may settle a 'not "
+      "sure')", choices=EFFORTS)
 
   def __post_init__(self) -> None:
     self.check()
@@ -131,6 +136,8 @@ class RegisterOptions:
                        f"{self.icp_mode!r}")
     if self.keypoints not in KEYPOINTS:
       raise ValueError(f"keypoints: expected one of {KEYPOINTS}, got {self.keypoints!r}")
+    if self.effort not in EFFORTS:
+      raise ValueError(f"effort: expected one of {EFFORTS}, got {self.effort!r}")
 
   def _check_registered(self) -> None:
     from lrf_jax.descriptors import DESCRIPTORS

@@ -18,6 +18,7 @@ from typing import Any
 import numpy as np
 
 from lrf_jax.registration import stages
+from lrf_jax.registration.effort import pooled_stages
 from lrf_jax.registration.evidence import Evidence, decide, overlap_contrast
 from lrf_jax.registration.icp_host import icp
 from lrf_jax.registration.options import RegisterOptions, check_register_options, resolve
@@ -67,6 +68,13 @@ def register(source: Any, target: Any, options: RegisterOptions | None = None, *
      rivals), so no option claims what the default's evidence would not.
      `Registration.reason_code` says which test decided.
 
+  `effort="high"` runs steps 1-2 for `effort.EFFORT_SEEDS` seeds (seed, seed + 1, ...) with
+  `effort.EFFORT_KEYPOINTS` times the keypoints and pools their correspondences before steps 3-6,
+  which run once on the pooled set (`lrf_jax.registration.effort`): a few times slower, and it
+  claims some pairs the default leaves "not sure" (the chance level and the rivals are counted on
+  the same pooled correspondences: no multiple testing). A "not sure" of the default says when
+  it may settle it.
+
   With `init` (a (4, 4) rigid transform) steps 1-4 are skipped: ICP refines `init`, as Open3D's
   `registration_icp` does, and `success` is False (nothing checks `init`; `reason` says so).
 
@@ -105,6 +113,7 @@ def register(source: Any, target: Any, options: RegisterOptions | None = None, *
       oriented towards them (see `compute_frames`). Without them a scan's normals are oriented
       by propagation, which cannot know which side of an open scan is out.
     keypoints: "random" or "iss".
+    effort: "normal" (default) or "high" (above).
     mutual: keep mutual nearest-neighbor matches only.
     ratio: optional ratio-test threshold in (0, 1].
     icp_mode: "point_to_plane" (default) or "point_to_point" (`icp`).
@@ -134,11 +143,15 @@ def register(source: Any, target: Any, options: RegisterOptions | None = None, *
   timer = stages.StageTimer()
   if init is not None:
     return register_from_init(source, target, init, opts, timer)
-  with timer("prepare"):
-    prepared = stages.prepare(source, target, opts)
-  features = stages.describe(prepared, opts, params, timer)
-  with timer("matching"):
-    matches = stages.match(features, opts)
+  if opts.effort == "high":
+    prepared, features, matches = pooled_stages(source, target, opts, params, timer)
+  else:
+    with timer("prepare"):
+      prepared = stages.prepare(source, target, opts)
+    features = stages.describe(prepared, opts, params, timer)
+    with timer("matching"):
+      matches = stages.match(features, opts)
+    matches = stages.default_evidence(prepared, matches, opts, params, timer)
   with timer("hypotheses"), serial_blas():
     hyps = stages.hypothesize(prepared, features, matches, opts)
   if hyps is None:  # no two correspondences agree: no pose to verify
@@ -165,7 +178,7 @@ def _result(prepared: stages.Prepared, matches: stages.Matches, hyps: stages.Hyp
   evidence = Evidence(n_inliers=int(np.sum(verified.evidence_mask)), chance_inliers=hyps.chance,
                       rival_inliers=verified.rival, fitness=refined.fitness, contrast=contrast,
                       estimator=opts.estimator, degeneracy=refined.degeneracy,
-                      free_direction=refined.free_direction)
+                      free_direction=refined.free_direction, effort=opts.effort)
   decision = decide(evidence)
   coarse, n = verified.coarse, len(matches.source)
   return Registration(transform=refined.transform, coarse_transform=coarse.transform,

@@ -98,13 +98,16 @@ class Features(NamedTuple):
 class Matches(NamedTuple):
   """Stage "match": correspondences as keypoint positions (source, target), best ratio first;
   the default matching's (`evidence_*`), which the verdict counts on; and whether they are the
-  same (`own`: the default estimator and matching chose them)."""
+  same (`own`: the default detector, estimator and matching chose them). With ISS keypoints the
+  evidence is the default detector's (`default_evidence`): `evidence_points` holds its world
+  points and frames (p, q, f_p, f_q), and `evidence_*` index those keypoints, not these."""
 
   source: np.ndarray
   target: np.ndarray
   evidence_source: np.ndarray
   evidence_target: np.ndarray
   own: bool
+  evidence_points: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None = None
 
 
 class Hypotheses(NamedTuple):
@@ -158,10 +161,7 @@ def prepare(source: Any, target: Any, opts: RegisterOptions) -> Prepared:
     pts = cloud.points
     if cloud.normals is not None:  # normals are estimated at the support radius, not read
       cloud = cloud.with_normals(None)
-    if opts.keypoints == "iss":
-      kp = iss_keypoints(pts, mr=mr, max_keypoints=int(opts.n_keypoints))
-    else:
-      kp = np.sort(rng.choice(len(pts), min(int(opts.n_keypoints), len(pts)), replace=False))
+    kp = draw_keypoints(pts, mr, opts, rng)
     normals = None
     if vp is not None and (spec.needs_normals or opts.descriptor == "shot"):
       normals = estimate_normals(pts, NORMAL_RADIUS_RATIO * radius, cloud.faces, vp)
@@ -171,6 +171,25 @@ def prepare(source: Any, target: Any, opts: RegisterOptions) -> Prepared:
   # checked last, where `compute_frames` checked it: the same ValueError after the same steps
   radius = validate_radius(radius)
   return Prepared(cast("tuple[Side, Side]", tuple(sides)), float(mr), radius, rng, seed, voxel)
+
+
+def draw_keypoints(points: np.ndarray, mr: float, opts: RegisterOptions,
+                   rng: np.random.Generator) -> np.ndarray:
+  """A cloud's keypoints (indices into `points`): ISS (`opts.keypoints="iss"`, at most
+  `opts.n_keypoints`) or `opts.n_keypoints` sorted seeded random points drawn from `rng`."""
+  if opts.keypoints == "iss":
+    return iss_keypoints(points, mr=mr, max_keypoints=int(opts.n_keypoints))
+  return np.sort(rng.choice(len(points), min(int(opts.n_keypoints), len(points)), replace=False))
+
+
+def reseed(prepared: Prepared, opts: RegisterOptions, seed: int) -> Prepared:
+  """`prepared` with each side's keypoints drawn again (`draw_keypoints`) from `seed`'s stream,
+  and `seed` for the later stages' draws: the same working clouds, normals and resolution."""
+  rng = np.random.default_rng(validate_seed(seed))
+  sides = tuple(side._replace(keypoints=np.asarray(draw_keypoints(side.points, prepared.mr,
+                                                                  opts, rng), np.int64))
+                for side in prepared.sides)
+  return prepared._replace(sides=cast("tuple[Side, Side]", sides), rng=rng, seed=int(seed))
 
 
 def working_clouds(source: CheckedCloud, target: CheckedCloud, mr: Any, voxel_size: Any
@@ -275,7 +294,8 @@ def match(features: Features, opts: RegisterOptions) -> Matches:
   with two valid frames)."""
   qi, ri = _select(features, opts.estimator, int(opts.n_correspondences), opts.radius_mr,
                    opts.mutual, opts.ratio)
-  own = opts.estimator == "graph" and not opts.mutual and opts.ratio is None
+  own = (opts.estimator == "graph" and not opts.mutual and opts.ratio is None
+         and opts.keypoints == "random")
   if own:
     return Matches(qi, ri, qi, ri, True)
   try:
@@ -283,6 +303,28 @@ def match(features: Features, opts: RegisterOptions) -> Matches:
   except ValueError:
     eqi, eri = np.zeros(0, np.int64), np.zeros(0, np.int64)
   return Matches(qi, ri, eqi, eri, False)
+
+
+def default_evidence(prepared: Prepared, matches: Matches, opts: RegisterOptions, params: Any,
+                     timer: StageTimer) -> Matches:
+  """`matches` with the default detector's evidence, for options whose keypoints are not
+  seeded random points (ISS): the keypoints `prepare` draws by default with the same seed
+  (`reseed`), described and matched as by default. A detector that picks the same points on
+  two identical copies of an object sends every match to one copy, and its correspondences
+  could never witness the other; independent random keypoints on each copy split them, as for
+  the default, so no detector claims what the default's evidence would not."""
+  if opts.keypoints == "random":
+    return matches
+  plain = opts.with_overrides(keypoints="random")
+  sampled = reseed(prepared, plain, prepared.seed)
+  features = describe(sampled, plain, params, timer)
+  with timer("matching"):
+    try:
+      eqi, eri = _select(features, "graph", int(opts.n_correspondences), 0.0)
+    except ValueError:
+      eqi, eri = np.zeros(0, np.int64), np.zeros(0, np.int64)
+  return matches._replace(evidence_source=eqi, evidence_target=eri, own=False,
+                          evidence_points=_keypoint_points(sampled, features, eqi, eri))
 
 
 def _keypoint_points(prepared: Prepared, features: Features, src: np.ndarray, dst: np.ndarray
@@ -310,9 +352,11 @@ def hypothesize(prepared: Prepared, features: Features, matches: Matches,
     ev = EvidenceSet(src, dst, cs, cd, f_p, f_q, rs, ts)
     chance = chance_inliers(src, dst, f_p, f_q, "graph", iterations, radius, seed, threshold)
   else:
-    ev, chance = evidence_set(*_keypoint_points(prepared, features, matches.evidence_source,
-                                                matches.evidence_target),
-                              iterations, radius, seed, threshold)
+    world = matches.evidence_points
+    if world is None:
+      world = _keypoint_points(prepared, features, matches.evidence_source,
+                               matches.evidence_target)
+    ev, chance = evidence_set(*world, iterations, radius, seed, threshold)
   return Hypotheses(src, dst, cs, cd, rs, ts, counts, ev, chance)
 
 

@@ -1,0 +1,96 @@
+"""`register(..., effort="high")` (more keypoints and seeds, pooled before one verdict), the next
+step a "not sure" names, and the evidence of ISS keypoints drawn from the default detector.
+"""
+
+import argparse
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from lrf_jax import datasets
+from lrf_jax.cli.options import add_register_flags
+from lrf_jax.registration import register, stages
+from lrf_jax.registration.effort import EFFORT_KEYPOINTS, EFFORT_SEEDS, pool
+from lrf_jax.registration.evidence import Evidence, decide
+from lrf_jax.registration.options import DEFAULTS, RegisterOptions
+
+KW = dict(n_keypoints=800, n_correspondences=200)
+
+
+@pytest.fixture(scope="module")
+def demo():
+  return datasets.make_demo_pair(0, seed=0, noise_mr=0.1, partial=True)
+
+
+def test_effort_is_an_option_and_a_flag():
+  assert DEFAULTS.effort == "normal"
+  with pytest.raises(ValueError, match="effort"):
+    RegisterOptions(effort="max")
+  ap = argparse.ArgumentParser()
+  add_register_flags(ap)
+  assert ap.parse_args(["--effort", "high"]).effort == "high"
+  assert ap.parse_args([]).effort == "normal"
+
+
+def test_not_sure_names_the_next_step_and_high_effort_only_an_init():
+  base = dict(n_inliers=20, chance_inliers=5, rival_inliers=12, fitness=0.5, contrast=0.0,
+              estimator="graph")
+  normal = decide(Evidence(**base))
+  assert normal.code == "rival" and "effort='high'" in normal.reason
+  high = decide(Evidence(**base, effort="high"))
+  assert high.code == "rival" and "effort='high'" not in high.reason and "init" in high.reason
+  twins = decide(Evidence(**{**base, "rival_inliers": 19}))  # two copies: more finds both
+  assert twins.code == "rival" and "effort" not in twins.reason and "init" in twins.reason
+  low = decide(Evidence(**{**base, "fitness": 0.01}))
+  assert "effort" not in low.reason  # more keypoints do not make the clouds overlap
+
+
+def test_pooling_a_seed_with_itself_keeps_each_correspondence_once(demo):
+  opts = RegisterOptions(mr=demo.mr, **KW)
+  prepared = stages.prepare(demo.model_points, demo.scene_points, opts)
+  features = stages.describe(prepared, opts, None, stages.StageTimer())
+  matches = stages.match(features, opts)
+  p, f, m = pool([(prepared, features, matches)] * 2)
+  assert len(p.sides[0].keypoints) == 2 * len(prepared.sides[0].keypoints)
+  assert len(f.descriptors[1][0]) == 2 * len(features.descriptors[1][0])
+  np.testing.assert_array_equal(m.source, matches.source)
+  np.testing.assert_array_equal(m.target, matches.target)
+  assert m.own
+  other = stages.reseed(prepared, opts, prepared.seed + 1)
+  assert not np.array_equal(other.sides[0].keypoints, prepared.sides[0].keypoints)
+  assert other.sides[0].cloud is prepared.sides[0].cloud
+
+
+def test_high_effort_pools_more_keypoints_and_seeds_and_claims_a_real_pair(demo):
+  normal = register(demo.model_points, demo.scene_points, mr=demo.mr, **KW)
+  high = register(demo.model_points, demo.scene_points, mr=demo.mr, effort="high", **KW)
+  assert normal.success and high.success and high.reason_code == "claimed"
+  assert len(high.correspondences) > len(normal.correspondences)
+  assert len(high.correspondences) <= EFFORT_SEEDS * KW["n_correspondences"]
+  assert high.evidence_inliers == high.n_inliers  # the evidence is the pooled set itself
+  assert EFFORT_KEYPOINTS > 1
+  # the same call, the same answer
+  again = register(demo.model_points, demo.scene_points, mr=demo.mr, effort="high", **KW)
+  np.testing.assert_array_equal(again.transform, high.transform)
+
+
+def _exact_twins():
+  pair = datasets.make_demo_pair(0, seed=0, noise_mr=0.1, partial=False)
+  src = pair.model_points
+  r = Rotation.from_euler("xyz", [30, 50, 10], degrees=True).as_matrix()
+  copy = src @ r.T
+  shift = 1.5 * np.ptp(src, axis=0).max()
+  return pair, src, copy, np.concatenate([copy, copy + [shift, 0, 0]])
+
+
+def test_iss_keypoints_on_two_exact_copies_side_by_side_are_not_a_success():
+  """ISS picks the same points on two exact digital copies, every match went to the first copy
+  and the verdict (counted on the ISS correspondences) never saw the second: it claimed one
+  copy. The evidence is now the default detector's, which samples each copy independently."""
+  pair, src, copy, twins = _exact_twins()
+  kw = dict(mr=pair.mr, n_keypoints=1500, n_correspondences=500, keypoints="iss")
+  reg = register(src, twins, **kw)
+  assert reg.success is False and reg.reason_code == "rival", reg.reason
+  single = register(src, copy, **kw)
+  assert single.success and single.reason_code == "claimed", single.reason

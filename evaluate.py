@@ -25,6 +25,7 @@ from lrf_jax.cli.help import DefaultsHelpFormatter
 from lrf_jax.evaluation import runner
 from lrf_jax.evaluation.experiments import (DATASETS, EXPERIMENTS, POINTS_ONLY_DATASETS,
                                             POINTS_ONLY_HANDCRAFTED, POINTS_ONLY_PAIRS)
+from lrf_jax.defaults import RADIUS_MR
 from lrf_jax.frames import METHODS
 
 REAL = ["BR@0.1", "BR@0.3", "BR@0.5", "UWA3M", "UWAOR", "bunny"]
@@ -58,7 +59,7 @@ def build_parser() -> argparse.ArgumentParser:
   ap.add_argument("--max-pairs", type=int, default=None,
                   help=f"at most N pairs per dataset (default: all; {POINTS_ONLY_PAIRS} with "
                        "points_only)")
-  ap.add_argument("--radius-mr", type=float, default=15.0,
+  ap.add_argument("--radius-mr", type=float, default=RADIUS_MR,
                   help="support radius in mesh resolutions")
   ap.add_argument("--seed", type=int, default=0, help="seed of keypoints and subsamples")
   ap.add_argument("--max-neighbors", type=int, default=evaluation.MAX_NEIGHBORS,

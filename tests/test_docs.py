@@ -69,8 +69,12 @@ def test_the_pages_have_runnable_examples():
   assert any("register(" in code for _, _, code, _ in blocks)
 
 
-@pytest.mark.parametrize("page,line,code,needs_data", runnable_blocks(),
-                         ids=[f"{p}:{line}" for p, line, _, _ in runnable_blocks()])
+EXAMPLES = [pytest.param(page, line, code, needs_data, id=f"{page}:{line}",
+                         marks=[pytest.mark.data] if needs_data else [])
+            for page, line, code, needs_data in runnable_blocks()]
+
+
+@pytest.mark.parametrize("page,line,code,needs_data", EXAMPLES)
 def test_runnable_example(page, line, code, needs_data, tmp_path, monkeypatch):
   if needs_data and not os.environ.get("LRF_DATA"):
     pytest.skip("needs the real data under LRF_DATA")

@@ -149,7 +149,7 @@ def test_help_of_evaluate_and_train_shows_defaults_and_presets():
   assert {"default", "smoke", "plus_soft"} <= set(config_lib.preset_names())
 
 
-_ENTRY = re.compile(r"^[\w-]+(/|\.(py|toml|md)),?$")
+_ENTRY = re.compile(r"^[\w-]+(/|\.(py|toml|md|yml)),?$")
 
 
 def layout_entries() -> set[str]:

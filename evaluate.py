@@ -119,7 +119,15 @@ def main(argv=None) -> int:
   print(text)
   print(f"wrote {out / 'results.json'}, {out / 'report.md'} and figures "
         f"({time.perf_counter() - t0:.0f} s)")
+  print(NEXT_STEPS)
   return 0
+
+
+# Where a newcomer goes after the first command (printed last).
+NEXT_STEPS = ("next: register two scans of your own with `lrf-register a.ply b.ply` (it prints "
+              "the transform and a verdict you can trust); a data set: `lrf-batch register "
+              "pairs.tsv --out results/`; the guide: docs/getting-started.md (`mkdocs serve` with "
+              "the [docs] extra)")
 
 
 # Files evaluate.py writes in --out besides figures (*.png).

@@ -86,3 +86,16 @@ def test_runnable_example(page, line, code, needs_data, tmp_path, monkeypatch):
   finally:
     for name in set(lrf_jax.METHODS) - before:  # an example that registers a toy method
       del lrf_jax.METHODS[name]
+
+
+def test_the_first_commands_last_line_names_places_that_exist():
+  """`python evaluate.py` (the README's first command) ends with where to go next: the
+  commands it names are console scripts of the package and the page it names is in the site."""
+  import tomllib
+
+  import evaluate
+  scripts = tomllib.loads((REPO / "pyproject.toml").read_text())["project"]["scripts"]
+  for command in ("lrf-register", "lrf-batch"):
+    assert f"`{command} " in evaluate.NEXT_STEPS and command in scripts
+  assert "docs/getting-started.md" in evaluate.NEXT_STEPS
+  assert (REPO / "docs" / "getting-started.md").is_file()

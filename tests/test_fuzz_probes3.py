@@ -571,3 +571,31 @@ def test_a_voxel_size_that_leaves_no_cloud_is_named():
     register(pair.model_points, pair.scene_points, voxel_size=1e300)
   with pytest.raises(ValueError, match=r"^voxel_size: size 1e-20 is too small"):
     register(pair.model_points, pair.scene_points, voxel_size=1e-20)
+
+
+def test_a_ctrl_c_a_library_swallows_is_sent_again(monkeypatch, capsys):
+  """Before: a KeyboardInterrupt caught by library code (a checkpoint manager's `except
+  BaseException`, a C++ callback) was lost and the program went on (train.py trained 400 epochs
+  after Ctrl-C in a fresh CI environment). The SIGINT handler sends it again unless the program
+  stopped by then."""
+  import signal
+  from lrf_jax.cli import interrupt
+  monkeypatch.setattr(interrupt, "REDELIVER_AFTER_S", 0.2)
+  swallowed = []
+
+  @interrupt.interruptible("test")
+  def main() -> int:
+    try:
+      os.kill(os.getpid(), signal.SIGINT)
+      time.sleep(2)
+    except KeyboardInterrupt:
+      swallowed.append(True)  # what the library did
+    deadline = time.monotonic() + 5
+    while time.monotonic() < deadline:
+      time.sleep(0.01)
+    return 0
+
+  before = signal.getsignal(signal.SIGINT)
+  assert main() == interrupt.INTERRUPTED and swallowed == [True]
+  assert capsys.readouterr().err.startswith("interrupted: test")
+  assert signal.getsignal(signal.SIGINT) is before  # the program's handler is removed again

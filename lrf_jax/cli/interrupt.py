@@ -32,6 +32,8 @@ def interruptible(note: str) -> Callable[[_Main], _Main]:
     @functools.wraps(main)
     def run(*args: Any, **kwargs: Any) -> int:
       redeliver_lost_interrupts()
+      finished = threading.Event()
+      previous = _watch_interrupts(finished)
       try:
         return main(*args, **kwargs)
       except Exception as e:  # noqa: BLE001 -- re-raised unless Ctrl-C caused it
@@ -39,10 +41,40 @@ def interruptible(note: str) -> Callable[[_Main], _Main]:
           raise
       except KeyboardInterrupt:
         pass
+      finally:
+        finished.set()
+        if previous is not None:
+          signal.signal(signal.SIGINT, previous)
       print(f"interrupted: {note}", file=sys.stderr, flush=True)
       return INTERRUPTED
     return run  # type: ignore[return-value]
   return wrap
+
+
+# Seconds after a Ctrl-C that the program must have stopped by; else the Ctrl-C was swallowed
+# (a library's `except BaseException`, a C++ callback) and SIGINT is sent again.
+REDELIVER_AFTER_S = 10.0
+
+
+def _watch_interrupts(finished: threading.Event) -> Any:
+  """On the main thread, a SIGINT handler that raises KeyboardInterrupt as Python's does and
+  sends SIGINT again `REDELIVER_AFTER_S` seconds later unless `finished` is set by then (the
+  program returned): a Ctrl-C is never lost, whatever swallowed the first KeyboardInterrupt.
+  Returns the previous handler (None off the main thread, where nothing is installed)."""
+  if threading.current_thread() is not threading.main_thread():
+    return None
+
+  def resend() -> None:
+    if not finished.is_set():
+      os.kill(os.getpid(), signal.SIGINT)
+
+  def handler(signum: int, frame: Any) -> None:
+    timer = threading.Timer(REDELIVER_AFTER_S, resend)
+    timer.daemon = True
+    timer.start()
+    raise KeyboardInterrupt
+
+  return signal.signal(signal.SIGINT, handler)
 
 
 def redeliver_lost_interrupts() -> None:

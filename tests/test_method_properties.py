@@ -8,7 +8,7 @@ touching the other keypoints; and every method honouring the declared `extra` la
 method with a host kernel (`host_frames` or `host_patch_frames`) must give its jitted function's
 frames on procedural clouds: smooth, noisy, planar, cut off, with degenerate keypoints
 (`lrf_testing.host_check_cloud`). A new method registered in `lrf_jax/frames/__init__.py` is
-tested here without edits; the README's "Adding an LRF method" example, host kernel included,
+tested here without edits; the guide's (docs/frames.md) "adding an LRF method" example, host kernel included,
 is run as written and put through the same checks.
 """
 
@@ -31,7 +31,7 @@ from tests.lrf_testing import (HOST_CHECK_KINDS, N_GOOD, assert_frames_orthonorm
                                host_check_cloud, synthetic_mesh)
 
 SYN = synthetic_mesh()
-README = Path(__file__).resolve().parents[1] / "README.md"
+GUIDE = Path(__file__).resolve().parents[1] / "docs" / "frames.md"
 
 
 def _inputs(method, k="default"):
@@ -173,18 +173,19 @@ def test_method_property(method, check):
 
 
 def _readme_example() -> str:
-  text = README.read_text()
-  section = text[text.index("### Adding an LRF method"):]
+  """The guide's "adding an LRF method" example (docs/frames.md, linked from the README)."""
+  text = GUIDE.read_text()
+  section = text[text.index("## The registry: adding an LRF method"):]
   return re.search(r"```python\n(.*?)```", section, re.S).group(1)
 
 
 def test_adding_a_method_as_the_readme_says():
-  """The README's toy method, registered inside this test only, passes every property check,
+  """The guide's toy method, registered inside this test only, passes every property check,
   runs through `compute_frames`, is equivariant on the synthetic mesh, and its host kernel
   passes the host check (`test_host_fast_path_equals_the_jitted_function`) on every cloud."""
   assert "centroid" not in lrf_jax.METHODS
   try:
-    exec(compile(_readme_example(), str(README), "exec"), {})
+    exec(compile(_readme_example(), str(GUIDE), "exec"), {})
     assert "centroid" in lrf_jax.METHODS
     for check in CHECKS:
       check("centroid")

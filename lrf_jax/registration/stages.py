@@ -298,6 +298,9 @@ def match(features: Features, opts: RegisterOptions) -> Matches:
          and opts.keypoints == "random")
   if own:
     return Matches(qi, ri, qi, ri, True)
+  if opts.keypoints != "random":  # the evidence is the default detector's: `default_evidence`
+    empty = np.zeros(0, np.int64)
+    return Matches(qi, ri, empty, empty, False)
   try:
     eqi, eri = _select(features, "graph", int(opts.n_correspondences), 0.0)
   except ValueError:

@@ -2,7 +2,11 @@
 (`RayEngine`), behind one small interface.
 
 An engine maps a pure, picklable function over payloads and yields an `Outcome` per payload as
-it finishes, in completion order (the job layer writes each one as it comes). The function
+it finishes, in completion order (the job layer writes each one as it comes). A value many
+payloads share (a scan's features, read by every pair it is in) is handed over once with
+`put`: the handle it returns stands for the value as a top-level value of a payload dict (the
+local engine returns the value itself; the Ray engine stores it once in the object store and
+the worker fetches it). The function
 catches the errors of a bad item itself and returns them as data; an engine only reports what
 killed the work around it: a worker process or a node that died (`Outcome.error`), after Ray
 has retried the task `max_retries` times on the nodes that remain.
@@ -62,6 +66,8 @@ class Engine(Protocol):
 
   def run(self, fn: Callable[[Any], Any], payloads: Sequence[Any]) -> Iterator[Outcome]: ...
 
+  def put(self, value: Any) -> Any: ...
+
   def driver_node(self) -> str: ...
 
   def close(self) -> None: ...
@@ -81,6 +87,10 @@ class LocalEngine:
     version = _version()
     for i, payload in enumerate(payloads):
       yield Outcome(i, fn(payload), None, "local", 1, version)
+
+  def put(self, value: Any) -> Any:
+    """`value` itself (payloads of this process share it as it is)."""
+    return value
 
   def driver_node(self) -> str:
     """Where this process runs: "local"."""
@@ -105,6 +115,8 @@ def _on_worker(fn: Callable[[Any], Any], payload: Any, driver_version: str
   if lrf_jax.__version__ != driver_version:
     return (None, f"the worker runs lrf_jax {lrf_jax.__version__}, the driver "
                   f"{driver_version}: refused", node, attempt, lrf_jax.__version__)
+  if isinstance(payload, dict):  # the values `RayEngine.put` stored, fetched once each
+    payload = {k: ray.get(v) if isinstance(v, ray.ObjectRef) else v for k, v in payload.items()}
   return fn(payload), None, node, attempt, lrf_jax.__version__
 
 
@@ -198,6 +210,11 @@ class RayEngine:
       for ref in pending:
         ray.cancel(ref, force=True)
       raise
+
+  def put(self, value: Any) -> Any:
+    """A handle of `value` stored once in the cluster's object store (owned by this driver,
+    kept while a payload holds it); a top-level value of a payload dict."""
+    return self._ray().put(value)
 
   def driver_node(self) -> str:
     """The Ray node id of this process (Ray is started or joined first)."""

@@ -62,6 +62,12 @@ def build_parser() -> argparse.ArgumentParser:
   ap.add_argument("--all-pairs-max", type=int, default=defaults["all_pairs_max"],
                   help="register every pair up to this many scans; beyond, neighbors in "
                        "the given order plus loop-closure candidates")
+  ap.add_argument("--engine", choices=("local", "ray"), default="local",
+                  help="where the scans are described and the pairs registered: this process "
+                       "(local) or a Ray cluster (ray); the result is the same")
+  ap.add_argument("--address", default=None,
+                  help="the Ray cluster (HOST:PORT) with --engine ray; default: RAY_ADDRESS if "
+                       "set, else a Ray instance of this machine started for the job")
   ap.add_argument("--no-refine", action="store_true", help="skip the joint ICP")
   ap.add_argument("--no-figures", action="store_true", help="do not draw the PNG figures")
   ap.add_argument("--quiet", action="store_true", help="no progress bar")
@@ -109,6 +115,8 @@ def _check(args: argparse.Namespace) -> str | None:
   from lrf_jax.registration.multiway import check_out_dir, output_paths, scan_names
   if len(args.scans) < 2:
     return f"expected at least 2 scans, got {len(args.scans)}"
+  if args.address and args.engine != "ray":
+    return f"--address: {args.address!r} is for --engine ray; the local engine runs here"
   if not 0 <= args.seed < 2**32:
     return f"--seed: expected an integer in [0, 2**32), got {args.seed}"
   for name in ("voxel", "mr", "reject_mr"):
@@ -167,6 +175,11 @@ def _print_result(res, out) -> None:
   print(f"# {int(res.in_model.sum())}/{len(res.names)} scans in the model (frame of "
         f"{res.names[res.reference]}), {sum(e.accepted for e in res.edges)}/{len(res.edges)} "
         f"edges accepted, mr {res.mr:.6g}, {res.seconds:.1f} s", file=sys.stderr)
+  work = res.work
+  if work:
+    print(f"# {work['pairs_registered']} pairs registered, {work['pairs_resumed']} read from "
+          f"earlier runs' records; {work['scans_described']} scans described",
+          file=sys.stderr)
   if res.placed_not_sure:
     print(f"# placed only through \"not sure\" edges (check them; edges.tsv's placement): "
           f"{', '.join(res.placed_not_sure)}", file=sys.stderr)
@@ -175,7 +188,30 @@ def _print_result(res, out) -> None:
           file=sys.stderr)
 
 
-@interruptible("no partial file is left; the same command runs again")
+def _register(args: argparse.Namespace, clouds: list, names: list[str], mr: float | None):
+  """`register_all` as the flags say, on the engine they name; with --out-dir its state
+  folder (`STATE`) keeps every finished pair for the next run."""
+  from pathlib import Path
+
+  from lrf_jax.registration.multiway import STATE, register_all
+  engine = None
+  if args.engine == "ray":
+    from lrf_jax.batch import make_engine
+    engine = make_engine("ray", args.address)
+  state = None if args.out_dir is None else Path(args.out_dir).expanduser() / STATE
+  try:
+    return register_all(clouds, names=names, mr=mr, seed=args.seed, refine=not args.no_refine,
+                        reject_mr=args.reject_mr, all_pairs_max=args.all_pairs_max,
+                        viewpoints=args.viewpoint, progress=not args.quiet,
+                        icp_mr=args.icp_mr, engine=engine, state_dir=state,
+                        **_pairwise_options(args))
+  finally:
+    if engine is not None:
+      engine.close()
+
+
+@interruptible("no partial file is left; the same command runs again (finished pairs are "
+               "kept in the output folder and not registered again)")
 def main(argv: list[str] | None = None) -> int:
   args = build_parser().parse_args(argv)
   problem = _check(args)
@@ -192,8 +228,8 @@ def main(argv: list[str] | None = None) -> int:
   from lrf_jax import compilation_cache
   compilation_cache.enable()
   from lrf_jax.io.atomic import WriteError
-  from lrf_jax.registration.multiway import (check_voxel, load_scans, median_mr, register_all,
-                                             scan_names, write_outputs)
+  from lrf_jax.registration.multiway import (check_voxel, load_scans, median_mr, scan_names,
+                                             write_outputs)
   try:
     names = scan_names(args.scans)
     clouds = load_scans(args.scans, names)
@@ -204,10 +240,7 @@ def main(argv: list[str] | None = None) -> int:
         check_voxel([c.points for c in clouds], args.voxel * mr)
       except ValueError as e:
         raise ValueError(f"--voxel: {args.voxel:g} mr = {str(e)[len('voxel: '):]}") from None
-    res = register_all(clouds, names=names, mr=mr, seed=args.seed, refine=not args.no_refine,
-                       reject_mr=args.reject_mr, all_pairs_max=args.all_pairs_max,
-                       viewpoints=args.viewpoint, progress=not args.quiet,
-                       icp_mr=args.icp_mr, **_pairwise_options(args))
+    res = _register(args, clouds, names, mr)
   except (ValueError, FileNotFoundError) as e:
     print(f"error: {e}", file=sys.stderr)
     return 2

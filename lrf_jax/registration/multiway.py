@@ -9,11 +9,14 @@ Pipeline (every length in mr, the median over the scans of each one's mesh resol
    loop-closure candidates, the `loop_candidates` scans whose D2 shape distribution (the
    histogram of distances between random point pairs, `shape_signature`, invariant to rigid
    motion) is closest to its own (L1 distance of the histograms).
-2. pairwise: `lrf_jax.register(scan_i, scan_j)` for each candidate (i < j), seeded, one mr for
-   all. Its verdict decides how far an edge is trusted: `success` edges are trusted, "not sure"
+2. pairwise: each scan of a candidate pair is described once (`scan_features.describe_scan`:
+   keypoints, LRFs, descriptors at the one mr of the set) and each candidate (i < j) registered
+   from the two scans' features (`scan_features.register_scans`: `register`'s later stages and
+   verdict), as tasks on an engine (`multiway_tasks`: this process or a Ray cluster), each
+   finished pair recorded in `state_dir` when one is given. Its verdict decides how far an edge is trusted: `success` edges are trusted, "not sure"
    edges are weak (kept as candidates: on real scans many right poses are "not sure" at low
    overlap, and most wrong ones are too), and a pair that could not be registered at all gives
-   no edge. Every edge carries `EDGE_POINTS` points of scan i where the two scans overlap
+   no edge. Every edge carries `multiway_tasks.EDGE_POINTS` points of scan i where the two scans overlap
    (farthest-point sample of the source points within `icp_mr` mr of the target after the
    pairwise transform).
 3. pose graph (`lrf_jax.registration.pose_graph.solve`): trusted edges start it (the spanning tree that
@@ -42,15 +45,15 @@ from __future__ import annotations
 
 import dataclasses
 import os
-import sys
 import time
 from typing import Any
 from collections.abc import Callable, Sequence
 
 import numpy as np
 
-from lrf_jax.registration.options import DEFAULTS
-from lrf_jax.search import engine
+from lrf_jax.registration import multiway_tasks
+from lrf_jax.registration.options import DEFAULTS, resolve
+from lrf_jax.search import engine as search_engine
 from lrf_jax.registration import pose_graph
 from lrf_jax.registration.icp_host import estimate_target_normals
 from lrf_jax.geometry.cloud import CheckedCloud, as_cloud
@@ -59,10 +62,10 @@ from lrf_jax.checks import validate_viewpoint
 # re-exported: the outputs' names were this module's before they moved
 from lrf_jax.registration.multiway_outputs import (  # noqa: F401
     EDGE_COLUMNS, FIXED_OUTPUTS, MANIFEST, MANIFEST_KIND, MAX_VOXELS_PER_AXIS, NAME_BYTES,
-    POSES_FILE, SUFFIXES, check_names, check_out_dir, check_voxel, edges_table, kitti_poses,
+    POSES_FILE, STATE, SUFFIXES, check_names, check_out_dir, check_voxel, edges_table, kitti_poses,
     merged_cloud, output_paths, scan_names, write_merged_ply, write_outputs)
 
-__all__ = ["MANIFEST", "POSES_FILE", "MultiwayEdge", "MultiwayResult", "candidate_pairs",
+__all__ = ["MANIFEST", "POSES_FILE", "STATE", "MultiwayEdge", "MultiwayResult", "candidate_pairs",
            "check_names", "check_out_dir", "edges_table", "kitti_poses", "load_scans",
            "merged_cloud", "output_paths", "refine_poses", "register_all", "scan_names",
            "shape_signature", "write_outputs"]
@@ -71,10 +74,6 @@ __all__ = ["MANIFEST", "POSES_FILE", "MultiwayEdge", "MultiwayResult", "candidat
 ALL_PAIRS_MAX = 12
 # An edge whose RMS point residual under the optimised poses exceeds this many mr is rejected.
 REJECT_MR = 5.0
-# Points per edge in the pose graph's residual.
-EDGE_POINTS = 32
-# Source points a pair's overlap is looked for among.
-OVERLAP_SAMPLES = 4000
 # Joint ICP: Gauss-Newton steps (residual evaluations) per re-pairing round.
 REFINE_STEPS = 3
 
@@ -131,6 +130,8 @@ class MultiwayResult:
     confident: (n,) bool, the scans in the model linked to the reference by accepted "success"
       edges alone; a scan in the model whose placement rests on a "not sure" edge is False
       (`placed_not_sure`). None: every scan in the model counts as confident.
+    work: what the pairwise stage did: "scans_described" (each at most once),
+      "pairs_registered" (this call) and "pairs_resumed" (read from `state_dir`).
   """
 
   names: tuple[str, ...]
@@ -142,6 +143,7 @@ class MultiwayResult:
   seconds: float
   timings: dict = dataclasses.field(default_factory=dict)
   confident: np.ndarray | None = None
+  work: dict = dataclasses.field(default_factory=dict)
 
   @property
   def left_out(self) -> list[str]:
@@ -203,39 +205,32 @@ def candidate_pairs(clouds: Sequence[np.ndarray], *, all_pairs_max: int = ALL_PA
   pairs = {(i, j) for i in range(n) for j in range(i + 1, min(i + 1 + neighbors, n))}
   extent = max(float(np.linalg.norm(np.ptp(c, axis=0))) for c in clouds)
   sig = np.stack([shape_signature(c, max_distance=extent, seed=seed) for c in clouds])
-  dist = np.abs(sig[:, None, :] - sig[None, :, :]).sum(axis=2)
-  np.fill_diagonal(dist, np.inf)
-  for i in range(n):
-    for j in np.argsort(dist[i], kind="stable")[:min(loop_candidates, n - 1)]:  # never i
-      pairs.add((min(i, int(j)), max(i, int(j))))
+  k = min(loop_candidates, n - 1)
+  if k > 0:
+    for i, j in _closest_signatures(sig, k):
+      pairs.add((min(i, j), max(i, j)))
   return sorted(pairs)
 
 
-def _farthest(points: np.ndarray, k: int) -> np.ndarray:
-  """k points of `points` by farthest-point sampling from the first (repeated when fewer)."""
-  if len(points) <= k:
-    return np.resize(points, (k, 3))
-  chosen = [0]
-  d = np.linalg.norm(points - points[0], axis=1)
-  for _ in range(k - 1):
-    chosen.append(int(np.argmax(d)))
-    d = np.minimum(d, np.linalg.norm(points - points[chosen[-1]], axis=1))
-  return points[chosen]
+def _closest_signatures(sig: np.ndarray, k: int) -> list[tuple[int, int]]:
+  """(i, j) for each scan i and its k scans j != i of smallest L1 signature distance, ties to
+  the lower index: the n x n comparison's result from a k-d tree (O(n log n)). The k-th
+  distance is found first, then every scan within it (the ties) ranked exactly."""
+  from scipy.spatial import cKDTree
+  tree = cKDTree(sig)
+  dk, _ = tree.query(sig, k=k + 1, p=1)
+  out = []
+  for i in range(len(sig)):
+    near = np.asarray(tree.query_ball_point(sig[i], float(dk[i, -1]) * (1 + 1e-9) + 1e-12,
+                                            p=1), np.int64)
+    near = near[near != i]
+    d = np.abs(sig[near] - sig[i]).sum(axis=1)
+    out += [(i, int(j)) for j in near[np.lexsort((near, d))[:k]]]
+  return out
 
 
 def _apply(t: np.ndarray, p: np.ndarray) -> np.ndarray:
   return p @ t[:3, :3].T + t[:3, 3]
-
-
-def _overlap_points(src: np.ndarray, grid: engine.Grid, transform: np.ndarray, distance: float,
-                    rng: np.random.Generator) -> np.ndarray:
-  """`EDGE_POINTS` points of `src` within `distance` of the target (its grid) under
-  `transform`, spread by farthest-point sampling; empty when none is."""
-  sub = src if len(src) <= OVERLAP_SAMPLES else src[np.sort(
-      rng.choice(len(src), OVERLAP_SAMPLES, replace=False))]
-  d, _ = engine.knn(grid, _apply(transform, sub), 1, distance)
-  near = sub[np.isfinite(d[:, 0])]
-  return _farthest(near, EDGE_POINTS) if len(near) else near
 
 
 def load_scans(scans: Sequence[Any], names: Sequence[str]) -> list[CheckedCloud]:
@@ -276,50 +271,46 @@ def check_counts(**counts: Any) -> None:
       raise ValueError(f"{name}: expected a non-negative integer, got {val!r}")
 
 
-def _pairwise(clouds, pairs, *, mr, seed, viewpoints, pairwise, icp_mr, progress, register_kw
-              ) -> tuple[list[MultiwayEdge], list[np.ndarray]]:
-  """Stage "pairwise": one registration per candidate pair; edges and their overlap points."""
-  from tqdm.auto import tqdm
+def _pairwise(clouds, names, pairs, *, mr, seed, viewpoints, pairwise, icp_mr, progress,
+              register_kw, engine, state_dir
+              ) -> tuple[list[MultiwayEdge], list[np.ndarray], dict[str, int]]:
+  """Stage "pairwise": one registration per candidate pair; edges, their overlap points and the
+  work done (scans described, pairs registered, pairs read from the state folder)."""
+  if pairwise is None:
+    opts = resolve(None, {k: v for k, v in register_kw.items() if k != "params"})
+    opts = opts.with_overrides(mr=float(mr), seed=seed, icp_mr=icp_mr)
+    params = register_kw.get("params")
+    records = multiway_tasks.PairRecords(
+        state_dir, [multiway_tasks.scan_hash(c, v) for c, v in zip(clouds, viewpoints)], opts,
+        mr, icp_mr * mr, params)
+    recs, work = multiway_tasks.run_pairs(clouds, names, pairs, options=opts, mr=mr,
+                                          viewpoints=viewpoints, distance=icp_mr * mr,
+                                          params=params, engine=engine, records=records,
+                                          progress=progress)
+  else:
+    recs = [_custom_pair(pairwise, clouds, i, j, mr=mr, seed=seed, viewpoints=viewpoints,
+                         icp_mr=icp_mr, register_kw=register_kw) for i, j in pairs]
+    work = dict(scans_described=0, pairs_registered=len(pairs), pairs_resumed=0)
+  edges = [MultiwayEdge(r["i"], r["j"], np.full((4, 4), np.nan) if r["transform"] is None
+                        else np.asarray(r["transform"], np.float64), r["verdict"], r["reason"],
+                        int(r["n_inliers"]), float(r["overlap"]),
+                        float("inf") if r["rmse"] is None else float(r["rmse"]), float("inf"),
+                        False, r["reason_code"]) for r in recs]
+  points = [np.asarray(r["points"], np.float64).reshape(-1, 3) for r in recs]
+  return edges, points, work
 
-  from lrf_jax.registration import register
-  run = pairwise or register
-  grids: dict[int, engine.Grid] = {}
-  rng = np.random.default_rng(seed)
-  edges, points = [], []
-  bar = None
+
+def _custom_pair(pairwise, clouds, i, j, *, mr, seed, viewpoints, icp_mr, register_kw
+                 ) -> dict[str, Any]:
+  """A pair registered by a user's `pairwise` function, as an edge record."""
+  reg, error = None, None
   try:
-    bar = tqdm(pairs, desc="pairwise registration", unit="pair", disable=not progress)
-    for i, j in bar:
-      try:
-        reg = run(clouds[i], clouds[j], mr=mr, seed=seed, source_viewpoint=viewpoints[i],
-                  target_viewpoint=viewpoints[j], **register_kw)
-      except ValueError as e:
-        reg = None
-        reason = str(e)
-      else:
-        reason = str(getattr(reg, "reason", ""))
-      if reg is None or not getattr(reg, "estimated", True):  # no pose: no edge
-        code = "error" if reg is None else str(getattr(reg, "reason_code", "no_hypothesis"))
-        edges.append(MultiwayEdge(i, j, np.full((4, 4), np.nan), "error", reason, 0, 0.0,
-                                  float("inf"), float("inf"), False, code))
-        points.append(np.zeros((0, 3)))
-        continue
-      if j not in grids:
-        grids[j] = engine.knn_grid(clouds[j].points)
-      t = np.asarray(reg.transform, np.float64)
-      points.append(_overlap_points(clouds[i].points, grids[j], t, icp_mr * mr, rng))
-      edges.append(MultiwayEdge(i, j, t, "success" if reg.success else "not sure",
-                                reason, int(reg.n_inliers), float(reg.overlap),
-                                float(reg.rmse), float("inf"), False,
-                                str(getattr(reg, "reason_code", ""))))
-  except BaseException:  # Ctrl-C (also as a SystemError out of numba) or any error
-    if progress:  # end the bar's line: what is printed next starts a line of its own
-      if bar is not None:
-        bar.close()
-      else:
-        print(file=sys.stderr, flush=True)
-    raise
-  return edges, points
+    reg = pairwise(clouds[i], clouds[j], mr=mr, seed=seed, source_viewpoint=viewpoints[i],
+                   target_viewpoint=viewpoints[j], **register_kw)
+  except ValueError as e:
+    error = str(e)
+  return multiway_tasks.edge_record(i, j, reg, error, clouds[i].points, clouds[j].points,
+                                    icp_mr * mr, seed)
 
 
 def refine_poses(clouds: Sequence[np.ndarray], poses: np.ndarray,
@@ -354,7 +345,7 @@ def refine_poses(clouds: Sequence[np.ndarray], poses: np.ndarray,
     return poses
   rng = np.random.default_rng(seed)
   scans = sorted({k for p in pairs for k in p})
-  grids = {k: engine.knn_grid(clouds[k]) for k in scans}
+  grids = {k: search_engine.knn_grid(clouds[k]) for k in scans}
   normals = {k: estimate_target_normals(clouds[k], icp_mr * mr, grids[k]) for k in scans}
   subs = {k: clouds[k][np.sort(rng.choice(len(clouds[k]), min(samples, len(clouds[k])),
                                           replace=False))] for k in scans}
@@ -364,7 +355,7 @@ def refine_poses(clouds: Sequence[np.ndarray], poses: np.ndarray,
     for a, b in pairs:
       for i, j in ((a, b), (b, a)):
         moved = _apply(np.linalg.inv(poses[j]) @ poses[i], subs[i])
-        d, idx = engine.knn(grids[j], moved, 1, icp_mr * mr)
+        d, idx = search_engine.knn(grids[j], moved, 1, icp_mr * mr)
         ok = np.isfinite(d[:, 0])
         ok[ok] = np.all(np.isfinite(normals[j][idx[ok, 0]]), axis=1)
         if ok.sum() >= 3:
@@ -411,7 +402,8 @@ def register_all(scans: Sequence[Any], *, names: Sequence[str] | None = None,
                  icp_mr: float = DEFAULTS.icp_mr, viewpoints: Any = None,
                  seed: int = DEFAULTS.seed, progress: bool = False,
                  voxel_size: float | None = None,
-                 pairwise: Callable[..., Any] | None = None, **register_kw: Any
+                 pairwise: Callable[..., Any] | None = None, engine: Any = None,
+                 state_dir: str | os.PathLike | None = None, **register_kw: Any
                  ) -> MultiwayResult:
   """Register many scans of one object or scene into one frame (module docstring).
 
@@ -439,11 +431,19 @@ def register_all(scans: Sequence[Any], *, names: Sequence[str] | None = None,
       as `register` chooses, 0 keeps every point, a positive edge (cloud units) thins every
       scan by voxel averaging at it. The pose graph, the joint ICP and the outputs use the
       scans' own points.
-    pairwise: the pairwise registration (default `lrf_jax.register`): called as
+    pairwise: the pairwise registration (default: `register`'s stages on features described
+      once per scan, `lrf_jax.registration.scan_features`): called as
       `pairwise(source_cloud, target_cloud, mr=, seed=, source_viewpoint=, target_viewpoint=,
       **register_kw)`, returning an object with `transform`, `success`, `reason`,
       `n_inliers`, `overlap`, `rmse` (and optionally `estimated`); a ValueError, or
       `estimated` False, marks the pair "error" (no edge).
+    engine: where the pairwise stage runs: None (this process) or an engine of
+      `lrf_jax.batch` (`lrf_jax.batch.make_engine("ray", address)`): each scan of a pair to
+      register is described once and every pair registered as a task
+      (`lrf_jax.registration.multiway_tasks`); the result does not depend on the engine.
+    state_dir: a folder kept between runs (None: none): every registered pair leaves a record
+      there, and a run with the same scans, options and resolution registers only the pairs
+      without one (a killed job loses no finished pair; a finished one redoes nothing).
     **register_kw: passed to `register` (e.g. `n_keypoints`, `radius_mr`, `method`, `params`).
 
   Returns:
@@ -489,9 +489,9 @@ def register_all(scans: Sequence[Any], *, names: Sequence[str] | None = None,
   pairs = candidate_pairs([c.points for c in clouds], all_pairs_max=all_pairs_max,
                           neighbors=neighbors, loop_candidates=loop_candidates, seed=seed)
   t = time.perf_counter()
-  edges, points = _pairwise(clouds, pairs, mr=mr, seed=seed, viewpoints=views,
-                            pairwise=pairwise, icp_mr=icp_mr, progress=progress,
-                            register_kw=register_kw)
+  edges, points, work = _pairwise(clouds, names, pairs, mr=mr, seed=seed, viewpoints=views,
+                                  pairwise=pairwise, icp_mr=icp_mr, progress=progress,
+                                  register_kw=register_kw, engine=engine, state_dir=state_dir)
   timings["pairwise"] = time.perf_counter() - t
   t = time.perf_counter()
   poses, accepted, errors, component = _graph(n, edges, points, mr=mr, reject_mr=reject_mr,
@@ -520,7 +520,7 @@ def register_all(scans: Sequence[Any], *, names: Sequence[str] | None = None,
   return MultiwayResult(names=tuple(names), poses=poses, in_model=in_model,
                         reference=reference, edges=tuple(final), mr=float(mr),
                         seconds=time.perf_counter() - t0, timings=timings,
-                        confident=confident)
+                        confident=confident, work=work)
 
 
 def median_mr(clouds: Sequence[CheckedCloud], names: Sequence[str]) -> float:

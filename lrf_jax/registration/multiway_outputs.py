@@ -256,6 +256,9 @@ def write_merged_ply(path: str | os.PathLike, points: np.ndarray, scan: np.ndarr
 MANIFEST = "manifest.json"
 MANIFEST_KIND = "lrf_jax multiway outputs"
 FIXED_OUTPUTS = (POSES_FILE, "merged.ply", "edges.tsv", "merged.png", "graph.png")
+# The job's state in the output folder: the records of the finished pairs (`register_all`'s
+# `state_dir`), kept between runs so that a rerun registers no pair twice.
+STATE = ".lrf-multiway"
 
 
 def output_paths(names: Sequence[str], out_dir: str | os.PathLike) -> dict[str, Path]:
@@ -295,7 +298,7 @@ def _read_manifest(path: Path) -> list[str] | None:
 
 def check_out_dir(out_dir: str | os.PathLike, argument: str = "out_dir") -> list[str]:
   """The files an earlier run listed in `out_dir`'s manifest (what `write_outputs` replaces or
-  removes); [] for a new or empty folder.
+  removes); [] for a new or empty folder (or one holding only a stopped run's `STATE`).
 
   Raises:
     ValueError: naming `argument`: `out_dir` is not a folder, its name is too long, or it holds
@@ -314,8 +317,8 @@ def check_out_dir(out_dir: str | os.PathLike, argument: str = "out_dir") -> list
     raise ValueError(f"{argument}: {out_dir} is not a folder")
   manifest = d / MANIFEST
   if not manifest.exists() and not manifest.is_symlink():
-    try:
-      empty = next(d.iterdir(), None) is None
+    try:  # a run stopped before its outputs leaves only its state: still this job's folder
+      empty = next((p for p in d.iterdir() if p.name != STATE), None) is None
     except OSError as e:
       raise ValueError(f"{argument}: could not list {out_dir}: {e.strerror or e}") from None
     if empty:

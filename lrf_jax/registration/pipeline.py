@@ -152,6 +152,13 @@ def register(source: Any, target: Any, options: RegisterOptions | None = None, *
     with timer("matching"):
       matches = stages.match(features, opts)
     matches = stages.default_evidence(prepared, matches, opts, params, timer)
+  return conclude(prepared, features, matches, opts, timer)
+
+
+def conclude(prepared: stages.Prepared, features: stages.Features, matches: stages.Matches,
+             opts: RegisterOptions, timer: stages.StageTimer) -> Registration:
+  """The stages after matching: hypotheses, verification, ICP and the verdict, and the
+  `Registration` (the identity, not estimated, when no hypothesis could be built)."""
   with timer("hypotheses"), serial_blas():
     hyps = stages.hypothesize(prepared, features, matches, opts)
   if hyps is None:  # no two correspondences agree: no pose to verify

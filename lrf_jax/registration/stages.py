@@ -156,21 +156,31 @@ def prepare(source: Any, target: Any, opts: RegisterOptions) -> Prepared:
   mr, thinned, voxel = working_clouds(clouds[0], clouds[1], opts.mr, opts.voxel_size)
   radius = opts.radius_mr * mr
   rng = np.random.default_rng(seed)
-  sides = []
-  for (cloud, index), vp in zip(thinned, views):
-    pts = cloud.points
-    if cloud.normals is not None:  # normals are estimated at the support radius, not read
-      cloud = cloud.with_normals(None)
-    kp = draw_keypoints(pts, mr, opts, rng)
-    normals = None
-    if vp is not None and (spec.needs_normals or opts.descriptor == "shot"):
-      normals = estimate_normals(pts, NORMAL_RADIUS_RATIO * radius, cloud.faces, vp)
-      if not spec.uses_viewpoint:  # the frames read them too
-        cloud = cloud.with_normals(normals)
-    sides.append(Side(cloud, vp, np.asarray(kp, np.int64), normals, index))
+  sides = [prepare_side(cloud, index, vp, mr, radius, opts, rng)
+           for (cloud, index), vp in zip(thinned, views)]
   # checked last, where `compute_frames` checked it: the same ValueError after the same steps
   radius = validate_radius(radius)
   return Prepared(cast("tuple[Side, Side]", tuple(sides)), float(mr), radius, rng, seed, voxel)
+
+
+def prepare_side(cloud: CheckedCloud, index: np.ndarray | None, viewpoint: np.ndarray | None,
+                 mr: float, radius: float, opts: RegisterOptions, rng: np.random.Generator
+                 ) -> Side:
+  """One working cloud as the later stages take it: its keypoints (`draw_keypoints` from `rng`)
+  and, where `opts.method` or a SHOT descriptor needs them and a viewpoint is known, normals
+  towards `viewpoint` at `NORMAL_RADIUS_RATIO` x `radius` (normals a file carried are dropped:
+  they are estimated at the support radius, not read)."""
+  spec = METHODS[opts.method]
+  pts = cloud.points
+  if cloud.normals is not None:
+    cloud = cloud.with_normals(None)
+  kp = draw_keypoints(pts, mr, opts, rng)
+  normals = None
+  if viewpoint is not None and (spec.needs_normals or opts.descriptor == "shot"):
+    normals = estimate_normals(pts, NORMAL_RADIUS_RATIO * radius, cloud.faces, viewpoint)
+    if not spec.uses_viewpoint:  # the frames read them too
+      cloud = cloud.with_normals(normals)
+  return Side(cloud, viewpoint, np.asarray(kp, np.int64), normals, index)
 
 
 def draw_keypoints(points: np.ndarray, mr: float, opts: RegisterOptions,
@@ -197,12 +207,9 @@ def working_clouds(source: CheckedCloud, target: CheckedCloud, mr: Any, voxel_si
   """The working resolution of a pair and the clouds `register` works on: (mr, [(cloud, index
   into the input points or None) for source and target], the thinning voxel edge or 0).
 
-  `mr` None: `pair_resolution` of the two `working_resolution`s. `voxel_size` None: a cloud (not
-  a mesh) whose mean spacing is under half the working resolution (`thinning_voxel`) is thinned
-  by the voxel whose centroids come out spaced mr apart (a voxel of mr leaves them closer, about
-  0.7 mr: the voxel is scaled by mr over the spacing that gives, measured); 0: none is; a
-  positive number: both clouds are thinned at it (meshes included, which lose their faces).
-  """
+  `mr` None: `pair_resolution` of the two `working_resolution`s. Each cloud is then thinned
+  (or not) by `working_cloud` at that mr; the voxel returned is the last side's that was
+  thinned."""
   check_voxel_size(voxel_size)
   resolutions = [working_resolution(c.points, c.faces, name=n)
                  for c, n in zip((source, target), ("source", "target"))]
@@ -211,26 +218,43 @@ def working_clouds(source: CheckedCloud, target: CheckedCloud, mr: Any, voxel_si
   out: list[tuple[CheckedCloud, np.ndarray | None]] = []
   used = 0.0
   for cloud, res in zip((source, target), resolutions):
-    pts = cloud.points
-    voxel = (float(voxel_size) if voxel_size is not None
-             else (None if cloud.faces is not None else thinning_voxel(res, float(mr))))
-    if voxel and voxel_size is None:  # the voxel whose centroids are spaced mr apart
-      spacing = mesh_resolution(np.asarray(voxel_downsample(pts, voxel)))[0]
-      voxel = voxel * float(mr) / spacing if spacing > 0 else voxel
-    if voxel:
-      try:
-        thin, index = voxel_downsample(pts, voxel, return_index=True)
-      except ValueError as e:  # named by the option that chose the voxel
-        raise ValueError(f"voxel_size: {str(e).removeprefix('voxel_downsample: ')}") from None
-      if len(thin) < 10:
-        raise ValueError(f"voxel_size: voxels of {voxel:.6g} leave {len(thin)} points of the "
-                         f"{len(pts)} of a cloud (at least 10 needed); give a smaller "
-                         "voxel_size, or 0 to keep every point")
-      out.append((CheckedCloud(thin, name="thinned cloud"), index))
-      used = voxel
-    else:
-      out.append((cloud, None))
+    thin, index, voxel = working_cloud(cloud, float(mr), voxel_size, res)
+    out.append((thin, index))
+    used = voxel or used
   return float(mr), out, used
+
+
+def working_cloud(cloud: CheckedCloud, mr: float, voxel_size: Any, resolution: Any = None, *,
+                  name: str = "cloud") -> tuple[CheckedCloud, np.ndarray | None, float]:
+  """One cloud as `register` works on it at the working resolution `mr`: (cloud, each working
+  point's input point index or None, the thinning voxel edge or 0).
+
+  `voxel_size` None: a cloud (not a mesh) whose mean spacing is under half of mr
+  (`thinning_voxel` of its `working_resolution`, `resolution` when already measured) is thinned
+  by the voxel whose centroids come out spaced mr apart (a voxel of mr leaves them closer, about
+  0.7 mr: the voxel is scaled by mr over the spacing that gives, measured); 0: it is kept; a
+  positive number: it is thinned at that edge (a mesh included, which loses its faces)."""
+  check_voxel_size(voxel_size)
+  pts = cloud.points
+  if voxel_size is None and cloud.faces is None:
+    res = resolution if resolution is not None else working_resolution(pts, None, name=name)
+    voxel = thinning_voxel(res, mr)
+  else:
+    voxel = None if voxel_size is None else float(voxel_size)
+  if voxel and voxel_size is None:  # the voxel whose centroids are spaced mr apart
+    spacing = mesh_resolution(np.asarray(voxel_downsample(pts, voxel)))[0]
+    voxel = voxel * mr / spacing if spacing > 0 else voxel
+  if not voxel:
+    return cloud, None, 0.0
+  try:
+    thin, index = voxel_downsample(pts, voxel, return_index=True)
+  except ValueError as e:  # named by the option that chose the voxel
+    raise ValueError(f"voxel_size: {str(e).removeprefix('voxel_downsample: ')}") from None
+  if len(thin) < 10:
+    raise ValueError(f"voxel_size: voxels of {voxel:.6g} leave {len(thin)} points of the "
+                     f"{len(pts)} of a cloud (at least 10 needed); give a smaller "
+                     "voxel_size, or 0 to keep every point")
+  return CheckedCloud(thin, name="thinned cloud"), index, float(voxel)
 
 
 def input_indices(prepared: Prepared, src: np.ndarray, dst: np.ndarray) -> np.ndarray:
@@ -322,10 +346,18 @@ def default_evidence(prepared: Prepared, matches: Matches, opts: RegisterOptions
   sampled = reseed(prepared, plain, prepared.seed)
   features = describe(sampled, plain, params, timer)
   with timer("matching"):
-    try:
-      eqi, eri = _select(features, "graph", int(opts.n_correspondences), 0.0)
-    except ValueError:
-      eqi, eri = np.zeros(0, np.int64), np.zeros(0, np.int64)
+    return with_evidence(matches, sampled, features, opts)
+
+
+def with_evidence(matches: Matches, sampled: Prepared, features: Features,
+                  opts: RegisterOptions) -> Matches:
+  """`matches` with the evidence of the default matching between the seeded random keypoints
+  of `sampled` (described in `features`): their world points and frames, and the indices of
+  the correspondences among them (none when they give no match)."""
+  try:
+    eqi, eri = _select(features, "graph", int(opts.n_correspondences), 0.0)
+  except ValueError:
+    eqi, eri = np.zeros(0, np.int64), np.zeros(0, np.int64)
   return matches._replace(evidence_source=eqi, evidence_target=eri, own=False,
                           evidence_points=_keypoint_points(sampled, features, eqi, eri))
 

@@ -1,0 +1,284 @@
+"""The pairwise stage of `register_all` as tasks on an engine, resumable.
+
+Each scan of a candidate pair is described once (`describe_task`: `scan_features.describe_scan`
+at the set's resolution), then every pair is registered from the two scans' features
+(`pair_task`: `scan_features.register_scans`, and the edge's overlap points). Both are pure
+functions of picklable payloads: an engine (`lrf_jax.batch.engines`: this process or a Ray
+cluster) runs them anywhere, in any order, and the results are the same.
+
+With a state folder every finished pair leaves a record (`PairRecords`: one JSON file per pair,
+named by the hash of what its result depends on: both scans' points, faces and viewpoints, the
+options, the resolution and the seed), written atomically by the driver as it arrives; a job
+run again reads the records and redoes only the pairs without one, and describes only the
+scans those pairs need. A pair whose task was lost (a node that died beyond the engine's
+retries) leaves no record: the next run redoes it.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import json
+import os
+import sys
+from pathlib import Path
+from typing import Any
+from collections.abc import Callable, Iterator, Sequence
+
+import numpy as np
+
+from lrf_jax.io import atomic
+from lrf_jax.registration.options import RegisterOptions
+from lrf_jax.search import engine as search_engine
+
+__all__ = ["PairRecords", "describe_task", "edge_record", "pair_task", "run_pairs",
+           "scan_hash"]
+
+# Points per edge in the pose graph's residual.
+EDGE_POINTS = 32
+# Source points a pair's overlap is looked for among.
+OVERLAP_SAMPLES = 4000
+# The state folder's file format.
+RECORD_VERSION = 1
+
+
+def _farthest(points: np.ndarray, k: int) -> np.ndarray:
+  """k points of `points` by farthest-point sampling from the first (repeated when fewer)."""
+  if len(points) <= k:
+    return np.resize(points, (k, 3))
+  chosen = [0]
+  d = np.linalg.norm(points - points[0], axis=1)
+  for _ in range(k - 1):
+    chosen.append(int(np.argmax(d)))
+    d = np.minimum(d, np.linalg.norm(points - points[chosen[-1]], axis=1))
+  return points[chosen]
+
+
+def overlap_points(src: np.ndarray, target: np.ndarray, transform: np.ndarray, distance: float,
+                   seed: Sequence[int]) -> np.ndarray:
+  """`EDGE_POINTS` points of `src` within `distance` of `target` under `transform`, spread by
+  farthest-point sampling among up to `OVERLAP_SAMPLES` seeded ones; (0, 3) when none is."""
+  rng = np.random.default_rng(list(seed))
+  sub = src if len(src) <= OVERLAP_SAMPLES else src[np.sort(
+      rng.choice(len(src), OVERLAP_SAMPLES, replace=False))]
+  grid = search_engine.knn_grid(target)
+  moved = sub @ transform[:3, :3].T + transform[:3, 3]
+  d, _ = search_engine.knn(grid, moved, 1, distance)
+  near = sub[np.isfinite(d[:, 0])]
+  return _farthest(near, EDGE_POINTS) if len(near) else near
+
+
+def edge_record(i: int, j: int, reg: Any, error: str | None, src: np.ndarray, target: np.ndarray,
+                distance: float, seed: int) -> dict[str, Any]:
+  """A pair's result as plain data (what `MultiwayEdge` holds, and its overlap points): from a
+  registration `reg` (an object with `transform`, `success`, `reason`, `n_inliers`, `overlap`,
+  `rmse`, optionally `estimated` and `reason_code`) or an `error` (no edge)."""
+  if error is not None or not getattr(reg, "estimated", True):
+    code = "error" if error is not None else str(getattr(reg, "reason_code", "no_hypothesis"))
+    return dict(i=i, j=j, transform=None, verdict="error", n_inliers=0, overlap=0.0,
+                rmse=None, reason_code=code, points=[],
+                reason=error if error is not None else str(getattr(reg, "reason", "")))
+  t = np.asarray(reg.transform, np.float64)
+  pts = overlap_points(src, target, t, distance, (seed, i, j))
+  return dict(i=i, j=j, transform=t.tolist(), verdict="success" if reg.success else "not sure",
+              reason=str(getattr(reg, "reason", "")), n_inliers=int(reg.n_inliers),
+              overlap=float(reg.overlap), rmse=float(reg.rmse),
+              reason_code=str(getattr(reg, "reason_code", "")), points=pts.tolist())
+
+
+def describe_task(payload: dict[str, Any]) -> dict[str, Any]:
+  """One scan's features: {"features": `ScanFeatures`} or {"error": message}.
+
+  Args:
+    payload: {"cloud": `CheckedCloud`, "name": str, "options": `RegisterOptions`, "mr": float,
+      "viewpoint": (3,) or None, "params": learned parameters or None}.
+  """
+  from lrf_jax.io.atomic import caused_by_interrupt
+  from lrf_jax.registration.scan_features import describe_scan
+  try:
+    features = describe_scan(payload["cloud"], payload["options"], mr=payload["mr"],
+                             viewpoint=payload["viewpoint"], params=payload["params"],
+                             name=f"scan {payload['name']}")
+  except Exception as e:  # noqa: BLE001 -- a scan that cannot be described gives no edges
+    if caused_by_interrupt(e):
+      raise KeyboardInterrupt from e
+    return {"error": str(e) if isinstance(e, ValueError) else f"{type(e).__name__}: {e}"}
+  return {"features": features}
+
+
+def pair_task(payload: dict[str, Any]) -> dict[str, Any]:
+  """One pair's edge record (`edge_record`) from the two scans' features.
+
+  Args:
+    payload: {"i", "j": scan indices, "source", "target": `ScanFeatures`, "options":
+      `RegisterOptions`, "distance": the overlap distance (cloud units), "seed": int}.
+  """
+  from lrf_jax.io.atomic import caused_by_interrupt
+  from lrf_jax.registration.scan_features import register_scans
+  a, b = payload["source"], payload["target"]
+  reg, error = None, None
+  try:
+    reg = register_scans(a, b, payload["options"])
+  except Exception as e:  # noqa: BLE001 -- a pair that cannot be registered is an error edge
+    if caused_by_interrupt(e):
+      raise KeyboardInterrupt from e
+    error = str(e) if isinstance(e, ValueError) else f"{type(e).__name__}: {e}"
+  return edge_record(payload["i"], payload["j"], reg, error, a.runs[0].side.points,
+                     b.runs[0].side.points, payload["distance"], payload["seed"])
+
+
+def scan_hash(cloud: Any, viewpoint: Any) -> str:
+  """sha256 of a scan's points, faces and viewpoint (what its features depend on)."""
+  h = hashlib.sha256()
+  for arr in (cloud.points, cloud.faces, viewpoint):
+    a = np.ascontiguousarray(np.zeros(0) if arr is None else np.asarray(arr))
+    h.update(f"{a.dtype.str}{a.shape}".encode())
+    h.update(a.tobytes())
+  return h.hexdigest()
+
+
+def _params_hash(params: Any) -> str:
+  if params is None:
+    return "shipped"
+  import jax
+  h = hashlib.sha256()
+  for leaf in jax.tree_util.tree_leaves(params):
+    h.update(np.ascontiguousarray(np.asarray(leaf)).tobytes())
+  return h.hexdigest()
+
+
+class PairRecords:
+  """The finished pairs of a job in `folder` (None: nothing kept): `get(i, j)` the record of a
+  pair, `put(i, j, record)` writes it (atomically)."""
+
+  def __init__(self, folder: str | os.PathLike | None, scan_hashes: Sequence[str],
+               options: RegisterOptions, mr: float, distance: float, params: Any):
+    self.folder = None if folder is None else Path(folder) / "pairs"
+    fields = {f.name: getattr(options, f.name) for f in dataclasses.fields(options)}
+    self.common = json.dumps(dict(version=RECORD_VERSION, options=fields, mr=float(mr).hex(),
+                                  distance=float(distance).hex(), params=_params_hash(params)),
+                             sort_keys=True, default=lambda v: np.asarray(v).tolist())
+    self.hashes = list(scan_hashes)
+
+  def _path(self, i: int, j: int) -> Path:
+    assert self.folder is not None
+    key = hashlib.sha256(f"{self.hashes[i]}|{self.hashes[j]}|{self.common}".encode())
+    return self.folder / f"{key.hexdigest()[:40]}.json"
+
+  def get(self, i: int, j: int) -> dict[str, Any] | None:
+    """The record of pair (i, j), or None (none kept, or one this job cannot read)."""
+    if self.folder is None:
+      return None
+    try:
+      rec = json.loads(self._path(i, j).read_text())
+    except (OSError, ValueError):
+      return None
+    return rec if isinstance(rec, dict) and "verdict" in rec else None
+
+  def put(self, i: int, j: int, record: dict[str, Any]) -> None:
+    if self.folder is not None:
+      self.folder.mkdir(parents=True, exist_ok=True)
+      atomic.write_text(self._path(i, j), json.dumps({**record, "i": i, "j": j}))
+
+
+def _bar(total: int, progress: bool) -> Any:
+  from tqdm.auto import tqdm
+  return tqdm(total=total, desc="describing scans", unit="task", disable=not progress)
+
+
+def run_pairs(clouds: Sequence[Any], names: Sequence[str], pairs: Sequence[tuple[int, int]], *,
+              options: RegisterOptions, mr: float, viewpoints: Sequence[Any], distance: float,
+              params: Any, engine: Any, records: PairRecords, progress: bool
+              ) -> tuple[list[dict[str, Any]], dict[str, int]]:
+  """Every pair's edge record, in the order of `pairs`, and the work done:
+  {"scans_described", "pairs_registered", "pairs_resumed"}.
+
+  The scans of the pairs without a record are described (once each) on `engine`, their
+  features shared with the pair tasks (`engine.put`), then those pairs registered on `engine`
+  and recorded as they finish."""
+  out: dict[int, dict[str, Any]] = {}
+  for k, (i, j) in enumerate(pairs):
+    rec = records.get(i, j)
+    if rec is not None:
+      out[k] = rec
+  todo = [k for k in range(len(pairs)) if k not in out]
+  scans = sorted({s for k in todo for s in pairs[k]})
+  bar = _bar(len(scans) + len(todo), progress)
+  try:
+    features = _describe_all(clouds, names, scans, options, mr, viewpoints, params, engine, bar)
+    bar.set_description("registering pairs")
+    payloads = []
+    for k in todo:
+      i, j = pairs[k]
+      payloads.append(dict(i=i, j=j, source=features[i], target=features[j], options=options,
+                           distance=distance, seed=options.seed))
+    for k, rec in _registered(engine, todo, payloads, features, pairs):
+      out[k] = rec
+      if rec.pop("lost", False) is False:
+        records.put(*pairs[k], rec)
+      bar.update(1)
+  except BaseException:
+    bar.close()
+    if progress:  # what is printed next starts a line of its own
+      print(file=sys.stderr, flush=True)
+    raise
+  bar.close()
+  work = dict(scans_described=len(scans), pairs_registered=len(todo),
+              pairs_resumed=len(pairs) - len(todo))
+  return [out[k] for k in range(len(pairs))], work
+
+
+def _describe_all(clouds, names, scans, options, mr, viewpoints, params, engine, bar
+                  ) -> dict[int, Any]:
+  """scan -> a handle of its features (`engine.put`) or {"error": message}."""
+  payloads = [dict(cloud=clouds[s], name=names[s], options=options, mr=mr,
+                   viewpoint=viewpoints[s], params=params) for s in scans]
+  features: dict[int, Any] = {}
+  for outcome in _run(engine, describe_task, payloads):
+    s = scans[outcome.index]
+    value = outcome.value if outcome.error is None else {"error": outcome.error}
+    if "features" in value and engine is not None:  # stored once, read by all its pairs
+      value = {"features": engine.put(value["features"])}
+    features[s] = value["features"] if "features" in value else value
+    bar.update(1)
+  return features
+
+
+def _registered(engine, todo, payloads, features, pairs) -> Iterator[tuple[int, dict]]:
+  """(pair position, record) as the pairs finish; a pair with a scan that could not be
+  described is an error edge without a task."""
+  ready, runnable = [], []
+  for k, payload in zip(todo, payloads):
+    bad = next((features[s] for s in pairs[k] if isinstance(features[s], dict)), None)
+    if bad is not None:
+      i, j = pairs[k]
+      ready.append((k, edge_record(i, j, None, bad["error"], np.zeros((0, 3)), np.zeros((0, 3)),
+                                   1.0, 0)))
+    else:
+      runnable.append((k, payload))
+  yield from ready
+  for outcome in _run(engine, pair_task, [p for _, p in runnable]):
+    k = runnable[outcome.index][0]
+    if outcome.error is not None:  # lost with its node: no record, the next run redoes it
+      i, j = pairs[k]
+      rec = edge_record(i, j, None, f"the engine lost this pair: {outcome.error}",
+                        np.zeros((0, 3)), np.zeros((0, 3)), 1.0, 0)
+      yield k, {**rec, "lost": True}
+    else:
+      yield k, outcome.value
+
+
+@dataclasses.dataclass(frozen=True)
+class _Done:
+  index: int
+  value: Any
+  error: str | None = None
+
+
+def _run(engine: Any, fn: Callable[[Any], Any], payloads: list[Any]) -> Iterator[Any]:
+  """`engine.run(fn, payloads)`, or in this process when `engine` is None."""
+  if not payloads:
+    return iter(())
+  if engine is None:
+    return (_Done(k, fn(p)) for k, p in enumerate(payloads))
+  return engine.run(fn, payloads)

@@ -4,8 +4,8 @@ each old module path fails to import (ModuleNotFoundError) and each old name fai
 (AttributeError); each new home exists; nothing of the project's own (package, tests,
 benchmarks, scripts, README) mentions an old module path.
 
-The tables below are the record of what 0.8 removed or moved (CHANGELOG.md, "0.8.0", lists the
-same).
+The tables below are the record of what 0.8 removed or moved (CHANGELOG.md, "0.8.0", summarises
+them).
 """
 
 from __future__ import annotations

@@ -118,3 +118,22 @@ def test_each_worker_uses_the_cpus_its_task_was_given():
 
   outcomes = list(engines.RayEngine(cpus_per_task=1).run(threads, [0, 1]))
   assert {o.value for o in outcomes} == {("1", 1)}
+
+
+def test_multiway_on_ray_gives_the_in_process_result(tmp_path):
+  """`register_all(engine=RayEngine())`: each scan described once as a task, its features put
+  once in the object store, every pair a task; poses and edges equal the in-process run's, and
+  a rerun from the state folder registers nothing."""
+  from lrf_jax.registration import multiway
+  from tests.test_multiway import _views
+  clouds, _, mr = _views(3, step_deg=35.0)
+  kw = dict(mr=mr, refine=False, n_keypoints=300)
+  local = multiway.register_all(clouds, **kw)
+  remote = multiway.register_all(clouds, engine=engines.RayEngine(), state_dir=tmp_path, **kw)
+  assert remote.work == dict(scans_described=3, pairs_registered=3, pairs_resumed=0)
+  assert np.array_equal(local.poses, remote.poses, equal_nan=True)
+  for a, b in zip(local.edges, remote.edges):
+    assert (a.verdict, a.reason, a.accepted) == (b.verdict, b.reason, b.accepted)
+    assert np.array_equal(a.transform, b.transform, equal_nan=True)
+  again = multiway.register_all(clouds, engine=engines.RayEngine(), state_dir=tmp_path, **kw)
+  assert again.work["pairs_registered"] == 0

@@ -180,6 +180,9 @@ def _print_result(res, out) -> None:
     print(f"# {work['pairs_registered']} pairs registered, {work['pairs_resumed']} read from "
           f"earlier runs' records; {work['scans_described']} scans described",
           file=sys.stderr)
+  if res.timings:
+    print("# seconds: " + ", ".join(f"{k} {v:.2f}" for k, v in res.timings.items()),
+          file=sys.stderr)
   if res.placed_not_sure:
     print(f"# placed only through \"not sure\" edges (check them; edges.tsv's placement): "
           f"{', '.join(res.placed_not_sure)}", file=sys.stderr)

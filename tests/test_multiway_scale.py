@@ -242,3 +242,10 @@ def test_the_command_line_resumes_from_its_output_folder(five, tmp_path, capsys)
   assert (out / "poses.txt").read_text() == poses
   assert main([*argv, "--address", "127.0.0.1:1"]) == 2
   assert "--address" in capsys.readouterr().err
+
+
+def test_a_custom_pairwise_takes_no_engine_or_state(tmp_path):
+  clouds, _, mr = _views(2)
+  for kw in (dict(engine=_FarEngine()), dict(state_dir=tmp_path)):
+    with pytest.raises(ValueError, match="custom pairwise"):
+      multiway.register_all(clouds, mr=mr, pairwise=lambda *a, **k: pytest.fail("ran"), **kw)

@@ -452,6 +452,7 @@ def register_all(scans: Sequence[Any], *, names: Sequence[str] | None = None,
 
   Raises:
     ValueError: fewer than 2 scans, an unreadable or malformed scan (the message names it),
+      a custom `pairwise` with an engine or a state folder,
       `names` of the wrong length or a name `check_names` refuses, a non-positive mr or
       distance.
     FileNotFoundError: a path that does not exist.
@@ -475,6 +476,9 @@ def register_all(scans: Sequence[Any], *, names: Sequence[str] | None = None,
   views = _viewpoints(viewpoints, len(scans))
   if voxel_size is not None:  # None is `register`'s default: a custom `pairwise` never sees it
     register_kw = {**register_kw, "voxel_size": voxel_size}
+  if pairwise is not None and (engine is not None or state_dir is not None):
+    raise ValueError("pairwise: a custom pairwise registration runs in this process and keeps "
+                     "no records; pass engine=None and state_dir=None with it")
   if pairwise is None:  # every option of `register`, before any pair is registered
     from lrf_jax.registration.pipeline import check_register_options
     check_register_options(mr=mr, seed=seed, icp_mr=icp_mr,

@@ -254,8 +254,9 @@ def evaluate(plan: EvalPlan, out: Path, *, progress: bool = True) -> str:
       records, other = _run_jobs(jobs, engine, fn, bar, out)
   finally:
     engine.close()
-  meta = dict(plan.meta, seconds=time.perf_counter() - t0,
-              patch_cache={"hits": cache.hits, "misses": cache.misses})
+  meta = dict(plan.meta, seconds=time.perf_counter() - t0,  # the workers' caches: not counted
+              patch_cache={"hits": cache.hits, "misses": cache.misses}
+              if engine.name == "local" else None)
   report.write_results(records, out, notes=plan.notes, meta=meta)
   if set(plan.experiments) - {"points_only"}:  # points_only runs its own columns only
     _learned_figures(plan, out)

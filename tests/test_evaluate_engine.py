@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import json
 import os
+import sys
 from pathlib import Path
 
 import pytest
@@ -99,6 +100,17 @@ def test_a_bad_engine_option_is_refused_before_any_work(tmp_path, monkeypatch, c
   assert evaluate.main(["--datasets", "demo", "--out", str(out)] + argv) == 2
   err = capsys.readouterr().err.strip()
   assert err.startswith(f"error: {flag}: ") and len(err.splitlines()) == 1, err
+  assert not out.exists()
+
+
+def test_the_ray_engine_without_ray_names_the_extra_before_any_work(tmp_path, monkeypatch,
+                                                                   capsys):
+  monkeypatch.setitem(sys.modules, "ray", None)  # as if not installed
+  monkeypatch.setattr(runner, "evaluate", lambda *a, **k: pytest.fail("work started"))
+  out = tmp_path / "out"
+  assert evaluate.main(["--datasets", "demo", "--engine", "ray", "--out", str(out)]) == 2
+  err = capsys.readouterr().err.strip()
+  assert err.startswith("error: ") and "lrf_jax[ray]" in err and "--engine ray" in err, err
   assert not out.exists()
 
 

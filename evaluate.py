@@ -10,8 +10,9 @@ With no data (no --data, LRF_DATA unset, nothing under data/) it runs on the pro
 Writes results.json, report.md and PNG figures to --out (each atomically) and prints the summary
 table. With --engine ray the pairs run as Ray tasks (the same records, in the same order; only
 this process writes files); a pair that the engine could not run is one `error:` line naming it
-and exit code 1. Every bad argument (checked before any work), missing parameter file or checkpoint and
-unwritable output is one `error:` line and exit code 2. This file is intentionally kept short;
+and exit code 1. Every bad argument (checked before any work; a Ray --address that nothing
+answers at included), missing parameter file or checkpoint and unwritable output is one
+`error:` line and exit code 2. This file is intentionally kept short;
 the logic lives in lrf_jax/evaluation/.
 """
 
@@ -132,8 +133,9 @@ def main(argv=None) -> int:
   except runner.JobError as e:  # a pair the engine could not run: named, never dropped
     print(f"error: {e}", file=sys.stderr)
     return 1
-  except ConnectionError as e:  # no Ray cluster at --address
-    print(f"error: --address {args.address}: {e}", file=sys.stderr)
+  except ConnectionError as e:  # no Ray cluster at --address (one that answered the check)
+    where = args.address or f"{os.environ.get('RAY_ADDRESS')} ($RAY_ADDRESS)"
+    print(f"error: --address {where}: {e}", file=sys.stderr)
     return 2
   except OSError as e:  # a WriteError (full disk, read-only --out): earlier files are intact
     print(f"error: {e}", file=sys.stderr)
@@ -179,6 +181,8 @@ def _check(args: argparse.Namespace) -> str | None:
   if args.cache_dir and args.engine != "local":
     return ("--cache-dir: the ray engine's workers keep neighbourhoods in memory (only this "
             "process writes files); drop --cache-dir or use --engine local")
+  if args.engine == "ray" and _address_problem(args.address):
+    return _address_problem(args.address)
   out = Path(args.out).expanduser()
   if path_problem(out):
     return f"--out: {args.out} {path_problem(out)}"
@@ -197,6 +201,29 @@ def _check(args: argparse.Namespace) -> str | None:
     if path and (Path(path).suffix.lower() == ".png" and same_file(Path(path).parent, out)
                  or any(same_file(out / name, path) for name in OUTPUT_FILES)):
       return f"--params {item!r}: {path} is in --out under the name of an output; move it"
+  return None
+
+
+def _address_problem(address: str | None) -> str | None:
+  """What is wrong with the Ray cluster address of --engine ray (None: fine, or "local" /
+  "auto"): HOST:PORT (or ray://HOST:PORT) where nothing accepts a connection within 3 s (Ray
+  itself would retry for minutes)."""
+  import socket
+
+  from lrf_jax.batch.engines import resolve_address
+  resolved = resolve_address(address)
+  if resolved in ("local", "auto"):
+    return None
+  flag = "--address" if address else "$RAY_ADDRESS"
+  host, sep, port = resolved.split("://")[-1].rpartition(":")
+  if not sep or not host or not port.isdigit():
+    return (f"{flag}: expected HOST:PORT of a running Ray cluster, 'local' or 'auto', got "
+            f"{resolved!r}")
+  try:
+    socket.create_connection((host.strip("[]"), int(port)), timeout=3).close()
+  except OSError as e:
+    return (f"{flag}: no Ray cluster answers at {resolved} ({e.strerror or e}); start one "
+            "(`ray start --head`) or use --address local")
   return None
 
 

@@ -92,6 +92,8 @@ def test_a_job_error_from_the_library_names_the_pair(tmp_path, monkeypatch):
     (["--address", "127.0.0.1:6379"], "--address"),
     (["--engine", "local", "--address", "local"], "--address"),
     (["--engine", "ray", "--cache-dir", "cache"], "--cache-dir"),
+    (["--engine", "ray", "--address", "127.0.0.1:1"], "--address"),  # nothing listens there
+    (["--engine", "ray", "--address", "no-port"], "--address"),
 ])
 def test_a_bad_engine_option_is_refused_before_any_work(tmp_path, monkeypatch, capsys, argv,
                                                         flag):

@@ -19,7 +19,7 @@ import json
 import time
 from pathlib import Path
 from typing import Any, cast
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 
 from tqdm.auto import tqdm
 
@@ -249,7 +249,8 @@ def evaluate(plan: EvalPlan, out: Path, *, progress: bool = True) -> str:
   t0 = time.perf_counter()
   jobs = [job for exp in plan.experiments for job in _jobs(exp, plan)]
   try:
-    with tqdm(total=total, desc="evaluate", unit="record", dynamic_ncols=True,
+    desc = "evaluate" if engine.name == "local" else f"evaluate ({engine.name})"
+    with tqdm(total=total, desc=desc, unit="record", dynamic_ncols=True,
               disable=not progress) as bar:
       records, other = _run_jobs(jobs, engine, fn, bar, out)
   finally:
@@ -268,8 +269,8 @@ def evaluate(plan: EvalPlan, out: Path, *, progress: bool = True) -> str:
   return "\n".join([text] + extra_md)
 
 
-def _run_jobs(jobs: list[PairJob], engine: Any, fn: Any, bar: Any,
-              out: Path) -> tuple[list[dict[str, Any]], list[dict[str, Any]]]:
+def _run_jobs(jobs: list[PairJob], engine: engines.Engine,
+              fn: Callable[[PairJob], list[dict[str, Any]]], bar: Any, out: Path) -> tuple[list[dict[str, Any]], list[dict[str, Any]]]:
   """Run `jobs` on `engine`; (repeatability-like records, description and pose records), each
   in job order. The bar counts records as their jobs finish (its rate and ETA timed from the
   first record); partial_records.jsonl is rewritten every `PARTIAL_EVERY` records in order.

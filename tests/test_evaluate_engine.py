@@ -145,6 +145,7 @@ def ray_instance():
   ray.shutdown()
 
 
+@pytest.mark.slow  # about 60 s on 2 cores: Ray's start, two workers compiling, the run twice
 def test_the_default_run_on_ray_gives_the_local_records(tmp_path, monkeypatch, ray_instance):
   """`python evaluate.py` with no data (the demo: repeatability, every method, 1000 keypoints,
   4 pairs) on a Ray instance of 127.0.0.1 with 2 CPUs: the same records, report and figures as

@@ -4,11 +4,15 @@
     python evaluate.py --data /path/to/data --experiments repeatability noise decimation
     python evaluate.py --checkpoint runs/default --methods lrf_net toldi shot --out out/
     python evaluate.py --experiments points_only         # frames from the points alone
+    python evaluate.py --engine ray --address HOST:PORT  # the pairs spread over a Ray cluster
 
 With no data (no --data, LRF_DATA unset, nothing under data/) it runs on the procedural demo set.
 Writes results.json, report.md and PNG figures to --out (each atomically) and prints the summary
-table. Every bad argument (checked before any work), missing parameter file or checkpoint and
-unwritable output is one `error:` line and exit code 2. This file is intentionally kept short;
+table. With --engine ray the pairs run as Ray tasks (the same records, in the same order; only
+this process writes files); a pair that the engine could not run is one `error:` line naming it
+and exit code 1. Every bad argument (checked before any work; a Ray --address that nothing
+answers at included), missing parameter file or checkpoint and unwritable output is one
+`error:` line and exit code 2. This file is intentionally kept short;
 the logic lives in lrf_jax/evaluation/.
 """
 
@@ -20,6 +24,7 @@ import time
 from pathlib import Path
 
 from lrf_jax import evaluation, extras
+from lrf_jax.batch.engines import ENGINES
 from lrf_jax.cli.interrupt import exit_with, interruptible
 from lrf_jax.cli.help import DefaultsHelpFormatter
 from lrf_jax.evaluation import runner
@@ -66,6 +71,15 @@ def build_parser() -> argparse.ArgumentParser:
                   help="cap on all-neighbour patches (dense scans); 0 = no cap")
   ap.add_argument("--cache-dir", default=None, help="keep neighbourhoods on disk here")
   ap.add_argument("--out", default="out/eval", help="output folder")
+  ap.add_argument("--engine", default="local", choices=ENGINES,
+                  help="where the pairs run: local = in this process, one after another; ray "
+                       "= Ray tasks of 1 CPU each (needs the [ray] extra), the same records in "
+                       "the same order")
+  ap.add_argument("--address", default=None,
+                  help="the Ray cluster of --engine ray: HOST:PORT of a running cluster, or "
+                       "'local' (a new Ray instance of this machine on 127.0.0.1) (default: "
+                       "$RAY_ADDRESS, else 'local'); the workers need --data at the same path "
+                       "only for the BR noise sweep")
   return ap
 
 
@@ -78,6 +92,8 @@ def main(argv=None) -> int:
     return 2
   try:  # matplotlib, fast-simplification, flax: the [eval] extra
     extras.require("eval", "evaluate.py")
+    if args.engine == "ray":
+      extras.require("ray", "evaluate.py --engine ray")
   except extras.MissingExtraError as e:
     print(f"error: {e}", file=sys.stderr)
     return 2
@@ -109,10 +125,18 @@ def main(argv=None) -> int:
                                 max_neighbors=args.max_neighbors or None)
   plan = runner.EvalPlan(ok, args.experiments, runs, opts, notes=missing + notes,
                          cache_dir=args.cache_dir, meta={"args": vars(args)},
-                         methods_named=args.methods is not None)
+                         methods_named=args.methods is not None, engine=args.engine,
+                         address=args.address)
   out = Path(args.out)
   try:
     text = runner.evaluate(plan, out)
+  except runner.JobError as e:  # a pair the engine could not run: named, never dropped
+    print(f"error: {e}", file=sys.stderr)
+    return 1
+  except ConnectionError as e:  # no Ray cluster at --address (one that answered the check)
+    where = args.address or f"{os.environ.get('RAY_ADDRESS')} ($RAY_ADDRESS)"
+    print(f"error: --address {where}: {e}", file=sys.stderr)
+    return 2
   except OSError as e:  # a WriteError (full disk, read-only --out): earlier files are intact
     print(f"error: {e}", file=sys.stderr)
     return 2
@@ -151,6 +175,14 @@ def _check(args: argparse.Namespace) -> str | None:
     return f"--radius-mr: expected a positive finite number of mr, got {args.radius_mr}"
   if not 0 <= args.seed < 2**32:
     return f"--seed: expected an integer in [0, 2**32), got {args.seed}"
+  if args.address and args.engine == "local":
+    return (f"--address: {args.address} is for --engine ray; the local engine runs in this "
+            "process")
+  if args.cache_dir and args.engine != "local":
+    return ("--cache-dir: the ray engine's workers keep neighbourhoods in memory (only this "
+            "process writes files); drop --cache-dir or use --engine local")
+  if args.engine == "ray" and _address_problem(args.address):
+    return _address_problem(args.address)
   out = Path(args.out).expanduser()
   if path_problem(out):
     return f"--out: {args.out} {path_problem(out)}"
@@ -169,6 +201,29 @@ def _check(args: argparse.Namespace) -> str | None:
     if path and (Path(path).suffix.lower() == ".png" and same_file(Path(path).parent, out)
                  or any(same_file(out / name, path) for name in OUTPUT_FILES)):
       return f"--params {item!r}: {path} is in --out under the name of an output; move it"
+  return None
+
+
+def _address_problem(address: str | None) -> str | None:
+  """What is wrong with the Ray cluster address of --engine ray (None: fine, or "local" /
+  "auto"): HOST:PORT (or ray://HOST:PORT) where nothing accepts a connection within 3 s (Ray
+  itself would retry for minutes)."""
+  import socket
+
+  from lrf_jax.batch.engines import resolve_address
+  resolved = resolve_address(address)
+  if resolved in ("local", "auto"):
+    return None
+  flag = "--address" if address else "$RAY_ADDRESS"
+  host, sep, port = resolved.split("://")[-1].rpartition(":")
+  if not sep or not host or not port.isdigit():
+    return (f"{flag}: expected HOST:PORT of a running Ray cluster, 'local' or 'auto', got "
+            f"{resolved!r}")
+  try:
+    socket.create_connection((host.strip("[]"), int(port)), timeout=3).close()
+  except OSError as e:
+    return (f"{flag}: no Ray cluster answers at {resolved} ({e.strerror or e}); start one "
+            "(`ray start --head`) or use --address local")
   return None
 
 

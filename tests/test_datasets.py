@@ -144,6 +144,19 @@ def test_decimate_mesh_vertex_fraction(fraction):
   assert np.median(d) < 1.0 * mr
 
 
+def test_decimate_takes_a_read_only_mesh():
+  """A frozen mesh (the dataset cache's, or one a Ray worker unpickled) decimates as a
+  writeable one, and is left as it was."""
+  pts, faces = ds.make_demo_mesh("blob", seed=0)
+  frozen = [a.copy() for a in (pts, faces)]
+  for a in frozen:
+    a.flags.writeable = False
+  got, want = ds.decimate(*frozen, 0.5), ds.decimate(pts, faces, 0.5)
+  np.testing.assert_array_equal(got.points, want.points)
+  np.testing.assert_array_equal(got.faces, want.faces)
+  np.testing.assert_array_equal(frozen[0], pts)
+
+
 def test_decimate_open_mesh_is_corrected():
   pts, faces = _grid_mesh(60, 1.0)  # a flat sheet: half its vertices on or near the border
   dec = ds.decimate(pts, faces, 0.25)

@@ -88,6 +88,9 @@ def decimate(points: np.ndarray, faces: np.ndarray | None, fraction: float,
     return Decimation(pts.copy(), tri.copy(), None)
   wanted = fraction * n
   target = fraction * len(tri)
+  # fast_simplification takes writeable C arrays only (a read-only one is a TypeError): the
+  # dataset cache's frozen meshes and arrays unpickled by a Ray worker are read-only.
+  pts, tri = (np.require(a, requirements=("C", "W")) for a in (pts, tri))
   try:
     import fast_simplification
   except ImportError as e:  # the [eval] extra

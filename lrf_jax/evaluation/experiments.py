@@ -229,61 +229,110 @@ def iter_pairs(dataset_names: Iterable[str],
       yield ds, setting, pair
 
 
-def run_experiment(name: str, dataset_names: list[str], methods: list[MethodRun],
-                   opts: EvalOptions, cache: PatchCache) -> Iterator[dict[str, Any]]:
-  """Yield the records of one experiment over the given datasets (see module doc)."""
-  common: dict[str, Any] = dict(n_keypoints=opts.n_keypoints, seed=opts.seed, cache=cache,
-                max_neighbors=opts.max_neighbors)
-  if name == "points_only":
-    runs = points_only_runs(methods)
-    for ds, setting, pair in iter_pairs(dataset_names, opts):
-      yield from _tagged(points_only_pair(pair, runs, setting=setting, opts=opts, cache=cache),
-                         ds)
-    return
+@dataclasses.dataclass(frozen=True, eq=False)
+class PairJob:
+  """One pair of one experiment at one setting: a picklable payload whose records
+  `job_records` computes (a pure function of the job: the same records in any process).
+
+  Attributes:
+    experiment: a name of `EXPERIMENTS`, or "description" / "pose" (`runner.pair_records`).
+    dataset: the dataset name its records carry (a sweep's: the noise-free set's, e.g. "BR").
+    pair: the model-scene pair, arrays included (a sweep's: the noise-free pair).
+    setting: the setting its records carry (e.g. {"noise_mr": 0.3}).
+    runs: the method columns.
+    options: the knobs shared by every experiment.
+    nuisance: what the sweep does to `pair` before the frames, as (kind, value): ("noise",
+      sigma in mr; BR reads its noisy scene from `options.data_root`), ("decimation",
+      fraction), ("radius", support radius in mr), ("rotation", degrees about z); None: none.
+    params: LRF-Net parameters of the description and pose experiments (None: shipped).
+  """
+
+  experiment: str
+  dataset: str
+  pair: Pair
+  setting: dict[str, Any]
+  runs: tuple[MethodRun, ...]
+  options: EvalOptions
+  nuisance: tuple[str, float] | None = None
+  params: Any = None
+
+  def describe(self) -> str:
+    """The job in words, for messages: "experiment on dataset, pair name (setting)"."""
+    setting = ", ".join(f"{k}={v}" for k, v in self.setting.items())
+    return (f"{self.experiment} on {self.dataset}, pair {self.pair.name}"
+            + (f" ({setting})" if setting else ""))
+
+
+SWEEP_SETTINGS = {"noise": ("noise_mr", NOISE_LEVELS), "decimation": ("decimation", DECIMATIONS),
+                  "radius": ("radius_mr", RADII_MR), "rotation": ("rotation_deg", ROTATIONS_DEG)}
+
+
+def experiment_jobs(name: str, dataset_names: list[str], methods: list[MethodRun],
+                    opts: EvalOptions) -> Iterator[PairJob]:
+  """The jobs of one experiment over the given datasets, in the order of its records (each
+  dataset's pairs loaded when the iteration reaches it)."""
+  if name not in EXPERIMENTS:
+    raise ValueError(f"--experiments: unknown experiment {name!r}; expected some of "
+                     f"{EXPERIMENTS}")
   if name in AS_NAMED:
-    runs = methods if name == "repeatability" else plus_ablation_runs()
+    runs = tuple(points_only_runs(methods) if name == "points_only"
+                 else methods if name == "repeatability" else plus_ablation_runs())
     for ds, setting, pair in iter_pairs(dataset_names, opts):
-      yield from _tagged(evaluate_pair(pair, runs, experiment=name, setting=setting,
-                                       radius_mr=opts.radius_mr, **common), ds)
+      yield PairJob(name, ds, pair, setting, runs, opts)
     return
   clean = sorted(cast("set[str]", {_clean_name(ds) for ds in dataset_names} - {None}))
-  if name == "ablation":  # the paper's tables: noise-free BR, UWA3M, UWAOR
-    runs = ablation_runs()
-    for ds in clean:
-      for pair in _limit(CLEAN[ds](opts.data_root, opts.seed), opts):
-        yield from _tagged(evaluate_pair(pair, runs, experiment=name, setting={},
-                                         radius_mr=opts.radius_mr, **common), ds)
-    return
+  runs = tuple(ablation_runs() if name == "ablation" else methods)  # ablation: the paper's tables
   for ds in clean:
-    pairs = _limit(CLEAN[ds](opts.data_root, opts.seed), opts)
-    for pair in pairs:
-      if name == "noise":
-        for level in NOISE_LEVELS:
-          noisy = (datasets.load_br_pair(pair.meta["scene"], level, opts.data_root,
-                                         seed=opts.seed)
-                   if ds == "BR" else datasets.with_noise(pair, level, opts.seed))
-          yield from _tagged(evaluate_pair(noisy, methods, experiment=name,
-                                           setting={"noise_mr": level},
-                                           radius_mr=opts.radius_mr, **common), ds)
-      elif name == "decimation":
-        for frac in DECIMATIONS:
-          dec = datasets.with_decimation(pair, frac, opts.seed)
-          yield from _tagged(evaluate_pair(dec, methods, experiment=name,
-                                           setting={"decimation": frac}, scene_first=True,
-                                           radius_mr=opts.radius_mr, **common), ds)
-      elif name == "radius":
-        for r in RADII_MR:
-          yield from _tagged(evaluate_pair(pair, methods, experiment=name,
-                                           setting={"radius_mr": r}, radius_mr=r, **common), ds)
-      elif name == "rotation":
-        for angle in ROTATIONS_DEG:
-          rot = datasets.with_rotation(pair, angle, "z")
-          yield from _tagged(evaluate_pair(rot, methods, experiment=name,
-                                           setting={"rotation_deg": angle},
-                                           radius_mr=opts.radius_mr, **common), ds)
-      else:
-        raise ValueError(f"--experiments: unknown experiment {name!r}; expected some of "
-                         f"{EXPERIMENTS}")
+    for pair in _limit(CLEAN[ds](opts.data_root, opts.seed), opts):
+      if name == "ablation":
+        yield PairJob(name, ds, pair, {}, runs, opts)
+        continue
+      key, values = SWEEP_SETTINGS[name]
+      for value in values:
+        yield PairJob(name, ds, pair, {key: value}, runs, opts, nuisance=(name, value))
+
+
+def job_records(job: PairJob, cache: PatchCache | None = None) -> list[dict[str, Any]]:
+  """The records of one job of `experiment_jobs` (`evaluate_pair` on the pair the nuisance
+  makes, or `points_only_pair`), "dataset" set to the job's.
+
+  Args:
+    job: the payload.
+    cache: a patch cache shared with other jobs (None: one for this job only; the records are
+      the same either way).
+  """
+  cache = PatchCache() if cache is None else cache
+  opts = job.options
+  if job.experiment == "points_only":
+    return _tagged(points_only_pair(job.pair, list(job.runs), setting=job.setting, opts=opts,
+                                    cache=cache), job.dataset)
+  pair, radius_mr, kind = job.pair, opts.radius_mr, None
+  if job.nuisance is not None:
+    kind, value = job.nuisance
+    if kind == "noise":
+      pair = (datasets.load_br_pair(pair.meta["scene"], value, opts.data_root, seed=opts.seed)
+              if job.dataset == "BR" else datasets.with_noise(pair, value, opts.seed))
+    elif kind == "decimation":
+      pair = datasets.with_decimation(pair, value, opts.seed)
+    elif kind == "radius":
+      radius_mr = value
+    elif kind == "rotation":
+      pair = datasets.with_rotation(pair, value, "z")
+    else:
+      raise ValueError(f"PairJob.nuisance: unknown kind {kind!r}; expected one of "
+                       f"{tuple(SWEEP_SETTINGS)}")
+  return _tagged(evaluate_pair(pair, job.runs, experiment=job.experiment, setting=job.setting,
+                               n_keypoints=opts.n_keypoints, seed=opts.seed,
+                               radius_mr=radius_mr, scene_first=kind == "decimation",
+                               cache=cache, max_neighbors=opts.max_neighbors), job.dataset)
+
+
+def run_experiment(name: str, dataset_names: list[str], methods: list[MethodRun],
+                   opts: EvalOptions, cache: PatchCache) -> Iterator[dict[str, Any]]:
+  """Yield the records of one experiment over the given datasets (see module doc): the
+  records of its jobs (`experiment_jobs`, `job_records`) one job after another."""
+  for job in experiment_jobs(name, dataset_names, methods, opts):
+    yield from job_records(job, cache)
 
 
 def _clean_name(ds: str) -> str | None:

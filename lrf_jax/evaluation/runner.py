@@ -1,29 +1,35 @@
-"""The whole evaluation job behind `evaluate.py`: which runs, the loop over experiments, the outputs.
+"""The whole evaluation job behind `evaluate.py`: which runs, the jobs, the outputs.
 
-`evaluate(plan, out)` runs every experiment of an `EvalPlan` with one progress bar (its total is
-the number of records, so it shows an ETA, timed from the end of the first record: a first run
-spends that one compiling), keeps what is done in `partial_records.jsonl` every
-50 records, and writes results.json, report.md and the figures, each atomically
-(`lrf_jax.io.atomic`: a failed write leaves the previous file); `evaluate.py` only parses
-arguments into a plan.
+`evaluate(plan, out)` cuts every experiment of an `EvalPlan` into jobs (one pair at one
+setting, `experiments.PairJob`), runs them on the plan's engine (`lrf_jax.batch.engines`: in
+this process, or Ray tasks; `pair_records` is the pure function the engine maps over them) and
+puts their records back in job order, so every engine gives the same records. One progress bar
+(its total is the number of records, so it shows an ETA, timed from the end of the first
+record: a first run spends that one compiling); what is done, in order, is kept in
+`partial_records.jsonl` every 50 records; results.json, report.md and the figures are written
+by this process only, each atomically (`lrf_jax.io.atomic`: a failed write leaves the previous
+file); `evaluate.py` only parses arguments into a plan.
 """
 
 from __future__ import annotations
 
 import dataclasses
+import functools
 import json
 import time
 from pathlib import Path
 from typing import Any, cast
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 
 from tqdm.auto import tqdm
 
+from lrf_jax.batch import engines
 from lrf_jax.evaluation import description, pose, report
 from lrf_jax.evaluation.experiments import (ABLATION_X, ABLATION_Z, AS_NAMED, CLEAN, DATASETS,
                                             DECIMATIONS, NOISE_LEVELS, RADII_MR, ROTATIONS_DEG,
-                                            EvalOptions, _clean_name, _limit, iter_pairs,
-                                            plus_ablation_runs, points_only_runs, run_experiment)
+                                            EvalOptions, PairJob, _clean_name, _limit,
+                                            experiment_jobs, iter_pairs, job_records,
+                                            plus_ablation_runs, points_only_runs)
 from lrf_jax.evaluation.repeatability import (EXACT_NETWORK, MethodRun, PatchCache,
                                               paper_options)
 from lrf_jax.frames import METHODS
@@ -114,6 +120,10 @@ class EvalPlan:
     meta: extra fields for results.json's "meta".
     methods_named: the runs were named by the caller (--methods); else the points_only
       experiment runs its own default hand-crafted methods (`POINTS_ONLY_HANDCRAFTED`).
+    engine: where the jobs run: "local" (this process, one job after another) or "ray"
+      (`lrf_jax.batch.engines`); the records are the same on either.
+    address: the Ray cluster of the "ray" engine ("local": a new instance of this machine on
+      127.0.0.1; None: $RAY_ADDRESS, else "local"); None for the local engine.
   """
 
   datasets: list[str]
@@ -124,6 +134,8 @@ class EvalPlan:
   cache_dir: str | None = None
   meta: dict[str, Any] = dataclasses.field(default_factory=dict)
   methods_named: bool = True
+  engine: str = "local"
+  address: str | None = None
 
 
 def _experiment_runs(experiment: str, plan: EvalPlan) -> list[MethodRun]:
@@ -150,16 +162,52 @@ def count_records(experiment: str, plan: EvalPlan) -> int:
   return pairs * per_pair
 
 
+def _jobs(experiment: str, plan: EvalPlan) -> Iterator[PairJob]:
+  """The jobs of `experiment` under `plan`, in the order of its records."""
+  if experiment in ("description", "pose"):
+    params = next((r.params for r in plan.runs if r.method == "lrf_net"), None)
+    for ds, setting, pair in iter_pairs(plan.datasets, plan.options):
+      yield PairJob(experiment, ds, pair, setting, (), plan.options, params=params)
+    return
+  runs = [] if experiment == "points_only" and not plan.methods_named else plan.runs
+  yield from experiment_jobs(experiment, plan.datasets, runs, plan.options)
+
+
+def pair_records(job: PairJob, cache: PatchCache | None = None) -> list[dict[str, Any]]:
+  """The records of one job: the pure, picklable function an engine maps over the jobs (the
+  same records in any process: `job_records`, `description.evaluate_description_pair` or
+  `pose.evaluate_pose_pair`, "dataset" set to the job's).
+
+  Args:
+    job: the payload (`PairJob`; "description" and "pose" jobs carry LRF-Net's parameters).
+    cache: a patch cache shared with the other jobs of this process (None: one for this job).
+  """
+  cache = PatchCache() if cache is None else cache
+  opts = job.options
+  if job.experiment == "description":
+    recs = description.evaluate_description_pair(
+        job.pair, description.default_runs(job.params), n_keypoints=opts.n_keypoints,
+        seed=opts.seed, radius_mr=opts.radius_mr, cache=cache, setting=job.setting)
+  elif job.experiment == "pose":
+    recs = pose.evaluate_pose_pair(job.pair, n_keypoints=opts.n_keypoints, seed=opts.seed,
+                                   radius_mr=opts.radius_mr, params=job.params, cache=cache,
+                                   setting=job.setting)
+  else:
+    return job_records(job, cache)
+  for rec in recs:
+    rec["dataset"] = job.dataset
+  return recs
+
+
 def _records(experiment: str, plan: EvalPlan, cache: PatchCache) -> Iterator[dict[str, Any]]:
-  lrf_params = next((r.params for r in plan.runs if r.method == "lrf_net"), None)
-  if experiment == "description":
-    return description.run_description(plan.datasets, plan.options, cache, params=lrf_params)
-  if experiment == "pose":
-    return pose.run_pose(plan.datasets, plan.options, cache, params=lrf_params)
-  runs = plan.runs
-  if experiment == "points_only" and not plan.methods_named:
-    runs = []
-  return run_experiment(experiment, plan.datasets, runs, plan.options, cache)
+  """The records of `experiment` in this process, one job after another."""
+  for job in _jobs(experiment, plan):
+    yield from pair_records(job, cache)
+
+
+class JobError(RuntimeError):
+  """A job that its engine could not run: its worker or node lost beyond Ray's retries, its
+  function raised on a worker, or a worker of another lrf_jax version refused it."""
 
 
 def _clean(records: list[dict[str, Any]]) -> list[dict[str, Any]]:
@@ -178,34 +226,38 @@ def restart_clock(bar: Any) -> None:
 def evaluate(plan: EvalPlan, out: Path, *, progress: bool = True) -> str:
   """Run `plan`, write its outputs to `out` and return the markdown report.
 
-  Writes results.json (the repeatability records and `meta`), report.md, the figures of
-  `report.plot_figures`, LRF-Net's weight figures when a learned method ran, and for the
-  description / pose experiments results_description_pose.json and their sections of report.md
-  (with the RPC figure). `partial_records.jsonl` holds the records done so far while it runs
-  and is removed once every output is written.
+  The jobs (one pair at one setting, `PairJob`) run on `plan.engine`; their records are put
+  back in job order, so the outputs do not depend on the engine nor on the order the jobs
+  finish in. Only this process writes files. Writes results.json (the repeatability records
+  and `meta`), report.md, the figures of `report.plot_figures`, LRF-Net's weight figures when a
+  learned method ran, and for the description / pose experiments
+  results_description_pose.json and their sections of report.md (with the RPC figure).
+  `partial_records.jsonl` holds the records done so far (in job order) while it runs and is
+  removed once every output is written.
+
+  Raises:
+    JobError: a job the engine could not run (the message names its experiment, dataset,
+      pair and setting); the records of the jobs before it are in partial_records.jsonl.
+    ValueError: an unknown engine, or an address given to the local engine.
   """
   out = Path(out)
   cache = PatchCache(plan.cache_dir)
+  engine = engines.make_engine(plan.engine, plan.address)
+  # The local engine runs the jobs here: they share this run's patch cache (and its counts).
+  fn = functools.partial(pair_records, cache=cache) if engine.name == "local" else pair_records
   total = sum(count_records(exp, plan) for exp in plan.experiments)
-  records: list[dict[str, Any]]
-  other: list[dict[str, Any]]
-  records, other = [], []
   t0 = time.perf_counter()
-  with tqdm(total=total, desc="evaluate", unit="record", dynamic_ncols=True,
-            disable=not progress) as bar:
-    for exp in plan.experiments:
-      for rec in _records(exp, plan, cache):
-        (other if exp in ("description", "pose") else records).append(rec)
-        if exp not in ("description", "pose") and len(records) % PARTIAL_EVERY == 0:
-          out.mkdir(parents=True, exist_ok=True)  # keep what is done if the run is stopped
-          atomic.write_text(out / "partial_records.jsonl",
-                            "\n".join(json.dumps(r) for r in _clean(records)))
-        bar.set_postfix(exp=exp, ds=rec["dataset"], pair=str(rec.get("pair", ""))[:18])
-        bar.update(1)
-        if bar.n == 1:
-          restart_clock(bar)
-  meta = dict(plan.meta, seconds=time.perf_counter() - t0,
-              patch_cache={"hits": cache.hits, "misses": cache.misses})
+  jobs = [job for exp in plan.experiments for job in _jobs(exp, plan)]
+  try:
+    desc = "evaluate" if engine.name == "local" else f"evaluate ({engine.name})"
+    with tqdm(total=total, desc=desc, unit="record", dynamic_ncols=True,
+              disable=not progress) as bar:
+      records, other = _run_jobs(jobs, engine, fn, bar, out)
+  finally:
+    engine.close()
+  meta = dict(plan.meta, seconds=time.perf_counter() - t0,  # the workers' caches: not counted
+              patch_cache={"hits": cache.hits, "misses": cache.misses}
+              if engine.name == "local" else None)
   report.write_results(records, out, notes=plan.notes, meta=meta)
   if set(plan.experiments) - {"points_only"}:  # points_only runs its own columns only
     _learned_figures(plan, out)
@@ -215,6 +267,50 @@ def evaluate(plan: EvalPlan, out: Path, *, progress: bool = True) -> str:
     atomic.write_text(out / "report.md", text + "\n" + "\n".join(extra_md))
   (out / "partial_records.jsonl").unlink(missing_ok=True)  # complete: results.json has them
   return "\n".join([text] + extra_md)
+
+
+def _run_jobs(jobs: list[PairJob], engine: engines.Engine,
+              fn: Callable[[PairJob], list[dict[str, Any]]], bar: Any, out: Path) -> tuple[list[dict[str, Any]], list[dict[str, Any]]]:
+  """Run `jobs` on `engine`; (repeatability-like records, description and pose records), each
+  in job order. The bar counts records as their jobs finish (its rate and ETA timed from the
+  first record); partial_records.jsonl is rewritten every `PARTIAL_EVERY` records in order.
+
+  Raises:
+    JobError: an outcome with an error (the records before its job are kept on disk first).
+  """
+  records: list[dict[str, Any]] = []
+  other: list[dict[str, Any]] = []
+  done: dict[int, list[dict[str, Any]]] = {}
+  nxt = 0
+  for outcome in engine.run(fn, jobs):
+    job = jobs[outcome.index]
+    if outcome.error is not None:
+      if records:
+        _write_partial(records, out)
+      kept = f"; the {len(records)} records before it are in {out / 'partial_records.jsonl'}"
+      raise JobError(f"{job.describe()}: the {engine.name} engine could not run it "
+                     f"({outcome.error}){kept if records else ''}")
+    done[outcome.index] = outcome.value
+    for rec in outcome.value:
+      bar.set_postfix(exp=job.experiment, ds=rec["dataset"], pair=str(rec.get("pair", ""))[:18])
+      bar.update(1)
+      if bar.n == 1:
+        restart_clock(bar)
+    while nxt in done:
+      aside = jobs[nxt].experiment in ("description", "pose")
+      for rec in done.pop(nxt):
+        (other if aside else records).append(rec)
+        if not aside and len(records) % PARTIAL_EVERY == 0:
+          _write_partial(records, out)
+      nxt += 1
+  return records, other
+
+
+def _write_partial(records: list[dict[str, Any]], out: Path) -> None:
+  """partial_records.jsonl: the records done so far, one JSON object a line (kept if the run
+  is stopped)."""
+  out.mkdir(parents=True, exist_ok=True)
+  atomic.write_text(out / "partial_records.jsonl", "\n".join(json.dumps(r) for r in _clean(records)))
 
 
 def _learned_figures(plan: EvalPlan, out: Path) -> None:

@@ -195,6 +195,27 @@ def validate_choice(name: str, value: Any, choices: tuple[str, ...]) -> str:
   return value
 
 
+def validate_voxel_size(voxel_size: Any) -> float | None:
+  """None, 0.0 or a positive finite voxel edge (`voxel_size=` of `register` and
+  `compute_frames`: None chooses, 0 keeps every point, a positive edge in cloud units).
+
+  Raises:
+    ValueError: anything else (a negative or non-finite number, a string, a bool).
+  """
+  if voxel_size is None:
+    return None
+  if is_positive(voxel_size):
+    return float(voxel_size)
+  if not isinstance(voxel_size, (bool, str, bytes, np.bool_)):
+    try:
+      if voxel_size == 0:
+        return 0.0
+    except (TypeError, ValueError):
+      pass
+  raise ValueError(f"voxel_size: expected None, 0 or a positive voxel edge in the clouds' "
+                   f"units, got {voxel_size!r}")
+
+
 def is_positive(val: Any) -> bool:
   """A positive finite number (False for strings, bools, None, lists: no TypeError)."""
   if isinstance(val, (str, bytes, bool, np.bool_)):

@@ -13,7 +13,7 @@ from typing import Any
 
 import numpy as np
 
-__all__ = ["voxel_downsample", "voxel_groups"]
+__all__ = ["thin_cloud", "voxel_centroids", "voxel_downsample", "voxel_groups"]
 
 # Cells per axis beyond which the integer cell coordinates would lose precision.
 _MAX_CELLS = 2**40
@@ -59,6 +59,25 @@ def voxel_downsample(points: Any, size: float, *, return_index: bool = False
     raise ValueError(f"voxel_downsample: size: expected a positive number, got {size!r}") from None
   if not (np.isfinite(size) and size > 0):
     raise ValueError(f"voxel_downsample: size: expected a positive finite number, got {size!r}")
+  out, first, _ = voxel_centroids(pts, size)
+  return (out, first) if return_index else out
+
+
+def voxel_centroids(points: np.ndarray, size: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+  """`voxel_downsample` of a checked cloud, with the voxel of every input point.
+
+  Args:
+    points: (n, 3) finite float64 cloud, n >= 1 (not checked here).
+    size: the voxel edge, a positive finite float.
+
+  Returns:
+    (centroids (m, 3) float64 as `voxel_downsample` returns them, first (m,) int64: each voxel's
+    first input point, inverse (n,) int64: each input point's row of `centroids`).
+
+  Raises:
+    ValueError: `size` so small that the cloud spans more than 2**40 voxels along an axis.
+  """
+  pts = points
   cells = np.floor((pts - pts.min(0)) / size)
   if cells.max(initial=0) >= _MAX_CELLS:
     raise ValueError(f"voxel_downsample: size {size:g} is too small for a cloud of extent "
@@ -69,7 +88,33 @@ def voxel_downsample(points: Any, size: float, *, return_index: bool = False
                   for a in range(3)], axis=1) / counts[:, None]
   single = counts == 1  # one point: return it exactly (no division rounding)
   out[single] = pts[first[single]]
-  return (out, first) if return_index else out
+  return out, first, inverse
+
+
+def thin_cloud(points: np.ndarray, voxel: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+  """A checked cloud thinned by voxel averaging at `voxel` (`voxel_centroids`), as `register`
+  and `compute_frames` thin at the door; errors name their `voxel_size` option.
+
+  Args:
+    points: (n, 3) finite float64 cloud (not checked here).
+    voxel: the voxel edge (> 0, finite).
+
+  Returns:
+    `voxel_centroids`' (centroids, first, inverse).
+
+  Raises:
+    ValueError: a voxel too small for the cloud's extent, or one that leaves fewer than 10
+      points.
+  """
+  try:
+    thin, first, inverse = voxel_centroids(points, float(voxel))
+  except ValueError as e:  # named by the option that chose the voxel
+    raise ValueError(f"voxel_size: {str(e).removeprefix('voxel_downsample: ')}") from None
+  if len(thin) < 10:
+    raise ValueError(f"voxel_size: voxels of {voxel:.6g} leave {len(thin)} points of the "
+                     f"{len(points)} of a cloud (at least 10 needed); give a smaller "
+                     "voxel_size, or 0 to keep every point")
+  return thin, first, inverse
 
 
 def voxel_groups(cells: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -16,8 +16,7 @@ from lrf_jax.search.chunks import map_chunks
 from lrf_jax.geometry.resolution import mesh_resolution as _mesh_resolution
 from lrf_jax.frames import DEFAULT_METHOD, METHODS, MethodSpec, method_spec
 from lrf_jax.geometry.cloud import CheckedCloud, as_cloud
-from lrf_jax.geometry.resolution import thinning_voxel_size
-from lrf_jax.geometry.sampling import thin_cloud
+from lrf_jax.geometry.sampling import thin_cloud, thinning_voxel_size
 from lrf_jax.frames.weights import default_params, default_params_numpy
 from lrf_jax.checks import (validate_choice, validate_keypoints, validate_radius, validate_seed,
                             validate_viewpoint, validate_voxel_size)
@@ -339,7 +338,7 @@ def compute_frames(
     as_numpy: return numpy arrays (a host kernel's own: then no JAX is imported) instead of
       JAX arrays.
     voxel_size: thin the cloud by voxel averaging before the search, as `register` does
-      (`lrf_jax.geometry.resolution.thinning_voxel_size`): None (default) thins a cloud whose
+      (`lrf_jax.geometry.sampling.thinning_voxel_size`): None (default) thins a cloud whose
       mean spacing is under half its working resolution (an uneven cloud such as a raw LiDAR
       sweep, at the voxel whose centroids come out one working resolution apart) and leaves
       meshes and clean clouds exactly as they are; 0 keeps every point; a positive number is

@@ -12,7 +12,7 @@ from lrf_jax.defaults import DEFAULT_METHOD
 from lrf_jax.geometry import resolution
 from lrf_jax.geometry.cloud import as_cloud
 from lrf_jax.datasets.synthetic import make_demo_mesh
-from lrf_jax.geometry.sampling import thin_cloud, voxel_downsample
+from lrf_jax.geometry.sampling import thin_cloud, thinning_voxel_size, voxel_downsample
 from tests.test_raw_data import sweep
 
 # Thinning a clean dense cloud at 1.5 mr moves its frames this little (MeanCos against the
@@ -50,7 +50,7 @@ def test_voxel_size_zero_is_todays_computation(demo):
 
 def test_the_default_leaves_a_clean_cloud_as_it_is(demo):
   pts, kp, mr = demo
-  assert resolution.thinning_voxel_size(pts, resolution.working_resolution(pts), mr) == 0.0
+  assert thinning_voxel_size(pts, resolution.working_resolution(pts), mr) == 0.0
   for radius in ({"radius_mr": 15}, {"radius": 15 * mr}):
     default = lrf_jax.compute_frames(pts, kp, as_numpy=True, **radius)
     kept = lrf_jax.compute_frames(pts, kp, as_numpy=True, voxel_size=0, **radius)
@@ -96,7 +96,7 @@ def test_an_uneven_cloud_is_thinned_as_register_thins_it():
   from lrf_jax.registration import register
   raw = sweep()
   res = resolution.working_resolution(raw)
-  voxel = resolution.thinning_voxel_size(raw, res, res.mr)
+  voxel = thinning_voxel_size(raw, res, res.mr)
   assert voxel > res.mr  # centroids about mr apart
   reg = register(raw, raw, n_keypoints=200)
   assert reg.voxel_size == voxel
@@ -135,7 +135,7 @@ def test_lrf_frames_and_lrf_batch_take_voxel_size(tmp_path, demo):
   assert main([str(path), "--out", str(tmp_path / "a.npz"), "--keypoints", "100"]) == 0
   out = np.load(tmp_path / "a.npz")
   res = resolution.working_resolution(raw)
-  assert out["mr"] == res.mr and out["voxel_size"] == resolution.thinning_voxel_size(
+  assert out["mr"] == res.mr and out["voxel_size"] == thinning_voxel_size(
       raw, res, res.mr)
   kp = out["keypoints"]
   f, v = lrf_jax.compute_frames(raw, kp, radius_mr=15, seed=0, as_numpy=True)

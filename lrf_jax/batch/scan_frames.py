@@ -226,7 +226,7 @@ def scan_resolution(cloud: Any, request: FramesRequest) -> tuple[float, float]:
     ValueError: a cloud without spacing, naming the file.
   """
   from lrf_jax.frames import METHODS
-  from lrf_jax.geometry.resolution import thinning_voxel_size
+  from lrf_jax.geometry.sampling import thinning_voxel_size
   try:
     res = cloud.working_resolution
   except ValueError as e:  # "points: the cloud has no spacing ...": name the file

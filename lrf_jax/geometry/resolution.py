@@ -17,7 +17,6 @@ from typing import Literal
 
 import numpy as np
 from lrf_jax.search import engine
-from lrf_jax.geometry.sampling import voxel_centroids
 
 MrDefinition = Literal["mean_edge_length", "mean_nn_distance"]
 
@@ -193,36 +192,3 @@ def thinning_voxel(res: Resolution, mr: float) -> float | None:
   (its mean spacing under mr / `PAIR_RATIO`): `mr`; None where it is not (nothing to do)."""
   return mr if res.mean_spacing < mr / PAIR_RATIO else None
 
-
-def thinning_voxel_size(points: np.ndarray, res: Resolution, mr: float, *,
-                        faces: np.ndarray | None = None, voxel_size: float | None = None) -> float:
-  """The voxel edge a cloud is thinned at before `register` or `compute_frames` work on it (0:
-  it is not), by the rule of their `voxel_size=`:
-
-  * a positive `voxel_size`: that edge (meshes included; thinning drops their faces);
-  * 0: none;
-  * None: a cloud without faces whose mean spacing is under `mr` / `PAIR_RATIO`
-    (`thinning_voxel`: a raw sweep's near field, a full-density fragment) is thinned by the
-    voxel whose centroids come out spaced `mr` apart (a voxel of mr leaves them closer, about
-    0.7 mr: the voxel is scaled by mr over the spacing that gives, measured); meshes and clean
-    clouds are not (a single clean cloud's working resolution is its mean spacing: never
-    thinned).
-
-  Args:
-    points: (n, 3) finite float64 cloud.
-    res: its `working_resolution`.
-    mr: the working resolution the cloud is measured in (its own `res.mr`, or a pair's
-      `pair_resolution`).
-    faces: its triangles, or None.
-    voxel_size: `validate_voxel_size`'s None, 0 or a positive edge (cloud units).
-
-  Returns:
-    The voxel edge (cloud units), or 0.0.
-  """
-  if voxel_size is not None:
-    return float(voxel_size)
-  voxel = None if faces is not None else thinning_voxel(res, float(mr))
-  if not voxel:
-    return 0.0
-  spacing = mesh_resolution(voxel_centroids(np.asarray(points, np.float64), voxel)[0])[0]
-  return voxel * float(mr) / spacing if spacing > 0 else voxel

@@ -5,6 +5,10 @@ voxel grid is anchored at the cloud's minimum corner, every occupied voxel gives
 (mean) of its points, and the output lists the voxels in lexicographic order of their integer
 (ix, iy, iz) cell coordinates, so the result depends only on the set of points and `size`
 (not on the order of the input rows).
+
+`thinning_voxel_size` and `thin_cloud` are the thinning at the door of `register` and
+`compute_frames(voxel_size=)`: which voxel (the rule of their `voxel_size=`) and the thinned
+cloud with each input point's voxel.
 """
 
 from __future__ import annotations
@@ -13,7 +17,10 @@ from typing import Any
 
 import numpy as np
 
-__all__ = ["thin_cloud", "voxel_centroids", "voxel_downsample", "voxel_groups"]
+from lrf_jax.geometry.resolution import Resolution, mesh_resolution, thinning_voxel
+
+__all__ = ["thin_cloud", "thinning_voxel_size", "voxel_centroids", "voxel_downsample",
+           "voxel_groups"]
 
 # Cells per axis beyond which the integer cell coordinates would lose precision.
 _MAX_CELLS = 2**40
@@ -140,3 +147,37 @@ def voxel_groups(cells: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return inverse, order[new]
   _, first, inverse = np.unique(cells, axis=0, return_index=True, return_inverse=True)
   return inverse.ravel().astype(np.int64), first.astype(np.int64)
+
+
+def thinning_voxel_size(points: np.ndarray, res: Resolution, mr: float, *,
+                        faces: np.ndarray | None = None, voxel_size: float | None = None) -> float:
+  """The voxel edge a cloud is thinned at before `register` or `compute_frames` work on it (0:
+  it is not), by the rule of their `voxel_size=`:
+
+  * a positive `voxel_size`: that edge (meshes included; thinning drops their faces);
+  * 0: none;
+  * None: a cloud without faces whose mean spacing is under `mr` / `PAIR_RATIO`
+    (`resolution.thinning_voxel`: a raw sweep's near field, a full-density fragment) is thinned by the
+    voxel whose centroids come out spaced `mr` apart (a voxel of mr leaves them closer, about
+    0.7 mr: the voxel is scaled by mr over the spacing that gives, measured); meshes and clean
+    clouds are not (a single clean cloud's working resolution is its mean spacing: never
+    thinned).
+
+  Args:
+    points: (n, 3) finite float64 cloud.
+    res: its `resolution.working_resolution`.
+    mr: the working resolution the cloud is measured in (its own `res.mr`, or a pair's
+      `resolution.pair_resolution`).
+    faces: its triangles, or None.
+    voxel_size: `validate_voxel_size`'s None, 0 or a positive edge (cloud units).
+
+  Returns:
+    The voxel edge (cloud units), or 0.0.
+  """
+  if voxel_size is not None:
+    return float(voxel_size)
+  voxel = None if faces is not None else thinning_voxel(res, float(mr))
+  if not voxel:
+    return 0.0
+  spacing = mesh_resolution(voxel_centroids(np.asarray(points, np.float64), voxel)[0])[0]
+  return voxel * float(mr) / spacing if spacing > 0 else voxel

@@ -150,7 +150,9 @@ def mesh_resolution(points: Any, faces: Any = None) -> float:
     faces: optional (f, 3) triangles (default: those the input carries).
 
   Returns:
-    mr in the cloud's units. `compute_frames(..., radius_mr=15)` is the paper's support radius.
+    mr in the cloud's units. `compute_frames(..., radius_mr=15)` is the paper's support radius
+    (measured in the working resolution, which is this mr on every mesh and clean cloud and the
+    area-weighted spacing on an uneven one: `lrf_jax.geometry.resolution.working_resolution`).
   """
   return float(as_cloud(points, "points", faces=faces).resolution)
 

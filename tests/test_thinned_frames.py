@@ -167,3 +167,20 @@ def test_the_default_leaves_the_br_mesh_as_it_is(br_bunny):
   kept = lrf_jax.compute_frames(points, kp, radius_mr=15, faces=faces, voxel_size=0,
                                 as_numpy=True)
   assert all(np.array_equal(a, b) for a, b in zip(default, kept))
+
+
+def test_validate_voxel_size_agrees_with_registers_check(demo):
+  from lrf_jax.checks import validate_voxel_size
+  from lrf_jax.registration.options import check_voxel_size
+  for ok in (None, 0, 0.0, 0.5, 3):
+    check_voxel_size(ok)
+    assert validate_voxel_size(ok) == (None if ok is None else float(ok))
+  for bad in (-1, np.nan, np.inf, "x", True, [1]):
+    with pytest.raises(ValueError) as theirs:
+      check_voxel_size(bad)
+    with pytest.raises(ValueError) as ours:
+      validate_voxel_size(bad)
+    assert str(ours.value) == str(theirs.value)
+  cloud = as_cloud(demo[0])
+  assert cloud.working_resolution is cloud.working_resolution  # measured once
+  assert cloud.resolution == cloud.working_resolution.mr == demo[2]

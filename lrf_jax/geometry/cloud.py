@@ -128,15 +128,19 @@ class CheckedCloud:
   def working_resolution(self) -> Any:
     """Its `lrf_jax.geometry.resolution.working_resolution` (a `Resolution`: `resolution` on a
     clean cloud or a mesh, the area-weighted spacing on an uneven one); computed once, and
-    `resolution` with it.
+    `resolution` with it, and kept for the last cloud measured (`cloud_cache.cache_last`: a
+    caller passing the same array again, e.g. `compute_frames` over chunks of keypoints, does
+    not measure it again).
 
     Raises:
       ValueError: as `resolution`, or a cloud without spacing.
     """
     res = self._working
-    if res is None:
+    if res is None:  # also kept for the last cloud measured (the same points in a new object)
+      from lrf_jax.geometry.cloud_cache import cache_last
       from lrf_jax.geometry.resolution import working_resolution
-      res = working_resolution(self.points, self.faces)
+      res = cache_last("working_resolution", (self.points, self.faces),
+                       lambda: working_resolution(self.points, self.faces))
       object.__setattr__(self, "_working", res)
       if self._resolution is None:  # the same mean spacing (edge length), measured once
         object.__setattr__(self, "_resolution", res.mean_spacing)

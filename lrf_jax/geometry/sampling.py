@@ -13,11 +13,12 @@ cloud with each input point's voxel.
 
 from __future__ import annotations
 
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from lrf_jax.geometry.resolution import Resolution, mesh_resolution, thinning_voxel
+if TYPE_CHECKING:  # imported where used: `voxel_downsample` alone loads no numba engine
+  from lrf_jax.geometry.resolution import Resolution
 
 __all__ = ["thin_cloud", "thinning_voxel_size", "voxel_centroids", "voxel_downsample",
            "voxel_groups"]
@@ -182,6 +183,7 @@ def thinning_voxel_size(points: np.ndarray, res: Resolution, mr: float, *,
   Returns:
     The voxel edge (cloud units), or 0.0.
   """
+  from lrf_jax.geometry.resolution import mesh_resolution, thinning_voxel
   if voxel_size is not None:
     return float(voxel_size)
   voxel = None if faces is not None else thinning_voxel(res, float(mr))

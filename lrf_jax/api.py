@@ -16,9 +16,10 @@ from lrf_jax.search.chunks import map_chunks
 from lrf_jax.geometry.resolution import mesh_resolution as _mesh_resolution
 from lrf_jax.frames import DEFAULT_METHOD, METHODS, MethodSpec, method_spec
 from lrf_jax.geometry.cloud import CheckedCloud, as_cloud
+from lrf_jax.geometry.sampling import thin_cloud, thinning_voxel_size
 from lrf_jax.frames.weights import default_params, default_params_numpy
 from lrf_jax.checks import (validate_choice, validate_keypoints, validate_radius, validate_seed,
-                            validate_viewpoint)
+                            validate_viewpoint, validate_voxel_size)
 from lrf_jax.search.neighborhoods import (Patches, SearchIndex, build_patches, unit_scaled,
                                           validate_index)
 from lrf_jax.prepare import method_normals, prepare_extra
@@ -149,7 +150,9 @@ def mesh_resolution(points: Any, faces: Any = None) -> float:
     faces: optional (f, 3) triangles (default: those the input carries).
 
   Returns:
-    mr in the cloud's units. `compute_frames(..., radius_mr=15)` is the paper's support radius.
+    mr in the cloud's units. `compute_frames(..., radius_mr=15)` is the paper's support radius
+    (measured in the working resolution, which is this mr on every mesh and clean cloud and the
+    area-weighted spacing on an uneven one: `lrf_jax.geometry.resolution.working_resolution`).
   """
   return float(as_cloud(points, "points", faces=faces).resolution)
 
@@ -180,7 +183,27 @@ def _resolve_radius(cloud: CheckedCloud, radius: Any, radius_mr: Any) -> float:
                      f"radius_mr={radius_mr!r}")
   if radius is not None:
     return validate_radius(radius)
-  return validate_radius(validate_radius(radius_mr, "radius_mr") * cloud.resolution)
+  radius_mr = validate_radius(radius_mr, "radius_mr")
+  return validate_radius(radius_mr * cloud.working_resolution.mr)
+
+
+def _thinned(cloud: CheckedCloud, keypoints: np.ndarray, voxel_size: float | None,
+             spec: MethodSpec) -> tuple[CheckedCloud, np.ndarray, np.ndarray | None]:
+  """The cloud `compute_frames` works on (`voxel_size`, `thinning_voxel_size`'s rule), each
+  distinct keypoint's point in it and, where it was thinned, each keypoint's row among those
+  (None: the cloud and keypoints as given)."""
+  if voxel_size == 0 or (voxel_size is None and cloud.faces is not None):
+    return cloud, keypoints, None  # no resolution to measure: nothing is thinned
+  res = cloud.working_resolution if voxel_size is None else None
+  voxel = voxel_size if res is None else thinning_voxel_size(cloud.points, res, res.mr)
+  if not voxel:
+    return cloud, keypoints, None
+  if spec.needs_mesh:
+    raise ValueError(f"voxel_size: thinning drops the faces method {spec.name!r} needs; pass "
+                     "voxel_size=0 to keep the mesh")
+  thin, _, inverse = thin_cloud(cloud.points, voxel)
+  kp, back = np.unique(inverse[keypoints], return_inverse=True)
+  return CheckedCloud(thin, name="thinned cloud"), kp, back.ravel()
 
 
 def _warn_on_ball_size(index: SearchIndex, points: np.ndarray, keypoints: np.ndarray,
@@ -257,6 +280,7 @@ def compute_frames(
     kernel: str = "auto",
     return_confidence: bool = False,
     as_numpy: bool = False,
+    voxel_size: float | None = None,
     **options: Any,
 ) -> tuple[AnyArray, AnyArray] | tuple[AnyArray, AnyArray, AnyArray]:
   """Local reference frames of `keypoints` of a cloud, by any registered method.
@@ -277,9 +301,11 @@ def compute_frames(
       `radius_mr`.
     method: a key of `lrf_jax.METHODS`; default "lrf_net_plus", the most repeatable shipped
       method ("lrf_net" is the paper's LRF-Net).
-    radius_mr: the support radius in mesh resolutions instead (`lrf_jax.mesh_resolution` of this
-      call's points and faces: mean edge length of a mesh, mean nearest-neighbor distance of a
-      cloud); the paper uses 15.
+    radius_mr: the support radius in mesh resolutions instead: the input cloud's working
+      resolution (`lrf_jax.geometry.resolution.working_resolution` of this call's points and
+      faces, as `register` measures it): `lrf_jax.mesh_resolution`'s (mean edge length of a
+      mesh, mean nearest-neighbor distance of a cloud) on every mesh and clean cloud, the
+      area-weighted spacing on an uneven one (a raw LiDAR sweep); the paper uses 15.
     params: learned parameters for learned methods; None = the shipped default weights
       (`lrf_jax.default_params()`).
     k: patch size K; "default" = the method's own (`METHODS[method].default_k`); None = every
@@ -313,6 +339,16 @@ def compute_frames(
       define one (`METHODS[method].confidence`: lrf_net_plus, `sign_confidence`).
     as_numpy: return numpy arrays (a host kernel's own: then no JAX is imported) instead of
       JAX arrays.
+    voxel_size: thin the cloud by voxel averaging before the search, as `register` does
+      (`lrf_jax.geometry.sampling.thinning_voxel_size`): None (default) thins a cloud whose
+      mean spacing is under half its working resolution (an uneven cloud such as a raw LiDAR
+      sweep, at the voxel whose centroids come out one working resolution apart) and leaves
+      meshes and clean clouds exactly as they are; 0 keeps every point; a positive number is
+      the voxel edge in cloud units (a mesh then loses its faces: refused for mesh methods).
+      A thinned cloud loses its normals (estimated again on it, where the method needs them).
+      Keypoints stay indices into the input cloud; each keypoint's frame is the frame of its
+      voxel's centroid, on the thinned cloud (keypoints in one voxel get the same frame), so a
+      frame is centred within half a voxel diagonal of its keypoint.
     **options: method options (e.g. `x_mode`, `signed`).
 
   Returns:
@@ -326,8 +362,9 @@ def compute_frames(
       non-integer keypoint, a non-positive radius, an unknown method, a missing mesh, a `k` that
       is not a positive integer, None or "default", a non-positive `chunk_size`, a `seed` that is
       not a non-negative integer, a viewpoint that is not a finite (3,) position, an option the
-      method does not take (the message lists its options), or `return_confidence` for a
-      method without a confidence.
+      method does not take (the message lists its options), `return_confidence` for a
+      method without a confidence, or a `voxel_size` that is not None, 0 or a positive number
+      (or thins a mesh a mesh method needs, or leaves fewer than 10 points).
 
   Example:
     >>> frames, valid = compute_frames(points, np.arange(100), radius=0.02)
@@ -341,10 +378,13 @@ def compute_frames(
   viewpoint = validate_viewpoint(viewpoint)
   validate_choice("kernel", kernel, ("auto", "host", "jit"))  # also with no keypoints
   validate_choice("search", search, ("auto", "host", "device"))
+  cloud, keypoints, rows = _thinned(cloud, keypoints, validate_voxel_size(voxel_size), spec)
   out = _frames_checked(method, cloud, keypoints, radius, params=params, k=k, seed=seed,
                         viewpoint=viewpoint, chunk_size=chunk_size, progress=progress,
                         search=search, kernel=kernel, return_confidence=return_confidence,
                         options=options)
+  if rows is not None:  # each keypoint's voxel's frame
+    out = tuple(a[rows] for a in out)
   return cast("tuple[AnyArray, AnyArray] | tuple[AnyArray, AnyArray, AnyArray]",
               tuple(np.asarray(a) if as_numpy else jnp.asarray(a)  # the host paths' too
                     for a in out))

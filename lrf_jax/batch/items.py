@@ -16,7 +16,8 @@ __all__ = ["FRAMES_OPTIONS", "check_frames_options", "check_register_options", "
            "register_pair"]
 
 # `run_frames` keywords -> lrf-frames flags (the item is lrf-frames' own computation).
-FRAMES_OPTIONS = {"keypoints": "--keypoints", "voxel_mr": "--voxel-mr", "method": "--method",
+FRAMES_OPTIONS = {"keypoints": "--keypoints", "voxel_mr": "--voxel-mr",
+                  "voxel_size": "--voxel-size", "method": "--method",
                   "radius_mr": "--radius-mr", "viewpoint": "--viewpoint",
                   "descriptor": "--descriptor", "seed": "--seed"}
 
@@ -109,7 +110,8 @@ def _request(scan: str, options: dict[str, Any]) -> Any:
   kw = dict(options)
   if kw.get("keypoints") is not None:
     kw["keypoints"] = str(kw["keypoints"])
-  for key, kind in (("voxel_mr", float), ("radius_mr", float), ("seed", int)):
+  for key, kind in (("voxel_mr", float), ("voxel_size", float), ("radius_mr", float),
+                    ("seed", int)):
     if kw.get(key) is not None:
       kw[key] = kind(kw[key])
   if kw.get("viewpoint") is not None:

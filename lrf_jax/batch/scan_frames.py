@@ -28,7 +28,13 @@ class FramesRequest:
   Attributes:
     cloud: the scan's path (any file `lrf_jax.io.read_cloud` reads).
     keypoints: a count of seeded random points, "all" or "iss" (None: `DEFAULT_KEYPOINTS`).
-    voxel_mr: instead, one keypoint per voxel of this edge in mr (the point nearest its centre).
+    voxel_mr: instead, one keypoint per voxel of this edge in mr (the point nearest its centre):
+      it picks keypoints, and thins nothing.
+    voxel_size: thin the support (every frame's neighbours) by voxel averaging, as
+      `compute_frames(voxel_size=)` and `register` do: None chooses (an uneven cloud such as a
+      raw LiDAR sweep is thinned to its working resolution, clean clouds and meshes are not), 0
+      keeps every point, a positive number is the voxel edge in cloud units. The keypoints stay
+      the input cloud's points; each frame is its keypoint's voxel's (`compute_frames`).
     method: a key of `lrf_jax.METHODS`.
     radius_mr: the support radius in mr.
     viewpoint: the scan's sensor position (3 numbers) or None.
@@ -41,6 +47,7 @@ class FramesRequest:
   cloud: str
   keypoints: str | None = None
   voxel_mr: float | None = None
+  voxel_size: float | None = None
   method: str = DEFAULT_METHOD
   radius_mr: float = RADIUS_MR
   viewpoint: tuple[float, float, float] | None = None
@@ -76,6 +83,10 @@ class FramesRequest:
       v = getattr(self, name)
       if v is not None and not (np.isfinite(v) and v > 0):
         return f"--{name.replace('_', '-')}: expected a positive number, got {v!r}"
+    vs = self.voxel_size
+    if vs is not None and not (np.isfinite(vs) and vs >= 0):
+      return (f"--voxel-size: expected 0 (keep every point) or a positive voxel edge in cloud "
+              f"units, got {vs!r}")
     if self.voxel_mr is not None and self.voxel_mr < MIN_VOXEL_MR:
       return (f"--voxel-mr: {self.voxel_mr:g} mr is below {MIN_VOXEL_MR:g} mr (voxels that "
               "small hold one point each; use --keypoints all)")
@@ -193,9 +204,45 @@ def pair_keypoints(points: np.ndarray, pair_points: np.ndarray, transform: np.nd
   return kp.astype(np.int64), nearest[kp].astype(np.int64)
 
 
+def support_cloud(cloud: Any, keypoints: np.ndarray, voxel: float) -> tuple[Any, np.ndarray]:
+  """The cloud frames and descriptors are computed on and the keypoints' points in it: `cloud`
+  and `keypoints` as given for `voxel` 0, else the cloud thinned at `voxel`
+  (`geometry.sampling.thin_cloud`) and each keypoint's voxel (`compute_frames(voxel_size=)`'s
+  rule)."""
+  if not voxel:
+    return cloud, keypoints
+  from lrf_jax.geometry.cloud import CheckedCloud
+  from lrf_jax.geometry.sampling import thin_cloud
+  thin, _, inverse = thin_cloud(cloud.points, voxel)
+  return CheckedCloud(thin, name="thinned cloud"), inverse[keypoints]
+
+
+def scan_resolution(cloud: Any, request: FramesRequest) -> tuple[float, float]:
+  """(mr, voxel): the cloud's working resolution (`CheckedCloud.working_resolution`: the mean
+  spacing of a clean cloud, the area-weighted one of an uneven cloud) and the voxel edge its
+  support is thinned at (`thinning_voxel_size` of `request.voxel_size`; 0: none).
+
+  Raises:
+    ValueError: a cloud without spacing, naming the file.
+  """
+  from lrf_jax.frames import METHODS
+  from lrf_jax.geometry.sampling import thinning_voxel_size
+  try:
+    res = cloud.working_resolution
+  except ValueError as e:  # "points: the cloud has no spacing ...": name the file
+    raise ValueError(f"{request.cloud}: {str(e).removeprefix('points: ')}") from None
+  voxel = thinning_voxel_size(cloud.points, res, res.mr, faces=cloud.faces,
+                              voxel_size=request.voxel_size)
+  if voxel and METHODS[request.method].needs_mesh:
+    raise ValueError(f"--voxel-size: thinning drops the faces method {request.method!r} needs; "
+                     "give --voxel-size 0")
+  return float(res.mr), float(voxel)
+
+
 def frames_of_scan(request: FramesRequest) -> tuple[dict, Any, Any]:
   """Read the inputs and compute what `request` asks for: (the .npz fields lrf-frames writes, the
-  `CheckedCloud`, the pair's or None).
+  `CheckedCloud`, the pair's or None). The pair's support is thinned at the same voxel as the
+  cloud's (one radius, one voxel on both sides).
 
   Raises:
     ValueError: an unreadable input or a failed step, naming the file or the flag.
@@ -203,10 +250,7 @@ def frames_of_scan(request: FramesRequest) -> tuple[dict, Any, Any]:
   import lrf_jax
   from lrf_jax.geometry.cloud import as_cloud
   cloud = as_cloud(request.cloud, "cloud")
-  try:
-    mr = lrf_jax.mesh_resolution(cloud.points, cloud.faces)
-  except ValueError as e:  # "points: the cloud has no spacing ...": name the file
-    raise ValueError(f"{request.cloud}: {str(e).removeprefix('points: ')}") from None
+  mr, voxel_size = scan_resolution(cloud, request)
   voxel = None if request.voxel_mr is None else request.voxel_mr * mr
   how = request.keypoints or str(DEFAULT_KEYPOINTS)
   other = gt = None
@@ -220,23 +264,26 @@ def frames_of_scan(request: FramesRequest) -> tuple[dict, Any, Any]:
   radius = request.radius_mr * mr
   spec = lrf_jax.METHODS[request.method]
   conf = spec.confidence is not None
+  work, work_kp = support_cloud(cloud, kp, voxel_size)
   frames, valid, *confidence = lrf_jax.compute_frames(
-      cloud, kp, radius, request.method, seed=request.seed, viewpoint=request.viewpoint,
-      progress=len(kp) > 20000, return_confidence=conf)
+      work, work_kp, radius, request.method, seed=request.seed, viewpoint=request.viewpoint,
+      progress=len(kp) > 20000, return_confidence=conf, voxel_size=0)
   out = dict(keypoints=kp, positions=cloud.points[kp], frames=np.asarray(frames),
              valid=np.asarray(valid), radius=radius, mr=mr, method=request.method,
-             weights=spec.weights if spec.needs_params else "")
+             weights=spec.weights if spec.needs_params else "", voxel_size=voxel_size)
   if conf:
     out["confidence"] = np.asarray(confidence[0])
   if request.descriptor:
     from lrf_jax.descriptors import compute_descriptors
-    desc, _ = compute_descriptors(cloud.points, kp, radius, frames, valid, request.descriptor,
-                                  faces=cloud.faces, seed=request.seed)
+    desc, _ = compute_descriptors(work.points, work_kp, radius, frames, valid,
+                                  request.descriptor, faces=work.faces, seed=request.seed)
     out["descriptors"] = np.asarray(desc)
   if other is not None:
+    work_b, work_kp_b = support_cloud(other, kp_b, voxel_size)
     fb, vb, *conf_b = lrf_jax.compute_frames(
-        other, kp_b, radius, request.method, seed=request.seed, viewpoint=request.pair_viewpoint,
-        progress=len(kp) > 20000, return_confidence=conf)
+        work_b, work_kp_b, radius, request.method, seed=request.seed,
+        viewpoint=request.pair_viewpoint, progress=len(kp) > 20000, return_confidence=conf,
+        voxel_size=0)
     if conf:
       out["pair_confidence"] = np.asarray(conf_b[0])
     out.update(pair_keypoints=kp_b, pair_frames=np.asarray(fb), pair_valid=np.asarray(vb),

@@ -50,6 +50,8 @@ def build_parser() -> argparse.ArgumentParser:
   fr.add_argument("--keypoints", default=argparse.SUPPRESS,
                   help="as lrf-frames: N, 'all' or 'iss' (default 1000)")
   fr.add_argument("--voxel-mr", type=float, default=argparse.SUPPRESS, help="as lrf-frames")
+  fr.add_argument("--voxel-size", type=float, default=argparse.SUPPRESS,
+                  help="as lrf-frames (none given: an uneven cloud is thinned, others kept)")
   fr.add_argument("--method", default=argparse.SUPPRESS, help="as lrf-frames (lrf_net_plus)")
   fr.add_argument("--radius-mr", type=float, default=argparse.SUPPRESS,
                   help="as lrf-frames (15)")

@@ -3,8 +3,11 @@
 Reads any cloud or mesh `lrf_jax.io.read_cloud` reads (PLY, PCD, XYZ/TXT(.gz), NPY), picks
 keypoints (N seeded random points, all points, ISS keypoints, or with --voxel-mr one point per
 voxel of S mr; --voxel-mr and --keypoints exclude each other), computes their frames (and
-optionally a descriptor) and writes an .npz with `keypoints` (indices), `positions`,
-`frames` (m, 3, 3, rows x, y, z), `valid` (m,), `radius`, `mr`, `method`, `weights`,
+optionally a descriptor) on the support `--voxel-size` gives (the cloud thinned by voxel
+averaging: by default an uneven cloud such as a raw LiDAR sweep, to its working resolution mr;
+`compute_frames(voxel_size=)`) and writes an .npz with `keypoints` (indices into the input
+cloud), `positions`, `frames` (m, 3, 3, rows x, y, z), `valid` (m,), `radius`, `mr` (the working
+resolution), `voxel_size` (the voxel the support was thinned at, 0: none), `method`, `weights`,
 `confidence` (m,) for a method that defines one (lrf_net_plus: how sure each z sign is, in
 [0, 1], `compute_frames(..., return_confidence=True)`) and `descriptors` when asked; `--png`
 draws the frames on the cloud. With `--pair B --gt T` (T the
@@ -60,7 +63,13 @@ def build_parser() -> argparse.ArgumentParser:
                        f"{DEFAULT_KEYPOINTS}")
   ap.add_argument("--voxel-mr", type=float, default=None,
                   help=f"keypoints: the point nearest each voxel centre, voxels of S mr, "
-                       f"S >= {MIN_VOXEL_MR:g} (instead of --keypoints)")
+                       f"S >= {MIN_VOXEL_MR:g} (instead of --keypoints; it picks keypoints and "
+                       "thins nothing: --voxel-size thins the support)")
+  ap.add_argument("--voxel-size", type=float, default=None, metavar="V",
+                  help="thin the support by voxel averaging, voxels of V (cloud units; 0: keep "
+                       "every point); none given: an uneven cloud (a raw LiDAR sweep) is thinned "
+                       "to its working resolution, clean clouds and meshes are kept, as "
+                       "lrf-register does")
   ap.add_argument("--method", default=_DEFAULTS.method,
                   help="a key of lrf_jax.METHODS (print(lrf_jax.METHODS) lists them)")
   ap.add_argument("--radius-mr", type=float, default=_DEFAULTS.radius_mr,

@@ -46,11 +46,12 @@ class CheckedCloud:
     FileNotFoundError: a path that does not exist.
   """
 
-  __slots__ = ("points", "faces", "normals", "_resolution")
+  __slots__ = ("points", "faces", "normals", "_resolution", "_working")
   points: np.ndarray
   faces: np.ndarray | None
   normals: np.ndarray | None
   _resolution: float | None
+  _working: Any
 
   def __init__(self, x: Any, faces: Any = None, normals: Any = None, *,
                name: str = "points") -> None:
@@ -78,7 +79,8 @@ class CheckedCloud:
     kept = isinstance(x, CheckedCloud)
     f = _checked(faces, own_faces, kept, len(pts), validate_faces, "faces", name)
     n = _checked(normals, own_normals, kept, len(pts), validate_normals, "normals", name)
-    for slot, value in (("points", pts), ("faces", f), ("normals", n), ("_resolution", None)):
+    for slot, value in (("points", pts), ("faces", f), ("normals", n), ("_resolution", None),
+                        ("_working", None)):
       object.__setattr__(self, slot, value)
 
   def __setattr__(self, name: str, value: Any) -> None:
@@ -122,6 +124,28 @@ class CheckedCloud:
       object.__setattr__(self, "_resolution", mr)
     return mr
 
+  @property
+  def working_resolution(self) -> Any:
+    """Its `lrf_jax.geometry.resolution.working_resolution` (a `Resolution`: `resolution` on a
+    clean cloud or a mesh, the area-weighted spacing on an uneven one); computed once, and
+    `resolution` with it, and kept for the last cloud measured (`cloud_cache.cache_last`: a
+    caller passing the same array again, e.g. `compute_frames` over chunks of keypoints, does
+    not measure it again).
+
+    Raises:
+      ValueError: as `resolution`, or a cloud without spacing.
+    """
+    res = self._working
+    if res is None:  # also kept for the last cloud measured (the same points in a new object)
+      from lrf_jax.geometry.cloud_cache import cache_last
+      from lrf_jax.geometry.resolution import working_resolution
+      res = cache_last("working_resolution", (self.points, self.faces),
+                       lambda: working_resolution(self.points, self.faces))
+      object.__setattr__(self, "_working", res)
+      if self._resolution is None:  # the same mean spacing (edge length), measured once
+        object.__setattr__(self, "_resolution", res.mean_spacing)
+    return res
+
 
 def _checked(explicit: Any, own: Any, kept: bool, n_points: int, check: Any, what: str,
              name: str) -> Any:
@@ -138,7 +162,7 @@ def _unpickle(points: np.ndarray, faces: np.ndarray | None,
               normals: np.ndarray | None) -> CheckedCloud:
   cloud = object.__new__(CheckedCloud)
   for slot, value in (("points", points), ("faces", faces), ("normals", normals),
-                      ("_resolution", None)):
+                      ("_resolution", None), ("_working", None)):
     object.__setattr__(cloud, slot, value)
   return cloud
 

@@ -191,3 +191,4 @@ def thinning_voxel(res: Resolution, mr: float) -> float | None:
   """The voxel edge that thins a cloud to the working resolution `mr` where it is far denser
   (its mean spacing under mr / `PAIR_RATIO`): `mr`; None where it is not (nothing to do)."""
   return mr if res.mean_spacing < mr / PAIR_RATIO else None
+

@@ -5,15 +5,23 @@ voxel grid is anchored at the cloud's minimum corner, every occupied voxel gives
 (mean) of its points, and the output lists the voxels in lexicographic order of their integer
 (ix, iy, iz) cell coordinates, so the result depends only on the set of points and `size`
 (not on the order of the input rows).
+
+`thinning_voxel_size` and `thin_cloud` are the thinning at the door of `register` and
+`compute_frames(voxel_size=)`: which voxel (the rule of their `voxel_size=`) and the thinned
+cloud with each input point's voxel.
 """
 
 from __future__ import annotations
 
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-__all__ = ["voxel_downsample", "voxel_groups"]
+if TYPE_CHECKING:  # imported where used: `voxel_downsample` alone loads no numba engine
+  from lrf_jax.geometry.resolution import Resolution
+
+__all__ = ["thin_cloud", "thinning_voxel_size", "voxel_centroids", "voxel_downsample",
+           "voxel_groups"]
 
 # Cells per axis beyond which the integer cell coordinates would lose precision.
 _MAX_CELLS = 2**40
@@ -59,7 +67,28 @@ def voxel_downsample(points: Any, size: float, *, return_index: bool = False
     raise ValueError(f"voxel_downsample: size: expected a positive number, got {size!r}") from None
   if not (np.isfinite(size) and size > 0):
     raise ValueError(f"voxel_downsample: size: expected a positive finite number, got {size!r}")
-  cells = np.floor((pts - pts.min(0)) / size)
+  out, first, _ = voxel_centroids(pts, size)
+  return (out, first) if return_index else out
+
+
+def voxel_centroids(points: np.ndarray, size: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+  """`voxel_downsample` of a checked cloud, with the voxel of every input point.
+
+  Args:
+    points: (n, 3) finite float64 cloud, n >= 1 (not checked here).
+    size: the voxel edge, a positive finite float.
+
+  Returns:
+    (centroids (m, 3) float64 as `voxel_downsample` returns them, first (m,) int64: each voxel's
+    first input point, inverse (n,) int64: each input point's row of `centroids`).
+
+  Raises:
+    ValueError: `size` so small that the cloud spans more than 2**40 voxels along an axis.
+  """
+  pts = points
+  cells = pts - _column_extremes(pts, np.min)  # floor((pts - pts.min(0)) / size), in place
+  cells /= size
+  np.floor(cells, out=cells)
   if cells.max(initial=0) >= _MAX_CELLS:
     raise ValueError(f"voxel_downsample: size {size:g} is too small for a cloud of extent "
                      f"{np.ptp(pts, axis=0).max():g} (more than 2**40 voxels along an axis)")
@@ -69,7 +98,39 @@ def voxel_downsample(points: Any, size: float, *, return_index: bool = False
                   for a in range(3)], axis=1) / counts[:, None]
   single = counts == 1  # one point: return it exactly (no division rounding)
   out[single] = pts[first[single]]
-  return (out, first) if return_index else out
+  return out, first, inverse
+
+
+def thin_cloud(points: np.ndarray, voxel: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+  """A checked cloud thinned by voxel averaging at `voxel` (`voxel_centroids`), as `register`
+  and `compute_frames` thin at the door; errors name their `voxel_size` option.
+
+  Args:
+    points: (n, 3) finite float64 cloud (not checked here).
+    voxel: the voxel edge (> 0, finite).
+
+  Returns:
+    `voxel_centroids`' (centroids, first, inverse).
+
+  Raises:
+    ValueError: a voxel too small for the cloud's extent, or one that leaves fewer than 10
+      points.
+  """
+  try:
+    thin, first, inverse = voxel_centroids(points, float(voxel))
+  except ValueError as e:  # named by the option that chose the voxel
+    raise ValueError(f"voxel_size: {str(e).removeprefix('voxel_downsample: ')}") from None
+  if len(thin) < 10:
+    raise ValueError(f"voxel_size: voxels of {voxel:.6g} leave {len(thin)} points of the "
+                     f"{len(points)} of a cloud (at least 10 needed); give a smaller "
+                     "voxel_size, or 0 to keep every point")
+  return thin, first, inverse
+
+
+def _column_extremes(a: np.ndarray, reduce: Any) -> np.ndarray:
+  """`reduce(a, axis=0)` of a non-empty (n, 3) array, one column at a time (numpy's axis-0
+  reductions of a C-ordered (n, 3) array are about 50x slower than three strided ones)."""
+  return np.array([reduce(a[:, j]) for j in range(a.shape[1])], a.dtype)
 
 
 def voxel_groups(cells: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -82,7 +143,7 @@ def voxel_groups(cells: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     (inverse (n,): each point's cell number, first (m,): the first point (in input order) of each
     cell), int64.
   """
-  span = cells.max(0, initial=0) + 1
+  span = _column_extremes(cells, np.max) + 1 if len(cells) else np.ones(3, np.int64)
   if float(span[0]) * float(span[1]) * float(span[2]) < 2.0**62:  # one exact integer key
     key = (cells[:, 0] * span[1] + cells[:, 1]) * span[2] + cells[:, 2]
     order = np.argsort(key, kind="stable")
@@ -95,3 +156,38 @@ def voxel_groups(cells: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return inverse, order[new]
   _, first, inverse = np.unique(cells, axis=0, return_index=True, return_inverse=True)
   return inverse.ravel().astype(np.int64), first.astype(np.int64)
+
+
+def thinning_voxel_size(points: np.ndarray, res: Resolution, mr: float, *,
+                        faces: np.ndarray | None = None, voxel_size: float | None = None) -> float:
+  """The voxel edge a cloud is thinned at before `register` or `compute_frames` work on it (0:
+  it is not), by the rule of their `voxel_size=`:
+
+  * a positive `voxel_size`: that edge (meshes included; thinning drops their faces);
+  * 0: none;
+  * None: a cloud without faces whose mean spacing is under `mr` / `PAIR_RATIO`
+    (`resolution.thinning_voxel`: a raw sweep's near field, a full-density fragment) is thinned by the
+    voxel whose centroids come out spaced `mr` apart (a voxel of mr leaves them closer, about
+    0.7 mr: the voxel is scaled by mr over the spacing that gives, measured); meshes and clean
+    clouds are not (a single clean cloud's working resolution is its mean spacing: never
+    thinned).
+
+  Args:
+    points: (n, 3) finite float64 cloud.
+    res: its `resolution.working_resolution`.
+    mr: the working resolution the cloud is measured in (its own `res.mr`, or a pair's
+      `resolution.pair_resolution`).
+    faces: its triangles, or None.
+    voxel_size: `validate_voxel_size`'s None, 0 or a positive edge (cloud units).
+
+  Returns:
+    The voxel edge (cloud units), or 0.0.
+  """
+  from lrf_jax.geometry.resolution import mesh_resolution, thinning_voxel
+  if voxel_size is not None:
+    return float(voxel_size)
+  voxel = None if faces is not None else thinning_voxel(res, float(mr))
+  if not voxel:
+    return 0.0
+  spacing = mesh_resolution(voxel_centroids(np.asarray(points, np.float64), voxel)[0])[0]
+  return voxel * float(mr) / spacing if spacing > 0 else voxel

@@ -48,6 +48,32 @@ def _knn_cells(pts, slot_index, starts, base, z0, z1, qx, qy, qz, max_d2, bd, bi
 
 
 @nb.njit(inline="always")
+def _gap(q, o, h, c, d):
+  """The distance from coordinate q to cell c's slab [o + c h, o + (c + 1) h) along one axis; the
+  first and last cells reach to infinity (the binning clamps coordinates into them)."""
+  lo = o + c * h
+  if c > 0 and q < lo:
+    return lo - q
+  hi = lo + h
+  if c < d - 1 and q > hi:
+    return q - hi
+  return 0.0
+
+
+@nb.njit(inline="always")
+def _beyond(gap2, kth_d2, max_d2, slack):
+  """Whether a cell whose box lies sqrt(gap2) from the query can hold no point within the k-th
+  distance found so far (or the bound): pruned with a margin (`slack` plus `_PRUNE_MARGIN` of
+  the distance) that covers the rounding of the cell boundaries, so that no point as near as the
+  k-th (a tie included) is skipped."""
+  bound2 = min(kth_d2, max_d2)
+  if not bound2 < np.inf:
+    return False
+  reach = np.sqrt(bound2) * (1.0 + _PRUNE_MARGIN) + slack
+  return gap2 > reach * reach
+
+
+@nb.njit(inline="always")
 def _knn_query(pts, slot_index, starts, origin, h, dims, qx, qy, qz, k, max_d2, bd, bi):
   """The k nearest grid points of one query into bd, bi (ascending; inf / n where missing), by
   growing cubes of cells around the query's cell."""
@@ -60,9 +86,14 @@ def _knn_query(pts, slot_index, starts, origin, h, dims, qx, qy, qz, k, max_d2, 
   iz = _cell(qz, origin[2], h)
   # Start at the first ring that reaches the grid (a query may lie far outside it).
   ring = max(_outside(ix, dims[0]), max(_outside(iy, dims[1]), _outside(iz, dims[2])))
+  slack = _PRUNE_MARGIN * h
   while True:
     for a in range(max(ix - ring, 0), min(ix + ring, dims[0] - 1) + 1):
+      gx = _gap(qx, origin[0], h, a, dims[0])
       for b in range(max(iy - ring, 0), min(iy + ring, dims[1] - 1) + 1):
+        gy = _gap(qy, origin[1], h, b, dims[1])
+        if _beyond(gx * gx + gy * gy, bd[k - 1], max_d2, slack):
+          continue  # the whole column lies farther than the k-th point found
         base = (a * dims[1] + b) * dims[2]
         if abs(a - ix) == ring or abs(b - iy) == ring:  # a side of the shell: whole column
           _knn_cells(pts, slot_index, starts, base, max(iz - ring, 0),
@@ -143,13 +174,16 @@ def knn_grid(points: np.ndarray, k: int = 8) -> Grid:
   """
   pts = np.ascontiguousarray(points, np.float64)
   n = max(pts.shape[0], 1)
-  extent = np.ptp(pts, axis=0) if pts.shape[0] else np.ones(3)
+  # per column: numpy's axis-0 reductions of an (n, 3) array are about 50x slower
+  extent = np.array([np.ptp(pts[:, j]) for j in range(3)]) if pts.shape[0] else np.ones(3)
   ext = np.maximum(extent, max(float(extent.max()), 1e-300) * 1e-3)
   h = float(np.prod(ext) / n * max(k, 1)) ** (1.0 / 3.0)
   if not np.isfinite(h) or h <= 0.0:
     h = 1.0
   for _ in range(4):
     grid = Grid(pts, h)
+    if grid.h > h * (1.0 + 1e-3):  # the cell count bound enlarged the cells: none finer
+      break
     occupied = int(np.count_nonzero(np.diff(grid.starts)))
     per_cell = n / max(occupied, 1)
     if per_cell <= 2 * max(k, 1):

@@ -340,10 +340,12 @@ def compute_frames(
     as_numpy: return numpy arrays (a host kernel's own: then no JAX is imported) instead of
       JAX arrays.
     voxel_size: thin the cloud by voxel averaging before the search, as `register` does
-      (`lrf_jax.geometry.sampling.thinning_voxel_size`): None (default) thins a cloud whose
-      mean spacing is under half its working resolution (an uneven cloud such as a raw LiDAR
-      sweep, at the voxel whose centroids come out one working resolution apart) and leaves
-      meshes and clean clouds exactly as they are; 0 keeps every point; a positive number is
+      (`lrf_jax.geometry.sampling.thinning_voxel_size`): None (default) with `radius_mr`
+      thins a cloud whose mean spacing is under half its working resolution (an uneven cloud
+      such as a raw LiDAR sweep, at the voxel whose centroids come out one working resolution
+      apart) and leaves meshes and clean clouds exactly as they are; None with an explicit
+      `radius` thins nothing (no resolution is measured: the call costs what it did); 0 keeps
+      every point; a positive number is
       the voxel edge in cloud units (a mesh then loses its faces: refused for mesh methods).
       A thinned cloud loses its normals (estimated again on it, where the method needs them).
       Keypoints stay indices into the input cloud; each keypoint's frame is the frame of its
@@ -372,13 +374,17 @@ def compute_frames(
   spec = method_spec(method)
   cloud = as_cloud(points, "points", faces=faces, normals=normals)
   keypoints = validate_keypoints(keypoints, cloud.points.shape[0])
+  measured = radius is None  # radius_mr: the working resolution is measured (and thins)
   radius = _resolve_radius(cloud, radius, radius_mr)
   _check_call(spec, cloud.faces, chunk_size, k, options, return_confidence)
   seed = validate_seed(seed)
   viewpoint = validate_viewpoint(viewpoint)
   validate_choice("kernel", kernel, ("auto", "host", "jit"))  # also with no keypoints
   validate_choice("search", search, ("auto", "host", "device"))
-  cloud, keypoints, rows = _thinned(cloud, keypoints, validate_voxel_size(voxel_size), spec)
+  voxel_size = validate_voxel_size(voxel_size)
+  if voxel_size is None and not measured:  # a length given: no resolution measured, none thinned
+    voxel_size = 0.0
+  cloud, keypoints, rows = _thinned(cloud, keypoints, voxel_size, spec)
   out = _frames_checked(method, cloud, keypoints, radius, params=params, k=k, seed=seed,
                         viewpoint=viewpoint, chunk_size=chunk_size, progress=progress,
                         search=search, kernel=kernel, return_confidence=return_confidence,

@@ -554,7 +554,7 @@ def run_frames(scans: Sequence[str | os.PathLike], out: str | os.PathLike, *,
   Args:
     scans: the scan files.
     out, engine, address, progress, retry_errors: as `run_register`.
-    **options: lrf-frames' options as keywords (`items.FRAMES_OPTIONS`: keypoints, voxel_mr,
+    **options: lrf-frames' options as keywords (`items.FRAMES_OPTIONS`: keypoints, voxel_mr, voxel_size,
       method, radius_mr, viewpoint, descriptor, seed); those not given keep lrf-frames'
       defaults.
 

@@ -284,7 +284,7 @@ def describe(prepared: Prepared, opts: RegisterOptions, params: Any, timer: Stag
           if spec.uses_viewpoint and side.viewpoint is None and side.faces is None else {})
       out = compute_frames(side.cloud, side.keypoints, prepared.radius, opts.method,
                            params=params, seed=prepared.seed, viewpoint=side.viewpoint,
-                           as_numpy=True, **options)
+                           as_numpy=True, voxel_size=0, **options)  # working clouds already
       frames.append((np.asarray(out[0]), np.asarray(out[1])))
   with timer("descriptors"):
     for side, (f, v) in zip(prepared.sides, frames):

@@ -188,3 +188,9 @@ def test_layout_section_matches_the_tree():
   actual |= {str(p.parent.relative_to(REPO)) for p in package.rglob("__init__.py")}
   unlisted = sorted(actual - listed)
   assert unlisted == [], f"README layout omits: {unlisted}"
+
+
+def test_the_readme_stays_short():
+  """The overview, the two commands, one example per task and links into docs/: at most
+  16,000 characters (the rest belongs on the site)."""
+  assert len(README.read_text(encoding="utf-8")) <= 16_000

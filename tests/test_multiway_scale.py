@@ -249,3 +249,14 @@ def test_a_custom_pairwise_takes_no_engine_or_state(tmp_path):
   for kw in (dict(engine=_FarEngine()), dict(state_dir=tmp_path)):
     with pytest.raises(ValueError, match="custom pairwise"):
       multiway.register_all(clouds, mr=mr, pairwise=lambda *a, **k: pytest.fail("ran"), **kw)
+
+
+def test_a_scan_that_cannot_be_described_gives_error_edges_naming_it():
+  clouds, _, mr = _views(3, step_deg=35.0)
+  tiny = np.random.default_rng(0).normal(size=(30, 3)) * mr * 0.01
+  res = multiway.register_all([*clouds, tiny], names=["a", "b", "c", "tiny"], mr=mr,
+                              refine=False, n_keypoints=300, voxel_size=mr * 0.5)
+  bad = [e for e in res.edges if 3 in (e.i, e.j)]
+  assert len(bad) == 3 and all(e.verdict == "error" and e.reason.startswith("scan tiny: ")
+                               for e in bad)
+  assert res.left_out == ["tiny"] and res.in_model[:3].all()

@@ -102,7 +102,9 @@ def describe_task(payload: dict[str, Any]) -> dict[str, Any]:
   except Exception as e:  # noqa: BLE001 -- a scan that cannot be described gives no edges
     if caused_by_interrupt(e):
       raise KeyboardInterrupt from e
-    return {"error": str(e) if isinstance(e, ValueError) else f"{type(e).__name__}: {e}"}
+    text = str(e) if isinstance(e, ValueError) else f"{type(e).__name__}: {e}"
+    where = f"scan {payload['name']}"
+    return {"error": text if where in text else f"{where}: {text}"}
   return {"features": features}
 
 

@@ -8,7 +8,7 @@ cluster) runs them anywhere, in any order, and the results are the same.
 
 With a state folder every finished pair leaves a record (`PairRecords`: one JSON file per pair,
 named by the hash of what its result depends on: both scans' points, faces and viewpoints, the
-options, the resolution and the seed), written atomically by the driver as it arrives; a job
+options, the resolution, the seed, the weights and the lrf_jax version), written atomically by the driver as it arrives; a job
 run again reads the records and redoes only the pairs without one, and describes only the
 scans those pairs need. A pair whose task was lost (a node that died beyond the engine's
 retries) leaves no record: the next run redoes it.
@@ -156,8 +156,10 @@ class PairRecords:
   def __init__(self, folder: str | os.PathLike | None, scan_hashes: Sequence[str],
                options: RegisterOptions, mr: float, distance: float, params: Any):
     self.folder = None if folder is None else Path(folder) / "pairs"
+    import lrf_jax
     fields = {f.name: getattr(options, f.name) for f in dataclasses.fields(options)}
-    self.common = json.dumps(dict(version=RECORD_VERSION, options=fields, mr=float(mr).hex(),
+    self.common = json.dumps(dict(version=RECORD_VERSION, lrf_jax=lrf_jax.__version__,
+                                  options=fields, mr=float(mr).hex(),
                                   distance=float(distance).hex(), params=_params_hash(params)),
                              sort_keys=True, default=lambda v: np.asarray(v).tolist())
     self.hashes = list(scan_hashes)

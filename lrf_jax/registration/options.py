@@ -18,7 +18,8 @@ from typing import Any
 
 import numpy as np
 
-from lrf_jax.checks import is_count, is_positive, validate_seed, validate_viewpoint
+from lrf_jax.checks import (is_count, is_positive, validate_seed, validate_viewpoint,
+                            validate_voxel_size)
 from lrf_jax.defaults import DEFAULT_METHOD, RADIUS_MR
 
 ESTIMATORS = ("graph", "lrf", "3point")
@@ -191,11 +192,9 @@ def check_register_options(**options: Any) -> RegisterOptions:
 
 
 def check_voxel_size(voxel_size: Any) -> None:
-  """ValueError unless `voxel_size` is None, 0 or a positive voxel edge."""
-  if not (voxel_size is None or is_positive(voxel_size) or
-          (not isinstance(voxel_size, (bool, str)) and voxel_size == 0)):
-    raise ValueError(f"voxel_size: expected None, 0 or a positive voxel edge in the clouds' "
-                     f"units, got {voxel_size!r}")
+  """ValueError unless `voxel_size` is None, 0 or a positive voxel edge
+  (`checks.validate_voxel_size`)."""
+  validate_voxel_size(voxel_size)
 
 # The options `register` uses when given none: every default, once.
 DEFAULTS = RegisterOptions()

@@ -27,9 +27,8 @@ from lrf_jax.frames import METHODS
 from lrf_jax.geometry.cloud import CheckedCloud, as_cloud
 from lrf_jax.geometry.keypoints import iss_keypoints
 from lrf_jax.geometry.normals import NORMAL_RADIUS_RATIO, estimate_normals
-from lrf_jax.geometry.resolution import (mesh_resolution, pair_resolution, thinning_voxel,
-                                         working_resolution)
-from lrf_jax.geometry.sampling import voxel_downsample
+from lrf_jax.geometry.resolution import (pair_resolution, working_resolution)
+from lrf_jax.geometry.sampling import thin_cloud, thinning_voxel_size
 from lrf_jax.registration import host
 from lrf_jax.registration.estimators import _centred, _finish, _uncentre
 from lrf_jax.registration.options import RegisterOptions, check_voxel_size
@@ -235,26 +234,16 @@ def working_cloud(cloud: CheckedCloud, mr: float, voxel_size: Any, resolution: A
   0.7 mr: the voxel is scaled by mr over the spacing that gives, measured); 0: it is kept; a
   positive number: it is thinned at that edge (a mesh included, which loses its faces)."""
   check_voxel_size(voxel_size)
-  pts = cloud.points
+  res = None
   if voxel_size is None and cloud.faces is None:
-    res = resolution if resolution is not None else working_resolution(pts, None, name=name)
-    voxel = thinning_voxel(res, mr)
-  else:
-    voxel = None if voxel_size is None else float(voxel_size)
-  if voxel and voxel_size is None:  # the voxel whose centroids are spaced mr apart
-    spacing = mesh_resolution(np.asarray(voxel_downsample(pts, voxel)))[0]
-    voxel = voxel * mr / spacing if spacing > 0 else voxel
+    res = resolution if resolution is not None else working_resolution(cloud.points, None,
+                                                                        name=name)
+  voxel = thinning_voxel_size(cloud.points, res, mr, faces=cloud.faces,  # type: ignore[arg-type]
+                              voxel_size=voxel_size)
   if not voxel:
     return cloud, None, 0.0
-  try:
-    thin, index = voxel_downsample(pts, voxel, return_index=True)
-  except ValueError as e:  # named by the option that chose the voxel
-    raise ValueError(f"voxel_size: {str(e).removeprefix('voxel_downsample: ')}") from None
-  if len(thin) < 10:
-    raise ValueError(f"voxel_size: voxels of {voxel:.6g} leave {len(thin)} points of the "
-                     f"{len(pts)} of a cloud (at least 10 needed); give a smaller "
-                     "voxel_size, or 0 to keep every point")
-  return CheckedCloud(thin, name="thinned cloud"), index, float(voxel)
+  thin, first, _ = thin_cloud(cloud.points, voxel)
+  return CheckedCloud(thin, name="thinned cloud"), first, float(voxel)
 
 
 def input_indices(prepared: Prepared, src: np.ndarray, dst: np.ndarray) -> np.ndarray:

@@ -7,7 +7,7 @@ starts with this code's kernels not yet compiled (cheap test: `warm_marker`), `s
 starts one worker per core beyond the first (the cores this process may run on), each a fresh
 interpreter (`python -m lrf_jax.cli.parallel_compile`). A worker compiles, by explicit
 signature, the kernels the program's default call needs (`compile_manifest.json`, recorded by
-`record()`; a test fails when it is stale) from the last one the main process will need
+`lrf_jax.cli.record_manifest`; a test fails when it is stale) from the last one the main process will need
 backwards, while the main process runs normally from the first. Both claim a kernel before
 compiling it (`kernel_cache.share`): a worker skips a kernel another process claimed, and the
 main process waits for a worker compiling a kernel it needs and loads it, so no kernel is
@@ -19,7 +19,7 @@ a watch of the parent's pid) and ignore Ctrl-C themselves. A worker compiles not
 default call would not load. Nothing happens with one core, on a warm cache, or with
 `LRF_JAX_PARALLEL_COMPILE=0`.
 
-    python -m lrf_jax.cli.parallel_compile --record   # rewrite compile_manifest.json
+    python -m lrf_jax.cli.record_manifest   # rewrite compile_manifest.json
 """
 
 from __future__ import annotations
@@ -112,12 +112,18 @@ def start(program: str) -> bool:
          str(os.getpid())]
   env = {**os.environ, "PYTHONPATH": os.pathsep.join(
       [str(PACKAGE.parent), *filter(None, [os.environ.get("PYTHONPATH")])])}
-  procs = []
-  for _ in range(cores() - 1):
-    procs.append(subprocess.Popen(cmd, stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL,
-                                  stderr=None if os.environ.get("LRF_JAX_DEBUG_COMPILE") else
-                                  subprocess.DEVNULL, env=env))
+  procs: list[subprocess.Popen] = []
   _STATE.update(procs=procs, claims=claims, marker=marker)
+  try:
+    for _ in range(cores() - 1):
+      procs.append(subprocess.Popen(cmd, stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL,
+                                    stderr=None if os.environ.get("LRF_JAX_DEBUG_COMPILE") else
+                                    subprocess.DEVNULL, env=env))
+  except OSError:  # no process to spare: the command compiles alone
+    stop()
+    _STATE.update(procs=[], claims=None, marker=None)
+    shutil.rmtree(claims, ignore_errors=True)
+    return False
   from lrf_jax import compilation_cache, kernel_cache
   compilation_cache.announce_now()
   kernel_cache.share(claims, alive=_alive)
@@ -194,14 +200,14 @@ def parse_type(text: str) -> Any:
 
 
 def _run_worker(program: str, claims: str, parent: int) -> int:
+  """Compile `program`'s kernels from the last the main process calls backwards, skipping
+  those another process claimed; 0 when every one was compiled (or claimed elsewhere)."""
   _die_with_parent(parent)
-  from lrf_jax import compilation_cache  # noqa: F401 -- configures numba's cache folder
-  import numba  # noqa: F401
-
   from lrf_jax import kernel_cache
   kernel_cache.install()
   kernel_cache.share(claims, worker=True)
   mods = kernel_modules()
+  failed = 0
   for module, name, sig in reversed(manifest()[program]):
     disp = getattr(mods[module], name)
     index = str(disp._cache._cache_file._index_path)  # noqa: SLF001 -- numba has no public one
@@ -209,9 +215,13 @@ def _run_worker(program: str, claims: str, parent: int) -> int:
       continue
     try:
       disp.compile(tuple(parse_type(t) for t in sig))
+    except Exception as e:  # noqa: BLE001 -- the main process compiles it; the others go on
+      failed += 1
+      print(f"lrf_jax compile worker: {module}.{name}: {type(e).__name__}: {e}",
+            file=sys.stderr)
     finally:
       kernel_cache.release_claims()
-  return 0
+  return 1 if failed else 0
 
 
 def _die_with_parent(parent: int) -> None:
@@ -232,88 +242,12 @@ def _die_with_parent(parent: int) -> None:
   threading.Thread(target=watch, daemon=True).start()
 
 
-# -- recording the manifest ----------------------------------------------------------------------
-
-def _demo_files(folder: Path) -> tuple[str, str]:
-  """Two scans as PLY files, as a user's files reach a command."""
-  from lrf_jax import datasets, io
-  pair = datasets.make_demo_pair(0, seed=0, noise_mr=0.1, partial=True)
-  a, b = folder / "a.ply", folder / "b.ply"
-  io.write_ply(a, pair.model_points)
-  io.write_ply(b, pair.scene_points)
-  return str(a), str(b)
-
-
-def _program_call(program: str, a: str, b: str, folder: Path) -> None:
-  import io as std_io
-  from contextlib import redirect_stderr, redirect_stdout
-  with redirect_stdout(std_io.StringIO()), redirect_stderr(std_io.StringIO()):
-    if program == "register":
-      from lrf_jax.cli.register import main as register_main
-      register_main([a, b])
-    else:
-      from lrf_jax.cli.frames import main as frames_main
-      frames_main([a, "--out", str(folder / "frames.npz")])
-
-
-def record_one(program: str) -> list[list[Any]]:
-  """Run `program`'s default call on a demo pair in this process and list the lrf_jax kernels
-  it calls first-hand (not those compiled inside another), with their argument types, in the
-  order of the calls. Run it in a fresh process: a kernel this process called already is not
-  seen again. Works on a warm cache too (a load is a call)."""
-  from numba.core import sigutils
-  from numba.core.dispatcher import Dispatcher
-  original = Dispatcher.compile
-  depth = [0]
-  calls: list[list[Any]] = []
-
-  def compile_and_note(self: Any, sig: Any) -> Any:
-    func = self.py_func
-    if depth[0] == 0 and func.__module__.startswith("lrf_jax"):
-      args, _ = sigutils.normalize_signature(sig)
-      entry = [func.__module__, func.__qualname__, [repr(t) for t in args]]
-      if entry not in calls:
-        calls.append(entry)
-    depth[0] += 1
-    try:
-      return original(self, sig)
-    finally:
-      depth[0] -= 1
-
-  Dispatcher.compile = compile_and_note  # type: ignore[method-assign]
-  try:
-    with tempfile.TemporaryDirectory() as tmp:
-      a, b = _demo_files(Path(tmp))
-      _program_call(program, a, b, Path(tmp))
-  finally:
-    Dispatcher.compile = original  # type: ignore[method-assign]
-  return calls
-
-
-def record(programs: tuple[str, ...] = PROGRAMS) -> dict[str, list[list[Any]]]:
-  """`record_one` of each program, each in a fresh process (`LRF_JAX_PARALLEL_COMPILE=0`)."""
-  env = {**os.environ, ENV_VAR: "0", "PYTHONPATH": os.pathsep.join(
-      [str(PACKAGE.parent), *filter(None, [os.environ.get("PYTHONPATH")])])}
-  out = {}
-  for program in programs:
-    text = subprocess.run([sys.executable, "-m", "lrf_jax.cli.parallel_compile", "--record-one",
-                           program], env=env, capture_output=True, text=True, check=True).stdout
-    out[program] = json.loads(text.strip().splitlines()[-1])
-  return out
-
-
 def main(argv: list[str] | None = None) -> int:
   argv = sys.argv[1:] if argv is None else argv
   if argv[:1] == ["--worker"] and len(argv) == 4:
     return _run_worker(argv[1], argv[2], int(argv[3]))
-  if argv[:1] == ["--record-one"] and len(argv) == 2:
-    print(json.dumps(record_one(argv[1])))
-    return 0
-  if argv == ["--record"]:
-    MANIFEST.write_text(json.dumps(record(), indent=1) + "\n")
-    print(f"wrote {MANIFEST}")
-    return 0
-  print("usage: python -m lrf_jax.cli.parallel_compile --record", file=sys.stderr)
+  print("usage: python -m lrf_jax.cli.record_manifest (this module runs the workers)",
+        file=sys.stderr)
   return 2
 
 

@@ -10,8 +10,9 @@ signature, the kernels the program's default call needs (`compile_manifest.json`
 `lrf_jax.cli.record_manifest`; a test fails when it is stale) from the last one the main process will need
 backwards, while the main process runs normally from the first. Both claim a kernel before
 compiling it (`kernel_cache.share`): a worker skips a kernel another process claimed, and the
-main process waits for a worker compiling a kernel it needs and loads it, so no kernel is
-compiled twice. Results are the warm run's, bit for bit: the same kernels, loaded from the cache.
+main process waits for a worker compiling a kernel it needs and loads it, so no cached kernel
+is compiled twice (helpers without `cache=True` are compiled in each process whose kernels
+call them). Results are the warm run's, bit for bit: the same kernels, loaded from the cache.
 
 No process outlives the command: `stop()` (in the command's `finally`, also on Ctrl-C and on
 error) terminates the workers, which also die with their parent (Linux `PR_SET_PDEATHSIG`, else

@@ -150,6 +150,11 @@ def _announce(stream: TextIO | None = None) -> None:
   print(NOTICE.format(where=cache_locations()), file=out, flush=True)
 
 
+def announce_now() -> None:
+  """Print the compile notice now (once per process): compile workers are starting."""
+  _announce()
+
+
 def _numba_listener() -> Any:
   from numba.core import event
 

@@ -19,16 +19,30 @@ second clone, another venv) compiled everything again.
 cached kernel calls before defining it) puts it first in numba's locator list; functions outside
 lrf_jax fall through to numba's own locators. The index file still records numba's version and
 the CPU, so a cache is never loaded by another numba or another kind of machine.
+
+Several processes may write one cache at once (`lrf-compile`'s workers, the compile workers of
+`lrf_jax.cli.parallel_compile`). numba writes each file atomically (a temporary file, then
+`os.replace`), but an entry is two files: its index is read, a data file name chosen, the index
+and then the data written. Two processes saving different signatures of one kernel at once both
+chose the same data file, and the index could end pointing at the other signature's code.
+`install()` therefore also takes an exclusive lock (`flock` on `<index>.lock`) around each save
+of an lrf_jax kernel. With `share(claims)`, a process also *claims* a kernel in the folder
+`claims` before compiling it: a compile worker skips a kernel claimed by another process, and the
+main process waits for a worker that is compiling the kernel it needs, then loads it, instead of
+compiling it a second time.
 """
 
 from __future__ import annotations
 
+import contextlib
 import functools
 import hashlib
 import inspect
 import os
 import sys
+import time
 import types
+from collections.abc import Callable, Iterator
 from typing import Any
 
 from numba.core import config
@@ -149,8 +163,140 @@ class PackageLocator(UserProvidedCacheLocator):
 def install() -> None:
   """Put `PackageLocator` first in numba's list of cache locators (idempotent). numba picks a
   function's locator when the function is decorated, so this runs before lrf_jax's kernels are
-  defined."""
+  defined. Also locks each save of an lrf_jax kernel and lets claims work (module docstring)."""
   impl = getattr(caching, "CacheImpl", None) or getattr(caching, "_CacheImpl", None)
   classes = getattr(impl, "_locator_classes", None)
   if isinstance(classes, list) and PackageLocator not in classes:
     classes.insert(0, PackageLocator)  # a numba without this list keeps its own keys
+  _patch_cache_file()
+
+
+# -- several processes, one cache ---------------------------------------------------------------
+
+# claims: the folder of this run's claims (None: no claims); worker: a compile worker (never
+# waits); alive: pid -> whether that claimant is still compiling; held: claims this process holds.
+_SHARING: dict[str, Any] = {"claims": None, "worker": False, "alive": None, "held": set()}
+_WAIT_LIMIT_S = 600.0
+
+
+def share(claims: str | None, *, worker: bool = False,
+          alive: Callable[[int], bool] | None = None) -> None:
+  """Claim kernels in the folder `claims` before compiling them (None: stop claiming). A
+  `worker` skips what another process claimed (`claim`); another process waits, while
+  `alive(pid)` of the claimant holds, for a kernel a worker is compiling."""
+  _SHARING.update(claims=claims, worker=worker, alive=alive)
+
+
+def _ours(cache_file: Any) -> bool:
+  root = os.path.join(_cache_dir(), "lrf_jax")
+  path = os.path.abspath(str(getattr(cache_file, "_cache_path", "")))
+  return bool(_cache_dir()) and (path == root or path.startswith(root + os.sep))
+
+
+@contextlib.contextmanager
+def _index_lock(cache_file: Any) -> Iterator[None]:
+  """An exclusive lock on `<index>.lock` (POSIX; elsewhere numba's own writes only)."""
+  try:
+    import fcntl
+  except ImportError:  # Windows
+    yield
+    return
+  with open(str(cache_file._index_path) + ".lock", "ab") as f:
+    fcntl.flock(f.fileno(), fcntl.LOCK_EX)
+    try:
+      yield
+    finally:
+      fcntl.flock(f.fileno(), fcntl.LOCK_UN)
+
+
+def _claim_path(index_path: str) -> str:
+  name = hashlib.sha256(os.path.abspath(index_path).encode()).hexdigest()[:32]
+  return os.path.join(_SHARING["claims"], name)
+
+
+def _owner(claim: str) -> int:
+  try:
+    with open(claim) as f:
+      return int(f.read() or 0)
+  except (OSError, ValueError):
+    return 0
+
+
+def claim(index_path: str) -> bool:
+  """Claim the kernel whose cache index is `index_path` for this process: True when this
+  process holds the claim now (taken, or held already), False when another process holds it.
+  Without a claims folder (`share`), always True."""
+  if not _SHARING["claims"]:
+    return True
+  path = _claim_path(index_path)
+  if path in _SHARING["held"]:
+    return True
+  tmp = f"{path}.{os.getpid()}.tmp"
+  with open(tmp, "w") as f:
+    f.write(str(os.getpid()))
+  try:
+    os.link(tmp, path)  # atomic, and the claim carries its owner from the start
+  except FileExistsError:
+    return _owner(path) == os.getpid()
+  finally:
+    os.unlink(tmp)
+  _SHARING["held"].add(path)
+  _debug(f"claimed {os.path.basename(index_path)}")
+  return True
+
+
+def _debug(text: str) -> None:
+  if os.environ.get("LRF_JAX_DEBUG_COMPILE"):
+    print(f"[{time.time() % 1000:.2f} {os.getpid()}] {text}", file=sys.stderr, flush=True)
+
+
+def release_claims() -> None:
+  """Mark every kernel this process claimed as done (compiled and saved, or given up)."""
+  for path in list(_SHARING["held"]):
+    with contextlib.suppress(OSError):
+      open(path + ".done", "w").close()
+    _SHARING["held"].discard(path)
+
+
+def _wait_for_claimant(index_path: str) -> bool:
+  """After a cache miss: claim the kernel, or wait for the live worker compiling it. True when
+  a worker finished it (load again), False when this process compiles it."""
+  if claim(index_path) or _SHARING["worker"]:
+    return False
+  path = _claim_path(index_path)
+  owner, alive = _owner(path), _SHARING["alive"]
+  deadline = time.monotonic() + _WAIT_LIMIT_S
+  _debug(f"waits for {owner}: {os.path.basename(index_path)}")
+  while not os.path.exists(path + ".done"):
+    if alive is None or not alive(owner) or time.monotonic() > deadline:
+      return False
+    time.sleep(0.01)
+  _debug(f"waited for {os.path.basename(index_path)}")
+  return True
+
+
+def _patch_cache_file() -> None:
+  """Lock saves of lrf_jax kernels, and claim (or wait) on their cache misses (idempotent)."""
+  cls = caching.IndexDataCacheFile
+  if getattr(cls.save, "_lrf_jax", False):
+    return
+  save, load = cls.save, cls.load
+
+  def locked_save(self: Any, key: Any, data: Any) -> None:
+    if not _ours(self):
+      return save(self, key, data)
+    with _index_lock(self):
+      save(self, key, data)
+    if _SHARING["claims"] and not _SHARING["worker"]:
+      release_claims()
+
+  def claimed_load(self: Any, key: Any) -> Any:
+    out = load(self, key)
+    if out is None and _SHARING["claims"] and _ours(self) and \
+        _wait_for_claimant(str(self._index_path)):
+      out = load(self, key)
+    return out
+
+  locked_save._lrf_jax = True  # type: ignore[attr-defined]
+  cls.save = locked_save  # type: ignore[method-assign]
+  cls.load = claimed_load  # type: ignore[method-assign]

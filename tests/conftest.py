@@ -7,6 +7,8 @@ import jax
 import pytest
 
 jax.config.update("jax_debug_nans", True)  # any NaN produced inside a jitted function fails a test
+# no compile workers beside the suite's commands (tests/test_parallel_compile.py turns them on)
+os.environ.setdefault("LRF_JAX_PARALLEL_COMPILE", "0")
 
 REPO = Path(__file__).resolve().parents[1]
 

@@ -6,8 +6,8 @@ numba compiles one kernel after another within a process (its compiler lock is p
 the kernels are compiled by `--jobs` worker processes at once, each running a group of small
 calls that needs its own kernels (a registration with the default options, with each other
 estimator and option, the frames of each method, each descriptor, a multiway run). They write
-into the same caches (`lrf_jax.compilation_cache`: numba's writes are atomic, a kernel
-compiled twice is stored twice with the same content). Nothing is compiled that a later run
+into the same caches (`lrf_jax.compilation_cache`; each save of a kernel is locked by
+`lrf_jax.kernel_cache`, so concurrent writers never mix two entries up). Nothing is compiled that a later run
 would not load: the calls are the library's own, on small procedural clouds. Exit code 0, 3 when
 a group failed (its error is printed: the others are compiled), 2 a bad command line, 130
 interrupted. The workers end with the command, Ctrl-C included.

@@ -168,6 +168,13 @@ def main(argv: list[str] | None = None) -> int:
     return 2
   from lrf_jax import compilation_cache
   compilation_cache.enable()
+  from lrf_jax.cli import parallel_compile
+  with parallel_compile.compiling("frames"):  # a cold cache: workers compile beside us
+    return _frames_and_report(args)
+
+
+def _frames_and_report(args: argparse.Namespace) -> int:
+  """The frames of `main` and their outputs; the exit code."""
   from lrf_jax.io.atomic import WriteError, atomic_write
   out_path = npz_path(args.out)
   try:

@@ -174,6 +174,13 @@ def main(argv: list[str] | None = None) -> int:
           f"{args.detector})", file=sys.stderr)
   from lrf_jax import compilation_cache
   compilation_cache.enable()  # a second run loads the compiled functions instead of recompiling
+  from lrf_jax.cli import parallel_compile
+  with parallel_compile.compiling("register"):  # a cold cache: workers compile beside us
+    return _register_and_report(args)
+
+
+def _register_and_report(args: argparse.Namespace) -> int:
+  """The registration of `main` and its outputs; the exit code."""
   from lrf_jax.registration import register
 
   params = None

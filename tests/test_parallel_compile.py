@@ -184,3 +184,17 @@ def test_concurrent_saves_keep_every_entry(tmp_path, monkeypatch):
   for i in range(2):
     got = files[0].load(f"key{i}")
     assert got is not None and np.array_equal(got, np.full(3, i)), (i, got)
+
+
+def test_lrf_compile_marks_each_program_warm(tmp_path, monkeypatch):
+  """lrf-compile's "program:<name>" groups compile (or load) the manifest's kernels by
+  signature and mark the program warm: a first run after lrf-compile starts no worker."""
+  from lrf_jax.cli import compile as compile_cli
+  assert {f"program:{p}" for p in pc.PROGRAMS} <= set(compile_cli.groups())
+  markers = {p: tmp_path / "warm" / p for p in pc.PROGRAMS}
+  monkeypatch.setattr(pc, "warm_marker", markers.__getitem__)
+  monkeypatch.setenv(pc.ENV_VAR, "1")
+  monkeypatch.setattr(pc, "cores", lambda: 2)
+  pc.compile_program("register")
+  assert markers["register"].is_file() and not markers["frames"].exists()
+  assert pc.start("register") is False  # warm: no worker

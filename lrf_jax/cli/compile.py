@@ -5,7 +5,9 @@ layer, a CI cache, a cluster's shared cache before a data-set job).
 numba compiles one kernel after another within a process (its compiler lock is per process), so
 the kernels are compiled by `--jobs` worker processes at once, each running a group of small
 calls that needs its own kernels (a registration with the default options, with each other
-estimator and option, the frames of each method, each descriptor, a multiway run). They write
+estimator and option, the frames of each method, each descriptor, a multiway run, and the
+kernels of `lrf-register`'s and `lrf-frames`' default calls by signature, which marks those
+programs warm: their first run then starts no compile worker, `parallel_compile`). They write
 into the same caches (`lrf_jax.compilation_cache`; each save of a kernel is locked by
 `lrf_jax.kernel_cache`, so concurrent writers never mix two entries up). Nothing is compiled that a later run
 would not load: the calls are the library's own, on small procedural clouds. Exit code 0, 3 when
@@ -19,12 +21,14 @@ interrupted. The workers end with the command, Ctrl-C included.
 from __future__ import annotations
 
 import argparse
+import functools
 import os
 import sys
 import time
 from collections.abc import Callable
 
 from lrf_jax.cli.help import DefaultsHelpFormatter
+from lrf_jax.cli.parallel_compile import PROGRAMS
 from lrf_jax.defaults import RADIUS_MR
 
 
@@ -80,7 +84,8 @@ def _multiway() -> None:
 
 def groups() -> dict[str, Callable[[], None]]:
   """Every group of calls by name: "register", "register:<option>", "frames:<method>",
-  "descriptor:<name>", "multiway"."""
+  "descriptor:<name>", "multiway", and "program:<name>" (the kernels of `lrf-register`'s and
+  `lrf-frames`' default calls, by signature: `parallel_compile`)."""
   from lrf_jax.descriptors import DESCRIPTORS
   from lrf_jax.frames import METHODS
   out: dict[str, Callable[[], None]] = {"register": _register()}
@@ -91,7 +96,16 @@ def groups() -> dict[str, Callable[[], None]]:
   out.update({f"frames:{m}": _frames(m) for m in sorted(METHODS)})
   out.update({f"descriptor:{d}": _descriptor(d) for d in sorted(DESCRIPTORS)})
   out["multiway"] = _multiway
+  out.update({f"program:{p}": functools.partial(_program, p) for p in PROGRAMS})
   return out
+
+
+def _program(program: str) -> None:
+  """A program's kernels by the signatures its first run compiles
+  (`parallel_compile.compile_program`); marks them warm, so its next first run starts no
+  compile worker."""
+  from lrf_jax.cli import parallel_compile
+  parallel_compile.compile_program(program)
 
 
 def _run_group(name: str) -> tuple[str, float, str | None]:

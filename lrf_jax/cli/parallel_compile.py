@@ -200,6 +200,24 @@ def parse_type(text: str) -> Any:
   return eval(text, {"__builtins__": {}}, names)  # noqa: S307 -- our own manifest's text
 
 
+def compile_program(program: str) -> None:
+  """Compile (or load) every kernel of `program`'s manifest in this process, then mark this
+  code's cache warm for it (`warm_marker`): `lrf-compile`'s group "program:<program>", after
+  which a first run starts no worker.
+
+  Raises:
+    Exception: a kernel that did not compile (numba's error; nothing is marked).
+  """
+  from lrf_jax import kernel_cache
+  kernel_cache.install()
+  mods = kernel_modules()
+  for module, name, sig in manifest()[program]:
+    getattr(mods[module], name).compile(tuple(parse_type(t) for t in sig))
+  marker = warm_marker(program)
+  marker.parent.mkdir(parents=True, exist_ok=True)
+  marker.touch()
+
+
 def _run_worker(program: str, claims: str, parent: int) -> int:
   """Compile `program`'s kernels from the last the main process calls backwards, skipping
   those another process claimed; 0 when every one was compiled (or claimed elsewhere)."""

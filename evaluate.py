@@ -205,26 +205,9 @@ def _check(args: argparse.Namespace) -> str | None:
 
 
 def _address_problem(address: str | None) -> str | None:
-  """What is wrong with the Ray cluster address of --engine ray (None: fine, or "local" /
-  "auto"): HOST:PORT (or ray://HOST:PORT) where nothing accepts a connection within 3 s (Ray
-  itself would retry for minutes)."""
-  import socket
-
-  from lrf_jax.batch.engines import resolve_address
-  resolved = resolve_address(address)
-  if resolved in ("local", "auto"):
-    return None
-  flag = "--address" if address else "$RAY_ADDRESS"
-  host, sep, port = resolved.split("://")[-1].rpartition(":")
-  if not sep or not host or not port.isdigit():
-    return (f"{flag}: expected HOST:PORT of a running Ray cluster, 'local' or 'auto', got "
-            f"{resolved!r}")
-  try:
-    socket.create_connection((host.strip("[]"), int(port)), timeout=3).close()
-  except OSError as e:
-    return (f"{flag}: no Ray cluster answers at {resolved} ({e.strerror or e}); start one "
-            "(`ray start --head`) or use --address local")
-  return None
+  """What is wrong with the Ray cluster address of --engine ray (`engines.address_problem`)."""
+  from lrf_jax.batch.engines import address_problem
+  return address_problem(address, "--address")
 
 
 if __name__ == "__main__":

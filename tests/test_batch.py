@@ -278,3 +278,21 @@ def test_lrf_compile_lists_and_runs_groups(capsys):
   assert compile_cli.main(["--only", "bogus"]) == 2
   assert compile_cli.main(["--jobs", "1", "--only", "frames:shot"]) == 0
   assert "compiled 1 of 1 groups with 1 worker(s)" in capsys.readouterr().err
+
+
+def test_a_ray_address_where_nothing_answers_is_refused_at_once(monkeypatch):
+  """Ray retries an address where nothing answers for minutes: the engine refuses it first
+  (3 s at most), naming the address; "local" and "auto" need no check."""
+  import time
+
+  from lrf_jax.batch import engines
+  monkeypatch.delenv("RAY_ADDRESS", raising=False)
+  assert engines.address_problem("local") is None and engines.address_problem(None) is None
+  assert "expected HOST:PORT" in engines.address_problem("nonsense")
+  pytest.importorskip("ray")
+  t = time.perf_counter()
+  with pytest.raises(ValueError, match="address: no Ray cluster answers at 127.0.0.1:1"):
+    engines.RayEngine("127.0.0.1:1").driver_node()  # joined on first use
+  assert time.perf_counter() - t < 10
+  monkeypatch.setenv("RAY_ADDRESS", "127.0.0.1:1")
+  assert engines.address_problem(None, "--address").startswith("$RAY_ADDRESS: ")

@@ -242,6 +242,13 @@ def test_the_command_line_resumes_from_its_output_folder(five, tmp_path, capsys)
   assert (out / "poses.txt").read_text() == poses
   assert main([*argv, "--address", "127.0.0.1:1"]) == 2
   assert "--address" in capsys.readouterr().err
+  # Nothing to do: the cluster is never joined (nothing answers at 127.0.0.1:1) ...
+  assert main([*argv, "--engine", "ray", "--address", "127.0.0.1:1"]) == 0
+  capsys.readouterr()
+  # ... work to do: refused at once, naming the address, not after Ray's minutes of retries
+  argv[argv.index(str(out))] = str(tmp_path / "other")
+  assert main([*argv, "--engine", "ray", "--address", "127.0.0.1:1"]) == 2
+  assert "no Ray cluster answers at 127.0.0.1:1" in capsys.readouterr().err
 
 
 def test_a_custom_pairwise_takes_no_engine_or_state(tmp_path):

@@ -32,7 +32,8 @@ import os
 from typing import Any, Protocol
 from collections.abc import Callable, Iterator, Sequence
 
-__all__ = ["ENGINES", "LocalEngine", "Outcome", "RayEngine", "make_engine", "resolve_address"]
+__all__ = ["ENGINES", "LocalEngine", "Outcome", "RayEngine", "address_problem", "make_engine",
+           "resolve_address"]
 
 ENGINES = ("local", "ray")
 # Ray's retries of a task whose worker or node died (not of an item's own error).
@@ -143,6 +144,28 @@ def resolve_address(address: str | None) -> str:
   return os.environ.get("RAY_ADDRESS") or "local"
 
 
+def address_problem(address: str | None, flag: str = "address") -> str | None:
+  """What is wrong with a Ray cluster address (`resolve_address` of it), or None: "local" and
+  "auto" are fine; HOST:PORT (or ray://HOST:PORT) must accept a TCP connection within 3 s
+  (Ray itself retries an address where nothing answers for minutes). `flag` names the option
+  in the message ("$RAY_ADDRESS" when the address came from there)."""
+  import socket
+  resolved = resolve_address(address)
+  if resolved in ("local", "auto"):
+    return None
+  flag = flag if address else "$RAY_ADDRESS"
+  host, sep, port = resolved.split("://")[-1].rpartition(":")
+  if not sep or not host or not port.isdigit():
+    return (f"{flag}: expected HOST:PORT of a running Ray cluster, 'local' or 'auto', got "
+            f"{resolved!r}")
+  try:
+    socket.create_connection((host.strip("[]"), int(port)), timeout=3).close()
+  except OSError as e:
+    return (f"{flag}: no Ray cluster answers at {resolved} ({e.strerror or e}); start one "
+            "(`ray start --head`) or use the address 'local'")
+  return None
+
+
 class RayEngine:
   """Runs payloads as Ray tasks of `cpus_per_task` CPUs each.
 
@@ -153,6 +176,9 @@ class RayEngine:
     max_in_flight: tasks submitted ahead of the finished ones (None: 4 per CPU of the cluster,
       at least 8), so that Ctrl-C has little to cancel and the driver holds few references.
     max_retries: Ray's retries of a task whose worker or node died.
+
+  The cluster is joined on first use (a job with nothing to do never joins it); an address
+  where nothing answers is then a ValueError (`address_problem`) within 3 s.
   """
 
   name = "ray"
@@ -176,6 +202,9 @@ class RayEngine:
       from ray._private import ray_constants
       ray_constants.ENABLE_RAY_CLUSTER = False
     if not ray.is_initialized():
+      problem = address_problem(self.address)
+      if problem:  # at once, not after Ray's minutes of retries
+        raise ValueError(problem)
       kw: dict[str, Any] = dict(address=self.address, logging_level="warning",
                                 log_to_driver=False)
       if is_loopback(self.address):

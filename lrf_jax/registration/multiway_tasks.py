@@ -31,7 +31,7 @@ from lrf_jax.io import atomic
 from lrf_jax.registration.options import RegisterOptions
 from lrf_jax.search import engine as search_engine
 
-__all__ = ["PairRecords", "describe_task", "edge_record", "pair_task", "run_pairs",
+__all__ = ["PairRecords", "describe_task", "edge_record", "error_record", "pair_task", "run_pairs",
            "scan_hash"]
 
 # Points per edge in the pose graph's residual.
@@ -68,22 +68,37 @@ def overlap_points(src: np.ndarray, target: np.ndarray, transform: np.ndarray, d
   return _farthest(near, EDGE_POINTS) if len(near) else near
 
 
+def error_record(i: int, j: int, reason: str, code: str = "error") -> dict[str, Any]:
+  """The record of a pair that gave no edge (`reason`; `code` its reason_code)."""
+  return dict(i=i, j=j, transform=None, verdict="error", n_inliers=0, overlap=0.0, rmse=None,
+              reason_code=code, points=[], reason=reason)
+
+
 def edge_record(i: int, j: int, reg: Any, error: str | None, src: np.ndarray, target: np.ndarray,
                 distance: float, seed: int) -> dict[str, Any]:
   """A pair's result as plain data (what `MultiwayEdge` holds, and its overlap points): from a
   registration `reg` (an object with `transform`, `success`, `reason`, `n_inliers`, `overlap`,
   `rmse`, optionally `estimated` and `reason_code`) or an `error` (no edge)."""
-  if error is not None or not getattr(reg, "estimated", True):
-    code = "error" if error is not None else str(getattr(reg, "reason_code", "no_hypothesis"))
-    return dict(i=i, j=j, transform=None, verdict="error", n_inliers=0, overlap=0.0,
-                rmse=None, reason_code=code, points=[],
-                reason=error if error is not None else str(getattr(reg, "reason", "")))
+  if error is not None:
+    return error_record(i, j, error)
+  if not getattr(reg, "estimated", True):
+    return error_record(i, j, str(getattr(reg, "reason", "")),
+                        str(getattr(reg, "reason_code", "no_hypothesis")))
   t = np.asarray(reg.transform, np.float64)
   pts = overlap_points(src, target, t, distance, (seed, i, j))
   return dict(i=i, j=j, transform=t.tolist(), verdict="success" if reg.success else "not sure",
               reason=str(getattr(reg, "reason", "")), n_inliers=int(reg.n_inliers),
               overlap=float(reg.overlap), rmse=float(reg.rmse),
               reason_code=str(getattr(reg, "reason_code", "")), points=pts.tolist())
+
+
+def _error_text(e: BaseException) -> str:
+  """A task's error as a message; Ctrl-C that surfaced as another exception (numba turns one
+  inside a kernel into a SystemError) is raised again as a KeyboardInterrupt."""
+  from lrf_jax.io.atomic import caused_by_interrupt
+  if caused_by_interrupt(e):
+    raise KeyboardInterrupt from e
+  return str(e) if isinstance(e, ValueError) else f"{type(e).__name__}: {e}"
 
 
 def describe_task(payload: dict[str, Any]) -> dict[str, Any]:
@@ -93,16 +108,13 @@ def describe_task(payload: dict[str, Any]) -> dict[str, Any]:
     payload: {"cloud": `CheckedCloud`, "name": str, "options": `RegisterOptions`, "mr": float,
       "viewpoint": (3,) or None, "params": learned parameters or None}.
   """
-  from lrf_jax.io.atomic import caused_by_interrupt
   from lrf_jax.registration.scan_features import describe_scan
   try:
     features = describe_scan(payload["cloud"], payload["options"], mr=payload["mr"],
                              viewpoint=payload["viewpoint"], params=payload["params"],
                              name=f"scan {payload['name']}")
   except Exception as e:  # noqa: BLE001 -- a scan that cannot be described gives no edges
-    if caused_by_interrupt(e):
-      raise KeyboardInterrupt from e
-    text = str(e) if isinstance(e, ValueError) else f"{type(e).__name__}: {e}"
+    text = _error_text(e)
     where = f"scan {payload['name']}"
     return {"error": text if where in text else f"{where}: {text}"}
   return {"features": features}
@@ -115,16 +127,13 @@ def pair_task(payload: dict[str, Any]) -> dict[str, Any]:
     payload: {"i", "j": scan indices, "source", "target": `ScanFeatures`, "options":
       `RegisterOptions`, "distance": the overlap distance (cloud units), "seed": int}.
   """
-  from lrf_jax.io.atomic import caused_by_interrupt
   from lrf_jax.registration.scan_features import register_scans
   a, b = payload["source"], payload["target"]
   reg, error = None, None
   try:
     reg = register_scans(a, b, payload["options"])
   except Exception as e:  # noqa: BLE001 -- a pair that cannot be registered is an error edge
-    if caused_by_interrupt(e):
-      raise KeyboardInterrupt from e
-    error = str(e) if isinstance(e, ValueError) else f"{type(e).__name__}: {e}"
+    error = _error_text(e)
   return edge_record(payload["i"], payload["j"], reg, error, a.runs[0].side.points,
                      b.runs[0].side.points, payload["distance"], payload["seed"])
 
@@ -256,8 +265,7 @@ def _registered(engine, todo, payloads, features, pairs) -> Iterator[tuple[int, 
     bad = next((features[s] for s in pairs[k] if isinstance(features[s], dict)), None)
     if bad is not None:
       i, j = pairs[k]
-      ready.append((k, edge_record(i, j, None, bad["error"], np.zeros((0, 3)), np.zeros((0, 3)),
-                                   1.0, 0)))
+      ready.append((k, error_record(i, j, bad["error"])))
     else:
       runnable.append((k, payload))
   yield from ready
@@ -265,9 +273,8 @@ def _registered(engine, todo, payloads, features, pairs) -> Iterator[tuple[int, 
     k = runnable[outcome.index][0]
     if outcome.error is not None:  # lost with its node: no record, the next run redoes it
       i, j = pairs[k]
-      rec = edge_record(i, j, None, f"the engine lost this pair: {outcome.error}",
-                        np.zeros((0, 3)), np.zeros((0, 3)), 1.0, 0)
-      yield k, {**rec, "lost": True}
+      yield k, {**error_record(i, j, f"the engine lost this pair: {outcome.error}"),
+                "lost": True}
     else:
       yield k, outcome.value
 

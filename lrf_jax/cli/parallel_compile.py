@@ -44,6 +44,8 @@ ENV_VAR = "LRF_JAX_PARALLEL_COMPILE"  # "0" (or off, false, no) turns the worker
 MANIFEST = Path(__file__).with_name("compile_manifest.json")
 PACKAGE = Path(__file__).resolve().parents[1]
 PROGRAMS = ("register", "frames")
+# Seconds a command that ended normally gives its workers to finish (and mark the cache warm).
+FINISH_GRACE_S = 3.0
 
 _STATE: dict[str, Any] = {"procs": [], "claims": None, "marker": None}
 
@@ -135,12 +137,17 @@ def _alive(pid: int) -> bool:
   return any(p.pid == pid and p.poll() is None for p in _STATE["procs"])
 
 
-def stop() -> None:
-  """End the workers now (idempotent); when they had all finished their work, mark this code's
-  kernels as compiled (`warm_marker`)."""
+def stop(grace: float = 0.0) -> None:
+  """End the workers (idempotent): those still running after `grace` seconds are terminated;
+  when they had all finished their work, mark this code's kernels as compiled
+  (`warm_marker`). A worker whose share met the command's own exits on its own within moments
+  (a loaded machine may delay that past the command's end: the grace lets it)."""
   procs, claims, marker = _STATE["procs"], _STATE["claims"], _STATE["marker"]
   if not procs:
     return
+  deadline = time.monotonic() + grace
+  while any(p.poll() is None for p in procs) and time.monotonic() < deadline:
+    time.sleep(0.05)
   finished = all(p.poll() == 0 for p in procs)
   for p in procs:
     if p.poll() is None:
@@ -163,12 +170,15 @@ def stop() -> None:
 
 @contextlib.contextmanager
 def compiling(program: str) -> Any:
-  """`start(program)`, then `stop()` however the block ends."""
+  """`start(program)`, then `stop()` however the block ends (after `FINISH_GRACE_S` for the
+  workers to finish when it ends normally; at once on Ctrl-C or an error)."""
   start(program)
   try:
     yield
-  finally:
+  except BaseException:
     stop()
+    raise
+  stop(FINISH_GRACE_S)
 
 
 # -- the manifest --------------------------------------------------------------------------------

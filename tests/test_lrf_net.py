@@ -547,7 +547,9 @@ def test_host_patch_kernel_gives_the_jitted_frames(method, options):
 
 
 def test_compute_frames_picks_the_host_patch_kernel_on_the_cpu(monkeypatch):
+  from lrf_jax import api
   from lrf_jax.frames import lrf_net_host
+  monkeypatch.setattr(api, "backend_is_cpu", lambda: True)  # the CPU's choice, on any machine
   calls = []
   real = lrf_net_host.lrf_net_frames_host
   monkeypatch.setattr(lrf_net_host, "lrf_net_frames_host",

@@ -338,6 +338,7 @@ def test_host_paths_return_frames_in_the_callers_order(method):
   kp = np.concatenate([keypoints, keypoints[::-1]])  # repeats, and more than one chunk below
   perm = np.random.default_rng(5).permutation(len(kp))
   kw = dict(faces=faces) if lrf_jax.METHODS[method].needs_mesh else {}
+  kw["kernel"] = "host"  # the default on a CPU; on an accelerator the default is jitted
   f0, v0 = lrf_jax.compute_frames(points, kp, radius, method, **kw)
   f1, v1 = lrf_jax.compute_frames(points, kp[perm], radius, method, chunk_size=7, **kw)
   assert f1.shape == (len(kp), 3, 3) and v1.shape == (len(kp),)

@@ -374,7 +374,8 @@ def test_second_run_in_a_locked_workdir_is_one_error_naming_the_holder(tmp_path,
        "from lrf_jax.learning.train_lib import workdir_lock\n"
        "with workdir_lock(Path(sys.argv[1])):\n  print('locked', flush=True); time.sleep(600)",
        str(tmp_path)], stdout=subprocess.PIPE, text=True, cwd=REPO,
-      env={**os.environ, "PYTHONPATH": str(REPO)})
+      env={**os.environ, "PYTHONPATH": os.pathsep.join(
+          [str(REPO), *filter(None, [os.environ.get("PYTHONPATH")])])})
   try:
     assert holder.stdout.readline().strip() == "locked"
     sys.path.insert(0, str(REPO))

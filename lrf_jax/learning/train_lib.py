@@ -54,6 +54,7 @@ import jax.numpy as jnp
 import numpy as np
 from jax.sharding import Mesh, NamedSharding, PartitionSpec as P
 
+from lrf_jax._jax import exact_matmuls
 from lrf_jax.extras import missing_extra, pyplot
 
 try:
@@ -119,7 +120,7 @@ def build_validation(pairs: list[Any], config: TrainConfig) -> ValidationSet:
     vs.append(points_only_view(pair.scene_points, ps[-1], r)[0] if voted else None)
     names.append(pair.name)
     rots.append(np.asarray(pair.transform)[:3, :3])
-  return ValidationSet(names, pm, ps, rots, jax.jit(frames_fn(config)), vm, vs)
+  return ValidationSet(names, pm, ps, rots, jax.jit(exact_matmuls(frames_fn(config))), vm, vs)
 
 
 def validate(params, val: ValidationSet) -> dict[str, Any]:
@@ -261,7 +262,7 @@ def _train(config: TrainConfig, workdir: Path, *, clouds: TrainingClouds | None,
   mngr, state = resume(workdir, create_state(config), config)
   start = int(state.step)
   state = jax.device_put(state, replicated)
-  step_fn = jax.jit(make_train_step(config), donate_argnums=0,
+  step_fn = jax.jit(exact_matmuls(make_train_step(config)), donate_argnums=0,
                     out_shardings=(replicated, replicated))
   total = config.total_steps if stop_after_steps is None else min(config.total_steps,
                                                                    stop_after_steps)

@@ -2,6 +2,7 @@
 default `compute_frames` call of every method beside PCL 1.13's same LRF, in one run.
 
     LRF_DATA=/path/to/data python benchmarks/bench_engine.py [--cases bunny:10000 dragon:10000]
+        [--cases kitti:100000]  (raw KITTI sweep 000000, 124,668 points, r = 15 mean NN spacings)
         [--methods lrf_net shot ...] [--repeat 3]
 
 Patches: `lrf_jax.build_patches(points, kp, r, 256)` on the BR bunny (34,834 vertices), 10,000
@@ -86,6 +87,15 @@ def bench_patches(data: str | None, repeat: int) -> None:
   print(f"\nidentical indices, mask, count, z_count, offsets: {same}\n")
 
 
+def _case_cloud(model: str, data: str | None) -> tuple[np.ndarray, np.ndarray | None]:
+  """A BR model's (points, faces), or with model "kitti" raw KITTI sweep 000000 (no faces)."""
+  if model == "kitti":
+    root = Path(data or "") / "lidar_kitti00" / "000000.bin"
+    return np.asarray(lrf_jax.io.read_cloud(root).points, np.float64), None
+  mesh = datasets.load_br_model(model, data)
+  return mesh.points, mesh.faces
+
+
 def bench_frames(data: str | None, cases: list[tuple[str, int]], methods: list[str],
                  repeat: int, use_pcl: bool) -> None:
   pcl = None
@@ -99,8 +109,7 @@ def bench_frames(data: str | None, cases: list[tuple[str, int]], methods: list[s
   print("| cloud | keypoints | method | lrf_jax /s | PCL | PCL /s | ratio |")
   print("|---|---:|---|---:|---|---:|---:|")
   for model, m in cases:
-    mesh = datasets.load_br_model(model, data)
-    pts, faces = mesh.points, mesh.faces
+    pts, faces = _case_cloud(model, data)
     r = 15 * datasets.mesh_resolution(pts, faces)[0]
     kp = np.random.default_rng(0).choice(len(pts), m, replace=m > len(pts))
     pcl_rate = {}
@@ -119,6 +128,8 @@ def bench_frames(data: str | None, cases: list[tuple[str, int]], methods: list[s
         if p in t:
           pcl_rate[p] = m / (t[p] + t["normals_omp"])
     for method in methods:
+      if lrf_jax.METHODS[method].needs_mesh and faces is None:
+        continue  # a sweep has no mesh
       kw = {"faces": faces} if lrf_jax.METHODS[method].needs_mesh else {}
       call = lambda cloud: lrf_jax.compute_frames(  # noqa: E731
           cloud, kp, r, method, progress=False,  # noqa: B023 (called in this iteration)

@@ -2,7 +2,8 @@
 # The device checks for a lent GPU machine, as one prepared script of about 8 minutes: versions,
 # the compile-everything command on an empty cache, frames/s of lrf_net and lrf_net_plus end to
 # end at 100k and 1M keypoints (bench_speed.py on the BR dragon, bench_scale.py on a 1M-point
-# cloud with search="device"), then the tests that run the jitted and device paths. Each step has
+# cloud with search="device"; bench_device_split.py: the search, the frames and the whole call
+# timed apart), then the tests that run the jitted and device paths. Each step has
 # its own time limit, so a slow one cannot eat the next; every log goes to $OUT.
 #
 #   LRF_DATA=/path/to/data OUT=out/gpu bash benchmarks/gpu_check.sh
@@ -38,6 +39,7 @@ print(sys.version.split()[0], \"jax\", jax.__version__, jax.devices(), \"numba\"
 step import 30 $PY -c "import time; t = time.perf_counter(); import lrf_jax; print(f'import lrf_jax {time.perf_counter() - t:.3f} s')"
 step compile 150 $PY -m lrf_jax.cli.compile
 step speed 150 $PY benchmarks/bench_speed.py --no-pcl --counts 10000 $K1 $K2 --methods lrf_net lrf_net_plus
+step split 120 $PY benchmarks/bench_device_split.py --points $N --keypoints $K2 --chunks 65536 --repeat 1
 step scale_plus 90 $PY benchmarks/bench_scale.py --rows cloud --points $N --keypoints $K2 --method lrf_net_plus --search device --chunk-size 65536 --repeat 2
 step scale_net 60 $PY benchmarks/bench_scale.py --rows cloud --points $N --keypoints $K2 --method lrf_net --search device --chunk-size 65536 --repeat 2
 step tests 150 env -u LRF_DATA XLA_PYTHON_CLIENT_PREALLOCATE=false $PY -m pytest -v -n 16 -p no:cacheprovider -p no:benchmark --timeout 60 tests/test_device_search.py tests/test_lrf_net.py tests/test_method_properties.py tests/test_losses.py tests/test_distributed.py tests/test_points_only.py tests/test_descriptors.py tests/test_train.py tests/test_matmul_precision.py

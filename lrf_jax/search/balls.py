@@ -159,22 +159,32 @@ def _count_ball(pts, starts, cx, cy, cz, r2, kin2, kout2, nr, js, je):
 @nb.njit(parallel=True, cache=True)
 def _ball_counts(pts, starts, origin, h, dims, centers, order, r, reach, kin2, kout2):
   """(points within r of each centre, those of them within sqrt(kin2) or beyond sqrt(kout2)),
-  centres visited in `order`."""
+  centres visited in `order`, _BLOCK per parallel task (`_counts_block`)."""
   m = centers.shape[0]
   full = np.zeros(m, np.int64)
   out = np.zeros(m, np.int64)
-  r2 = r * r
   ncol = (2 * reach + 1) ** 2
   nblock = (m + _BLOCK - 1) // _BLOCK
   for blk in nb.prange(nblock):
     js = np.empty(ncol, np.int64)
     je = np.empty(ncol, np.int64)
-    for t in range(blk * _BLOCK, min(m, (blk + 1) * _BLOCK)):
-      i = order[t]
-      cx, cy, cz = centers[i, 0], centers[i, 1], centers[i, 2]
-      nr = _columns(cx, cy, cz, origin, h, dims, starts, r, reach, js, je)
-      full[i], out[i] = _count_ball(pts, starts, cx, cy, cz, r2, kin2, kout2, nr, js, je)
+    _counts_block(pts, starts, origin, h, dims, centers, order, r, reach, kin2, kout2, full, out,
+                  blk * _BLOCK, min(m, (blk + 1) * _BLOCK), js, je)
   return full, out
+
+
+# A parallel kernel's task compiled on its own, without reference counting (see
+# `nearest._knn_block`: the same output, a shorter first compile, no contention).
+@nb.njit(_nrt=False, cache=True)
+def _counts_block(pts, starts, origin, h, dims, centers, order, r, reach, kin2, kout2, full, out,
+                  lo, hi, js, je):
+  """Centres order[lo:hi] of `_ball_counts` (js, je: column scratch)."""
+  r2 = r * r
+  for t in range(lo, hi):
+    i = order[t]
+    cx, cy, cz = centers[i, 0], centers[i, 1], centers[i, 2]
+    nr = _columns(cx, cy, cz, origin, h, dims, starts, r, reach, js, je)
+    full[i], out[i] = _count_ball(pts, starts, cx, cy, cz, r2, kin2, kout2, nr, js, je)
 
 
 # Running moment sums of a ball's offsets: (count, x, y, z, xx, xy, xz, yy, yz, zz).

@@ -28,7 +28,8 @@ from typing import TYPE_CHECKING, cast
 import numba as nb
 import numpy as np
 
-from lrf_jax.search.grid import _BLOCK, _PRUNE_MARGIN, Grid, _cell, _centers, _reach, query_order
+from lrf_jax.search.grid import (_BLOCK, _PRUNE_MARGIN, Grid, _cell, _centers, _reach,
+                                 query_order, task_jit)
 
 if TYPE_CHECKING:
   from typing import TypedDict
@@ -173,9 +174,7 @@ def _ball_counts(pts, starts, origin, h, dims, centers, order, r, reach, kin2, k
   return full, out
 
 
-# A parallel kernel's task compiled on its own, without reference counting (see
-# `nearest._knn_block`: the same output, a shorter first compile, no contention).
-@nb.njit(_nrt=False, cache=True)
+@task_jit  # the parallel kernel's task (see `grid.task_jit`)
 def _counts_block(pts, starts, origin, h, dims, centers, order, r, reach, kin2, kout2, full, out,
                   lo, hi, js, je):
   """Centres order[lo:hi] of `_ball_counts` (js, je: column scratch)."""
@@ -268,11 +267,24 @@ def _ball_stats(pts, starts, origin, h, dims, centers, r, reach):
     je = np.empty(ncol, np.int64)
     off = np.empty((3, 256))
     for i in range(blk * _BLOCK, min(m, (blk + 1) * _BLOCK)):
-      cx, cy, cz = centers[i, 0], centers[i, 1], centers[i, 2]
-      nr = _columns(cx, cy, cz, origin, h, dims, starts, r, reach, js, je)
+      nr = _columns_of(centers, i, origin, h, dims, starts, r, reach, js, je)
       off = _room(off, _scanned(starts, nr, js, je))
-      count[i] = _stats_one(pts, starts, cx, cy, cz, r * r, nr, js, je, mean[i], cov[i], off)
+      count[i] = _stats_of(pts, starts, centers, i, r, nr, js, je, mean, cov, off)
   return count, mean, cov
+
+
+# `_ball_stats`' two steps of a ball, each compiled on its own (`grid.task_jit`); the growing
+# scratch stays in the parallel loop (it allocates).
+@task_jit
+def _columns_of(centers, i, origin, h, dims, starts, r, reach, js, je):
+  return _columns(centers[i, 0], centers[i, 1], centers[i, 2], origin, h, dims, starts, r, reach,
+                  js, je)
+
+
+@task_jit
+def _stats_of(pts, starts, centers, i, r, nr, js, je, mean, cov, off):
+  return _stats_one(pts, starts, centers[i, 0], centers[i, 1], centers[i, 2], r * r, nr, js, je,
+                    mean[i], cov[i], off)
 
 
 @nb.njit(inline="always")

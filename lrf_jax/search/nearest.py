@@ -10,7 +10,7 @@ from __future__ import annotations
 import numba as nb
 import numpy as np
 
-from lrf_jax.search.grid import _BLOCK, _PRUNE_MARGIN, Grid, _cell, _centers
+from lrf_jax.search.grid import _BLOCK, _PRUNE_MARGIN, Grid, _cell, _centers, task_jit
 
 
 @nb.njit(inline="always")
@@ -126,13 +126,7 @@ def _knn_query(pts, slot_index, starts, origin, h, dims, qx, qy, qz, k, max_d2, 
 _knn_query_called = nb.njit(_knn_query.py_func)
 
 
-# The parallel k-NN kernel's task, compiled on its own (cache=True: once per machine, shared
-# by every process compiling the kernel) and without numba's reference counting (_nrt=False: it
-# allocates nothing): the parallel kernel's body is then one call, which halved its first
-# compile (10.0 -> 4.9 s on a 300k cloud, k = 8) with the same output bit for bit. A task called
-# with reference counting ran 2x slower: each call's atomic increments of the shared arrays'
-# counts contend between the threads.
-@nb.njit(_nrt=False, cache=True)
+@task_jit
 def _knn_block(pts, slot_index, starts, origin, h, dims, queries, k, max_d2, out_d, out_i, lo,
                hi, bd, bi):
   """Queries lo..hi-1 of `_knn_kernel` into out_d, out_i (bd, bi: scratch of length k)."""

@@ -121,9 +121,9 @@ def _knn_query(pts, slot_index, starts, origin, h, dims, qx, qy, qz, k, max_d2, 
 
 # Every ICP pairing step (`nearest_moved`) calls the query instead of inlining it: compiled once
 # instead of once per ICP kernel (the point-to-plane sums' first compile measured 18.6 -> 6.8 s,
-# the same warm time). The k-NN kernel keeps it inlined: called there, its many queries of k > 1
-# ran 2-4x slower.
-_knn_query_called = nb.njit(_knn_query.py_func)
+# the same warm time), without reference counting (`task_jit`: no atomic counts contended by the
+# threads at every call).
+_knn_query_called = task_jit(_knn_query.py_func)
 
 
 @task_jit

@@ -31,24 +31,13 @@ sys.path.insert(0, str(REPO / "benchmarks"))
 import jax  # noqa: E402
 
 import lrf_jax  # noqa: E402
-from lrf_jax import datasets  # noqa: E402
 from lrf_jax.prepare import method_normals, prepare_extra  # noqa: E402
 from lrf_jax.search.device import DeviceIndex, build_patches_device  # noqa: E402
+from bench_scale import dragon_cloud  # noqa: E402
 
 
 def _cloud(n_points: int, data: str | None) -> tuple[np.ndarray, float]:
-  mesh = datasets.load_br_model("dragon", data)
-  mr, _ = datasets.mesh_resolution(mesh.points, mesh.faces)
-  if n_points <= 0:
-    return mesh.points, 15 * mr
-  rng = np.random.default_rng(0)
-  tri = mesh.points[mesh.faces]
-  area = 0.5 * np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
-  f = rng.choice(len(tri), n_points, p=area / area.sum())
-  a, b = rng.random((2, n_points))
-  flip = a + b > 1
-  a[flip], b[flip] = 1 - a[flip], 1 - b[flip]
-  pts = tri[f, 0] + a[:, None] * (tri[f, 1] - tri[f, 0]) + b[:, None] * (tri[f, 2] - tri[f, 0])
+  _, mr, pts = dragon_cloud(n_points, data, np.random.default_rng(0))
   return pts, 15 * mr
 
 

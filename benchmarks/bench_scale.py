@@ -21,8 +21,31 @@ import os
 import subprocess
 import sys
 from pathlib import Path
+from typing import Any
 
 REPO = Path(__file__).resolve().parents[1]
+
+
+def dragon_cloud(n_points: int, data: str | None, rng: Any) -> tuple[Any, float, Any]:
+  """(the BR dragon mesh, its mr, a cloud): the mesh's vertices with `n_points` <= 0, else
+  `n_points` points drawn uniformly on its triangles (area-weighted) with the numpy `rng`."""
+  import numpy as np
+
+  sys.path.insert(0, str(REPO))
+  from lrf_jax import datasets
+
+  mesh = datasets.load_br_model("dragon", data)
+  mr, _ = datasets.mesh_resolution(mesh.points, mesh.faces)
+  if n_points <= 0:
+    return mesh, mr, mesh.points
+  tri = mesh.points[mesh.faces]
+  area = 0.5 * np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
+  f = rng.choice(len(tri), n_points, p=area / area.sum())
+  a, b = rng.random((2, n_points))
+  flip = a + b > 1
+  a[flip], b[flip] = 1 - a[flip], 1 - b[flip]
+  return mesh, mr, tri[f, 0] + a[:, None] * (tri[f, 1] - tri[f, 0]) + b[:, None] * (
+      tri[f, 2] - tri[f, 0])
 
 
 def _child(n_points: int, n_keypoints: int, data: str | None, method: str, lut: int,
@@ -35,21 +58,9 @@ def _child(n_points: int, n_keypoints: int, data: str | None, method: str, lut: 
 
   sys.path.insert(0, str(REPO))
   import lrf_jax
-  from lrf_jax import datasets
 
-  mesh = datasets.load_br_model("dragon", data)
-  mr, _ = datasets.mesh_resolution(mesh.points, mesh.faces)
   rng = np.random.default_rng(0)
-  if n_points <= 0:
-    pts = mesh.points
-  else:
-    tri = mesh.points[mesh.faces]
-    area = 0.5 * np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
-    f = rng.choice(len(tri), n_points, p=area / area.sum())
-    a, b = rng.random((2, n_points))
-    flip = a + b > 1
-    a[flip], b[flip] = 1 - a[flip], 1 - b[flip]
-    pts = tri[f, 0] + a[:, None] * (tri[f, 1] - tri[f, 0]) + b[:, None] * (tri[f, 2] - tri[f, 0])
+  mesh, mr, pts = dragon_cloud(n_points, data, rng)
   kp = rng.choice(len(pts), n_keypoints, replace=n_keypoints > len(pts))
   spec = lrf_jax.METHODS[method]
   faces = mesh.faces if n_points <= 0 and spec.needs_mesh else None  # mesh methods: the mesh row

@@ -43,15 +43,30 @@ def _table_weight(table, dist_r, cos):
 _x_axis_sum = hg.x_axis_sum_of(hg.listed_weight)  # w = 0 in padding: skipped
 
 
+_TASK = 32  # keypoints per parallel task
+
+
 @nb.njit(parallel=True, cache=True)
 def _lrf_net_host_kernel(offsets, mask, z_cov, z_mean, z_count, radius, table, mode, ball, view,
                          area, eps, x_eps, min_count, frames, valid):
   """Frames of every patch (see the module docstring); view (N, 3) and area (N, K) are used
-  when their first axis is N (zero-length arrays: none)."""
+  when their first axis is N (zero-length arrays: none). _TASK keypoints per parallel task, each
+  task one call of `_lrf_net_task` (compiled on its own: the parallel kernel's first compile is
+  then shorter)."""
+  n = mask.shape[0]
+  for blk in nb.prange((n + _TASK - 1) // _TASK):
+    _lrf_net_task(blk * _TASK, min(n, (blk + 1) * _TASK), offsets, mask, z_cov, z_mean, z_count,
+                  radius, table, mode, ball, view, area, eps, x_eps, min_count, frames, valid)
+
+
+@nb.njit(cache=True)
+def _lrf_net_task(lo, hi, offsets, mask, z_cov, z_mean, z_count, radius, table, mode, ball, view,
+                  area, eps, x_eps, min_count, frames, valid):
+  """Keypoints lo..hi-1 of `_lrf_net_host_kernel`."""
   n, k = mask.shape
   has_view = view.shape[0] == n
   has_area = area.shape[0] == n
-  for i in nb.prange(n):
+  for i in range(lo, hi):
     hg.set_identity(frames, valid, i)
     r = float(radius[i])
     cov = z_cov[i].astype(np.float64)

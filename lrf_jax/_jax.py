@@ -72,7 +72,7 @@ MATMUL_PRECISION = "highest"
 def exact_matmuls(fun: Callable) -> Callable:
   """`fun` traced with float32 matrix products at full precision (`MATMUL_PRECISION`), whatever
   `jax.default_matmul_precision` the caller set: the setting is read when a product is traced,
-  so it holds inside the caller's own `jax.jit` too. Every function lrf_jax jits is wrapped."""
+  so it holds inside the caller's own `jax.jit` too. `jit` wraps every function lrf_jax jits."""
 
   @functools.wraps(fun)
   def call(*args: Any, **kw: Any) -> Any:

@@ -8,7 +8,7 @@ import warnings
 from collections.abc import Mapping
 from typing import TYPE_CHECKING, Any, cast
 
-from lrf_jax._jax import backend_is_cpu, exact_matmuls, jax, jit, jnp
+from lrf_jax._jax import backend_is_cpu, jax, jit, jnp
 import numpy as np
 
 from lrf_jax.search import engine
@@ -36,9 +36,8 @@ MAX_BALL_FRACTION = 0.5
 def _jitted(spec: MethodSpec, static_items: tuple) -> Any:
   static = dict(static_items)
   if spec.needs_params:
-    return jax.jit(exact_matmuls(
-        lambda patches, extra, params: spec.fn(patches, extra, params=params, **static)))
-  return jax.jit(exact_matmuls(lambda patches, extra, params: spec.fn(patches, extra, **static)))
+    return jit(lambda patches, extra, params: spec.fn(patches, extra, params=params, **static))
+  return jit(lambda patches, extra, params: spec.fn(patches, extra, **static))
 
 
 def frames_from_patches(patches: Patches, method: str = DEFAULT_METHOD, *, params: Any = None,

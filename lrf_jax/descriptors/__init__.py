@@ -26,7 +26,7 @@ import functools
 from typing import Any
 from collections.abc import Callable
 
-from lrf_jax._jax import backend_is_cpu, exact_matmuls, jax, jnp
+from lrf_jax._jax import backend_is_cpu, jax, jit, jnp
 import numpy as np
 
 from lrf_jax.search.chunks import map_chunks
@@ -129,7 +129,7 @@ def _spec(descriptor: str) -> DescriptorSpec:
 @functools.lru_cache(maxsize=32)
 def _jitted(name: str, static_items: tuple) -> Any:
   spec = DESCRIPTORS[name]
-  return jax.jit(exact_matmuls(lambda p, f, v, e: spec.fn(p, f, v, e, **dict(static_items))))
+  return jit(lambda p, f, v, e: spec.fn(p, f, v, e, **dict(static_items)))
 
 
 def descriptors_from_patches(patches: Patches, frames: Any, valid: Any, descriptor: str, *,

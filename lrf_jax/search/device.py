@@ -28,14 +28,13 @@ lrf_net_plus, uniform) do not read it. All-neighbor patches (K = None) stay on t
 
 from __future__ import annotations
 
-import functools
 from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
-from lrf_jax._jax import exact_matmuls
+from lrf_jax._jax import jit
 from lrf_jax.checks import validate_scale
 from lrf_jax.search.neighborhoods import Patches, SearchIndex, build_patches
 
@@ -128,8 +127,7 @@ def _candidates(grid: Grid, p: jax.Array, cap: int):
   return grid.points[idx] - p, grid.rank[idx], ok, length
 
 
-@functools.partial(jax.jit, static_argnames=("k", "cap", "inner_cap"))
-@exact_matmuls
+@jit(static_argnames=("k", "cap", "inner_cap"))
 def _search(patch_grid: Grid, inner_grid: Grid, order: jax.Array, centers: jax.Array,
             radius: jax.Array, inner_radius: jax.Array, *, k: int, cap: int, inner_cap: int):
   """Patches of `centers` (N, 3) (grid-relative float32) and a per-keypoint exactness flag."""

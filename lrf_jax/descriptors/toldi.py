@@ -38,6 +38,7 @@ import numpy as np
 
 from lrf_jax.descriptors.common import local_coordinates, sanitize_inputs
 from lrf_jax.frames import host_geometry as hg
+from lrf_jax.search.engine import run_blocks
 from lrf_jax.search.neighborhoods import Patches
 
 GRID = 20
@@ -105,18 +106,21 @@ def toldi_descriptors(patches: Patches, frames: jax.Array, valid: jax.Array, *,
 # per thread, no padded patch: `compute_descriptors`' default on the CPU.
 
 
-@nb.njit(parallel=True, cache=True)
-def _toldi_host_kernel(points, centers, ptr, ball, frames, ok, r, grid, empty, out, out_ok):
+@nb.njit(cache=True, nogil=True)
+def _toldi_host_kernel(points, centers, ptr, ball, frames, ok, r, grid, empty, out, out_ok, lo,
+                       hi):
+  """Keypoints lo..hi-1 of `toldi_descriptors_host` (on the engine's threads)."""
   area = grid * grid
   step = 2.0 * r / grid
-  for i in nb.prange(centers.shape[0]):
+  img = np.empty(3 * area)
+  loc = np.empty(3)
+  for i in range(lo, hi):
     out[i, :] = 0.0
     out_ok[i] = False
     start, stop = ptr[i], ptr[i + 1]
     if not ok[i] or stop - start < MIN_POINTS:
       continue
-    img = np.full(3 * area, np.inf)
-    loc = np.empty(3)
+    img[:] = np.inf
     for t in range(start, stop):
       j = ball[t]
       ox = points[j, 0] - centers[i, 0]
@@ -164,6 +168,7 @@ def toldi_descriptors_host(points: np.ndarray, keypoints: np.ndarray, radius: fl
   # float32 rows written by the kernel (each depth rounded once, as a float64 image cast would)
   out = np.empty((len(centers), 3 * grid * grid), np.float32)
   out_ok = np.empty(len(centers), np.bool_)
-  _toldi_host_kernel(pts, centers, ptr, ball, np.ascontiguousarray(f), ok, float(radius),
-                     int(grid), float(empty), out, out_ok)
+  args = (pts, centers, ptr, ball, np.ascontiguousarray(f), ok, float(radius), int(grid),
+          float(empty), out, out_ok)
+  run_blocks(lambda lo, hi: _toldi_host_kernel(*args, lo, hi), len(centers))
   return out, out_ok

@@ -18,6 +18,7 @@ import numba as nb
 import numpy as np
 
 from lrf_jax.frames import host_geometry as hg
+from lrf_jax.search.engine import run_blocks
 
 if TYPE_CHECKING:
   from lrf_jax.search.neighborhoods import AnyArray
@@ -43,23 +44,18 @@ def _table_weight(table, dist_r, cos):
 _x_axis_sum = hg.x_axis_sum_of(hg.listed_weight)  # w = 0 in padding: skipped
 
 
-_TASK = 32  # keypoints per parallel task
-
-
-@nb.njit(parallel=True, cache=True)
 def _lrf_net_host_kernel(offsets, mask, z_cov, z_mean, z_count, radius, table, mode, ball, view,
                          area, eps, x_eps, min_count, frames, valid):
   """Frames of every patch (see the module docstring); view (N, 3) and area (N, K) are used
-  when their first axis is N (zero-length arrays: none). _TASK keypoints per parallel task, each
-  task one call of `_lrf_net_task` (compiled on its own: the parallel kernel's first compile is
-  then shorter)."""
-  n = mask.shape[0]
-  for blk in nb.prange((n + _TASK - 1) // _TASK):
-    _lrf_net_task(blk * _TASK, min(n, (blk + 1) * _TASK), offsets, mask, z_cov, z_mean, z_count,
-                  radius, table, mode, ball, view, area, eps, x_eps, min_count, frames, valid)
+  when their first axis is N (zero-length arrays: none). Spans of keypoints on the engine's
+  threads, each one call of `_lrf_net_task` (`search.engine.run_blocks`)."""
+  run_blocks(lambda lo, hi: _lrf_net_task(lo, hi, offsets, mask, z_cov, z_mean, z_count, radius,
+                                          table, mode, ball, view, area, eps, x_eps, min_count,
+                                          frames, valid), mask.shape[0])
 
 
-@nb.njit(cache=True)
+# Allocates (per-keypoint arrays): numba's reference counting stays on; releases the GIL.
+@nb.njit(cache=True, nogil=True)
 def _lrf_net_task(lo, hi, offsets, mask, z_cov, z_mean, z_count, radius, table, mode, ball, view,
                   area, eps, x_eps, min_count, frames, valid):
   """Keypoints lo..hi-1 of `_lrf_net_host_kernel`."""

@@ -12,6 +12,8 @@ from __future__ import annotations
 import numba as nb
 import numpy as np
 
+from lrf_jax.search.engine import run_blocks
+
 
 @nb.njit(inline="always")
 def _block_sum(a, lo, n):
@@ -115,46 +117,51 @@ def _sparse_pairwise_sum(pos, val, cnt, n, stack, lanes):
   return ret
 
 
-@nb.njit(parallel=True, cache=True)
 def support_sums(nrm, per_point, idx, off, r2, weigh, min_trust, view, trust):
   """`lrf_net_plus.support_view` into view (N, 3) and trust (N,) (zeros on entry): per patch,
   the finite normals of the slots within sqrt(r2) summed in slot order; with `weigh`, the mean
   of their per_point values (numpy's pairwise sum over the row, 0 off the support) and the view
   zeroed below min_trust. The squared distance adds x² + z² first, then y², as numpy's einsum
-  does. The slots within sqrt(r2) are first listed by a branch-free pass (most are not)."""
-  m, k = idx.shape
-  nblock = (m + 31) // 32
-  for blk in nb.prange(nblock):
-    pos = np.empty(k, np.int64)
-    val = np.empty(k)
-    stack = np.empty((4, 64))
-    lanes = np.empty(8)
-    for i in range(blk * 32, min(m, (blk + 1) * 32)):
-      c = 0
-      for s in range(k):
-        x, y, z = np.float64(off[i, s, 0]), np.float64(off[i, s, 1]), np.float64(off[i, s, 2])
-        pos[c] = s
-        c += (idx[i, s] >= 0) & ((x * x + z * z) + y * y <= r2)
-      vx = vy = vz = 0.0
-      count = 0
-      for e in range(c):
-        s = pos[e]
-        j = idx[i, s]
-        a, b, cz = nrm[j, 0], nrm[j, 1], nrm[j, 2]
-        if not (np.isfinite(a) and np.isfinite(b) and np.isfinite(cz)):
-          continue
-        vx += a
-        vy += b
-        vz += cz
-        pos[count] = s  # count <= e: the list compacted in place to the finite normals
-        if weigh:
-          val[count] = per_point[j]
-        count += 1
+  does. The slots within sqrt(r2) are first listed by a branch-free pass (most are not).
+  Spans of patches on the engine's threads (`_support_span`)."""
+  run_blocks(lambda lo, hi: _support_span(nrm, per_point, idx, off, r2, weigh, min_trust, view,
+                                          trust, lo, hi), idx.shape[0])
+
+
+@nb.njit(cache=True, nogil=True)
+def _support_span(nrm, per_point, idx, off, r2, weigh, min_trust, view, trust, lo, hi):
+  """Patches lo..hi-1 of `support_sums`."""
+  k = idx.shape[1]
+  pos = np.empty(k, np.int64)
+  val = np.empty(k)
+  stack = np.empty((4, 64))
+  lanes = np.empty(8)
+  for i in range(lo, hi):
+    c = 0
+    for s in range(k):
+      x, y, z = np.float64(off[i, s, 0]), np.float64(off[i, s, 1]), np.float64(off[i, s, 2])
+      pos[c] = s
+      c += (idx[i, s] >= 0) & ((x * x + z * z) + y * y <= r2)
+    vx = vy = vz = 0.0
+    count = 0
+    for e in range(c):
+      s = pos[e]
+      j = idx[i, s]
+      a, b, cz = nrm[j, 0], nrm[j, 1], nrm[j, 2]
+      if not (np.isfinite(a) and np.isfinite(b) and np.isfinite(cz)):
+        continue
+      vx += a
+      vy += b
+      vz += cz
+      pos[count] = s  # count <= e: the list compacted in place to the finite normals
       if weigh:
-        trust[i] = (0.0 + _sparse_pairwise_sum(pos, val, count, k, stack, lanes)) / max(count, 1)
-        if not trust[i] >= min_trust:
-          continue
-      view[i, 0], view[i, 1], view[i, 2] = vx, vy, vz
+        val[count] = per_point[j]
+      count += 1
+    if weigh:
+      trust[i] = (0.0 + _sparse_pairwise_sum(pos, val, count, k, stack, lanes)) / max(count, 1)
+      if not trust[i] >= min_trust:
+        continue
+    view[i, 0], view[i, 1], view[i, 2] = vx, vy, vz
 
 
 # Serial: 1 ms per 1000 patches of 512, and every lrf_net_plus call (register's too) compiles it

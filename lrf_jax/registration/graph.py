@@ -38,6 +38,7 @@ import numpy as np
 from lrf_jax import compilation_cache
 from lrf_jax.registration import host
 from lrf_jax.search.bits import pack_rows
+from lrf_jax.search.grid import run_blocks, task_jit
 
 compilation_cache.announce_compiles()  # numba cache keys (lrf_jax.kernel_cache), the compile note
 
@@ -78,17 +79,19 @@ def compatibility(src: np.ndarray, dst: np.ndarray, distance: float,
   min_trace = (1.0 + 2.0 * np.cos(np.radians(float(angle_deg)))  # type: ignore[arg-type]
                if use_rot else -np.inf)  # use_rot: angle_deg is not None
   out = np.empty((n, n), np.float32)
-  _compatibility(p, q, rf, float(distance), float(min_trace), bool(use_rot), out)
+  args = (p, q, rf, float(distance), float(min_trace), bool(use_rot), out)
+  run_blocks(lambda lo, hi: _compatibility(*args, lo, hi), (n + 1) // 2)
   return out
 
 
-@nb.njit(parallel=True, cache=True)
-def _compatibility(p, q, rf, distance, min_trace, use_rot, out):
+@task_jit
+def _compatibility(p, q, rf, distance, min_trace, use_rot, out, lo, hi):
   """`compatibility`'s matrix: the upper triangle, mirrored (each test is symmetric in i and j to
-  the bit); rows i and n - 1 - i in one parallel task, so that tasks have equal work. The
-  rotation test (nine products) goes first: most pairs fail it and skip the two square roots."""
+  the bit); rows i and n - 1 - i in one task (tasks lo..hi-1 here), so that tasks have equal
+  work. The rotation test (nine products) goes first: most pairs fail it and skip the two
+  square roots."""
   n = p.shape[0]
-  for task in nb.prange((n + 1) // 2):
+  for task in range(lo, hi):
     for side in range(2):
       i = task + side * (n - 1 - 2 * task)  # task, then n - 1 - task
       if side == 1 and i == task:

@@ -10,7 +10,7 @@ import numba as nb
 import numpy as np
 
 from lrf_jax.search.balls import _ball_counts, _columns, _keep
-from lrf_jax.search.grid import _BLOCK, Grid, _centers, _reach, query_order
+from lrf_jax.search.grid import _BLOCK, Grid, _centers, _reach, query_order, run_blocks, task_jit
 
 @nb.njit(parallel=True, cache=True)
 def _any_within(pts, starts, origin, h, dims, queries, r, reach):
@@ -47,32 +47,26 @@ def any_within(grid: Grid, queries: np.ndarray, radius: float) -> np.ndarray:
                      _reach(grid, r))
 
 
-@nb.njit(parallel=True, cache=True)
+@task_jit  # a span of `ball_lists`' centres (see `grid.task_jit`)
 def _ball_fill(pts, slot_index, starts, origin, h, dims, centers, order, r, reach, kin2, kout2,
-               ptr, out):
-  """The in-ball point indices of each centre (as `_ball_counts` counts them) into out[ptr[i]:],
-  centres visited in `order`."""
-  m = centers.shape[0]
+               ptr, out, lo, hi, js, je):
+  """The in-ball point indices of centres order[lo:hi] (as `_ball_counts` counts them) into
+  out[ptr[i]:] (js, je: column scratch)."""
   r2 = r * r
-  ncol = (2 * reach + 1) ** 2
-  nblock = (m + _BLOCK - 1) // _BLOCK
-  for blk in nb.prange(nblock):
-    js = np.empty(ncol, np.int64)
-    je = np.empty(ncol, np.int64)
-    for t in range(blk * _BLOCK, min(m, (blk + 1) * _BLOCK)):
-      i = order[t]
-      cx, cy, cz = centers[i, 0], centers[i, 1], centers[i, 2]
-      nr = _columns(cx, cy, cz, origin, h, dims, starts, r, reach, js, je)
-      w = ptr[i]
-      for q in range(nr):
-        for j in range(starts[js[q]], starts[je[q]]):
-          dx = pts[0, j] - cx
-          dy = pts[1, j] - cy
-          dz = pts[2, j] - cz
-          d2 = dx * dx + dy * dy + dz * dz
-          if d2 <= r2 and (d2 <= kin2 or d2 > kout2):
-            out[w] = slot_index[j]
-            w += 1
+  for t in range(lo, hi):
+    i = order[t]
+    cx, cy, cz = centers[i, 0], centers[i, 1], centers[i, 2]
+    nr = _columns(cx, cy, cz, origin, h, dims, starts, r, reach, js, je)
+    w = ptr[i]
+    for q in range(nr):
+      for j in range(starts[js[q]], starts[je[q]]):
+        dx = pts[0, j] - cx
+        dy = pts[1, j] - cy
+        dz = pts[2, j] - cz
+        d2 = dx * dx + dy * dy + dz * dz
+        if d2 <= r2 and (d2 <= kin2 or d2 > kout2):
+          out[w] = slot_index[j]
+          w += 1
 
 
 def ball_lists(grid: Grid, centers: np.ndarray, radius: float,
@@ -101,6 +95,9 @@ def ball_lists(grid: Grid, centers: np.ndarray, radius: float,
   ptr = np.zeros(len(c) + 1, np.int64)
   np.cumsum(counts, out=ptr[1:])
   out = np.empty(int(ptr[-1]), np.int64)
-  _ball_fill(grid.xyz, grid.slot_index, grid.starts, grid.origin, grid.h, grid.dims, c, order, r,
-             reach, *keep, ptr, out)
+  ncol = (2 * reach + 1) ** 2
+  run_blocks(lambda lo, hi: _ball_fill(grid.xyz, grid.slot_index, grid.starts, grid.origin, grid.h,
+                                       grid.dims, c, order, r, reach, *keep, ptr, out, lo, hi,
+                                       np.empty(ncol, np.int64), np.empty(ncol, np.int64)),
+             len(c))
   return (ptr, out, full) if with_counts else (ptr, out)

@@ -14,11 +14,11 @@ any-within are in `ball_lists.py`).
   therefore exactly the one of `neighborhoods.hash_priority`: the same indices whatever the
   search order, the thread count or the cloud's pose.
 
-Compile time: the patch kernel calls its ball-query helpers as functions (`*_called`, the same
-code compiled on its own) instead of inlining them: numba's `inline="always"` re-types each call
-site inside a parallel kernel, which tripled the patch kernel's compile (18.7 -> 6.8 s of CPU on
-a first `build_patches`), for the same results and speed. The other kernels keep the inlined
-helpers: without them the ball lists (`ball_lists.py`), normals and k-NN queries run 1.3-5x slower.
+Threads: every kernel here is a serial compiled function over a span of the centres, run on
+the engine's threads by `grid.run_blocks` (it releases the GIL), not a `parallel=True` kernel:
+numba's parallel passes cost each kernel 1-3 s of a first compile. The helpers are inlined
+(`inline="always"`): outside a parallel kernel that costs little compile, and without them the
+ball lists, normals and k-NN queries run 1.3-5x slower.
 """
 
 from __future__ import annotations
@@ -28,8 +28,8 @@ from typing import TYPE_CHECKING, cast
 import numba as nb
 import numpy as np
 
-from lrf_jax.search.grid import (_BLOCK, _PRUNE_MARGIN, Grid, _cell, _centers, _reach,
-                                 query_order, task_jit)
+from lrf_jax.search.grid import (_PRUNE_MARGIN, Grid, _cell, _centers, _reach,
+                                 query_order, run_blocks, task_jit)
 
 if TYPE_CHECKING:
   from typing import TypedDict
@@ -157,24 +157,20 @@ def _count_ball(pts, starts, cx, cy, cz, r2, kin2, kout2, nr, js, je):
   return c, ck
 
 
-@nb.njit(parallel=True, cache=True)
 def _ball_counts(pts, starts, origin, h, dims, centers, order, r, reach, kin2, kout2):
   """(points within r of each centre, those of them within sqrt(kin2) or beyond sqrt(kout2)),
-  centres visited in `order`, _BLOCK per parallel task (`_counts_block`)."""
+  centres visited in `order`, on the engine's threads (`_counts_block`, `grid.run_blocks`)."""
   m = centers.shape[0]
   full = np.zeros(m, np.int64)
   out = np.zeros(m, np.int64)
   ncol = (2 * reach + 1) ** 2
-  nblock = (m + _BLOCK - 1) // _BLOCK
-  for blk in nb.prange(nblock):
-    js = np.empty(ncol, np.int64)
-    je = np.empty(ncol, np.int64)
-    _counts_block(pts, starts, origin, h, dims, centers, order, r, reach, kin2, kout2, full, out,
-                  blk * _BLOCK, min(m, (blk + 1) * _BLOCK), js, je)
+  run_blocks(lambda lo, hi: _counts_block(pts, starts, origin, h, dims, centers, order, r, reach,
+                                          kin2, kout2, full, out, lo, hi,
+                                          np.empty(ncol, np.int64), np.empty(ncol, np.int64)), m)
   return full, out
 
 
-@task_jit  # the parallel kernel's task (see `grid.task_jit`)
+@task_jit  # a span of `_ball_counts`' centres (see `grid.task_jit`)
 def _counts_block(pts, starts, origin, h, dims, centers, order, r, reach, kin2, kout2, full, out,
                   lo, hi, js, je):
   """Centres order[lo:hi] of `_ball_counts` (js, je: column scratch)."""
@@ -253,38 +249,31 @@ def _room(off, need):
   return np.empty((3, 2 * need + 1))
 
 
-@nb.njit(parallel=True, cache=True)
 def _ball_stats(pts, starts, origin, h, dims, centers, r, reach):
-  """Count, centroid offset and covariance (about the centroid) of each ball, float64."""
+  """Count, centroid offset and covariance (about the centroid) of each ball, float64, on the
+  engine's threads (`_stats_span`, `grid.run_blocks`)."""
   m = centers.shape[0]
   count = np.zeros(m, np.int64)
   mean = np.zeros((m, 3))
   cov = np.zeros((m, 3, 3))
-  ncol = (2 * reach + 1) ** 2
-  nblock = (m + _BLOCK - 1) // _BLOCK
-  for blk in nb.prange(nblock):
-    js = np.empty(ncol, np.int64)
-    je = np.empty(ncol, np.int64)
-    off = np.empty((3, 256))
-    for i in range(blk * _BLOCK, min(m, (blk + 1) * _BLOCK)):
-      nr = _columns_of(centers, i, origin, h, dims, starts, r, reach, js, je)
-      off = _room(off, _scanned(starts, nr, js, je))
-      count[i] = _stats_of(pts, starts, centers, i, r, nr, js, je, mean, cov, off)
+  run_blocks(lambda lo, hi: _stats_span(pts, starts, origin, h, dims, centers, r, reach, count,
+                                        mean, cov, lo, hi), m)
   return count, mean, cov
 
 
-# `_ball_stats`' two steps of a ball, each compiled on its own (`grid.task_jit`); the growing
-# scratch stays in the parallel loop (it allocates).
-@task_jit
-def _columns_of(centers, i, origin, h, dims, starts, r, reach, js, je):
-  return _columns(centers[i, 0], centers[i, 1], centers[i, 2], origin, h, dims, starts, r, reach,
-                  js, je)
-
-
-@task_jit
-def _stats_of(pts, starts, centers, i, r, nr, js, je, mean, cov, off):
-  return _stats_one(pts, starts, centers[i, 0], centers[i, 1], centers[i, 2], r * r, nr, js, je,
-                    mean[i], cov[i], off)
+# Allocates (scratch that grows with the balls): numba's reference counting stays on.
+@nb.njit(cache=True, nogil=True)
+def _stats_span(pts, starts, origin, h, dims, centers, r, reach, count, mean, cov, lo, hi):
+  """Balls lo..hi-1 of `_ball_stats`."""
+  ncol = (2 * reach + 1) ** 2
+  js = np.empty(ncol, np.int64)
+  je = np.empty(ncol, np.int64)
+  off = np.empty((3, 256))
+  for i in range(lo, hi):
+    cx, cy, cz = centers[i, 0], centers[i, 1], centers[i, 2]
+    nr = _columns(cx, cy, cz, origin, h, dims, starts, r, reach, js, je)
+    off = _room(off, _scanned(starts, nr, js, je))
+    count[i] = _stats_one(pts, starts, cx, cy, cz, r * r, nr, js, je, mean[i], cov[i], off)
 
 
 @nb.njit(inline="always")
@@ -368,79 +357,78 @@ def _collect(pts, slot_rank, starts, cx, cy, cz, r2, kin2, kout2, limit, nr, js,
   return got
 
 
-# The patch kernel calls these instead of inlining them (see the module's docstring).
-_columns_called = nb.njit(_columns.py_func)
-_column_runs_called = nb.njit(_column_runs.py_func)
-_count_ball_called = nb.njit(_count_ball.py_func)
-_count_runs_called = nb.njit(_count_runs.py_func)
-_stats_one_called = nb.njit(_stats_one.py_func)
-_collect_called = nb.njit(_collect.py_func)
-
-
-@nb.njit(parallel=True, cache=True)
 def _patch_kernel(pts, slot_index, slot_rank, starts, origin, h, dims, centers, order, r, rz, k,
                   n_rank, reach, reach_in, kin2, kout2, known, offsets, mask, indices, count,
                   z_count, z_mean, z_cov):
+  """`_patch_span` over every centre, in spans on the engine's threads (`grid.run_blocks`)."""
+  run_blocks(lambda lo, hi: _patch_span(pts, slot_index, slot_rank, starts, origin, h, dims,
+                                        centers, order, r, rz, k, n_rank, reach, reach_in, kin2,
+                                        kout2, known, offsets, mask, indices, count, z_count,
+                                        z_mean, z_cov, lo, hi), centers.shape[0])
+
+
+# Allocates (scratch that grows with the balls): numba's reference counting stays on.
+@nb.njit(cache=True, nogil=True)
+def _patch_span(pts, slot_index, slot_rank, starts, origin, h, dims, centers, order, r, rz, k,
+                n_rank, reach, reach_in, kin2, kout2, known, offsets, mask, indices, count,
+                z_count, z_mean, z_cov, lo, hi):
   """Patches of the K points of smallest rank within r (of those within sqrt(kin2) or beyond
   sqrt(kout2): all of them when kin2 >= r * r), plus the inner-ball statistics; the centres are
-  visited in the order `order` (`query_order`), each written whole to its own row (padding
-  included: the outputs may start uninitialised). With `known`, count
-  holds the in-ball counts already (no shells) and neither they nor the statistics are computed."""
-  m = centers.shape[0]
+  visited in the order `order` (`query_order`): order[lo:hi], each written whole to its own row
+  (padding included: the outputs may start uninitialised). With `known`, count holds the
+  in-ball counts already (no shells) and neither they nor the statistics are computed."""
   r2 = r * r
   ncol = (2 * max(reach, reach_in) + 1) ** 2  # the inner radius may exceed r
-  nblock = (m + _BLOCK - 1) // _BLOCK
-  for blk in nb.prange(nblock):
-    js = np.empty(ncol, np.int64)
-    je = np.empty(ncol, np.int64)
-    ji = np.empty(ncol, np.int64)
-    jk = np.empty(ncol, np.int64)
-    off = np.empty((3, 256))
-    cap = 1024
-    buf = np.empty(cap, np.int64)
-    out = np.empty(cap, np.int64)
-    cnt = np.empty(_pow2(cap) + 1, np.int64)
-    for t in range(blk * _BLOCK, min(m, (blk + 1) * _BLOCK)):
-      i = order[t]
-      cx, cy, cz = centers[i, 0], centers[i, 1], centers[i, 2]
-      if not known:
-        nr = _columns_called(cx, cy, cz, origin, h, dims, starts, rz, reach_in, js, je)
-        off = _room(off, _scanned(starts, nr, js, je))
-        z_count[i] = _stats_one_called(pts, starts, cx, cy, cz, rz * rz, nr, js, je, z_mean[i],
-                                z_cov[i], off)
-      whole = not known and kin2 >= r2  # no shells: cells inside the ball count whole
-      nr = _column_runs_called(cx, cy, cz, origin, h, dims, starts, r, reach, js, je, whole, ji,
-                               jk)
-      if known:  # every in-ball point is a candidate (no shells)
-        c = count[i]
-      elif whole:
-        c = count[i] = _count_runs_called(pts, starts, cx, cy, cz, r2, nr, js, je, ji, jk)
-      else:
-        count[i], c = _count_ball_called(pts, starts, cx, cy, cz, r2, kin2, kout2, nr, js, je)
-      if c >= cap:  # room for the c in-ball keys and one overwritten trailing write
-        cap = 2 * c + 2
-        buf = np.empty(cap, np.int64)
-        out = np.empty(cap, np.int64)
-        cnt = np.empty(_pow2(cap) + 1, np.int64)
-      limit = _rank_limit(k, c, n_rank)
-      got = _collect_called(pts, slot_rank, starts, cx, cy, cz, r2, kin2, kout2, limit, nr, js, je,
-                            buf)
-      if got < min(c, k):  # not enough under the limit: every candidate
-        limit = np.int64(1) << 62
-        got = _collect_called(pts, slot_rank, starts, cx, cy, cz, r2, kin2, kout2, limit, nr, js,
-                              je, buf)
-      kept = _smallest_sorted(buf, got, k, cnt, out, min(limit, n_rank))
-      for s in range(kept):
-        j = out[s] & 0xFFFFFFFF
-        offsets[i, s, 0] = pts[0, j] - cx
-        offsets[i, s, 1] = pts[1, j] - cy
-        offsets[i, s, 2] = pts[2, j] - cz
-        mask[i, s] = True
-        indices[i, s] = slot_index[j]
-      for s in range(kept, k):  # the padding: every element of the row is written
-        offsets[i, s, 0] = offsets[i, s, 1] = offsets[i, s, 2] = 0.0
-        mask[i, s] = False
-        indices[i, s] = -1
+  js = np.empty(ncol, np.int64)
+  je = np.empty(ncol, np.int64)
+  ji = np.empty(ncol, np.int64)
+  jk = np.empty(ncol, np.int64)
+  off = np.empty((3, 256))
+  cap = 1024
+  buf = np.empty(cap, np.int64)
+  out = np.empty(cap, np.int64)
+  cnt = np.empty(_pow2(cap) + 1, np.int64)
+  for t in range(lo, hi):
+    i = order[t]
+    cx, cy, cz = centers[i, 0], centers[i, 1], centers[i, 2]
+    if not known:
+      nr = _columns(cx, cy, cz, origin, h, dims, starts, rz, reach_in, js, je)
+      off = _room(off, _scanned(starts, nr, js, je))
+      z_count[i] = _stats_one(pts, starts, cx, cy, cz, rz * rz, nr, js, je, z_mean[i],
+                                     z_cov[i], off)
+    whole = not known and kin2 >= r2  # no shells: cells inside the ball count whole
+    nr = _column_runs(cx, cy, cz, origin, h, dims, starts, r, reach, js, je, whole, ji,
+                             jk)
+    if known:  # every in-ball point is a candidate (no shells)
+      c = count[i]
+    elif whole:
+      c = count[i] = _count_runs(pts, starts, cx, cy, cz, r2, nr, js, je, ji, jk)
+    else:
+      count[i], c = _count_ball(pts, starts, cx, cy, cz, r2, kin2, kout2, nr, js, je)
+    if c >= cap:  # room for the c in-ball keys and one overwritten trailing write
+      cap = 2 * c + 2
+      buf = np.empty(cap, np.int64)
+      out = np.empty(cap, np.int64)
+      cnt = np.empty(_pow2(cap) + 1, np.int64)
+    limit = _rank_limit(k, c, n_rank)
+    got = _collect(pts, slot_rank, starts, cx, cy, cz, r2, kin2, kout2, limit, nr, js, je,
+                          buf)
+    if got < min(c, k):  # not enough under the limit: every candidate
+      limit = np.int64(1) << 62
+      got = _collect(pts, slot_rank, starts, cx, cy, cz, r2, kin2, kout2, limit, nr, js,
+                            je, buf)
+    kept = _smallest_sorted(buf, got, k, cnt, out, min(limit, n_rank))
+    for s in range(kept):
+      j = out[s] & 0xFFFFFFFF
+      offsets[i, s, 0] = pts[0, j] - cx
+      offsets[i, s, 1] = pts[1, j] - cy
+      offsets[i, s, 2] = pts[2, j] - cz
+      mask[i, s] = True
+      indices[i, s] = slot_index[j]
+    for s in range(kept, k):  # the padding: every element of the row is written
+      offsets[i, s, 0] = offsets[i, s, 1] = offsets[i, s, 2] = 0.0
+      mask[i, s] = False
+      indices[i, s] = -1
 
 
 def _keep(radius: float, shells: tuple[float, float] | None) -> tuple[float, float]:

@@ -2,7 +2,8 @@
 
 The engine (`lrf_jax.search.engine` gathers its interface) is host code, compiled once by numba
 (`cache=True`: the machine code is stored on disk and reused by later processes) and
-multi-threaded over query points (`parallel=True`). Its radius queries and patches are in
+multi-threaded over query points (`run_blocks`: spans of queries on a thread pool, each span one
+call of a compiled function that releases the GIL). Its radius queries and patches are in
 `balls.py`, its nearest-neighbor queries in `nearest.py`, both on the `Grid` of this module.
 
 * A `Grid` bins the cloud into cubic cells of side h (the patch search uses h = r / 3) and
@@ -23,6 +24,9 @@ from __future__ import annotations
 
 import contextlib
 import os
+from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor
+from typing import Any
 
 import numba as nb
 import numpy as np
@@ -35,14 +39,15 @@ _ENV_THREADS = "LRF_JAX_NUM_THREADS"
 # Cells are enlarged by this factor over the requested side (a cell side is a speed setting:
 # ball queries prune columns with their own margin, `_PRUNE_MARGIN`).
 _CELL_MARGIN = 1e-6
-_BLOCK = 32  # queries per parallel task
+_BLOCK = 32  # queries per block: `run_blocks` hands out spans of whole blocks
 
-# A parallel kernel's task (one block of queries) compiled on its own: cached once per machine,
-# and without numba's reference counting, so a task allocates nothing. The parallel kernel's
-# body is then one call, which shortens its first compile (the k-NN kernel's 9.9 -> 4.5 s) with
-# the same output bit for bit; with reference counting a task ran 2x slower (the shared arrays'
-# counts are atomics, contended between the threads). numba's stubs omit `_nrt`.
-task_jit = nb.njit(cache=True, _nrt=False)  # type: ignore[call-overload]
+# A kernel's task (a span of queries, run by `run_blocks`), compiled on its own: cached once per
+# machine, releasing the GIL, and without numba's reference counting, so a task allocates
+# nothing (its scratch comes from the caller); with reference counting a task ran 2x slower
+# (the shared arrays' counts are atomics, contended between the threads). A task that must
+# allocate (scratch that grows with a ball) keeps the counting: `nb.njit(cache=True,
+# nogil=True)`. numba's stubs omit `_nrt`.
+task_jit = nb.njit(cache=True, _nrt=False, nogil=True)  # type: ignore[call-overload]
 # Columns are pruned with a radius enlarged by this factor: a point's cell comes from a rounded
 # division, its column's box from a rounded product; the margin keeps every in-ball point.
 _PRUNE_MARGIN = 1e-5
@@ -51,6 +56,36 @@ _PRUNE_MARGIN = 1e-5
 def num_threads() -> int:
   """The number of threads the engine's kernels use."""
   return int(nb.get_num_threads())
+
+
+_POOL: dict[str, Any] = {"threads": 0, "pool": None}
+_SPANS_PER_THREAD = 4  # spans of blocks per thread: the threads that finish first take more
+
+
+def run_blocks(task: Callable[[int, int], object], m: int, block: int = _BLOCK) -> None:
+  """Call `task(lo, hi)` over the query range [0, m) in spans of whole blocks (`block` queries:
+  lo is a multiple of it) on the engine's threads (`num_threads`); every query lies in exactly
+  one call.
+
+  The task is a compiled function that releases the GIL (`task_jit`): the threads run it at
+  once. A kernel threaded this way compiles without `parallel=True`, whose own passes cost each
+  kernel 1-3 s of compile; its output does not depend on the thread count (each query is
+  computed by one call, in a fixed order)."""
+  threads = num_threads()
+  nblock = -(-m // block)
+  if threads <= 1 or nblock <= 1:
+    if m > 0:
+      task(0, m)
+    return
+  spans = min(nblock, _SPANS_PER_THREAD * threads)
+  edges = [min(m, nblock * s // spans * block) for s in range(spans + 1)]
+  if _POOL["threads"] != threads:
+    if _POOL["pool"] is not None:
+      _POOL["pool"].shutdown(wait=False)
+    _POOL.update(threads=threads, pool=ThreadPoolExecutor(threads, "lrf_jax-engine"))
+  futures = [_POOL["pool"].submit(task, lo, hi) for lo, hi in zip(edges[:-1], edges[1:])]
+  for f in futures:
+    f.result()
 
 
 def serial_blas() -> contextlib.AbstractContextManager:

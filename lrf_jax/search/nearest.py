@@ -10,7 +10,8 @@ from __future__ import annotations
 import numba as nb
 import numpy as np
 
-from lrf_jax.search.grid import _BLOCK, _PRUNE_MARGIN, Grid, _cell, _centers, task_jit
+from lrf_jax.search.grid import (_PRUNE_MARGIN, Grid, _cell, _centers, run_blocks,
+                                 task_jit)
 
 
 @nb.njit(inline="always")
@@ -129,25 +130,14 @@ _knn_query_called = task_jit(_knn_query.py_func)
 @task_jit
 def _knn_block(pts, slot_index, starts, origin, h, dims, queries, k, max_d2, out_d, out_i, lo,
                hi, bd, bi):
-  """Queries lo..hi-1 of `_knn_kernel` into out_d, out_i (bd, bi: scratch of length k)."""
+  """Queries lo..hi-1 of `knn` into out_d, out_i (bd, bi: scratch of length k); the engine's
+  threads run it on spans of the queries (`grid.run_blocks`)."""
   for i in range(lo, hi):
     _knn_query(pts, slot_index, starts, origin, h, dims, queries[i, 0], queries[i, 1],
                queries[i, 2], k, max_d2, bd, bi)
     for t in range(k):
       out_d[i, t] = np.sqrt(bd[t])
       out_i[i, t] = bi[t]
-
-
-@nb.njit(parallel=True, cache=True)
-def _knn_kernel(pts, slot_index, starts, origin, h, dims, queries, k, max_d2, out_d, out_i):
-  """k nearest grid points of each query (`_knn_query`), _BLOCK queries per parallel task."""
-  m = queries.shape[0]
-  nblock = (m + _BLOCK - 1) // _BLOCK
-  for blk in nb.prange(nblock):
-    bd = np.empty(k)
-    bi = np.empty(k, np.int64)
-    _knn_block(pts, slot_index, starts, origin, h, dims, queries, k, max_d2, out_d, out_i,
-               blk * _BLOCK, min(m, (blk + 1) * _BLOCK), bd, bi)
 
 
 def knn(grid: Grid, queries: np.ndarray, k: int, max_distance: float = np.inf
@@ -169,8 +159,9 @@ def knn(grid: Grid, queries: np.ndarray, k: int, max_distance: float = np.inf
   out_d = np.empty((m, k))
   out_i = np.empty((m, k), np.int64)
   md = float(max_distance)
-  _knn_kernel(grid.xyz, grid.slot_index, grid.starts, grid.origin, grid.h, grid.dims, q, k,
-              md * md if np.isfinite(md) else np.inf, out_d, out_i)
+  args = (grid.xyz, grid.slot_index, grid.starts, grid.origin, grid.h, grid.dims, q, k,
+          md * md if np.isfinite(md) else np.inf, out_d, out_i)
+  run_blocks(lambda lo, hi: _knn_block(*args, lo, hi, np.empty(k), np.empty(k, np.int64)), m)
   return out_d, out_i
 
 

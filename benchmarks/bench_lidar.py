@@ -114,12 +114,12 @@ def run_set(pairs: list[dict], seed: int, o3d: bool) -> list[dict]:
     re, te = errors(reg.transform, p["gt"])
     row = dict(name=p["name"], n=(len(p["source"]), len(p["target"])), re=re, te=te,
                success=bool(reg.success), seconds=secs, mr=reg.mr, voxel=reg.voxel_size,
-               reason=reg.reason)
+               reason=reg.reason, transform=np.asarray(reg.transform).tolist())
     if o3d:
       voxel = 0.3 if p["lidar"] else 0.05
       res = global_registration(p["source"], p["target"], voxel=voxel, seed=seed)
       row.update(o3d_re=errors(res["final"], p["gt"])[0], o3d_te=errors(res["final"], p["gt"])[1],
-                 o3d_seconds=res["seconds"])
+                 o3d_seconds=res["seconds"], o3d_transform=np.asarray(res["final"]).tolist())
     rows.append(row)
     print(f"  {p['name']}: RE {re:.3f} TE {te:.3f} {'claimed' if reg.success else 'not sure'} "
           f"{secs:.2f} s (mr {reg.mr:.3g}, voxel {reg.voxel_size:.3g})"
@@ -156,6 +156,36 @@ def summarize(name: str, rows: list[dict]) -> str:
   return line + " |"
 
 
+def loop_errors(rows: list[dict], key: str) -> tuple[float, float, int]:
+  """Median rotation (deg) and translation (m) error over every loop k -> j -> i (i < j < k)
+  of the six sweeps: inv(T(k->i)) T(j->i) T(k->j), the identity for exact pairwise
+  transforms. No ground truth enters: a precision measure free of the truth's own bias (the
+  sweeps' truth is Open3D's ICP, which Open3D's pipeline converges to)."""
+  t = {r["name"]: np.asarray(r[key]) for r in rows}
+  re, te = [], []
+  for k in range(6):
+    for j in range(k):
+      for i in range(j):
+        names = (f"{k}->{i}", f"{j}->{i}", f"{k}->{j}")
+        if all(n in t for n in names):
+          e = np.linalg.inv(t[names[0]]) @ t[names[1]] @ t[names[2]]
+          re.append(rotation_error_deg(e[:3, :3], np.eye(3)))
+          te.append(float(np.linalg.norm(e[:3, 3])))
+  if not re:
+    return float("nan"), float("nan"), 0
+  return float(np.median(re)), float(np.median(te)), len(re)
+
+
+def loop_line(name: str, rows: list[dict]) -> str:
+  """A report line of `loop_errors` for lrf_jax and, when it ran, Open3D."""
+  re, te, n = loop_errors(rows, "transform")
+  line = f"{name}: loop closure, median of {n} loops: lrf_jax {re:.3f} deg / {te:.4f} m"
+  if "o3d_transform" in rows[0]:
+    re3, te3, _ = loop_errors(rows, "o3d_transform")
+    line += f", Open3D {re3:.3f} deg / {te3:.4f} m"
+  return line
+
+
 def main() -> int:
   ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
   ap.add_argument("--out", default="out/bench_lidar")
@@ -184,6 +214,9 @@ def main() -> int:
            f"({platform.processor() or platform.machine()}, {os.cpu_count()} cores)", "",
            head, "|" + "---|" * (head.count("|") - 1)]
   lines += [summarize(name, rows) for name, rows in results.items()]
+  loops = [loop_line(name, rows) for name, rows in results.items()
+           if name in ("sweeps", "subsampled", "cropped") and len(rows) == 15]
+  lines += [""] + loops if loops else []
   report = "\n".join(lines) + "\n"
   (out / "results.json").write_text(json.dumps(results, indent=1, default=str))
   (out / "report.md").write_text(report)

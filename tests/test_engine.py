@@ -1,5 +1,8 @@
 """The compiled neighborhood engine against cKDTree references, on real and adversarial clouds."""
 
+import threading
+import time
+
 import numpy as np
 import pytest
 from scipy.spatial import cKDTree
@@ -376,3 +379,42 @@ def test_rops_triangles_from_a_subsampled_patch_equal_the_complete_ones():
   b = gather_triangles(pts, kp, faces, 0.12, patches=sub)
   for x, y in zip(a, b):
     np.testing.assert_array_equal(x, y)
+
+
+@pytest.mark.parametrize("threads", [1, 2])
+@pytest.mark.parametrize("m, block", [(0, 32), (1, 32), (32, 32), (33, 32), (1000, 32),
+                                      (5000, 256)])
+def test_run_blocks_calls_every_query_once_in_whole_blocks(threads, m, block):
+  seen = np.zeros(m, np.int64)
+  calls = []
+  lock = threading.Lock()
+
+  def task(lo, hi):
+    with lock:
+      calls.append((lo, hi))
+      seen[lo:hi] += 1
+
+  before = engine.num_threads()
+  try:
+    engine.set_num_threads(threads)
+    engine.run_blocks(task, m, block)
+  finally:
+    engine.set_num_threads(before)
+  assert (seen == 1).all()
+  assert all(lo % block == 0 and lo < hi <= m for lo, hi in calls)
+  assert len(calls) <= max(1, -(-m // block))
+
+
+def test_run_blocks_raises_a_tasks_error_after_the_others_end():
+  done = []
+
+  def task(lo, hi):
+    if lo == 0:
+      raise RuntimeError("span 0 failed")
+    done.append(hi)
+
+  with pytest.raises(RuntimeError, match="span 0 failed"):
+    engine.run_blocks(task, 10_000)
+  before = len(done)
+  time.sleep(0.05)
+  assert done and len(done) == before  # no span still running after the error came back

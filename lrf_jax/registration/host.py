@@ -15,10 +15,10 @@ counts except for correspondences within that distance of the threshold.
 
 from __future__ import annotations
 
+import numba as nb
 import numpy as np
 
 from lrf_jax import compilation_cache
-from lrf_jax.search.grid import run_blocks, task_jit
 
 compilation_cache.announce_compiles()  # numba cache keys (lrf_jax.kernel_cache), the compile note
 
@@ -88,11 +88,12 @@ def lrf_hypotheses(src: np.ndarray, src_frames: np.ndarray, dst: np.ndarray,
   return kabsch_batch(a, b)
 
 
-@task_jit
-def _inliers(rs, ts, src, dst, t2, masks, out, lo, hi):
-  """Per pose h in lo..hi-1, the count of the m with |R_h src[m] + t_h - dst[m]|^2 <= t2 into
-  out[h]; for the first masks.shape[0] poses also which m (into masks[h])."""
-  for h in range(lo, hi):
+@nb.njit(parallel=True, cache=True)
+def _inliers(rs, ts, src, dst, t2, masks):
+  """Per pose h, the count of the m with |R_h src[m] + t_h - dst[m]|^2 <= t2; for the first
+  masks.shape[0] poses also which m (into masks[h])."""
+  out = np.zeros(rs.shape[0], np.int64)
+  for h in nb.prange(rs.shape[0]):
     r = rs[h]
     c = 0
     for m in range(src.shape[0]):
@@ -105,16 +106,16 @@ def _inliers(rs, ts, src, dst, t2, masks, out, lo, hi):
       if h < masks.shape[0]:
         masks[h, m] = inside
     out[h] = c
+  return out
 
 
 def _run_inliers(rotations, translations, src, dst, threshold, n_masks):
   masks = np.zeros((n_masks, len(src)), bool)
-  rs = np.ascontiguousarray(rotations, np.float64).reshape(-1, 3, 3)
-  args = (rs, np.ascontiguousarray(translations, np.float64).reshape(-1, 3),
-          np.ascontiguousarray(src, np.float64), np.ascontiguousarray(dst, np.float64),
-          float(threshold) ** 2, masks, np.zeros(len(rs), np.int64))
-  run_blocks(lambda lo, hi: _inliers(*args, lo, hi), len(rs))  # poses on the engine's threads
-  return args[-1], masks
+  counts = _inliers(np.ascontiguousarray(rotations, np.float64).reshape(-1, 3, 3),
+                    np.ascontiguousarray(translations, np.float64).reshape(-1, 3),
+                    np.ascontiguousarray(src, np.float64), np.ascontiguousarray(dst, np.float64),
+                    float(threshold) ** 2, masks)
+  return counts, masks
 
 
 def count_inliers(rotations: np.ndarray, translations: np.ndarray, src: np.ndarray,

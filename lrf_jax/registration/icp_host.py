@@ -44,7 +44,7 @@ import numba as nb
 import numpy as np
 
 from lrf_jax.search import engine
-from lrf_jax.search.grid import Grid, task_jit, writable_float64
+from lrf_jax.search.grid import Grid, writable_float64
 from lrf_jax.search.nearest import nearest_moved  # the engine's ICP pairing step (inlined)
 from lrf_jax.geometry.normals import pca_normals
 from lrf_jax.registration.errors import to_transform
@@ -86,16 +86,18 @@ class PlaneSums(NamedTuple):
   gradient: np.ndarray
 
 
-@task_jit
+@nb.njit(parallel=True, cache=True)
 def _plane_sums(pts, slot_index, starts, origin, h, dims, target, normals, source, rot, trans, c0,
-                max_d2, partial, lo, hi, bd, bi, a):
-  """Per block of `_BLOCK` source points among lo..hi-1 (lo a multiple of `_BLOCK`): the
-  `_N_SUMS` sums over the pairs (moved source point, its nearest target point within
-  sqrt(max_d2), as `engine.knn`), coordinates relative to c0, into partial[block] (bd, bi, a:
-  scratch of 1, 1 and 6)."""
+                max_d2, partial):
+  """Per block of `_BLOCK` source points: the `_N_SUMS` sums over the pairs (moved source
+  point, its nearest target point within sqrt(max_d2), as `engine.knn`), coordinates relative
+  to c0."""
   m = source.shape[0]
   n = pts.shape[1]
-  for blk in range(lo // _BLOCK, (hi + _BLOCK - 1) // _BLOCK):
+  for blk in nb.prange(partial.shape[0]):
+    bd = np.empty(1)
+    bi = np.empty(1, np.int64)
+    a = np.empty(6)
     acc = partial[blk]
     acc[:] = 0.0
     for i in range(blk * _BLOCK, min(m, (blk + 1) * _BLOCK)):
@@ -175,13 +177,11 @@ def plane_sums(grid: engine.Grid, normals: np.ndarray, source: np.ndarray,
   """
   src = writable_float64(source).reshape(-1, 3)  # one specialisation of the kernel
   r = float(max_distance)
-  partial = np.zeros((max(1, (len(src) + _BLOCK - 1) // _BLOCK), _N_SUMS))
-  args = (grid.xyz, grid.slot_index, grid.starts, grid.origin, grid.h, grid.dims, grid.points,
-          writable_float64(normals), src, writable_float64(rotation),
-          writable_float64(translation), writable_float64(center),
-          r * r if np.isfinite(r) else np.inf, partial)
-  engine.run_blocks(lambda lo, hi: _plane_sums(*args, lo, hi, np.empty(1), np.empty(1, np.int64),
-                                               np.empty(6)), len(src), _BLOCK)
+  partial = np.empty((max(1, (len(src) + _BLOCK - 1) // _BLOCK), _N_SUMS))
+  _plane_sums(grid.xyz, grid.slot_index, grid.starts, grid.origin, grid.h, grid.dims, grid.points,
+              writable_float64(normals), src, writable_float64(rotation),
+              writable_float64(translation), writable_float64(center),
+              r * r if np.isfinite(r) else np.inf, partial)
   acc = partial.sum(axis=0)
   hessian = np.zeros((6, 6))
   hessian[np.triu_indices(6)] = acc[9:]

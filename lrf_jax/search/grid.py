@@ -25,7 +25,8 @@ from __future__ import annotations
 import contextlib
 import os
 from collections.abc import Callable
-from concurrent.futures import ThreadPoolExecutor
+import threading
+from concurrent.futures import ThreadPoolExecutor, wait
 from typing import Any
 
 import numba as nb
@@ -58,34 +59,61 @@ def num_threads() -> int:
   return int(nb.get_num_threads())
 
 
-_POOL: dict[str, Any] = {"threads": 0, "pool": None}
-_SPANS_PER_THREAD = 4  # spans of blocks per thread: the threads that finish first take more
+_POOL: dict[str, Any] = {"helpers": 0, "pool": None}  # the helper threads of `run_blocks`
+
+
+def _spans(m: int, block: int, threads: int) -> list[tuple[int, int]]:
+  """[0, m) cut into spans of whole blocks, largest first: each span holds 1 / (2 threads) of
+  the blocks still left (at least one block), so the threads end together within a block
+  (guided scheduling: few calls, a short tail)."""
+  nblock = -(-m // block)
+  out, start = [], 0
+  while start < nblock:
+    size = max(1, (nblock - start) // (2 * threads))
+    out.append((start * block, min(m, (start + size) * block)))
+    start += size
+  return out
 
 
 def run_blocks(task: Callable[[int, int], object], m: int, block: int = _BLOCK) -> None:
   """Call `task(lo, hi)` over the query range [0, m) in spans of whole blocks (`block` queries:
-  lo is a multiple of it) on the engine's threads (`num_threads`); every query lies in exactly
-  one call.
+  lo is a multiple of it) on the engine's threads (`num_threads`: the calling thread and
+  helpers of a pool kept for the process); every query lies in exactly one call.
 
   The task is a compiled function that releases the GIL (`task_jit`): the threads run it at
-  once. A kernel threaded this way compiles without `parallel=True`, whose own passes cost each
-  kernel 1-3 s of compile; its output does not depend on the thread count (each query is
-  computed by one call, in a fixed order)."""
+  once, each taking the next span (`_spans`) until none is left. A kernel threaded this way
+  compiles without `parallel=True`, whose own passes cost each kernel 1-3 s of compile; its
+  output does not depend on the thread count (each query is computed by one call, in a fixed
+  order)."""
   threads = num_threads()
-  nblock = -(-m // block)
-  if threads <= 1 or nblock <= 1:
+  if threads <= 1 or m <= block:
     if m > 0:
       task(0, m)
     return
-  spans = min(nblock, _SPANS_PER_THREAD * threads)
-  edges = [min(m, nblock * s // spans * block) for s in range(spans + 1)]
-  if _POOL["threads"] != threads:
+  spans = _spans(m, block, threads)
+  lock = threading.Lock()
+  left = list(reversed(spans))
+
+  def work() -> None:
+    while True:
+      with lock:
+        if not left:
+          return
+        lo, hi = left.pop()
+      task(lo, hi)
+
+  helpers = min(threads, len(spans)) - 1
+  if _POOL["helpers"] < helpers:
     if _POOL["pool"] is not None:
       _POOL["pool"].shutdown(wait=False)
-    _POOL.update(threads=threads, pool=ThreadPoolExecutor(threads, "lrf_jax-engine"))
-  futures = [_POOL["pool"].submit(task, lo, hi) for lo, hi in zip(edges[:-1], edges[1:])]
+    _POOL.update(helpers=helpers, pool=ThreadPoolExecutor(helpers, "lrf_jax-engine"))
+  futures = [_POOL["pool"].submit(work) for _ in range(helpers)]
+  try:
+    work()
+  finally:
+    wait(futures)
   for f in futures:
-    f.result()
+    f.result()  # a helper's error
 
 
 def serial_blas() -> contextlib.AbstractContextManager:

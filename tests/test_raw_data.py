@@ -172,3 +172,37 @@ def test_raw_kitti_sweeps_register_with_the_defaults(data_root):
   assert reg.success and reg.voxel_size > 0
   assert rotation_error_deg(reg.transform[:3, :3], gt[:3, :3]) < 0.2
   assert np.linalg.norm(reg.transform[:3, 3] - gt[:3, 3]) < 0.05
+
+
+def test_the_last_pass_on_the_input_points_is_closer_to_the_truth(sweeps, monkeypatch):
+  """A pair thinned by default ends with ICP on its input points (`refine.raw_pass`): closer to
+  the truth than the thinned clouds' pose, the verdict the same; with a voxel given (the user
+  chose the working cloud) no such pass runs."""
+  from lrf_jax.registration import refine
+  a, b, gt = sweeps
+  with_raw = register(b, a)
+  monkeypatch.setattr(refine, "RAW_GATES_MR", ())  # the pass without steps: the thinned pose
+  thinned = register(b, a)
+  assert with_raw.success == thinned.success and with_raw.reason == thinned.reason
+  err = [np.linalg.norm(r.transform[:3, 3] - gt[:3, 3]) for r in (with_raw, thinned)]
+  assert err[0] < 0.5 * err[1], err
+  given_without = register(b, a, voxel_size=with_raw.voxel_size)
+  monkeypatch.undo()
+  given = register(b, a, voxel_size=with_raw.voxel_size)
+  np.testing.assert_array_equal(given.transform, given_without.transform)
+
+
+def test_the_last_pass_keeps_the_pose_when_it_moves_the_points_too_far():
+  from lrf_jax.registration import refine
+  from lrf_jax.registration.options import RegisterOptions
+  rng = np.random.default_rng(0)
+  target = np.concatenate([rng.uniform(-1, 1, (4000, 3)) * [1, 1, 0],  # a floor, two walls
+                           rng.uniform(-1, 1, (4000, 3)) * [1, 0, 1] + [0, 1, 0],
+                           rng.uniform(-1, 1, (4000, 3)) * [0, 1, 1] + [1, 0, 0]])
+  source = target - [0.02, 0.01, 0.015]  # the pass moves every point by 0.027 back
+  pose = np.eye(4)
+  opts = RegisterOptions()
+  moved = refine.raw_pass(source, target, pose, 0.05, opts, seed=0)
+  np.testing.assert_allclose(moved[:3, 3], [0.02, 0.01, 0.015], atol=2e-3)
+  kept = refine.raw_pass(source, target, pose, 0.02, opts, seed=0)  # 0.027 > 1 mr = 0.02
+  np.testing.assert_array_equal(kept, pose)

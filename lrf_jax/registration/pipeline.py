@@ -56,7 +56,9 @@ def register(source: Any, target: Any, options: RegisterOptions | None = None, *
   5. point-to-plane ICP (pairs within icp_mr mr, target normals by PCA) on up to `ICP_POINTS`
      seeded source points; with `icp_fine` (default) a second pass at an adaptive gate
      (`fine_distance`: 1.5 x the median residual, 1 mr to icp_mr mr) on up to `ICP_POINTS`
-     source points drawn among those within icp_mr mr of the target (`overlap_points`);
+     source points drawn among those within icp_mr mr of the target (`overlap_points`); a
+     pair thinned by default (`voxel_size=None`) then gets one ICP pass on its input points
+     (`refine.raw_pass`; a pose that moves a point by over `RAW_MAX_SHIFT_MR` mr is refused);
   6. the verdict (`evidence.decide`), one rule for every estimator and option: it claims
      success when the winner's inliers are at least `VERDICT_GRAPH_FACTOR` times (+
      `VERDICT_GRAPH_MARGIN`) both what chance alignment reaches on the correspondences

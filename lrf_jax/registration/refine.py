@@ -38,6 +38,14 @@ ICP_POINTS = 5000
 ICP_FINE_FACTOR = 1.5
 ICP_FINE_MIN_MR = 1.0
 
+# The last pass on the input points of a cloud thinned by default (`raw_pass`): source points
+# drawn, target normals' radius and the gates (mr), and how far it may move a source point (mr)
+# before its pose is refused (the verdict was reached on the thinned clouds' pose).
+RAW_ICP_POINTS = 20_000
+RAW_NORMAL_MR = 2.0
+RAW_GATES_MR = (1.0, 0.3)
+RAW_MAX_SHIFT_MR = 1.0
+
 
 def check_rigid(t: Any, name: str) -> np.ndarray:
   """A (4, 4) finite rigid transform: rotation block orthonormal with det +1 (to 1e-4), last
@@ -198,7 +206,9 @@ class Refined(NamedTuple):
 def refine(prepared: Prepared, verified: Verified, opts: RegisterOptions, timer: StageTimer
            ) -> Refined:
   """Stages "icp" (`icp_passes` from the coarse pose on up to `ICP_POINTS` seeded source
-  points) and the overlap's constraints (`overlap_constraints`, timed as "verification")."""
+  points) and the overlap's constraints (`overlap_constraints`, timed as "verification"); for a
+  pair thinned by default, then `raw_pass` on the input points (its pose is the transform; the
+  fitness, rmse and constraints, which the verdict reads, stay those of the thinned clouds)."""
   src_pts, dst_pts = prepared.sides[0].points, prepared.sides[1].points
   with timer("icp"):
     icp_src = icp_subset(src_pts, prepared.rng)
@@ -209,4 +219,45 @@ def refine(prepared: Prepared, verified: Verified, opts: RegisterOptions, timer:
   with timer("verification"), serial_blas():
     degeneracy, free = overlap_constraints(icp_src, dst_pts, verified.target_grid, final,
                                            verified.overlap_distance)
+  if any(side.raw is not None for side in prepared.sides) and opts.icp_iterations > 0:
+    with timer("icp"):
+      src_in, dst_in = (side.points if side.raw is None else side.raw for side in prepared.sides)
+      final = raw_pass(src_in, dst_in, final, prepared.mr, opts, prepared.seed)
   return Refined(final, fitness, rmse, degeneracy, free, icp_src)
+
+
+def raw_pass(source: np.ndarray, target: np.ndarray, pose: np.ndarray, mr: float,
+             opts: RegisterOptions, seed: int) -> np.ndarray:
+  """The last ICP pass of a pair thinned by default: `opts.icp_mode` ICP of up to
+  `RAW_ICP_POINTS` input source points (drawn with `seed`) against the input target points
+  (normals over `RAW_NORMAL_MR` mr), from `pose`, at the gates `RAW_GATES_MR` mr in turn. The
+  thinned clouds' voxel centroids stand a fraction of a voxel off the surface; the input points
+  do not. Returns `pose` itself when the pass moves a drawn point by more than
+  `RAW_MAX_SHIFT_MR` mr (the verdict was reached at `pose`), or pairs too few points.
+
+  Args:
+    source, target: (n, 3), (m, 3) the input clouds (a side not thinned: its working points).
+    pose: (4, 4) the thinned clouds' ICP pose, source -> target.
+    mr: the working resolution (cloud units).
+    opts: the options (`icp_mode`, `icp_iterations`).
+    seed: seeds the draw.
+
+  Returns:
+    (4, 4) float64 source -> target.
+  """
+  rng = np.random.default_rng(seed)
+  src = np.asarray(source, np.float64)
+  if len(src) > RAW_ICP_POINTS:
+    src = src[np.sort(rng.choice(len(src), RAW_ICP_POINTS, replace=False))]
+  dst = np.asarray(target, np.float64)
+  grid = engine.knn_grid(dst)
+  plane = opts.icp_mode == "point_to_plane"
+  normals = icp_host.estimate_target_normals(dst, RAW_NORMAL_MR * mr, grid) if plane else None
+  tr, fitness = pose, 0.0
+  for gate in RAW_GATES_MR:
+    tr, fitness, _ = icp(src, dst, tr, max_distance=gate * mr, iterations=int(opts.icp_iterations),
+                         target_grid=grid, target_normals=normals, mode=opts.icp_mode)
+  shift = np.abs(src @ (tr[:3, :3] - pose[:3, :3]).T + (tr[:3, 3] - pose[:3, 3]))
+  if fitness * len(src) < icp_host.MIN_PAIRS or not np.all(np.isfinite(tr)):
+    return pose
+  return tr if float(np.sqrt((shift ** 2).sum(axis=1)).max()) <= RAW_MAX_SHIFT_MR * mr else pose

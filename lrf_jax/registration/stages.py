@@ -65,6 +65,7 @@ class Side(NamedTuple):
   keypoints: np.ndarray          # (k,) sorted int64 indices into cloud.points
   normals: np.ndarray | None     # estimated towards the viewpoint when a method or SHOT needs them
   input_index: np.ndarray | None  # each working point's input point (thinned clouds), or None
+  raw: np.ndarray | None = None  # the input points of a cloud thinned by default (refine's last pass)
 
   @property
   def points(self) -> np.ndarray:
@@ -157,6 +158,9 @@ def prepare(source: Any, target: Any, opts: RegisterOptions) -> Prepared:
   rng = np.random.default_rng(seed)
   sides = [prepare_side(cloud, index, vp, mr, radius, opts, rng)
            for (cloud, index), vp in zip(thinned, views)]
+  if opts.voxel_size is None:  # thinned by default: refine's last pass pairs the input points
+    sides = [side if side.input_index is None else side._replace(raw=c.points)
+             for side, c in zip(sides, clouds)]
   # checked last, where `compute_frames` checked it: the same ValueError after the same steps
   radius = validate_radius(radius)
   return Prepared(cast("tuple[Side, Side]", tuple(sides)), float(mr), radius, rng, seed, voxel)

@@ -39,7 +39,8 @@ ICP_FINE_FACTOR = 1.5
 ICP_FINE_MIN_MR = 1.0
 
 # The last pass on the input points of a cloud thinned by default (`raw_pass`): source points
-# drawn, target normals' radius and the gates (mr), and how far it may move a source point (mr)
+# drawn, the target normals' pairing distance (mr; `icp_host.estimate_target_normals` caps their
+# radius at 4 input point spacings), the gates (mr), and how far it may move a source point (mr)
 # before its pose is refused (the verdict was reached on the thinned clouds' pose).
 RAW_ICP_POINTS = 20_000
 RAW_NORMAL_MR = 2.0
@@ -230,7 +231,9 @@ def raw_pass(source: np.ndarray, target: np.ndarray, pose: np.ndarray, mr: float
              opts: RegisterOptions, seed: int) -> np.ndarray:
   """The last ICP pass of a pair thinned by default: `opts.icp_mode` ICP of up to
   `RAW_ICP_POINTS` input source points (drawn with `seed`) against the input target points
-  (normals over `RAW_NORMAL_MR` mr), from `pose`, at the gates `RAW_GATES_MR` mr in turn. The
+  (`icp_host.estimate_target_normals` for a pairing distance of `RAW_NORMAL_MR` mr: a radius of
+  at most 4 input spacings, so their cost grows with the points, not with their density), from
+  `pose`, at the gates `RAW_GATES_MR` mr in turn. The
   thinned clouds' voxel centroids stand a fraction of a voxel off the surface; the input points
   do not. Returns `pose` itself when the pass moves a drawn point by more than
   `RAW_MAX_SHIFT_MR` mr (the verdict was reached at `pose`), or pairs too few points.

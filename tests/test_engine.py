@@ -418,3 +418,19 @@ def test_run_blocks_raises_a_tasks_error_after_the_others_end():
   before = len(done)
   time.sleep(0.05)
   assert done and len(done) == before  # no span still running after the error came back
+
+
+def test_run_blocks_from_several_threads_at_once():
+  from concurrent.futures import ThreadPoolExecutor
+  rng = np.random.default_rng(9)
+  pts = rng.normal(size=(20000, 3))
+  grid = engine.knn_grid(pts, 4)
+  want = engine.knn(grid, pts[:5000], 4)
+
+  def query(_):
+    return engine.knn(grid, pts[:5000], 4)
+
+  with ThreadPoolExecutor(4) as callers:
+    for d, i in callers.map(query, range(8)):
+      np.testing.assert_array_equal(d, want[0])
+      np.testing.assert_array_equal(i, want[1])

@@ -60,6 +60,7 @@ def num_threads() -> int:
 
 
 _POOL: dict[str, Any] = {"helpers": 0, "pool": None}  # the helper threads of `run_blocks`
+_POOL_LOCK = threading.Lock()
 
 
 def _spans(m: int, block: int, threads: int) -> list[tuple[int, int]]:
@@ -103,11 +104,10 @@ def run_blocks(task: Callable[[int, int], object], m: int, block: int = _BLOCK) 
       task(lo, hi)
 
   helpers = min(threads, len(spans)) - 1
-  if _POOL["helpers"] < helpers:
-    if _POOL["pool"] is not None:
-      _POOL["pool"].shutdown(wait=False)
-    _POOL.update(helpers=helpers, pool=ThreadPoolExecutor(helpers, "lrf_jax-engine"))
-  futures = [_POOL["pool"].submit(work) for _ in range(helpers)]
+  with _POOL_LOCK:  # callers on several threads share the pool; a smaller one is dropped (its
+    if _POOL["helpers"] < helpers:  # threads end once it is collected), never shut under them
+      _POOL.update(helpers=helpers, pool=ThreadPoolExecutor(helpers, "lrf_jax-engine"))
+    futures = [_POOL["pool"].submit(work) for _ in range(helpers)]
   try:
     work()
   finally:

@@ -184,10 +184,11 @@ def register_from_init(source: Any, target: Any, init: Any, opts: RegisterOption
                       overlap=fitness, voxel_size=voxel, reason_code="init_only")
 
 
-def icp_subset(points: np.ndarray, rng: np.random.Generator) -> np.ndarray:
-  """The source points ICP pairs: all of them, or `ICP_POINTS` drawn by `rng` (sorted)."""
-  if len(points) > ICP_POINTS:
-    return points[np.sort(rng.choice(len(points), ICP_POINTS, replace=False))]
+def icp_subset(points: np.ndarray, rng: np.random.Generator, count: int = ICP_POINTS
+               ) -> np.ndarray:
+  """The source points ICP pairs: all of them, or `count` drawn by `rng` (sorted)."""
+  if len(points) > count:
+    return points[np.sort(rng.choice(len(points), count, replace=False))]
   return points
 
 
@@ -233,10 +234,10 @@ def raw_pass(source: np.ndarray, target: np.ndarray, pose: np.ndarray, mr: float
   `RAW_ICP_POINTS` input source points (drawn with `seed`) against the input target points
   (`icp_host.estimate_target_normals` for a pairing distance of `RAW_NORMAL_MR` mr: a radius of
   at most 4 input spacings, so their cost grows with the points, not with their density), from
-  `pose`, at the gates `RAW_GATES_MR` mr in turn. The
-  thinned clouds' voxel centroids stand a fraction of a voxel off the surface; the input points
-  do not. Returns `pose` itself when the pass moves a drawn point by more than
-  `RAW_MAX_SHIFT_MR` mr (the verdict was reached at `pose`), or pairs too few points.
+  `pose`, at the gates `RAW_GATES_MR` mr in turn. The thinned clouds' voxel centroids stand a
+  fraction of a voxel off the surface; the input points do not. Returns `pose` itself when the
+  pass moves a drawn point by more than `RAW_MAX_SHIFT_MR` mr (the verdict was reached at
+  `pose`), or pairs too few points.
 
   Args:
     source, target: (n, 3), (m, 3) the input clouds (a side not thinned: its working points).
@@ -248,10 +249,7 @@ def raw_pass(source: np.ndarray, target: np.ndarray, pose: np.ndarray, mr: float
   Returns:
     (4, 4) float64 source -> target.
   """
-  rng = np.random.default_rng(seed)
-  src = np.asarray(source, np.float64)
-  if len(src) > RAW_ICP_POINTS:
-    src = src[np.sort(rng.choice(len(src), RAW_ICP_POINTS, replace=False))]
+  src = icp_subset(np.asarray(source, np.float64), np.random.default_rng(seed), RAW_ICP_POINTS)
   dst = np.asarray(target, np.float64)
   grid = engine.knn_grid(dst)
   plane = opts.icp_mode == "point_to_plane"
@@ -260,7 +258,7 @@ def raw_pass(source: np.ndarray, target: np.ndarray, pose: np.ndarray, mr: float
   for gate in RAW_GATES_MR:
     tr, fitness, _ = icp(src, dst, tr, max_distance=gate * mr, iterations=int(opts.icp_iterations),
                          target_grid=grid, target_normals=normals, mode=opts.icp_mode)
-  shift = np.abs(src @ (tr[:3, :3] - pose[:3, :3]).T + (tr[:3, 3] - pose[:3, 3]))
   if fitness * len(src) < icp_host.MIN_PAIRS or not np.all(np.isfinite(tr)):
     return pose
-  return tr if float(np.sqrt((shift ** 2).sum(axis=1)).max()) <= RAW_MAX_SHIFT_MR * mr else pose
+  shift = np.linalg.norm(src @ (tr[:3, :3] - pose[:3, :3]).T + (tr[:3, 3] - pose[:3, 3]), axis=1)
+  return tr if float(shift.max()) <= RAW_MAX_SHIFT_MR * mr else pose

@@ -24,8 +24,8 @@ from __future__ import annotations
 
 import contextlib
 import os
-from collections.abc import Callable
 import threading
+from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor, wait
 from typing import Any
 

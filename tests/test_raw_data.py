@@ -1,5 +1,6 @@
 """Raw, uneven clouds: the working resolution, thinning at the door, one resolution per pair,
-units, scale invariance, KITTI sweeps."""
+units, scale invariance, KITTI sweeps, full-density clouds (register's resolution relative to
+the extent)."""
 
 from __future__ import annotations
 
@@ -40,6 +41,25 @@ def sweep(sensor=(0.0, 0.0, 0.0), n_az=720, n_el=32, seed=0) -> np.ndarray:
   hit = np.isfinite(t) & (t < 60.0)  # the sensor's range
   pts = o + t[hit, None] * d[hit]
   return pts + rng.normal(scale=0.01, size=pts.shape)
+
+
+def dense_room(n: int, seed: int = 0) -> np.ndarray:
+  """A room corner (floor 4 x 3 m, two walls 2.5 m high, three boxes) sampled uniformly at
+  random with `n` points: at 120,000 points sampled more finely than register works
+  (extent / mean spacing about 410, above `MAX_EXTENT_MR`), at 20,000 not (about 170)."""
+  rng = np.random.default_rng(seed)
+  quads = [((0, 0, 0), (4, 0, 0), (0, 3, 0)), ((0, 0, 0), (4, 0, 0), (0, 0, 2.5)),
+           ((0, 0, 0), (0, 3, 0), (0, 0, 2.5))]  # origin, edge u, edge v
+  for x, y, w, d, h in ((1.0, 1.0, 0.6, 0.4, 0.8), (2.5, 0.3, 0.8, 0.8, 0.5),
+                        (0.3, 2.0, 0.5, 0.7, 1.2)):
+    quads += [((x, y, h), (w, 0, 0), (0, d, 0)), ((x, y, 0), (w, 0, 0), (0, 0, h)),
+              ((x, y + d, 0), (w, 0, 0), (0, 0, h)), ((x, y, 0), (0, d, 0), (0, 0, h)),
+              ((x + w, y, 0), (0, d, 0), (0, 0, h))]
+  q = np.array(quads, float)
+  area = np.linalg.norm(np.cross(q[:, 1], q[:, 2]), axis=1)
+  k = rng.choice(len(q), n, p=area / area.sum())
+  uv = rng.random((n, 2))
+  return q[k, 0] + uv[:, :1] * q[k, 1] + uv[:, 1:] * q[k, 2]
 
 
 @pytest.fixture(scope="module")
@@ -85,6 +105,11 @@ def test_pair_resolution_rules():
     resolution.pair_resolution(even, mm)
   assert resolution.thinning_voxel(uneven, 0.5) == 0.5
   assert resolution.thinning_voxel(even, 1.0) is None
+  capped = resolution.Resolution(1.2, 1.0, 1.05, "extent_fraction")  # spacing 1, worked at 1.2
+  assert capped.capped and not capped.uneven and not even.capped
+  assert resolution.pair_resolution(even, capped) == 1.2  # the coarser, though under 2x
+  assert resolution.pair_resolution(capped, even) == 1.2
+  assert resolution.thinning_voxel(capped, 1.2) == 1.2  # thinned, though not 2x denser
 
 
 def dataclasses_replace(res, **kw):
@@ -132,6 +157,50 @@ def test_clouds_in_different_units_are_refused_with_both_figures():
   pair = datasets.make_demo_pair(0, seed=0, noise_mr=0.0, partial=True)
   with pytest.raises(ValueError, match="same units"):
     register(1000.0 * pair.model_points, pair.scene_points)
+
+
+def test_cloud_extent_moves_and_scales_with_the_cloud():
+  from scipy.spatial.transform import Rotation
+  pts = dense_room(5000)
+  ext = resolution.cloud_extent(pts)
+  rot = Rotation.from_euler("xyz", [30, -50, 110], degrees=True).as_matrix()
+  assert resolution.cloud_extent(pts @ rot.T + [100.0, -7.0, 3.0]) == pytest.approx(ext, rel=1e-9)
+  assert resolution.cloud_extent(pts[::-1]) == pytest.approx(ext, rel=1e-12)
+  assert resolution.cloud_extent(1e-3 * pts) == pytest.approx(1e-3 * ext, rel=1e-12)
+  rms = np.sqrt(np.mean(np.sum((pts - pts.mean(0)) ** 2, axis=1)))  # brute force
+  assert ext == pytest.approx(2 * rms, rel=1e-12)
+
+
+def test_a_full_density_cloud_is_registered_at_a_fraction_of_its_extent():
+  """register's resolution (`registration_resolution`) is the extent / MAX_EXTENT_MR where the
+  cloud is sampled more finely; the working resolution of compute_frames stays its spacing;
+  a cloud sampled no more finely keeps the working resolution exactly; scale-free."""
+  dense, sparse = dense_room(120_000), dense_room(20_000)
+  work, reg = resolution.working_resolution(dense), resolution.registration_resolution(dense)
+  assert not work.capped and work.mr == resolution.mesh_resolution(dense)[0]
+  assert reg.capped and reg.mean_spacing == work.mr
+  assert reg.mr == pytest.approx(resolution.cloud_extent(dense) / resolution.MAX_EXTENT_MR,
+                                 rel=1e-12)
+  assert reg.mr > 1.2 * work.mr
+  assert resolution.registration_resolution(sparse) == resolution.working_resolution(sparse)
+  for k in (1e-3, 1e3):
+    assert resolution.registration_resolution(k * dense).mr == pytest.approx(k * reg.mr,
+                                                                            rel=1e-9)
+
+
+def test_a_full_density_pair_is_thinned_and_registered_right():
+  from scipy.spatial.transform import Rotation
+  target, source = dense_room(120_000, seed=0), dense_room(120_000, seed=1)
+  gt = np.eye(4)
+  gt[:3, :3] = Rotation.from_euler("xyz", [10, -20, 35], degrees=True).as_matrix()
+  gt[:3, 3] = [0.5, -1.0, 0.3]
+  source = (source - gt[:3, 3]) @ gt[:3, :3]  # gt maps it back onto the target
+  reg = register(source, target)
+  cap = max(resolution.cloud_extent(c) for c in (source, target)) / resolution.MAX_EXTENT_MR
+  assert reg.mr == pytest.approx(cap, rel=1e-12)  # the coarser side's fraction of its extent
+  assert reg.voxel_size > reg.mr  # thinned: voxel centroids about mr apart
+  assert rotation_error_deg(reg.transform[:3, :3], gt[:3, :3]) < 1.0
+  assert np.linalg.norm(reg.transform[:3, 3] - gt[:3, 3]) < 0.02
 
 
 def test_voxel_groups_matches_unique_rows():

@@ -5,9 +5,11 @@ is 0.1/0.3/0.5 of it). For a cloud, mr is the mean distance from each point to i
 point. On the BR meshes the nearest-neighbor spacing is about 1/1.42-1/1.59 of the edge length,
 so the two definitions are *not* interchangeable; every dataset records which one it used.
 
-`working_resolution` is the unit `register` measures lengths in: `mesh_resolution`'s, except on
-an uneven cloud (a raw LiDAR sweep), where the area-weighted median spacing stands for the cloud
-as a whole; `pair_resolution` picks one for a pair of clouds.
+`working_resolution` is the unit `compute_frames` measures radii in: `mesh_resolution`'s, except
+on an uneven cloud (a raw LiDAR sweep), where the area-weighted median spacing stands for the
+cloud as a whole. `registration_resolution`, the unit of `register` and `register_all`, is the
+same but never finer than a fixed fraction of the cloud's extent (a full-density fragment);
+`pair_resolution` picks one for a pair of clouds.
 """
 
 from __future__ import annotations
@@ -89,6 +91,12 @@ UNEVEN_RATIO = 3.0
 PAIR_RATIO = 2.0
 # Clouds whose working resolutions differ by more than this are not in the same units.
 UNITS_RATIO = 100.0
+# register's finest resolution relative to a cloud's extent (`cloud_extent`): a cloud sampled
+# more finely than extent / MAX_EXTENT_MR is registered at that resolution (and thinned to it).
+# extent / mean spacing, measured: 3DMatch fragments at 2.5 cm 162-183, Stanford bunny scans
+# 183-212, UWA3M views 176-286 (chef 271-286), raw KITTI sweeps 77-100 at their area-weighted
+# spacing; full-density TSDF fragments (6 mm voxels) 465-612, a UWAOR full scene 646.
+MAX_EXTENT_MR = 300.0
 
 
 @dataclasses.dataclass(frozen=True)
@@ -114,6 +122,12 @@ class Resolution:
   def uneven(self) -> bool:
     """Whether the working resolution is the area-weighted one (a range-dependent density)."""
     return self.definition == "area_median_nn_distance"
+
+  @property
+  def capped(self) -> bool:
+    """Whether the working resolution is `registration_resolution`'s fraction of the extent
+    (a cloud sampled more finely than register works)."""
+    return self.definition == "extent_fraction"
 
 
 def area_median(spacings: np.ndarray) -> float:
@@ -165,11 +179,41 @@ def working_resolution(points: np.ndarray, faces: np.ndarray | None = None, *,
   return Resolution(mean, mean, area, "mean_nn_distance")
 
 
+def cloud_extent(points: np.ndarray) -> float:
+  """Twice the root-mean-square distance of the points from their centroid (cloud units): a
+  size that moves with the cloud and scales with it, and that a few outliers barely change."""
+  pts = np.asarray(points, np.float64)
+  return 2.0 * float(np.sqrt(np.mean(np.sum((pts - pts.mean(axis=0)) ** 2, axis=1))))
+
+
+def registration_resolution(points: np.ndarray, faces: np.ndarray | None = None, *,
+                            name: str = "points") -> Resolution:
+  """`working_resolution`, but for a cloud (not a mesh) never finer than
+  `cloud_extent` / `MAX_EXTENT_MR`: a full-density fragment (6 mm TSDF voxels across a room)
+  is registered as if sampled at that spacing, its support radius (15 mr) covering at least
+  5 % of its extent, as on the clean scans and fragments the defaults were measured on; every
+  cloud sampled no more finely keeps `working_resolution`'s figure.
+
+  Returns:
+    A `Resolution`; `capped` (definition "extent_fraction") where the extent set it.
+
+  Raises:
+    ValueError: as `working_resolution`.
+  """
+  res = working_resolution(points, faces, name=name)
+  if faces is not None:
+    return res
+  floor = cloud_extent(points) / MAX_EXTENT_MR
+  if res.mr < floor:
+    return Resolution(floor, res.mean_spacing, res.area_spacing, "extent_fraction")
+  return res
+
+
 def pair_resolution(source: Resolution, target: Resolution, names=("source", "target")) -> float:
   """One working resolution for a pair: the source's, as for a single cloud, unless one cloud
-  is uneven or the two differ by more than `PAIR_RATIO`: then the coarser one (a raw fragment
-  against a voxelized one is measured at the voxelized one's resolution; the denser cloud is
-  then thinned to it, `thinning_voxel`).
+  is uneven or capped (`registration_resolution`) or the two differ by more than `PAIR_RATIO`:
+  then the coarser one (a raw fragment against a voxelized one is measured at the voxelized
+  one's resolution; the denser cloud is then thinned to it, `thinning_voxel`).
 
   Raises:
     ValueError: the two differ by more than `UNITS_RATIO` (e.g. millimetres against metres),
@@ -182,13 +226,14 @@ def pair_resolution(source: Resolution, target: Resolution, names=("source", "ta
         f"(cloud units) differ {hi / lo:.0f}-fold, more than any two sensors do: are they in "
         "the same units? Scale one of them (e.g. millimetres to metres: multiply by 0.001) "
         "before registering")
-  if source.uneven or target.uneven or hi > PAIR_RATIO * lo:
+  if source.uneven or target.uneven or source.capped or target.capped or hi > PAIR_RATIO * lo:
     return hi
   return source.mr
 
 
 def thinning_voxel(res: Resolution, mr: float) -> float | None:
   """The voxel edge that thins a cloud to the working resolution `mr` where it is far denser
-  (its mean spacing under mr / `PAIR_RATIO`): `mr`; None where it is not (nothing to do)."""
-  return mr if res.mean_spacing < mr / PAIR_RATIO else None
+  (its mean spacing under mr / `PAIR_RATIO`) or capped (`registration_resolution`): `mr`; None
+  where it is not (nothing to do)."""
+  return mr if res.capped or res.mean_spacing < mr / PAIR_RATIO else None
 

@@ -57,7 +57,7 @@ from lrf_jax.search import engine as search_engine
 from lrf_jax.registration import pose_graph
 from lrf_jax.registration.icp_host import estimate_target_normals
 from lrf_jax.geometry.cloud import CheckedCloud, as_cloud
-from lrf_jax.geometry.resolution import working_resolution
+from lrf_jax.geometry.resolution import registration_resolution
 from lrf_jax.checks import validate_viewpoint
 # re-exported: the outputs' names were this module's before they moved
 from lrf_jax.registration.multiway_outputs import (  # noqa: F401
@@ -529,8 +529,9 @@ def register_all(scans: Sequence[Any], *, names: Sequence[str] | None = None,
 
 def median_mr(clouds: Sequence[CheckedCloud], names: Sequence[str]) -> float:
   """`register_all`'s mr when none is given: the median of the scans' working resolutions
-  (`working_resolution`: a clean scan's mean spacing, a raw sweep's area-weighted one)."""
-  return float(np.median([working_resolution(c.points, c.faces, name=f"scan {name}").mr
+  (`registration_resolution`: a clean scan's mean spacing, a raw sweep's area-weighted one, a
+  full-density fragment's fraction of its extent)."""
+  return float(np.median([registration_resolution(c.points, c.faces, name=f"scan {name}").mr
                           for name, c in zip(names, clouds)]))
 
 

@@ -7,7 +7,7 @@ flags, defaults and help from the fields (`lrf_jax.cli.options.add_register_flag
 changed here changes everywhere. The constructor checks every field (`check`); an instance is a
 checked set of options, and it pickles as plain data for the data-set layer.
 
-Lengths are in mr, the working resolution (`lrf_jax.geometry.resolution.working_resolution`),
+Lengths are in mr, the working resolution (`lrf_jax.geometry.resolution.registration_resolution`),
 unless a field says otherwise.
 """
 
@@ -51,11 +51,12 @@ class RegisterOptions:
   mr: float | None = _option(
       None, "the working resolution in the clouds' units, the unit of every length (default: "
       "measured: the source's point spacing; on a raw, uneven cloud such as a LiDAR sweep the "
-      "area-weighted median spacing; for clouds of different densities the coarser one)")
+      "area-weighted median spacing; never finer than 1/300 of the cloud's extent; for clouds "
+      "of different densities the coarser one)")
   voxel_size: float | None = _option(
       None, "thin both clouds by voxel averaging first, voxels of this edge in the clouds' "
       "units (0: keep every point; default: thin a cloud far denser than the working "
-      "resolution, such as a raw LiDAR sweep, at it)")
+      "resolution, such as a raw LiDAR sweep or a full-density fragment, at it)")
   radius_mr: float = _option(RADIUS_MR, "support radius of the frames and descriptors, in mr")
   keypoints: str = _option("random", "keypoint detector: seeded random points or ISS",
                            choices=KEYPOINTS)

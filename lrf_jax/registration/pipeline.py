@@ -92,10 +92,11 @@ def register(source: Any, target: Any, options: RegisterOptions | None = None, *
     init: optional (4, 4) initial source -> target transform: refine it by ICP only.
     **overrides: fields of `RegisterOptions` replacing those of `options`:
     mr: the working resolution in the clouds' units, the unit of every length below (None:
-      measured, `geometry.resolution.working_resolution` and `pair_resolution`: the source's
-      mean point spacing or mean edge length; on a raw, uneven cloud such as a LiDAR sweep the
-      area-weighted median spacing; for a pair whose resolutions differ over 2-fold, the
-      coarser one).
+      measured, `geometry.resolution.registration_resolution` and `pair_resolution`: the
+      source's mean point spacing or mean edge length; on a raw, uneven cloud such as a LiDAR
+      sweep the area-weighted median spacing; for a cloud sampled more finely than 1/300 of its
+      extent (a full-density fragment) that fraction; for a pair whose resolutions differ over
+      2-fold, or where one is uneven or capped, the coarser one).
     radius_mr: support radius of the LRFs and descriptors, in mr (the paper: 15).
     n_keypoints: keypoints per cloud (fewer when a cloud has fewer points).
     n_correspondences: correspondences kept (and LRF hypotheses).
@@ -124,7 +125,8 @@ def register(source: Any, target: Any, options: RegisterOptions | None = None, *
     voxel_size: thin the clouds by voxel averaging first (`voxel_downsample`), voxels of this
       edge in cloud units; 0 keeps every point; None (default) thins a cloud at the working
       resolution where its mean spacing is under half of it (a raw sweep's near field, a
-      full-density fragment against a coarser one) and keeps clean clouds as they are.
+      full-density fragment against a coarser one) or where the extent set the resolution (a
+      full-density fragment), and keeps clean clouds as they are.
 
   Returns:
     `Registration`; `transform` maps source points into the target's frame.

@@ -27,7 +27,7 @@ from lrf_jax.frames import METHODS
 from lrf_jax.geometry.cloud import CheckedCloud, as_cloud
 from lrf_jax.geometry.keypoints import iss_keypoints
 from lrf_jax.geometry.normals import NORMAL_RADIUS_RATIO, estimate_normals
-from lrf_jax.geometry.resolution import (pair_resolution, working_resolution)
+from lrf_jax.geometry.resolution import pair_resolution, registration_resolution
 from lrf_jax.geometry.sampling import thin_cloud, thinning_voxel_size
 from lrf_jax.registration import host
 from lrf_jax.registration.estimators import _centred, _finish, _uncentre
@@ -210,11 +210,11 @@ def working_clouds(source: CheckedCloud, target: CheckedCloud, mr: Any, voxel_si
   """The working resolution of a pair and the clouds `register` works on: (mr, [(cloud, index
   into the input points or None) for source and target], the thinning voxel edge or 0).
 
-  `mr` None: `pair_resolution` of the two `working_resolution`s. Each cloud is then thinned
+  `mr` None: `pair_resolution` of the two `registration_resolution`s. Each cloud is then thinned
   (or not) by `working_cloud` at that mr; the voxel returned is the last side's that was
   thinned."""
   check_voxel_size(voxel_size)
-  resolutions = [working_resolution(c.points, c.faces, name=n)
+  resolutions = [registration_resolution(c.points, c.faces, name=n)
                  for c, n in zip((source, target), ("source", "target"))]
   if mr is None:
     mr = pair_resolution(*resolutions)
@@ -233,15 +233,15 @@ def working_cloud(cloud: CheckedCloud, mr: float, voxel_size: Any, resolution: A
   point's input point index or None, the thinning voxel edge or 0).
 
   `voxel_size` None: a cloud (not a mesh) whose mean spacing is under half of mr
-  (`thinning_voxel` of its `working_resolution`, `resolution` when already measured) is thinned
+  (`thinning_voxel` of its `registration_resolution`, `resolution` when already measured) is thinned
   by the voxel whose centroids come out spaced mr apart (a voxel of mr leaves them closer, about
   0.7 mr: the voxel is scaled by mr over the spacing that gives, measured); 0: it is kept; a
   positive number: it is thinned at that edge (a mesh included, which loses its faces)."""
   check_voxel_size(voxel_size)
   res = None
   if voxel_size is None and cloud.faces is None:
-    res = resolution if resolution is not None else working_resolution(cloud.points, None,
-                                                                        name=name)
+    res = resolution if resolution is not None else registration_resolution(cloud.points, None,
+                                                                             name=name)
   voxel = thinning_voxel_size(cloud.points, res, mr, faces=cloud.faces,  # type: ignore[arg-type]
                               voxel_size=voxel_size)
   if not voxel:

@@ -3,6 +3,7 @@ at 2.5 cm and at a denser stand-in, against Open3D's tutorial pipeline in the sa
 
     LRF_DATA=/path/to/data python benchmarks/bench_lidar.py [--out out/bench_lidar] [--seed 0]
         [--sets sweeps subsampled cropped rooms dense mixed]
+        [--fused DIR --sets fused fused25 fusedmixed]
 
 lrf_jax: `lrf_jax.register(source, target)` with its defaults: no resolution, no voxel size.
 Open3D 0.20: its global registration tutorial (`benchmarks/_open3d_pipeline.py`: voxel
@@ -18,7 +19,12 @@ Sets (every pair both pipelines, after one warm-up call each):
 * rooms: the two 3DMatch fragment pairs (2.5 cm voxels) both ways;
 * dense: the same, each fragment upsampled 4x by jitter in its tangent plane (a stand-in for a
   full-density fused fragment, 6 mm spacing: this data holds none);
-* mixed: a dense fragment against a 2.5 cm one, both ways.
+* mixed: a dense fragment against a 2.5 cm one, both ways;
+* fused, fused25, fusedmixed (with `--fused DIR`, not by default): full-density TSDF fragments
+  fused from the depth frames under DIR (`benchmarks/_fused_fragments.py`: Open3D's
+  livingroom1_clean_micro test data makes 5 fragments of 245k-300k points, 3-4 mm spacing),
+  every pair (i, j), i < j: at full density, both voxelized at 2.5 cm, and the full-density
+  source against the 2.5 cm target.
 
 Right: rotation error < 5 deg and translation error < 2 m (the KITTI benchmarks' rule) for the
 sweeps, < 1 deg and 10 cm as well ("strict"); rooms: < 15 deg and 30 cm, as
@@ -46,7 +52,8 @@ from lrf_jax.registration import register, rotation_error_deg  # noqa: E402
 
 from benchmarks._open3d_pipeline import global_registration, have_open3d  # noqa: E402
 
-SETS = ("sweeps", "subsampled", "cropped", "rooms", "dense", "mixed")
+SETS = ("sweeps", "subsampled", "cropped", "rooms", "dense", "mixed", "fused", "fused25",
+        "fusedmixed")
 
 
 def homogeneous(p: np.ndarray) -> np.ndarray:
@@ -98,6 +105,17 @@ def room_pairs(data: Path, rng: np.random.Generator, variant: str) -> list[dict]
       out += [dict(name=f"{a}->{b}", source=da, target=db, gt=gt, lidar=False),
               dict(name=f"{b}->{a}", source=db, target=da, gt=np.linalg.inv(gt), lidar=False)]
   return out
+
+
+def fused_pairs(folder: Path, cache: Path, variant: str) -> list[dict]:
+  """Every pair (i, j), i < j, of the fused fragments of `folder`: source i, target j."""
+  from benchmarks._fused_fragments import fused_fragments
+  frags = fused_fragments(folder, cache)
+  src_key = "coarse" if variant == "fused25" else "full"
+  dst_key = "full" if variant == "fused" else "coarse"
+  return [dict(name=f"fragment {i}->{j}", source=frags[i][src_key], target=frags[j][dst_key],
+               gt=np.linalg.inv(frags[j]["pose"]) @ frags[i]["pose"], lidar=False)
+          for i in range(len(frags)) for j in range(i + 1, len(frags))]
 
 
 def errors(t: np.ndarray, gt: np.ndarray) -> tuple[float, float]:
@@ -190,8 +208,12 @@ def main() -> int:
   ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
   ap.add_argument("--out", default="out/bench_lidar")
   ap.add_argument("--seed", type=int, default=0)
-  ap.add_argument("--sets", nargs="+", default=list(SETS), choices=SETS)
+  ap.add_argument("--sets", nargs="+", default=list(SETS[:6]), choices=SETS)
+  ap.add_argument("--fused", help="a folder of depth frames and their trajectory "
+                  "(benchmarks/_fused_fragments.py), for the fused sets")
   args = ap.parse_args()
+  if any(name.startswith("fused") for name in args.sets) and not args.fused:
+    ap.error("--sets fused, fused25, fusedmixed need --fused DIR")
   data = Path(os.environ.get("LRF_DATA", REPO.parent / "shared" / "data"))
   out = Path(args.out)
   out.mkdir(parents=True, exist_ok=True)
@@ -204,8 +226,12 @@ def main() -> int:
   results = {}
   for name in args.sets:
     print(f"{name}:", file=sys.stderr)
-    make = sweep_pairs if name in ("sweeps", "subsampled", "cropped") else room_pairs
-    results[name] = run_set(make(data, np.random.default_rng(args.seed), name), args.seed, o3d)
+    if name.startswith("fused"):
+      pairs = fused_pairs(Path(args.fused), out / "fused_cache", name)
+    else:
+      make = sweep_pairs if name in ("sweeps", "subsampled", "cropped") else room_pairs
+      pairs = make(data, np.random.default_rng(args.seed), name)
+    results[name] = run_set(pairs, args.seed, o3d)
   head = ("| set | pairs | right (strict) | claimed | false claims | median RE deg / TE m | "
           "median s")
   head += (" | Open3D right (strict) | Open3D median RE / TE | Open3D median s | time ratio |"

@@ -88,6 +88,20 @@ def test_median_mr_is_the_working_resolution_of_uneven_scans():
   assert mr == working_resolution(cloud.points).mr
 
 
+def test_median_mr_of_full_density_scans_is_a_fraction_of_their_extent():
+  """Scans sampled more finely than register works (`registration_resolution`): the job's mr
+  is the median of their extents / MAX_EXTENT_MR, as `register` would measure each."""
+  from lrf_jax.geometry import resolution
+  from lrf_jax.io.cloud import Cloud
+  rng = np.random.default_rng(0)
+  scans = [Cloud(rng.uniform(-1, 1, size=(n, 3)) * [s, s, 0.001], None, None)
+           for n, s in ((150_000, 1.0), (150_000, 1.5), (120_000, 2.0))]
+  caps = [resolution.cloud_extent(c.points) / resolution.MAX_EXTENT_MR for c in scans]
+  assert all(resolution.working_resolution(c.points).mr < cap for c, cap in zip(scans, caps))
+  assert multiway.median_mr(scans, ["a", "b", "c"]) == pytest.approx(np.median(caps),
+                                                                     rel=1e-12)
+
+
 def test_cli_voxel_size_reaches_register_all(tmp_path, monkeypatch, capsys):
   from lrf_jax.cli.register import main
   paths = []

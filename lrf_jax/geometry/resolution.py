@@ -181,7 +181,15 @@ def working_resolution(points: np.ndarray, faces: np.ndarray | None = None, *,
 
 def cloud_extent(points: np.ndarray) -> float:
   """Twice the root-mean-square distance of the points from their centroid (cloud units): a
-  size that moves with the cloud and scales with it, and that a few outliers barely change."""
+  size that moves with the cloud and scales with it (stray points raise it: 1 % of the points
+  at ten times the RMS distance, about 1.4-fold).
+
+  Args:
+    points: (n, 3) coordinates, n >= 1.
+
+  Returns:
+    The extent, >= 0.
+  """
   pts = np.asarray(points, np.float64)
   return 2.0 * float(np.sqrt(np.mean(np.sum((pts - pts.mean(axis=0)) ** 2, axis=1))))
 

@@ -29,7 +29,8 @@ Sets (every pair both pipelines, after one warm-up call each):
 Right: rotation error < 5 deg and translation error < 2 m (the KITTI benchmarks' rule) for the
 sweeps, < 1 deg and 10 cm as well ("strict"); rooms: < 15 deg and 30 cm, as
 `bench_scenes.py` counts them (the hotel3 pair's ground truth is about 2 deg off: both pipelines
-land 2.2-2.3 deg from it). A false claim is a success that is not right. Writes results.json and report.md under --out and prints the report.
+land 2.2-2.3 deg from it). A false claim is a success that is not right. Writes results.json,
+report.md and report.png (the table as bars) under --out and prints the report.
 """
 
 from __future__ import annotations
@@ -204,6 +205,42 @@ def loop_line(name: str, rows: list[dict]) -> str:
   return line
 
 
+def plot(results: dict[str, list[dict]], out: Path) -> None:
+  """report.png: per set, the pairs right and claimed (lrf_jax) and right (Open3D, where it
+  ran), and the median seconds a pair of both."""
+  try:
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+  except ImportError:
+    return
+  names = list(results)
+  x = np.arange(len(names))
+  fig, (ax, bx) = plt.subplots(1, 2, figsize=(10, 3.5))
+  for name_k, rows in enumerate(results.values()):
+    lidar = names[name_k] in ("sweeps", "subsampled", "cropped")
+    ok = [right(r["re"], r["te"], lidar) for r in rows]
+    n = len(rows)
+    ax.bar(name_k - 0.25, sum(ok) / n, 0.25, color="#27a", label="lrf_jax right" * (name_k == 0))
+    ax.bar(name_k, sum(o and r["success"] for o, r in zip(ok, rows)) / n, 0.25, color="#3a7",
+           label="lrf_jax right and claimed" * (name_k == 0))
+    bx.bar(name_k - 0.2, np.median([r["seconds"] for r in rows]), 0.4, color="#27a",
+           label="lrf_jax" * (name_k == 0))
+    if "o3d_re" in rows[0]:
+      ok3 = [right(r["o3d_re"], r["o3d_te"], lidar) for r in rows]
+      ax.bar(name_k + 0.25, sum(ok3) / n, 0.25, color="#999",
+             label="Open3D right" * (name_k == 0))
+      bx.bar(name_k + 0.2, np.median([r["o3d_seconds"] for r in rows]), 0.4, color="#999",
+             label="Open3D" * (name_k == 0))
+  for axis, label in ((ax, "fraction of pairs"), (bx, "median s a pair")):
+    axis.set_xticks(x, names, rotation=20)
+    axis.set_ylabel(label)
+    axis.legend(fontsize=7)
+  ax.set_title("register's defaults on raw data")
+  fig.tight_layout()
+  fig.savefig(out / "report.png", dpi=120)
+
+
 def main() -> int:
   ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
   ap.add_argument("--out", default="out/bench_lidar")
@@ -246,6 +283,7 @@ def main() -> int:
   report = "\n".join(lines) + "\n"
   (out / "results.json").write_text(json.dumps(results, indent=1, default=str))
   (out / "report.md").write_text(report)
+  plot(results, out)
   print(report)
   return 0
 

@@ -40,6 +40,9 @@ def test_summary_says_verdict_reason_overlap_inliers_time_and_errors_when_known(
   assert "error against the ground truth: 0 deg, 2 mr (0.008 in the clouds' units)" in \
       reg.summary(gt=gt)
   assert _registration(success=False).summary().startswith("verdict: NOT SURE")
+  assert "thinned" not in text  # every point kept: nothing to say
+  thinned = _registration(voxel_size=0.0075).summary()
+  assert "thinned at voxels of 0.0075 first (voxel_size=0 keeps every point)" in thinned
 
 
 def test_verdict_says_what_decided_in_words_and_as_a_code():

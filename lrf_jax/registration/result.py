@@ -84,8 +84,9 @@ class Registration:
   degeneracy: float = 1.0
 
   def summary(self, gt: Any = None) -> str:
-    """A few lines a person reads: the verdict and its reason, the estimated overlap and RMSE,
-    the inliers against what chance and the best distinct pose reach, the errors against a
+    """A few lines a person reads: the verdict and its reason, the estimated overlap and RMSE
+    (and the voxel edge the clouds were thinned at, if they were), the inliers against what
+    chance and the best distinct pose reach, the errors against a
     ground truth when one is given, and the time.
 
     Args:
@@ -98,7 +99,9 @@ class Registration:
     verdict_word = "success" if self.success else "NOT SURE (do not trust this transform)"
     lines = [f"verdict: {verdict_word}: {self.reason}",
              f"estimated overlap {self.overlap:.1%} (source points near the target after the "
-             f"transform), rmse {self.rmse / self.mr:.3f} mr (mr = {self.mr:.6g})"]
+             f"transform), rmse {self.rmse / self.mr:.3f} mr (mr = {self.mr:.6g})"
+             + (f"; thinned at voxels of {self.voxel_size:.4g} first (voxel_size=0 keeps "
+                "every point)" if self.voxel_size > 0 else "")]
     if len(self.correspondences):
       lines.append(f"inliers {self.n_inliers} of {len(self.correspondences)} correspondences "
                    f"(chance level {self.chance_inliers}, best distinct pose "

@@ -22,7 +22,7 @@ Sets (every pair both pipelines, after one warm-up call each):
 * mixed: a dense fragment against a 2.5 cm one, both ways;
 * fused, fused25, fusedmixed (with `--fused DIR`, not by default): full-density TSDF fragments
   fused from the depth frames under DIR (`benchmarks/_fused_fragments.py`: Open3D's
-  livingroom1_clean_micro test data makes 5 fragments of 245k-300k points, 3-4 mm spacing),
+  livingroom1_clean_micro test data makes 5 fragments of 242k-300k points, 3-4 mm spacing),
   every pair (i, j), i < j: at full density, both voxelized at 2.5 cm, and the full-density
   source against the 2.5 cm target.
 
@@ -108,10 +108,15 @@ def room_pairs(data: Path, rng: np.random.Generator, variant: str) -> list[dict]
   return out
 
 
+_FRAGMENTS: dict[tuple[Path, Path], list[dict]] = {}
+
+
 def fused_pairs(folder: Path, cache: Path, variant: str) -> list[dict]:
   """Every pair (i, j), i < j, of the fused fragments of `folder`: source i, target j."""
   from benchmarks._fused_fragments import fused_fragments
-  frags = fused_fragments(folder, cache)
+  if (folder, cache) not in _FRAGMENTS:  # fused once for the three variants
+    _FRAGMENTS[(folder, cache)] = fused_fragments(folder, cache)
+  frags = _FRAGMENTS[(folder, cache)]
   src_key = "coarse" if variant == "fused25" else "full"
   dst_key = "full" if variant == "fused" else "coarse"
   return [dict(name=f"fragment {i}->{j}", source=frags[i][src_key], target=frags[j][dst_key],
@@ -255,19 +260,22 @@ def main() -> int:
   out = Path(args.out)
   out.mkdir(parents=True, exist_ok=True)
   o3d = have_open3d()
-  rng = np.random.default_rng(args.seed)
-  warm = sweep_pairs(data, rng, "sweeps")[0]
-  register(warm["source"], warm["target"])  # compile and load the kernels before timing
-  if o3d:
-    global_registration(warm["source"], warm["target"], voxel=0.3)
-  results = {}
+  sets = {}
   for name in args.sets:
-    print(f"{name}:", file=sys.stderr)
     if name.startswith("fused"):
-      pairs = fused_pairs(Path(args.fused), out / "fused_cache", name)
+      sets[name] = fused_pairs(Path(args.fused), out / "fused_cache", name)
     else:
       make = sweep_pairs if name in ("sweeps", "subsampled", "cropped") else room_pairs
-      pairs = make(data, np.random.default_rng(args.seed), name)
+      sets[name] = make(data, np.random.default_rng(args.seed), name)
+    if not sets[name]:
+      ap.error(f"--sets {name}: no pairs")
+  warm = sets[args.sets[0]][0]
+  register(warm["source"], warm["target"])  # compile and load the kernels before timing
+  if o3d:
+    global_registration(warm["source"], warm["target"], voxel=0.3 if warm["lidar"] else 0.05)
+  results = {}
+  for name, pairs in sets.items():
+    print(f"{name}:", file=sys.stderr)
     results[name] = run_set(pairs, args.seed, o3d)
   head = ("| set | pairs | right (strict) | claimed | false claims | median RE deg / TE m | "
           "median s")

@@ -303,7 +303,8 @@ def compute_frames(
       method ("lrf_net" is the paper's LRF-Net).
     radius_mr: the support radius in mesh resolutions instead: the input cloud's working
       resolution (`lrf_jax.geometry.resolution.working_resolution` of this call's points and
-      faces, as `register` measures it): `lrf_jax.mesh_resolution`'s (mean edge length of a
+      faces; `register` also caps it by the cloud's extent, this call does not):
+      `lrf_jax.mesh_resolution`'s (mean edge length of a
       mesh, mean nearest-neighbor distance of a cloud) on every mesh and clean cloud, the
       area-weighted spacing on an uneven one (a raw LiDAR sweep); the paper uses 15.
     params: learned parameters for learned methods; None = the shipped default weights

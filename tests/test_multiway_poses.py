@@ -77,7 +77,8 @@ def test_voxel_size_is_passed_to_every_pairwise_registration():
 
 def test_median_mr_is_the_working_resolution_of_uneven_scans():
   """A scan dense near the sensor and sparse far away: the mr is its area-weighted spacing
-  (`working_resolution`), as `register` measures it, not its mean spacing."""
+  (`working_resolution`; `registration_resolution` caps nothing here), as `register` measures
+  it, not its mean spacing."""
   from lrf_jax.geometry.resolution import working_resolution
   from lrf_jax.io.cloud import Cloud
   rng = np.random.default_rng(0)

@@ -105,11 +105,14 @@ def test_pair_resolution_rules():
     resolution.pair_resolution(even, mm)
   assert resolution.thinning_voxel(uneven, 0.5) == 0.5
   assert resolution.thinning_voxel(even, 1.0) is None
-  capped = resolution.Resolution(1.2, 1.0, 1.05, "extent_fraction")  # spacing 1, worked at 1.2
+  capped = resolution.Resolution(1.5, 1.0, 1.05, "extent_fraction")  # spacing 1, worked at 1.5
   assert capped.capped and not capped.uneven and not even.capped
-  assert resolution.pair_resolution(even, capped) == 1.2  # the coarser, though under 2x
-  assert resolution.pair_resolution(capped, even) == 1.2
-  assert resolution.thinning_voxel(capped, 1.2) == 1.2  # thinned, though not 2x denser
+  assert resolution.pair_resolution(even, capped) == 1.5  # the coarser, though under 2x
+  assert resolution.pair_resolution(capped, even) == 1.5
+  assert resolution.thinning_voxel(capped, 1.5) == 1.5  # thinned, though not 2x denser
+  near = resolution.Resolution(1.2, 1.0, 1.05, "extent_fraction")  # spacing above 0.8 mr
+  assert resolution.thinning_voxel(near, 1.2) is None  # would remove few points
+  assert resolution.thinning_voxel(capped, 1.0) is None  # a given mr at its spacing
 
 
 def dataclasses_replace(res, **kw):
@@ -201,6 +204,9 @@ def test_a_full_density_pair_is_thinned_and_registered_right():
   assert reg.voxel_size > reg.mr  # thinned: voxel centroids about mr apart
   assert rotation_error_deg(reg.transform[:3, :3], gt[:3, :3]) < 1.0
   assert np.linalg.norm(reg.transform[:3, 3] - gt[:3, 3]) < 0.02
+  spacing = resolution.mesh_resolution(source)[0]  # a given mr at the spacing: every point kept
+  given = register(source, target, mr=spacing, n_keypoints=100, icp_iterations=0)
+  assert given.voxel_size == 0.0 and given.mr == spacing
 
 
 def test_voxel_groups_matches_unique_rows():

@@ -10,7 +10,7 @@ transform and still exits 3), so a script that ignores exit codes never reads a 
 gives an initial source->target transform (a 4x4 text file as `lrf_jax.io.read_xf` reads, or
 a (4, 4) .npy) that `register` then only refines. Inputs: any cloud or mesh
 `lrf_jax.io.read_cloud` reads (PLY, PCD, XYZ/TXT(.gz), NPY). Every length is in mesh
-resolutions of SRC unless `--mr` is given. Every bad argument, unreadable input or unwritable
+resolutions (the working resolution `register` measures, `--mr` to set it). Every bad argument, unreadable input or unwritable
 output is one `error:` line and exit code 2. `--png` draws the correspondences the estimate
 used (inliers and outliers joining the two clouds side by side). This file is intentionally
 thin; the pipeline is

@@ -97,6 +97,10 @@ UNITS_RATIO = 100.0
 # 183-212, UWA3M views 176-286 (chef 271-286), raw KITTI sweeps 77-100 at their area-weighted
 # spacing; full-density TSDF fragments (6 mm voxels) 465-612, a UWAOR full scene 646.
 MAX_EXTENT_MR = 300.0
+# A capped cloud is thinned to its working resolution where its mean spacing is under this
+# fraction of it; closer to it, thinning would remove few points and its voxel (scaled so that
+# the centroids come out mr apart) would overshoot, leaving a denser cloud sparser than mr.
+CAPPED_THIN_RATIO = 0.8
 
 
 @dataclasses.dataclass(frozen=True)
@@ -104,14 +108,15 @@ class Resolution:
   """A cloud's (or mesh's) resolution, measured.
 
   Attributes:
-    mr: the working resolution (cloud units): `mean_spacing`, or for an uneven cloud
-      `area_spacing`.
+    mr: the working resolution (cloud units): `mean_spacing`, for an uneven cloud
+      `area_spacing`, for a cloud `registration_resolution` capped its extent / `MAX_EXTENT_MR`.
     mean_spacing: `mesh_resolution`'s value: the mean edge length of a mesh, the mean
       nearest-neighbor distance of a cloud.
     area_spacing: the area-weighted median nearest-neighbor distance (each point weighted by
       the area it stands for, its spacing squared): the spacing at which half the surface is
       sampled; `mean_spacing` for a mesh.
-    definition: "mean_edge_length", "mean_nn_distance" or "area_median_nn_distance" (uneven).
+    definition: "mean_edge_length", "mean_nn_distance", "area_median_nn_distance" (uneven) or
+      "extent_fraction" (capped).
   """
   mr: float
   mean_spacing: float
@@ -196,7 +201,7 @@ def cloud_extent(points: np.ndarray) -> float:
 
 def registration_resolution(points: np.ndarray, faces: np.ndarray | None = None, *,
                             name: str = "points") -> Resolution:
-  """`working_resolution`, but for a cloud (not a mesh) never finer than
+  """`working_resolution`, but for a cloud (a mesh keeps its mean edge length) never finer than
   `cloud_extent` / `MAX_EXTENT_MR`: a full-density fragment (6 mm TSDF voxels across a room)
   is registered as if sampled at that spacing, its support radius (15 mr) covering at least
   5 % of its extent, as on the clean scans and fragments the defaults were measured on; every
@@ -241,7 +246,9 @@ def pair_resolution(source: Resolution, target: Resolution, names=("source", "ta
 
 def thinning_voxel(res: Resolution, mr: float) -> float | None:
   """The voxel edge that thins a cloud to the working resolution `mr` where it is far denser
-  (its mean spacing under mr / `PAIR_RATIO`) or capped (`registration_resolution`): `mr`; None
-  where it is not (nothing to do)."""
-  return mr if res.capped or res.mean_spacing < mr / PAIR_RATIO else None
+  (its mean spacing under mr / `PAIR_RATIO`, or for a cloud `registration_resolution` capped
+  under `CAPPED_THIN_RATIO` mr): `mr`; None where it is not (nothing to do; also a capped
+  cloud measured at a given mr no coarser than its spacing)."""
+  limit = CAPPED_THIN_RATIO if res.capped else 1.0 / PAIR_RATIO
+  return mr if res.mean_spacing < limit * mr else None
 

@@ -165,16 +165,18 @@ def thinning_voxel_size(points: np.ndarray, res: Resolution, mr: float, *,
 
   * a positive `voxel_size`: that edge (meshes included; thinning drops their faces);
   * 0: none;
-  * None: a cloud without faces whose mean spacing is under `mr` / `PAIR_RATIO`
-    (`resolution.thinning_voxel`: a raw sweep's near field, a full-density fragment) is thinned by the
-    voxel whose centroids come out spaced `mr` apart (a voxel of mr leaves them closer, about
-    0.7 mr: the voxel is scaled by mr over the spacing that gives, measured); meshes and clean
-    clouds are not (a single clean cloud's working resolution is its mean spacing: never
+  * None: a cloud without faces whose mean spacing is under `mr` / `PAIR_RATIO`, or under
+    `CAPPED_THIN_RATIO` mr where `registration_resolution` capped its resolution
+    (`resolution.thinning_voxel`: a raw sweep's near field, a full-density fragment) is thinned
+    by the voxel whose centroids come out spaced `mr` apart (a voxel of mr leaves them closer,
+    about 0.7 mr: the voxel is scaled by mr over the spacing that gives, measured); meshes and
+    clean clouds are not (a single clean cloud's working resolution is its mean spacing: never
     thinned).
 
   Args:
     points: (n, 3) finite float64 cloud.
-    res: its `resolution.working_resolution`.
+    res: its `resolution.working_resolution` (`compute_frames`) or
+      `resolution.registration_resolution` (`register`).
     mr: the working resolution the cloud is measured in (its own `res.mr`, or a pair's
       `resolution.pair_resolution`).
     faces: its triangles, or None.

@@ -1,8 +1,8 @@
 """Many scans into one model: pairwise LRF registration over a candidate graph, a robust pose
 graph, optional joint ICP; `register_all(scans) -> MultiwayResult`.
 
-Pipeline (every length in mr, the median over the scans of each one's mesh resolution unless
-`mr` is given):
+Pipeline (every length in mr, the median over the scans of each one's working resolution as
+`register` measures it, `median_mr`, unless `mr` is given):
 
 1. candidates (`candidate_pairs`): all pairs when there are at most `all_pairs_max` scans;
    otherwise each scan with the next one in the given order (`neighbors` of them) plus, as
@@ -413,7 +413,7 @@ def register_all(scans: Sequence[Any], *, names: Sequence[str] | None = None,
     names: n distinct names for the result and the outputs, each usable as a file name
       (`check_names`; default `scan_names(scans)`).
     mr: mesh resolution in the clouds' units (None: the median of the scans' working
-      resolutions, `median_mr`).
+      resolutions as `register` measures them, `median_mr`).
     all_pairs_max: up to this many scans every pair is registered (`candidate_pairs`).
     neighbors: otherwise, pairs with this many next scans in the given order...
     loop_candidates: ...plus this many loop-closure candidates per scan (D2 signature).

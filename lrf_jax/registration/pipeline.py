@@ -35,8 +35,8 @@ def register(source: Any, target: Any, options: RegisterOptions | None = None, *
              params: Any = None, init: Any = None, **overrides: Any) -> Registration:
   """Rigidly register `source` onto `target` with learned LRFs and a compatibility graph.
 
-  Pipeline (every length in mr: the source's mean edge length for a mesh, mean nearest-neighbor
-  distance for a cloud, `datasets.mesh_resolution`):
+  Pipeline (every length in mr, the pair's working resolution: see `mr` below; on clean clouds
+  the source's mean edge length for a mesh, mean nearest-neighbor distance for a cloud):
 
   1. `n_keypoints` per cloud (`keypoints="random"`: seeded random points; `"iss"`: ISS
      keypoints, `lrf_jax.iss_keypoints`, at most `n_keypoints`); LRFs (`method`, default

@@ -232,8 +232,9 @@ def working_cloud(cloud: CheckedCloud, mr: float, voxel_size: Any, resolution: A
   """One cloud as `register` works on it at the working resolution `mr`: (cloud, each working
   point's input point index or None, the thinning voxel edge or 0).
 
-  `voxel_size` None: a cloud (not a mesh) whose mean spacing is under half of mr
-  (`thinning_voxel` of its `registration_resolution`, `resolution` when already measured) is thinned
+  `voxel_size` None: a cloud (not a mesh) whose mean spacing is under half of mr, or under 0.8
+  mr where its extent capped its resolution (`thinning_voxel` of its
+  `registration_resolution`, `resolution` when already measured), is thinned
   by the voxel whose centroids come out spaced mr apart (a voxel of mr leaves them closer, about
   0.7 mr: the voxel is scaled by mr over the spacing that gives, measured); 0: it is kept; a
   positive number: it is thinned at that edge (a mesh included, which loses its faces)."""

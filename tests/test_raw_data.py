@@ -186,6 +186,9 @@ def test_a_full_density_cloud_is_registered_at_a_fraction_of_its_extent():
                                  rel=1e-12)
   assert reg.mr > 1.2 * work.mr
   assert resolution.registration_resolution(sparse) == resolution.working_resolution(sparse)
+  from lrf_jax.api import _resolve_radius  # compute_frames' radius_mr: the spacing's, uncapped
+  from lrf_jax.geometry.cloud import as_cloud
+  assert _resolve_radius(as_cloud(dense), None, 15) == pytest.approx(15 * work.mr, rel=1e-12)
   for k in (1e-3, 1e3):
     assert resolution.registration_resolution(k * dense).mr == pytest.approx(k * reg.mr,
                                                                             rel=1e-9)

@@ -232,17 +232,19 @@ def step_transform(x: np.ndarray, center: np.ndarray) -> np.ndarray:
 
 
 def estimate_target_normals(target: np.ndarray, max_distance: float,
-                            grid: engine.Grid | None = None) -> np.ndarray:
+                            grid: engine.Grid | None = None, *,
+                            spacings: float = NORMAL_RADIUS_SPACING) -> np.ndarray:
   """Unsigned PCA normals of the target for point-to-plane ICP.
 
-  The radius is min(`NORMAL_RADIUS_RATIO` x `max_distance`, `NORMAL_RADIUS_SPACING` x the
-  target's mean nearest-neighbor spacing): the pairing distance, capped so that a generous
-  `max_distance` does not smooth the normals of a curved surface away.
+  The radius is min(`NORMAL_RADIUS_RATIO` x `max_distance`, `spacings` x the target's mean
+  nearest-neighbor spacing): the pairing distance, capped so that a generous `max_distance`
+  does not smooth the normals of a curved surface away.
 
   Args:
     target: (m, 3) float64 cloud.
     max_distance: the ICP pairing distance (cloud units, finite).
     grid: optional `engine.Grid` of `target` to reuse (any cell size).
+    spacings: the cap, in mean spacings (default `NORMAL_RADIUS_SPACING`).
 
   Returns:
     (m, 3) float64 unit normals, NaN where fewer than 3 neighbors or a degenerate spectrum.
@@ -254,7 +256,7 @@ def estimate_target_normals(target: np.ndarray, max_distance: float,
   spacing = float(engine.knn(grid, pts, 2)[0][:, 1].mean())  # the point itself, then its nearest
   radius = NORMAL_RADIUS_RATIO * float(max_distance)
   if spacing > 0:
-    radius = min(radius, NORMAL_RADIUS_SPACING * spacing)
+    radius = min(radius, float(spacings) * spacing)
   return pca_normals(pts, radius, grid=grid)
 
 

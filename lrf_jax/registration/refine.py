@@ -39,11 +39,14 @@ ICP_FINE_FACTOR = 1.5
 ICP_FINE_MIN_MR = 1.0
 
 # The last pass on the input points of a cloud thinned by default (`raw_pass`): source points
-# drawn, the target normals' pairing distance (mr; `icp_host.estimate_target_normals` caps their
-# radius at 4 input point spacings), the gates (mr), and how far it may move a source point (mr)
-# before its pose is refused (the verdict was reached on the thinned clouds' pose).
+# drawn, the target normals' radius (at most RAW_NORMAL_MR mr and RAW_NORMAL_SPACINGS mean input
+# spacings, `icp_host.estimate_target_normals`), the gates (mr), and how far it may move a source
+# point (mr) before its pose is refused (the verdict was reached on the thinned clouds' pose).
+# A raw sweep's mean spacing is its near field's: at 4 spacings its far points get no normal and
+# the yaw rests on the ground near the sensor (twice the rotation error on the dev sweeps).
 RAW_ICP_POINTS = 20_000
 RAW_NORMAL_MR = 2.0
+RAW_NORMAL_SPACINGS = 8.0
 RAW_GATES_MR = (1.0, 0.3)
 RAW_MAX_SHIFT_MR = 1.0
 
@@ -233,7 +236,8 @@ def raw_pass(source: np.ndarray, target: np.ndarray, pose: np.ndarray, mr: float
   """The last ICP pass of a pair thinned by default: `opts.icp_mode` ICP of up to
   `RAW_ICP_POINTS` input source points (drawn with `seed`) against the input target points
   (`icp_host.estimate_target_normals` for a pairing distance of `RAW_NORMAL_MR` mr: a radius of
-  at most 4 input spacings, so their cost grows with the points, not with their density), from
+  at most `RAW_NORMAL_SPACINGS` mean input spacings, so their cost grows with the points, not
+  with their density), from
   `pose`, at the gates `RAW_GATES_MR` mr in turn. The thinned clouds' voxel centroids stand a
   fraction of a voxel off the surface; the input points do not. Returns `pose` itself when the
   pass moves a drawn point by more than `RAW_MAX_SHIFT_MR` mr (the verdict was reached at
@@ -253,7 +257,8 @@ def raw_pass(source: np.ndarray, target: np.ndarray, pose: np.ndarray, mr: float
   dst = np.asarray(target, np.float64)
   grid = engine.knn_grid(dst)
   plane = opts.icp_mode == "point_to_plane"
-  normals = icp_host.estimate_target_normals(dst, RAW_NORMAL_MR * mr, grid) if plane else None
+  normals = (icp_host.estimate_target_normals(dst, RAW_NORMAL_MR * mr, grid,
+                                              spacings=RAW_NORMAL_SPACINGS) if plane else None)
   tr, fitness = pose, 0.0
   for gate in RAW_GATES_MR:
     tr, fitness, _ = icp(src, dst, tr, max_distance=gate * mr, iterations=int(opts.icp_iterations),

@@ -23,6 +23,8 @@ from pathlib import Path
 
 import numpy as np
 
+from lrf_jax.io.atomic import atomic_path
+
 FRAMES = 40  # frames per fragment (the last run takes the remainder)
 VOXEL = 0.006  # TSDF voxel (m)
 DEPTH_MAX = 3.0  # m
@@ -70,9 +72,8 @@ def fused_fragments(folder: str | Path, cache: str | Path) -> list[dict]:
     last = starts[f + 1] if f + 1 < len(starts) else n
     path = cache / f"fragment_{f}_{first}_{last}.npy"
     if not path.exists():
-      tmp = path.with_suffix(".tmp.npy")
-      np.save(tmp, _fuse(folder, poses, first, last))
-      tmp.replace(path)
+      with atomic_path(path) as tmp:  # a temporary name beside it, renamed into place
+        np.save(tmp, _fuse(folder, poses, first, last))
     full = np.load(path)
     cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(full))
     coarse = np.asarray(cloud.voxel_down_sample(0.025).points)

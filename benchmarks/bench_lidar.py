@@ -49,6 +49,7 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
 from lrf_jax.io import read_cloud  # noqa: E402
+from lrf_jax.io.atomic import save_figure, write_text  # noqa: E402
 from lrf_jax.registration import register, rotation_error_deg  # noqa: E402
 
 from benchmarks._open3d_pipeline import global_registration, have_open3d  # noqa: E402
@@ -243,7 +244,7 @@ def plot(results: dict[str, list[dict]], out: Path) -> None:
     axis.legend(fontsize=7)
   ax.set_title("register's defaults on raw data")
   fig.tight_layout()
-  fig.savefig(out / "report.png", dpi=120)
+  save_figure(fig, out / "report.png", dpi=120)
 
 
 def main() -> int:
@@ -258,6 +259,9 @@ def main() -> int:
     ap.error("--sets fused, fused25, fusedmixed need --fused DIR")
   data = Path(os.environ.get("LRF_DATA", REPO.parent / "shared" / "data"))
   out = Path(args.out)
+  inputs = [Path(args.fused).resolve()] if args.fused else []
+  if any(out.resolve() == p or p in out.resolve().parents for p in inputs):
+    ap.error(f"--out {out}: inside the input folder --fused {args.fused}; write elsewhere")
   out.mkdir(parents=True, exist_ok=True)
   o3d = have_open3d()
   sets = {}
@@ -289,8 +293,8 @@ def main() -> int:
            if name in ("sweeps", "subsampled", "cropped") and len(rows) == 15]
   lines += [""] + loops if loops else []
   report = "\n".join(lines) + "\n"
-  (out / "results.json").write_text(json.dumps(results, indent=1, default=str))
-  (out / "report.md").write_text(report)
+  write_text(out / "results.json", json.dumps(results, indent=1, default=str))
+  write_text(out / "report.md", report)
   plot(results, out)
   print(report)
   return 0

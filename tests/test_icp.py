@@ -378,3 +378,61 @@ def test_overlap_points_are_the_source_within_the_distance():
   np.testing.assert_array_equal(overlap_points(source, grid, moved, 0.05, 50,
                                                np.random.default_rng(1), fallback=source[:3]),
                                 source[:3])
+
+
+# ------------------------------------------------------------------------------------------------
+# Target normals computed where ICP pairs (TargetNormals)
+
+
+def test_pca_normals_at_a_subset_equal_the_rows_of_every_normal():
+  pts, _ = _height_field(3000, 7)
+  grid = engine.knn_grid(pts)
+  at = np.random.default_rng(0).choice(len(pts), 400, replace=False)
+  every = icp_host.pca_normals(pts, 0.09, grid=grid)
+  assert np.array_equal(icp_host.pca_normals(pts, 0.09, grid=grid, at=at), every[at],
+                        equal_nan=True)
+
+
+def test_target_normals_are_the_estimated_ones_where_required_and_nan_elsewhere():
+  pts, _ = _height_field(3000, 8)
+  grid = engine.knn_grid(pts)
+  lazy = icp_host.TargetNormals(pts, 0.1, grid)
+  want = icp_host.unit_normals(icp_host.estimate_target_normals(pts, 0.1, grid))
+  idx = np.array([5, -1, 17, 5, 2999, 400])
+  assert lazy.require(idx) and not lazy.require(idx[::-1])  # computed once
+  done = np.unique(idx[idx >= 0])
+  assert np.array_equal(lazy.unit[done], want[done]) and np.isfinite(want[done]).all()
+  rest = np.setdiff1d(np.arange(len(pts)), done)
+  assert np.isnan(lazy.unit[rest]).all() and lazy.done.sum() == len(done)
+  # a spacing the caller measured, as working_resolution measures it: the same radius
+  spacing = float(engine.knn(engine.knn_grid(pts, 2), pts, 2)[0][:, 1].mean())
+  assert icp_host.TargetNormals(pts, 0.1, grid, spacing=spacing).radius == lazy.radius
+
+
+@pytest.mark.parametrize("subset", [7, 1])
+def test_icp_with_normals_computed_where_it_pairs_equals_icp_with_every_normal(subset):
+  """Bit for bit: the same pose, fitness and rmse whether the target's normals are all given
+  (`estimate_target_normals`) or computed on demand; on a dense target with a sparse source only
+  part of the target's normals are computed."""
+  target = _corner(30000, 4, 0.002)
+  source = datasets.transform_points(_pose([0.3, 1.0, -0.2], 3.0, [0.02, -0.01, 0.01]),
+                                     _corner(30000, 5, 0.002)[::subset])
+  grid = engine.knn_grid(target)
+  every = icp_host.estimate_target_normals(target, 0.05, grid)
+  want = icp(source, target, np.eye(4), max_distance=0.05, target_grid=grid,
+             target_normals=every)
+  lazy = icp_host.TargetNormals(target, 0.05, grid)
+  got = icp(source, target, np.eye(4), max_distance=0.05, target_grid=grid, target_normals=lazy)
+  assert np.array_equal(got[0], want[0]) and got[1:] == want[1:]
+  assert np.array_equal(icp(source, target, np.eye(4), max_distance=0.05, target_grid=grid)[0],
+                        want[0])  # no normals given: computed on demand too
+  if subset > 1:
+    assert lazy.done.sum() < 0.5 * len(target)
+
+
+def test_a_target_normals_of_another_cloud_is_refused():
+  pts = _corner(300, 6, 0.0)
+  with pytest.raises(ValueError, match="target_normals"):
+    icp(pts, pts[:200], np.eye(4), max_distance=0.1,
+        target_normals=icp_host.TargetNormals(pts, 0.1))
+

@@ -294,3 +294,19 @@ def test_the_options_help_quotes_the_cap_it_documents():
   from lrf_jax.registration.options import RegisterOptions
   help_text = {f.name: f.metadata["help"] for f in dataclasses.fields(RegisterOptions)}["mr"]
   assert f"1/{resolution.MAX_EXTENT_MR:g} of the cloud's extent" in help_text
+
+
+def test_prepare_keeps_each_input_clouds_measured_spacing():
+  """`Side.input_spacing` (what the ICP passes' normals radius reads instead of measuring the
+  target again) is the input cloud's mean nearest-neighbor spacing, thinned or not."""
+  from lrf_jax.geometry.cloud import CheckedCloud
+  from lrf_jax.registration.options import RegisterOptions
+  from lrf_jax.registration.stages import prepare
+  dense, clean = dense_room(60_000, seed=2), dense_room(6_000, seed=3)
+  sides = prepare(dense, clean, RegisterOptions(n_keypoints=50)).sides
+  assert sides[0].input_index is not None and sides[1].input_index is None
+  for side, cloud in zip(sides, (dense, clean)):
+    assert side.input_spacing == resolution.mesh_resolution(cloud)[0]
+  points, faces = datasets.make_demo_mesh("torus")
+  side = prepare(CheckedCloud(points, faces), points[::3], RegisterOptions(n_keypoints=50)).sides[0]
+  assert side.input_spacing is None  # a mesh's resolution is its edge length

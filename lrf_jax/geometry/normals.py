@@ -108,7 +108,8 @@ def _smallest_eigvecs(cov, evals, vecs):
 
 
 def pca_normals(points: np.ndarray, radius: float, *, grid: engine.Grid | None = None,
-                viewpoint: np.ndarray | None = None, min_neighbors: int = 3) -> np.ndarray:
+                viewpoint: np.ndarray | None = None, min_neighbors: int = 3,
+                at: np.ndarray | None = None) -> np.ndarray:
   """PCL-like PCA normals: smallest eigenvector of the neighbors' covariance about their centroid.
 
   Args:
@@ -119,9 +120,13 @@ def pca_normals(points: np.ndarray, radius: float, *, grid: engine.Grid | None =
       `flipNormalTowardsViewpoint` ((v - p) · n >= 0). When None the sign is arbitrary (orient them
       with `orient_normals`).
     min_neighbors: fewer neighbors than this give a NaN normal (PCL: 3).
+    at: optional (k,) indices of the points whose normals are wanted (default: every point);
+      each is what the call for every point gives in its row, the neighbors still drawn from
+      the whole cloud.
 
   Returns:
-    (n, 3) float64 unit normals; NaN rows where undefined (too few neighbors, collinear points).
+    (n, 3), or (k, 3) with `at`, float64 unit normals; NaN rows where undefined (too few
+    neighbors, collinear points).
 
   References:
     Rusu, "Semantic 3D object maps for everyday manipulation in human living environments", 2009
@@ -132,14 +137,15 @@ def pca_normals(points: np.ndarray, radius: float, *, grid: engine.Grid | None =
     grid = engine.Grid(pts, float(radius) / 2)
   # One compiled pass: count, centroid and covariance about the centroid, offsets taken relative
   # to the query point (numerically stable far from the origin).
-  counts, mean, cov = engine.ball_stats(grid, pts, radius)
-  evals = np.empty((len(pts), 3))
-  normals = np.empty((len(pts), 3))
+  centers = pts if at is None else pts[np.asarray(at, np.int64)]
+  counts, mean, cov = engine.ball_stats(grid, centers, radius)
+  evals = np.empty((len(centers), 3))
+  normals = np.empty((len(centers), 3))
   _smallest_eigvecs(np.ascontiguousarray(cov), evals, normals)
   scale = np.maximum(evals[:, 2], 0.0)
   ok = (counts >= min_neighbors) & (scale > 0) & (evals[:, 1] - evals[:, 0] > _DEGENERATE * scale)
   if viewpoint is not None:
-    flip = np.einsum("ij,ij->i", np.asarray(viewpoint, np.float64)[None] - pts, normals) < 0
+    flip = np.einsum("ij,ij->i", np.asarray(viewpoint, np.float64)[None] - centers, normals) < 0
     normals[flip] *= -1.0
   normals[~ok] = np.nan
   return normals

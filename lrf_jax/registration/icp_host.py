@@ -28,7 +28,10 @@ Target normals, when the caller has none (`estimate_target_normals`): PCA normal
 (`normals.pca_normals`, PCL's rule) over the pairing distance, capped at 4 x the target's mean
 nearest-neighbor spacing (about 50 neighbors on a surface), so that a generous pairing distance
 does not smooth a curved surface's normals away; their sign is irrelevant to ((q - p) · n)^2, so
-no orientation pass is run.
+no orientation pass is run. They are computed where pairs need them (`TargetNormals`): the sums
+kernel returns each source point's target index, the normals of target points paired for the
+first time are computed, and the step's sums are taken again; a point's normal does not depend
+on which others were computed, so the steps are those of normals computed everywhere.
 
 References:
   Chen & Medioni, "Object modelling by registration of multiple range images", IVC 1992
@@ -88,13 +91,15 @@ class PlaneSums(NamedTuple):
 
 @nb.njit(parallel=True, cache=True)
 def _plane_sums(pts, slot_index, starts, origin, h, dims, target, normals, source, rot, trans, c0,
-                max_d2, partial):
-  """Per block of `_BLOCK` source points: the `_N_SUMS` sums over the pairs (moved source
-  point, its nearest target point within sqrt(max_d2), as `engine.knn`), coordinates relative
-  to c0."""
+                max_d2, blocks, partial, paired):
+  """Per block of `_BLOCK` source points (those numbered in `blocks`): the `_N_SUMS` sums over
+  the pairs (moved source point, its nearest target point within sqrt(max_d2), as
+  `engine.knn`), coordinates relative to c0, in the block's row of `partial`; each source
+  point's target index (-1: unpaired) in `paired`."""
   m = source.shape[0]
   n = pts.shape[1]
-  for blk in nb.prange(partial.shape[0]):
+  for b in nb.prange(blocks.shape[0]):
+    blk = blocks[b]
     bd = np.empty(1)
     bi = np.empty(1, np.int64)
     a = np.empty(6)
@@ -103,6 +108,7 @@ def _plane_sums(pts, slot_index, starts, origin, h, dims, target, normals, sourc
     for i in range(blk * _BLOCK, min(m, (blk + 1) * _BLOCK)):
       qx, qy, qz, j = nearest_moved(pts, slot_index, starts, origin, h, dims, source[i], rot,
                                     trans, max_d2, bd, bi)
+      paired[i] = j if j < n else -1
       if j >= n:
         continue
       acc[0] += 1.0
@@ -154,17 +160,21 @@ def unit_normals(normals: np.ndarray) -> np.ndarray:
   return nrm
 
 
-def plane_sums(grid: engine.Grid, normals: np.ndarray, source: np.ndarray,
+def plane_sums(grid: engine.Grid, normals: np.ndarray | TargetNormals, source: np.ndarray,
                rotation: np.ndarray, translation: np.ndarray, max_distance: float,
                center: np.ndarray) -> PlaneSums:
   """The point-to-plane normal equations of one step, without materialising the pairs.
 
   Each source point s is moved to p = R s + t and paired with its nearest grid point q within
-  `max_distance` (as `engine.knn`: ties go to the smaller index), in the same pass.
+  `max_distance` (as `engine.knn`: ties go to the smaller index), in the same pass. With a
+  `TargetNormals`, the normals of target points paired for the first time are then computed and
+  the sums of the blocks of source points paired with them taken again: the same sums as with
+  those normals given.
 
   Args:
     grid: `engine.Grid` of the target cloud (any cell size).
-    normals: (m, 3) float64 unit normals of the grid's points (NaN rows: unusable).
+    normals: (m, 3) float64 unit normals of the grid's points (NaN rows: unusable), or a
+      `TargetNormals` of them.
     source: (n, 3) float64 source points.
     rotation: (3, 3) R.
     translation: (3,) t.
@@ -177,11 +187,25 @@ def plane_sums(grid: engine.Grid, normals: np.ndarray, source: np.ndarray,
   """
   src = writable_float64(source).reshape(-1, 3)  # one specialisation of the kernel
   r = float(max_distance)
-  partial = np.empty((max(1, (len(src) + _BLOCK - 1) // _BLOCK), _N_SUMS))
-  _plane_sums(grid.xyz, grid.slot_index, grid.starts, grid.origin, grid.h, grid.dims, grid.points,
-              writable_float64(normals), src, writable_float64(rotation),
-              writable_float64(translation), writable_float64(center),
-              r * r if np.isfinite(r) else np.inf, partial)
+  lazy = normals if isinstance(normals, TargetNormals) else None
+  nrm = writable_float64(normals.unit if isinstance(normals, TargetNormals) else normals)
+  nblock = max(1, (len(src) + _BLOCK - 1) // _BLOCK)
+  partial = np.empty((nblock, _N_SUMS))
+  paired = np.empty(len(src), np.int64)
+
+  def run(blocks: np.ndarray) -> None:
+    _plane_sums(grid.xyz, grid.slot_index, grid.starts, grid.origin, grid.h, grid.dims,
+                grid.points, nrm, src, writable_float64(rotation),
+                writable_float64(translation), writable_float64(center),
+                r * r if np.isfinite(r) else np.inf, blocks, partial, paired)
+
+  run(np.arange(nblock))
+  if lazy is not None:
+    rows = np.flatnonzero(paired >= 0)
+    rows = rows[~lazy.done[paired[rows]]]
+    if len(rows):  # lazy.unit is nrm: the blocks run again with the new normals
+      lazy.require(paired[rows])
+      run(np.unique(rows // _BLOCK))
   acc = partial.sum(axis=0)
   hessian = np.zeros((6, 6))
   hessian[np.triu_indices(6)] = acc[9:]
@@ -231,14 +255,33 @@ def step_transform(x: np.ndarray, center: np.ndarray) -> np.ndarray:
   return out
 
 
+def normal_radius(target: np.ndarray, max_distance: float, grid: engine.Grid, *,
+                  spacings: float = NORMAL_RADIUS_SPACING, spacing: float | None = None) -> float:
+  """The PCA radius of `estimate_target_normals`: min(`NORMAL_RADIUS_RATIO` x `max_distance`,
+  `spacings` x the target's mean nearest-neighbor spacing) (cloud units).
+
+  Args:
+    target: (m, 3) float64 cloud, m >= 2.
+    max_distance: the ICP pairing distance (cloud units, finite).
+    grid: an `engine.Grid` of `target` (any cell size).
+    spacings: the cap, in mean spacings.
+    spacing: the target's mean nearest-neighbor spacing where the caller measured it already
+      (`resolution.working_resolution`'s `mean_spacing`: the same figure); None measures it.
+  """
+  if spacing is None:  # the point itself, then its nearest
+    spacing = float(engine.knn(grid, target, 2)[0][:, 1].mean())
+  radius = NORMAL_RADIUS_RATIO * float(max_distance)
+  return min(radius, float(spacings) * spacing) if spacing > 0 else radius
+
+
 def estimate_target_normals(target: np.ndarray, max_distance: float,
                             grid: engine.Grid | None = None, *,
                             spacings: float = NORMAL_RADIUS_SPACING) -> np.ndarray:
   """Unsigned PCA normals of the target for point-to-plane ICP.
 
-  The radius is min(`NORMAL_RADIUS_RATIO` x `max_distance`, `spacings` x the target's mean
-  nearest-neighbor spacing): the pairing distance, capped so that a generous `max_distance`
-  does not smooth the normals of a curved surface away.
+  The radius is `normal_radius`'s: min(`NORMAL_RADIUS_RATIO` x `max_distance`, `spacings` x the
+  target's mean nearest-neighbor spacing): the pairing distance, capped so that a generous
+  `max_distance` does not smooth the normals of a curved surface away.
 
   Args:
     target: (m, 3) float64 cloud.
@@ -253,11 +296,48 @@ def estimate_target_normals(target: np.ndarray, max_distance: float,
   if len(pts) < 3:
     return np.full((len(pts), 3), np.nan)
   grid = grid if grid is not None else engine.knn_grid(pts)
-  spacing = float(engine.knn(grid, pts, 2)[0][:, 1].mean())  # the point itself, then its nearest
-  radius = NORMAL_RADIUS_RATIO * float(max_distance)
-  if spacing > 0:
-    radius = min(radius, float(spacings) * spacing)
-  return pca_normals(pts, radius, grid=grid)
+  return pca_normals(pts, normal_radius(pts, max_distance, grid, spacings=spacings), grid=grid)
+
+
+class TargetNormals:
+  """`estimate_target_normals` computed where ICP pairs: the unit normal of a target point (the
+  same radius, grid and PCA, so the same figure) is computed the first time `require` names it.
+  ICP pairs a target point only as the nearest of a moved source point: a few thousand source
+  points against a dense target read the normals of a small part of it.
+
+  Args:
+    target: (m, 3) cloud.
+    max_distance: the ICP pairing distance (cloud units, finite).
+    grid: optional `engine.Grid` of `target` to reuse (any cell size).
+    spacings: the radius cap in mean spacings (`normal_radius`).
+    spacing: the target's mean nearest-neighbor spacing, where known (`normal_radius`).
+
+  Attributes:
+    unit: (m, 3) float64 `unit_normals` of the points computed so far; NaN rows elsewhere and
+      where a normal is undefined. `require` fills it in place.
+  """
+
+  def __init__(self, target: np.ndarray, max_distance: float, grid: engine.Grid | None = None,
+               *, spacings: float = NORMAL_RADIUS_SPACING, spacing: float | None = None):
+    self.points = np.ascontiguousarray(target, np.float64)
+    self.grid = grid if grid is not None else engine.knn_grid(self.points)
+    self.radius = (normal_radius(self.points, max_distance, self.grid, spacings=spacings,
+                                 spacing=spacing) if len(self.points) >= 3 else 0.0)
+    self.unit = np.full((len(self.points), 3), np.nan)
+    self.done = np.zeros(len(self.points), bool)
+
+  def require(self, indices: np.ndarray) -> bool:
+    """Computes the normals of the target rows `indices` (negative entries ignored) not
+    computed yet; True when there were any."""
+    idx = np.asarray(indices, np.int64)
+    idx = idx[idx >= 0]
+    new = np.unique(idx[~self.done[idx]])
+    if len(new) == 0:
+      return False
+    self.done[new] = True
+    if len(self.points) >= 3:
+      self.unit[new] = unit_normals(pca_normals(self.points, self.radius, grid=self.grid, at=new))
+    return True
 
 
 # Poses `point_to_plane_icp` remembers to detect a cycle of pairings (`revisited`).
@@ -290,7 +370,7 @@ def revisited(pose: np.ndarray, recent: list[np.ndarray], max_distance: float,
 def point_to_plane_icp(source: np.ndarray, target: np.ndarray, init: np.ndarray, *,
                        max_distance: float, iterations: int, tolerance: float,
                        target_grid: engine.Grid | None = None,
-                       target_normals: np.ndarray | None = None
+                       target_normals: np.ndarray | TargetNormals | None = None
                        ) -> tuple[np.ndarray, float, float]:
   """Point-to-plane ICP from `init` (what `registration.icp` runs in that mode).
 
@@ -307,8 +387,9 @@ def point_to_plane_icp(source: np.ndarray, target: np.ndarray, init: np.ndarray,
     iterations: at most this many steps.
     tolerance: convergence threshold.
     target_grid: optional `engine.Grid` of `target` to reuse (default: `engine.knn_grid`).
-    target_normals: (m, 3) normals of `target` (any length or sign); None:
-      `estimate_target_normals`.
+    target_normals: (m, 3) normals of `target` (any length or sign), or a `TargetNormals` of
+      it (computed where pairs need them); None: a `TargetNormals` (`estimate_target_normals`'
+      figures at the target points paired).
 
   Returns:
     (transform (4, 4), fitness = fraction of source points paired, rmse of the pairs' point
@@ -318,20 +399,25 @@ def point_to_plane_icp(source: np.ndarray, target: np.ndarray, init: np.ndarray,
     ValueError: `target_normals` not (m, 3), or an infinite `max_distance` with no normals.
   """
   target = np.ascontiguousarray(target, np.float64)
-  if target_normals is not None:
-    nrm = check_normals(target_normals, len(target))
-  elif not np.isfinite(max_distance):
+  lazy = target_normals if isinstance(target_normals, TargetNormals) else None
+  if target_normals is None and not np.isfinite(max_distance):
     raise ValueError("max_distance: expected a finite distance to estimate the target normals "
                      f"over, got {max_distance!r}")
   grid = target_grid if target_grid is not None else engine.knn_grid(target)
   if target_normals is None:
-    nrm = estimate_target_normals(target, max_distance, grid)
-  normals = unit_normals(nrm)
+    lazy = TargetNormals(target, max_distance, grid)
+  if lazy is not None:
+    if len(lazy.unit) != len(target):
+      raise ValueError(f"target_normals: TargetNormals of {len(lazy.unit)} points for a target "
+                       f"of {len(target)}")
+  else:
+    normals = unit_normals(check_normals(target_normals, len(target)))
   center = target.mean(axis=0) if len(target) else np.zeros(3)
   tr = np.array(init, np.float64)
+  given = lazy if lazy is not None else normals
 
   def sums(pose):
-    return plane_sums(grid, normals, source, pose[:3, :3], pose[:3, 3], max_distance, center)
+    return plane_sums(grid, given, source, pose[:3, :3], pose[:3, 3], max_distance, center)
 
   cur = sums(tr)
   recent = [(tr, cur)]  # the last CYCLE_MEMORY poses and their sums
@@ -434,7 +520,8 @@ def icp_sums(grid: Grid, source: np.ndarray, rotation: np.ndarray, translation: 
 
 def icp(source: np.ndarray, target: np.ndarray, init: np.ndarray, *, max_distance: float,
         iterations: int = 30, tolerance: float = 1e-7,
-        target_grid: engine.Grid | None = None, target_normals: np.ndarray | None = None,
+        target_grid: engine.Grid | None = None,
+        target_normals: np.ndarray | TargetNormals | None = None,
         mode: str = "point_to_plane") -> tuple[np.ndarray, float, float]:
   """Point-to-plane or point-to-point ICP from an initial pose (host, float64, deterministic).
 
@@ -454,9 +541,10 @@ def icp(source: np.ndarray, target: np.ndarray, init: np.ndarray, *, max_distanc
     tolerance: convergence threshold.
     target_grid: optional `engine.Grid(target, max_distance)` to reuse.
     target_normals: (m, 3) target normals for "point_to_plane" (any length, any sign; zero or
-      non-finite rows are skipped). None: unsigned PCA normals
-      (`estimate_target_normals`: radius min(max_distance, 4 x the target's mean
-      nearest-neighbor spacing)). Ignored by "point_to_point".
+      non-finite rows are skipped), or a `TargetNormals` of the target. None: unsigned PCA
+      normals (`estimate_target_normals`: radius min(max_distance, 4 x the target's mean
+      nearest-neighbor spacing), computed at the target points paired, `TargetNormals`).
+      Ignored by "point_to_point".
     mode: "point_to_plane" or "point_to_point".
 
   Returns:

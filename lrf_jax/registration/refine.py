@@ -70,7 +70,8 @@ def check_rigid(t: Any, name: str) -> np.ndarray:
 def icp_passes(source: np.ndarray, target: np.ndarray, init: np.ndarray, distance: float,
             fine: bool, mr: float, iterations: int, grid: engine.Grid | None,
             mode: str, pool: np.ndarray | None = None,
-            rng: np.random.Generator | None = None) -> tuple[np.ndarray, float, float]:
+            rng: np.random.Generator | None = None, target_spacing: float | None = None
+            ) -> tuple[np.ndarray, float, float]:
   """ICP at `distance`; then, with `fine`, again at the gate `fine_distance` of the first pass's
   residuals with the same target normals. Fitness and rmse are those at `distance` of the
   returned pose (what the verdict and `Registration.overlap` read), over `source`.
@@ -78,13 +79,15 @@ def icp_passes(source: np.ndarray, target: np.ndarray, init: np.ndarray, distanc
   With `pool` (the whole source cloud, of which `source` is a seeded subset) the second pass
   pairs up to `ICP_POINTS` points drawn by `rng` among the pool's points that lie within
   `distance` of the target at the first pass's pose (`overlap_points`): on a partial overlap
-  all of them can pair, instead of the overlap's share of a uniform subset."""
+  all of them can pair, instead of the overlap's share of a uniform subset. `target_spacing`:
+  the target's mean nearest-neighbor spacing where measured already (the target normals'
+  radius cap, `icp_host.normal_radius`)."""
   if not fine or iterations == 0:
     return icp(source, target, init, max_distance=distance, iterations=iterations,
                target_grid=grid, mode=mode)
   target = np.asarray(target, np.float64)
   grid = grid if grid is not None else engine.Grid(target, distance)
-  normals = (icp_host.estimate_target_normals(target, distance, grid)
+  normals = (icp_host.TargetNormals(target, distance, grid, spacing=target_spacing)
              if mode == "point_to_plane" else None)
   kw: dict[str, Any] = dict(target_grid=grid, target_normals=normals, mode=mode)
   coarse, _, _ = icp(source, target, init, max_distance=distance, iterations=iterations, **kw)
@@ -117,7 +120,7 @@ def overlap_points(points: np.ndarray, grid: engine.Grid, transform: np.ndarray,
     (k, 3) float64 points, k <= count.
   """
   moved = points @ transform[:3, :3].T + transform[:3, 3]
-  near = np.flatnonzero(np.isfinite(engine.knn(grid, moved, 1, distance)[0][:, 0]))
+  near = np.flatnonzero(engine.any_within(grid, moved, distance))
   if len(near) < icp_host.MIN_PAIRS:
     return fallback
   if len(near) > count:
@@ -215,24 +218,29 @@ def refine(prepared: Prepared, verified: Verified, opts: RegisterOptions, timer:
   pair thinned by default, then `raw_pass` on the input points (its pose is the transform; the
   fitness, rmse and constraints, which the verdict reads, stay those of the thinned clouds)."""
   src_pts, dst_pts = prepared.sides[0].points, prepared.sides[1].points
+  target = prepared.sides[1]  # the input's spacing is the working cloud's where not thinned
+  dst_spacing = target.input_spacing if target.input_index is None else None
   with timer("icp"):
     icp_src = icp_subset(src_pts, prepared.rng)
     final, fitness, rmse = icp_passes(icp_src, dst_pts, verified.coarse.transform,
                                       verified.overlap_distance, opts.icp_fine, prepared.mr,
                                       int(opts.icp_iterations), verified.target_grid,
-                                      opts.icp_mode, pool=src_pts, rng=prepared.rng)
+                                      opts.icp_mode, pool=src_pts, rng=prepared.rng,
+                                      target_spacing=dst_spacing)
   with timer("verification"), serial_blas():
     degeneracy, free = overlap_constraints(icp_src, dst_pts, verified.target_grid, final,
                                            verified.overlap_distance)
   if any(side.raw is not None for side in prepared.sides) and opts.icp_iterations > 0:
     with timer("icp"):
       src_in, dst_in = (side.points if side.raw is None else side.raw for side in prepared.sides)
-      final = raw_pass(src_in, dst_in, final, prepared.mr, opts, prepared.seed)
+      final = raw_pass(src_in, dst_in, final, prepared.mr, opts, prepared.seed,
+                       prepared.sides[1].input_spacing)
   return Refined(final, fitness, rmse, degeneracy, free, icp_src)
 
 
 def raw_pass(source: np.ndarray, target: np.ndarray, pose: np.ndarray, mr: float,
-             opts: RegisterOptions, seed: int) -> np.ndarray:
+             opts: RegisterOptions, seed: int, target_spacing: float | None = None
+             ) -> np.ndarray:
   """The last ICP pass of a pair thinned by default: `opts.icp_mode` ICP of up to
   `RAW_ICP_POINTS` input source points (drawn with `seed`) against the input target points
   (`icp_host.estimate_target_normals` for a pairing distance of `RAW_NORMAL_MR` mr: a radius of
@@ -249,6 +257,8 @@ def raw_pass(source: np.ndarray, target: np.ndarray, pose: np.ndarray, mr: float
     mr: the working resolution (cloud units).
     opts: the options (`icp_mode`, `icp_iterations`).
     seed: seeds the draw.
+    target_spacing: the target's mean nearest-neighbor spacing where measured already
+      (`Side.input_spacing`); None measures it.
 
   Returns:
     (4, 4) float64 source -> target.
@@ -257,8 +267,8 @@ def raw_pass(source: np.ndarray, target: np.ndarray, pose: np.ndarray, mr: float
   dst = np.asarray(target, np.float64)
   grid = engine.knn_grid(dst)
   plane = opts.icp_mode == "point_to_plane"
-  normals = (icp_host.estimate_target_normals(dst, RAW_NORMAL_MR * mr, grid,
-                                              spacings=RAW_NORMAL_SPACINGS) if plane else None)
+  normals = (icp_host.TargetNormals(dst, RAW_NORMAL_MR * mr, grid, spacings=RAW_NORMAL_SPACINGS,
+                                    spacing=target_spacing) if plane else None)
   tr, fitness = pose, 0.0
   for gate in RAW_GATES_MR:
     tr, fitness, _ = icp(src, dst, tr, max_distance=gate * mr, iterations=int(opts.icp_iterations),

@@ -27,7 +27,7 @@ from lrf_jax.frames import METHODS
 from lrf_jax.geometry.cloud import CheckedCloud, as_cloud
 from lrf_jax.geometry.keypoints import iss_keypoints
 from lrf_jax.geometry.normals import NORMAL_RADIUS_RATIO, estimate_normals
-from lrf_jax.geometry.resolution import pair_resolution, registration_resolution
+from lrf_jax.geometry.resolution import Resolution, pair_resolution, registration_resolution
 from lrf_jax.geometry.sampling import thin_cloud, thinning_voxel_size
 from lrf_jax.registration import host
 from lrf_jax.registration.estimators import _centred, _finish, _uncentre
@@ -66,6 +66,7 @@ class Side(NamedTuple):
   normals: np.ndarray | None     # estimated towards the viewpoint when a method or SHOT needs them
   input_index: np.ndarray | None  # each working point's input point (thinned clouds), or None
   raw: np.ndarray | None = None  # the input points of a cloud thinned by default (refine's last pass)
+  input_spacing: float | None = None  # the input points' mean nearest-neighbor spacing, if measured
 
   @property
   def points(self) -> np.ndarray:
@@ -156,8 +157,9 @@ def prepare(source: Any, target: Any, opts: RegisterOptions) -> Prepared:
   mr, thinned, voxel = working_clouds(clouds[0], clouds[1], opts.mr, opts.voxel_size)
   radius = opts.radius_mr * mr
   rng = np.random.default_rng(seed)
-  sides = [prepare_side(cloud, index, vp, mr, radius, opts, rng)
-           for (cloud, index), vp in zip(thinned, views)]
+  sides = [prepare_side(cloud, index, vp, mr, radius, opts, rng)._replace(
+      input_spacing=res.mean_spacing if c.faces is None else None)  # a mesh's is its edges'
+           for (cloud, index, res), vp, c in zip(thinned, views, clouds)]
   if opts.voxel_size is None:  # thinned by default: refine's last pass pairs the input points
     sides = [side if side.input_index is None else side._replace(raw=c.points)
              for side, c in zip(sides, clouds)]
@@ -206,9 +208,11 @@ def reseed(prepared: Prepared, opts: RegisterOptions, seed: int) -> Prepared:
 
 
 def working_clouds(source: CheckedCloud, target: CheckedCloud, mr: Any, voxel_size: Any
-                   ) -> tuple[float, list[tuple[CheckedCloud, np.ndarray | None]], float]:
+                   ) -> tuple[float, list[tuple[CheckedCloud, np.ndarray | None, Resolution]],
+                              float]:
   """The working resolution of a pair and the clouds `register` works on: (mr, [(cloud, index
-  into the input points or None) for source and target], the thinning voxel edge or 0).
+  into the input points or None, the input cloud's `registration_resolution`) for source and
+  target], the thinning voxel edge or 0).
 
   `mr` None: `pair_resolution` of the two `registration_resolution`s. Each cloud is then thinned
   (or not) by `working_cloud` at that mr; the voxel returned is the last side's that was
@@ -218,11 +222,11 @@ def working_clouds(source: CheckedCloud, target: CheckedCloud, mr: Any, voxel_si
                  for c, n in zip((source, target), ("source", "target"))]
   if mr is None:
     mr = pair_resolution(*resolutions)
-  out: list[tuple[CheckedCloud, np.ndarray | None]] = []
+  out: list[tuple[CheckedCloud, np.ndarray | None, Resolution]] = []
   used = 0.0
   for cloud, res in zip((source, target), resolutions):
     thin, index, voxel = working_cloud(cloud, float(mr), voxel_size, res)
-    out.append((thin, index))
+    out.append((thin, index, res))
     used = voxel or used
   return float(mr), out, used
 

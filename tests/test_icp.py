@@ -402,6 +402,7 @@ def test_target_normals_are_the_estimated_ones_where_required_and_nan_elsewhere(
   assert lazy.require(idx) and not lazy.require(idx[::-1])  # computed once
   done = np.unique(idx[idx >= 0])
   assert np.array_equal(lazy.unit[done], want[done]) and np.isfinite(want[done]).all()
+  assert np.array_equal(lazy.pca[done], icp_host.estimate_target_normals(pts, 0.1, grid)[done])
   rest = np.setdiff1d(np.arange(len(pts)), done)
   assert np.isnan(lazy.unit[rest]).all() and lazy.done.sum() == len(done)
   # a spacing the caller measured, as working_resolution measures it: the same radius

@@ -313,8 +313,10 @@ class TargetNormals:
     spacing: the target's mean nearest-neighbor spacing, where known (`normal_radius`).
 
   Attributes:
-    unit: (m, 3) float64 `unit_normals` of the points computed so far; NaN rows elsewhere and
-      where a normal is undefined. `require` fills it in place.
+    pca: (m, 3) float64 normals of the points computed so far, as `estimate_target_normals`
+      gives them; NaN rows elsewhere and where a normal is undefined.
+    unit: (m, 3) float64 `unit_normals` of `pca` (what the ICP kernels read). `require` fills
+      both in place.
   """
 
   def __init__(self, target: np.ndarray, max_distance: float, grid: engine.Grid | None = None,
@@ -323,6 +325,7 @@ class TargetNormals:
     self.grid = grid if grid is not None else engine.knn_grid(self.points)
     self.radius = (normal_radius(self.points, max_distance, self.grid, spacings=spacings,
                                  spacing=spacing) if len(self.points) >= 3 else 0.0)
+    self.pca = np.full((len(self.points), 3), np.nan)
     self.unit = np.full((len(self.points), 3), np.nan)
     self.done = np.zeros(len(self.points), bool)
 
@@ -336,7 +339,8 @@ class TargetNormals:
       return False
     self.done[new] = True
     if len(self.points) >= 3:
-      self.unit[new] = unit_normals(pca_normals(self.points, self.radius, grid=self.grid, at=new))
+      self.pca[new] = pca_normals(self.points, self.radius, grid=self.grid, at=new)
+      self.unit[new] = unit_normals(self.pca[new])
     return True
 
 

@@ -55,7 +55,7 @@ from lrf_jax.registration import multiway_tasks
 from lrf_jax.registration.options import DEFAULTS, resolve
 from lrf_jax.search import engine as search_engine
 from lrf_jax.registration import pose_graph
-from lrf_jax.registration.icp_host import estimate_target_normals
+from lrf_jax.registration.icp_host import TargetNormals
 from lrf_jax.geometry.cloud import CheckedCloud, as_cloud
 from lrf_jax.geometry.resolution import registration_resolution
 from lrf_jax.checks import validate_viewpoint
@@ -346,7 +346,7 @@ def refine_poses(clouds: Sequence[np.ndarray], poses: np.ndarray,
   rng = np.random.default_rng(seed)
   scans = sorted({k for p in pairs for k in p})
   grids = {k: search_engine.knn_grid(clouds[k]) for k in scans}
-  normals = {k: estimate_target_normals(clouds[k], icp_mr * mr, grids[k]) for k in scans}
+  normals = {k: TargetNormals(clouds[k], icp_mr * mr, grids[k]) for k in scans}  # where paired
   subs = {k: clouds[k][np.sort(rng.choice(len(clouds[k]), min(samples, len(clouds[k])),
                                           replace=False))] for k in scans}
   free = [k for k in scans if k != reference]
@@ -357,10 +357,11 @@ def refine_poses(clouds: Sequence[np.ndarray], poses: np.ndarray,
         moved = _apply(np.linalg.inv(poses[j]) @ poses[i], subs[i])
         d, idx = search_engine.knn(grids[j], moved, 1, icp_mr * mr)
         ok = np.isfinite(d[:, 0])
-        ok[ok] = np.all(np.isfinite(normals[j][idx[ok, 0]]), axis=1)
+        normals[j].require(idx[ok, 0])
+        ok[ok] = np.all(np.isfinite(normals[j].pca[idx[ok, 0]]), axis=1)
         if ok.sum() >= 3:
           blocks.append(pose_graph.PointPairs(i, j, subs[i][ok], clouds[j][idx[ok, 0]],
-                                              normals[j][idx[ok, 0]]))
+                                              normals[j].pca[idx[ok, 0]]))
     new = pose_graph.least_squares_poses(poses, blocks, free, scale=mr, robust=robust_mr,
                                          max_nfev=REFINE_STEPS)
     moved_by = max((np.abs(_apply(new[k], subs[k]) - _apply(poses[k], subs[k])).max()

@@ -3,7 +3,7 @@ at 2.5 cm and at a denser stand-in, against Open3D's tutorial pipeline in the sa
 
     LRF_DATA=/path/to/data python benchmarks/bench_lidar.py [--out out/bench_lidar] [--seed 0]
         [--sets sweeps subsampled cropped rooms dense mixed]
-        [--fused DIR --sets fused fused25 fusedmixed]
+        [--fused DIR --sets fused fused25 fusedmixed fusedratio]
 
 lrf_jax: `lrf_jax.register(source, target)` with its defaults: no resolution, no voxel size.
 Open3D 0.20: its global registration tutorial (`benchmarks/_open3d_pipeline.py`: voxel
@@ -20,11 +20,12 @@ Sets (every pair both pipelines, after one warm-up call each):
 * dense: the same, each fragment upsampled 4x by jitter in its tangent plane (a stand-in for a
   full-density fused fragment, 6 mm spacing: this data holds none);
 * mixed: a dense fragment against a 2.5 cm one, both ways;
-* fused, fused25, fusedmixed (with `--fused DIR`, not by default): full-density TSDF fragments
-  fused from the depth frames under DIR (`benchmarks/_fused_fragments.py`: Open3D's
-  livingroom1_clean_micro test data makes 5 fragments of 242k-300k points, 3-4 mm spacing),
-  every pair (i, j), i < j: at full density, both voxelized at 2.5 cm, and the full-density
-  source against the 2.5 cm target.
+* fused, fused25, fusedmixed, fusedratio (with `--fused DIR`, not by default): full-density
+  TSDF fragments fused from the depth frames under DIR (`benchmarks/_fused_fragments.py`:
+  Open3D's livingroom1_clean_micro test data makes 5 fragments of 242k-300k points, 3-4 mm
+  spacing), every pair (i, j), i < j: at full density, both voxelized at 2.5 cm, the
+  full-density source against the 2.5 cm target, and both voxelized at extent / 136
+  (`RATIO_VOXEL`: the ratio of extent to spacing of 3DMatch's 2.5 cm fragments).
 
 Right: rotation error < 5 deg and translation error < 2 m (the KITTI benchmarks' rule) for the
 sweeps, < 1 deg and 10 cm as well ("strict"); rooms: < 15 deg and 30 cm, as
@@ -55,7 +56,12 @@ from lrf_jax.registration import register, rotation_error_deg  # noqa: E402
 from benchmarks._open3d_pipeline import global_registration, have_open3d  # noqa: E402
 
 SETS = ("sweeps", "subsampled", "cropped", "rooms", "dense", "mixed", "fused", "fused25",
-        "fusedmixed")
+        "fusedmixed", "fusedratio")
+# fusedratio's voxel, as a fraction of each fragment's extent (`cloud_extent`): it leaves the
+# fused fragments at extent / mean spacing 160-170, the ratio of 3DMatch's 2.5 cm fragments
+# (162-183; the fused ones at 2.5 cm: about 103). register is scale-free, so this is a 2.5 cm
+# 3DMatch fragment's analogue to compare the full-density time with.
+RATIO_VOXEL = 1 / 136
 
 
 def homogeneous(p: np.ndarray) -> np.ndarray:
@@ -118,8 +124,14 @@ def fused_pairs(folder: Path, cache: Path, variant: str) -> list[dict]:
   if (folder, cache) not in _FRAGMENTS:  # fused once for the three variants
     _FRAGMENTS[(folder, cache)] = fused_fragments(folder, cache)
   frags = _FRAGMENTS[(folder, cache)]
-  src_key = "coarse" if variant == "fused25" else "full"
-  dst_key = "full" if variant == "fused" else "coarse"
+  if variant == "fusedratio":
+    from lrf_jax.geometry.resolution import cloud_extent
+    from lrf_jax.geometry.sampling import voxel_downsample
+    for f in frags:
+      if "ratio" not in f:
+        f["ratio"] = voxel_downsample(f["full"], RATIO_VOXEL * cloud_extent(f["full"]))
+  src_key = {"fused25": "coarse", "fusedratio": "ratio"}.get(variant, "full")
+  dst_key = {"fused": "full", "fusedratio": "ratio"}.get(variant, "coarse")
   return [dict(name=f"fragment {i}->{j}", source=frags[i][src_key], target=frags[j][dst_key],
                gt=np.linalg.inv(frags[j]["pose"]) @ frags[i]["pose"], lidar=False)
           for i in range(len(frags)) for j in range(i + 1, len(frags))]
@@ -256,7 +268,7 @@ def main() -> int:
                   "(benchmarks/_fused_fragments.py), for the fused sets")
   args = ap.parse_args()
   if any(name.startswith("fused") for name in args.sets) and not args.fused:
-    ap.error("--sets fused, fused25, fusedmixed need --fused DIR")
+    ap.error("--sets fused, fused25, fusedmixed, fusedratio need --fused DIR")
   data = Path(os.environ.get("LRF_DATA", REPO.parent / "shared" / "data"))
   out = Path(args.out)
   inputs = [Path(args.fused).resolve()] if args.fused else []

@@ -543,3 +543,36 @@ def test_uwa3m_pseudo_ground_truth_aligns_consecutive_views(uwa3m_root):
   assert len(to_model) == 10 and "stand-in" in to_model[0].meta["model_stand_in"]
   for pair in to_model:  # each view lies on the model under inv(T_v)
     assert _overlap(pair.scene_points, pair.model_in_scene(), 1.0) > 0.8
+
+
+def _on_parallelograms(points, quads, tol):
+  """Whether each point lies within `tol` of one of the parallelograms (origin, u, v)."""
+  hit = np.zeros(len(points), bool)
+  for o, u, v in quads:
+    n = np.cross(u, v)
+    rel = points - o
+    gram = np.array([[u @ u, u @ v], [u @ v, v @ v]])
+    ab = np.linalg.solve(gram, np.stack([rel @ u, rel @ v]))
+    slack = tol / np.array([np.linalg.norm(u), np.linalg.norm(v)])[:, None]  # noise at an edge
+    inside = np.all((ab >= -slack) & (ab <= 1 + slack), axis=0)
+    hit |= inside & (np.abs(rel @ n) / np.linalg.norm(n) <= tol)
+  return hit
+
+
+def test_street_pair_is_seeded_and_its_truth_puts_both_sweeps_on_the_street():
+  from lrf_jax.datasets.synthetic import street_quads
+  kw = dict(n_points=5000)
+  a, b = ds.make_street_pair(4.0, 6.0, seed=3, **kw), ds.make_street_pair(4.0, 6.0, seed=3, **kw)
+  assert np.array_equal(a.model_points, b.model_points) and len(a.model_points) == 5000
+  assert not np.array_equal(a.model_points,
+                            ds.make_street_pair(4.0, 6.0, seed=4, **kw).model_points)
+  assert np.array_equal(a.transform[:3, 3], [-6.0, 0.0, 0.0])
+  assert np.array_equal(a.model_viewpoint, np.zeros(3))
+  quads = street_quads(4.0)
+  sensor = np.array([0.0, 0.0, 1.7])  # the model's; the truth moves the scene's there
+  world_model = a.model_points + sensor
+  world_scene = ds.transform_points(np.linalg.inv(a.transform), a.scene_points) + sensor
+  for pts in (world_model, world_scene):  # 1 cm noise a axis: within 6 cm of the surfaces
+    assert _on_parallelograms(pts, quads, 0.06).all()
+  assert not _on_parallelograms(a.scene_points + sensor, quads, 0.06).all()  # untransformed
+  assert np.linalg.norm(a.model_points, axis=1).max() < 40.0 + 0.1  # the sensor's range

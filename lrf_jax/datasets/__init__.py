@@ -23,7 +23,7 @@ from lrf_jax.datasets.root import (DATASETS, ENV_VAR, DataNotFoundError, dataset
                                    find_data_root)
 from lrf_jax.datasets.stanford import BUNNY_SCAN_ORDER, bunny_poses, load_bunny_pairs
 from lrf_jax.datasets.synthetic import hidden_point_removal, load_demo, make_demo_mesh, \
-    make_demo_pair
+    make_demo_pair, make_street_pair
 from lrf_jax.datasets.threedmatch import load_threedmatch_scenes, read_pairs_tsv
 from lrf_jax.datasets.training import TrainingSet, build_training_set, default_cache_dir
 from lrf_jax.datasets.uwa3m import UWA3M_OBJECTS, load_uwa3m, read_pseudo_gt
@@ -68,6 +68,7 @@ __all__ = [
     "load_uwaor_scene",
     "make_demo_mesh",
     "make_demo_pair",
+    "make_street_pair",
     "mesh_resolution",
     "points_only",
     "random_rigid_motion",

@@ -2,7 +2,7 @@
 at 2.5 cm and at a denser stand-in, against Open3D's tutorial pipeline in the same run.
 
     LRF_DATA=/path/to/data python benchmarks/bench_lidar.py [--out out/bench_lidar] [--seed 0]
-        [--sets sweeps subsampled cropped rooms dense mixed]
+        [--sets sweeps subsampled cropped rooms dense mixed far]
         [--fused DIR --sets fused fused25 fusedmixed fusedratio]
 
 lrf_jax: `lrf_jax.register(source, target)` with its defaults: no resolution, no voxel size.
@@ -20,6 +20,10 @@ Sets (every pair both pipelines, after one warm-up call each):
 * dense: the same, each fragment upsampled 4x by jitter in its tangent plane (a stand-in for a
   full-density fused fragment, 6 mm spacing: this data holds none);
 * mixed: a dense fragment against a 2.5 cm one, both ways;
+* far: sweeps 3 and 5 as a sensor 10, 20 or 30 m further along the road or back would return
+  them (`resweep`: an HDL-64E's beams and azimuth step, the nearest point of each kept, 80 m
+  range), against sweep 0: simulated pairs 6-34 m apart (a surface the first sensor missed
+  never appears, so they are easier than real far pairs);
 * fused, fused25, fusedmixed, fusedratio (with `--fused DIR`, not by default): full-density
   TSDF fragments fused from the depth frames under DIR (`benchmarks/_fused_fragments.py`:
   Open3D's livingroom1_clean_micro test data makes 5 fragments of 242k-300k points, 3-4 mm
@@ -55,8 +59,14 @@ from lrf_jax.registration import register, rotation_error_deg  # noqa: E402
 
 from benchmarks._open3d_pipeline import global_registration, have_open3d  # noqa: E402
 
-SETS = ("sweeps", "subsampled", "cropped", "rooms", "dense", "mixed", "fused", "fused25",
+SETS = ("sweeps", "subsampled", "cropped", "rooms", "dense", "mixed", "far", "fused", "fused25",
         "fusedmixed", "fusedratio")
+DEFAULT_SETS = SETS[:7]
+# far: a Velodyne HDL-64E's beams (64 rows over +2 to -24.8 deg elevation) and azimuth step.
+HDL64_ELEVATION = (-24.8, 2.0)
+HDL64_ROWS = 64
+HDL64_AZIMUTH_STEP = 0.17  # deg
+FAR_SHIFTS = (-30.0, -20.0, -10.0, 10.0, 20.0, 30.0)  # m along the road
 # fusedratio's voxel, as a fraction of each fragment's extent (`cloud_extent`): it leaves the
 # fused fragments at extent / mean spacing 160-170, the ratio of 3DMatch's 2.5 cm fragments
 # (162-183; the fused ones at 2.5 cm: about 103). register is scale-free, so this is a 2.5 cm
@@ -79,6 +89,47 @@ def sweep_pairs(data: Path, rng: np.random.Generator, variant: str) -> list[dict
   return [dict(name=f"{j}->{i}", source=clouds[j], target=clouds[i],
                gt=np.linalg.inv(poses[i]) @ poses[j], lidar=True)
           for j in range(6) for i in range(j)]
+
+
+def resweep(points: np.ndarray, sensor: np.ndarray, max_range: float = 80.0) -> np.ndarray:
+  """The points of a sweep a spinning LiDAR at `sensor` would return: binned by its beams
+  (`HDL64_ROWS` rows over `HDL64_ELEVATION`, `HDL64_AZIMUTH_STEP` deg columns), the nearest point
+  of each bin kept (what stands in front hides the rest), within `max_range`; in the new
+  sensor's frame (axes as the input's). Only surfaces the first sweep saw can be returned."""
+  rel = points - sensor
+  r = np.linalg.norm(rel, axis=1)
+  el = np.degrees(np.arcsin(np.clip(rel[:, 2] / np.maximum(r, 1e-9), -1, 1)))
+  az = np.degrees(np.arctan2(rel[:, 1], rel[:, 0])) + 180.0
+  lo, hi = HDL64_ELEVATION
+  row = np.floor((el - lo) / (hi - lo) * HDL64_ROWS).astype(np.int64)
+  col = np.floor(az / HDL64_AZIMUTH_STEP).astype(np.int64)
+  ok = (row >= 0) & (row < HDL64_ROWS) & (r > 2.0) & (r < max_range)
+  idx = np.flatnonzero(ok)
+  key = row[idx] * 10_000 + col[idx]
+  order = np.lexsort((r[idx], key))  # by bin, nearest first
+  first = np.r_[True, key[order][1:] != key[order][:-1]]
+  return rel[idx[order][first]]
+
+
+def far_pairs(data: Path) -> list[dict]:
+  """Sweeps 3 and 5 as a sensor `FAR_SHIFTS` m further along the road or back would return
+  them (`resweep`), against sweep 0: simulated far-apart pairs (no surface the first sensor
+  missed appears)."""
+  folder = data / "lidar_kitti00"
+  poses = [homogeneous(p) for p in np.loadtxt(folder / "poses_DERIVED.txt")]
+  heading = poses[5][:3, 3] / np.linalg.norm(poses[5][:3, 3])  # the car's way, sweep 0's frame
+  target = read_cloud(folder / "000000.bin").points
+  out = []
+  for k in (3, 5):
+    points = read_cloud(folder / f"{k:06d}.bin").points
+    for shift in FAR_SHIFTS:
+      sensor = poses[k][:3, :3].T @ (shift * heading)  # in sweep k's frame
+      move = np.eye(4)
+      move[:3, 3] = sensor
+      gt = np.linalg.inv(poses[0]) @ poses[k] @ move
+      out.append(dict(name=f"{k}{shift:+.0f}m->0 ({np.linalg.norm(gt[:3, 3]):.0f} m)",
+                      source=resweep(points, sensor), target=target, gt=gt, lidar=True))
+  return out
 
 
 def upsample(points: np.ndarray, factor: int, rng: np.random.Generator) -> np.ndarray:
@@ -263,7 +314,7 @@ def main() -> int:
   ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
   ap.add_argument("--out", default="out/bench_lidar")
   ap.add_argument("--seed", type=int, default=0)
-  ap.add_argument("--sets", nargs="+", default=list(SETS[:6]), choices=SETS)
+  ap.add_argument("--sets", nargs="+", default=list(DEFAULT_SETS), choices=SETS)
   ap.add_argument("--fused", help="a folder of depth frames and their trajectory "
                   "(benchmarks/_fused_fragments.py), for the fused sets")
   args = ap.parse_args()
@@ -280,6 +331,8 @@ def main() -> int:
   for name in args.sets:
     if name.startswith("fused"):
       sets[name] = fused_pairs(Path(args.fused), out / "fused_cache", name)
+    elif name == "far":
+      sets[name] = far_pairs(data)
     else:
       make = sweep_pairs if name in ("sweeps", "subsampled", "cropped") else room_pairs
       sets[name] = make(data, np.random.default_rng(args.seed), name)

@@ -403,22 +403,22 @@ def point_to_plane_icp(source: np.ndarray, target: np.ndarray, init: np.ndarray,
     ValueError: `target_normals` not (m, 3), or an infinite `max_distance` with no normals.
   """
   target = np.ascontiguousarray(target, np.float64)
-  lazy = target_normals if isinstance(target_normals, TargetNormals) else None
   if target_normals is None and not np.isfinite(max_distance):
     raise ValueError("max_distance: expected a finite distance to estimate the target normals "
                      f"over, got {max_distance!r}")
   grid = target_grid if target_grid is not None else engine.knn_grid(target)
-  if target_normals is None:
-    lazy = TargetNormals(target, max_distance, grid)
-  if lazy is not None:
-    if len(lazy.unit) != len(target):
-      raise ValueError(f"target_normals: TargetNormals of {len(lazy.unit)} points for a target "
-                       f"of {len(target)}")
+  given: np.ndarray | TargetNormals
+  if isinstance(target_normals, TargetNormals):
+    if len(target_normals.unit) != len(target):
+      raise ValueError(f"target_normals: TargetNormals of {len(target_normals.unit)} points "
+                       f"for a target of {len(target)}")
+    given = target_normals
+  elif target_normals is None:  # computed where the pairs need them
+    given = TargetNormals(target, max_distance, grid)
   else:
-    normals = unit_normals(check_normals(target_normals, len(target)))
+    given = unit_normals(check_normals(target_normals, len(target)))
   center = target.mean(axis=0) if len(target) else np.zeros(3)
   tr = np.array(init, np.float64)
-  given = lazy if lazy is not None else normals
 
   def sums(pose):
     return plane_sums(grid, given, source, pose[:3, :3], pose[:3, 3], max_distance, center)

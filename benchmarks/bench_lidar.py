@@ -92,10 +92,11 @@ def sweep_pairs(data: Path, rng: np.random.Generator, variant: str) -> list[dict
 
 
 def resweep(points: np.ndarray, sensor: np.ndarray, max_range: float = 80.0) -> np.ndarray:
-  """The points of a sweep a spinning LiDAR at `sensor` would return: binned by its beams
-  (`HDL64_ROWS` rows over `HDL64_ELEVATION`, `HDL64_AZIMUTH_STEP` deg columns), the nearest point
-  of each bin kept (what stands in front hides the rest), within `max_range`; in the new
-  sensor's frame (axes as the input's). Only surfaces the first sweep saw can be returned."""
+  """The points of a sweep (n, 3) that a spinning LiDAR at `sensor` (3,) would return: binned by
+  its beams (`HDL64_ROWS` rows over `HDL64_ELEVATION`, `HDL64_AZIMUTH_STEP` deg columns), the
+  nearest point of each bin kept (what stands in front hides the rest), between 2 m (the car
+  itself) and `max_range` m; (k, 3) in the new sensor's frame (axes as the input's). Only
+  surfaces the first sweep saw can be returned."""
   rel = points - sensor
   r = np.linalg.norm(rel, axis=1)
   el = np.degrees(np.arcsin(np.clip(rel[:, 2] / np.maximum(r, 1e-9), -1, 1)))
@@ -172,7 +173,7 @@ _FRAGMENTS: dict[tuple[Path, Path], list[dict]] = {}
 def fused_pairs(folder: Path, cache: Path, variant: str) -> list[dict]:
   """Every pair (i, j), i < j, of the fused fragments of `folder`: source i, target j."""
   from benchmarks._fused_fragments import fused_fragments
-  if (folder, cache) not in _FRAGMENTS:  # fused once for the three variants
+  if (folder, cache) not in _FRAGMENTS:  # fused once for the four variants
     _FRAGMENTS[(folder, cache)] = fused_fragments(folder, cache)
   frags = _FRAGMENTS[(folder, cache)]
   if variant == "fusedratio":

@@ -433,7 +433,10 @@ def test_icp_with_normals_computed_where_it_pairs_equals_icp_with_every_normal(s
 
 def test_a_target_normals_of_another_cloud_is_refused():
   pts = _corner(300, 6, 0.0)
-  with pytest.raises(ValueError, match="target_normals"):
-    icp(pts, pts[:200], np.eye(4), max_distance=0.1,
-        target_normals=icp_host.TargetNormals(pts, 0.1))
+  for other in (pts[:200], pts + [0.0, 0.0, 0.01]):  # fewer points; as many, elsewhere
+    with pytest.raises(ValueError, match="TargetNormals of another cloud"):
+      icp(pts, other, np.eye(4), max_distance=0.1,
+          target_normals=icp_host.TargetNormals(pts, 0.1))
+  same = icp_host.TargetNormals(pts.copy(), 0.1)  # equal points in another array: accepted
+  assert np.isfinite(icp(pts, pts, np.eye(4), max_distance=0.1, target_normals=same)[0]).all()
 

@@ -30,8 +30,9 @@ nearest-neighbor spacing (about 50 neighbors on a surface), so that a generous p
 does not smooth a curved surface's normals away; their sign is irrelevant to ((q - p) · n)^2, so
 no orientation pass is run. They are computed where pairs need them (`TargetNormals`): the sums
 kernel returns each source point's target index, the normals of target points paired for the
-first time are computed, and the step's sums are taken again; a point's normal does not depend
-on which others were computed, so the steps are those of normals computed everywhere.
+first time are computed, and the sums of the blocks that paired them are taken again; a point's
+normal does not depend on which others were computed, so the steps are those of normals
+computed everywhere.
 
 References:
   Chen & Medioni, "Object modelling by registration of multiple range images", IVC 1992
@@ -98,8 +99,8 @@ def _plane_sums(pts, slot_index, starts, origin, h, dims, target, normals, sourc
   point's target index (-1: unpaired) in `paired`."""
   m = source.shape[0]
   n = pts.shape[1]
-  for b in nb.prange(blocks.shape[0]):
-    blk = blocks[b]
+  for t in nb.prange(blocks.shape[0]):
+    blk = blocks[t]
     bd = np.empty(1)
     bi = np.empty(1, np.int64)
     a = np.empty(6)
@@ -188,7 +189,9 @@ def plane_sums(grid: engine.Grid, normals: np.ndarray | TargetNormals, source: n
   src = writable_float64(source).reshape(-1, 3)  # one specialisation of the kernel
   r = float(max_distance)
   lazy = normals if isinstance(normals, TargetNormals) else None
-  nrm = writable_float64(normals.unit if isinstance(normals, TargetNormals) else normals)
+  # a TargetNormals' own array (float64, contiguous, writable): `require` fills it in place and
+  # the blocks run again read the new rows
+  nrm = normals.unit if isinstance(normals, TargetNormals) else writable_float64(normals)
   nblock = max(1, (len(src) + _BLOCK - 1) // _BLOCK)
   partial = np.empty((nblock, _N_SUMS))
   paired = np.empty(len(src), np.int64)
@@ -203,7 +206,7 @@ def plane_sums(grid: engine.Grid, normals: np.ndarray | TargetNormals, source: n
   if lazy is not None:
     rows = np.flatnonzero(paired >= 0)
     rows = rows[~lazy.done[paired[rows]]]
-    if len(rows):  # lazy.unit is nrm: the blocks run again with the new normals
+    if len(rows):
       lazy.require(paired[rows])
       run(np.unique(rows // _BLOCK))
   acc = partial.sum(axis=0)
@@ -313,10 +316,14 @@ class TargetNormals:
     spacing: the target's mean nearest-neighbor spacing, where known (`normal_radius`).
 
   Attributes:
+    points: (m, 3) float64, the target.
+    grid: the `engine.Grid` the normals' neighbors are searched in.
+    radius: the PCA radius (`normal_radius`, cloud units; 0 for fewer than 3 points).
     pca: (m, 3) float64 normals of the points computed so far, as `estimate_target_normals`
       gives them; NaN rows elsewhere and where a normal is undefined.
-    unit: (m, 3) float64 `unit_normals` of `pca` (what the ICP kernels read). `require` fills
-      both in place.
+    unit: (m, 3) float64 `unit_normals` of `pca` (what the ICP kernels read).
+    done: (m,) bool, the points whose normals were computed. `require` fills `pca`, `unit` and
+      `done` in place.
   """
 
   def __init__(self, target: np.ndarray, max_distance: float, grid: engine.Grid | None = None,
@@ -409,8 +416,9 @@ def point_to_plane_icp(source: np.ndarray, target: np.ndarray, init: np.ndarray,
   grid = target_grid if target_grid is not None else engine.knn_grid(target)
   given: np.ndarray | TargetNormals
   if isinstance(target_normals, TargetNormals):
-    if len(target_normals.unit) != len(target):
-      raise ValueError(f"target_normals: TargetNormals of {len(target_normals.unit)} points "
+    own = target_normals.points
+    if own is not target and not (own.shape == target.shape and np.array_equal(own, target)):
+      raise ValueError(f"target_normals: a TargetNormals of another cloud ({len(own)} points) "
                        f"for a target of {len(target)}")
     given = target_normals
   elif target_normals is None:  # computed where the pairs need them

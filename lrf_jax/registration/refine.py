@@ -83,8 +83,12 @@ def icp_passes(source: np.ndarray, target: np.ndarray, init: np.ndarray, distanc
   the target's mean nearest-neighbor spacing where measured already (the target normals'
   radius cap, `icp_host.normal_radius`)."""
   if not fine or iterations == 0:
+    normals = None
+    if mode == "point_to_plane":  # the grid point_to_plane_icp would build, built once
+      grid = grid if grid is not None else engine.knn_grid(np.asarray(target, np.float64))
+      normals = icp_host.TargetNormals(target, distance, grid, spacing=target_spacing)
     return icp(source, target, init, max_distance=distance, iterations=iterations,
-               target_grid=grid, mode=mode)
+               target_grid=grid, target_normals=normals, mode=mode)
   target = np.asarray(target, np.float64)
   grid = grid if grid is not None else engine.Grid(target, distance)
   normals = (icp_host.TargetNormals(target, distance, grid, spacing=target_spacing)

@@ -31,7 +31,7 @@ sys.path.insert(0, str(REPO / "benchmarks"))
 import jax  # noqa: E402
 
 import lrf_jax  # noqa: E402
-from lrf_jax.prepare import method_normals, prepare_extra  # noqa: E402
+from lrf_jax.frames.normals_rule import method_normals, prepare_extra  # noqa: E402
 from lrf_jax.search.device import DeviceIndex, build_patches_device  # noqa: E402
 from bench_scale import dragon_cloud  # noqa: E402
 

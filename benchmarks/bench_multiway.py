@@ -46,7 +46,8 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
 from lrf_jax import compilation_cache  # noqa: E402
-from lrf_jax.registration import multiway  # noqa: E402
+from lrf_jax import multiway  # noqa: E402
+from lrf_jax.multiway import outputs as multiway_outputs  # noqa: E402
 from lrf_jax.datasets.stanford import bunny_poses  # noqa: E402
 from lrf_jax.datasets.uwa3m import PSEUDO_GT_FILE, read_pseudo_gt, uwa3m_views  # noqa: E402
 from lrf_jax.io import read_cloud  # noqa: E402
@@ -121,7 +122,7 @@ def run_set(name: str, clouds, names, truth, unit: float, intruder: int | None, 
   """Both pipelines on one set; truth: world-from-scan per scan (None for the intruder)."""
   print(f"== {name}: {len(clouds)} scans", flush=True)
   res = multiway.register_all(clouds, names=names, seed=args.seed, progress=True)
-  multiway.write_outputs(res, clouds, out / name)
+  multiway_outputs.write_outputs(res, clouds, out / name)
   ok = [k for k in range(len(clouds)) if k != intruder]
   ours_err = errors(res.poses[ok], [truth[k] for k in ok], ok.index(res.reference)
                     if res.reference in ok else 0, unit)

@@ -175,7 +175,7 @@ def errors(poses: np.ndarray, world: list[np.ndarray | None]) -> dict:
 
 
 def candidate_counts(sizes=(50, 500, 5000)) -> dict:
-  from lrf_jax.registration import multiway
+  from lrf_jax import multiway
   rng = np.random.default_rng(0)
   out = {}
   for n in sizes:
@@ -188,14 +188,15 @@ def candidate_counts(sizes=(50, 500, 5000)) -> dict:
 def unit_costs(data: Path) -> dict:
   """Per-scan (describe) and per-pair (register from features) wall seconds on the six raw
   KITTI dev sweeps (defaults, this process, warm) and on bunny scans."""
-  from lrf_jax.registration import multiway, scan_features
+  from lrf_jax.multiway import pipeline as multiway_pipeline
+  from lrf_jax.registration import scan_features
   from lrf_jax.registration.options import DEFAULTS
   out = {}
   sets = {"kitti": sorted((data / "lidar_kitti00").glob("*.bin")),
           "bunny": [data / "stanford_bunny_scans" / f"{n}.ply" for n in BUNNY[:6]]}
   for label, paths in sets.items():
-    clouds = multiway.load_scans([str(p) for p in paths], [p.stem for p in paths])
-    mr = multiway.median_mr(clouds, [p.stem for p in paths])
+    clouds = multiway_pipeline.load_scans([str(p) for p in paths], [p.stem for p in paths])
+    mr = multiway_pipeline.median_mr(clouds, [p.stem for p in paths])
     scan_features.describe_scan(clouds[0], DEFAULTS, mr=mr)  # warm
     t = time.perf_counter()
     feats = [scan_features.describe_scan(c, DEFAULTS, mr=mr) for c in clouds]

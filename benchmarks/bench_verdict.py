@@ -160,7 +160,7 @@ def multiway_sets():
 
 
 if "--multiway" in sys.argv[1:]:
-  from lrf_jax.registration.multiway import register_all
+  from lrf_jax.multiway import register_all
   print("\n| set | seed | foreign placed | belonging placed | placed only through not sure |")
   print("|---|---:|---|---:|---|")
   for name, scans, names, n_belong in multiway_sets():

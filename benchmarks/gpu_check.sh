@@ -42,5 +42,5 @@ step speed 150 $PY benchmarks/bench_speed.py --no-pcl --counts 10000 $K1 $K2 --m
 step split 120 $PY benchmarks/bench_device_split.py --points $N --keypoints $K2 --chunks 65536 --repeat 1
 step scale_plus 90 $PY benchmarks/bench_scale.py --rows cloud --points $N --keypoints $K2 --method lrf_net_plus --search device --chunk-size 65536 --repeat 2
 step scale_net 60 $PY benchmarks/bench_scale.py --rows cloud --points $N --keypoints $K2 --method lrf_net --search device --chunk-size 65536 --repeat 2
-step tests 150 env -u LRF_DATA XLA_PYTHON_CLIENT_PREALLOCATE=false $PY -m pytest -v -n 16 -p no:cacheprovider -p no:benchmark --timeout 60 tests/test_device_search.py tests/test_lrf_net.py tests/test_method_properties.py tests/test_losses.py tests/test_distributed.py tests/test_points_only.py tests/test_descriptors.py tests/test_train.py tests/test_matmul_precision.py
+step tests 150 env -u LRF_DATA XLA_PYTHON_CLIENT_PREALLOCATE=false $PY -m pytest -v -n 16 -p no:cacheprovider -p no:benchmark --timeout 60 tests/test_device_search.py tests/test_lrf_net.py tests/test_method_properties.py tests/test_losses.py tests/test_train_distributed.py tests/test_lrf_net_plus_points_only.py tests/test_descriptors.py tests/test_train.py tests/test__jax_matmul_precision.py
 echo "== done $(date +%T)"

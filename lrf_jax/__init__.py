@@ -24,9 +24,9 @@ _compilation_cache.configure_numba_cache()
 
 # public name -> the module (under lrf_jax) that defines it; loaded on first access.
 _EXPORTS: dict[str, str] = {
-    "compute_frames": "api",
-    "frames_from_patches": "api",
-    "mesh_resolution": "api",
+    "compute_frames": "frames.compute",
+    "frames_from_patches": "frames.patch_frames",
+    "mesh_resolution": "frames.compute",
     "clear_caches": "caches",
     "set_num_threads": "search.engine",
     "METHODS": "frames",
@@ -46,13 +46,13 @@ _EXPORTS: dict[str, str] = {
     "Patches": "search.neighborhoods",
     "build_patches": "search.neighborhoods",
     "register": "registration",
-    "register_all": "registration.multiway",
+    "register_all": "multiway",
     "voxel_downsample": "geometry.sampling",
 }
 
 # subpackages and modules reachable as attributes after a bare `import lrf_jax`.
 _SUBMODULES = frozenset({"cli", "datasets", "descriptors", "evaluation", "frames", "geometry",
-                         "io", "learning", "registration", "search"})
+                         "io", "learning", "multiway", "registration", "search"})
 
 __all__ = sorted([*_EXPORTS, "search"])
 
@@ -65,8 +65,10 @@ def _load(module: str) -> Any:
   would look the name up on this package first and so call `__getattr__` again."""
   m: ModuleType  # declared once: every case binds it to a different module
   match module:
-    case "api":
-      import lrf_jax.api as m
+    case "frames.compute":
+      import lrf_jax.frames.compute as m
+    case "frames.patch_frames":
+      import lrf_jax.frames.patch_frames as m
     case "caches":
       import lrf_jax.caches as m
     case "search.engine":
@@ -89,8 +91,8 @@ def _load(module: str) -> Any:
       import lrf_jax.search.neighborhoods as m
     case "registration":
       import lrf_jax.registration as m
-    case "registration.multiway":
-      import lrf_jax.registration.multiway as m
+    case "multiway":
+      import lrf_jax.multiway as m
     case "geometry.sampling":
       import lrf_jax.geometry.sampling as m
     case "datasets":
@@ -114,22 +116,13 @@ def _load(module: str) -> Any:
   return m
 
 
-def _version() -> str:
-  """The installed distribution's version (pyproject.toml's `version`, the one place it is
-  written); "0+unknown" when lrf_jax runs from a source tree that was never installed."""
-  from importlib import metadata
-  try:
-    return metadata.version("lrf_jax")
-  except metadata.PackageNotFoundError:
-    return "0+unknown"
-
-
 def __getattr__(name: str) -> Any:
   """A public name or subpackage of lrf_jax, imported on first access (then cached here);
   `__version__` too (read from the package metadata on first access: importlib.metadata is
   not free to import)."""
   if name == "__version__":
-    value: Any = _version()
+    from lrf_jax.records import version
+    value: Any = version()
   elif name in _EXPORTS:
     value = getattr(_load(_EXPORTS[name]), name)
   elif name in _SUBMODULES:
@@ -148,8 +141,9 @@ def __dir__() -> list[str]:
 if TYPE_CHECKING:  # for type checkers and IDEs; at run time these come from __getattr__
   __version__: str
   from lrf_jax import (cli, datasets, descriptors, evaluation, frames, geometry, io,  # noqa: F401
-                       learning, registration, search)
-  from lrf_jax.api import compute_frames, frames_from_patches, mesh_resolution  # noqa: F401
+                       learning, multiway, registration, search)
+  from lrf_jax.frames.compute import compute_frames, mesh_resolution  # noqa: F401
+  from lrf_jax.frames.patch_frames import frames_from_patches  # noqa: F401
   from lrf_jax.caches import clear_caches  # noqa: F401
   from lrf_jax.search.engine import set_num_threads  # noqa: F401
   from lrf_jax.frames import METHODS, MethodSpec, add_method  # noqa: F401
@@ -160,6 +154,6 @@ if TYPE_CHECKING:  # for type checkers and IDEs; at run time these come from __g
   from lrf_jax.frames.weights import default_params, load_params, save_params  # noqa: F401
   from lrf_jax.learning.model import init_params  # noqa: F401
   from lrf_jax.search.neighborhoods import Patches, build_patches  # noqa: F401
-  from lrf_jax.registration.multiway import register_all  # noqa: F401
+  from lrf_jax.multiway import register_all  # noqa: F401
   from lrf_jax.registration import register  # noqa: F401
   from lrf_jax.geometry.sampling import voxel_downsample  # noqa: F401

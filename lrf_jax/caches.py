@@ -3,8 +3,8 @@
 | cache | holds | bound |
 |---|---|---|
 | `normals.cache_last` | the last estimated normals, areas, grids, curvature (one per kind) | one entry per kind (about 8) |
-| `api._TABLES` | lrf_net / lrf_net_plus weight tables (257 x 257) | 4 |
-| `api._jitted`, `descriptors._jitted` | jitted frame / descriptor functions per option set | 64 / 32 |
+| `patch_frames._TABLES` | lrf_net / lrf_net_plus weight tables (257 x 257) | 4 |
+| `patch_frames._jitted`, `descriptors._jitted` | jitted frame / descriptor functions per option set | 64 / 32 |
 | `weights._default_params_cached`, `weights._default_params_numpy` | the shipped weights (on the device; numpy) | 8 / 8 |
 | `datasets.cache._load` | meshes and clouds read by the dataset loaders | 64 |
 | `datasets.synthetic.icosphere` | the demo set's base spheres | 8 |
@@ -15,8 +15,8 @@ cleared here.
 
 from __future__ import annotations
 
-from lrf_jax import api, descriptors
-from lrf_jax.frames import weights
+from lrf_jax import descriptors
+from lrf_jax.frames import patch_frames, weights
 from lrf_jax.geometry import normals
 
 
@@ -25,8 +25,8 @@ def clear_caches() -> None:
   from lrf_jax.datasets import cache as dataset_cache  # not imported by lrf_jax itself
   from lrf_jax.datasets import synthetic
   normals._CACHE.clear()
-  api._TABLES.clear()
-  api._jitted.cache_clear()
+  patch_frames._TABLES.clear()
+  patch_frames._jitted.cache_clear()
   descriptors._jitted.cache_clear()
   weights._default_params_cached.cache_clear()
   weights._default_params_numpy.cache_clear()

@@ -21,14 +21,23 @@ import numpy as np
 MIN_SCALE = 1e-30
 MAX_SCALE = 1e30
 MAX_RADII_FROM_ORIGIN = 1e12
+# The largest coordinate magnitude a cloud may hold: no supported scale reaches further (a support
+# radius of at most MAX_SCALE, within MAX_RADII_FROM_ORIGIN radii of the origin). Squares of such
+# coordinates, and their sums over any cloud, stay far inside float64's range (1.8e308), which
+# squared differences leave (overflow to inf) from about FLOAT64_SQUARE_LIMIT on; the float32
+# arithmetic of the frames only ever sees offsets scaled by the support radius.
+MAX_COORDINATE = MAX_SCALE * MAX_RADII_FROM_ORIGIN
+FLOAT64_SQUARE_LIMIT = float(np.sqrt(np.finfo(np.float64).max))
 
 
 def validate_cloud(points: np.ndarray, name: str = "points", columns: int = 3) -> np.ndarray:
-  """Check that `points` is a non-empty (n, 3) array of finite floats and return it as float64
-  (`columns`: another row length, for a reader's other coordinate arrays).
+  """Check that `points` is a non-empty (n, 3) array of finite floats no larger in magnitude
+  than `MAX_COORDINATE` and return it as float64 (`columns`: another row length, for a reader's
+  other coordinate arrays).
 
   Raises:
-    ValueError: naming what was wrong and what was expected.
+    ValueError: naming what was wrong and what was expected (for coordinates too large, the
+      largest magnitude found and the limit: `coordinate_problem`).
   """
   try:
     arr = np.asarray(points)
@@ -43,7 +52,8 @@ def validate_cloud(points: np.ndarray, name: str = "points", columns: int = 3) -
   if arr.shape[0] == 0:
     raise ValueError(f"{name}: expected at least one point, got an empty cloud (shape {arr.shape})")
   arr = arr.astype(np.float64, copy=False)
-  if np.isfinite(arr).all():  # one flat pass (the per-row reduction below is several times slower)
+  # two flat passes (the per-row reductions below are several times slower); NaN fails both tests
+  if -MAX_COORDINATE <= arr.min() and arr.max() <= MAX_COORDINATE:
     return arr
   bad = ~np.isfinite(arr).all(axis=1)
   if bad.any():
@@ -51,7 +61,35 @@ def validate_cloud(points: np.ndarray, name: str = "points", columns: int = 3) -
     raise ValueError(
         f"{name}: expected finite coordinates, got {int(bad.sum())} non-finite point(s) (NaN or "
         f"inf; first at row {first}: {arr[first].tolist()})")
+  problem = coordinate_problem(arr, name)
+  if problem:
+    raise ValueError(problem)
   return arr
+
+
+def coordinate_problem(points: np.ndarray, name: str = "points") -> str | None:
+  """The message for finite coordinates beyond `MAX_COORDINATE` in magnitude (None: none): the
+  count, the largest magnitude found, the first such row, the limit and why, computed without
+  squaring anything (the magnitudes themselves never overflow).
+
+  Args:
+    points: an (n, k) array of finite floats.
+    name: the array as the caller names it (for a reader, the file and the field).
+  """
+  arr = np.asarray(points, np.float64)
+  peak = np.abs(arr).max(axis=1) if arr.size else np.zeros(0)
+  bad = peak > MAX_COORDINATE
+  if not bad.any():
+    return None
+  first = int(np.flatnonzero(bad)[0])
+  largest = float(peak.max())
+  return (f"{name}: expected coordinates of magnitude at most {MAX_COORDINATE:.0e}, got "
+          f"{int(bad.sum())} point(s) beyond it (largest magnitude {largest:.3e}; first at row "
+          f"{first}: {arr[first].tolist()}): too large to compute with, since no supported scale "
+          f"(a support radius of at most {MAX_SCALE:.0e}, within {MAX_RADII_FROM_ORIGIN:.0e} "
+          "radii of the origin) reaches that far and squared distances overflow float64 to inf "
+          f"from about {FLOAT64_SQUARE_LIMIT:.1e} on; rescale the cloud (e.g. to metres or "
+          "millimetres)")
 
 
 def validate_keypoints(keypoints: np.ndarray, n_points: int, name: str = "keypoints") -> np.ndarray:
@@ -156,7 +194,8 @@ def validate_viewpoint(viewpoint: object, name: str = "viewpoint") -> np.ndarray
   """None, or the sensor position as a finite (3,) float64 array.
 
   Raises:
-    ValueError: naming `name`, when it is not a finite (3,) position.
+    ValueError: naming `name`, when it is not a finite (3,) position within `MAX_COORDINATE` of
+      the origin in every coordinate.
   """
   if viewpoint is None:
     return None
@@ -166,6 +205,10 @@ def validate_viewpoint(viewpoint: object, name: str = "viewpoint") -> np.ndarray
     raise ValueError(f"{name}: expected a finite (3,) sensor position, got {viewpoint!r}") from None
   if vp.shape != (3,) or not np.all(np.isfinite(vp)):
     raise ValueError(f"{name}: expected a finite (3,) sensor position, got {viewpoint!r}")
+  if np.abs(vp).max() > MAX_COORDINATE:
+    raise ValueError(f"{name}: expected a sensor position with coordinates of magnitude at most "
+                     f"{MAX_COORDINATE:.0e} (the largest a cloud may hold), "
+                     f"got {vp.tolist()}")
   return vp
 
 

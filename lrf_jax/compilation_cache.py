@@ -5,11 +5,13 @@ Two caches share one per-user root, `cache_root()` (`$XDG_CACHE_HOME/lrf_jax`, e
 
 * numba's kernels (`cache=True`) in `cache_root()/numba`: `configure_numba_cache()` (run by
   `import lrf_jax`, before numba is imported) sets `NUMBA_CACHE_DIR` there unless the user has
-  set it. numba would otherwise write next to the package's sources, which fails for a read-only
-  install (it then falls back to its own per-user directory). lrf_jax's kernels are keyed by the
-  contents of every source they are compiled from and not by the install's path
+  set it. numba would otherwise write next to the package's sources. lrf_jax's kernels are keyed
+  by the contents of every source they are compiled from and not by the install's path
   (`kernel_cache`): an edited helper recompiles the kernels that call it, and a second
-  install of the same code loads the first one's kernels.
+  install of the same code loads the first one's kernels. A cache that cannot take new kernels
+  (read-only) is still read; what it lacks is saved in the first of `numba_fallback_dirs()`
+  (`cache_root()/numba` when `NUMBA_CACHE_DIR` is elsewhere, then a private folder in the
+  temporary directory), never in the package's folder.
 * JAX's persistent compilation cache in `cache_root()/jax` (or `$LRF_JAX_CACHE_DIR`):
   `enable()`, called by the command-line programs. A fresh `lrf-register` or `lrf-frames` would
   otherwise recompile every jitted function it calls.
@@ -24,7 +26,9 @@ Nothing here imports numba or JAX at module level: `import lrf_jax` stays light.
 from __future__ import annotations
 
 import os
+import stat
 import sys
+import tempfile
 import threading
 from pathlib import Path
 from typing import Any, TextIO
@@ -72,15 +76,69 @@ def numba_cache_dir() -> Path:
   return cache_root() / "numba"
 
 
+def _private_tmp_dir() -> Path:
+  user = str(os.getuid()) if hasattr(os, "getuid") else (os.environ.get("USERNAME") or "user")
+  return Path(tempfile.gettempdir()) / f"lrf_jax-{user}"
+
+
+def _private(folder: Path, create: bool) -> bool:
+  """Whether `folder` is a directory (not a link) of this user that no one else may write;
+  created (mode 700) first when `create`. Kernels are pickles: one planted in a shared
+  temporary directory by another user would run as this one."""
+  try:
+    if create:
+      folder.mkdir(mode=0o700, parents=True, exist_ok=True)
+    st = folder.lstat()
+  except OSError:
+    return False
+  if not stat.S_ISDIR(st.st_mode):
+    return False
+  return not hasattr(os, "getuid") or (st.st_uid == os.getuid() and not st.st_mode & 0o022)
+
+
+def numba_fallback_dirs(exclude: str | os.PathLike | None = None, *,
+                        create: bool = False) -> list[Path]:
+  """Where lrf_jax's kernels are kept when numba's cache directory cannot take them (read-only,
+  or a folder that cannot be created), in order of preference: `cache_root()/numba`, then
+  `lrf_jax-<uid>/numba` in the temporary directory (used only when it is this user's alone).
+  Never the package's own folder.
+
+  Args:
+    exclude: a directory left out of the list (the cache directory in use).
+    create: create the folders (else only those that exist are listed).
+
+  Returns:
+    The folders that exist (or were created) and may be used, best first.
+  """
+  skip = Path(exclude).expanduser().absolute() if exclude else None
+  out = []
+  for path, private in ((cache_root() / "numba", None), (_private_tmp_dir() / "numba",
+                                                         _private_tmp_dir())):
+    if skip is not None and path.absolute() == skip:
+      continue
+    if private is not None and not _private(private, create):
+      continue
+    try:
+      if create:
+        path.mkdir(parents=True, exist_ok=True)
+      if path.is_dir():
+        out.append(path)
+    except OSError:
+      continue
+  return out
+
+
 def configure_numba_cache() -> str | None:
   """Point numba's on-disk cache at `numba_cache_dir()` unless `NUMBA_CACHE_DIR` is set.
 
   Sets the environment variable only (numba reads it when it is imported; if numba was imported
-  already, its configuration is reloaded). A directory that cannot be created is left alone:
-  numba then uses its own fallbacks.
+  already, its configuration is reloaded). When the directory cannot be created, the first of
+  `numba_fallback_dirs()` that can is set instead; when none can, the directory is set all the
+  same (lrf_jax's kernels then compile in memory, `kernel_cache`, rather than into the
+  package's own folder, numba's default).
 
   Returns:
-    The directory now set, or None when the user's setting (or numba's default) stays.
+    The directory now set, or None when the user's setting stays.
   """
   if os.environ.get(NUMBA_ENV_VAR):
     return None
@@ -88,7 +146,7 @@ def configure_numba_cache() -> str | None:
   try:
     path.mkdir(parents=True, exist_ok=True)
   except OSError:
-    return None
+    path = next(iter(numba_fallback_dirs(path, create=True)), path)
   os.environ[NUMBA_ENV_VAR] = str(path)
   if "numba" in sys.modules:
     from numba.core import config
@@ -199,7 +257,7 @@ def announce_compiles(stream: TextIO | None = None) -> None:
     from numba.core import event
 
     from lrf_jax import kernel_cache
-    kernel_cache.install()
+    kernel_cache.install(numba_fallback_dirs)
     _state["numba"] = _numba_listener()
     event.register("numba:compile", _state["numba"])
   if not _state["jax"] and "jax" in sys.modules:

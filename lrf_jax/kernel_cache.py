@@ -30,19 +30,35 @@ of an lrf_jax kernel. With `share(claims)`, a process also *claims* a kernel in 
 `claims` before compiling it: a compile worker skips a kernel claimed by another process, and the
 main process waits for a worker that is compiling the kernel it needs, then loads it, instead of
 compiling it a second time.
+
+The cache heals instead of failing the run (`install()` patches numba's cache for lrf_jax's
+kernels only; each case is one line on stderr):
+
+* an unreadable entry (a truncated or corrupt index `*.nbi` or data file `*.nbc`, or data that
+  does not rebuild) is set aside, renamed `<name>.corrupt-<timestamp>` (deleted when it cannot be
+  renamed), and the kernel is compiled again;
+* a cache that cannot be written (read-only; any `OSError` of a save but a full disk's) is
+  still read, and a kernel it lacks is saved in the first of
+  `compilation_cache.numba_fallback_dirs()` that takes it (where later loads from that folder
+  also look), else kept in memory only;
+* a full disk (`ENOSPC`, `EDQUOT`) leaves the kernel compiled in memory for the run.
+
+No error of the cache reaches the caller (where a command would report it as an input's).
 """
 
 from __future__ import annotations
 
 import contextlib
+import errno
 import functools
 import hashlib
 import inspect
 import os
 import sys
+import threading
 import time
 import types
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterator, Sequence
 from typing import Any
 
 from numba.core import config
@@ -50,6 +66,9 @@ from numba.core import caching
 from numba.core.caching import UserProvidedCacheLocator
 
 PACKAGE_ROOT = os.path.dirname(os.path.abspath(__file__))  # .../lrf_jax
+# The kernels' folders of the cache directory that could not be written in this process: a miss
+# there is looked up in the fallback roots too (module docstring).
+_UNWRITABLE: set[str] = set()
 
 
 def _cache_dir() -> str:
@@ -154,21 +173,37 @@ class PackageLocator(UserProvidedCacheLocator):
 
   @classmethod
   def from_function(cls, py_func: types.FunctionType, py_file: str) -> PackageLocator | None:
-    if not _cache_dir() or not _inside(py_file):
+    """The locator of an lrf_jax kernel, also when its folder cannot be written (numba's own
+    locators decline then, and numba fell back to the package's folder): its entries still
+    load, and saves go elsewhere (module docstring)."""
+    if not _cache_dir() or not _inside(py_file) or not os.path.exists(py_file):
       return None
-    return super().from_function(py_func, py_file)
+    self = cls(py_func, py_file)
+    try:
+      self.ensure_cache_path()
+    except OSError:
+      _UNWRITABLE.add(os.path.abspath(self._cache_path))
+    return self
 
 
-
-def install() -> None:
+def install(fallbacks: Callable[..., Sequence[Any]] | None = None) -> None:
   """Put `PackageLocator` first in numba's list of cache locators (idempotent). numba picks a
   function's locator when the function is decorated, so this runs before lrf_jax's kernels are
-  defined. Also locks each save of an lrf_jax kernel and lets claims work (module docstring)."""
+  defined. Also locks each save of an lrf_jax kernel and lets claims work (module docstring).
+
+  Args:
+    fallbacks: where kernels go when the cache directory cannot take them: a function
+      `(exclude, create=) -> folders` (`compilation_cache.numba_fallback_dirs`); None keeps
+      the one installed before (none: such kernels compile in memory only).
+  """
+  if fallbacks is not None:
+    _FALLBACKS[:] = [fallbacks]
   impl = getattr(caching, "CacheImpl", None) or getattr(caching, "_CacheImpl", None)
   classes = getattr(impl, "_locator_classes", None)
   if isinstance(classes, list) and PackageLocator not in classes:
     classes.insert(0, PackageLocator)  # a numba without this list keeps its own keys
   _patch_cache_file()
+  _patch_cache()
 
 
 # -- several processes, one cache ---------------------------------------------------------------
@@ -187,25 +222,72 @@ def share(claims: str | None, *, worker: bool = False,
   _SHARING.update(claims=claims, worker=worker, alive=alive)
 
 
+def _under(path: str, root: str) -> bool:
+  return path == root or path.startswith(root + os.sep)
+
+
 def _ours(cache_file: Any) -> bool:
-  root = os.path.join(_cache_dir(), "lrf_jax")
+  """Whether `cache_file` (numba's `IndexDataCacheFile`) is an lrf_jax kernel's in the cache
+  directory in use."""
   path = os.path.abspath(str(getattr(cache_file, "_cache_path", "")))
-  return bool(_cache_dir()) and (path == root or path.startswith(root + os.sep))
+  return bool(_cache_dir()) and _under(path, os.path.join(_cache_dir(), "lrf_jax"))
+
+
+# Where kernels go when the cache directory cannot take them: `install`'s `fallbacks`, a function
+# (exclude, create) -> folders (`compilation_cache.numba_fallback_dirs`); none until installed.
+_FALLBACKS: list[Callable[..., Sequence[Any]]] = []
+
+
+def _fallback_roots(create: bool = False) -> list[str]:
+  if not _FALLBACKS:
+    return []
+  return [str(p) for p in _FALLBACKS[0](_cache_dir() or None, create=create)]
+
+
+def _managed(cache_file: Any) -> bool:
+  """Whether `cache_file` is an lrf_jax kernel's, in the cache directory or a fallback."""
+  if _ours(cache_file):
+    return True
+  path = os.path.abspath(str(getattr(cache_file, "_cache_path", "")))
+  return any(_under(path, os.path.join(os.path.abspath(r), "lrf_jax"))
+             for r in _fallback_roots())
+
+
+_HELD = threading.local()  # the lock files this thread holds (a lock is taken once)
 
 
 @contextlib.contextmanager
 def _index_lock(cache_file: Any) -> Iterator[None]:
-  """An exclusive lock on `<index>.lock` (POSIX; elsewhere numba's own writes only)."""
+  """An exclusive lock on `<index>.lock` (POSIX; elsewhere numba's own writes only). Reentrant
+  within a thread; without a lock file that can be opened (a read-only folder, a full disk),
+  no lock."""
   try:
     import fcntl
   except ImportError:  # Windows
     yield
     return
-  with open(str(cache_file._index_path) + ".lock", "ab") as f:
-    fcntl.flock(f.fileno(), fcntl.LOCK_EX)
+  path = str(cache_file._index_path) + ".lock"
+  held: set[str] = _HELD.__dict__.setdefault("paths", set())
+  f = None
+  if path not in held:
+    for mode in ("ab", "rb"):
+      with contextlib.suppress(OSError):
+        f = open(path, mode)  # noqa: SIM115 -- closed below
+        break
+  if f is None:
+    yield
+    return
+  with f:
+    try:
+      fcntl.flock(f.fileno(), fcntl.LOCK_EX)
+    except OSError:  # a file system without locks
+      yield
+      return
+    held.add(path)
     try:
       yield
     finally:
+      held.discard(path)
       fcntl.flock(f.fileno(), fcntl.LOCK_UN)
 
 
@@ -283,7 +365,7 @@ def _patch_cache_file() -> None:
   save, load = cls.save, cls.load
 
   def locked_save(self: Any, key: Any, data: Any) -> None:
-    if not _ours(self):
+    if not _managed(self):
       return save(self, key, data)
     with _index_lock(self):
       save(self, key, data)
@@ -292,11 +374,202 @@ def _patch_cache_file() -> None:
 
   def claimed_load(self: Any, key: Any) -> Any:
     out = load(self, key)
+    if out is None:
+      out = _load_elsewhere(self, key)
     if out is None and _SHARING["claims"] and _ours(self) and \
         _wait_for_claimant(str(self._index_path)):
       out = load(self, key)
+      if out is None:
+        out = _load_elsewhere(self, key)
     return out
 
   locked_save._lrf_jax = True  # type: ignore[attr-defined]
   cls.save = locked_save  # type: ignore[method-assign]
   cls.load = claimed_load  # type: ignore[method-assign]
+
+
+# -- a cache that heals -------------------------------------------------------------------------
+
+_NOTES: set[str] = set()
+_NOTES_LOCK = threading.Lock()
+_FULL = (errno.ENOSPC, getattr(errno, "EDQUOT", errno.ENOSPC))
+
+
+def _note(key: str, text: str) -> None:
+  """Print `lrf_jax: <text>` on stderr, once per process for each `key`."""
+  with _NOTES_LOCK:
+    if key in _NOTES:
+      return
+    _NOTES.add(key)
+  print(f"lrf_jax: {text}", file=sys.stderr, flush=True)
+
+
+def _why(error: BaseException) -> str:
+  if isinstance(error, OSError) and error.strerror:
+    return error.strerror
+  return f"{type(error).__name__}: {error}" if str(error) else type(error).__name__
+
+
+def _set_aside(path: str, error: BaseException) -> None:
+  """Move the unreadable cache file `path` out of the way (`<name>.corrupt-<timestamp>`, or
+  deleted when it cannot be renamed), with one line on stderr naming it."""
+  target = f"{path}.corrupt-{time.strftime('%Y%m%d-%H%M%S')}"
+  try:
+    os.replace(path, target)
+    done = f"set aside as {os.path.basename(target)}"
+  except FileNotFoundError:
+    return  # set aside by another process already
+  except OSError:
+    try:
+      os.unlink(path)
+      done = "deleted"
+    except FileNotFoundError:
+      return
+    except OSError as e:
+      done = f"left in place ({e.strerror or e})"
+  _note(f"corrupt:{path}", f"unreadable kernel cache entry {path} ({_why(error)}): {done}; "
+        "the kernel is compiled again")
+
+
+def _patch_cache() -> None:
+  """Heal lrf_jax's entries: set aside unreadable files, read a cache that cannot be written
+  and save elsewhere, keep a kernel that cannot be saved in memory (idempotent)."""
+  file_cls, cache_cls = caching.IndexDataCacheFile, caching.Cache
+  if getattr(cache_cls.save_overload, "_lrf_jax", False):
+    return
+  load_index, load_data = file_cls._load_index, file_cls._load_data
+  load_overload, save_overload = cache_cls._load_overload, cache_cls.save_overload
+
+  def healing_load_index(self: Any) -> dict:
+    if not _managed(self):
+      return load_index(self)
+    try:
+      return _checked_index(load_index(self))
+    except FileNotFoundError:
+      return {}
+    except Exception:  # noqa: BLE001 -- anything unreadable: check again under the lock
+      with _index_lock(self):  # a save in progress elsewhere replaces the file whole
+        try:
+          return _checked_index(load_index(self))
+        except FileNotFoundError:
+          return {}
+        except Exception as e:  # noqa: BLE001
+          _set_aside(str(self._index_path), e)
+      return {}
+
+  def healing_load_data(self: Any, name: str) -> Any:
+    if not _managed(self):
+      return load_data(self, name)
+    try:
+      return load_data(self, name)
+    except OSError:
+      raise  # numba's `load` takes a missing file as a miss
+    except Exception:  # noqa: BLE001
+      with _index_lock(self):
+        try:
+          return load_data(self, name)
+        except OSError:
+          raise
+        except Exception as e:  # noqa: BLE001
+          _set_aside(self._data_path(name), e)
+      return None
+
+  def healing_load_overload(self: Any, sig: Any, target_context: Any) -> Any:
+    if not _managed(self._cache_file) or not self._enabled:
+      return load_overload(self, sig, target_context)
+    started = time.time()
+    key = self._index_key(sig, target_context.codegen())
+    data = self._cache_file.load(key)
+    if data is None:
+      return None
+    try:
+      return self._impl.rebuild(target_context, data)
+    except Exception as e:  # noqa: BLE001 -- data that unpickled but does not rebuild
+      _set_aside_entry(self._cache_file, key, e, started)
+      return None
+
+  def healing_save_overload(self: Any, sig: Any, data: Any) -> None:
+    if not _ours(self._cache_file):
+      return save_overload(self, sig, data)
+    try:
+      save_overload(self, sig, data)
+    except OSError as e:
+      _save_elsewhere(self, sig, data, e)
+
+  healing_save_overload._lrf_jax = True  # type: ignore[attr-defined]
+  file_cls._load_index = healing_load_index  # type: ignore[method-assign]
+  file_cls._load_data = healing_load_data  # type: ignore[method-assign]
+  cache_cls._load_overload = healing_load_overload  # type: ignore[method-assign]
+  cache_cls.save_overload = healing_save_overload  # type: ignore[method-assign]
+
+
+def _checked_index(overloads: Any) -> dict:
+  if not isinstance(overloads, dict):
+    raise TypeError(f"an index of {type(overloads).__name__}, not of a dict")
+  return overloads
+
+
+def _elsewhere(cache_file: Any, root: str) -> Any:
+  """numba's `IndexDataCacheFile` of the same kernel (name and stamp) under the cache root
+  `root` instead of the cache directory in use."""
+  rel = os.path.relpath(os.path.abspath(cache_file._cache_path), os.path.abspath(_cache_dir()))
+  base = cache_file._index_name[:-len(".nbi")]
+  return caching.IndexDataCacheFile(cache_path=os.path.join(root, rel), filename_base=base,
+                                    source_stamp=cache_file._source_stamp)
+
+
+def _load_elsewhere(cache_file: Any, key: Any) -> Any:
+  """The entry `key` of the kernel of `cache_file` from the fallback roots when its folder in
+  the cache directory could not be written, else (or when absent there) None."""
+  if os.path.abspath(cache_file._cache_path) not in _UNWRITABLE or not _ours(cache_file):
+    return None
+  for root in _fallback_roots():
+    other = _elsewhere(cache_file, root)
+    if os.path.exists(other._index_path):
+      out = other.load(key)
+      if out is not None:
+        return out
+  return None
+
+
+def _set_aside_entry(cache_file: Any, key: Any, error: BaseException, started: float) -> None:
+  """Set aside the data file of `key` that failed to rebuild: the first (in load order) whose
+  index holds `key`, unless it was rewritten since the load began."""
+  files = [cache_file]
+  if os.path.abspath(cache_file._cache_path) in _UNWRITABLE and _ours(cache_file):
+    files += [_elsewhere(cache_file, r) for r in _fallback_roots()]
+  for f in files:
+    name = f._load_index().get(key)
+    if name is None:
+      continue
+    path = f._data_path(name)
+    with _index_lock(f):
+      with contextlib.suppress(OSError):
+        if os.stat(path).st_mtime < started:
+          _set_aside(path, error)
+    return
+
+
+def _save_elsewhere(cache: Any, sig: Any, data: Any, error: OSError) -> None:
+  """After a failed save of a compiled kernel: keep it in a fallback root when the cache cannot
+  be written, else in memory only; one line on stderr says which."""
+  root = _cache_dir()
+  if _SHARING["claims"] and not _SHARING["worker"]:
+    release_claims()
+  if error.errno in _FULL:
+    _note("full", f"could not save compiled kernels in {root} ({_why(error)}): they are "
+          "compiled in memory only for this run")
+    return
+  _UNWRITABLE.add(os.path.abspath(cache._cache_file._cache_path))
+  for fallback in _fallback_roots(create=True):
+    other = _elsewhere(cache._cache_file, fallback)
+    try:
+      os.makedirs(other._cache_path, exist_ok=True)
+      other.save(cache._index_key(sig, data.codegen), cache._impl.reduce(data))
+    except OSError:
+      continue
+    _note("elsewhere", f"the kernel cache {root} cannot be written ({_why(error)}): kernels "
+          f"it lacks are compiled and saved in {fallback}")
+    return
+  _note("elsewhere", f"the kernel cache {root} cannot be written ({_why(error)}): kernels it "
+        "lacks are compiled in memory only for this run")

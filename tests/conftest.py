@@ -36,6 +36,16 @@ def br_bunny(data_root):
   return load_br_model(data_root, "bunny", scene=0)
 
 
+@pytest.fixture(scope="module")
+def cloud_npy(tmp_path_factory) -> Path:
+  """A small demo cloud as an .npy (points only), for the command-line programs' tests."""
+  import numpy as np
+  from lrf_jax import datasets
+  path = tmp_path_factory.mktemp("cloud") / "scan.npy"
+  np.save(path, datasets.make_demo_pair(0).model_points[::16])
+  return path
+
+
 def pytest_collection_modifyitems(config, items):
   """Every test that reaches the real data through the `data_root` fixture (directly or through
   a fixture built on it) is marked `data`, so `-m "not data"` means what it says."""

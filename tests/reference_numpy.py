@@ -4,7 +4,7 @@ It exists to check the JAX implementation formula by formula (tests) and to be t
 the speed benchmark. It shares nothing with the JAX path except the definition of the seeded
 subsample (`neighborhoods.hash_priority`) and the weight network's forward pass
 (`weights.apply_weights` in numpy float64, itself held equal to the flax module
-`networks.WeightNet` by tests/test_shipped_weights.py).
+`networks.WeightNet` by tests/test_weights_shipped.py).
 """
 
 from __future__ import annotations

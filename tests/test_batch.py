@@ -296,3 +296,11 @@ def test_a_ray_address_where_nothing_answers_is_refused_at_once(monkeypatch):
   assert time.perf_counter() - t < 10
   monkeypatch.setenv("RAY_ADDRESS", "127.0.0.1:1")
   assert engines.address_problem(None, "--address").startswith("$RAY_ADDRESS: ")
+
+
+def test_lrf_frames_refuses_a_non_finite_viewpoint_before_reading_the_cloud():
+  from lrf_jax.batch.scan_frames import FramesRequest
+  problem = FramesRequest(cloud="/nowhere.ply", viewpoint=(float("nan"), 0.0, 0.0)).problem()
+  assert problem is not None and problem.startswith("--viewpoint: expected three finite")
+  assert FramesRequest(cloud="x", pair_viewpoint=(0.0, float("inf"), 0.0)).problem().startswith(
+      "--pair-viewpoint:")

@@ -18,19 +18,17 @@ ray = pytest.importorskip("ray")
 
 from lrf_jax import batch  # noqa: E402
 from lrf_jax.batch import engines, jobs  # noqa: E402
+from tests.lrf_testing import own_ray_instance  # noqa: E402
 from tests.test_batch import OPTS, make_scans, pairs_tsv, tsv_rows  # noqa: E402
 
 
 @pytest.fixture(scope="module", autouse=True)
 def ray_instance():
-  os.environ.setdefault("RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER", "0")
-  os.environ.setdefault("RAY_USAGE_STATS_ENABLED", "0")  # no usage report to any address
-  from ray._private import ray_constants
-  ray_constants.ENABLE_RAY_CLUSTER = False  # the driver stays on loopback
-  ray.init(num_cpus=2, include_dashboard=False, _node_ip_address="127.0.0.1",
-           logging_level="warning", log_to_driver=False)
-  yield
-  ray.shutdown()
+  """A Ray instance of this module: new (address "local": never a cluster found on the machine
+  or in RAY_ADDRESS), on 127.0.0.1, with a token of its own (nothing read from or written to
+  ~/.ray); the engines of the tests use it."""
+  with own_ray_instance():
+    yield
 
 
 def test_ray_engine_gives_the_local_engines_results(tmp_path):
@@ -124,7 +122,7 @@ def test_multiway_on_ray_gives_the_in_process_result(tmp_path):
   """`register_all(engine=RayEngine())`: each scan described once as a task, its features put
   once in the object store, every pair a task; poses and edges equal the in-process run's, and
   a rerun from the state folder registers nothing."""
-  from lrf_jax.registration import multiway
+  from lrf_jax import multiway
   from tests.test_multiway import _views
   clouds, _, mr = _views(3, step_deg=35.0)
   kw = dict(mr=mr, refine=False, n_keypoints=300)

@@ -343,7 +343,7 @@ def test_shell_patches_hold_exactly_the_inner_and_outer_neighbors():
 
 
 def test_flare_frames_from_shell_patches_equal_full_patches():
-  from lrf_jax.api import frames_from_patches
+  from lrf_jax.frames.patch_frames import frames_from_patches
   from lrf_jax.frames import METHODS
   from lrf_jax.frames.normal_based import prepare_normals
   rng = np.random.default_rng(8)

@@ -5,7 +5,6 @@ refused before any work; a pair the engine could not run is an error that names 
 from __future__ import annotations
 
 import json
-import os
 import sys
 from pathlib import Path
 
@@ -135,14 +134,9 @@ def test_help_names_the_engines(capsys):
 @pytest.fixture
 def ray_instance():
   ray = pytest.importorskip("ray")
-  os.environ.setdefault("RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER", "0")
-  os.environ.setdefault("RAY_USAGE_STATS_ENABLED", "0")  # no usage report to any address
-  from ray._private import ray_constants
-  ray_constants.ENABLE_RAY_CLUSTER = False  # the driver stays on loopback
-  ray.init(num_cpus=2, include_dashboard=False, _node_ip_address="127.0.0.1",
-           logging_level="warning", log_to_driver=False)
-  yield ray
-  ray.shutdown()
+  from tests.lrf_testing import own_ray_instance
+  with own_ray_instance():  # never joins another cluster of the machine
+    yield ray
 
 
 @pytest.mark.slow  # about 60 s on 2 cores: Ray's start, two workers compiling, the run twice

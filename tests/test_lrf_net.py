@@ -335,7 +335,7 @@ def test_lut_weights_match_exact_network(bunny):
 def test_weight_table_is_cached_and_equals_the_parameters_path(bunny):
   """`compute_frames(lut=)` builds the table once per parameter set; a prebuilt WeightTable
   gives exactly the frames of the parameters."""
-  from lrf_jax import api
+  from lrf_jax.frames import patch_frames
   from lrf_jax.frames.lrf_net import WeightTable, weight_table
 
   pts, kp, r, _ = bunny
@@ -347,11 +347,11 @@ def test_weight_table_is_cached_and_equals_the_parameters_path(bunny):
   np.testing.assert_array_equal(np.asarray(a[0]), np.asarray(b[0]))
   with pytest.raises(ValueError, match="WeightTable of shape"):
     _lrf_net_frames(table, p, lut=33)
-  api._TABLES.clear()
+  patch_frames._TABLES.clear()
   f1, _ = _frames(pts, kp[:40], r, lut=65)
-  cached = api._TABLES[-1][-1]
+  cached = patch_frames._TABLES[-1][-1]
   f2, _ = _frames(pts, kp[:40], r, lut=65)
-  assert len(api._TABLES) == 1 and api._TABLES[-1][-1] is cached
+  assert len(patch_frames._TABLES) == 1 and patch_frames._TABLES[-1][-1] is cached
   np.testing.assert_array_equal(f1, f2)
 
 
@@ -547,9 +547,8 @@ def test_host_patch_kernel_gives_the_jitted_frames(method, options):
 
 
 def test_compute_frames_picks_the_host_patch_kernel_on_the_cpu(monkeypatch):
-  from lrf_jax import api
-  from lrf_jax.frames import lrf_net_host
-  monkeypatch.setattr(api, "backend_is_cpu", lambda: True)  # the CPU's choice, on any machine
+  from lrf_jax.frames import compute, lrf_net_host
+  monkeypatch.setattr(compute, "backend_is_cpu", lambda: True)  # the CPU's choice, on any machine
   calls = []
   real = lrf_net_host.lrf_net_frames_host
   monkeypatch.setattr(lrf_net_host, "lrf_net_frames_host",
@@ -583,27 +582,27 @@ def test_default_params_hand_out_no_shared_dict(numpy_form):
 def test_weight_table_follows_the_parameters_content(host):
   """The LRF-Net weight table was cached by the identity of `params`: a leaf replaced (or
   written in place) kept the old table. It is keyed by content now."""
-  from lrf_jax import api
+  from lrf_jax.frames import patch_frames
   from lrf_jax.frames.weights import default_params_numpy
   p = jax.tree.map(np.array, default_params_numpy("lrf_net"))  # writable copies
-  first = np.array(api._weight_table(p, 17, host=host).values)
+  first = np.array(patch_frames.cached_weight_table(p, 17, host=host).values)
   same = jax.tree.map(np.array, p)
-  assert api._weight_table(same, 17, host=host).values is not None
-  np.testing.assert_array_equal(np.asarray(api._weight_table(same, 17, host=host).values), first)
+  assert patch_frames.cached_weight_table(same, 17, host=host).values is not None
+  np.testing.assert_array_equal(np.asarray(patch_frames.cached_weight_table(same, 17, host=host).values), first)
   p["out"]["bias"] = p["out"]["bias"] + 3.0  # a leaf replaced in the same dict
-  replaced = np.asarray(api._weight_table(p, 17, host=host).values)
+  replaced = np.asarray(patch_frames.cached_weight_table(p, 17, host=host).values)
   assert not np.array_equal(replaced, first)
   p["enc0"]["kernel"][...] *= -1.0  # a leaf written in place
-  written = np.asarray(api._weight_table(p, 17, host=host).values)
+  written = np.asarray(patch_frames.cached_weight_table(p, 17, host=host).values)
   assert not np.array_equal(written, replaced)
   fresh = jax.tree.map(np.array, p)
-  np.testing.assert_array_equal(np.asarray(api._weight_table(fresh, 17, host=host).values),
+  np.testing.assert_array_equal(np.asarray(patch_frames.cached_weight_table(fresh, 17, host=host).values),
                                 written)
 
 
 def test_weight_table_under_jit_is_not_cached():
-  from lrf_jax import api
+  from lrf_jax.frames import patch_frames
   from lrf_jax.frames.weights import default_params
-  before = len(api._TABLES)
-  values = jax.jit(lambda p: api._weight_table(p, 9).values)(default_params("lrf_net"))
-  assert values.shape[:2] == (9, 9) and len(api._TABLES) == before
+  before = len(patch_frames._TABLES)
+  values = jax.jit(lambda p: patch_frames.cached_weight_table(p, 9).values)(default_params("lrf_net"))
+  assert values.shape[:2] == (9, 9) and len(patch_frames._TABLES) == before

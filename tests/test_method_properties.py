@@ -23,10 +23,10 @@ import pytest
 
 import lrf_jax
 from lrf_jax.geometry import normals as nm
-from lrf_jax.api import frames_from_patches
+from lrf_jax.frames.patch_frames import frames_from_patches
 from lrf_jax.frames import KEYPOINT, SLOT, TRIANGLE, TRIANGLE_MASK
 from lrf_jax.search.neighborhoods import build_patches
-from lrf_jax.prepare import prepare_extra
+from lrf_jax.frames.normals_rule import prepare_extra
 from tests.lrf_testing import (HOST_CHECK_KINDS, N_GOOD, assert_frames_orthonormal,
                                host_check_cloud, synthetic_mesh)
 
@@ -222,7 +222,7 @@ def test_method_spec_rejects_an_undeclared_extra():
 
 def test_normal_methods_get_the_same_normals_on_every_path():
   """compute_frames and the evaluation's thunk of estimated normals feed one rule."""
-  from lrf_jax.prepare import method_normals
+  from lrf_jax.frames.normals_rule import method_normals
   points, faces, _, radius = SYN
   est = nm.estimate_normals(points, nm.NORMAL_RADIUS_RATIO * radius, faces)
   for name in ("board", "gframes", "lrf_net_plus"):
@@ -321,10 +321,10 @@ def test_kernel_argument_is_checked():
 
 def test_host_fast_path_splits_by_a_neighbor_budget(monkeypatch):
   """Keypoints are grouped so that their balls' lists stay within a budget: the same frames."""
-  from lrf_jax import api
+  from lrf_jax.frames import host_path
   points, faces, keypoints, radius = SYN
   full = lrf_jax.compute_frames(points, keypoints, radius, "shot", kernel="host")
-  monkeypatch.setattr(api, "HOST_NEIGHBOR_BUDGET", 50)  # a few keypoints per group
+  monkeypatch.setattr(host_path, "HOST_NEIGHBOR_BUDGET", 50)  # a few keypoints per group
   split = lrf_jax.compute_frames(points, keypoints, radius, "shot", kernel="host")
   np.testing.assert_array_equal(np.asarray(full[0]), np.asarray(split[0]))
   np.testing.assert_array_equal(np.asarray(full[1]), np.asarray(split[1]))

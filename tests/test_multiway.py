@@ -1,10 +1,10 @@
-"""Multiway registration: the pose graph against brute-force references on synthetic poses, the
-joint ICP, determinism, the outputs and the `lrf-register a b c --out-dir D` command."""
+"""Multiway registration (`lrf_jax.multiway`): `register_all` rejecting a wrong edge, the joint
+ICP, determinism, the outputs and the `lrf-register a b c --out-dir D` command. (The pose graph
+against brute-force references on synthetic poses: tests/test_pose_graph.py.)"""
 
 from __future__ import annotations
 
 import functools
-import itertools
 import json
 import os
 import re
@@ -13,138 +13,18 @@ from types import SimpleNamespace
 
 import numpy as np
 import pytest
-from scipy.optimize import minimize
 from scipy.spatial.transform import Rotation
 
-from lrf_jax.registration import multiway
-from lrf_jax.registration import pose_graph
+from lrf_jax import multiway
+from lrf_jax.multiway import pipeline as multiway_pipeline
+from lrf_jax.multiway import outputs as multiway_outputs
+from lrf_jax.multiway import pose_graph
 from lrf_jax.datasets.synthetic import hidden_point_removal, make_demo_mesh, vertex_normals
-
-
-def _poses(n: int, seed: int) -> np.ndarray:
-  rng = np.random.default_rng(seed)
-  x = np.tile(np.eye(4), (n, 1, 1))
-  x[1:, :3, :3] = Rotation.random(n - 1, random_state=seed).as_matrix()
-  x[1:, :3, 3] = rng.normal(size=(n - 1, 3))
-  return x
-
-
-def _edges(x: np.ndarray, pairs, seed: int, noise: float = 0.0) -> list[pose_graph.PoseEdge]:
-  rng = np.random.default_rng(seed)
-  out = []
-  for i, j in pairs:
-    t = np.linalg.inv(x[j]) @ x[i]
-    if noise:
-      d = np.eye(4)
-      d[:3, :3] = Rotation.from_rotvec(rng.normal(0, noise, 3)).as_matrix()
-      d[:3, 3] = rng.normal(0, noise, 3)
-      t = d @ t
-    out.append(pose_graph.PoseEdge(i, j, t, rng.normal(size=(16, 3)), 1.0))
-  return out
-
-
-def _wrong(e: pose_graph.PoseEdge) -> pose_graph.PoseEdge:
-  bad = np.eye(4)
-  bad[:3, :3] = Rotation.from_rotvec([0.3, -1.2, 0.8]).as_matrix()
-  bad[:3, 3] = [0.7, 0.1, -0.4]
-  return pose_graph.PoseEdge(e.i, e.j, bad @ e.transform, e.points, 1e3)  # heaviest: tree 0
+from tests.lrf_testing import random_poses, wrong_edge
 
 
 def _gauge(p: np.ndarray) -> np.ndarray:
   return np.linalg.inv(p[0]) @ p
-
-
-def test_exact_recovery_without_noise():
-  x = _poses(6, 0)
-  edges = _edges(x, itertools.combinations(range(6), 2), 1)
-  res = pose_graph.solve(6, edges, scale=0.01)
-  np.testing.assert_allclose(res.poses, x, atol=1e-9)
-  assert res.accepted.all() and res.errors.max() < 1e-6
-  assert (res.component == 0).all()
-
-
-def test_wrong_loop_closure_is_rejected_as_brute_force_finds_it():
-  """One wrong edge (the heaviest, so the first spanning tree contains it) among a cycle-rich
-  graph. Brute force: for every single edge left out, the plain least-squares cost of the rest;
-  the edge whose removal leaves a consistent graph is the wrong one. The robust solve rejects
-  exactly it and recovers the poses."""
-  x = _poses(5, 3)
-  pairs = [(0, 1), (1, 2), (2, 3), (3, 4), (0, 2), (1, 3), (2, 4), (0, 4)]
-  edges = _edges(x, pairs, 4)
-  edges[4] = _wrong(edges[4])
-  costs = []
-  for drop in range(len(edges)):
-    rest = [e for k, e in enumerate(edges) if k != drop]
-    start = pose_graph._tree_poses(5, rest, np.arange(len(rest)))
-    p = pose_graph.least_squares_poses(start, [pose_graph.edge_pairs(e) for e in rest],
-                                       [1, 2, 3, 4], scale=0.01, robust=None)
-    costs.append(float(np.sum(pose_graph.edge_errors(p, rest, 0.01) ** 2)))
-  assert int(np.argmin(costs)) == 4 and min(costs) < 1e-12 < sorted(costs)[1]
-  res = pose_graph.solve(5, edges, scale=0.01)
-  assert np.flatnonzero(~res.accepted).tolist() == [4]
-  np.testing.assert_allclose(res.poses, x, atol=1e-9)
-
-
-def test_noisy_solution_matches_a_generic_minimiser():
-  """With noise (and no outlier) the solve reaches the plain least-squares optimum that a
-  generic minimiser (BFGS over all rotation vectors and translations) finds."""
-  x = _poses(4, 5)
-  edges = _edges(x, itertools.combinations(range(4), 2), 6, noise=0.003)
-  res = pose_graph.solve(4, edges, scale=1.0, robust=None)
-
-  def cost(v):
-    p = np.tile(np.eye(4), (4, 1, 1))
-    p[1:, :3, :3] = Rotation.from_rotvec(v.reshape(3, 6)[:, :3]).as_matrix()
-    p[1:, :3, 3] = v.reshape(3, 6)[:, 3:]
-    return float(np.sum(pose_graph.edge_errors(p, edges, 1.0) ** 2))
-
-  v0 = np.concatenate([np.concatenate([Rotation.from_matrix(x[k, :3, :3]).as_rotvec(),
-                                       x[k, :3, 3]]) for k in range(1, 4)])
-  ref = minimize(cost, v0, method="BFGS", options={"gtol": 1e-12})
-  assert cost(np.concatenate([np.concatenate([Rotation.from_matrix(res.poses[k, :3, :3])
-                                                .as_rotvec(), res.poses[k, :3, 3]])
-                              for k in range(1, 4)])) <= ref.fun * (1 + 1e-6) + 1e-15
-
-
-def test_weak_edges_join_components_only_when_two_agree():
-  """Scans {0, 1} and {2, 3} joined by trusted edges inside; between them weak edges. One weak
-  edge alone never joins them; two agreeing ones do; a wrong weak edge stays out."""
-  x = _poses(4, 7)
-  inside = _edges(x, [(0, 1), (2, 3)], 8)
-  weak_good = _edges(x, [(1, 2), (0, 3)], 9)
-  one = pose_graph.solve(4, inside + weak_good[:1], trusted=[True, True, False], scale=0.01)
-  assert one.component.tolist() == [0, 0, 2, 2] and not one.accepted[2]
-  edges = inside + weak_good + [_wrong(_edges(x, [(0, 2)], 10)[0])]
-  res = pose_graph.solve(4, edges, trusted=[True, True, False, False, False], scale=0.01)
-  assert res.accepted.tolist() == [True, True, True, True, False]
-  np.testing.assert_allclose(res.poses, x, atol=1e-9)
-
-
-def test_solve_is_deterministic_given_a_seed():
-  x = _poses(6, 11)
-  edges = _edges(x, itertools.combinations(range(6), 2), 12, noise=0.01)
-  edges[3] = _wrong(edges[3])
-  a = pose_graph.solve(6, edges, scale=0.05, seed=3)
-  b = pose_graph.solve(6, edges, scale=0.05, seed=3)
-  np.testing.assert_array_equal(a.poses, b.poses)
-  np.testing.assert_array_equal(a.accepted, b.accepted)
-  assert not a.accepted[3]
-
-
-def test_point_to_plane_jacobian_matches_finite_differences():
-  rng = np.random.default_rng(0)
-  x = _poses(4, 1)
-  nrm = rng.normal(size=(10, 3))
-  blocks = [pose_graph.PointPairs(1, 2, rng.normal(size=(10, 3)), rng.normal(size=(10, 3)),
-                                  nrm / np.linalg.norm(nrm, axis=1, keepdims=True)),
-            pose_graph.PointPairs(0, 3, rng.normal(size=(10, 3)), rng.normal(size=(10, 3)),
-                                  nrm / np.linalg.norm(nrm, axis=1, keepdims=True))]
-  for b in (blocks, [pose_graph.PointPairs(b.i, b.j, b.source, b.target) for b in blocks]):
-    problem = pose_graph._Problem(x, b, [1, 2, 3], 0.1)
-    v = rng.normal(size=18) * 0.5
-    num = np.stack([(problem.residuals(v + d) - problem.residuals(v - d)) / 2e-6
-                    for d in np.eye(18) * 1e-6], axis=1)
-    np.testing.assert_allclose(problem.jacobian(v).toarray(), num, atol=1e-5)
 
 
 @functools.cache
@@ -155,7 +35,7 @@ def _views(n: int, seed: int = 0, step_deg: float = 60.0):
   normals = vertex_normals(points, faces)
   from lrf_jax.geometry.resolution import mesh_resolution
   mr = mesh_resolution(points, faces)[0]
-  poses = _poses(n, seed + 100)
+  poses = random_poses(n, seed + 100)
   clouds = []
   for k in range(n):
     a = np.radians(step_deg * k)
@@ -175,7 +55,7 @@ def _oracle(clouds, poses):
     j = next(k for k, c in enumerate(clouds) if c.shape == dst.points.shape)
     t = np.linalg.inv(poses[j]) @ poses[i]
     if (i, j) == (0, 2):
-      t = _wrong(pose_graph.PoseEdge(0, 2, t, np.zeros((1, 3)))).transform
+      t = wrong_edge(pose_graph.PoseEdge(0, 2, t, np.zeros((1, 3)))).transform
     return SimpleNamespace(transform=t, success=True, reason="oracle", n_inliers=100,
                            overlap=0.5, rmse=0.0)
   return run
@@ -213,9 +93,9 @@ def test_unconnected_scan_is_left_out_and_the_reference_moves_if_it_is_first():
   res = multiway.register_all([intruder, *clouds], mr=mr, pairwise=run, names=list("xabc"))
   assert res.left_out == ["x"] and res.reference == 1
   assert np.isnan(res.poses[0]).all()
-  points, scan = multiway.merged_cloud([intruder, *clouds], res)
+  points, scan = multiway_outputs.merged_cloud([intruder, *clouds], res)
   assert len(points) == sum(len(c) for c in clouds) and 0 not in scan
-  down, scan_down = multiway.merged_cloud([intruder, *clouds], res, voxel=4 * mr)
+  down, scan_down = multiway_outputs.merged_cloud([intruder, *clouds], res, voxel=4 * mr)
   assert len(down) < len(points) and set(np.unique(scan_down)) <= {1, 2, 3}
 
 
@@ -229,7 +109,7 @@ def test_candidate_rule_for_large_sets():
 
 
 def test_scan_names_and_bad_input_names_the_file(tmp_path):
-  assert multiway.scan_names(["a/x.txt.gz", "b/x.ply", "c.ply", np.zeros((3, 3))]) == [
+  assert multiway_outputs.scan_names(["a/x.txt.gz", "b/x.ply", "c.ply", np.zeros((3, 3))]) == [
       "x", "x_2", "c", "scan3"]
   bad = tmp_path / "broken.ply"
   bad.write_text("not a ply\n")
@@ -243,21 +123,21 @@ def test_scan_names_are_distinct_and_keep_every_natural_name():
   """`d/a.ply d/a_2.ply e/a.ply` were named a, a_2, a_2: two scans, one pose file. A repeated
   name now takes the first "_k" that is no scan's natural name and not given yet; equal
   ignoring case counts as repeated (one file on a case-insensitive file system)."""
-  assert multiway.scan_names(["d/a.ply", "d/a_2.ply", "e/a.ply"]) == ["a", "a_2", "a_3"]
-  assert multiway.scan_names(["d/a.ply", "e/a.ply", "d/a_2.ply"]) == ["a", "a_3", "a_2"]
-  assert multiway.scan_names(["A.ply", "a.ply", "x/a.ply"]) == ["A", "a_2", "a_3"]
-  assert multiway.scan_names(["scan1.ply", np.zeros((3, 3))]) == ["scan1", "scan1_2"]
-  assert multiway.scan_names(["d/..", "a\tb.ply", "c\n.npy"]) == ["scan0", "a_b", "c_"]
+  assert multiway_outputs.scan_names(["d/a.ply", "d/a_2.ply", "e/a.ply"]) == ["a", "a_2", "a_3"]
+  assert multiway_outputs.scan_names(["d/a.ply", "e/a.ply", "d/a_2.ply"]) == ["a", "a_3", "a_2"]
+  assert multiway_outputs.scan_names(["A.ply", "a.ply", "x/a.ply"]) == ["A", "a_2", "a_3"]
+  assert multiway_outputs.scan_names(["scan1.ply", np.zeros((3, 3))]) == ["scan1", "scan1_2"]
+  assert multiway_outputs.scan_names(["d/..", "a\tb.ply", "c\n.npy"]) == ["scan0", "a_b", "c_"]
   long = ["x" * 253 + ".gz", "d/" + "x" * 251 + ".ply", "é" * 127 + ".ply"]
-  names = multiway.scan_names(long)
+  names = multiway_outputs.scan_names(long)
   assert names[0] == "x" * 251 and names[1] == "x" * 249 + "_2" and names[2] == "é" * 125
   rng = np.random.default_rng(0)
   for _ in range(300):  # any mix of repeated, suffixed and case-varied names
     scans = [f"{rng.choice(['d', 'e'])}/{rng.choice(['a', 'A', 'a_2', 'a_3', 'b'])}"
              f"{rng.choice(['', '_2'])}.ply" for _ in range(rng.integers(2, 9))]
-    names = multiway.scan_names(scans)
+    names = multiway_outputs.scan_names(scans)
     assert len({n.casefold() for n in names}) == len(names), (scans, names)
-    assert multiway.check_names(names) == names
+    assert multiway_outputs.check_names(names) == names
     first = {}
     for scan, name in zip(scans, names):
       natural = Path(scan).stem
@@ -282,9 +162,9 @@ def test_names_that_are_not_file_names_are_refused(tmp_path, name, fragment):
   res = _result(names, [True, True])
   out = tmp_path / "a" / "b"
   with pytest.raises(ValueError, match=r"result.names\[1\]: .*" + re.escape(fragment)):
-    multiway.write_outputs(res, [np.zeros((3, 3))] * 2, out, figures=False)
+    multiway_outputs.write_outputs(res, [np.zeros((3, 3))] * 2, out, figures=False)
   with pytest.raises(ValueError, match=re.escape(fragment)):
-    multiway.output_paths(names, out)
+    multiway_outputs.output_paths(names, out)
   assert list(tmp_path.iterdir()) == []
 
 
@@ -310,19 +190,19 @@ def test_a_rerun_leaves_only_its_own_files(tmp_path):
   manifest.json; a rerun removes the earlier run's files it does not write, and replaces the
   others; files no manifest lists are never touched."""
   out = tmp_path / "model"
-  written = multiway.write_outputs(_result(["a", "b", "c"], [True] * 3), _clouds(3), out)
+  written = multiway_outputs.write_outputs(_result(["a", "b", "c"], [True] * 3), _clouds(3), out)
   assert _files(out) == ["a.txt", "b.txt", "c.txt", "edges.tsv", "graph.png", "manifest.json",
                          "merged.ply", "merged.png", "poses.txt"]
   manifest = json.loads((out / "manifest.json").read_text())
   assert sorted(manifest["files"]) == sorted(p.name for p in written)
   (out / "notes.md").write_text("mine")  # the user's, in an earlier run's folder: kept
-  multiway.write_outputs(_result(["a", "b", "c"], [True, False, True]), _clouds(3), out,
+  multiway_outputs.write_outputs(_result(["a", "b", "c"], [True, False, True]), _clouds(3), out,
                          figures=False)
   assert _files(out) == ["a.txt", "c.txt", "edges.tsv", "manifest.json", "merged.ply",
                          "notes.md", "poses.txt"]
   assert sorted(json.loads((out / "manifest.json").read_text())["files"]) == [
       "a.txt", "c.txt", "edges.tsv", "merged.ply", "poses.txt"]
-  multiway.write_outputs(_result(["x", "y"], [True, True]), _clouds(2), out, figures=False)
+  multiway_outputs.write_outputs(_result(["x", "y"], [True, True]), _clouds(2), out, figures=False)
   assert _files(out) == ["edges.tsv", "manifest.json", "merged.ply", "notes.md", "poses.txt",
                          "x.txt", "y.txt"]
   assert (out / "notes.md").read_text() == "mine"
@@ -332,18 +212,17 @@ def test_an_interrupted_rerun_is_cleaned_up_by_the_next(tmp_path, monkeypatch):
   """Until a run ends, its manifest lists both runs' files: whatever an interrupted run leaves,
   the next run removes."""
   out = tmp_path / "model"
-  multiway.write_outputs(_result(["a", "b"], [True, True]), _clouds(2), out, figures=False)
+  multiway_outputs.write_outputs(_result(["a", "b"], [True, True]), _clouds(2), out, figures=False)
 
   def broken(*a, **k):
     raise KeyboardInterrupt
-  from lrf_jax.registration import multiway_outputs
   with monkeypatch.context() as m:
     m.setattr(multiway_outputs, "write_merged_ply", broken)
     with pytest.raises(KeyboardInterrupt):
-      multiway.write_outputs(_result(["c", "d"], [True, True]), _clouds(2), out, figures=False)
+      multiway_outputs.write_outputs(_result(["c", "d"], [True, True]), _clouds(2), out, figures=False)
   listed = json.loads((out / "manifest.json").read_text())["files"]
   assert set(_files(out)) - {"manifest.json"} <= set(listed)
-  multiway.write_outputs(_result(["e", "f"], [True, True]), _clouds(2), out, figures=False)
+  multiway_outputs.write_outputs(_result(["e", "f"], [True, True]), _clouds(2), out, figures=False)
   assert _files(out) == ["e.txt", "edges.tsv", "f.txt", "manifest.json", "merged.ply",
                          "poses.txt"]
 
@@ -358,26 +237,26 @@ def test_a_folder_no_run_wrote_is_refused(tmp_path):
   (out / "holiday.jpg").write_bytes(b"jpeg")
   with pytest.raises(ValueError, match="out_dir: .*photos is not empty and holds no "
                                        "manifest.json"):
-    multiway.write_outputs(res, clouds, out, figures=False)
+    multiway_outputs.write_outputs(res, clouds, out, figures=False)
   assert _files(out) == ["holiday.jpg"]
   victim = tmp_path / "victim.txt"
   victim.write_text("keep me")
   for text in ("{not json", json.dumps({"files": ["holiday.jpg"]}),
-               json.dumps({"kind": multiway.MANIFEST_KIND, "files": ["../victim.txt"]})):
+               json.dumps({"kind": multiway_outputs.MANIFEST_KIND, "files": ["../victim.txt"]})):
     (out / "manifest.json").write_text(text)
     with pytest.raises(ValueError, match="is not a manifest of an earlier run"):
-      multiway.write_outputs(res, clouds, out, figures=False)
+      multiway_outputs.write_outputs(res, clouds, out, figures=False)
   assert victim.read_text() == "keep me" and _files(out) == ["holiday.jpg", "manifest.json"]
   earlier = tmp_path / "earlier"
-  multiway.write_outputs(res, clouds, earlier, figures=False)
+  multiway_outputs.write_outputs(res, clouds, earlier, figures=False)
   (earlier / "b.txt").unlink()
   os.mkfifo(earlier / "b.txt")
   before = (earlier / "manifest.json").read_bytes()
   with pytest.raises(ValueError, match="out_dir: .*b.txt is a FIFO"):
-    multiway.write_outputs(res, clouds, earlier, figures=False)
+    multiway_outputs.write_outputs(res, clouds, earlier, figures=False)
   assert (earlier / "b.txt").is_fifo() and (earlier / "manifest.json").read_bytes() == before
   with pytest.raises(ValueError, match="out_dir: .*is not a folder"):
-    multiway.write_outputs(res, clouds, victim, figures=False)
+    multiway_outputs.write_outputs(res, clouds, victim, figures=False)
 
 
 def _fake_register_all(monkeypatch, in_model=None):
@@ -385,7 +264,7 @@ def _fake_register_all(monkeypatch, in_model=None):
   scans in `in_model`, default all): these tests are about the outputs."""
   def run(clouds, *, names, **kw):
     return _result(names, in_model or [True] * len(names))
-  monkeypatch.setattr(multiway, "register_all", run)
+  monkeypatch.setattr(multiway_pipeline, "register_all", run)
 
 
 def _npy_scans(folder, *rel):
@@ -417,7 +296,7 @@ def test_cli_names_collide_no_more_and_reruns_are_clean(tmp_path, capsys, monkey
   os.mkfifo(out / "a_2.txt")
   for folder, fragment in ((other, "is not empty and holds no manifest.json"),
                            (out, "a_2.txt is a FIFO (named pipe); expected a regular file")):
-    monkeypatch.setattr(multiway, "register_all", lambda *a, **k: pytest.fail("registered"))
+    monkeypatch.setattr(multiway_pipeline, "register_all", lambda *a, **k: pytest.fail("registered"))
     assert main([*scans, "--out-dir", str(folder), "--quiet"]) == 2
     err = capsys.readouterr().err
     assert err.startswith("error: --out-dir: ") and fragment in err, err
@@ -490,7 +369,7 @@ def test_cli_hand_over_rule():
 def test_figures_are_written(tmp_path):
   clouds, poses, mr = _views(3)
   res = multiway.register_all(clouds, mr=mr, pairwise=_oracle(clouds, poses), refine=False)
-  written = multiway.write_outputs(res, clouds, tmp_path / "d", voxel=3 * mr)
+  written = multiway_outputs.write_outputs(res, clouds, tmp_path / "d", voxel=3 * mr)
   names = {p.name for p in written}
   assert {"merged.png", "graph.png", "merged.ply", "edges.tsv", "scan0.txt"} <= names
   assert (tmp_path / "d" / "graph.png").stat().st_size > 10_000
@@ -545,14 +424,14 @@ def test_voxel_too_small_for_the_extent_is_refused(tmp_path, capsys, monkeypatch
   clouds = [np.random.default_rng(k).normal(size=(30, 3)) for k in range(3)]
   res = _result(["a", "b", "c"], [True] * 3)
   with pytest.raises(ValueError, match="voxel: 1e-20 is too small for the merged cloud's extent"):
-    multiway.merged_cloud(clouds, res, voxel=1e-20)
-  down, _ = multiway.merged_cloud(clouds, res, voxel=1e-9)  # small, still exact: every point
+    multiway_outputs.merged_cloud(clouds, res, voxel=1e-20)
+  down, _ = multiway_outputs.merged_cloud(clouds, res, voxel=1e-9)  # small, still exact: every point
   assert len(down) == 90
   with pytest.raises(ValueError, match="voxel: 1e-20 is too small for the scans' extent"):
-    multiway.check_voxel(clouds, 1e-20)  # whatever the poses: before the work
-  multiway.check_voxel(clouds, 1e-9)
+    multiway_outputs.check_voxel(clouds, 1e-20)  # whatever the poses: before the work
+  multiway_outputs.check_voxel(clouds, 1e-9)
   scans = _npy_scans(tmp_path / "in", "a.npy", "b.npy", "c.npy")
-  monkeypatch.setattr(multiway, "register_all", lambda *a, **k: pytest.fail("registered"))
+  monkeypatch.setattr(multiway_pipeline, "register_all", lambda *a, **k: pytest.fail("registered"))
   out = tmp_path / "model"
   assert main([*scans, "--out-dir", str(out), "--quiet", "--no-figures", "--voxel", "1e-20"]) == 2
   err = capsys.readouterr().err
@@ -566,7 +445,42 @@ def test_scan_colours_are_matplotlibs_without_importing_it(n):
   """merged.ply's colours: matplotlib's tab10 / tab20 as tables (a base install writes it)."""
   from matplotlib import colormaps
 
-  from lrf_jax.registration.multiway_figures import scan_colours
+  from lrf_jax.multiway.figures import scan_colours
   cmap = colormaps["tab10" if n <= 10 else "tab20"]
   expected = (np.array([cmap(k % cmap.N)[:3] for k in range(n)]) * 255).round().astype(np.uint8)
   np.testing.assert_array_equal(scan_colours(n), expected)
+
+
+def test_cli_out_dir_in_use_by_another_job_is_refused(tmp_path, monkeypatch, capsys):
+  """A second `lrf-register SCANS --out-dir D` while a live job holds D: exit 2 before any
+  work, naming the holder; the holder's lock is untouched."""
+  import socket
+  import subprocess
+  import sys
+  from lrf_jax.cli.register import main
+  from lrf_jax.multiway.outputs import STATE
+  scans = _npy_scans(tmp_path / "in", "a.npy", "b.npy")
+  out = tmp_path / "model"
+  (out / STATE).mkdir(parents=True)
+  holder = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(60)"])
+  try:
+    lock = out / STATE / "lock"
+    lock.write_text(json.dumps({"host": socket.gethostname(), "pid": holder.pid, "start": None,
+                                "command": "lrf-register x y z --out-dir model"}))
+    monkeypatch.setattr(multiway_pipeline, "register_all",
+                        lambda *a, **k: pytest.fail("registered"))
+    assert main([*scans, "--out-dir", str(out), "--quiet", "--no-figures"]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("error: --out-dir") and f"pid {holder.pid}" in err
+    assert lock.exists()
+  finally:
+    holder.kill()
+    holder.wait()
+
+
+def test_a_hidden_files_scan_name_has_no_leading_dot():
+  """Before: `.hidden.npy` was named `.hidden`: lrf-batch refused the whole job (a name may not
+  start with a dot) and lrf-register --out-dir wrote a hidden `.hidden.txt`."""
+  from lrf_jax.multiway.outputs import scan_names
+  assert scan_names(["/d/.hidden.npy", "/d/a.npy", "/d/...npy"]) == ["hidden", "a", "scan2"]
+

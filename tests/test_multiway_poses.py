@@ -10,7 +10,9 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from lrf_jax.registration import multiway
+from lrf_jax import multiway
+from lrf_jax.multiway import outputs as multiway_outputs
+from lrf_jax.multiway import pipeline as multiway_pipeline
 
 
 def _result(names, poses, in_model):
@@ -32,7 +34,7 @@ def test_poses_txt_is_kittis_layout_with_nan_for_a_scan_left_out(tmp_path):
   x[2] = np.nan
   res = _result(["s0", "s1", "s2", "s3"], x, [True, True, False, True])
   clouds = [np.random.default_rng(k).normal(size=(30, 3)) for k in range(4)]
-  multiway.write_outputs(res, clouds, tmp_path / "d", figures=False)
+  multiway_outputs.write_outputs(res, clouds, tmp_path / "d", figures=False)
   text = (tmp_path / "d" / "poses.txt").read_text()
   lines = text.splitlines()
   assert len(lines) == 4 and all(len(line.split()) == 12 for line in lines)
@@ -43,14 +45,14 @@ def test_poses_txt_is_kittis_layout_with_nan_for_a_scan_left_out(tmp_path):
   assert lines[0].split() == ["1", "0", "0", "0", "0", "1", "0", "0", "0", "0", "1", "0"]
   manifest = json.loads((tmp_path / "d" / "manifest.json").read_text())
   assert "poses.txt" in manifest["files"]
-  assert multiway.kitti_poses(x) == text
+  assert multiway_outputs.kitti_poses(x) == text
 
 
 def test_a_scan_named_poses_does_not_overwrite_the_trajectory(tmp_path):
-  names = multiway.scan_names(["d/poses.ply", "e/Poses.npy", "f/a.ply"])
+  names = multiway_outputs.scan_names(["d/poses.ply", "e/Poses.npy", "f/a.ply"])
   assert names == ["poses_2", "Poses_3", "a"]
   with pytest.raises(ValueError, match=r"names\[0\]: 'POSES' is reserved"):
-    multiway.check_names(["POSES", "b"])
+    multiway_outputs.check_names(["POSES", "b"])
 
 
 def _recorder(calls):
@@ -85,7 +87,7 @@ def test_median_mr_is_the_working_resolution_of_uneven_scans():
   near = rng.uniform(-1, 1, size=(20000, 3)) * [1, 1, 0.01]
   far = rng.uniform(-30, 30, size=(2000, 3)) * [1, 1, 0.01]
   cloud = Cloud(np.concatenate([near, far]), None, None)
-  mr = multiway.median_mr([cloud], ["sweep"])
+  mr = multiway_pipeline.median_mr([cloud], ["sweep"])
   assert mr == working_resolution(cloud.points).mr
 
 
@@ -99,7 +101,7 @@ def test_median_mr_of_full_density_scans_is_a_fraction_of_their_extent():
            for n, s in ((150_000, 1.0), (150_000, 1.5), (120_000, 2.0))]
   caps = [resolution.cloud_extent(c.points) / resolution.MAX_EXTENT_MR for c in scans]
   assert all(resolution.working_resolution(c.points).mr < cap for c, cap in zip(scans, caps))
-  assert multiway.median_mr(scans, ["a", "b", "c"]) == pytest.approx(np.median(caps),
+  assert multiway_pipeline.median_mr(scans, ["a", "b", "c"]) == pytest.approx(np.median(caps),
                                                                      rel=1e-12)
 
 
@@ -114,10 +116,10 @@ def test_cli_voxel_size_reaches_register_all(tmp_path, monkeypatch, capsys):
   def run(clouds, *, names, **kw):
     seen.update(kw)
     return _result(names, np.tile(np.eye(4), (len(names), 1, 1)), [True] * len(names))
-  monkeypatch.setattr(multiway, "register_all", run)
+  monkeypatch.setattr(multiway_pipeline, "register_all", run)
   assert main([*paths, "--voxel-size", "0.25", "--quiet"]) == 0
   assert seen["voxel_size"] == 0.25
-  monkeypatch.setattr(multiway, "register_all", lambda *a, **k: pytest.fail("registered"))
+  monkeypatch.setattr(multiway_pipeline, "register_all", lambda *a, **k: pytest.fail("registered"))
   assert main([*paths, "--voxel-size", "-1", "--quiet"]) == 2
   assert "--voxel-size:" in capsys.readouterr().err
 
@@ -132,7 +134,7 @@ def test_kitti_dev_sweeps_trajectory(data_root, tmp_path):
   paths = [str(folder / f"{k:06d}.bin") for k in range(6)]
   res = multiway.register_all(paths, seed=0, all_pairs_max=0, loop_candidates=0)
   assert res.in_model.all()
-  multiway.write_outputs(res, [np.zeros((3, 3))] * 6, tmp_path, figures=False)
+  multiway_outputs.write_outputs(res, [np.zeros((3, 3))] * 6, tmp_path, figures=False)
   ours = np.loadtxt(tmp_path / "poses.txt").reshape(-1, 3, 4)
   truth = np.loadtxt(folder / "poses_DERIVED.txt").reshape(-1, 3, 4)
   for k in range(6):

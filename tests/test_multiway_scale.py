@@ -11,7 +11,10 @@ import pickle
 import numpy as np
 import pytest
 
-from lrf_jax.registration import multiway, multiway_tasks, pipeline, scan_features, stages
+from lrf_jax import multiway
+from lrf_jax.multiway import candidates as multiway_candidates
+from lrf_jax.multiway import tasks as multiway_tasks
+from lrf_jax.registration import pipeline, scan_features, stages
 from lrf_jax.registration.options import RegisterOptions
 from tests.test_multiway import _views
 
@@ -192,11 +195,53 @@ def test_a_pair_the_engine_lost_is_no_edge_and_the_next_run_redoes_it(five, refe
 
 
 def test_records_are_plain_json_of_the_edge(five, tmp_path):
+  """A record names its scans by content (source, target hashes) and its lrf_jax version, never
+  by their positions in the run that wrote it."""
+  from lrf_jax import records
   clouds, _, mr = five
   multiway.register_all(clouds[:2], mr=mr, refine=False, state_dir=tmp_path, **KW)
   rec = json.loads(next((tmp_path / "pairs").glob("*.json")).read_text())
-  assert {"i", "j", "transform", "verdict", "reason", "points"} <= set(rec)
+  assert {"source", "target", "transform", "verdict", "reason", "points", "version"} <= set(rec)
+  assert not {"i", "j"} & set(rec)
+  assert rec["version"] == records.version()
   assert np.asarray(rec["points"]).shape == (multiway_tasks.EDGE_POINTS, 3)
+
+
+def _edges(res):
+  return [(res.names[e.i], res.names[e.j], e.verdict, e.transform.round(12).tolist(),
+           e.accepted, round(e.residual_mr, 9)) for e in res.edges]
+
+
+@pytest.mark.parametrize("order", ["reordered", "grown", "repeated"])
+def test_records_read_back_in_another_run_give_a_fresh_runs_result(five, tmp_path, order):
+  """Records written by a run over 3 scans, read by a run over the same scans in another order,
+  among a 4th, or with one scan twice: the poses and edges of a fresh run into an empty folder
+  (a record gives the edge between the scans it was computed for, wherever they sit now)."""
+  clouds, _, mr = five
+  names = ["a", "b", "c", "d"]
+  kw = dict(mr=mr, refine=False, **KW)
+  state = tmp_path / "state"
+  multiway.register_all(clouds[:3], names=names[:3], state_dir=state, **kw)
+  pick = {"reordered": [2, 0, 1], "grown": [0, 1, 3, 2], "repeated": [1, 0, 1]}[order]
+  scans = [clouds[k] for k in pick]
+  labels = [names[k] + ("_2" if pick[:n].count(k) else "") for n, k in enumerate(pick)]
+  resumed = multiway.register_all(scans, names=labels, state_dir=state, **kw)
+  fresh = multiway.register_all(scans, names=labels, state_dir=tmp_path / "empty", **kw)
+  assert _edges(resumed) == _edges(fresh)
+  np.testing.assert_array_equal(resumed.poses, fresh.poses)
+  read = {"reordered": 1, "grown": 3, "repeated": 1}[order]  # pairs whose direction was seen
+  assert resumed.work["pairs_resumed"] == read
+  assert resumed.work["pairs_registered"] == len(resumed.edges) - read
+
+
+def test_a_record_of_another_version_is_redone(five, tmp_path, monkeypatch):
+  from lrf_jax import records
+  clouds, _, mr = five
+  kw = dict(mr=mr, refine=False, state_dir=tmp_path, **KW)
+  multiway.register_all(clouds[:2], **kw)
+  assert multiway.register_all(clouds[:2], **kw).work["pairs_resumed"] == 1
+  monkeypatch.setattr(records, "version", lambda: "0.0.1")
+  assert multiway.register_all(clouds[:2], **kw).work["pairs_registered"] == 1
 
 
 def _brute_force_candidates(clouds, loop_candidates, seed=0):
@@ -204,7 +249,8 @@ def _brute_force_candidates(clouds, loop_candidates, seed=0):
   n = len(clouds)
   pairs = {(i, i + 1) for i in range(n - 1)}
   extent = max(float(np.linalg.norm(np.ptp(c, axis=0))) for c in clouds)
-  sig = np.stack([multiway.shape_signature(c, max_distance=extent, seed=seed) for c in clouds])
+  sig = np.stack([multiway_candidates.shape_signature(c, max_distance=extent, seed=seed)
+                  for c in clouds])
   dist = np.abs(sig[:, None, :] - sig[None, :, :]).sum(axis=2)
   np.fill_diagonal(dist, np.inf)
   for i in range(n):

@@ -1,17 +1,26 @@
 """The README works as written: every ```python block runs, and every project command of its
 ```bash blocks (train.py, evaluate.py, lrf-frames, lrf-register) parses with that program's own
-argument parser (the jobs are not run); train.py's config and overrides also load."""
+argument parser (the jobs are not run); train.py's config and overrides also load. It keeps the
+two fresh-machine commands verbatim, its links lead to files and headings that exist, and it
+stays short; the package's layout (docs/layout.md, linked from it) lists every module."""
 
 from __future__ import annotations
 
 import re
 import shlex
+import unicodedata
 from pathlib import Path
 
 import pytest
 
 REPO = Path(__file__).resolve().parents[1]
 README = REPO / "README.md"
+LAYOUT = REPO / "docs" / "layout.md"
+# The two commands a newcomer runs on a fresh machine (.ci/run runs the second): verbatim.
+FIRST_COMMANDS = (
+    'python3 -m venv .venv && . .venv/bin/activate && pip install -e ".[eval]" && python evaluate.py',
+    'python3 -m venv .venv && . .venv/bin/activate && pip install -e ".[test]" && python -m pytest -q',
+)
 # Blocks that take over ~10 s on 2 cores (a whole registration); run by the slow suite.
 SLOW_MARKERS = ("lrf_jax.register(",)
 
@@ -152,12 +161,13 @@ def test_help_of_evaluate_and_train_shows_defaults_and_presets():
 _ENTRY = re.compile(r"^[\w-]+(/|\.(py|toml|md|yml)),?$")
 
 
-def layout_entries() -> set[str]:
-  """The paths the README's layout section lists (relative to the repository root): a tree with
-  two spaces per level, each line's leading names (`a.py, b.py,` lists allowed) under the last
-  folder (`name/`) of the level above; the description after them is not read."""
-  section = README.read_text().split("\n## Layout", 1)[1].split("\n## ", 1)[0]
-  block = section.split("```", 2)[1]
+def layout_entries(text: str | None = None) -> set[str]:
+  """The paths the layout page (docs/layout.md; or `text`) lists, relative to the repository
+  root: its first fenced block, a tree with two spaces per level, each line's leading names
+  (`a.py, b.py,` lists allowed) under the last folder (`name/`) of the level above; the
+  description after them is not read."""
+  text = LAYOUT.read_text() if text is None else text
+  block = text.split("```", 2)[1]
   entries, folders = set(), []  # folders: the open folder at each level
   for line in block.splitlines()[1:]:
     if not line.strip():
@@ -171,7 +181,7 @@ def layout_entries() -> set[str]:
     if not names:
       continue
     folders = folders[:level]
-    assert len(folders) == level, f"README layout: {line!r} is indented under no folder"
+    assert len(folders) == level, f"docs/layout.md: {line!r} is indented under no folder"
     for name in names:
       entries.add("/".join([*folders, name.rstrip("/")]))
     if names[-1].endswith("/") and len(names) == 1:
@@ -179,18 +189,78 @@ def layout_entries() -> set[str]:
   return entries
 
 
-def test_layout_section_matches_the_tree():
+def test_layout_page_matches_the_tree():
   listed = layout_entries()
   missing = sorted(p for p in listed if not (REPO / p).exists())
-  assert missing == [], f"README layout lists what does not exist: {missing}"
+  assert missing == [], f"docs/layout.md lists what does not exist: {missing}"
   package = REPO / "lrf_jax"
   actual = {str(p.relative_to(REPO)) for p in package.rglob("*.py")}
   actual |= {str(p.parent.relative_to(REPO)) for p in package.rglob("__init__.py")}
   unlisted = sorted(actual - listed)
-  assert unlisted == [], f"README layout omits: {unlisted}"
+  assert unlisted == [], f"docs/layout.md omits: {unlisted}"
+
+
+def test_the_layout_reader_reads_nesting_and_lists():
+  text = ("# Layout\n\n```text\nlrf_jax/\n  a.py          x\n  sub/          y\n"
+          "    __init__.py, b.py,\n    c.py\n  d.py\ntrain.py  evaluate.py\n```\n")
+  assert layout_entries(text) == {"lrf_jax", "lrf_jax/a.py", "lrf_jax/sub",
+                                  "lrf_jax/sub/__init__.py", "lrf_jax/sub/b.py",
+                                  "lrf_jax/sub/c.py", "lrf_jax/d.py", "train.py", "evaluate.py"}
+  with pytest.raises(AssertionError):
+    layout_entries("```\nlrf_jax/\n    deep.py\n```\n")
+
+
+def test_the_two_commands_are_in_the_readme_verbatim():
+  blocks = [block.strip() for _, block in _blocks("bash")]
+  for command in FIRST_COMMANDS:
+    assert command in blocks, f"README.md lost its fresh-machine command: {command}"
+  assert blocks.index(FIRST_COMMANDS[0]) < blocks.index(FIRST_COMMANDS[1])
+
+
+def _slug(heading: str) -> str:
+  """A heading's anchor as Python-Markdown's toc extension makes it (mkdocs.yml uses it)."""
+  text = unicodedata.normalize("NFKD", heading).encode("ascii", "ignore").decode()
+  text = re.sub(r"[^\w\s-]", "", text).strip().lower()
+  return re.sub(r"[-\s]+", "-", text)
+
+
+def _anchors(page: Path) -> set[str]:
+  text = re.sub(r"^```.*?^```", "", page.read_text(), flags=re.S | re.M)  # no # in code
+  return {_slug(m) for m in re.findall(r"^#+\s+(.*?)\s*#*\s*$", text, flags=re.M)}
+
+
+def readme_links() -> list[str]:
+  """The README's relative Markdown links (`[text](target)`), web addresses left out."""
+  text = re.sub(r"^```.*?^```", "", README.read_text(), flags=re.S | re.M)
+  return [t for t in re.findall(r"\]\(([^)\s]+)\)", text) if not re.match(r"\w+:", t)]
+
+
+def test_the_readmes_links_lead_to_files_and_headings_that_exist():
+  links = readme_links()
+  assert "docs/layout.md" in links and "docs/getting-started.md" in links
+  broken = []
+  for link in links:
+    path, _, anchor = link.partition("#")
+    target = REPO / path
+    if not target.exists() or (anchor and anchor not in _anchors(target)):
+      broken.append(link)
+  assert broken == [], f"README.md links to what does not exist: {broken}"
+
+
+def test_the_slugs_follow_the_site():
+  assert _slug("A newcomer's path, timed (2026-12-04)") == "a-newcomers-path-timed-2026-12-04"
+  assert _slug("The registry: adding an LRF method") == "the-registry-adding-an-lrf-method"
+
+
+def test_every_readme_link_into_docs_is_a_page_of_the_site():
+  from tests.test_docs import nav_pages
+  pages = set(nav_pages())
+  outside = [link for link in readme_links() if link.startswith("docs/")
+             and link.partition("#")[0].removeprefix("docs/") not in pages]
+  assert outside == [], f"README.md links to pages the site's nav does not list: {outside}"
 
 
 def test_the_readme_stays_short():
   """The overview, the two commands, one example per task and links into docs/: at most
-  16,000 characters (the rest belongs on the site)."""
-  assert len(README.read_text(encoding="utf-8")) <= 16_000
+  9,000 characters (the rest belongs on the site)."""
+  assert len(README.read_text(encoding="utf-8")) <= 9_000

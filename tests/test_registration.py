@@ -1,4 +1,6 @@
-"""Pose estimation: Kabsch, one-correspondence poses, the two RANSAC estimators, register()."""
+"""Pose estimation: Kabsch, one-correspondence poses, the two RANSAC estimators, register(), and
+register's bad arguments refused by name (a seeded fuzz judged by `tests.lrf_testing.judge`, and
+one regression test per bug it found)."""
 
 from __future__ import annotations
 
@@ -7,12 +9,16 @@ import pytest
 from scipy.spatial import cKDTree
 
 import lrf_jax
-from lrf_jax import datasets
+from lrf_jax import datasets, io
 from lrf_jax.registration import estimators, pipeline
 from lrf_jax.geometry.ops import kabsch
 from lrf_jax.registration import (icp, lrf_ransac, pose_errors, pose_from_correspondence,
                                   ransac_3point, register, rotation_error_deg, to_transform)
 from tests.lrf_testing import random_rotation
+from pathlib import Path
+from scipy.spatial.transform import Rotation
+from tests.lrf_testing import (FUZZ_CASES, FUZZ_SEED, Case, check_registration, pick, rejects,
+                               run_cases, short_repr)
 
 
 def _rigid(seed: int) -> tuple[np.ndarray, np.ndarray]:
@@ -319,3 +325,91 @@ def test_register_verdict_on_a_real_pair_and_on_unrelated_blobs(tmp_path, capsys
   assert main([str(tmp_path / "a.ply"), str(tmp_path / "b.ply"), "--keypoints", "800",
                "--correspondences", "200"]) == 3
   assert "verdict: NOT SURE" in capsys.readouterr().err
+
+
+# ----------------- register arguments: the fuzz (few: a valid call is slow) and its regressions
+
+
+N_POINTS = 300
+_PTS = np.random.default_rng(0).normal(size=(N_POINTS, 3))
+
+
+def test_fuzz_register_arguments(tmp_path: Path) -> None:
+  """FUZZ_CASES["register"] bad (and two valid) argument sets to register, on 300-point clouds."""
+  rng = np.random.default_rng([FUZZ_SEED, 7])
+  src = rng.normal(size=(N_POINTS, 3))
+  dst = src @ Rotation.random(random_state=1).as_matrix().T + 0.1
+  nan = src.copy()
+  nan[int(rng.integers(0, N_POINTS)), 1] = np.nan
+  path = io.write_ply(tmp_path / "target.ply", dst, dtype="float64")
+  fast = {"n_keypoints": 60, "n_correspondences": 30, "icp_iterations": 3}
+  draws = [
+      ("source NaN", {"source": nan}, "source"),
+      ("target shape", {"target": dst[:, :2]}, "target"),
+      ("source 5 points", {"source": src[:5]}, "source"),
+      ("n_keypoints", {"n_keypoints": pick(rng, ["a", 0, 2.5, None, -3])}, "n_keypoints"),
+      ("radius_mr", {"radius_mr": pick(rng, ["x", 0, np.nan, None, -1.0])}, "radius_mr"),
+      ("verify", {"verify": pick(rng, [2.5, -1, "a", [1]])}, "verify"),
+      ("iterations", {"iterations": pick(rng, [None, 0, "10", 1.5])}, "iterations"),
+      ("method", {"method": pick(rng, ["nope", ["toldi"], None])}, "method"),
+      ("descriptor", {"descriptor": pick(rng, ["nope", ["toldi"], 3])}, "descriptor"),
+      ("estimator", {"estimator": pick(rng, ["4point", None, ["lrf"]])}, "estimator"),
+      ("source_viewpoint", {"source_viewpoint": pick(rng, [np.zeros(2), [0, 0, np.nan], "a"])},
+       "source_viewpoint"),
+      ("mr", {"mr": pick(rng, [-1.0, np.nan, "x", 0])}, "mr"),
+      ("icp_iterations", {"icp_iterations": pick(rng, [-1, 0.5, "3", None])}, "icp_iterations"),
+      ("seed", {"seed": pick(rng, ["x", None, 1.5])}, "seed"),
+  ]
+  cases = [Case(f"register {label} {short_repr(kw)[:60]}",
+                lambda a={"source": src, "target": dst} | fast | kw: lrf_jax.register(**a),
+                name, check_registration, "error", file=False) for label, kw, name in draws]
+  for label, kw in (("valid arrays", {}), ("valid target path", {"target": str(path)})):
+    cases.append(Case(f"register {label}", lambda a={"source": src, "target": dst} | fast | kw:
+                      lrf_jax.register(**a), "", check_registration, "result", file=False))
+  run_cases(cases, FUZZ_CASES["register"])
+
+
+@pytest.mark.parametrize("kw, name", [
+    ({"n_keypoints": None}, "n_keypoints"),  # TypeError from int()
+    ({"n_correspondences": "a"}, "n_correspondences"),  # ValueError from int(), unnamed
+    ({"verify": [1]}, "verify"),  # TypeError from int()
+    ({"radius_mr": "x"}, "radius_mr"),  # TypeError from np.isfinite
+    ({"mr": "x"}, "mr"),
+    ({"method": ["toldi"]}, "method"),  # TypeError: unhashable type: 'list'
+    ({"descriptor": ["toldi"]}, "descriptor"),
+    ({"seed": "x"}, "seed"),  # TypeError from numpy's SeedSequence
+    ({"icp_iterations": None}, "icp_iterations"),  # TypeError inside icp
+])
+def test_regression_register_arguments(kw: dict, name: str) -> None:
+  args = {"source": _PTS, "target": _PTS + 0.1} | kw
+  rejects(lambda: lrf_jax.register(**args), name, file=False)
+
+
+@pytest.mark.parametrize("kw", [
+    {"n_keypoints": 10, "n_correspondences": 1, "inlier_mr": 1e-6, "ratio": 0.9},
+    {"n_keypoints": 200, "n_correspondences": 40, "inlier_mr": 1e-9},
+])
+def test_regression_register_without_a_hypothesis(kw: dict) -> None:
+  """The graph estimator builds no hypothesis when no two correspondences are compatible (one
+  correspondence, or a tiny inlier distance): `register` raised IndexError in its verification.
+  It returns the identity, not sure, with the reason, and `estimated` False."""
+  pair = lrf_jax.datasets.make_demo_pair(0)
+  reg = lrf_jax.register(pair.model_points, pair.scene_points, **kw)
+  assert not reg.estimated and not reg.success and reg.n_inliers == 0
+  np.testing.assert_array_equal(reg.transform, np.eye(4))
+  np.testing.assert_array_equal(reg.coarse_transform, np.eye(4))
+  assert reg.reason.startswith("no pose hypothesis: ") and "identity" in reg.reason
+  assert len(reg.correspondences) == len(reg.inliers) and not reg.inliers.any()
+  assert 0.0 <= reg.overlap <= 1.0 and "no pose hypothesis" in reg.summary()
+
+
+def test_a_voxel_size_that_leaves_no_cloud_is_named():
+  """Before: voxel_size=1e300 thinned each cloud to one point and register said "only 0
+  descriptor matches ... too sparse for r = 15.0 mr"; 1e-20 was voxel_downsample's error."""
+  from lrf_jax import datasets
+  from lrf_jax.registration import register
+  pair = datasets.make_demo_pair(0, seed=0, noise_mr=0.05, partial=True)
+  with pytest.raises(ValueError, match=r"^voxel_size: voxels of 1e\+300 leave 1 points"):
+    register(pair.model_points, pair.scene_points, voxel_size=1e300)
+  with pytest.raises(ValueError, match=r"^voxel_size: size 1e-20 is too small"):
+    register(pair.model_points, pair.scene_points, voxel_size=1e-20)

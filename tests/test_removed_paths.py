@@ -1,11 +1,11 @@
 """The pre-0.7 paths and names, forwarded with a DeprecationWarning in 0.7, are gone in 0.8 (and
-so are the few paths 0.8 moved, without an alias):
+so are the few paths 0.8 and 0.9 moved, without an alias):
 each old module path fails to import (ModuleNotFoundError) and each old name fails to resolve
 (AttributeError); each new home exists; nothing of the project's own (package, tests,
 benchmarks, scripts, README) mentions an old module path.
 
-The tables below are the record of what 0.8 removed or moved (CHANGELOG.md, "0.8.0", summarises
-them).
+The tables below are the record of what 0.8 and 0.9 removed or moved (CHANGELOG.md, "0.8.0"
+and "0.9.0", summarise them); an entry names the path's home today.
 """
 
 from __future__ import annotations
@@ -46,14 +46,13 @@ MOVED: dict[str, str] = {
     "lrf_jax.losses": "lrf_jax.learning.losses",
     "lrf_jax.metrics": "lrf_jax.frames.metrics",  # in lrf_jax.evaluation in 0.7
     "lrf_jax.model": "lrf_jax.frames.weights",  # lrf_jax.learning.model in 0.7 (init_params still)
-    "lrf_jax.multiway": "lrf_jax.registration.multiway",
     "lrf_jax.multiway_cli": "lrf_jax.cli.multiway",
-    "lrf_jax.multiway_figures": "lrf_jax.registration.multiway_figures",
+    "lrf_jax.multiway_figures": "lrf_jax.multiway.figures",
     "lrf_jax.neighborhoods": "lrf_jax.search.neighborhoods",
     "lrf_jax.networks": "lrf_jax.learning.networks",
     "lrf_jax.normals": "lrf_jax.geometry.normals",
     "lrf_jax.plot": "lrf_jax.cli.plot",
-    "lrf_jax.pose_graph": "lrf_jax.registration.pose_graph",
+    "lrf_jax.pose_graph": "lrf_jax.multiway.pose_graph",
     "lrf_jax.register_cli": "lrf_jax.cli.register",
     "lrf_jax.registration_graph": "lrf_jax.registration.graph",
     "lrf_jax.registration_host": "lrf_jax.registration.host",
@@ -64,6 +63,17 @@ MOVED: dict[str, str] = {
     # moved in 0.8, without an alias (no package-level import cycle)
     "lrf_jax.evaluation.metrics": "lrf_jax.frames.metrics",
     "lrf_jax.search.kernel_cache": "lrf_jax.kernel_cache",
+    # moved in 0.9, without an alias: multiway is a package of its own above registration
+    "lrf_jax.registration.multiway": "lrf_jax.multiway.pipeline",
+    "lrf_jax.registration.multiway_tasks": "lrf_jax.multiway.tasks",
+    "lrf_jax.registration.multiway_outputs": "lrf_jax.multiway.outputs",
+    "lrf_jax.registration.multiway_figures": "lrf_jax.multiway.figures",
+    "lrf_jax.registration.pose_graph": "lrf_jax.multiway.pose_graph",
+    # moved in 0.9, without an alias: compute_frames and the normals rule of the methods'
+    # prepare hooks are part of frames (frames_from_patches: lrf_jax.frames.patch_frames,
+    # host_frames: lrf_jax.frames.host_path)
+    "lrf_jax.api": "lrf_jax.frames.compute",
+    "lrf_jax.prepare": "lrf_jax.frames.normals_rule",
 }
 
 
@@ -93,7 +103,8 @@ RENAMED: dict[str, str] = {
     **{f"lrf_jax.registration.{n}": f"lrf_jax.registration.{home}.{n}"
        for home, names in _REGISTRATION_MODULE_NAMES.items() for n in names},
     # "neighbour" -> "neighbor", one name per radius fraction
-    "lrf_jax.api.HOST_NEIGHBOUR_BUDGET": "lrf_jax.api.HOST_NEIGHBOR_BUDGET",
+    "lrf_jax.frames.host_path.HOST_NEIGHBOUR_BUDGET":
+        "lrf_jax.frames.host_path.HOST_NEIGHBOR_BUDGET",
     "lrf_jax.frames.board.MARGIN": "lrf_jax.frames.board.MARGIN_RATIO",
     "lrf_jax.frames.board.MIN_Z_NEIGHBOURS": "lrf_jax.frames.board.MIN_Z_NEIGHBORS",
     "lrf_jax.frames.flare.MARGIN": "lrf_jax.frames.flare.MARGIN_RATIO",
@@ -126,6 +137,10 @@ RENAMED: dict[str, str] = {
     **{f"lrf_jax.cli.frames.{n}": f"lrf_jax.batch.scan_frames.{n}"
        for n in ("select_keypoints", "read_transform", "pair_keypoints")},
     "lrf_jax.geometry.cloud.CloudInput": "lrf_jax.geometry.cloud.CheckedCloud",
+    # 0.9: each host fast path on every neighbor is data of its method's spec (a
+    # `host_path.BallKernel`), no longer a wrapper function of the method's module
+    **{f"lrf_jax.frames.{m}.{m}_frames_host": f"lrf_jax.frames.{m}.SPEC.host_frames"
+       for m in ("board", "flare", "gframes", "mian", "ps", "rops", "shot", "toldi")},
 }
 
 

@@ -1,4 +1,6 @@
-"""Training: the smoke config learns, resumes exactly, shards, and rejects bad configs."""
+"""Training: the smoke config learns, resumes exactly, shards, and rejects bad configs; train.py's
+bad configs and arguments are one `error:` line and exit code 2 before any work; the workdir's
+lock refuses a link or a FIFO; a failed write keeps the old file."""
 
 import json
 import os
@@ -19,8 +21,12 @@ from lrf_jax.learning import train_step
 from lrf_jax.learning.batches import BatchMaker, crop_patches
 from lrf_jax.learning.losses import siamese_loss
 from lrf_jax.frames.weights import load_params
+from lrf_jax.io import atomic
+from tests.lrf_testing import assert_only_files, cli_error, full_disk_midway
 
 REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO))
+import train  # noqa: E402
 
 
 @pytest.fixture(scope="module")
@@ -404,3 +410,179 @@ def test_stale_workdir_lock_is_taken_over(tmp_path):
   assert not (tmp_path / train_lib.LOCK_FILE).exists()  # removed at the end of the block
   with train_lib.workdir_lock(tmp_path):  # and free again
     pass
+
+
+# --------------------------- train.py's bad configs and arguments (in-process, before any work)
+
+
+@pytest.mark.parametrize("name,text,fragment", [
+    ("noise.json", '{"noise_mr": 0.1}', "config.noise_mr"),
+    ("widths.json", '{"widths": 16}', "config.widths"),
+    ("list.json", "[1, 2]", "expected an object"),
+    ("lr.json", '{"learning_rate": true}', "config.learning_rate"),
+    ("radius.json", '{"radius_mr": true}', "config.radius_mr"),
+    ("decay.json", '{"lr_decay": true}', "config.lr_decay"),
+    ("crop.json", '{"crop_p": true}', "config.crop_p"),
+    ("name.json", '{"name": 3}', "config.name"),
+    ("syntax.json", '{"epochs": 2,', "syntax.json"),
+    ("nofn.py", "x = 1\n", "get_config"),
+    ("dict.py", "def get_config():\n  return {'epochs': 1}\n", "TrainConfig"),
+    ("raises.py", "import nosuchmodule\n", "raises.py"),
+])
+def test_train_bad_config_file(tmp_path, capsys, name, text, fragment):
+  path = tmp_path / name
+  path.write_text(text)
+  work = tmp_path / "run"
+  assert train.main(["--config", str(path), "--workdir", str(work), "--no-progress"]) == 2
+  err = cli_error(capsys)
+  assert fragment in err, err
+  assert not work.exists()
+
+
+def test_train_config_folder_and_workdir_file(tmp_path, capsys):
+  (tmp_path / "dir.json").mkdir()
+  assert train.main(["--config", str(tmp_path / "dir.json"), "--workdir",
+                     str(tmp_path / "run")]) == 2
+  assert "dir.json" in cli_error(capsys)
+  (tmp_path / "afile").write_text("mine")
+  assert train.main(["--config", "smoke", "--workdir", str(tmp_path / "afile")]) == 2
+  assert "--workdir" in cli_error(capsys)
+  assert (tmp_path / "afile").read_text() == "mine"
+
+
+def test_train_batch_larger_than_the_training_set(tmp_path, capsys):
+  """batch_size=2048 with 1,024 training keypoints trained on batches of 1,024 before."""
+  assert train.main(["--config", "smoke", "--workdir", str(tmp_path / "run"),
+                     "batch_size=2048"]) == 2
+  err = cli_error(capsys)
+  assert "config.batch_size" in err and "1024" in err
+  with pytest.raises(ValueError, match="config.batch_size"):
+    config_lib.TrainConfig(num_train_keypoints=100, batch_size=101)
+
+
+def test_train_resume_under_another_config_is_refused(tmp_path, capsys):
+  """A finished run resumed with other values ran with rc 0 and overwrote config.json."""
+  smoke = config_lib.load_config("smoke")
+  work = tmp_path / "run"
+  work.mkdir()
+  (work / "config.json").write_text(smoke.to_json())
+  (work / "metrics.jsonl").write_text('{"step": 48, "loss": 0.1}\n')
+  before = {p: p.read_bytes() for p in work.iterdir()}
+  assert train.main(["--config", "smoke", "--workdir", str(work), "--no-progress", "epochs=3",
+                     "batch_size=16", "learning_rate=0.1", "seed=5"]) == 2
+  err = cli_error(capsys)
+  for field in ("batch_size", "learning_rate", "seed"):
+    assert field in err, err
+  assert "--replace-config" in err
+  assert {p: p.read_bytes() for p in work.iterdir()} == before
+
+
+def test_train_replace_config_keeps_both(tmp_path):
+  smoke = config_lib.load_config("smoke")
+  other = config_lib.replace(smoke, learning_rate=0.1)
+  work = tmp_path / "run"
+  work.mkdir()
+  (work / "config.json").write_text(smoke.to_json())
+  (work / "metrics.jsonl").write_text('{"step": 8, "loss": 0.1}\n{"step": 12, "loss"')  # torn
+  assert train_lib.resume_config(work, smoke) is None  # the same config: resume
+  with pytest.raises(ValueError, match="learning_rate: saved 0.003 vs requested 0.1"):
+    train_lib.resume_config(work, other)
+  name = train_lib.resume_config(work, other, replace=True)
+  assert name == "config.1.json"
+  train_lib._Log(work, other, 8, other.total_steps, False, name).close()
+  assert config_lib.TrainConfig.from_dict(json.loads((work / "config.json").read_text())) == smoke
+  assert json.loads((work / "config.1.json").read_text())["learning_rate"] == 0.1
+  rows = [json.loads(line) for line in (work / "metrics.jsonl").read_text().splitlines()]
+  assert rows[0] == {"step": 8, "loss": 0.1} and "config.1.json" in rows[1]["note"]
+  assert len(rows) == 2  # the torn line is gone
+  assert train_lib.resume_config(work, other) is None  # now compared with config.1.json
+  with pytest.raises(ValueError, match="config.1.json"):
+    train_lib.resume_config(work, smoke)
+
+
+def test_train_resume_with_other_model_fields_is_incompatible(tmp_path):
+  smoke = config_lib.load_config("smoke")
+  work = tmp_path / "run"
+  (work / "checkpoints" / "8").mkdir(parents=True)
+  (work / "config.json").write_text(smoke.to_json())
+  with pytest.raises(ValueError, match="incompatible.*widths"):
+    train_lib.resume_config(work, config_lib.replace(smoke, widths=(8,)), replace=True)
+
+
+def _batch(z_count: int, count: int):
+  from lrf_jax.learning.batches import Batch
+  from lrf_jax.search.neighborhoods import Patches
+  n, k = 8, 4
+  p = Patches(np.zeros((n, k, 3), np.float32), np.ones((n, k), bool), np.zeros((n, k), np.int32),
+              np.full(n, count, np.int32), np.ones(n, np.float32), np.zeros((n, 3, 3), np.float32),
+              np.zeros((n, 3), np.float32), np.full(n, z_count, np.int32))
+  return Batch(p, p)
+
+
+def test_all_invalid_frames_blame_the_support_when_patches_are_too_small():
+  """radius_mr=1: every frame invalid was blamed on the learning rate ("diverged"); the patches
+  hold a median of 1 point within r/3, where the z axis needs 3."""
+  m = {"loss": 0.0, "grad_norm": 0.0, "valid_fraction": 0.0}
+  with pytest.raises(FloatingPointError, match="support is too small.*raise radius_mr") as e:
+    train_lib.check_finite(m, {}, 4, 0, _batch(z_count=1, count=4))
+  assert "learning rate" not in str(e.value)
+  with pytest.raises(FloatingPointError, match="lower the learning rate"):
+    train_lib.check_finite(m, {}, 4, 0, _batch(z_count=40, count=200))
+
+
+# --------------------------------------------------------------------------- the workdir's lock
+
+
+def test_a_symlinked_train_lock_never_truncates_its_target(tmp_path):
+  """Before: `train.lock -> ~/precious` was opened through the link, truncated and overwritten
+  with the pid."""
+  from lrf_jax.learning import train_lib
+  victim = tmp_path / "precious.txt"
+  victim.write_text("precious data\n")
+  work = tmp_path / "work"
+  work.mkdir()
+  (work / train_lib.LOCK_FILE).symlink_to(victim)
+  with pytest.raises(ValueError, match="not a regular file"):
+    with train_lib.workdir_lock(work):
+      pass
+  assert victim.read_text() == "precious data\n"
+  assert (work / train_lib.LOCK_FILE).is_symlink()  # left as it was
+
+
+def test_a_fifo_train_lock_is_refused_and_left_alone(tmp_path):
+  from lrf_jax.learning import train_lib
+  os.mkfifo(tmp_path / train_lib.LOCK_FILE)
+  with pytest.raises(ValueError, match="not a regular file"):
+    with train_lib.workdir_lock(tmp_path):
+      pass
+  assert (tmp_path / train_lib.LOCK_FILE).exists()
+
+
+# --------------------------------------------- writes that fail (a full disk) keep the old file
+
+
+def test_params_on_a_full_disk_keep_the_old_file(tmp_path, monkeypatch):
+  """train.py on a full disk: a traceback and a truncated best_params.msgpack."""
+  params = {"enc0": {"kernel": np.ones((2, 16), np.float32), "bias": np.zeros(16, np.float32)}}
+  path = tmp_path / "best_params.msgpack"
+  train_lib._save_params(params, path)
+  good = path.read_bytes()
+  def half_written(p, tmp):
+    with open(tmp, "wb") as f:
+      full_disk_midway(f)
+  monkeypatch.setattr(train_lib, "save_params", half_written)
+  with pytest.raises(atomic.WriteError, match="best_params.msgpack: No space left"):
+    train_lib._save_params(params, path)
+  assert path.read_bytes() == good
+  assert_only_files(tmp_path, "best_params.msgpack")
+
+
+def test_curves_skip_notes_and_torn_lines(tmp_path):
+  log = tmp_path / "metrics.jsonl"
+  log.write_text('{"step": 4, "loss": 1.0}\n{"step": 4, "note": "config replaced"}\n'
+                 '{"step": 8, "loss": 0.5, "epoch": 1.0, "val_meancos": 0.5}\n{"step": 9, "lo')
+  train_lib.plot_curves(log, tmp_path / "curves.png")
+  assert (tmp_path / "curves.png").stat().st_size > 1000
+  train_lib._trim_log(log, 8)
+  assert [json.loads(l)["step"] for l in log.read_text().splitlines()] == [4, 4, 8]
+  assert_only_files(tmp_path, "metrics.jsonl", "curves.png")

@@ -7,13 +7,16 @@ with it; an item's own failure never raises, so one bad scan costs one row, not 
 
 from __future__ import annotations
 
+import errno
+import os
 import time
 from typing import Any
+from collections.abc import Sequence
 
 import numpy as np
 
 __all__ = ["FRAMES_OPTIONS", "check_frames_options", "check_register_options", "frames_of_scan",
-           "register_pair"]
+           "is_transient", "register_pair"]
 
 # `run_frames` keywords -> lrf-frames flags (the item is lrf-frames' own computation).
 FRAMES_OPTIONS = {"keypoints": "--keypoints", "voxel_mr": "--voxel-mr",
@@ -22,15 +25,42 @@ FRAMES_OPTIONS = {"keypoints": "--keypoints", "voxel_mr": "--voxel-mr",
                   "descriptor": "--descriptor", "seed": "--seed"}
 
 
-def _error(e: BaseException, t0: float) -> dict[str, Any]:
-  """The error record of an item that raised `e`; Ctrl-C is not an item's error: a
-  KeyboardInterrupt that surfaced as another exception (numba turns one inside a kernel into a
-  SystemError) is raised again, so that the job stops and the item stays pending."""
+# OSErrors of the machine, not of an input file: a full, read-only or failing disk, a quota, no
+# memory or no process left. The same command redoes an item that met one.
+_MACHINE_ERRNOS = frozenset({errno.ENOSPC, errno.EDQUOT, errno.EROFS, errno.EIO, errno.ENOMEM,
+                             errno.EAGAIN, errno.EMFILE, errno.ENFILE, errno.ESTALE})
+
+
+def is_transient(e: BaseException, inputs: Sequence[str] = ()) -> bool:
+  """Whether `e` is a failure of the machine rather than of the item's inputs: no memory, an
+  OSError with a machine's errno, or one about a file that is not an input (a cache, a
+  temporary file), and a damaged cache entry (an unpickling error); anywhere in its chain."""
+  import pickle
+  seen: set[int] = set()
+  while e is not None and id(e) not in seen:
+    seen.add(id(e))
+    if isinstance(e, (MemoryError, pickle.UnpicklingError, EOFError)):
+      return True
+    if isinstance(e, OSError) and (e.errno in _MACHINE_ERRNOS or (
+        e.filename is not None and os.fspath(e.filename) not in inputs
+        and not isinstance(e, (FileNotFoundError, IsADirectoryError, NotADirectoryError)))):
+      return True
+    e = e.__cause__ or e.__context__
+  return False
+
+
+def _error(e: BaseException, t0: float, inputs: Sequence[str] = ()) -> dict[str, Any]:
+  """The error record of an item that raised `e`: status "transient" for a failure of the
+  machine (`is_transient`; redone by the same command), else "error" (kept until retried).
+  Ctrl-C is not an item's error: a KeyboardInterrupt that surfaced as another exception (numba
+  turns one inside a kernel into a SystemError) is raised again, so that the job stops and the
+  item stays pending."""
   from lrf_jax.io.atomic import caused_by_interrupt
   if caused_by_interrupt(e):
     raise KeyboardInterrupt from e
   text = str(e) if isinstance(e, (ValueError, OSError)) else f"{type(e).__name__}: {e}"
-  return dict(status="error", error=text, seconds=time.perf_counter() - t0)
+  status = "transient" if is_transient(e, inputs) else "error"
+  return dict(status=status, error=text, seconds=time.perf_counter() - t0)
 
 
 def check_register_options(options: dict[str, Any]) -> None:
@@ -68,7 +98,7 @@ def register_pair(payload: dict[str, Any]) -> dict[str, Any]:
     from lrf_jax.registration import register
     reg = register(payload["source"], payload["target"], **payload["options"])
   except Exception as e:  # noqa: BLE001 -- a bad pair is a row, the job goes on
-    return _error(e, t0)
+    return _error(e, t0, (payload["source"], payload["target"]))
   return dict(status="done", transform=np.asarray(reg.transform, np.float64).tolist(),
               success=bool(reg.success), reason=str(reg.reason),
               seconds=time.perf_counter() - t0)
@@ -134,7 +164,7 @@ def frames_of_scan(payload: dict[str, Any]) -> dict[str, Any]:
     from lrf_jax.batch import scan_frames
     arrays, _, _ = scan_frames.frames_of_scan(_request(payload["scan"], payload["options"]))
   except Exception as e:  # noqa: BLE001 -- a bad scan is a row, the job goes on
-    return _error(e, t0)
+    return _error(e, t0, (payload["scan"],))
   arrays = {k: np.asarray(v) for k, v in arrays.items()}
   return dict(status="done", arrays=arrays, keypoints=int(len(arrays["keypoints"])),
               valid=int(arrays["valid"].sum()), seconds=time.perf_counter() - t0)

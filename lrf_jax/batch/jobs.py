@@ -33,7 +33,6 @@ import dataclasses
 import hashlib
 import json
 import os
-import re
 import stat
 import time
 from pathlib import Path
@@ -43,20 +42,26 @@ from collections.abc import Callable, Iterable, Sequence
 import numpy as np
 
 from lrf_jax.batch import engines as engines_mod
+from lrf_jax import records
 from lrf_jax.batch import items as items_mod
+from lrf_jax.batch import scoring, tables
+from lrf_jax.batch.tables import check_name, read_pairs
 from lrf_jax.io import atomic
 from lrf_jax.io.poses import format_matrix
-from lrf_jax.registration.multiway import scan_names
+from lrf_jax.multiway.outputs import scan_names
 
 __all__ = ["JobResult", "REGISTER_COLUMNS", "FRAMES_COLUMNS", "STATE", "read_pairs",
            "run_frames", "run_register"]
 
 STATE = ".lrf-batch"
-REGISTER_COLUMNS = ("name", "source", "target", "status", "success", "reason", "seconds",
-                    "node", "attempt", "version", "error")
+# A record's status: "done"; "error", the item's own failure (a corrupt file), kept until
+# `retry_errors`; "transient", a failure of the machine (a lost worker or node, a full disk, a
+# cache error), redone by the same command.
+STATUSES = ("done", "error", "transient")
+REGISTER_COLUMNS = ("name", "source", "target", "status", "success", "reason",
+                    *scoring.SCORE_COLUMNS, "seconds", "node", "attempt", "version", "error")
 FRAMES_COLUMNS = ("name", "scan", "status", "keypoints", "valid", "seconds", "node", "attempt",
                   "version", "error")
-_MAX_NAME_BYTES = 200  # leaves room for a suffix and the temporary file's decorations
 # results.tsv is rewritten after every item; a table this large at most every so many seconds
 # (rewriting 10^4 rows after each of 10^4 items would write gigabytes).
 _LARGE_TABLE = 1000
@@ -91,134 +96,39 @@ class JobResult:
   out: Path
 
   @property
+  def counts(self) -> dict[str, int]:
+    """The rows' counts (`scoring.counts`): pairs, done, claimed, scored, right and false
+    claims (claimed and not right)."""
+    return scoring.counts(self.rows)
+
+  @property
   def exit_code(self) -> int:
     """0 when every item is done, 3 when some failed."""
     return 3 if self.failed else 0
 
 
-# --- names and inputs -------------------------------------------------------------------------
+# --- the output folder ---
 
-def check_name(name: str, where: str) -> str:
-  """`name` if it can name an output file in the job's folder, else ValueError naming `where`:
-  empty, "." or "..", starting with ".", a path separator, a control character (a tab or a
-  newline would also break results.tsv) or over `_MAX_NAME_BYTES` bytes."""
-  bad = (not name or name in (".", "..") or name.startswith(".") or "/" in name or "\\" in name
-         or any(ord(ch) < 32 or ord(ch) == 127 for ch in name)
-         or len(name.encode("utf-8", "surrogateescape")) > _MAX_NAME_BYTES)
-  if bad:
-    raise ValueError(f"{where}: expected a file name without a folder or control characters, "
-                     f"not starting with '.', at most {_MAX_NAME_BYTES} bytes, got {name!r}")
-  return name
-
-
-def _tsv_text(p: Path) -> str:
-  """The text of a PAIRS.tsv: UTF-8 (a byte-order mark dropped), or UTF-16 with its mark (a
-  spreadsheet's "Unicode text"); ValueError naming the file and the line of a bad byte."""
+def _check_out(path: Path, given: Any) -> None:
+  """ValueError naming `given` when the output folder cannot be one: a file, a symlink loop, a
+  path through a file."""
   try:
-    data = p.read_bytes()
-  except OSError as e:
-    raise ValueError(f"{p}: could not read it ({e.strerror or e})") from None
-  encoding = "utf-16" if data[:2] in (b"\xff\xfe", b"\xfe\xff") else "utf-8-sig"
-  try:
-    text = data.decode(encoding)
-  except UnicodeDecodeError as e:
-    line = data[:e.start].count(b"\n") + 1
-    raise ValueError(f"{p}: line {line}: expected UTF-8 text, found the byte "
-                     f"0x{data[e.start]:02x}") from None
-  if "\0" in text:
-    line = text[:text.index("\0")].count("\n") + 1
-    raise ValueError(f"{p}: line {line}: expected text, found a NUL byte")
-  return text
+    if path.exists() and not path.is_dir():
+      raise ValueError(f"out: {given} exists and is not a folder; expected a folder for the "
+                       "job's outputs")
+    path.resolve(strict=False)
+  except (OSError, RuntimeError) as e:  # RuntimeError: Python < 3.13 on a symlink loop
+    why = "a symlink loop" if "loop" in str(e).lower() or getattr(e, "errno", 0) == 40 else e
+    raise ValueError(f"out: {given}: expected a folder for the job's outputs, found {why}"
+                     ) from None
 
 
-def _tsv_lines(p: Path) -> list[tuple[int, list[str]]]:
-  """(line number, fields) of each non-blank line of a PAIRS.tsv. Fields are split at tabs
-  only and stripped; a field wholly in double quotes (as spreadsheets quote) is unquoted, ""
-  standing for one quote; any other quote is part of the field (no field spans lines)."""
-  out = []
-  for lineno, line in enumerate(re.split(r"\r\n|\r|\n", _tsv_text(p)), start=1):
-    fields = []
-    for field in line.split("\t"):
-      field = field.strip()
-      if len(field) >= 2 and field[0] == field[-1] == '"':
-        field = field[1:-1].replace('""', '"')
-      fields.append(field)
-    if any(fields):
-      out.append((lineno, fields))
-  return out
-
-
-def _tsv_header(p: Path, lines: list[tuple[int, list[str]]]) -> list[str]:
-  if not lines:
-    raise ValueError(f"{p}: expected a header line naming the columns source and target, "
-                     "found an empty file")
-  lineno, header = lines[0]
-  for col in ("source", "target"):
-    if col not in header:
-      raise ValueError(f"{p}: line {lineno}: expected a header with the columns source and "
-                       f"target (tab-separated), found {header}")
-  named = [c for c in header if c]
-  twice = sorted({c for c in named if named.count(c) > 1})
-  if twice:
-    raise ValueError(f"{p}: line {lineno}: column {twice[0]!r} appears twice in the header")
-  return header
-
-
-def read_pairs(path: str | os.PathLike) -> list[tuple[str, str, str]]:
-  """The pairs of a PAIRS.tsv: a tab-separated file (UTF-8; blank lines skipped) with a header
-  naming the columns `source` and `target` (paths; relative ones are relative to the TSV's
-  folder) and optionally `name` (default: the data row's number, 1-based, zero-padded to 4
-  digits: 0001, ..., 9999, 10000; a name that does not change when pairs are appended). Other
-  columns are ignored.
-
-  Returns:
-    [(name, source, target)], paths absolute.
-
-  Raises:
-    FileNotFoundError: no such file.
-    ValueError: not text, a missing or repeated column, a row with more fields than the
-      header, an empty field, a name that cannot name a file or a repeated name (also ignoring
-      case: one file on a case-insensitive file system); the message names the file, the line
-      and the field.
-  """
-  p = Path(path).expanduser()
-  if not p.is_file():
-    what = "not a regular file" if p.exists() else "no such file"
-    raise FileNotFoundError(f"{path}: {what} (expected a PAIRS.tsv)")
-  lines = _tsv_lines(p)
-  header = _tsv_header(p, lines)
-  out: list[tuple[str, str, str]] = []
-  seen: dict[str, int] = {}
-  for row, (lineno, fields) in enumerate(lines[1:], start=1):
-    where = f"{p}: line {lineno}"
-    if any(fields[len(header):]):
-      raise ValueError(f"{where}: {len(fields)} tab-separated fields, but the header names "
-                       f"{len(header)} columns")
-    rec = dict(zip(header, fields))
-    for col in ("source", "target"):
-      if not rec.get(col):
-        raise ValueError(f"{where}: column {col}: expected a path, found nothing")
-    # Zero-padded to 4 digits whatever the number of rows: appending the 10000th pair must not
-    # rename (and so redo) the 9999 before it.
-    name = check_name(rec.get("name") or f"{row:04d}", f"{where}: column name")
-    if name.casefold() in seen:
-      raise ValueError(f"{where}: column name: {name!r} is also the name of line "
-                       f"{seen[name.casefold()]} (ignoring case); names must be unique")
-    seen[name.casefold()] = lineno
-    src, tgt = ((p.parent / Path(rec[c]).expanduser()).resolve() for c in ("source", "target"))
-    out.append((name, str(src), str(tgt)))
-  return out
-
-
-def _check_unique(names: Sequence[str]) -> None:
-  """ValueError when two items share a name, also ignoring case (their outputs would be one
-  file on a case-insensitive file system)."""
-  seen: dict[str, str] = {}
-  for name in names:
-    if name.casefold() in seen:
-      raise ValueError(f"names: {seen[name.casefold()]!r} and {name!r} would name the same "
-                       "output file; names must be unique (also ignoring case)")
-    seen[name.casefold()] = name
+def _command() -> str:
+  """This process's command line, for a job's lock (who holds the folder)."""
+  import shlex
+  import sys
+  return shlex.join([Path(sys.argv[0]).name, *sys.argv[1:]]) if sys.argv and sys.argv[0] \
+      else sys.executable
 
 
 # --- hashes and records -----------------------------------------------------------------------
@@ -281,20 +191,8 @@ def _size(path: str) -> int:
     return 0
 
 
-def _canonical(options: dict[str, Any]) -> str:
-  return json.dumps(options, sort_keys=True, default=lambda v: np.asarray(v).tolist())
-
-
 def _key(kind: str, hashes: Iterable[str], options: dict[str, Any]) -> str:
-  return hashlib.sha256(f"{kind}|{'|'.join(hashes)}|{_canonical(options)}".encode()).hexdigest()
-
-
-def _read_record(path: Path) -> dict[str, Any] | None:
-  try:
-    rec = json.loads(path.read_text())
-  except (OSError, ValueError):
-    return None
-  return rec if isinstance(rec, dict) else None
+  return records.content_key(kind, *hashes, records.canonical(options))
 
 
 # --- the job ----------------------------------------------------------------------------------
@@ -348,53 +246,79 @@ FRAMES = _Kind("frames", items_mod.frames_of_scan, ".npz", FRAMES_COLUMNS,
                lambda it, o: dict(scan=it.inputs[0], options=o), _frames_row, _write_npz)
 
 
-def _tsv(columns: Sequence[str], rows: Iterable[dict[str, Any]]) -> str:
-  def cell(v: Any) -> str:
-    return str(v).replace("\t", " ").replace("\n", " ")
-  lines = ["\t".join(columns)]
-  lines += ["\t".join(cell(r.get(c, "")) for c in columns) for r in rows]
-  return "\n".join(lines) + "\n"
-
-
 class _Job:
   """The state of one job in its output folder."""
 
   def __init__(self, kind: _Kind, named_inputs: Sequence[tuple[str, tuple[str, ...]]],
-               out: str | os.PathLike, options: dict[str, Any]):
-    self.kind, self.options = kind, options
+               out: str | os.PathLike, options: dict[str, Any], *, keep_versions: bool = False,
+               force: bool = False, score: scoring.Scoring | None = None):
+    self.kind, self.options, self.score = kind, options, score
     self.out = Path(out).expanduser()
-    if self.out.exists() and not self.out.is_dir():
-      raise ValueError(f"out: {out} exists and is not a folder; expected a folder for the job's "
-                       "outputs")
+    _check_out(self.out, out)
     all_inputs = {p for _, ins in named_inputs for p in ins}
     for name, _ in named_inputs:
       target = self.out / (name + kind.suffix)
       if str(target.resolve()) in all_inputs:
         raise ValueError(f"out: {target} would overwrite the input of the same path; pick "
                          "another output folder")
-    _check_unique([name for name, _ in named_inputs])
+    tables.check_unique([name for name, _ in named_inputs])
     self.state = self.out / STATE
     self._check_not_foreign([name + kind.suffix for name, _ in named_inputs])
     self.records = self.state / "records"
     try:
       self.records.mkdir(parents=True, exist_ok=True)
-    except OSError as e:  # a read-only or full disk, a file in the way: one error, no work
+    except (NotADirectoryError, FileExistsError) as e:  # a file in the way: a wrong path
+      raise ValueError(f"out: {self.out}: expected a folder for the job's outputs, but "
+                       f"{e.filename or self.out} is in the way (not a folder)") from None
+    except OSError as e:  # a read-only or full disk: one error, no work
       raise atomic.WriteError(self.records, e) from e
+    self.lock = records.JobLock(self.state / "lock", _command(), force=force)
+    try:
+      self.lock.acquire()
+    except OSError as e:
+      raise atomic.WriteError(self.state / "lock", e) from e
+    try:
+      self._read_state(named_inputs, keep_versions)
+    except BaseException:
+      self.lock.release()
+      raise
+
+  def _read_state(self, named_inputs: Sequence[tuple[str, tuple[str, ...]]],
+                  keep_versions: bool) -> None:
+    """The inputs' hashes, the items' keys and the records that still stand (this lrf_jax
+    version's, or any with `keep_versions`); the other items' records in the folder (earlier
+    jobs'), listed in results.tsv after this job's."""
     hashes = _Hashes(self.state / "hashes.json")
     self.input_hashes = {p: hashes(p) for _, ins in named_inputs for p in ins}
-    self.items = [Item(name, ins, _key(kind.name, (self.input_hashes[p] for p in ins), options))
-                  for name, ins in named_inputs]
+    self.items = [Item(name, ins, _key(self.kind.name, (self.input_hashes[p] for p in ins),
+                                       self.options)) for name, ins in named_inputs]
     self.hashes = hashes  # saved when items run: a rerun with nothing to do writes nothing
     self.recs: dict[str, dict[str, Any]] = {}
     self._last_write = -np.inf
     for it in self.items:
-      rec = _read_record(self.records / f"{it.name}.json")
-      if rec is not None and rec.get("key") == it.key and rec.get("status") in ("done", "error"):
+      rec = records.read_record(self.records / f"{it.name}.json")
+      if (rec is not None and rec.get("key") == it.key and rec.get("status") in STATUSES
+          and records.is_current(rec, keep_versions)):
         self.recs[it.name] = rec
+    mine = {it.name for it in self.items}
+    self.others: list[tuple[Item, dict[str, Any]]] = []
+    for path in sorted(self.records.glob("*.json")):
+      rec = records.read_record(path)
+      if (path.stem in mine or rec is None or rec.get("kind") != self.kind.name
+          or rec.get("status") not in STATUSES or rec.get("name") != path.stem
+          or not isinstance(rec.get("inputs"), list)
+          or len(rec["inputs"]) != len(self.items[0].inputs if self.items else rec["inputs"])):
+        continue
+      if rec["status"] == "done" and not (self.out / (path.stem + self.kind.suffix)).is_file():
+        continue
+      self.others.append((Item(path.stem, tuple(map(str, rec["inputs"])), str(rec.get("key"))),
+                          rec))
 
   def is_settled(self, item: Item, retry_errors: bool) -> bool:
+    """Whether `item`'s record stands: done (its output there), or an item error that is not
+    retried; a transient failure never stands."""
     rec = self.recs.get(item.name)
-    if rec is None:
+    if rec is None or rec["status"] == "transient":
       return False
     if rec["status"] == "done":
       return (self.out / (item.name + self.kind.suffix)).is_file()
@@ -423,12 +347,12 @@ class _Job:
     """Write an item's output and record (and results.tsv); its record."""
     value = outcome.value
     rec: dict[str, Any] = dict(name=item.name, kind=self.kind.name, inputs=list(item.inputs),
-                               key=item.key, options=json.loads(_canonical(self.options)),
+                               key=item.key, options=json.loads(records.canonical(self.options)),
                                node=outcome.node, attempt=outcome.attempt,
                                version=outcome.version)
     changed = self.changed_inputs(item)
-    if outcome.error is not None:
-      rec.update(status="error", error=outcome.error)
+    if outcome.error is not None:  # the work around the item died, not the item
+      rec.update(status="transient", error=outcome.error)
     elif changed:  # read while it changed: the result may be of neither content
       rec.update(status="error", key=f"changed:{item.key}", error=f"{changed[0]}: changed "
                  "while the job read it; the next run redoes this item")
@@ -441,8 +365,15 @@ class _Job:
     self.write_results(force=False)
     return rec
 
-  def rows(self) -> list[dict[str, Any]]:
-    return [self.kind.row(it, self.recs[it.name]) for it in self.items if it.name in self.recs]
+  def rows(self, everything: bool = False) -> list[dict[str, Any]]:
+    """This job's rows in its order; with `everything`, then the earlier jobs' records in the
+    folder by name (results.tsv: every record on disk)."""
+    mine = [self._row(it, self.recs[it.name]) for it in self.items if it.name in self.recs]
+    return mine + [self._row(it, rec) for it, rec in self.others] if everything else mine
+
+  def _row(self, item: Item, rec: dict[str, Any]) -> dict[str, Any]:
+    row = self.kind.row(item, rec)
+    return row if self.score is None else self.score.row(item.name, row, rec)
 
   def write_results(self, force: bool = True) -> None:
     """Rewrite results.tsv (atomically) if its content changed. With `force` False (after an
@@ -453,7 +384,7 @@ class _Job:
         and now - self._last_write < _LARGE_TABLE_SECONDS):
       return
     self._last_write = now
-    text = _tsv(self.kind.columns, self.rows())
+    text = tables.tsv(self.kind.columns, self.rows(everything=True))
     path = self.out / "results.tsv"
     try:
       if path.read_text() == text:
@@ -465,69 +396,94 @@ class _Job:
 
 def _run(kind: _Kind, named_inputs: Sequence[tuple[str, tuple[str, ...]]],
          out: str | os.PathLike, options: dict[str, Any], *, engine: str, address: str | None,
-         progress: bool, retry_errors: bool) -> JobResult:
+         progress: bool, retry_errors: bool, keep_versions: bool = False,
+         force: bool = False, score: scoring.Scoring | None = None) -> JobResult:
   t0 = time.perf_counter()
   runner = engines_mod.make_engine(engine, address)  # checks the engine before any work
-  job = _Job(kind, named_inputs, out, options)
-  pending = [it for it in job.items if not job.is_settled(it, retry_errors)]
-  skipped = len(job.items) - len(pending)
-  # Largest inputs first: the long items start early and the last ones to finish are short.
-  pending.sort(key=lambda it: -sum(_size(p) for p in it.inputs))
-  if pending:
-    from tqdm.auto import tqdm
-    bar = tqdm(total=len(pending), desc=f"lrf-batch {kind.name}", unit="item",
-               disable=not progress)
-    failed = 0
-
-    def done(it: Item, outcome: engines_mod.Outcome) -> None:
-      nonlocal failed
-      rec = job.finish(it, outcome)
-      failed += rec["status"] != "done"
-      bar.update(1)
-      bar.set_postfix(failed=failed, refresh=False)
-
-    job.hashes.save()
-    try:
-      payloads = [kind.payload(it, options) for it in pending]
-      # The first item on the driver: it compiles the kernels the others load.
-      first = next(iter(engines_mod.LocalEngine().run(kind.fn, payloads[:1])))
-      done(pending[0], dataclasses.replace(first, node=runner.driver_node()))
-      for outcome in runner.run(kind.fn, payloads[1:]):
-        done(pending[1 + outcome.index], outcome)
-    except BaseException:
-      bar.close()
-      runner.close()
-      try:  # best effort: the error in flight (Ctrl-C, a full disk) is the one to report
-        job.write_results()
-      except OSError:
-        pass
-      raise
-    bar.close()
+  try:
+    job = _Job(kind, named_inputs, out, options, keep_versions=keep_versions, force=force,
+               score=score)
+  except BaseException:
     runner.close()
-    job.write_results()
-  else:
-    job.write_results()
+    raise
+  try:
+    ran = _run_pending(job, kind, options, runner, progress, retry_errors)
+  finally:
+    runner.close()
+    job.lock.release()
   rows = job.rows()
-  return JobResult(rows, len(pending), skipped, sum(r["status"] != "done" for r in rows),
+  return JobResult(rows, ran, len(job.items) - ran, sum(r["status"] != "done" for r in rows),
                    time.perf_counter() - t0, job.out)
 
 
-def run_register(pairs: str | os.PathLike | Sequence[tuple[str, str, str]],
+def _run_pending(job: _Job, kind: _Kind, options: dict[str, Any], runner: Any, progress: bool,
+                 retry_errors: bool) -> int:
+  """Run the job's items whose record does not stand; the number run."""
+  pending = [it for it in job.items if not job.is_settled(it, retry_errors)]
+  if not pending:
+    job.write_results()
+    return 0
+  # Largest inputs first: the long items start early and the last ones to finish are short.
+  pending.sort(key=lambda it: -sum(_size(p) for p in it.inputs))
+  from tqdm.auto import tqdm
+  bar = tqdm(total=len(pending), desc=f"lrf-batch {kind.name}", unit="item",
+             disable=not progress)
+  failed = 0
+
+  def done(it: Item, outcome: engines_mod.Outcome) -> None:
+    nonlocal failed
+    rec = job.finish(it, outcome)
+    failed += rec["status"] != "done"
+    bar.update(1)
+    bar.set_postfix(failed=failed, refresh=False)
+
+  job.hashes.save()
+  try:
+    payloads = [kind.payload(it, options) for it in pending]
+    node = runner.driver_node()  # joins the cluster (or refuses its address) before any item
+    # The first item on the driver: it compiles the kernels the others load.
+    first = next(iter(engines_mod.LocalEngine().run(kind.fn, payloads[:1])))
+    done(pending[0], dataclasses.replace(first, node=node))
+    for outcome in runner.run(kind.fn, payloads[1:]):
+      done(pending[1 + outcome.index], outcome)
+  except BaseException:
+    bar.close()
+    try:  # best effort: the error in flight (Ctrl-C, a full disk) is the one to report
+      job.write_results()
+    except OSError:
+      pass
+    raise
+  bar.close()
+  job.write_results()
+  return len(pending)
+
+
+def run_register(pairs: str | os.PathLike | Sequence[tuple[str, ...]],
                  out: str | os.PathLike, *, engine: str = "local", address: str | None = None,
                  progress: bool = True, retry_errors: bool = False,
-                 **options: Any) -> JobResult:
+                 keep_versions: bool = False, force: bool = False,
+                 criteria: scoring.Criteria | str | None = None, **options: Any) -> JobResult:
   """Register every listed pair: `DIR/<name>.txt` (source->target) and `DIR/results.tsv`.
 
   Each pair is `lrf_jax.register(source, target, **options)`: this layer adds no default of its
   own, so a transform and verdict equal that call's bit for bit.
 
   Args:
-    pairs: a PAIRS.tsv (`read_pairs`) or [(name, source, target)].
+    pairs: a PAIRS.tsv (`tables.read_pair_rows`: with an optional `gt` column) or [(name,
+      source, target)] or [(name, source, target, gt path or None)].
     out: the output folder (created).
     engine: "local" (this process) or "ray".
     address: the Ray cluster (`engines.resolve_address`); only with engine="ray".
     progress: a progress bar on stderr (items, rate, ETA, failures).
-    retry_errors: run items again whose record is an error.
+    retry_errors: run items again whose record is an item error (a transient failure, e.g. a
+      lost worker or a full disk, is always run again).
+    keep_versions: keep the records of another lrf_jax version as results (default: redo them;
+      results.tsv's `version` column names the version of each row).
+    force: take over the folder's lock held by a job of another host (a shared file system)
+      that is gone; a lock of a dead process of this host is taken over without it.
+    criteria: when a pair with a ground truth is right (`scoring.Criteria` or "DEG,DIST", DIST
+      in the clouds' units): results.tsv's `right` column and `JobResult.counts`. The errors
+      (`rotation_error_deg`, `translation_error`) are written for every pair with a `gt`.
     **options: keyword arguments of `register` (JSON-able values: no `params` or `init`).
 
   Returns:
@@ -535,25 +491,33 @@ def run_register(pairs: str | os.PathLike | Sequence[tuple[str, str, str]],
 
   Raises:
     ValueError: a bad pair list, output folder, engine or option (before any work).
+    lrf_jax.records.FolderInUse: another job is writing the folder (a ValueError; before any
+      work).
   """
   items_mod.check_register_options(options)
-  listed = read_pairs(pairs) if isinstance(pairs, (str, os.PathLike)) else [
-      (check_name(n, "pairs: name"), str(Path(s).expanduser().resolve()),
-       str(Path(t).expanduser().resolve())) for n, s, t in pairs]
-  return _run(REGISTER, [(n, (s, t)) for n, s, t in listed], out, options, engine=engine,
-              address=address, progress=progress, retry_errors=retry_errors)
+  if isinstance(criteria, str):
+    criteria = scoring.parse_criteria(criteria)
+  listed = tables.read_pair_rows(pairs) if isinstance(pairs, (str, os.PathLike)) else [
+      tables.PairRow(check_name(p[0], "pairs: name"), *(
+          None if v is None else str(Path(v).expanduser().resolve()) for v in p[1:]))
+      for p in pairs]
+  score = scoring.Scoring({r.name: r.gt for r in listed}, criteria)
+  return _run(REGISTER, [(r.name, (r.source, r.target)) for r in listed], out, options,
+              engine=engine, address=address, progress=progress, retry_errors=retry_errors,
+              keep_versions=keep_versions, force=force, score=score)
 
 
 def run_frames(scans: Sequence[str | os.PathLike], out: str | os.PathLike, *,
                engine: str = "local", address: str | None = None, progress: bool = True,
-               retry_errors: bool = False, **options: Any) -> JobResult:
+               retry_errors: bool = False, keep_versions: bool = False, force: bool = False,
+               **options: Any) -> JobResult:
   """Frames (and with `descriptor=`, descriptors) of every scan: `DIR/<name>.npz` as
   `lrf-frames` writes them, named as `lrf-register --out-dir` names scans
-  (`registration.multiway.scan_names`), and `DIR/results.tsv`.
+  (`lrf_jax.multiway.outputs.scan_names`), and `DIR/results.tsv`.
 
   Args:
     scans: the scan files.
-    out, engine, address, progress, retry_errors: as `run_register`.
+    out, engine, address, progress, retry_errors, keep_versions, force: as `run_register`.
     **options: lrf-frames' options as keywords (`items.FRAMES_OPTIONS`: keypoints, voxel_mr, voxel_size,
       method, radius_mr, viewpoint, descriptor, seed); those not given keep lrf-frames'
       defaults.
@@ -568,4 +532,5 @@ def run_frames(scans: Sequence[str | os.PathLike], out: str | os.PathLike, *,
   paths = [str(Path(s).expanduser().resolve()) for s in scans]
   names = [check_name(n, f"scan {p}") for n, p in zip(scan_names(paths), paths)]
   return _run(FRAMES, [(n, (p,)) for n, p in zip(names, paths)], out, options, engine=engine,
-              address=address, progress=progress, retry_errors=retry_errors)
+              address=address, progress=progress, retry_errors=retry_errors,
+              keep_versions=keep_versions, force=force)

@@ -148,9 +148,10 @@ def select_keypoints(points: np.ndarray, how: str, voxel: float | None, seed: in
   return np.sort(np.random.default_rng(seed).choice(n, m, replace=False))
 
 
-def read_transform(path: str, option: str) -> np.ndarray:
+def read_transform(path: str, option: str, project: float = 0.0) -> np.ndarray:
   """The (4, 4) rigid transform in `path`: a .npy holding one, else a text file of 4 rows of 4
-  numbers (`lrf_jax.io.read_xf`).
+  numbers (`lrf_jax.io.read_xf`); a rotation block within `project` of orthonormal is
+  projected to the nearest rotation (`lrf_jax.io.validation.check_rigid`).
 
   Raises:
     ValueError: not a readable (4, 4) rigid matrix; the message names `option` and the file.
@@ -163,9 +164,9 @@ def read_transform(path: str, option: str) -> np.ndarray:
       raise ValueError(f"{option} {path}: not a readable .npy file ({e})") from None
     if not np.issubdtype(t.dtype, np.number):
       raise ValueError(f"{option} {path}: expected a numeric (4, 4) array, got dtype {t.dtype}")
-    return check_rigid(t, path, f"{option} matrix")
+    return check_rigid(t, path, f"{option} matrix", project=project)
   try:
-    return read_xf(path)
+    return read_xf(path, project=project)
   except ValueError as e:
     raise ValueError(f"{option}: {e}") from None
 

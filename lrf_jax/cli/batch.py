@@ -5,8 +5,10 @@ frames or registrations, on this machine (`--engine local`) or a Ray cluster (`-
 `register` writes `DIR/<name>.txt` (the 4 x 4 source->target, as `lrf-register --out` writes it,
 for every done pair whatever its verdict) and takes lrf-register's options except --out, --png,
 --checkpoint and --init. Both write `DIR/results.tsv` after each item and skip, when run again,
-every item whose inputs (by content) and options are unchanged. Exit codes: 0 every item done, 3
-some failed (their rows say why), 2 a bad command line, 130 interrupted. This file is thin: the
+every item whose inputs (by content) and options are unchanged. One job at a time writes a
+folder: a second is refused before any work. Exit codes: 0 every item done, 3 some failed (their
+rows say why), 2 a bad command line or a job refused before any work, 74 an output that could not
+be written, 130 interrupted (`lrf_jax.cli.exits`). This file is thin: the
 work is `lrf_jax.batch`.
 
     lrf-batch register pairs.tsv --out reg/ --engine ray --address 127.0.0.1:6379
@@ -19,6 +21,7 @@ import argparse
 import sys
 from typing import Any
 
+from lrf_jax.cli.exits import EXIT_USAGE, refuse, write_failed
 from lrf_jax.cli.help import DefaultsHelpFormatter
 from lrf_jax.cli.interrupt import interruptible
 
@@ -35,7 +38,15 @@ def _common(p: argparse.ArgumentParser) -> None:
                       "set, else a new Ray instance of this machine on 127.0.0.1")
   p.add_argument("--no-progress", action="store_true", help="no progress bar")
   p.add_argument("--retry-errors", action="store_true",
-                 help="run again the items whose last run failed (default: keep their error)")
+                 help="run again the items whose last run failed on their inputs (default: keep "
+                      "their error; a failure of the machine, status 'transient', is always "
+                      "run again)")
+  p.add_argument("--keep-versions", action="store_true",
+                 help="keep the results of another lrf_jax version (default: redo them; "
+                      "results.tsv's version column names each row's)")
+  p.add_argument("--force", action="store_true",
+                 help="take over the folder's lock of a job of another host that is gone (a "
+                      "shared file system); a dead job of this host's is taken over without it")
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -65,9 +76,15 @@ def build_parser() -> argparse.ArgumentParser:
                              "--checkpoint and --init may follow (lrf-register --help lists them); options not "
                              "given keep register's defaults. PAIRS.tsv: tab-separated, a "
                              "header with the columns source and target (paths, relative to "
-                             "the TSV's folder) and optionally name (default: the row number).")
+                             "the TSV's folder), optionally name (default: the row number) and "
+                             "gt (a 4x4 source->target file as lrf-register --out writes it).")
   rg.add_argument("pairs", metavar="PAIRS.tsv", help="the pairs to register")
   _common(rg)
+  rg.add_argument("--criteria", default=None, metavar="DEG,DIST",
+                  help="a pair with a ground truth (PAIRS.tsv's gt column) is right when its "
+                       "rotation error is at most DEG degrees and its translation error at most "
+                       "DIST (the clouds' units); results.tsv's right column and the last line "
+                       "count right pairs, claims and false claims")
   return ap
 
 
@@ -97,30 +114,42 @@ def main(argv: list[str] | None = None) -> int:
   args, rest = ap.parse_known_args(argv)
   if args.job == "frames" and rest:
     ap.error(f"unrecognized arguments: {' '.join(rest)}")
-  from lrf_jax import batch, compilation_cache
+  from lrf_jax import compilation_cache
+  from lrf_jax.batch import items, jobs
+  from lrf_jax.io.atomic import WriteError
   common = dict(engine=args.engine, address=args.address, progress=not args.no_progress,
-                retry_errors=args.retry_errors)
+                retry_errors=args.retry_errors, keep_versions=args.keep_versions,
+                force=args.force)
   try:
     if args.job == "register":
       options = _register_options(rest)
+      from lrf_jax.batch import scoring
+      criteria = None if args.criteria is None else scoring.parse_criteria(args.criteria)
       compilation_cache.enable()
-      result = batch.run_register(args.pairs, args.out, **common, **options)
+      result = jobs.run_register(args.pairs, args.out, criteria=criteria, **common, **options)
     else:
-      options = {k: getattr(args, k) for k in batch.items.FRAMES_OPTIONS if hasattr(args, k)}
+      options = {k: getattr(args, k) for k in items.FRAMES_OPTIONS if hasattr(args, k)}
       compilation_cache.enable()
-      result = batch.run_frames(args.scans, args.out, **common, **options)
+      result = jobs.run_frames(args.scans, args.out, **common, **options)
   except (ValueError, FileNotFoundError, ImportError) as e:
-    print(f"error: {e}", file=sys.stderr)
-    return 2
-  except OSError as e:  # a WriteError (a read-only or full disk): the finished items are kept
+    return refuse(str(e))
+  except WriteError as e:  # a read-only or full disk: the finished items are kept
+    return write_failed(e, "; the finished items are kept")
+  except OSError as e:
     print(f"error: {e}; the finished items are kept", file=sys.stderr)
-    return 2
+    return EXIT_USAGE
   done = sum(r["status"] == "done" for r in result.rows)
   claimed = sum(r.get("success") == "True" for r in result.rows)
   print(f"{len(result.rows)} items: {done} done"
         + (f" ({claimed} claimed)" if args.job == "register" else "")
         + f", {result.failed} failed; {result.ran} run, {result.skipped} already done "
         f"-> {result.out / 'results.tsv'} ({result.seconds:.1f} s)", file=sys.stderr)
+  if args.job == "register":
+    c = result.counts
+    scored = (f"{c['right']} right of {c['scored']} scored, " if args.criteria is not None
+              else "")
+    false = f", {c['false_claims']} false claims" if args.criteria is not None else ""
+    print(f"{c['pairs']} pairs: {scored}{c['claimed']} claimed{false}")
   return result.exit_code
 
 

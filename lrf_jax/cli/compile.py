@@ -2,17 +2,17 @@
 parallel, into the on-disk caches, so that no later run waits for a compile (a Docker image
 layer, a CI cache, a cluster's shared cache before a data-set job).
 
-numba compiles one kernel after another within a process (its compiler lock is per process), so
-the kernels are compiled by `--jobs` worker processes at once, each running a group of small
-calls that needs its own kernels (a registration with the default options, with each other
-estimator and option, the frames of each method, each descriptor, a multiway run, and the
-kernels of `lrf-register`'s and `lrf-frames`' default calls by signature, which marks those
-programs warm: their first run then starts no compile worker, `parallel_compile`). They write
-into the same caches (`lrf_jax.compilation_cache`; each save of a kernel is locked by
-`lrf_jax.kernel_cache`, so concurrent writers never mix two entries up). Nothing is compiled that a later run
-would not load: the calls are the library's own, on small procedural clouds. Exit code 0, 3 when
-a group failed (its error is printed: the others are compiled), 2 a bad command line, 130
-interrupted. The workers end with the command, Ctrl-C included.
+numba compiles one kernel after another within a process (its compiler lock is per process), so the
+kernels are compiled by `--jobs` worker processes at once, each running a group of small calls that
+needs its own kernels (a registration with the default options, with each other estimator and
+option, the frames of each method, each descriptor, a multiway run, and the kernels of
+`lrf-register`'s and `lrf-frames`' default calls by signature, which marks those programs warm:
+their first run then starts no compile worker, `parallel_compile`). They write into the same caches
+(`lrf_jax.compilation_cache`; each save of a kernel is locked by `lrf_jax.kernel_cache`, so
+concurrent writers never mix two entries up). Nothing is compiled that a later run would not load:
+the calls are the library's own, on small procedural clouds. Exit code 0, 3 when a group failed (its
+error is printed: the others are compiled), 2 a bad command line, 130 interrupted. The workers end
+with the command, Ctrl-C and a SIGKILL of the command included (`parallel_compile.spawn_context`).
 
     lrf-compile               # every group, one worker per core
     lrf-compile --jobs 1 --only register frames:lrf_net_plus
@@ -28,6 +28,7 @@ import time
 from collections.abc import Callable
 
 from lrf_jax.cli.help import DefaultsHelpFormatter
+from lrf_jax.cli import parallel_compile
 from lrf_jax.cli.parallel_compile import PROGRAMS
 from lrf_jax.defaults import RADIUS_MR
 
@@ -54,8 +55,8 @@ def _frames(method: str) -> Callable[[], None]:
     from lrf_jax import datasets
     points, faces = datasets.make_demo_mesh("blob", seed=0)
     spec = lrf_jax.METHODS[method]
-    lrf_jax.compute_frames(points, np.arange(0, len(points), 10), radius_mr=RADIUS_MR, method=method,
-                           faces=faces if spec.needs_mesh else None)
+    lrf_jax.compute_frames(points, np.arange(0, len(points), 10), radius_mr=RADIUS_MR,
+                           method=method, faces=faces if spec.needs_mesh else None)
   return run
 
 
@@ -76,7 +77,7 @@ def _descriptor(name: str) -> Callable[[], None]:
 
 def _multiway() -> None:
   from lrf_jax import datasets
-  from lrf_jax.registration.multiway import register_all
+  from lrf_jax.multiway import register_all
   scans = [datasets.make_demo_pair(0, seed=s, noise_mr=0.1, partial=True).scene_points
            for s in range(3)]
   register_all(scans, progress=False)
@@ -104,7 +105,6 @@ def _program(program: str) -> None:
   """A program's kernels by the signatures its first run compiles
   (`parallel_compile.compile_program`); marks them warm, so its next first run starts no
   compile worker."""
-  from lrf_jax.cli import parallel_compile
   parallel_compile.compile_program(program)
 
 
@@ -188,7 +188,6 @@ def main(argv: list[str] | None = None) -> int:
   if problem:
     print(f"error: {problem}", file=sys.stderr)
     return 2
-  import multiprocessing as mp
   from concurrent.futures import ProcessPoolExecutor, as_completed
 
   from tqdm.auto import tqdm
@@ -197,7 +196,9 @@ def main(argv: list[str] | None = None) -> int:
   t0 = time.perf_counter()
   failed = 0
   seconds: dict[str, float] = {}
-  ctx = mp.get_context("spawn")  # fresh interpreters: no inherited threads or JAX state
+  # fresh interpreters (no inherited threads or JAX state) that die with this process, however
+  # it ends: a SIGKILL left them compiling, then hung, orphaned (parallel_compile.spawn_context)
+  ctx = parallel_compile.spawn_context()
   # A worker that compiles a JAX program starts the accelerator's runtime, which by default takes
   # 75 % of a GPU's memory: 16 workers on one GPU ran out of it. Each takes what it uses.
   os.environ.setdefault("XLA_PYTHON_CLIENT_PREALLOCATE", "false")

@@ -5,6 +5,8 @@ A process that has used JAX and numba spends about half a second in the interpre
 the commands flush their output and end with `os._exit` instead. Nothing is lost: the outputs
 are closed files and flushed streams, and JAX's and numba's on-disk caches are written when a
 function is compiled, not at exit. Calling `main()` from Python (as the tests do) is unchanged.
+
+The exit codes are `lrf_jax.cli.exits`'.
 """
 
 from __future__ import annotations
@@ -13,7 +15,6 @@ import os
 import sys
 from typing import NoReturn
 from collections.abc import Callable
-
 
 def run(main: Callable[[], int]) -> NoReturn:
   """Call `main()`, flush stdout and stderr, and end the process with its return code; Ctrl-C

@@ -20,8 +20,9 @@ draws the repeatability figure
 (`lrf_jax.cli.plot.repeatability`). `--out` gets the suffix .npz
 when it has none (the path printed is the one written). Outputs are written atomically (a
 failed write leaves the previous file) and may not be the input file; every bad argument or
-unwritable output is one `error:` line and exit code 2, checked before any work where it can
-be. This file is intentionally thin: the work is `lrf_jax.compute_frames`.
+input is one `error:` line and exit code 2, checked before any work where it can be, and an
+output that cannot be written (a full disk, a read-only file system) one `error:` line and exit
+code 74 (`lrf_jax.cli.exits.EXIT_CODES`). This file is intentionally thin: the work is `lrf_jax.compute_frames`.
 
     lrf-frames scan.ply --out scan_frames.npz --keypoints 2000 --viewpoint 0 0 0 --png f.png
     lrf-frames a.ply --pair b.ply --gt a_to_b.txt --out ab.npz --png repeatability.png
@@ -36,6 +37,7 @@ from pathlib import Path
 import numpy as np
 
 from lrf_jax.batch.scan_frames import DEFAULT_KEYPOINTS, MIN_VOXEL_MR, FramesRequest
+from lrf_jax.cli.exits import EXIT_OK, EXIT_USAGE, refuse, write_failed
 from lrf_jax.cli.interrupt import exit_with, interruptible
 from lrf_jax.cli.help import DefaultsHelpFormatter
 
@@ -99,11 +101,16 @@ def npz_path(out: str) -> str:
 
 def _check(args: argparse.Namespace) -> str | None:
   """What is wrong with the arguments, before any work (None: fine)."""
-  from lrf_jax.io.atomic import output_problem, path_problem, same_file
+  from lrf_jax.io.atomic import loop_problem, output_problem, path_problem, same_file
+  from lrf_jax.io.validation import SymlinkLoopError
+  inputs = [("cloud", args.cloud), ("--pair", args.pair), ("--gt", args.gt)]
+  for name, value in inputs:
+    loop = loop_problem(value) if value is not None else None
+    if loop:  # before the options' "is not a file"
+      return f"{name}: {SymlinkLoopError(value, loop)}"
   problem = check_options(args)
   if problem:
     return problem
-  inputs = [("cloud", args.cloud), ("--pair", args.pair), ("--gt", args.gt)]
   for name, value in (("--out", npz_path(args.out)), ("--png", args.png)):
     if value is not None and path_problem(value):  # before the checks that look at the disk
       return f"{name}: {value} {path_problem(value)}"
@@ -160,12 +167,12 @@ def _figure(args: argparse.Namespace, out: dict, cloud, other) -> None:
 @interruptible("no partial file is left")
 def main(argv: list[str] | None = None) -> int:
   """Run lrf-frames with `argv` (default: the command line); returns the exit code (0 done,
-  2 a bad argument, unreadable input or unwritable output: one `error:` line)."""
+  2 a bad argument or unreadable input, 74 an output that cannot be written: one `error:`
+  line; `lrf_jax.cli.exits.EXIT_CODES`)."""
   args = build_parser().parse_args(argv)
   problem = _check(args)
   if problem:
-    print(f"error: {problem}", file=sys.stderr)
-    return 2
+    return refuse(problem)
   from lrf_jax import compilation_cache
   compilation_cache.enable()
   from lrf_jax.cli import parallel_compile
@@ -181,19 +188,18 @@ def _frames_and_report(args: argparse.Namespace) -> int:
     out, cloud, other = frames_outputs(args)
   except (ValueError, FileNotFoundError) as e:
     print(f"error: {e}", file=sys.stderr)
-    return 2
+    return EXIT_USAGE
   except OSError as e:  # unreadable input (permissions, a folder, an I/O error)
     print(f"error: cloud: could not read {e.filename or args.cloud}: "
           f"{e.strerror or e}", file=sys.stderr)
-    return 2
+    return EXIT_USAGE
   try:
     with atomic_write(out_path) as f:
       np.savez(f, **out)
     if args.png:
       _figure(args, out, cloud, other)
   except WriteError as e:
-    print(f"error: {e}", file=sys.stderr)
-    return 2
+    return write_failed(e)
   kp = out["keypoints"]
   print(f"{len(kp)} keypoints, {int(out['valid'].sum())} valid frames ({args.method}, r = "
         f"{args.radius_mr:g} mr = {out['radius']:.6g}) -> {out_path}"
@@ -204,7 +210,7 @@ def _frames_and_report(args: argparse.Namespace) -> int:
     print(f"repeatability on {Path(args.pair).name}: mean MeanCos {mc.mean():.3f}, "
           f"{np.mean(mc > REPEATED_MEANCOS):.0%} of the keypoints above {REPEATED_MEANCOS:g}, "
           f"{int(out['pair_valid'].sum())} valid frames there", file=sys.stderr)
-  return 0
+  return EXIT_OK
 
 
 if __name__ == "__main__":

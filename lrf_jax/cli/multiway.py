@@ -1,7 +1,7 @@
 """Register many scans into one model: `lrf-register a.ply b.ply c.ply ... --out-dir D`.
 
 `lrf-register` hands over to this module when it is given more than two scans or `--out-dir`
-(`wanted`). It runs `lrf_jax.registration.multiway.register_all` and writes, into D (created if missing,
+(`wanted`). It runs `lrf_jax.multiway.register_all` and writes, into D (created if missing,
 every file atomically): `<stem>.txt` per scan in the model (the 4x4 that maps that scan into
 the reference scan's frame: the first scan's, unless the first scan is left out, then the
 first scan that is in the model), `poses.txt` (every scan's pose in KITTI's pose-file layout:
@@ -30,6 +30,7 @@ from typing import Any
 
 import numpy as np
 
+from lrf_jax.cli.exits import EXIT_USAGE, EXIT_WRITE_FAILED, refuse
 from lrf_jax.cli.interrupt import exit_with, interruptible
 from lrf_jax.cli.options import (add_register_flags, option_message, register_overrides,
                                  register_problem)
@@ -68,6 +69,9 @@ def build_parser() -> argparse.ArgumentParser:
   ap.add_argument("--address", default=None,
                   help="the Ray cluster (HOST:PORT) with --engine ray; default: RAY_ADDRESS if "
                        "set, else a Ray instance of this machine started for the job")
+  ap.add_argument("--force", action="store_true",
+                  help="take over --out-dir's lock of a job of another host that is gone (a "
+                       "shared file system); a dead job of this host's is taken over without it")
   ap.add_argument("--no-refine", action="store_true", help="skip the joint ICP")
   ap.add_argument("--no-figures", action="store_true", help="do not draw the PNG figures")
   ap.add_argument("--quiet", action="store_true", help="no progress bar")
@@ -76,7 +80,8 @@ def build_parser() -> argparse.ArgumentParser:
 
 def _register_all_defaults() -> dict[str, Any]:
   """`register_all`'s defaults of the flags that set its own arguments."""
-  from lrf_jax.registration.multiway import ALL_PAIRS_MAX, REJECT_MR
+  from lrf_jax.multiway.candidates import ALL_PAIRS_MAX
+  from lrf_jax.multiway.pipeline import REJECT_MR
   from lrf_jax.registration.options import DEFAULTS
   return dict(icp_mr=DEFAULTS.icp_mr, seed=DEFAULTS.seed, reject_mr=REJECT_MR,
               all_pairs_max=ALL_PAIRS_MAX)
@@ -112,7 +117,8 @@ def _check(args: argparse.Namespace) -> str | None:
   from pathlib import Path
 
   from lrf_jax.io.atomic import output_problem, path_problem, same_file
-  from lrf_jax.registration.multiway import check_out_dir, output_paths, scan_names
+  from lrf_jax.io.validation import file_problem
+  from lrf_jax.multiway.outputs import check_out_dir, output_paths, scan_names
   if len(args.scans) < 2:
     return f"expected at least 2 scans, got {len(args.scans)}"
   if args.address and args.engine != "ray":
@@ -129,8 +135,9 @@ def _check(args: argparse.Namespace) -> str | None:
   for s in args.scans:
     if path_problem(s):
       return f"{s}: {path_problem(s)}"
-    if not Path(s).expanduser().is_file():
-      return f"{s}: no such file"
+    problem = file_problem(s)
+    if problem:
+      return f"{s}: {problem}"
   if args.out_dir is None:
     return None
   try:  # new, empty, or an earlier run's (its manifest lists the files it wrote)
@@ -160,7 +167,7 @@ def _check(args: argparse.Namespace) -> str | None:
 def _check_register_options(args: argparse.Namespace) -> str | None:
   """What is wrong with --all-pairs-max and the options passed to every pairwise registration
   (the register flags, --viewpoint), before any work (None: fine)."""
-  from lrf_jax.registration.multiway import check_counts
+  from lrf_jax.multiway.pipeline import check_counts
   try:
     check_counts(all_pairs_max=args.all_pairs_max)
   except ValueError as e:
@@ -170,7 +177,7 @@ def _check_register_options(args: argparse.Namespace) -> str | None:
 
 
 def _print_result(res, out) -> None:
-  from lrf_jax.registration.multiway import edges_table
+  from lrf_jax.multiway.outputs import edges_table
   print(edges_table(res), end="", file=out)
   print(f"# {int(res.in_model.sum())}/{len(res.names)} scans in the model (frame of "
         f"{res.names[res.reference]}), {sum(e.accepted for e in res.edges)}/{len(res.edges)} "
@@ -196,7 +203,8 @@ def _register(args: argparse.Namespace, clouds: list, names: list[str], mr: floa
   folder (`STATE`) keeps every finished pair for the next run."""
   from pathlib import Path
 
-  from lrf_jax.registration.multiway import STATE, register_all
+  from lrf_jax.multiway.outputs import STATE
+  from lrf_jax.multiway.pipeline import register_all
   engine = None
   if args.engine == "ray":
     from lrf_jax.batch import make_engine
@@ -219,8 +227,7 @@ def main(argv: list[str] | None = None) -> int:
   args = build_parser().parse_args(argv)
   problem = _check(args)
   if problem:
-    print(f"error: {problem}", file=sys.stderr)
-    return 2
+    return refuse(problem)
   from lrf_jax.extras import MissingExtraError, require
   figures, skipped = args.out_dir is not None and not args.no_figures, None
   if figures:
@@ -228,11 +235,37 @@ def main(argv: list[str] | None = None) -> int:
       require("plot", "the figures merged.png and graph.png")
     except MissingExtraError as e:
       figures, skipped = False, str(e)
-  from lrf_jax import compilation_cache
+  from lrf_jax import compilation_cache, records
   compilation_cache.enable()
+  if args.out_dir is None:
+    return _run(args, figures, skipped)
+  from pathlib import Path
+
+  from lrf_jax.multiway.outputs import STATE
+  lock = records.JobLock(Path(args.out_dir).expanduser() / STATE / "lock", _command(),
+                         force=args.force)
+  try:
+    lock.acquire()
+  except records.FolderInUse as e:
+    return refuse(str(e).replace(str(lock.path.parent), f"--out-dir {args.out_dir}", 1))
+  try:
+    return _run(args, figures, skipped)
+  finally:
+    lock.release()
+
+
+def _command() -> str:
+  """This process's command line, for the output folder's lock."""
+  import shlex
+  return shlex.join(["lrf-register", *sys.argv[1:]])
+
+
+def _run(args: argparse.Namespace, figures: bool, skipped: str | None) -> int:
+  """The registration and its outputs, once the arguments are checked (and with --out-dir, its
+  lock held)."""
   from lrf_jax.io.atomic import WriteError
-  from lrf_jax.registration.multiway import (check_voxel, load_scans, median_mr, scan_names,
-                                             write_outputs)
+  from lrf_jax.multiway.outputs import check_voxel, scan_names, write_outputs
+  from lrf_jax.multiway.pipeline import load_scans, median_mr
   try:
     names = scan_names(args.scans)
     clouds = load_scans(args.scans, names)
@@ -248,9 +281,11 @@ def main(argv: list[str] | None = None) -> int:
     print(f"error: {e}", file=sys.stderr)
     return 2
   except OSError as e:
-    print(f"error: could not read {e.filename or 'an input'}: {e.strerror or e}",
-          file=sys.stderr)
-    return 2
+    if e.filename is None or str(e.filename) not in map(str, args.scans):
+      print(f"error: {e}", file=sys.stderr)  # not an input's: a disk, a cache, a worker
+      return EXIT_WRITE_FAILED if isinstance(e, WriteError) else EXIT_USAGE
+    print(f"error: could not read {e.filename}: {e.strerror or e}", file=sys.stderr)
+    return EXIT_USAGE
   _print_result(res, sys.stdout)
   if args.out_dir is None:
     for k, name in enumerate(res.names):
@@ -267,7 +302,8 @@ def main(argv: list[str] | None = None) -> int:
       if message.startswith("voxel: "):
         message = f"--voxel: {args.voxel:g} mr = " + message[len("voxel: "):]
       print(f"error: {message}", file=sys.stderr)
-      return 2
+      write = isinstance(e, WriteError) and not isinstance(e, ValueError)
+      return EXIT_WRITE_FAILED if write else EXIT_USAGE
     if skipped:
       print(f"# figures skipped: {skipped} (or pass --no-figures)", file=sys.stderr)
   return 3 if res.left_out else 0

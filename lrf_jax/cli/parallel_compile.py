@@ -1,24 +1,25 @@
 """A cold first run compiles its kernels in parallel: `lrf-register` and `lrf-frames` start
 worker processes that compile, into the same on-disk cache, the kernels the command will need.
 
-numba compiles one kernel after another within a process (its compiler lock is per process),
-and a first `lrf-register` spent nearly all of its time compiling on one core. When a command
-starts with this code's kernels not yet compiled (cheap test: `warm_marker`), `start(program)`
-starts one worker per core beyond the first (the cores this process may run on), each a fresh
-interpreter (`python -m lrf_jax.cli.parallel_compile`). A worker compiles, by explicit
-signature, the kernels the program's default call needs (`compile_manifest.json`, recorded by
-`lrf_jax.cli.record_manifest`; a test fails when it is stale) from the last one the main process will need
-backwards, while the main process runs normally from the first. Both claim a kernel before
-compiling it (`kernel_cache.share`): a worker skips a kernel another process claimed, and the
-main process waits for a worker compiling a kernel it needs and loads it, so no cached kernel
-is compiled twice (helpers without `cache=True` are compiled in each process whose kernels
-call them). Results are the warm run's, bit for bit: the same kernels, loaded from the cache.
+numba compiles one kernel after another within a process (its compiler lock is per process), and a
+first `lrf-register` spent nearly all of its time compiling on one core. When a command starts with
+this code's kernels not yet compiled (cheap test: `warm_marker`), `start(program)` starts one worker
+per core beyond the first (the cores this process may run on), each a fresh interpreter (`python -m
+lrf_jax.cli.parallel_compile`). A worker compiles, by explicit signature, the kernels the program's
+default call needs (`compile_manifest.json`, recorded by `lrf_jax.cli.record_manifest`; a test fails
+when it is stale) from the last one the main process will need backwards, while the main process
+runs normally from the first. Both claim a kernel before compiling it (`kernel_cache.share`): a
+worker skips a kernel another process claimed, and the main process waits for a worker compiling a
+kernel it needs and loads it, so no cached kernel is compiled twice (helpers without `cache=True`
+are compiled in each process whose kernels call them). Results are the warm run's, bit for bit: the
+same kernels, loaded from the cache.
 
 No process outlives the command: `stop()` (in the command's `finally`, also on Ctrl-C and on
-error) terminates the workers, which also die with their parent (Linux `PR_SET_PDEATHSIG`, else
-a watch of the parent's pid) and ignore Ctrl-C themselves. A worker compiles nothing a
-default call would not load. Nothing happens with one core, on a warm cache, or with
-`LRF_JAX_PARALLEL_COMPILE=0`.
+error) terminates the workers, which also die with their parent, a SIGKILL included
+(`die_with_parent`: Linux `PR_SET_PDEATHSIG`, and everywhere a watch of the parent's pid), and
+ignore Ctrl-C themselves; `lrf-compile`'s workers die with it the same way (`spawn_context`).
+A worker compiles nothing a default call would not load. Nothing happens with one core, on a
+warm cache, or with `LRF_JAX_PARALLEL_COMPILE=0`.
 
     python -m lrf_jax.cli.record_manifest   # rewrite compile_manifest.json
 """
@@ -37,6 +38,7 @@ import sys
 import tempfile
 import threading
 import time
+from multiprocessing import context as _mp_context
 from pathlib import Path
 from typing import Any
 
@@ -218,8 +220,8 @@ def compile_program(program: str) -> None:
   Raises:
     Exception: a kernel that did not compile (numba's error; nothing is marked).
   """
-  from lrf_jax import kernel_cache
-  kernel_cache.install()
+  from lrf_jax import compilation_cache, kernel_cache
+  kernel_cache.install(compilation_cache.numba_fallback_dirs)
   mods = kernel_modules()
   for module, name, sig in manifest()[program]:
     getattr(mods[module], name).compile(tuple(parse_type(t) for t in sig))
@@ -231,9 +233,9 @@ def compile_program(program: str) -> None:
 def _run_worker(program: str, claims: str, parent: int) -> int:
   """Compile `program`'s kernels from the last the main process calls backwards, skipping
   those another process claimed; 0 when every one was compiled (or claimed elsewhere)."""
-  _die_with_parent(parent)
-  from lrf_jax import kernel_cache
-  kernel_cache.install()
+  die_with_parent(parent)
+  from lrf_jax import compilation_cache, kernel_cache
+  kernel_cache.install(compilation_cache.numba_fallback_dirs)
   kernel_cache.share(claims, worker=True)
   mods = kernel_modules()
   failed = 0
@@ -253,22 +255,58 @@ def _run_worker(program: str, claims: str, parent: int) -> int:
   return 1 if failed else 0
 
 
-def _die_with_parent(parent: int) -> None:
-  """End this worker when the process that started it ends, however it ends."""
-  signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C: the parent stops us
-  with contextlib.suppress(Exception):
-    import ctypes
-    ctypes.CDLL("libc.so.6", use_errno=True).prctl(1, signal.SIGKILL)  # PR_SET_PDEATHSIG
+_WATCH_S = 0.5  # how often a worker checks that its parent still runs (where prctl is missing)
+
+
+def die_with_parent(parent: int) -> None:
+  """End this process (a compile worker) when `parent`, the process that started it, ends,
+  however it ends (SIGKILL included), and ignore Ctrl-C (the parent stops its workers).
+
+  Linux: `prctl(PR_SET_PDEATHSIG, SIGKILL)` (the kernel kills this process when the thread that
+  started it ends). Everywhere: a daemon thread that exits the process within `_WATCH_S`
+  seconds of its parent's pid changing (the orphan is adopted by init or a subreaper). A
+  process whose parent ended before this call exits at once. Does nothing in `parent` itself.
+  """
+  if os.getpid() == parent:
+    return
+  with contextlib.suppress(ValueError):  # not the main thread: no handler to change
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+  if sys.platform.startswith("linux"):
+    with contextlib.suppress(Exception):
+      import ctypes
+      ctypes.CDLL(None, use_errno=True).prctl(1, int(signal.SIGKILL), 0, 0, 0)  # PDEATHSIG
 
   def watch() -> None:
     while True:
       if os.getppid() != parent:
         os._exit(1)
-      time.sleep(0.5)
+      time.sleep(_WATCH_S)
 
   if os.getppid() != parent:
     os._exit(1)
-  threading.Thread(target=watch, daemon=True).start()
+  threading.Thread(target=watch, name="lrf_jax-parent-watch", daemon=True).start()
+
+
+class MortalProcess(_mp_context.SpawnProcess):
+  """A spawned process that dies with the process that started it (`die_with_parent`)."""
+
+  def __init__(self, *args: Any, **kwargs: Any) -> None:
+    super().__init__(*args, **kwargs)
+    self.lrf_jax_parent = os.getpid()
+
+  def run(self) -> None:
+    die_with_parent(self.lrf_jax_parent)
+    super().run()
+
+
+class _MortalContext(_mp_context.SpawnContext):
+  Process = MortalProcess
+
+
+def spawn_context() -> _mp_context.SpawnContext:
+  """A multiprocessing "spawn" context whose processes die with the process that started them
+  (`MortalProcess`): `lrf-compile`'s pool of workers."""
+  return _MortalContext()
 
 
 def main(argv: list[str] | None = None) -> int:

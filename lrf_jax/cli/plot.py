@@ -139,6 +139,14 @@ def frames(points: np.ndarray, keypoints: np.ndarray, frames: np.ndarray,
   return _write(fig, path)
 
 
+def _moved(points: np.ndarray, transform: np.ndarray, inverse: bool = False) -> np.ndarray:
+  """(n, 3) float64 `points` moved by the rigid (4, 4) `transform` (p -> R p + t), or by its
+  inverse (p -> Rᵀ (p - t)) with `inverse`."""
+  t = np.asarray(transform, np.float64)
+  p = np.asarray(points, np.float64)
+  return (p - t[:3, 3]) @ t[:3, :3] if inverse else p @ t[:3, :3].T + t[:3, 3]
+
+
 def spread_choice(points: np.ndarray, k: int) -> np.ndarray:
   """`k` indices of `points` (m, 3) spread over the cloud: farthest-point sampling started at
   the point farthest from the centroid (deterministic). Fewer when m < k."""
@@ -189,9 +197,8 @@ def repeatability(model_points: np.ndarray, scene_points: np.ndarray,
   """
   plt = _pyplot()
   a = np.asarray(model_points, np.float64)
-  t = np.asarray(transform, np.float64)
-  rot, trans = t[:3, :3], t[:3, 3]
-  b = (np.asarray(scene_points, np.float64) - trans) @ rot  # B in A's coordinates
+  rot = np.asarray(transform, np.float64)[:3, :3]
+  b = _moved(scene_points, transform, inverse=True)  # B in A's coordinates
   mk, sk = np.asarray(model_keypoints, np.int64), np.asarray(scene_keypoints, np.int64)
   fa = np.asarray(model_frames, np.float64)
   fb = np.asarray(scene_frames, np.float64) @ rot  # rows mapped back: L_s R
@@ -278,8 +285,7 @@ def correspondences(source_points: np.ndarray, target_points: np.ndarray,
     The path written.
   """
   plt = _pyplot()
-  t = np.asarray(transform, np.float64)
-  src = np.asarray(source_points, np.float64) @ t[:3, :3].T + t[:3, 3]
+  src = _moved(source_points, transform)
   dst = np.asarray(target_points, np.float64)
   pairs = np.asarray(pairs, np.int64).reshape(-1, 2)
   inl = np.asarray(inliers, bool).reshape(-1)

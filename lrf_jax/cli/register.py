@@ -2,16 +2,19 @@
 
 Prints the 4 x 4 transform that maps SRC onto TGT (rows, 9 significant digits), the inlier count
 of the coarse estimate, the final overlap (fitness) and RMSE and the verdict
-(`Registration.success`; exit code 3 when it failed, 2 for bad input); `--out` also writes the matrix as
-text (`numpy.loadtxt` reads it back), atomically; it may not be one of the inputs, and must be
-a regular file or a new name (a FIFO or a device such as /dev/null is refused); on a "not
-sure" verdict (exit 3) it writes nothing unless `--best-guess` is given (then it writes the
-transform and still exits 3), so a script that ignores exit codes never reads a wrong pose. `--init`
+(`Registration.success`; exit code 3 when it failed); `--out` also writes the matrix as text
+(`numpy.loadtxt` reads it back), atomically; it may not be one of the inputs, and must be a
+regular file or a new name (a FIFO, a device such as /dev/null or a symbolic link loop is
+refused); on a "not sure" verdict (exit 3) it writes nothing unless `--best-guess` is given (then
+it writes the transform and still exits 3), so a script that ignores exit codes never reads a
+wrong pose. `--init`
 gives an initial source->target transform (a 4x4 text file as `lrf_jax.io.read_xf` reads, or
 a (4, 4) .npy) that `register` then only refines. Inputs: any cloud or mesh
 `lrf_jax.io.read_cloud` reads (PLY, PCD, XYZ/TXT(.gz), NPY). Every length is in mesh
-resolutions (the working resolution `register` measures, `--mr` to set it). Every bad argument, unreadable input or unwritable
-output is one `error:` line and exit code 2. `--png` draws the correspondences the estimate
+resolutions (the working resolution `register` measures, `--mr` to set it). Every bad argument
+or unreadable input is one `error:` line and exit code 2, an output that cannot be written (a
+full disk, a read-only file system) one `error:` line and exit code 74
+(`lrf_jax.cli.exits.EXIT_CODES`). `--png` draws the correspondences the estimate
 used (inliers and outliers joining the two clouds side by side). This file is intentionally
 thin; the pipeline is
 `lrf_jax.registration.register`.
@@ -27,6 +30,7 @@ from typing import Any
 
 import numpy as np
 
+from lrf_jax.cli.exits import EXIT_NOT_SURE, EXIT_OK, EXIT_USAGE, refuse, write_failed
 from lrf_jax.cli.interrupt import exit_with, interruptible
 from lrf_jax.cli.help import DefaultsHelpFormatter
 from lrf_jax.cli.options import (KEYPOINT_DETECTORS, add_register_flags, parse_keypoints,
@@ -110,10 +114,15 @@ def _check_paths(args: argparse.Namespace) -> str | None:
   work is done (None: fine)."""
   from pathlib import Path
 
-  from lrf_jax.io.atomic import output_problem, path_problem
+  from lrf_jax.io.atomic import loop_problem, output_problem, path_problem
+  from lrf_jax.io.validation import SymlinkLoopError
   for name, value in (("--checkpoint", args.checkpoint), ("--init", args.init)):
     if value is not None and path_problem(value):  # before the checks that look at the disk
       return f"{name}: {value} {path_problem(value)}"
+  for name, value in (("", args.source), ("", args.target), ("--init: ", args.init)):
+    loop = loop_problem(value) if value is not None else None
+    if loop:  # the reader would say so too, but only after the kernels are loaded
+      return f"{name}{SymlinkLoopError(value, loop)}"
   problem = check_options(args)
   if problem:
     return problem
@@ -150,13 +159,24 @@ def _check_paths(args: argparse.Namespace) -> str | None:
 
 def read_init(path: str) -> np.ndarray:
   """The (4, 4) rigid transform of `--init`: a .npy holding one, else a text file of 4 rows of
-  4 numbers (`lrf_jax.io.read_xf`).
+  4 numbers (`lrf_jax.io.read_xf`); a rotation block within
+  `lrf_jax.registration.refine.INIT_PROJECT` of orthonormal is projected to the nearest
+  rotation, with one note line on stderr giving the figure.
 
   Raises:
-    ValueError: not a readable (4, 4) rigid matrix; the message names the file.
+    ValueError: not a readable (4, 4) rigid matrix; the message names the file and the figure.
   """
+  import warnings
+
   from lrf_jax.batch.scan_frames import read_transform
-  return read_transform(path, "--init")
+  from lrf_jax.io.validation import ProjectedRotation
+  from lrf_jax.registration.refine import INIT_PROJECT
+  with warnings.catch_warnings(record=True) as caught:
+    warnings.simplefilter("always", ProjectedRotation)
+    t = read_transform(path, "--init", project=INIT_PROJECT)
+  for w in caught:
+    print(f"note: --init: {w.message}", file=sys.stderr)
+  return t
 
 
 @interruptible("no partial file is left")
@@ -167,8 +187,7 @@ def main(argv: list[str] | None = None) -> int:
   args = build_parser().parse_args(argv)
   problem = _check_paths(args)
   if problem:
-    print(f"error: {problem}", file=sys.stderr)
-    return 2
+    return refuse(problem)
   if args.detector is not None:
     print(f"# --detector is deprecated: --keypoints takes a detector name (--keypoints "
           f"{args.detector})", file=sys.stderr)
@@ -198,20 +217,19 @@ def _register_and_report(args: argparse.Namespace) -> int:
                    **extra)
   except (ValueError, FileNotFoundError) as e:
     print(f"error: {e}", file=sys.stderr)
-    return 2
+    return EXIT_USAGE
   except OSError as e:  # an unreadable input (permissions, an I/O error)
     print(f"error: could not read {e.filename or 'an input'}: {e.strerror or e}",
           file=sys.stderr)
-    return 2
+    return EXIT_USAGE
   from lrf_jax.io.poses import format_matrix
   text = format_matrix(reg.transform)
   print(text)
   print("\n".join(f"# {line}" for line in reg.summary().splitlines()), file=sys.stderr)
   if args.png:
-    problem = correspondence_figure(args, reg)
-    if problem:
-      print(f"error: {problem}", file=sys.stderr)
-      return 2
+    failure = correspondence_figure(args, reg)
+    if failure:
+      return write_failed(failure)
   if args.out and not (reg.success or args.best_guess):
     print(f"# --out {args.out} not written: the verdict is not sure (pass --best-guess to "
           "write the transform anyway)", file=sys.stderr)
@@ -221,14 +239,14 @@ def _register_and_report(args: argparse.Namespace) -> int:
       with atomic_write(args.out, "w") as f:
         f.write(text + "\n")
     except WriteError as e:
-      print(f"error: {e}", file=sys.stderr)
-      return 2
-  return 0 if reg.success else 3
+      return write_failed(e)
+  return EXIT_OK if reg.success else EXIT_NOT_SURE
 
 
-def correspondence_figure(args: argparse.Namespace, reg) -> str | None:
+def correspondence_figure(args: argparse.Namespace, reg) -> Exception | None:
   """`--png`: the correspondences of `reg` (a `Registration`) joining the two clouds side by
-  side, inliers green, outliers red (`lrf_jax.cli.plot.correspondences`); None, or the error."""
+  side, inliers green, outliers red (`lrf_jax.cli.plot.correspondences`); None, or the
+  `WriteError` that kept it from being written."""
   from pathlib import Path
 
   from lrf_jax.cli import plot
@@ -244,7 +262,7 @@ def correspondence_figure(args: argparse.Namespace, reg) -> str | None:
                          seed=args.seed, title=title,
                          names=(Path(args.source).name, Path(args.target).name))
   except WriteError as e:
-    return str(e)
+    return e
   print(f"# correspondences figure: {args.png}", file=sys.stderr)
   return None
 

@@ -38,7 +38,7 @@ import numpy as np
 
 from lrf_jax.defaults import RADIUS_MR
 from lrf_jax.extras import pyplot
-from lrf_jax.api import frames_from_patches
+from lrf_jax.frames.patch_frames import frames_from_patches
 from lrf_jax.datasets import Pair
 from lrf_jax.descriptors import DESCRIPTORS, describe_patches, match_descriptors
 from lrf_jax.evaluation.repeatability import (EXACT_NETWORK, MethodRun, PatchCache, correspondences,
@@ -46,7 +46,7 @@ from lrf_jax.evaluation.repeatability import (EXACT_NETWORK, MethodRun, PatchCac
 from lrf_jax.frames import METHODS
 from lrf_jax.io import atomic
 from lrf_jax.geometry.normals import default_normals
-from lrf_jax.prepare import prepare_extra
+from lrf_jax.frames.normals_rule import prepare_extra
 
 RATIO_THRESHOLDS = np.round(np.linspace(0.0, 1.0, 101), 2)
 # What the paper states (its figure `fig_RPC` is missing from our copy).

@@ -29,7 +29,7 @@ from collections.abc import Iterable, Iterator
 import numpy as np
 
 from lrf_jax.defaults import RADIUS_MR
-from lrf_jax.api import frames_from_patches
+from lrf_jax.frames.patch_frames import frames_from_patches
 from lrf_jax.datasets import Pair, transform_points
 from lrf_jax.descriptors import (DESCRIPTORS, describe_patches, match_descriptors,
                                  top_correspondences)
@@ -37,7 +37,7 @@ from lrf_jax.evaluation.repeatability import (PatchCache, correspondences, group
                                               paper_options)
 from lrf_jax.frames import METHODS
 from lrf_jax.geometry.normals import default_normals
-from lrf_jax.prepare import prepare_extra
+from lrf_jax.frames.normals_rule import prepare_extra
 from lrf_jax.registration import lrf_ransac, pose_errors, ransac_3point
 
 # The paper's table `tabel_pose` (err_t in mr, err_r in degrees).

@@ -26,14 +26,15 @@ import jax
 
 from lrf_jax.defaults import RADIUS_MR
 from lrf_jax.search import engine
-from lrf_jax.api import frames_from_patches, host_frames
+from lrf_jax.frames.host_path import host_frames
+from lrf_jax.frames.patch_frames import frames_from_patches
 from lrf_jax.datasets import Pair, repeatability_keypoints, transform_points
 from lrf_jax.frames import METHODS
 from lrf_jax.io import atomic
 from lrf_jax.frames.metrics import meancos
 from lrf_jax.search.neighborhoods import Patches, SearchIndex, build_patches
 from lrf_jax.geometry.normals import NORMAL_RADIUS_RATIO, estimate_normals
-from lrf_jax.prepare import method_normals, prepare_extra
+from lrf_jax.frames.normals_rule import method_normals, prepare_extra
 
 if TYPE_CHECKING:
   from lrf_jax.search.neighborhoods import AnyArray

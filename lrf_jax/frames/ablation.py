@@ -44,7 +44,7 @@ def check_modes(z_mode: str, x_mode: str) -> None:
 def apply_regressor(params: Params, feats: AnyArray, mask: AnyArray) -> jax.Array:
   """The forward pass of `learning.networks.PointRegressor` without flax: (..., K, F) features and
   (..., K) mask -> (..., 3). The same operations as flax's `Dense` (`lax.dot_general` over the
-  last axis, then the bias); `tests/test_shipped_weights.py` holds the two equal."""
+  last axis, then the bias); `tests/test_weights_shipped.py` holds the two equal."""
 
   def dense(layer, h):
     dtype = jnp.result_type(h, layer["kernel"], layer["bias"])  # flax's promote_dtype

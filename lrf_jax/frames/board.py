@@ -29,7 +29,7 @@ References:
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING
 
 from lrf_jax._jax import jax, jnp
 import numba as nb
@@ -37,9 +37,9 @@ import numpy as np
 
 from lrf_jax.geometry import ops as geometry
 from lrf_jax.frames import host_geometry as hg
-from lrf_jax.frames.normal_based import NormalExtra, prepare_normals, usable_normals
+from lrf_jax.frames.host_path import BallKernel
+from lrf_jax.frames.normal_based import NormalExtra, batch_frames, prepare_normals
 from lrf_jax.frames.spec import MethodSpec
-from lrf_jax.geometry.ops import sanitize
 from lrf_jax.search.neighborhoods import Patches
 
 if TYPE_CHECKING:
@@ -68,6 +68,29 @@ def normals_mean(normals: jax.Array, use: jax.Array) -> tuple[jax.Array, jax.Arr
   return s, geometry.safe_norm(s) > 0
 
 
+def normal_oriented_plane_z(offsets, mask, radius, z_cov, normals):
+  """The z of BOARD and FLARE (PCL's): the plane normal of the points within Z_RATIO · r (the
+  smallest eigenvector of their covariance), flipped to agree with the sum of their finite
+  normals (`normals_mean`).
+
+  Args:
+    offsets: (K, 3) pq_i (cloud units), finite.
+    mask: (K,) bool.
+    radius: () support radius r.
+    z_cov: (3, 3) covariance of the points within Z_RATIO · r about their centroid.
+    normals: (K, 3) the slots' normals (NaN allowed).
+
+  Returns:
+    (z (3,); z_ok () the plane fit is not degenerate; ref_ok () a finite normal oriented z;
+    dist2 (K,) the squared lengths |pq_i|²).
+  """
+  dist2 = jnp.sum(offsets * offsets, axis=-1)
+  z, z_ok = geometry.smallest_eigvec(z_cov)
+  in_z = mask & (dist2 <= (Z_RATIO * radius) ** 2)
+  ref, ref_ok = normals_mean(normals, in_z)
+  return geometry.orient_like(z, ref), z_ok, ref_ok, dist2
+
+
 def board_frame(offsets, mask, index, radius, z_cov, z_count, normals):
   """BOARD frame of one keypoint.
 
@@ -83,12 +106,7 @@ def board_frame(offsets, mask, index, radius, z_cov, z_count, normals):
   Returns:
     (frame (3, 3) rows x, y, z; valid () bool).
   """
-  dist2 = jnp.sum(offsets * offsets, axis=-1)
-  z, z_ok = geometry.smallest_eigvec(z_cov)
-  in_z = mask & (dist2 <= (Z_RATIO * radius) ** 2)
-  ref, _ = normals_mean(normals, in_z)
-  z = geometry.orient_like(z, ref)
-
+  z, z_ok, _, dist2 = normal_oriented_plane_z(offsets, mask, radius, z_cov, normals)
   n_ok = geometry.all_finite_rows(normals)
   cos = geometry.finite_or_zero(normals) @ z
   margin = mask & (dist2 > (MARGIN_RATIO * radius) ** 2)
@@ -110,11 +128,8 @@ def board_frames(patches: Patches, normals: AnyArray) -> tuple[jax.Array, jax.Ar
   Returns:
     (frames (N, 3, 3) rows x, y, z; valid (N,) bool).
   """
-  patches, finite = sanitize(patches)
-  frames, valid = jax.vmap(board_frame)(patches.offsets, patches.mask, patches.indices,
-                                        patches.radius, patches.z_cov, patches.z_count, normals)
-  valid = valid & finite
-  return geometry.identity_where_invalid(frames, valid), valid
+  return batch_frames(board_frame, patches,
+                      ("offsets", "mask", "indices", "radius", "z_cov", "z_count"), normals)
 
 # ------------------------------------------------------------------------------ host fast path
 # The same frame on the host from the engine's ball lists, in float64, one keypoint per thread
@@ -125,20 +140,15 @@ def board_frames(patches: Patches, normals: AnyArray) -> tuple[jax.Array, jax.Ar
 def _board_host_kernel(points, centers, ptr, ball, normals, r, rz2, eps, frames, valid):
   margin2 = (MARGIN_RATIO * r) ** 2
   for i in nb.prange(centers.shape[0]):
-    hg.set_identity(frames, valid, i)
-    start, stop = ptr[i], ptr[i + 1]
-    mean = np.zeros(3)
-    ok, z = hg.plane_z(points, centers[i], ball, start, stop, rz2, eps, MIN_Z_NEIGHBORS, mean)
+    start, stop = hg.start_keypoint(frames, valid, ptr, i)
+    ok, z, _ = hg.plane_z(points, centers[i], ball, start, stop, rz2, eps, MIN_Z_NEIGHBORS)
     if not ok:
       continue
     ref = np.zeros(3)
     any_margin = False
     for t in range(start, stop):
       j = ball[t]
-      ox = points[j, 0] - centers[i, 0]
-      oy = points[j, 1] - centers[i, 1]
-      oz = points[j, 2] - centers[i, 2]
-      d2 = ox * ox + oy * oy + oz * oz
+      d2 = hg.offset(points, j, centers[i])[3]
       any_margin = any_margin or d2 > margin2
       if d2 <= rz2 and hg.finite_row(normals, j):
         ref[0] += normals[j, 0]
@@ -149,10 +159,7 @@ def _board_host_kernel(points, centers, ptr, ball, normals, r, rz2, eps, frames,
     best, best_d2, best_j = -np.inf, np.inf, -1
     for t in range(start, stop):
       j = ball[t]
-      ox = points[j, 0] - centers[i, 0]
-      oy = points[j, 1] - centers[i, 1]
-      oz = points[j, 2] - centers[i, 2]
-      d2 = ox * ox + oy * oy + oz * oz
+      d2 = hg.offset(points, j, centers[i])[3]
       if (d2 > margin2 if any_margin else d2 > 0.0) and hg.finite_row(normals, j):
         score = -(normals[j, 0] * z[0] + normals[j, 1] * z[1] + normals[j, 2] * z[2])
         if best_j < 0 or hg.better(score, d2, j, best, best_d2, best_j):
@@ -160,27 +167,6 @@ def _board_host_kernel(points, centers, ptr, ball, normals, r, rz2, eps, frames,
     if best_j >= 0:
       hg.write_frame(frames, valid, i, z, points[best_j] - centers[i])
 
-
-def board_frames_host(points: np.ndarray, keypoints: np.ndarray, radius: float, index: Any, *,
-                      faces: Any = None, normals: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-  """BOARD frames (`board_frame`) of `keypoints` on the host, float64.
-
-  Args:
-    points: (n, 3) float64 cloud.
-    keypoints: (N,) indices.
-    radius: support radius r.
-    index: the cloud's `neighborhoods.SearchIndex`.
-    faces: unused.
-    normals: (n, 3) per-point normals (NaN where undefined).
-
-  Returns:
-    (frames (N, 3, 3) float32 rows x, y, z, the identity where invalid; valid (N,) bool).
-  """
-  del faces
-  pts, centers, ptr, ball = hg.ball_lists(points, keypoints, radius, index)
-  rz = float(Z_RATIO * radius)
-  return hg.run_kernel(_board_host_kernel, len(centers), pts, centers, ptr, ball,
-                       usable_normals(normals), float(radius), rz * rz, hg.EPS)
 
 # ------------------------------------------------------------------------------ registry entry
 
@@ -190,6 +176,6 @@ def _board(patches: Patches, extra: NormalExtra):
 
 SPEC = MethodSpec(
     "board", _board, default_k=None, needs_normals=True, z_ratio=Z_RATIO, prepare=prepare_normals, extra=NormalExtra,
-    host_frames=board_frames_host,
+    host_frames=BallKernel(_board_host_kernel, ("normals", "radius", "rz2"), (hg.EPS,), Z_RATIO),
     description="BOARD (Petrelli & Di Stefano 2011): plane-fit z over r/3, x to the most "
                 "inclined margin normal (PCL)")

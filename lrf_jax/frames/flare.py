@@ -27,7 +27,7 @@ References:
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING
 
 from lrf_jax._jax import jax, jnp
 import numba as nb
@@ -35,22 +35,23 @@ import numpy as np
 
 from lrf_jax.geometry import ops as geometry
 from lrf_jax.frames import host_geometry as hg
-from lrf_jax.frames.board import normals_mean
-from lrf_jax.frames.normal_based import NormalExtra, prepare_normals, usable_normals
+from lrf_jax.frames.host_path import BallKernel
+from lrf_jax.frames.board import Z_RATIO, normal_oriented_plane_z
+from lrf_jax.frames.normal_based import NormalExtra, batch_frames, prepare_normals
 from lrf_jax.frames.spec import MethodSpec
-from lrf_jax.geometry.ops import sanitize
 from lrf_jax.search.neighborhoods import Patches
 
 if TYPE_CHECKING:
   from lrf_jax.search.neighborhoods import AnyArray
 
-# Z_RATIO: the z support, the ball of radius Z_RATIO · r (r/3) whose points' plane gives z
-# (`MethodSpec.z_ratio`, `Patches.z_*`). MARGIN_RATIO: the margin, the band
+# Z_RATIO (BOARD's, whose z this is): the z support, the ball of radius Z_RATIO · r (r/3) whose
+# points' plane gives z (`MethodSpec.z_ratio`, `Patches.z_*`). MARGIN_RATIO: the margin, the band
 # MARGIN_RATIO · r < |pq_i| <= r (PCL's margin threshold) where the x axis is chosen.
-Z_RATIO = 1.0 / 3.0
 MARGIN_RATIO = 0.85
 MIN_Z_NEIGHBORS = 6
 MIN_TANGENT_NEIGHBORS = 6
+# FLARE reads the z support and the margin only (`MethodSpec.shells`).
+SHELLS = (Z_RATIO, MARGIN_RATIO)
 
 
 def flare_frame(offsets, mask, index, radius, count, z_cov, z_count, normals, kp_normal):
@@ -70,11 +71,7 @@ def flare_frame(offsets, mask, index, radius, count, z_cov, z_count, normals, kp
   Returns:
     (frame (3, 3) rows x, y, z; valid () bool).
   """
-  dist2 = jnp.sum(offsets * offsets, axis=-1)
-  fit, fit_ok = geometry.smallest_eigvec(z_cov)
-  in_z = mask & (dist2 <= (Z_RATIO * radius) ** 2)
-  ref, ref_ok = normals_mean(normals, in_z)
-  fit = geometry.orient_like(fit, ref)
+  fit, fit_ok, ref_ok, dist2 = normal_oriented_plane_z(offsets, mask, radius, z_cov, normals)
   own, own_ok = geometry.safe_normalize(geometry.finite_or_zero(kp_normal))
   own_ok = own_ok & jnp.all(jnp.isfinite(kp_normal))
   use_fit = z_count >= MIN_Z_NEIGHBORS
@@ -101,12 +98,9 @@ def flare_frames(patches: Patches, normals: AnyArray,
   Returns:
     (frames (N, 3, 3) rows x, y, z; valid (N,) bool).
   """
-  patches, finite = sanitize(patches)
-  frames, valid = jax.vmap(flare_frame)(
-      patches.offsets, patches.mask, patches.indices, patches.radius, patches.count,
-      patches.z_cov, patches.z_count, normals, kp_normal)
-  valid = valid & finite
-  return geometry.identity_where_invalid(frames, valid), valid
+  return batch_frames(flare_frame, patches,
+                      ("offsets", "mask", "indices", "radius", "count", "z_cov", "z_count"),
+                      normals, kp_normal)
 
 # ------------------------------------------------------------------------------ host fast path
 # The same frame on the host from the engine's ball lists, in float64, one keypoint per thread
@@ -114,12 +108,11 @@ def flare_frames(patches: Patches, normals: AnyArray,
 
 
 @nb.njit(parallel=True, cache=True)
-def _flare_host_kernel(points, centers, kp_ids, counts, ptr, ball, normals, r, rz2, eps, frames,
+def _flare_host_kernel(points, centers, ptr, ball, kp_ids, counts, normals, r, rz2, eps, frames,
                        valid):
   margin2 = (MARGIN_RATIO * r) ** 2
   for i in nb.prange(centers.shape[0]):
-    hg.set_identity(frames, valid, i)
-    start, stop = ptr[i], ptr[i + 1]
+    start, stop = hg.start_keypoint(frames, valid, ptr, i)
     if counts[i] < MIN_TANGENT_NEIGHBORS:
       continue
     mean = np.zeros(3)
@@ -131,10 +124,7 @@ def _flare_host_kernel(points, centers, kp_ids, counts, ptr, ball, normals, r, r
       ref = np.zeros(3)
       for t in range(start, stop):
         j = ball[t]
-        ox = points[j, 0] - centers[i, 0]
-        oy = points[j, 1] - centers[i, 1]
-        oz = points[j, 2] - centers[i, 2]
-        if ox * ox + oy * oy + oz * oz <= rz2 and hg.finite_row(normals, j):
+        if hg.offset(points, j, centers[i])[3] <= rz2 and hg.finite_row(normals, j):
           ref[0] += normals[j, 0]
           ref[1] += normals[j, 1]
           ref[2] += normals[j, 2]
@@ -151,30 +141,6 @@ def _flare_host_kernel(points, centers, kp_ids, counts, ptr, ball, normals, r, r
       hg.write_frame(frames, valid, i, z, points[best_j] - centers[i])
 
 
-def flare_frames_host(points: np.ndarray, keypoints: np.ndarray, radius: float, index: Any, *,
-                      faces: Any = None, normals: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-  """FLARE frames (`flare_frame`) of `keypoints` on the host, float64.
-
-  Args:
-    points: (n, 3) float64 cloud.
-    keypoints: (N,) indices.
-    radius: support radius r.
-    index: the cloud's `neighborhoods.SearchIndex`.
-    faces: unused.
-    normals: (n, 3) per-point normals (NaN where undefined).
-
-  Returns:
-    (frames (N, 3, 3) float32 rows x, y, z, the identity where invalid; valid (N,) bool).
-  """
-  del faces
-  # FLARE reads the z support and the margin only (`SPEC.shells`), and counts the ball.
-  pts, centers, ptr, ball, counts = hg.ball_lists(points, keypoints, radius, index, SPEC.shells,
-                                                  with_counts=True)
-  rz = float(Z_RATIO * radius)
-  return hg.run_kernel(_flare_host_kernel, len(centers), pts, centers,
-                       np.asarray(keypoints, np.int64), counts, ptr, ball,
-                       usable_normals(normals), float(radius), rz * rz, hg.EPS)
-
 # ------------------------------------------------------------------------------ registry entry
 
 def _flare(patches: Patches, extra: NormalExtra):
@@ -183,6 +149,8 @@ def _flare(patches: Patches, extra: NormalExtra):
 
 SPEC = MethodSpec(
     "flare", _flare, default_k=None, needs_normals=True, z_ratio=Z_RATIO, prepare=prepare_normals, extra=NormalExtra,
-    shells=(Z_RATIO, MARGIN_RATIO), host_frames=flare_frames_host,
+    shells=SHELLS,
+    host_frames=BallKernel(_flare_host_kernel, ("keypoints", "counts", "normals", "radius", "rz2"),
+                           (hg.EPS,), Z_RATIO, SHELLS),
     description="FLARE / SD (Petrelli & Di Stefano 2012): plane-fit z over r/3, x to the "
                 "highest margin point (PCL)")

@@ -28,7 +28,7 @@ References:
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING, Any, NamedTuple
+from typing import TYPE_CHECKING, NamedTuple
 
 from lrf_jax._jax import jax, jnp
 import numba as nb
@@ -36,6 +36,7 @@ import numpy as np
 
 from lrf_jax.geometry import ops as geometry
 from lrf_jax.frames import host_geometry as hg
+from lrf_jax.frames.host_path import BallKernel
 from lrf_jax.checks import validate_faces
 from lrf_jax.frames.rops import gather_triangles, vertex_faces
 from lrf_jax.frames.normal_based import usable_normals
@@ -241,7 +242,7 @@ def vertex_shares(points: np.ndarray, faces: np.ndarray
 
 
 @nb.njit(parallel=True, cache=True)
-def _gframes_host_kernel(points, faces, vf_ptr, vf, centers, ptr, ball, r, kp_normals, g, gn,
+def _gframes_host_kernel(points, centers, ptr, ball, r, kp_normals, faces, vf_ptr, vf, g, gn,
                          share, share_n, v_ok, edge, x_eps, frames, valid):
   """Σ of A ∇f over the faces touching each ball: every in-ball vertex adds a third of its
   faces' (`share`), and the vertices whose faces may leave the ball correct the faces with
@@ -249,24 +250,21 @@ def _gframes_host_kernel(points, faces, vf_ptr, vf, centers, ptr, ball, r, kp_no
   r2 = r * r
   inner = r * (1.0 - 1e-7)
   for i in nb.prange(kp_normals.shape[0]):
-    hg.set_identity(frames, valid, i)
+    start, stop = hg.start_keypoint(frames, valid, ptr, i)
     z, z_ok = hg.unit_or_zero(kp_normals[i])
     if not z_ok:
       continue
     s0 = s1 = s2 = 0.0
     scale = 0.0
     finite = True
-    for e in range(ptr[i], ptr[i + 1]):
+    for e in range(start, stop):
       v = ball[e]
       s0 += share[v, 0]
       s1 += share[v, 1]
       s2 += share[v, 2]
       scale += share_n[v]
       finite = finite and v_ok[v]
-      dx = points[v, 0] - centers[i, 0]
-      dy = points[v, 1] - centers[i, 1]
-      dz = points[v, 2] - centers[i, 2]
-      if np.sqrt(dx * dx + dy * dy + dz * dz) + edge[v] < inner:
+      if np.sqrt(hg.offset(points, v, centers[i])[3]) + edge[v] < inner:
         continue  # every face of v lies in the ball
       for q in range(vf_ptr[v], vf_ptr[v + 1]):
         k = vf[q]
@@ -285,31 +283,16 @@ def _gframes_host_kernel(points, faces, vf_ptr, vf, centers, ptr, ball, r, kp_no
       hg.write_frame(frames, valid, i, z, st)
 
 
-def gframes_frames_host(points: np.ndarray, keypoints: np.ndarray, radius: float, index: Any, *,
-                        faces: np.ndarray, normals: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-  """GFrames (`gframes_frame`) of `keypoints` on the host, float64, from every face touching the
-  ball.
-
-  Args:
-    points: (n, 3) float64 vertices.
-    keypoints: (N,) vertex indices.
-    radius: support radius r.
-    index: the cloud's `neighborhoods.SearchIndex`.
-    faces: (f, 3) triangles.
-    normals: (n, 3) per-point normals (NaN where undefined).
-
-  Returns:
-    (frames (N, 3, 3) float32 rows x, y, z, the identity where invalid; valid (N,) bool).
-  """
-  pts, centers, ptr, ball = hg.ball_lists(points, keypoints, radius, index)
-  f = validate_faces(faces, pts.shape[0])
-  # One cache entry (one digest of the mesh per call) for everything the kernel reads of it.
+def host_mesh(points: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, ...]:
+  """What the host kernel reads of the mesh (`BallKernel.mesh`): the checked faces (f, 3)
+  int64, the vertex -> faces map (`rops.vertex_faces`: ptr (n + 1,), face ids) and
+  `vertex_shares`' six arrays, all kept for the last mesh seen (one digest of it per call)."""
+  f = validate_faces(faces, points.shape[0])
   g, gn, share, share_n, v_ok, edge, vptr, vf = cache_last(
-      "gframes_mesh", (pts, f), lambda: vertex_shares(pts, f) + vertex_faces(f, pts.shape[0]))
-  kp_n = usable_normals(np.asarray(normals)[np.asarray(keypoints)])
-  return hg.run_kernel(_gframes_host_kernel, len(centers), pts, np.ascontiguousarray(f), vptr,
-                       vf, centers, ptr, ball, float(radius), kp_n, g, gn, share, share_n, v_ok,
-                       edge, X_EPS)
+      "gframes_mesh", (points, f),
+      lambda: vertex_shares(points, f) + vertex_faces(f, points.shape[0]))
+  return np.ascontiguousarray(f), vptr, vf, g, gn, share, share_n, v_ok, edge
+
 
 # ------------------------------------------------------------------------------ registry entry
 
@@ -319,6 +302,8 @@ def _gframes(patches: Patches, extra: GFramesExtra):
 
 SPEC = MethodSpec(
     "gframes", _gframes, default_k=None, needs_normals=True, needs_mesh=True, prepare=prepare_gframes,
-    extra=GFramesExtra, host_frames=gframes_frames_host,
+    extra=GFramesExtra,
+    host_frames=BallKernel(_gframes_host_kernel, ("radius", "keypoint_normals", "mesh"), (X_EPS,),
+                           mesh=host_mesh),
     description="GFrames (Melzi et al. 2019): normal z, x = area-weighted mean-curvature "
                 "gradient; needs a mesh")

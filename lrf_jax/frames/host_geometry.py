@@ -54,6 +54,24 @@ def set_identity(frames, valid, i):
 
 
 @nb.njit(inline="always")
+def start_keypoint(frames, valid, ptr, i):
+  """Frame i := the identity, flagged invalid (what it stays unless the kernel writes one);
+  returns (start, stop), the range of keypoint i's ball in the ball list."""
+  set_identity(frames, valid, i)
+  return ptr[i], ptr[i + 1]
+
+
+@nb.njit(inline="always")
+def offset(points, j, center):
+  """(ox, oy, oz, d2): the offset of point j from `center` and its squared length, summed over
+  x, y, z in that order (the engine's rule, `in_ball`)."""
+  ox = points[j, 0] - center[0]
+  oy = points[j, 1] - center[1]
+  oz = points[j, 2] - center[2]
+  return ox, oy, oz, ox * ox + oy * oy + oz * oz
+
+
+@nb.njit(inline="always")
 def full_spectrum_ok(evals, eps):
   """`geometry.eigen_frame`'s test on ascending eigenvalues: both gaps > eps * |largest|."""
   scale = abs(evals[2])
@@ -187,13 +205,15 @@ def inner_stats(points, center, ball, start, stop, rz2, mean, cov):
 
 
 @nb.njit(inline="always")
-def plane_z(points, center, ball, start, stop, rz2, eps, min_count, mean):
-  """(ok, z): z the least-variance direction of the listed points within sqrt(rz2) of `center`
-  (their centroid offset into `mean`); ok is False for fewer than `min_count` of them or a
-  smallest eigenvalue not separated from the next (`smallest_ok`)."""
+def plane_z(points, center, ball, start, stop, rz2, eps, min_count):
+  """(ok, z, mean): z the least-variance direction of the listed points within sqrt(rz2) of
+  `center`, mean (3,) their centroid's offset from it; ok is False for fewer than `min_count` of
+  them or a smallest eigenvalue not separated from the next (`smallest_ok`)."""
+  mean = np.zeros(3)
   cov = np.zeros((3, 3))
   count = inner_stats(points, center, ball, start, stop, rz2, mean, cov)
-  return smallest_z(cov, count, eps, min_count)
+  ok, z = smallest_z(cov, count, eps, min_count)
+  return ok, z, mean
 
 
 @nb.njit(inline="always")
@@ -203,6 +223,18 @@ def smallest_z(cov, count, eps, min_count):
   (`smallest_ok`)."""
   evals, evecs = np.linalg.eigh(cov)
   return smallest_ok(evals, eps) and count >= min_count, evecs[:, 0].copy()
+
+
+@nb.njit(inline="always")
+def z_signed_by(evecs, normal):
+  """(z, ok): the eigenvector of the smallest eigenvalue (the first column of `evecs`, as
+  `np.linalg.eigh` orders them), flipped to agree with `normal` (z · n >= 0); ok is False for a
+  normal that is not finite or zero (`unit_or_zero`)."""
+  n, ok = unit_or_zero(normal)
+  z = evecs[:, 0].copy()
+  if z[0] * n[0] + z[1] * n[1] + z[2] * n[2] < 0.0:
+    z = -z
+  return z, ok
 
 
 @nb.njit(inline="always")
@@ -225,10 +257,7 @@ def unit_or_zero(v):
 @nb.njit(inline="always")
 def in_ball(points, j, center, r2):
   """Point j lies within sqrt(r2) of center, by the engine's rule (float64 x, y, z sum, <=)."""
-  dx = points[j, 0] - center[0]
-  dy = points[j, 1] - center[1]
-  dz = points[j, 2] - center[2]
-  return dx * dx + dy * dy + dz * dz <= r2
+  return offset(points, j, center)[3] <= r2
 
 
 @nb.njit(inline="always")
@@ -253,10 +282,7 @@ def highest_point(points, center, ball, start, stop, z, ring2, strict):
   best, best_d2, best_j = -np.inf, np.inf, -1
   for t in range(start, stop):
     j = ball[t]
-    ox = points[j, 0] - center[0]
-    oy = points[j, 1] - center[1]
-    oz = points[j, 2] - center[2]
-    d2 = ox * ox + oy * oy + oz * oz
+    ox, oy, oz, d2 = offset(points, j, center)
     if d2 > ring2 or (not strict and d2 == ring2):
       h = ox * z[0] + oy * z[1] + oz * z[2]
       if best_j < 0 or better(h, d2, j, best, best_d2, best_j):

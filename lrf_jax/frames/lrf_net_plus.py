@@ -151,7 +151,7 @@ def support_view(normals: np.ndarray, per_point: np.ndarray | None, patches: Pat
   """The sum of the oriented normals of each patch's neighbors within r/3 (the z support).
 
   One compiled pass over the patches (`lrf_net_plus_sums.support_sums`); its sums are numpy's
-  of the arrays `tests/test_points_only.py` writes out (`support_view_reference` there), bit
+  of the arrays `tests/test_lrf_net_plus_points_only.py` writes out (`support_view_reference` there), bit
   for bit.
 
   Args:

@@ -4,7 +4,7 @@ of each neighbor (`relative_areas`, for `lrf_net_plus.patch_areas`).
 
 Each reproduces the numpy expression it replaced bit for bit, sums included: numpy adds a row of
 a contiguous array pairwise (`_pairwise_sum`) and the rows of a strided axis one after another;
-`tests/test_points_only.py` and `tests/test_lrf_net.py` hold those expressions and compare.
+`tests/test_lrf_net_plus_points_only.py` and `tests/test_lrf_net.py` hold those expressions and compare.
 """
 
 from __future__ import annotations

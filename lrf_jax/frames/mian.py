@@ -25,7 +25,8 @@ References:
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING, Any
+import functools
+from typing import TYPE_CHECKING
 
 from lrf_jax._jax import jax, jnp
 import numba as nb
@@ -33,9 +34,9 @@ import numpy as np
 
 from lrf_jax.geometry import ops as geometry
 from lrf_jax.frames import host_geometry as hg
-from lrf_jax.frames.normal_based import NormalExtra, prepare_normals, usable_normals
+from lrf_jax.frames.host_path import BallKernel
+from lrf_jax.frames.normal_based import NormalExtra, batch_frames, prepare_normals
 from lrf_jax.frames.spec import MethodSpec
-from lrf_jax.geometry.ops import sanitize
 from lrf_jax.search.neighborhoods import Patches
 
 if TYPE_CHECKING:
@@ -84,11 +85,8 @@ def mian_frames(patches: Patches, kp_normal: AnyArray, *,
   Returns:
     (frames (N, 3, 3) rows x, y, z; valid (N,) bool).
   """
-  patches, finite = sanitize(patches)
-  frames, valid = jax.vmap(lambda o, m, n: mian_frame(o, m, n, center))(
-      patches.offsets, patches.mask, kp_normal)
-  valid = valid & finite
-  return geometry.identity_where_invalid(frames, valid), valid
+  return batch_frames(functools.partial(mian_frame, center=center), patches, ("offsets", "mask"),
+                      kp_normal)
 
 # ------------------------------------------------------------------------------ host fast path
 # The same frame on the host from the engine's ball lists, in float64, one keypoint per thread
@@ -96,45 +94,20 @@ def mian_frames(patches: Patches, kp_normal: AnyArray, *,
 
 
 @nb.njit(parallel=True, cache=True)
-def _mian_host_kernel(points, centers, kp_ids, ptr, ball, normals, eps, frames, valid):
+def _mian_host_kernel(points, centers, ptr, ball, kp_ids, normals, eps, frames, valid):
   for i in nb.prange(centers.shape[0]):
-    hg.set_identity(frames, valid, i)
-    start, stop = ptr[i], ptr[i + 1]
+    start, stop = hg.start_keypoint(frames, valid, ptr, i)
     if stop - start < MIN_NEIGHBORS:
       continue
     mean = np.zeros(3)
     cov = np.zeros((3, 3))
     hg.inner_stats(points, centers[i], ball, start, stop, np.inf, mean, cov)
     evals, evecs = np.linalg.eigh(cov)  # ascending
-    n, n_ok = hg.unit_or_zero(normals[kp_ids[i]])
+    z, n_ok = hg.z_signed_by(evecs, normals[kp_ids[i]])
     if not (hg.full_spectrum_ok(evals, eps) and n_ok):
       continue
-    z = evecs[:, 0].copy()
-    if z[0] * n[0] + z[1] * n[1] + z[2] * n[2] < 0.0:
-      z = -z
     hg.write_frame(frames, valid, i, z, evecs[:, 2].copy())
 
-
-def mian_frames_host(points: np.ndarray, keypoints: np.ndarray, radius: float, index: Any, *,
-                     faces: Any = None, normals: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-  """Mian frames (`mian_frame`, center "centroid") of `keypoints` on the host, float64.
-
-  Args:
-    points: (n, 3) float64 cloud.
-    keypoints: (N,) indices.
-    radius: support radius r.
-    index: the cloud's `neighborhoods.SearchIndex`.
-    faces: unused.
-    normals: (n, 3) per-point normals (NaN where undefined).
-
-  Returns:
-    (frames (N, 3, 3) float32 rows x, y, z, the identity where invalid; valid (N,) bool).
-  """
-  del faces
-  pts, centers, ptr, ball = hg.ball_lists(points, keypoints, radius, index)
-  return hg.run_kernel(_mian_host_kernel, len(centers), pts, centers,
-                       np.asarray(keypoints, np.int64), ptr, ball,
-                       usable_normals(normals), hg.EPS)
 
 # ------------------------------------------------------------------------------ registry entry
 
@@ -144,6 +117,7 @@ def _mian(patches: Patches, extra: NormalExtra, *, center: str = "centroid"):
 
 SPEC = MethodSpec(
     "mian", _mian, default_k=None, needs_normals=True, prepare=prepare_normals,
-    host_frames=mian_frames_host, extra=NormalExtra,
+    extra=NormalExtra,
+    host_frames=BallKernel(_mian_host_kernel, ("keypoints", "normals"), (hg.EPS,)),
     description="Mian et al. 2010: covariance eigenvectors, z signed by the normal (x/y sign "
                 "ambiguous)")

@@ -1,20 +1,24 @@
-"""The host `prepare` hook shared by the normal-based LRFs (mian, board, flare, ps).
+"""What the normal-based LRFs (mian, board, flare, ps) share: their host `prepare` hook and the
+batched evaluation of their one-keypoint frame functions.
 
-Numpy, outside jit: it gathers the per-point normals (the caller's, else estimated by
+The hook is numpy, outside jit: it gathers the per-point normals (the caller's, else estimated by
 `lrf_jax.geometry.normals.estimate_normals`) into the patch slots, for the jitted frame functions.
 """
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING, NamedTuple
+from typing import TYPE_CHECKING, Any, NamedTuple
+from collections.abc import Callable
 
 import numpy as np
 
+from lrf_jax._jax import jax
 from lrf_jax.frames.spec import KEYPOINT, SLOT
+from lrf_jax.geometry import ops as geometry
 from lrf_jax.geometry.normals import default_normals
 
 if TYPE_CHECKING:
-  from lrf_jax.search.neighborhoods import AnyArray
+  from lrf_jax.search.neighborhoods import AnyArray, Patches
 
 
 class NormalExtra(NamedTuple):
@@ -71,3 +75,25 @@ def prepare_normals(points: np.ndarray, keypoints: np.ndarray, patches, *,
   gathered = nrm[np.maximum(idx, 0)]
   gathered[idx < 0] = 0.0
   return NormalExtra(gathered, nrm[np.asarray(keypoints)])  # type: ignore[call-arg]  # AXES
+
+
+def batch_frames(frame: Callable[..., Any], patches: Patches, fields: tuple[str, ...],
+                 *rows: AnyArray) -> tuple[jax.Array, jax.Array]:
+  """A one-keypoint frame function over a batch (pure, jittable).
+
+  Args:
+    frame: `frame(*fields of one keypoint, *rows of one keypoint) -> (frame (3, 3), valid ())`.
+    patches: `Patches` (N keypoints); their non-finite inputs are zeroed (`geometry.sanitize`)
+      before `frame` reads them.
+    fields: the names of the `Patches` fields `frame` reads first, in its order (e.g.
+      ("offsets", "mask")).
+    *rows: per-keypoint arrays (N, ...) `frame` reads after them (e.g. the keypoints' normals).
+
+  Returns:
+    (frames (N, 3, 3) rows x, y, z; valid (N,) bool): the identity and False also where a
+    keypoint's inputs were not finite.
+  """
+  patches, finite = geometry.sanitize(patches)
+  frames, valid = jax.vmap(frame)(*(getattr(patches, name) for name in fields), *rows)
+  valid = valid & finite
+  return geometry.identity_where_invalid(frames, valid), valid

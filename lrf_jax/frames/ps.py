@@ -23,7 +23,7 @@ References:
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING
 
 from lrf_jax._jax import jax, jnp
 import numba as nb
@@ -31,9 +31,9 @@ import numpy as np
 
 from lrf_jax.geometry import ops as geometry
 from lrf_jax.frames import host_geometry as hg
-from lrf_jax.frames.normal_based import NormalExtra, prepare_normals, usable_normals
+from lrf_jax.frames.host_path import BallKernel
+from lrf_jax.frames.normal_based import NormalExtra, batch_frames, prepare_normals
 from lrf_jax.frames.spec import MethodSpec
-from lrf_jax.geometry.ops import sanitize
 from lrf_jax.search.neighborhoods import Patches
 
 if TYPE_CHECKING:
@@ -82,11 +82,7 @@ def ps_frames(patches: Patches, kp_normal: AnyArray) -> tuple[jax.Array, jax.Arr
   Returns:
     (frames (N, 3, 3) rows x, y, z; valid (N,) bool).
   """
-  patches, finite = sanitize(patches)
-  frames, valid = jax.vmap(ps_frame)(patches.offsets, patches.mask, patches.indices,
-                                     patches.radius, kp_normal)
-  valid = valid & finite
-  return geometry.identity_where_invalid(frames, valid), valid
+  return batch_frames(ps_frame, patches, ("offsets", "mask", "indices", "radius"), kp_normal)
 
 # ------------------------------------------------------------------------------ host fast path
 # The same frame on the host from the engine's ball lists, in float64, one keypoint per thread
@@ -94,20 +90,16 @@ def ps_frames(patches: Patches, kp_normal: AnyArray) -> tuple[jax.Array, jax.Arr
 
 
 @nb.njit(parallel=True, cache=True)
-def _ps_host_kernel(points, centers, kp_ids, ptr, ball, normals, r, eps, frames, valid):
+def _ps_host_kernel(points, centers, ptr, ball, kp_ids, normals, r, eps, frames, valid):
   rc2 = (MARGIN_RATIO * r) ** 2
   for i in nb.prange(centers.shape[0]):
-    hg.set_identity(frames, valid, i)
-    start, stop = ptr[i], ptr[i + 1]
+    start, stop = hg.start_keypoint(frames, valid, ptr, i)
     c = 0.0
     s = np.zeros(3)
     sq = np.zeros((3, 3))
     for t in range(start, stop):
-      j = ball[t]
-      ox = points[j, 0] - centers[i, 0]
-      oy = points[j, 1] - centers[i, 1]
-      oz = points[j, 2] - centers[i, 2]
-      if ox * ox + oy * oy + oz * oz >= rc2:
+      ox, oy, oz, d2 = hg.offset(points, ball[t], centers[i])
+      if d2 >= rc2:
         c += 1.0
         s[0] += ox
         s[1] += oy
@@ -123,36 +115,12 @@ def _ps_host_kernel(points, centers, kp_ids, ptr, ball, normals, r, eps, frames,
     sq[1, 0], sq[2, 0], sq[2, 1] = sq[0, 1], sq[0, 2], sq[1, 2]
     m = s / c
     evals, evecs = np.linalg.eigh(sq / c - np.outer(m, m))
-    n, n_ok = hg.unit_or_zero(normals[kp_ids[i]])
+    z, n_ok = hg.z_signed_by(evecs, normals[kp_ids[i]])
     if not (hg.smallest_ok(evals, eps) and n_ok):
       continue
-    z = evecs[:, 0].copy()
-    if z[0] * n[0] + z[1] * n[1] + z[2] * n[2] < 0.0:
-      z = -z
     best_j = hg.highest_point(points, centers[i], ball, start, stop, z, rc2, False)
     hg.write_frame(frames, valid, i, z, points[best_j] - centers[i])
 
-
-def ps_frames_host(points: np.ndarray, keypoints: np.ndarray, radius: float, index: Any, *,
-                   faces: Any = None, normals: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-  """Point-signature frames (`ps_frame`) of `keypoints` on the host, float64.
-
-  Args:
-    points: (n, 3) float64 cloud.
-    keypoints: (N,) indices.
-    radius: support radius r.
-    index: the cloud's `neighborhoods.SearchIndex`.
-    faces: unused.
-    normals: (n, 3) per-point normals (NaN where undefined).
-
-  Returns:
-    (frames (N, 3, 3) float32 rows x, y, z, the identity where invalid; valid (N,) bool).
-  """
-  del faces
-  pts, centers, ptr, ball = hg.ball_lists(points, keypoints, radius, index)
-  return hg.run_kernel(_ps_host_kernel, len(centers), pts, centers,
-                       np.asarray(keypoints, np.int64), ptr, ball,
-                       usable_normals(normals), float(radius), hg.EPS)
 
 # ------------------------------------------------------------------------------ registry entry
 
@@ -162,6 +130,7 @@ def _ps(patches: Patches, extra: NormalExtra):
 
 SPEC = MethodSpec(
     "ps", _ps, default_k=None, needs_normals=True, prepare=prepare_normals,
-    host_frames=ps_frames_host, extra=NormalExtra,
+    extra=NormalExtra,
+    host_frames=BallKernel(_ps_host_kernel, ("keypoints", "normals", "radius"), (hg.EPS,)),
     description="Point signature (Chua & Jarvis 1997): contour-plane z, x to the highest "
                 "contour point")

@@ -32,7 +32,7 @@ References:
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING, Any, NamedTuple
+from typing import TYPE_CHECKING, NamedTuple
 
 from lrf_jax._jax import jax, jnp
 import numba as nb
@@ -43,6 +43,7 @@ from lrf_jax.search import engine
 from lrf_jax.geometry import mesh
 from lrf_jax.geometry import ops as geometry
 from lrf_jax.frames import host_geometry as hg
+from lrf_jax.frames.host_path import BallKernel
 from lrf_jax.frames.spec import TRIANGLE, TRIANGLE_MASK, MethodSpec
 from lrf_jax.geometry.ops import sanitize
 from lrf_jax.search.neighborhoods import Patches, hash_priority
@@ -190,15 +191,15 @@ def rops_frames(patches: Patches, tri: AnyArray,
 
 
 @nb.njit(parallel=True, cache=True)
-def _rops_host_kernel(points, faces, vf_ptr, vf, centers, ptr, ball, r, eps, frames, valid):
+def _rops_host_kernel(points, centers, ptr, ball, r, faces, vf_ptr, vf, eps, frames, valid):
   r2 = r * r
   for i in nb.prange(centers.shape[0]):
-    hg.set_identity(frames, valid, i)
+    start, stop = hg.start_keypoint(frames, valid, ptr, i)
     cov = np.zeros((3, 3))
     ssum = np.zeros(3)  # Σ w s, for the signs
     wsum = 0.0
     cx, cy, cz = centers[i, 0], centers[i, 1], centers[i, 2]
-    for e in range(ptr[i], ptr[i + 1]):
+    for e in range(start, stop):
       v = ball[e]
       for q in range(vf_ptr[v], vf_ptr[v + 1]):
         k = vf[q]
@@ -249,28 +250,15 @@ def _rops_host_kernel(points, faces, vf_ptr, vf, centers, ptr, ball, r, eps, fra
     hg.write_frame(frames, valid, i, z, x)
 
 
-def rops_frames_host(points: np.ndarray, keypoints: np.ndarray, radius: float, index: Any, *,
-                     faces: np.ndarray, normals: Any = None) -> tuple[np.ndarray, np.ndarray]:
-  """RoPS frames (`rops_frame`) of `keypoints` on the host, float64, from every triangle with a
-  vertex within `radius`.
+def host_mesh(points: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+  """What the host kernel reads of the mesh (`BallKernel.mesh`): (faces (f, 3) int64, ptr
+  (n + 1,), face ids), the checked triangles and the vertex -> faces map (`vertex_faces`, kept
+  for the last mesh seen)."""
+  f = validate_faces(faces, points.shape[0])
+  vptr, vf = cache_last("vertex_faces", (f, points.shape[0]),
+                        lambda: vertex_faces(f, points.shape[0]))
+  return np.ascontiguousarray(f), vptr, vf
 
-  Args:
-    points: (n, 3) float64 vertices.
-    keypoints: (N,) vertex indices.
-    radius: support radius r.
-    index: the cloud's `neighborhoods.SearchIndex`.
-    faces: (f, 3) triangles.
-    normals: unused.
-
-  Returns:
-    (frames (N, 3, 3) float32 rows x, y, z, the identity where invalid; valid (N,) bool).
-  """
-  del normals
-  pts, centers, ptr, ball = hg.ball_lists(points, keypoints, radius, index)
-  f = validate_faces(faces, pts.shape[0])
-  vptr, vf = cache_last("vertex_faces", (f, pts.shape[0]), lambda: vertex_faces(f, pts.shape[0]))
-  return hg.run_kernel(_rops_host_kernel, len(centers), pts, np.ascontiguousarray(f), vptr, vf,
-                       centers, ptr, ball, float(radius), hg.EPS)
 
 # ------------------------------------------------------------------------------ registry entry
 
@@ -280,6 +268,7 @@ def _rops(patches: Patches, extra: TriangleExtra):
 
 SPEC = MethodSpec(
     "rops", _rops, default_k=None, needs_mesh=True, prepare=prepare_triangles,
-    extra=TriangleExtra, host_frames=rops_frames_host,
+    extra=TriangleExtra,
+    host_frames=BallKernel(_rops_host_kernel, ("radius", "mesh"), (hg.EPS,), mesh=host_mesh),
     description="RoPS (Guo et al. 2013): area- and distance-weighted triangle scatter (PCL); "
                 "needs a mesh")

@@ -16,7 +16,7 @@ points; PCL returns an arbitrary frame there) or an input is not finite. SHOT us
 of the ball: call it with `k=None` (the registry's default).
 
 Deviations from PCL: the jitted `shot_frames` computes C in float32 (the host fast path
-`shot_frames_host`, `compute_frames`' default on the CPU, in double as PCL); equal distances in
+`SPEC.host_frames`, `compute_frames`' default on the CPU, in double as PCL); equal distances in
 the tie rule are ordered by cloud index (PCL: the kd-tree's order).
 
 References:
@@ -26,14 +26,13 @@ References:
 
 from __future__ import annotations
 
-from typing import Any
-
 from lrf_jax._jax import jax, jnp
 import numba as nb
 import numpy as np
 
 from lrf_jax.geometry import ops as geometry
 from lrf_jax.frames import host_geometry as hg
+from lrf_jax.frames.host_path import BallKernel
 from lrf_jax.frames.spec import MethodSpec
 from lrf_jax.geometry.ops import sanitize
 from lrf_jax.search.neighborhoods import Patches
@@ -165,7 +164,7 @@ def _host_sign(axis, off, d2, ids, n):
 @nb.njit(parallel=True, cache=True)
 def _shot_host_kernel(points, centers, ptr, ball, r, eps, frames, valid):
   for i in nb.prange(centers.shape[0]):
-    start, stop = ptr[i], ptr[i + 1]
+    start, stop = hg.start_keypoint(frames, valid, ptr, i)
     off = np.empty((3, stop - start))
     d2 = np.empty(stop - start)
     ids = np.empty(stop - start, np.int64)
@@ -174,10 +173,7 @@ def _shot_host_kernel(points, centers, ptr, ball, r, eps, frames, valid):
     wsum = 0.0
     for t in range(start, stop):
       j = ball[t]
-      dx = points[j, 0] - centers[i, 0]
-      dy = points[j, 1] - centers[i, 1]
-      dz = points[j, 2] - centers[i, 2]
-      dd = dx * dx + dy * dy + dz * dz
+      dx, dy, dz, dd = hg.offset(points, j, centers[i])
       if dd <= 0.0:
         continue  # the keypoint itself (and exact duplicates of it)
       w = r - np.sqrt(dd)
@@ -192,7 +188,6 @@ def _shot_host_kernel(points, centers, ptr, ball, r, eps, frames, valid):
       cov[1, 1] += w * dy * dy
       cov[1, 2] += w * dy * dz
       cov[2, 2] += w * dz * dz
-    hg.set_identity(frames, valid, i)
     if n < MIN_NEIGHBORS or not wsum > 0.0:
       continue
     cov[1, 0], cov[2, 0], cov[2, 1] = cov[0, 1], cov[0, 2], cov[1, 2]
@@ -204,28 +199,6 @@ def _shot_host_kernel(points, centers, ptr, ball, r, eps, frames, valid):
     hg.write_frame(frames, valid, i, z, x)
 
 
-def shot_frames_host(points: np.ndarray, keypoints: np.ndarray, radius: float, index: Any, *,
-                     faces: Any = None, normals: Any = None) -> tuple[np.ndarray, np.ndarray]:
-  """SHOT frames of `keypoints` on the host, from every point within `radius` (float64).
-
-  The rule of `shot_frame` (PCL's), with C, the votes and the tie order in float64 as PCL
-  computes them, from the engine's ball lists without a padded patch.
-
-  Args:
-    points: (n, 3) float64 cloud.
-    keypoints: (N,) indices.
-    radius: support radius r.
-    index: the cloud's `neighborhoods.SearchIndex`.
-    faces, normals: unused (SHOT reads neither).
-
-  Returns:
-    (frames (N, 3, 3) float32 rows x, y, z, the identity where invalid; valid (N,) bool).
-  """
-  del faces, normals
-  pts, centers, ptr, ball = hg.ball_lists(points, keypoints, radius, index)
-  return hg.run_kernel(_shot_host_kernel, len(centers), pts, centers, ptr, ball, float(radius),
-                       hg.EPS)
-
 # ------------------------------------------------------------------------------ registry entry
 
 def _shot(patches: Patches, extra: None):
@@ -234,6 +207,7 @@ def _shot(patches: Patches, extra: None):
 
 
 SPEC = MethodSpec(
-    "shot", _shot, default_k=None, host_frames=shot_frames_host,
+    "shot", _shot, default_k=None,
+    host_frames=BallKernel(_shot_host_kernel, ("radius",), (hg.EPS,)),
     description="SHOT (Tombari et al. 2010): (r-d)-weighted covariance about p, majority-vote "
                 "signs (PCL)")

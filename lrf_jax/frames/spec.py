@@ -62,7 +62,7 @@ class MethodSpec:
     needs_params: the method takes learned parameters.
     needs_mesh: the method needs triangle faces (`faces=` in `compute_frames`).
     needs_normals: `prepare` reads per-point normals (the caller's, else estimated; see
-      `lrf_jax.prepare.method_normals`).
+      `lrf_jax.frames.normals_rule.method_normals`).
     prepare: optional host-side hook `prepare(points, keypoints, patches, faces=..., normals=...,
       radius=...)` returning an instance of `extra` (per-keypoint arrays) fed to `fn`.
     extra: the NamedTuple type `prepare` returns, with its `AXES` layout (None: no extra).
@@ -77,9 +77,10 @@ class MethodSpec:
       normals=) -> (frames (N, 3, 3) float32, valid (N,) bool)`, numpy and compiled engine code
       (`frames.host_geometry`) computing the same frames as `fn` from the cloud's ball lists
       (`index` is its `SearchIndex`), without padded patches; `faces` the mesh or None, `normals`
-      (n, 3) as `lrf_jax.prepare.method_normals` gives them (None for a method without).
-      `compute_frames` runs it by default on a CPU backend (`kernel="auto"`) for calls with
-      k=None and no options.
+      (n, 3) as `normals_rule.method_normals` gives them (None for a method without). The
+      built-in methods' are `host_path.BallKernel`s: a numba kernel and the names of the inputs
+      it reads, which `BallKernel` builds alike for every method. `compute_frames` runs it by
+      default on a CPU backend (`kernel="auto"`) for calls with k=None and no options.
     host_patch_frames: optional `HostPatchKernel` for a method on subsampled patches (an
       integer `default_k`) or with options: computes the same frames as `fn` from the same
       (padded, subsampled) patches and `extra` on the host; `compute_frames` runs it by default

@@ -12,7 +12,7 @@ non-vanishing weighted sum). TOLDI uses every radius neighbor: call it with `k=N
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING
 
 from lrf_jax._jax import jax, jnp
 import numba as nb
@@ -20,12 +20,16 @@ import numpy as np
 
 from lrf_jax.geometry import ops as geometry
 from lrf_jax.frames import host_geometry as hg
+from lrf_jax.frames.host_path import BallKernel
 from lrf_jax.frames.lrf_net import MIN_Z_NEIGHBORS, X_EPS, frames_with_weight_fn
 from lrf_jax.frames.spec import MethodSpec
 from lrf_jax.search.neighborhoods import Patches
 
 if TYPE_CHECKING:
   from lrf_jax.search.neighborhoods import AnyArray
+
+# The z support: the ball of radius Z_RATIO · r whose points' plane gives z.
+Z_RATIO = 1.0 / 3.0
 
 
 def toldi_weights(offsets: AnyArray, z: jax.Array, radius: AnyArray,
@@ -83,10 +87,8 @@ _x_axis_sum = hg.x_axis_sum_of(_toldi_weight)
 @nb.njit(parallel=True, cache=True)
 def _toldi_host_kernel(points, centers, ptr, ball, r, rz2, signed, eps, x_eps, frames, valid):
   for i in nb.prange(centers.shape[0]):
-    hg.set_identity(frames, valid, i)
-    start, stop = ptr[i], ptr[i + 1]
-    mean = np.zeros(3)
-    ok, z = hg.plane_z(points, centers[i], ball, start, stop, rz2, eps, MIN_Z_NEIGHBORS, mean)
+    start, stop = hg.start_keypoint(frames, valid, ptr, i)
+    ok, z, mean = hg.plane_z(points, centers[i], ball, start, stop, rz2, eps, MIN_Z_NEIGHBORS)
     if not ok:
       continue
     if mean[0] * z[0] + mean[1] * z[1] + mean[2] * z[2] > 0.0:
@@ -96,29 +98,6 @@ def _toldi_host_kernel(points, centers, ptr, ball, r, rz2, signed, eps, x_eps, f
       hg.write_frame(frames, valid, i, z, s)
 
 
-def toldi_frames_host(points: np.ndarray, keypoints: np.ndarray, radius: float, index: Any, *,
-                      faces: Any = None, normals: Any = None,
-                      signed: bool = True) -> tuple[np.ndarray, np.ndarray]:
-  """TOLDI frames (`toldi_frames`) of `keypoints` on the host, float64: z from the points within
-  r/3, x from every point within r.
-
-  Args:
-    points: (n, 3) float64 cloud.
-    keypoints: (N,) indices.
-    radius: support radius r.
-    index: the cloud's `neighborhoods.SearchIndex`.
-    faces, normals: unused.
-    signed: the original signed height weight (True) or the paper's unsigned one.
-
-  Returns:
-    (frames (N, 3, 3) float32 rows x, y, z, the identity where invalid; valid (N,) bool).
-  """
-  del faces, normals
-  pts, centers, ptr, ball = hg.ball_lists(points, keypoints, radius, index)
-  rz = float(SPEC.z_ratio * radius)
-  return hg.run_kernel(_toldi_host_kernel, len(centers), pts, centers, ptr, ball, float(radius),
-                       rz * rz, bool(signed), hg.EPS, X_EPS)
-
 # ------------------------------------------------------------------------------ registry entry
 
 def _toldi(patches: Patches, extra: None, *, signed: bool = True):
@@ -126,6 +105,9 @@ def _toldi(patches: Patches, extra: None, *, signed: bool = True):
   return toldi_frames(patches, signed=signed)
 
 
+# The host kernel's constants: signed=True (the host path runs without options: the default
+# weight), then its tolerances.
 SPEC = MethodSpec(
-    "toldi", _toldi, default_k=None, host_frames=toldi_frames_host,
+    "toldi", _toldi, default_k=None, z_ratio=Z_RATIO,
+    host_frames=BallKernel(_toldi_host_kernel, ("radius", "rz2"), (True, hg.EPS, X_EPS), Z_RATIO),
     description="TOLDI (Yang et al. 2017): z over r/3, x weights (r-d)^2 sign(h) h^2 (original C++)")

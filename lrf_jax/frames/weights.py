@@ -41,7 +41,7 @@ DEFAULT_WEIGHTS = WEIGHTS_DIR / "lrf_net.msgpack"
 
 def apply_weights(params: Params, attrs: Any, xp: Any = jnp, dtype: Any = None) -> Any:
   """Weights (..., K) for attributes (..., K, A): the forward pass of `learning.networks.WeightNet`
-  (the definition, in flax) without flax; `tests/test_shipped_weights.py` holds the two equal.
+  (the definition, in flax) without flax; `tests/test_weights_shipped.py` holds the two equal.
 
   Encoder Dense+ReLU layers enc0..enc{m-1}, decoder Dense+ReLU layers dec0..dec{m-2} each
   concatenated with the encoder output of the same width, and a linear Dense "out" to one

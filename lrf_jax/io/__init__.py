@@ -7,7 +7,8 @@
 
 Every bad input raises ValueError (FileNotFoundError for a missing file) naming the file, the
 field and what was expected versus found; so does a file that cannot be opened for reading (e.g.
-no read permission). A normal that is not finite (NaN/inf) is read as a NaN row, a missing
+no read permission) and a path that is a symbolic link loop (`SymlinkLoopError`, also an
+OSError with errno ELOOP). A normal that is not finite (NaN/inf) is read as a NaN row, a missing
 normal, and keeps its point (`check_normals`).
 """
 
@@ -18,12 +19,13 @@ from lrf_jax.io.poses import (LogEntry, quaternion_to_matrix, read_3dmatch_log,
                               read_stanford_conf, read_xf, write_xf)
 from lrf_jax.io.reader import read_cloud
 from lrf_jax.io.text import read_xyz
-from lrf_jax.io.validation import check_normals, check_points, check_rigid
+from lrf_jax.io.validation import SymlinkLoopError, check_normals, check_points, check_rigid
 
 __all__ = [
     "Cloud",
     "LogEntry",
     "PlyMesh",
+    "SymlinkLoopError",
     "check_normals",
     "check_points",
     "check_rigid",

@@ -21,10 +21,11 @@ A write that fails with an `OSError` raises `WriteError` ("could not write PATH:
 "No space left on device"), an `OSError` itself, which the command-line programs print as one
 `error:` line. Only a regular file or a new name is ever replaced: a path naming a FIFO, a
 device (such as /dev/null), a socket or a folder, or whose name is longer than `NAME_MAX`
-bytes, raises `OutputPathError` (a `WriteError` and a `ValueError`) before anything is
-written; the rename would otherwise put a regular file in the place of the device.
-`output_problem`, `path_problem` and `same_file` are the checks a program makes on its output
-paths before doing any work.
+bytes, or that is (or goes through) a symbolic link loop, raises `OutputPathError` (a
+`WriteError` and a `ValueError`) before anything is written; the rename would otherwise put a
+regular file in the place of the device or the link. `output_problem`, `path_problem`,
+`loop_problem` and `same_file` are the checks a program makes on its output paths before doing
+any work.
 """
 
 from __future__ import annotations
@@ -38,9 +39,9 @@ from pathlib import Path
 from typing import IO, Any
 from collections.abc import Iterable, Iterator
 
-__all__ = ["NAME_MAX", "OutputPathError", "WriteError", "append_line", "atomic_path",
-           "atomic_write", "file_kind", "output_problem", "path_problem", "same_file",
-           "save_figure", "write_bytes", "write_text"]
+__all__ = ["NAME_MAX", "OutputPathError", "OutputProblem", "WriteError", "append_line",
+           "atomic_path", "atomic_write", "file_kind", "loop_problem", "output_problem",
+           "path_problem", "same_file", "save_figure", "write_bytes", "write_text"]
 
 # The longest file name (one path component), in bytes, on the usual file systems (ext4, XFS,
 # btrfs, tmpfs, APFS); a longer one fails with ENAMETOOLONG.
@@ -91,6 +92,29 @@ def path_problem(path: str | os.PathLike) -> str | None:
   return None
 
 
+def _loops(path: str | os.PathLike) -> bool:
+  """Whether looking `path` up fails with ELOOP (a symbolic link on it leads back to itself)."""
+  try:
+    os.stat(path)
+  except OSError as e:
+    return e.errno == errno.ELOOP
+  except ValueError:  # a NUL character: `path_problem` says so
+    return False
+  return False
+
+
+def loop_problem(path: str | os.PathLike) -> str | None:
+  """What is wrong with `path` when looking it up fails with ELOOP (None otherwise): "is a
+  symbolic link loop (...)" when `path` itself is a link that leads back to itself, "goes
+  through a symbolic link loop (...)" when a folder on it does. The message does not repeat the
+  path."""
+  p = Path(path).expanduser()
+  if not _loops(p):
+    return None
+  where = "goes through" if p.parent != p and _loops(p.parent) else "is"
+  return f"{where} a symbolic link loop (ELOOP: {os.strerror(errno.ELOOP).lower()})"
+
+
 _KINDS = ((stat.S_ISFIFO, "a FIFO (named pipe)"), (stat.S_ISCHR, "a character device"),
           (stat.S_ISBLK, "a block device"), (stat.S_ISSOCK, "a socket"),
           (stat.S_ISDIR, "a folder"))
@@ -115,6 +139,10 @@ def _check_writable_name(target: Path) -> None:
   problem = path_problem(target)
   if problem:
     raise OutputPathError(target, problem, errno.ENAMETOOLONG)
+  problem = loop_problem(target)
+  if problem:
+    raise OutputPathError(target, f"{problem}; expected a regular file or a new name",
+                          errno.ELOOP)
   kind = file_kind(target)
   if kind == "a folder":
     raise OutputPathError(target, "is a folder, expected a file path", errno.EISDIR)
@@ -124,10 +152,11 @@ def _check_writable_name(target: Path) -> None:
 
 
 def _target(path: str | os.PathLike) -> Path:
-  """`path`, or the file a symbolic link at `path` points to (the link itself is kept)."""
+  """`path`, or the file a symbolic link at `path` points to (the link itself is kept); `path`
+  itself when it is a symbolic link loop (`_check_writable_name` refuses it, naming it)."""
   p = Path(path).expanduser()
   try:
-    return Path(os.path.realpath(p)) if p.is_symlink() else p
+    return Path(os.path.realpath(p)) if p.is_symlink() and not _loops(p) else p
   except (OSError, ValueError):  # a name too long to look at: `_check_writable_name` says so
     return p
 
@@ -280,14 +309,28 @@ def _sync_folder(folder: Path) -> None:
 
 def same_file(a: str | os.PathLike, b: str | os.PathLike) -> bool:
   """True when `a` and `b` are one file: the same resolved path, or `os.path.samefile` (hard
-  links, links to folders) when both exist."""
+  links, links to folders) when both exist. A symbolic link loop is the same file only as
+  itself (it resolves to no file)."""
   pa, pb = Path(a).expanduser(), Path(b).expanduser()
-  if pa.resolve() == pb.resolve():
+  if os.path.realpath(pa) == os.path.realpath(pb):  # Path.resolve raises on a symbolic link loop
     return True
   try:
     return os.path.samefile(pa, pb)
   except OSError:
     return False
+
+
+class OutputProblem(str):
+  """`output_problem`'s message. `io_error` is True when the path is fine but the system will
+  not let it be written (its folder is not writable: a read-only file system, permissions), as
+  opposed to a wrong path (the programs exit with different codes)."""
+
+  io_error: bool = False
+
+  def __new__(cls, text: str, io_error: bool = False) -> OutputProblem:
+    made = super().__new__(cls, text)
+    made.io_error = io_error
+    return made
 
 
 def output_problem(path: str | os.PathLike, option: str,
@@ -300,13 +343,17 @@ def output_problem(path: str | os.PathLike, option: str,
     inputs: (name, path) of the files the program reads; `path` may not be one of them.
 
   Returns:
-    A message naming `option`: `path` is too long a name (`path_problem`), one of the inputs, a
-    folder, a FIFO, a device or a socket (`file_kind`: only a regular file or a new name is
-    replaced), in a folder that does not exist or is not writable; or None.
+    A message naming `option`: `path` is too long a name (`path_problem`), a symbolic link loop
+    or goes through one (`loop_problem`), one of the inputs, a folder, a FIFO, a device or a
+    socket (`file_kind`: only a regular file or a new name is replaced), in a folder that does
+    not exist, or is not writable (an `OutputProblem` whose `io_error` is True); or None.
   """
   problem = path_problem(path)
   if problem:
     return f"{option}: {path} {problem}"
+  problem = loop_problem(path)
+  if problem:
+    return f"{option}: {path} {problem}; expected a regular file or a new name"
   p = Path(path).expanduser()
   for name, src in inputs:
     if src is not None and same_file(p, src):
@@ -317,11 +364,11 @@ def output_problem(path: str | os.PathLike, option: str,
     return f"{option}: {path} is a folder; expected a file path"
   if kind:
     return f"{option}: {path} is {kind}; expected a regular file or a new name"
-  parent = p.resolve().parent
+  parent = Path(os.path.realpath(p)).parent
   if not parent.is_dir():
     return f"{option}: the folder {parent} does not exist (create it, or pick another path)"
   if not os.access(parent, os.W_OK | os.X_OK):
-    return f"{option}: the folder {parent} is not writable"
+    return OutputProblem(f"{option}: the folder {parent} is not writable", io_error=True)
   return None
 
 

@@ -65,7 +65,8 @@ def _parse_rows(lines: list[str], source: object, field: str) -> np.ndarray:
   return np.array(rows)
 
 
-def read_xf(path: str | os.PathLike, *, atol: float = RIGID_ATOL) -> np.ndarray:
+def read_xf(path: str | os.PathLike, *, atol: float = RIGID_ATOL,
+            project: float = 0.0) -> np.ndarray:
   """Reads a `.xf` file: a rigid 4x4 matrix as 4 whitespace-separated text rows.
 
   In the Bologna and UWA ground truths the matrix maps model points into the scene:
@@ -74,6 +75,8 @@ def read_xf(path: str | os.PathLike, *, atol: float = RIGID_ATOL) -> np.ndarray:
   Args:
     path: the `.xf` file.
     atol: rigidity tolerance (see module docstring).
+    project: a rotation block within this of orthonormal is projected to the nearest rotation
+      (`lrf_jax.io.validation.check_rigid`).
 
   Returns:
     (4, 4) float64 matrix.
@@ -84,7 +87,7 @@ def read_xf(path: str | os.PathLike, *, atol: float = RIGID_ATOL) -> np.ndarray:
   """
   p = require_file(path)
   lines = [line for line in p.read_text(errors="replace").splitlines() if line.strip()]
-  return check_rigid(_parse_rows(lines, p, "matrix"), p, "matrix", atol)
+  return check_rigid(_parse_rows(lines, p, "matrix"), p, "matrix", atol, project)
 
 
 def format_matrix(matrix: np.ndarray, digits: int = 9) -> str:
@@ -184,7 +187,8 @@ class LogEntry(NamedTuple):
   transform: np.ndarray
 
 
-def read_3dmatch_log(path: str | os.PathLike, *, atol: float = RIGID_ATOL) -> list[LogEntry]:
+def read_3dmatch_log(path: str | os.PathLike, *, atol: float = RIGID_ATOL,
+                     project: float = 0.0) -> list[LogEntry]:
   """Reads a 3DMatch / Redwood trajectory `.log` file (e.g. `gt.log`).
 
   The file is a sequence of 5-line records: a header ``i j n`` followed by 4 rows of a 4x4
@@ -194,6 +198,8 @@ def read_3dmatch_log(path: str | os.PathLike, *, atol: float = RIGID_ATOL) -> li
   Args:
     path: the `.log` file.
     atol: rigidity tolerance (see module docstring).
+    project: a rotation block within this of orthonormal is projected to the nearest rotation
+      (`lrf_jax.io.validation.check_rigid`).
 
   Returns:
     The records in file order.
@@ -219,5 +225,5 @@ def read_3dmatch_log(path: str | os.PathLike, *, atol: float = RIGID_ATOL) -> li
     except ValueError as e:
       raise bad_input(p, f"{field} header", "three integers 'i j n'", repr(lines[k])) from e
     matrix = _parse_rows(lines[k + 1:k + 5], p, f"{field} matrix")
-    entries.append(LogEntry(i, j, n, check_rigid(matrix, p, f"{field} matrix", atol)))
+    entries.append(LogEntry(i, j, n, check_rigid(matrix, p, f"{field} matrix", atol, project)))
   return entries

@@ -8,12 +8,14 @@ coordinates are checked by the package's one cloud check (`lrf_jax.checks.valida
 
 from __future__ import annotations
 
+import errno
 import os
 from pathlib import Path
 
 import numpy as np
 
-from lrf_jax.checks import validate_cloud
+from lrf_jax.checks import MAX_COORDINATE, validate_cloud
+from lrf_jax.io.atomic import loop_problem
 
 # A pose's rotation block must satisfy |RᵀR - I| <= atol and |det R - 1| <= atol. The real
 # ground-truth files are written with 6 decimals (worst case in the shipped data: 6.4e-6).
@@ -35,6 +37,43 @@ def bad_input(source: object, field: str, expected: str, found: str) -> ValueErr
   return ValueError(f"{source}: {field}: expected {expected}, found {found}")
 
 
+class SymlinkLoopError(OSError, ValueError):
+  """A path that cannot be looked up because a symbolic link on it leads back to itself (ELOOP).
+
+  Both an `OSError` (errno ELOOP, `filename` the path as given) and a `ValueError` (a bad input,
+  as every reader raises), as `io.UnsupportedOperation` is both; `str()` is the one-line
+  message, e.g. "scan.ply: file: expected a readable file, found a symbolic link loop (ELOOP:
+  too many levels of symbolic links)".
+  """
+
+  def __init__(self, path: str | os.PathLike, problem: str):
+    super().__init__(errno.ELOOP, os.strerror(errno.ELOOP), os.fspath(path))
+    found = problem.removeprefix("is ")
+    if found.startswith("goes through "):
+      found = "a path that " + found
+    self.message = str(bad_input(os.fspath(path), "file", "a readable file", found))
+
+  def __str__(self) -> str:
+    return self.message
+
+
+def file_problem(path: str | os.PathLike) -> str | None:
+  """Why `path` cannot be read as a file, without opening it (None: a regular file): "no such
+  file", "is a directory, not a file", "is not a regular file (...)", or a symbolic link loop
+  (`lrf_jax.io.atomic.loop_problem`). The message does not repeat the path."""
+  loop = loop_problem(path)
+  if loop:
+    return loop
+  p = Path(path)
+  if p.is_file():
+    return None
+  if p.is_dir():
+    return "is a directory, not a file"
+  if p.exists():  # a FIFO, a socket, a device: reading one may wait forever or never end
+    return "is not a regular file (a FIFO, a socket or a device)"
+  return "no such file"
+
+
 def require_file(path: str | os.PathLike) -> Path:
   """Returns `path` as a Path, or raises FileNotFoundError naming it.
 
@@ -46,18 +85,17 @@ def require_file(path: str | os.PathLike) -> Path:
 
   Raises:
     FileNotFoundError: `path` does not exist or is not a regular file (the message says which).
+    SymlinkLoopError: `path` is, or goes through, a symbolic link loop (ELOOP; a ValueError and
+      an OSError naming `path` as given).
     ValueError: the file exists but cannot be opened for reading (e.g. no read permission).
   """
   if not os.fspath(path):  # Path("") is ".", the working directory
     raise FileNotFoundError("'': an empty path, not a file")
   p = Path(path)
-  if not p.is_file():
-    if p.is_dir():
-      what = "is a directory, not a file"
-    elif p.exists():  # a FIFO, a socket, a device: reading one may wait forever or never end
-      what = "is not a regular file (a FIFO, a socket or a device)"
-    else:
-      what = "no such file"
+  what = file_problem(p)
+  if what and "symbolic link loop" in what:
+    raise SymlinkLoopError(path, what)
+  if what:
     raise FileNotFoundError(f"{p}: {what}")
   try:  # permissions and the like: a ValueError naming the file, as for any bad file
     with open(p, "rb"):
@@ -94,21 +132,30 @@ def check_points(points: np.ndarray, source: object, field: str = "points",
 
 
 def check_rigid(transform: np.ndarray, source: object, field: str = "transform",
-                atol: float = RIGID_ATOL) -> np.ndarray:
+                atol: float = RIGID_ATOL, project: float = 0.0) -> np.ndarray:
   """Validates a (4, 4) rigid transform [R t; 0 0 0 1] with R a proper rotation.
+
+  A rotation block off orthonormal by more than `atol` but at most `project` (|RᵀR - I|, max
+  entry) is replaced by the nearest rotation (`nearest_rotation`: the orthogonal polar factor,
+  in the Frobenius norm), with a `ProjectedRotation` warning that gives the figure. Published ground
+  truths (3DMatch's gt.log) are printed with a few digits and reach 5e-4.
 
   Args:
     transform: array-like, expected shape (4, 4).
     source: the file or input the matrix came from (used in messages).
     field: what the matrix is, e.g. ``"pose of bun045.ply"``.
     atol: tolerance on |RᵀR - I| (max entry), |det R - 1| and the last row.
+    project: a rotation block within this of orthonormal is projected to the nearest rotation
+      (0: none is; the matrix must be within `atol`).
 
   Returns:
-    The matrix as a (4, 4) float64 array (unchanged values).
+    The matrix as a (4, 4) float64 array (unchanged values, or with its rotation block
+    projected).
 
   Raises:
-    ValueError: wrong shape, non-finite entries, last row not (0, 0, 0, 1), R not orthonormal,
-      or det R != +1 (a reflection).
+    ValueError: wrong shape, non-finite entries, last row not (0, 0, 0, 1), a translation beyond
+      `lrf_jax.checks.MAX_COORDINATE` in some coordinate, R not orthonormal (beyond `atol` and
+      `project`; the message gives the figure), or det R != +1 (a reflection).
   """
   t = np.asarray(transform, dtype=np.float64)
   if t.shape != (4, 4):
@@ -118,16 +165,49 @@ def check_rigid(transform: np.ndarray, source: object, field: str = "transform",
     raise bad_input(source, field, "finite entries", "NaN/inf")
   if np.abs(t[3] - np.array([0.0, 0.0, 0.0, 1.0])).max() > atol:
     raise bad_input(source, field, "last row 0 0 0 1", f"last row {t[3].tolist()}")
+  shift = float(np.abs(t[:3, 3]).max())
+  if shift > MAX_COORDINATE:
+    raise bad_input(source, field, f"a translation of magnitude at most {MAX_COORDINATE:.0e} (the "
+                    "largest coordinate a cloud may hold: it would move the cloud beyond it)",
+                    f"translation {t[:3, 3].tolist()} (magnitude {shift:.3e})")
   r = t[:3, :3]
-  ortho = float(np.abs(r.T @ r - np.eye(3)).max())
-  if ortho > atol:
-    raise bad_input(source, field, f"an orthonormal rotation block (|RᵀR - I| <= {atol:g})",
+  ortho = rigid_deviation(t)
+  limit = max(atol, project)
+  if ortho > limit:
+    raise bad_input(source, field, f"an orthonormal rotation block (|RᵀR - I| <= {limit:g})",
                     f"|RᵀR - I| = {ortho:.3g} (not a rigid transform)")
   det = float(np.linalg.det(r))
-  if abs(det - 1.0) > atol:
-    raise bad_input(source, field, f"det R = +1 (within {atol:g})",
+  if abs(det - 1.0) > limit or det < 0:
+    raise bad_input(source, field, f"det R = +1 (within {limit:g})",
                     f"det R = {det:.6g}" + (" (a reflection)" if det < 0 else ""))
+  if ortho > atol:
+    import warnings
+    warnings.warn(ProjectedRotation(
+        f"{source}: {field}: its rotation block is {ortho:.3g} off orthonormal (|RᵀR - I|); "
+        "projected to the nearest rotation"), stacklevel=2)
+    t = t.copy()
+    t[:3, :3] = nearest_rotation(r)
+    t[3] = (0.0, 0.0, 0.0, 1.0)
   return t
+
+
+class ProjectedRotation(UserWarning):
+  """A transform's rotation block was replaced by the nearest rotation (`check_rigid`'s
+  `project`); the message gives how far off orthonormal it was."""
+
+
+def rigid_deviation(transform: np.ndarray) -> float:
+  """|RᵀR - I| (max entry) of a (4, 4) transform's rotation block: 0 for a rotation."""
+  r = np.asarray(transform, np.float64)[:3, :3]
+  return float(np.abs(r.T @ r - np.eye(3)).max())
+
+
+def nearest_rotation(r: np.ndarray) -> np.ndarray:
+  """The rotation nearest to a (3, 3) matrix in the Frobenius norm: U Vᵀ of its SVD U S Vᵀ,
+  the last column of U negated where det(U Vᵀ) < 0 (Umeyama's correction)."""
+  u, _, vt = np.linalg.svd(np.asarray(r, np.float64))
+  d = np.sign(np.linalg.det(u @ vt)) or 1.0
+  return u @ np.diag([1.0, 1.0, d]) @ vt
 
 
 def check_normals(normals: np.ndarray, source: object, field: str = "normals",

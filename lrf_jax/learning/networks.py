@@ -2,7 +2,7 @@
 
 Flax is imported here and nowhere on the inference path: `WeightNet` defines the weight
 network, and `lrf_jax.frames.weights.apply_weights` evaluates the same layers from the parameter dict without
-flax, in `jax.numpy` or numpy (tests/test_shipped_weights.py holds it equal to
+flax, in `jax.numpy` or numpy (tests/test_weights_shipped.py holds it equal to
 `WeightNet.apply`), so computing frames or registering scans never pays flax's import. These
 modules define the parameter layout and initialise it (`model.init_params` and `model.init_variant_params` call them).
 """

@@ -12,9 +12,9 @@
   host.py              hypotheses and inlier counts on the host (numpy, numba)
   evidence.py          whether a registration is believed: the evidence and the verdict
   icp_host.py          ICP: point-to-point and point-to-plane (numba sums, Gauss-Newton step)
-  multiway.py          `register_all`: every pair of many scans, then the pose graph
-  pose_graph.py        the multiway pose graph (robust least squares)
-  multiway_figures.py  its figures
+  scan_features.py     one scan's features described once, two scans' features registered
+
+Many scans into one model (`register_all`) are `lrf_jax.multiway`, above this package.
 
 The names below are this package's interface; every other name is imported from its module.
 """

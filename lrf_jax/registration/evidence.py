@@ -141,6 +141,34 @@ def constraint_spectrum(points: np.ndarray, normals: np.ndarray) -> tuple[float,
   return float(max(w[0], 0.0) / w[-1]), words
 
 
+def exact_number(value: float) -> str:
+  """`value` in full: an integer-valued number without a decimal point or an exponent
+  ("1200003"), any other its shortest exact form (`repr`)."""
+  x = float(value)
+  return str(int(x)) if x.is_integer() else repr(x)
+
+
+def shown_apart(value: float, floor: float, kind: str) -> tuple[str, str]:
+  """`value` and the threshold `floor` it was compared with, printed with as many digits as it
+  takes for the two to read differently (whenever they differ): kind "%" as percentages (one
+  decimal more at a time from none: 0.0496 and 0.05 read "4.96%" and "5.00%"), "g" with
+  significant digits (two at least, trailing zeros dropped: 0.009996 and 0.01 read "0.009996"
+  and "0.01").
+
+  Returns:
+    (value, floor) as text.
+  """
+  if kind == "%":
+    fmt = [f"{{:.{d}%}}" for d in range(18)]
+  else:
+    fmt = [f"{{:.{d}g}}" for d in range(2, 19)]
+  for f in fmt:
+    a, b = f.format(value), f.format(floor)
+    if a != b:
+      break
+  return a, b
+
+
 def decide(evidence: Evidence) -> Verdict:
   """`Registration.success`, `.reason` and `.reason_code` from the evidence (module constants).
 
@@ -153,13 +181,15 @@ def decide(evidence: Evidence) -> Verdict:
   e = evidence
   floor = VERDICT_GRAPH_FITNESS
   if e.fitness < floor:
-    return Verdict(False, f"not sure: only {e.fitness:.0%} of the source lies on the target "
-                          f"after ICP (needs {floor:.0%})", "low_overlap")
+    shown, needed = shown_apart(e.fitness, floor, "%")
+    return Verdict(False, f"not sure: only {shown} of the source lies on the target after ICP "
+                          f"(needs {needed})", "low_overlap")
   if e.degeneracy < DEGENERATE_RATIO:
     free = f" ({e.free_direction})" if e.free_direction else ""
+    shown, needed = shown_apart(e.degeneracy, DEGENERATE_RATIO, "g")
     return Verdict(False, f"not sure: the overlap leaves a motion free{free}; its weakest "
-                          f"direction holds {e.degeneracy:.2g} of the strongest's (needs "
-                          f"{DEGENERATE_RATIO:g})", "degenerate")
+                          f"direction holds {shown} of the strongest's (needs {needed})",
+                   "degenerate")
   level = max(e.chance_inliers, e.rival_inliers)
   need = VERDICT_GRAPH_FACTOR * level + VERDICT_GRAPH_MARGIN
   if e.n_inliers >= need:
@@ -169,7 +199,7 @@ def decide(evidence: Evidence) -> Verdict:
   rival = e.rival_inliers >= e.chance_inliers
   which = "a distinct pose" if rival else "chance"
   return Verdict(False, f"not sure: {e.n_inliers} consistent correspondences, {which} gives "
-                        f"{level} (needs {need:g}); {next_step(e)}",
+                        f"{level} (needs {exact_number(need)}); {next_step(e)}",
                  "rival" if rival else "chance")
 
 

@@ -20,7 +20,7 @@ from typing import Any, NamedTuple, cast
 
 import numpy as np
 
-from lrf_jax.api import compute_frames
+from lrf_jax.frames.compute import compute_frames
 from lrf_jax.checks import validate_radius, validate_seed, validate_viewpoint
 from lrf_jax.descriptors import compute_descriptors, select_correspondences
 from lrf_jax.frames import METHODS

@@ -9,7 +9,7 @@ from __future__ import annotations
 import numba as nb
 import numpy as np
 
-from lrf_jax.search.balls import _ball_counts, _columns, _keep
+from lrf_jax.search.balls import _ball_counts, _columns, _keep, squared_distance
 from lrf_jax.search.grid import _BLOCK, Grid, _centers, _reach, query_order, run_blocks, task_jit
 
 @nb.njit(parallel=True, cache=True)
@@ -60,10 +60,7 @@ def _ball_fill(pts, slot_index, starts, origin, h, dims, centers, order, r, reac
     w = ptr[i]
     for q in range(nr):
       for j in range(starts[js[q]], starts[je[q]]):
-        dx = pts[0, j] - cx
-        dy = pts[1, j] - cy
-        dz = pts[2, j] - cz
-        d2 = dx * dx + dy * dy + dz * dz
+        d2 = squared_distance(pts, j, cx, cy, cz)
         if d2 <= r2 and (d2 <= kin2 or d2 > kout2):
           out[w] = slot_index[j]
           w += 1

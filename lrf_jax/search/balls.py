@@ -62,6 +62,29 @@ def _columns(cx, cy, cz, origin, h, dims, starts, r, reach, js, je):
 
 
 @nb.njit(inline="always")
+def squared_distance(pts, j, cx, cy, cz):
+  """The squared distance of slot j (`pts` (3, n)) from (cx, cy, cz) by cKDTree's rule: float64,
+  summed over x, y, z in that order."""
+  dx = pts[0, j] - cx
+  dy = pts[1, j] - cy
+  dz = pts[2, j] - cz
+  return dx * dx + dy * dy + dz * dz
+
+
+@nb.njit(inline="always")
+def _span(i, reach, dim):
+  """The cells [lo, hi) within `reach` of cell i, on an axis of `dim` cells."""
+  return max(i - reach, 0), min(i + reach, dim - 1) + 1
+
+
+@nb.njit(inline="always")
+def _gap2(c, lo, h):
+  """The squared distance from c to the interval [lo, lo + h] (0 inside it)."""
+  d = lo - c if c < lo else (c - lo - h if c > lo + h else 0.0)
+  return d * d
+
+
+@nb.njit(inline="always")
 def _far(c, lo, h, e):
   """The largest distance from c to the interval [lo - e, lo + h + e]."""
   return max(c - lo + e, lo + h + e - c)
@@ -79,17 +102,17 @@ def _column_runs(cx, cy, cz, origin, h, dims, starts, r, reach, js, je, inner, j
   ri2 = (r * (1.0 - 1e-9)) ** 2
   ix = _cell(cx, origin[0], h)
   iy = _cell(cy, origin[1], h)
+  a0, a1 = _span(ix, reach, dims[0])
+  b0, b1 = _span(iy, reach, dims[1])
   n = 0
-  for a in range(max(ix - reach, 0), min(ix + reach, dims[0] - 1) + 1):
+  for a in range(a0, a1):
     lox = origin[0] + a * h
-    ddx = lox - cx if cx < lox else (cx - lox - h if cx > lox + h else 0.0)
-    rx = rp2 - ddx * ddx
+    rx = rp2 - _gap2(cx, lox, h)
     if rx < 0.0:
       continue
-    for b in range(max(iy - reach, 0), min(iy + reach, dims[1] - 1) + 1):
+    for b in range(b0, b1):
       lo = origin[1] + b * h
-      ddy = lo - cy if cy < lo else (cy - lo - h if cy > lo + h else 0.0)
-      rem = rx - ddy * ddy
+      rem = rx - _gap2(cy, lo, h)
       if rem < 0.0:
         continue
       t = np.sqrt(rem)
@@ -120,10 +143,7 @@ def _count_slots(pts, a, b, cx, cy, cz, r2):
   """Points of slots a..b-1 within sqrt(r2) of (cx, cy, cz)."""
   c = 0
   for j in range(a, b):
-    dx = pts[0, j] - cx
-    dy = pts[1, j] - cy
-    dz = pts[2, j] - cz
-    c += (dx * dx + dy * dy + dz * dz) <= r2
+    c += squared_distance(pts, j, cx, cy, cz) <= r2
   return c
 
 
@@ -147,10 +167,7 @@ def _count_ball(pts, starts, cx, cy, cz, r2, kin2, kout2, nr, js, je):
   ck = 0
   for q in range(nr):
     for j in range(starts[js[q]], starts[je[q]]):
-      dx = pts[0, j] - cx
-      dy = pts[1, j] - cy
-      dz = pts[2, j] - cz
-      d2 = dx * dx + dy * dy + dz * dz
+      d2 = squared_distance(pts, j, cx, cy, cz)
       inside = d2 <= r2
       c += inside
       ck += inside & ((d2 <= kin2) | (d2 > kout2))  # no branches: balls are random

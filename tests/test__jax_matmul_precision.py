@@ -12,7 +12,8 @@ import numpy as np
 import pytest
 
 import lrf_jax
-from lrf_jax import _jax, api, datasets
+from lrf_jax import _jax, datasets
+from lrf_jax.frames import patch_frames
 from lrf_jax import descriptors as descriptors_mod
 from lrf_jax.search import device as device_search
 
@@ -63,7 +64,7 @@ def _recording(monkeypatch, module, name):
 @pytest.mark.parametrize("method", sorted(lrf_jax.METHODS))
 def test_every_method_traces_full_precision_products(method, blob, monkeypatch):
   pts, faces, kp, r = blob
-  calls = _recording(monkeypatch, api, "_jitted")
+  calls = _recording(monkeypatch, patch_frames, "_jitted")
   kw = {"faces": faces} if lrf_jax.METHODS[method].needs_mesh else {}
   lrf_jax.compute_frames(pts, kp, r, method, kernel="jit", search="host", **kw)
   assert calls, method

@@ -11,6 +11,7 @@ from lrf_jax import datasets
 from lrf_jax.geometry import resolution
 from lrf_jax.geometry.sampling import voxel_downsample, voxel_groups
 from lrf_jax.registration import register, rotation_error_deg
+import lrf_jax
 
 
 def sweep(sensor=(0.0, 0.0, 0.0), n_az=720, n_el=32, seed=0) -> np.ndarray:
@@ -186,7 +187,7 @@ def test_a_full_density_cloud_is_registered_at_a_fraction_of_its_extent():
                                  rel=1e-12)
   assert reg.mr > 1.2 * work.mr
   assert resolution.registration_resolution(sparse) == resolution.working_resolution(sparse)
-  from lrf_jax.api import _resolve_radius  # compute_frames' radius_mr: the spacing's, uncapped
+  from lrf_jax.frames.compute import _resolve_radius  # compute_frames' radius_mr: the spacing's, uncapped
   from lrf_jax.geometry.cloud import as_cloud
   assert _resolve_radius(as_cloud(dense), None, 15) == pytest.approx(15 * work.mr, rel=1e-12)
   for k in (1e-3, 1e3):
@@ -310,3 +311,16 @@ def test_prepare_keeps_each_input_clouds_measured_spacing():
   points, faces = datasets.make_demo_mesh("torus")
   side = prepare(CheckedCloud(points, faces), points[::3], RegisterOptions(n_keypoints=50)).sides[0]
   assert side.input_spacing is None  # a mesh's resolution is its edge length
+
+
+@pytest.mark.parametrize("points,fragment", [
+    (np.ones((50, 3)), "all 50 points coincide"),
+    (np.repeat(np.random.default_rng(0).random((25, 3)), 2, axis=0),
+     "every point is duplicated (25 distinct positions among 50 points)")])
+def test_cloud_without_spacing_says_so_not_radius(points, fragment):
+  """A cloud of duplicated points said "radius: ... got 0.0" although no radius was given."""
+  with pytest.raises(ValueError, match=r"^source: the cloud has no spacing") as e:
+    lrf_jax.register(points, points)
+  assert fragment in str(e.value) and "radius" not in str(e.value)
+  with pytest.raises(ValueError, match=r"^points: the cloud has no spacing"):
+    lrf_jax.mesh_resolution(points)

@@ -146,3 +146,27 @@ def test_a_street_of_repeating_facades_is_not_claimed_a_period_off(period, shift
   right = (rotation_error_deg(reg.transform[:3, :3], pair.transform[:3, :3]) < 2.0
            and np.linalg.norm(reg.transform[:3, 3] - pair.transform[:3, 3]) < 0.5)
   assert right or not reg.success, (reg.reason, reg.transform[:3, 3])
+
+
+@pytest.mark.parametrize("fitness,shown,needed", [
+    (0.0499, "4.99%", "5.00%"), (0.04996, "4.996%", "5.000%"), (0.049999999, "4.9999999%",
+                                                                 "5.0000000%"),
+    (0.01, "1%", "5%"), (0.0, "0%", "5%")])
+def test_a_low_overlap_never_reads_as_its_floor(fitness, shown, needed):
+  reason = decide(_evidence(fitness=fitness)).reason
+  assert reason == (f"not sure: only {shown} of the source lies on the target after ICP (needs "
+                    f"{needed})")
+
+
+@pytest.mark.parametrize("ratio,shown", [(0.009996, "0.009996"), (0.0099, "0.0099"),
+                                         (0.0012, "0.0012"), (0.0, "0")])
+def test_a_degenerate_overlap_never_reads_as_its_floor(ratio, shown):
+  reason = decide(_evidence(degeneracy=ratio)).reason
+  assert f"holds {shown} of the strongest's (needs 0.01)" in reason
+
+
+def test_the_needed_inliers_are_printed_in_full():
+  reason = decide(_evidence(n_inliers=1200002, chance_inliers=400000, rival_inliers=1)).reason
+  assert reason.startswith("not sure: 1200002 consistent correspondences, chance gives 400000 "
+                           "(needs 1200003); ")
+  assert "(needs 21)" in decide(_evidence(n_inliers=9, chance_inliers=1, rival_inliers=6)).reason

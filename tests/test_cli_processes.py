@@ -1,6 +1,6 @@
-"""The command-line programs as separate processes: Ctrl-C (a real SIGINT) and a base install
-without matplotlib (simulated by `sys.modules["matplotlib"] = None`, which makes every import of
-it fail as if it were not installed)."""
+"""The command-line programs (`lrf_jax.cli`) as separate processes: Ctrl-C (a real SIGINT) and a
+base install without matplotlib (simulated by `sys.modules["matplotlib"] = None`, which makes
+every import of it fail as if it were not installed)."""
 
 from __future__ import annotations
 
@@ -15,6 +15,7 @@ import numpy as np
 import pytest
 
 from lrf_jax import datasets
+from tests.lrf_testing import repo_env
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -28,10 +29,6 @@ imported = [m for m in sys.modules if m.startswith("matplotlib") and sys.modules
 print("matplotlib imported:", imported, file=sys.stderr)
 sys.exit(rc)
 """
-
-
-def _env() -> dict[str, str]:
-  return {**os.environ, "PYTHONPATH": str(REPO)}
 
 
 @pytest.fixture(scope="module")
@@ -49,7 +46,7 @@ def scans(tmp_path_factory) -> list[str]:
 
 def _run_without_matplotlib(args: list[str]) -> subprocess.CompletedProcess:
   return subprocess.run([sys.executable, "-c", _NO_MATPLOTLIB, *args], capture_output=True,
-                        text=True, cwd=REPO, env=_env(), timeout=600)
+                        text=True, cwd=REPO, env=repo_env(), timeout=600)
 
 
 def test_png_without_matplotlib_fails_before_the_work(scans, tmp_path):
@@ -89,7 +86,7 @@ def test_sigint_during_multiway_is_exit_130_without_traceback(scans, tmp_path):
   out = tmp_path / "model"
   proc = subprocess.Popen([sys.executable, "-m", "lrf_jax.cli.register", *scans, "--out-dir",
                            str(out), "--no-figures", "--keypoints", "3000"],
-                          stderr=subprocess.PIPE, cwd=REPO, env=_env())
+                          stderr=subprocess.PIPE, cwd=REPO, env=repo_env())
   seen = b""
   while b"pairwise registration" not in seen:  # tqdm's bar: the imports are done
     chunk = os.read(proc.stderr.fileno(), 256)
@@ -119,7 +116,7 @@ def test_sigint_during_training_is_exit_130_and_the_run_resumes(tmp_path, when):
   cmd = [sys.executable, "train.py", "--config", "smoke", "--workdir", str(work),
          "--no-progress", "epochs=400"]
   proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
-                          cwd=REPO, env=_env())
+                          cwd=REPO, env=repo_env())
   deadline = time.monotonic() + 300
   while ((work / "checkpoints").is_dir() if when == "starting" else
          len([p for p in (work / "checkpoints").glob("*") if p.name.isdigit()]) >= 2) is False:

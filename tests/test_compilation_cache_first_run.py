@@ -17,6 +17,7 @@ import pytest
 
 import lrf_jax
 from lrf_jax import compilation_cache
+from tests.lrf_testing import repo_env
 
 HEAVY = ("jax", "numba", "flax", "orbax", "matplotlib", "optax", "scipy")
 
@@ -50,7 +51,7 @@ def test_every_export_resolves():
   for name in lrf_jax.__all__:
     assert getattr(lrf_jax, name) is not None, name
   assert set(lrf_jax.__all__) <= set(dir(lrf_jax))
-  assert lrf_jax.compute_frames.__module__ == "lrf_jax.api"
+  assert lrf_jax.compute_frames.__module__ == "lrf_jax.frames.compute"
   assert callable(lrf_jax.voxel_downsample)
   with pytest.raises(AttributeError):
     lrf_jax.no_such_name  # noqa: B018
@@ -67,8 +68,10 @@ def test_numba_cache_under_the_cache_root(tmp_path):
   assert out.stdout.strip() == str(mine)  # the user's setting stays
   blocked = tmp_path / "a_file"
   blocked.write_text("")
-  out = _python(code, {"XDG_CACHE_HOME": str(blocked)})  # cannot be created: numba's defaults
-  assert out.returncode == 0 and out.stdout.strip() == "None", out.stderr
+  out = _python(code, {"XDG_CACHE_HOME": str(blocked), "TMPDIR": str(tmp_path)})
+  # cannot be created: a private folder in the temporary directory, never the package's folder
+  assert out.returncode == 0, out.stderr
+  assert out.stdout.strip() == str(tmp_path / f"lrf_jax-{os.getuid()}" / "numba"), out.stderr
 
 
 def test_compile_notice_once_and_only_on_a_cache_miss(tmp_path):
@@ -246,3 +249,38 @@ def test_compile_notice_once_per_process_from_many_threads(monkeypatch):
     t.join()
   compilation_cache._on_jax_event("/jax/compilation_cache/cache_misses")
   assert stream.getvalue().count("lrf_jax: compiling kernels") == 1
+
+
+# ------------------------------------------------------ numba's CPU target and the kernel cache
+
+
+_MATCH = """
+import numpy as np
+from lrf_jax.descriptors import select_correspondences
+rng = np.random.default_rng(0)
+q = np.where(rng.random((40, 30)) < 0.5, 100.0, rng.random((40, 30))).astype(np.float32)
+select_correspondences(q, q[::-1], n=10)
+"""
+
+
+def _compiles(cache: Path, cpu: str | None) -> bool:
+  env = {k: v for k, v in repo_env().items() if k not in ("NUMBA_CPU_NAME", "NUMBA_CPU_FEATURES")}
+  env["NUMBA_CACHE_DIR"] = str(cache)
+  if cpu is not None:
+    env["NUMBA_CPU_NAME"] = cpu
+  out = subprocess.run([sys.executable, "-c", _MATCH], env=env, capture_output=True, text=True,
+                       timeout=600)
+  assert out.returncode == 0, out.stderr
+  return "compiling kernels" in out.stderr
+
+
+def test_kernels_compiled_for_one_cpu_target_are_never_loaded_for_another(tmp_path):
+  """A user's NUMBA_CPU_NAME (here "generic", as for a cache shipped to other machines) is
+  respected: lrf_jax's locator keys a kernel by its sources, and numba's index keys each entry
+  by the target (triple, CPU name, features), so one cache holds both builds side by side and
+  each run loads only its own."""
+  cache = tmp_path / "cache"
+  assert _compiles(cache, "generic")
+  assert _compiles(cache, None)  # native: not the generic build
+  assert not _compiles(cache, "generic")
+  assert not _compiles(cache, None)

@@ -1,28 +1,28 @@
-"""`compute_frames`: the one public call for every LRF method."""
+"""`compute_frames`: the one public call for every LRF method (the search, the method's inputs,
+its host kernel or jitted function over chunks of keypoints), and `mesh_resolution`, the length
+unit of its `radius_mr`."""
 
 from __future__ import annotations
 
-import functools
-import inspect
 import warnings
-from collections.abc import Mapping
 from typing import TYPE_CHECKING, Any, cast
 
-from lrf_jax._jax import backend_is_cpu, jax, jit, jnp
+from lrf_jax._jax import backend_is_cpu, jax, jnp
 import numpy as np
 
 from lrf_jax.search import engine
 from lrf_jax.search.chunks import map_chunks
 from lrf_jax.geometry.resolution import mesh_resolution as _mesh_resolution
-from lrf_jax.frames import DEFAULT_METHOD, METHODS, MethodSpec, method_spec
+from lrf_jax.frames.spec import DEFAULT_METHOD, METHODS, MethodSpec, method_spec
+from lrf_jax.frames.host_path import host_frames_in_budget
+from lrf_jax.frames.normals_rule import method_normals, prepare_extra
+from lrf_jax.frames.patch_frames import cached_weight_table, check_options, patch_frames_checked
 from lrf_jax.geometry.cloud import CheckedCloud, as_cloud
 from lrf_jax.geometry.sampling import thin_cloud, thinning_voxel_size
 from lrf_jax.frames.weights import default_params, default_params_numpy
 from lrf_jax.checks import (validate_choice, validate_keypoints, validate_radius, validate_seed,
                             validate_viewpoint, validate_voxel_size)
-from lrf_jax.search.neighborhoods import (Patches, SearchIndex, build_patches, unit_scaled,
-                                          validate_index)
-from lrf_jax.prepare import method_normals, prepare_extra
+from lrf_jax.search.neighborhoods import Patches, SearchIndex, build_patches, unit_scaled
 
 if TYPE_CHECKING:
   from lrf_jax.search.neighborhoods import AnyArray
@@ -30,115 +30,6 @@ if TYPE_CHECKING:
 # Ball sizes outside these bounds (median over a sample of keypoints) draw a warning.
 MIN_MEDIAN_BALL = 10
 MAX_BALL_FRACTION = 0.5
-
-
-@functools.lru_cache(maxsize=64)
-def _jitted(spec: MethodSpec, static_items: tuple) -> Any:
-  static = dict(static_items)
-  if spec.needs_params:
-    return jit(lambda patches, extra, params: spec.fn(patches, extra, params=params, **static))
-  return jit(lambda patches, extra, params: spec.fn(patches, extra, **static))
-
-
-def frames_from_patches(patches: Patches, method: str = DEFAULT_METHOD, *, params: Any = None,
-                        extra: Any = None, **options: Any) -> tuple[jax.Array, jax.Array]:
-  """Run a registered method's jitted frame function on prepared patches.
-
-  Args:
-    patches: `Patches` from `build_patches`.
-    method: a key of `lrf_jax.METHODS` (default "lrf_net_plus", the most repeatable shipped
-      method; "lrf_net" is the paper's model).
-    params: learned parameters for learned methods (None: the shipped default).
-    extra: what the method's `prepare` hook returned, if it has one.
-    **options: static method options (e.g. `x_mode="max"` for lrf_net, `signed=False` for toldi).
-
-  Returns:
-    (frames (N, 3, 3), valid (N,)).
-  """
-  spec = method_spec(method)
-  _check_options(method, options, spec)
-  return _patch_frames_checked(spec, patches, params, extra, options)
-
-
-def _patch_frames_checked(spec: MethodSpec, patches: Patches, params: Any, extra: Any,
-                          options: dict) -> tuple[jax.Array, jax.Array]:
-  """`frames_from_patches` without its checks: `spec` is a registered method and `options` are
-  options it takes (inputs already checked by `frames_from_patches` or `compute_frames`)."""
-  options = dict(spec.default_options) | options
-  if spec.needs_params and params is None:
-    params = default_params(spec.weights)
-  if spec.needs_params and int(options.get("lut", 0) or 0) > 1:
-    params = _weight_table(params, int(options["lut"]))
-  fn = _jitted(spec, tuple(sorted(options.items())))
-  n_dev = jax.local_device_count()
-  if n_dev > 1 and patches.offsets.shape[0] % n_dev == 0:
-    # Keypoints are independent: shard them over the local devices' "data" axis, replicate
-    # the parameters; XLA partitions the jitted function accordingly.
-    mesh = jax.make_mesh((n_dev,), ("data",), axis_types=(jax.sharding.AxisType.Auto,))
-    shard = jax.sharding.NamedSharding(mesh, jax.sharding.PartitionSpec("data"))
-    patches = jax.device_put(patches, shard)
-    extra = None if extra is None else jax.device_put(extra, shard)
-    return fn(patches, extra, params)
-  return fn(jax.device_put(patches), extra, params)
-
-
-_TABLES: list[tuple[bytes, int, bool, Any]] = []  # (params_key, size, host, table), newest last
-
-
-@jit(static_argnums=1)
-def _jit_weight_table(params: Any, size: int) -> Any:
-  from lrf_jax.frames.lrf_net import weight_table
-  return weight_table(params, size)
-
-
-def _weight_table(params: Any, size: int, host: bool = False) -> Any:
-  """The `WeightTable` of `params` for `lut=size`, built once per parameter content
-  (`_params_key`: a leaf replaced or written in place gives a new table): jitted, or with
-  `host` in numpy (`weight_table_numpy`, for the host frame kernels). Traced parameters (under a
-  caller's jit) are not cached."""
-  from lrf_jax.frames.lrf_net import WeightTable, weight_table_numpy
-  if isinstance(params, WeightTable):
-    return params
-  key = _params_key(params)
-  for k, n, h, table in _TABLES:
-    if key is not None and k == key and n == size and h == host:
-      return table
-  table = weight_table_numpy(params, size) if host else _jit_weight_table(params, size)
-  if host:  # shared by every later call: read-only, so no caller can write into the cache
-    assert isinstance(table.values, np.ndarray)  # weight_table_numpy's
-    table.values.flags.writeable = False
-  if key is not None:
-    _TABLES.append((key, size, host, table))
-    del _TABLES[:-4]
-  return table
-
-
-def _params_key(params: Any) -> bytes | None:
-  """SHA-256 of a parameter tree's structure and every leaf's dtype, shape and bytes (the nets
-  are small: LRF-Net's are 24 kB); None when a leaf is a JAX tracer. Needs no JAX import."""
-  import hashlib
-  import sys
-  tracer = getattr(getattr(sys.modules.get("jax"), "core", None), "Tracer", ())
-  h = hashlib.sha256()
-
-  def visit(node: Any) -> bool:
-    if isinstance(node, Mapping):
-      for k in sorted(node, key=repr):
-        h.update(f"{k!r}:".encode())
-        if not visit(node[k]):
-          return False
-      return True
-    if isinstance(node, (list, tuple)):
-      h.update(f"{type(node).__name__}{len(node)}[".encode())
-      return all(visit(v) for v in node)
-    if tracer and isinstance(node, tracer):
-      return False
-    a = np.asarray(node)
-    h.update(f"{a.dtype.str}{a.shape}|".encode())
-    h.update(np.ascontiguousarray(a).tobytes())
-    return True
-
-  return h.digest() if visit(params) else None
 
 
 def mesh_resolution(points: Any, faces: Any = None) -> float:
@@ -155,25 +46,6 @@ def mesh_resolution(points: Any, faces: Any = None) -> float:
     area-weighted spacing on an uneven one: `lrf_jax.geometry.resolution.working_resolution`).
   """
   return float(as_cloud(points, "points", faces=faces).resolution)
-
-
-def method_options(method: str) -> list[str]:
-  """The option names `method` accepts (keyword arguments of its frame function)."""
-  return _option_names(method_spec(method))
-
-
-def _option_names(spec: MethodSpec) -> list[str]:
-  params = inspect.signature(spec.fn).parameters.values()
-  return sorted(p.name for p in params if p.kind is p.KEYWORD_ONLY and p.name != "params")
-
-
-def _check_options(method: str, options: dict, spec: MethodSpec) -> None:
-  """Raise unless `spec` (the method registered as `method`) takes every option in `options`."""
-  valid = _option_names(spec)
-  unknown = sorted(set(options) - set(valid))
-  if unknown:
-    raise ValueError(f"options: unknown option(s) {unknown} for method {method!r}; its options "
-                     f"are {valid or 'none'}")
 
 
 def _resolve_radius(cloud: CheckedCloud, radius: Any, radius_mr: Any) -> float:
@@ -255,7 +127,7 @@ def _check_call(spec: MethodSpec, faces: Any, chunk_size: Any, k: Any, options: 
       or chunk_size < 1):
     raise ValueError(f"chunk_size: expected a positive integer, got {chunk_size!r}")
   _validate_k(k)
-  _check_options(method, options, spec)
+  check_options(method, options, spec)
   if return_confidence and spec.confidence is None:
     raise ValueError(f"return_confidence: method {method!r} defines no sign confidence; methods "
                      f"that do: {sorted(n for n, s in METHODS.items() if s.confidence)}")
@@ -458,7 +330,7 @@ def _frames_checked(
                            viewpoint=viewpoint)
   host_options = dict(spec.default_options) | options
   if host_patches and spec.needs_params and int(host_options.get("lut", 0) or 0) > 1:
-    params = _weight_table(params, int(host_options["lut"]), host=True)
+    params = cached_weight_table(params, int(host_options["lut"]), host=True)
 
   # The host kernels compile no shapes: no padded chunk, and the keypoints visited in grid-cell
   # order, so that a chunk's balls share their points in the caches (frames depend on their
@@ -470,8 +342,8 @@ def _frames_checked(
   def run(idx: np.ndarray, n_real: int) -> tuple[AnyArray, ...]:
     kp = keypoints[visit[idx]]
     if on_host:
-      return _host_frames_in_budget(spec, points, kp, radius, search_patches.index, faces,
-                                    normals)
+      return host_frames_in_budget(spec, points, kp, radius, search_patches.index, faces,
+                                   normals)
     patches = search_patches(kp)
     extra = prepare_extra(spec, points, kp, patches, radius=radius, faces=faces,
                           normals=normals, viewpoint=viewpoint,
@@ -480,7 +352,7 @@ def _frames_checked(
       assert spec.host_patch_frames is not None  # host_patches says it applies
       out = spec.host_patch_frames(patches, extra, params, host_options)
     else:
-      out = _patch_frames_checked(spec, patches, params, extra, options)
+      out = patch_frames_checked(spec, patches, params, extra, options)
     if return_confidence:
       assert spec.confidence is not None  # checked by _check_call
       conf = spec.confidence(patches, extra, out[0], out[1], host_options)
@@ -496,13 +368,6 @@ def _frames_checked(
   back = np.empty_like(visit)
   back[visit] = np.arange(m)
   return tuple(np.asarray(a)[back] for a in out)  # numpy, as many as `run` gives
-
-
-def _in_callers_order(order: np.ndarray, frames: Any, valid: Any) -> tuple[np.ndarray, np.ndarray]:
-  """Frames and validity computed for kp[order], as numpy arrays in the order of kp."""
-  back = np.empty_like(order)
-  back[order] = np.arange(len(order))
-  return np.asarray(frames)[back], np.asarray(valid)[back]
 
 
 class _PatchSearch:
@@ -532,62 +397,6 @@ class _PatchSearch:
     return build_patches(self.points, kp, self.radius, k, seed=self.seed,
                          z_ratio=spec.z_ratio, index=self.index,
                          shells=spec.shells if k is None else None, validate=False)
-
-
-# Ball-list entries (8 bytes each) a host fast path holds at a time.
-HOST_NEIGHBOR_BUDGET = 1 << 24
-
-
-def _host_frames_in_budget(spec: MethodSpec, points: np.ndarray, kp: np.ndarray, radius: float,
-                           index: SearchIndex, faces: Any, normals: Any,
-                           counts: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
-  """`spec.host_frames` over `kp` in groups whose balls hold at most `HOST_NEIGHBOR_BUDGET`
-  points together (one keypoint at least), so memory does not grow with the ball size."""
-  if counts is None:
-    counts = engine.ball_counts(index.grid(radius), points[kp], radius)
-  group = np.cumsum(counts) // HOST_NEIGHBOR_BUDGET
-  cuts = np.flatnonzero(np.diff(group)) + 1
-  assert spec.host_frames is not None  # both callers check it
-  parts = [spec.host_frames(points, part, radius, index, faces=faces, normals=normals)
-           for part in np.split(kp, cuts)]
-  return np.concatenate([f for f, _ in parts]), np.concatenate([v for _, v in parts])
-
-
-def host_frames(points: np.ndarray, keypoints: np.ndarray, radius: float, method: str, *,
-                index: SearchIndex, faces: np.ndarray | None = None,
-                normals: np.ndarray | None = None, ball_counts: np.ndarray | None = None
-                ) -> tuple[np.ndarray, np.ndarray]:
-  """A method's host fast path over every neighbor (`compute_frames(kernel="host")` without the
-  argument checks, normal estimation or chunking): for callers that already hold the index.
-  Keypoints are visited in grid-cell order; the results come back in the order given.
-
-  Args:
-    points: (n, 3) float64 cloud, validated.
-    keypoints: (m,) int64 indices into `points`.
-    radius: support radius r (> 0).
-    method: a key of `METHODS` whose `host_frames` is set.
-    index: `SearchIndex(points, seed)` (the host paths read every neighbor; the seed only
-      orders the grid).
-    faces: (f, 3) triangles for mesh methods.
-    normals: (n, 3) normals as `prepare.method_normals` gives them (None for methods without).
-    ball_counts: (m,) points within `radius` of each keypoint, if already counted.
-
-  Returns:
-    (frames (m, 3, 3) float32 rows x, y, z, valid (m,) bool), as numpy arrays.
-
-  Raises:
-    ValueError: a method without a host fast path, or an `index` not built from `points`.
-  """
-  spec = method_spec(method)
-  if spec.host_frames is None:
-    raise ValueError(f"method {method!r} has no host fast path (METHODS[method].host_frames)")
-  validate_index(index, points)
-  kp = np.asarray(keypoints, np.int64)
-  order = engine.query_order(index.grid(radius), points[kp])  # cache-friendly, as compute_frames
-  counts = None if ball_counts is None else np.asarray(ball_counts)[order]
-  frames, valid = _host_frames_in_budget(spec, points, kp[order], float(radius), index, faces,
-                                         normals, counts)
-  return _in_callers_order(order, frames, valid)
 
 
 def _use_host_kernel(spec: MethodSpec, kernel: str, k: int | None, options: dict,

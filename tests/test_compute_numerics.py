@@ -1,4 +1,5 @@
-"""Numerical fuzz of `compute_frames`: scale, zero normals, out-of-range magnitudes.
+"""`compute_frames`' numerics (`lrf_jax.frames.compute`): scale, zero normals, out-of-range
+magnitudes.
 
 * Scale: every method is invariant to a common scale of cloud and radius, so a sweep of the
   factor s over 1e-30 .. 1e30 must give the unscaled frames (max abs difference of the entries

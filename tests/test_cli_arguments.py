@@ -1,13 +1,13 @@
-"""Bad arguments and configs of lrf-frames, lrf-register, evaluate.py and train.py: each is one
-`error:` line naming the option or field, exit code 2, no traceback and nothing written.
-
+"""Bad arguments of the command-line programs (`lrf_jax.cli`: lrf-frames, lrf-register, its
+multiway mode) and Ctrl-C in any program: each bad argument is one `error:` line naming the option,
+exit code 2, no traceback and nothing written; a Ctrl-C is one `interrupted:` line and exit 130.
 The programs are driven in-process (their `main(argv)`); every case here fails before any
 real work (no frames, no registration, no training), so the whole file runs in seconds.
+(evaluate.py's bad arguments: tests/test_evaluate_arguments.py; train.py's: tests/test_train.py.)
 """
 
 from __future__ import annotations
 
-import json
 import os
 import re
 import sys
@@ -16,30 +16,15 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from lrf_jax.learning import config as config_lib
-from lrf_jax import datasets
 from lrf_jax.cli import frames as frames_cli
 from lrf_jax.cli import register as register_cli
 from lrf_jax.learning import train_lib
+from tests.lrf_testing import cli_error
 
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 import evaluate  # noqa: E402
 import train  # noqa: E402
-
-
-@pytest.fixture(scope="module")
-def cloud_npy(tmp_path_factory) -> Path:
-  """A small demo cloud as an .npy (points only)."""
-  path = tmp_path_factory.mktemp("cloud") / "scan.npy"
-  np.save(path, datasets.make_demo_pair(0).model_points[::16])
-  return path
-
-
-def _error(capsys) -> str:
-  err = capsys.readouterr().err
-  assert err.startswith("error: ") and "Traceback" not in err, err
-  return err
 
 
 def _listing(folder: Path) -> list[str]:
@@ -64,20 +49,20 @@ def test_frames_bad_argument_before_any_work(cloud_npy, tmp_path, capsys, extra,
   extra = [a.replace("PNG", str(tmp_path)) for a in extra]
   out = tmp_path / "same.npz"
   assert frames_cli.main([str(cloud_npy), "--out", str(out)] + extra) == 2
-  assert fragment in _error(capsys)
+  assert fragment in cli_error(capsys)
   assert _listing(tmp_path) == []
 
 
 def test_frames_out_is_a_folder_or_the_input(cloud_npy, tmp_path, capsys):
   assert frames_cli.main([str(cloud_npy), "--out", str(tmp_path)]) == 2
-  err = _error(capsys)
+  err = cli_error(capsys)
   assert "--out" in err and "folder" in err
   link = tmp_path / "scan.npz"  # a hard link to the input, as the --out file
   os.link(cloud_npy, link)
   before = cloud_npy.read_bytes()
   for out in (str(link), str(link)[:-4]):  # --out "scan" writes scan.npz too
     assert frames_cli.main([str(cloud_npy), "--out", out]) == 2
-    err = _error(capsys)
+    err = cli_error(capsys)
     assert "--out" in err and "input" in err, err
   assert cloud_npy.read_bytes() == before
 
@@ -90,8 +75,8 @@ def test_frames_out_in_a_read_only_folder(cloud_npy, tmp_path, capsys, monkeypat
     from lrf_jax.io import atomic
     monkeypatch.setattr(atomic.os, "access", lambda p, mode: Path(p) != ro)
   try:
-    assert frames_cli.main([str(cloud_npy), "--out", str(ro / "f.npz")]) == 2
-    err = _error(capsys)
+    assert frames_cli.main([str(cloud_npy), "--out", str(ro / "f.npz")]) == 74
+    err = cli_error(capsys)
     assert "--out" in err and "not writable" in err
   finally:
     ro.chmod(0o755)
@@ -106,7 +91,7 @@ def test_frames_unreadable_input(cloud_npy, tmp_path, capsys, monkeypatch):
     raise PermissionError(13, "Permission denied", str(bad))
   monkeypatch.setattr(inputs, "as_cloud", denied)
   assert frames_cli.main([str(bad), "--out", str(tmp_path / "f.npz")]) == 2
-  err = _error(capsys)
+  err = cli_error(capsys)
   assert str(bad) in err and "Permission denied" in err
   assert not (tmp_path / "f.npz").exists()
 
@@ -118,7 +103,7 @@ def test_frames_unreadable_file_on_disk(cloud_npy, tmp_path, capsys, suffix):
   bad.write_bytes(b"x")
   bad.chmod(0)
   assert frames_cli.main([str(bad), "--out", str(tmp_path / "f.npz")]) == 2
-  assert "locked" in _error(capsys)
+  assert "locked" in cli_error(capsys)
 
 
 # ----------------------------------------------------------------------------- lrf-register
@@ -138,7 +123,7 @@ def test_register_bad_argument_before_any_work(cloud_npy, tmp_path, capsys, monk
   monkeypatch.setattr(registration, "register", lambda *a, **k: pytest.fail("work started"))
   extra = [a.replace("MISSING", str(tmp_path / "none.txt")) for a in extra]
   assert register_cli.main([str(cloud_npy), str(cloud_npy)] + extra) == 2
-  err = _error(capsys)
+  err = cli_error(capsys)
   assert fragment in err and len(err.strip().splitlines()) == 1, err
 
 
@@ -174,12 +159,12 @@ def test_register_help_names_multiway(capsys):
     (["--all-pairs-max", "-1"], "--all-pairs-max")])
 def test_multiway_bad_option_before_any_work(cloud_npy, tmp_path, capsys, monkeypatch, extra,
                                              fragment):
-  from lrf_jax.registration import multiway
-  monkeypatch.setattr(multiway, "register_all", lambda *a, **k: pytest.fail("work started"))
-  monkeypatch.setattr(multiway, "load_scans", lambda *a, **k: pytest.fail("work started"))
+  from lrf_jax.multiway import pipeline as multiway_pipeline
+  monkeypatch.setattr(multiway_pipeline, "register_all", lambda *a, **k: pytest.fail("work started"))
+  monkeypatch.setattr(multiway_pipeline, "load_scans", lambda *a, **k: pytest.fail("work started"))
   scans = [str(cloud_npy)] * 3
   assert register_cli.main(scans + ["--out-dir", str(tmp_path / "D")] + extra) == 2
-  err = _error(capsys)
+  err = cli_error(capsys)
   assert fragment in err and len(err.strip().splitlines()) == 1, err
   assert not (tmp_path / "D").exists()
 
@@ -190,7 +175,7 @@ def test_multiway_bad_option_before_any_work(cloud_npy, tmp_path, capsys, monkey
     (dict(viewpoints=[None, (0, 0, 0), (np.inf, 0, 0)]), "viewpoints[2]"),
     (dict(all_pairs_max=-1), "all_pairs_max"), (dict(keypoints="sift"), "keypoints")])
 def test_register_all_checks_register_options_before_any_pair(bad, fragment):
-  from lrf_jax.registration import multiway
+  from lrf_jax import multiway
   clouds = [np.random.default_rng(k).random((50, 3)) for k in range(3)]
   with pytest.raises(ValueError, match=re.escape(fragment)):
     multiway.register_all(clouds, mr=0.05, **bad)
@@ -217,10 +202,10 @@ def test_register_refuses_to_overwrite_an_input(cloud_npy, tmp_path, capsys):
   before = src.read_bytes()
   for out in (src, tgt, tmp_path / "." / "a.npy"):
     assert register_cli.main([str(src), str(tgt), "--out", str(out)]) == 2
-    err = _error(capsys)
+    err = cli_error(capsys)
     assert "--out" in err and "input" in err
   assert register_cli.main([str(src), str(tgt), "--out", str(tmp_path)]) == 2
-  assert "folder" in _error(capsys)
+  assert "folder" in cli_error(capsys)
   assert src.read_bytes() == before
 
 
@@ -248,7 +233,7 @@ def test_outputs_refuse_a_fifo_before_any_work(cloud_npy, tmp_path, capsys, monk
   ]
   for main, argv, option, path in cases:
     assert main(argv) == 2, argv
-    err = _error(capsys)
+    err = cli_error(capsys)
     assert err == (f"error: {option}: {path} is a FIFO (named pipe); expected a regular file or "
                    "a new name\n"), err
   assert all(f.is_fifo() for f in (fifo, fifo_npz, fifo_png))
@@ -277,7 +262,7 @@ def test_output_names_too_long_are_one_error_line(cloud_npy, tmp_path, capsys):
   ]
   for main, argv, option in cases:
     assert main(argv) == 2, argv
-    err = _error(capsys)
+    err = cli_error(capsys)
     assert err.startswith(f"error: {option}: ") and "at most 255 bytes" in err, err
   assert _listing(tmp_path) == []
 
@@ -286,7 +271,7 @@ def test_register_checkpoint_without_checkpoints(cloud_npy, tmp_path, capsys):
   empty = tmp_path / "empty"
   empty.mkdir()
   assert register_cli.main([str(cloud_npy), str(cloud_npy), "--checkpoint", str(empty)]) == 2
-  assert "--checkpoint" in _error(capsys)
+  assert "--checkpoint" in cli_error(capsys)
 
 
 @pytest.mark.parametrize("content,name", [("1 0 0 0\n0 1 0 0\n0 0 1 0\n", "m.txt"),
@@ -303,7 +288,7 @@ def test_register_bad_init_names_the_file(cloud_npy, tmp_path, capsys, monkeypat
   else:
     np.save(path, content)
   assert register_cli.main([str(cloud_npy), str(cloud_npy), "--init", str(path)]) == 2
-  err = _error(capsys)
+  err = cli_error(capsys)
   assert "--init" in err and name in err, err
 
 
@@ -340,166 +325,8 @@ def test_register_unreadable_input(cloud_npy, tmp_path, monkeypatch, capsys):
     raise PermissionError(13, "Permission denied", "/x/locked.pcd")
   monkeypatch.setattr(registration, "register", denied)
   assert register_cli.main([str(cloud_npy), str(cloud_npy)]) == 2
-  err = _error(capsys)
+  err = cli_error(capsys)
   assert "/x/locked.pcd" in err and "Permission denied" in err
-
-
-# ----------------------------------------------------------------------------- evaluate.py
-
-
-@pytest.mark.parametrize("extra,fragment", [
-    (["--methods", "nosuch"], "--methods"),
-    (["--keypoints", "-5"], "--keypoints"), (["--keypoints", "0"], "--keypoints"),
-    (["--radius-mr", "nan"], "--radius-mr"), (["--radius-mr", "0"], "--radius-mr"),
-    (["--max-neighbors", "-1"], "--max-neighbors"), (["--max-pairs", "-1"], "--max-pairs"),
-    (["--max-pairs", "0"], "--max-pairs"), (["--seed", "-2"], "--seed"),
-    (["--params", "x=MISSING.msgpack"], "--params"),
-    (["--params", "x=MISSING.msgpack@nosuch"], "--params"),
-    (["--checkpoint", "EMPTY"], "--checkpoint"),
-])
-def test_evaluate_bad_argument(tmp_path, capsys, extra, fragment):
-  (tmp_path / "empty").mkdir()
-  extra = [a.replace("MISSING", str(tmp_path / "none")).replace("EMPTY", str(tmp_path / "empty"))
-           for a in extra]
-  out = tmp_path / "out"
-  assert evaluate.main(["--datasets", "demo", "--out", str(out)] + extra) == 2
-  assert fragment in _error(capsys)
-  assert not out.exists()
-
-
-def test_evaluate_out_is_a_file(tmp_path, capsys):
-  out = tmp_path / "results"
-  out.write_text("mine")
-  assert evaluate.main(["--datasets", "demo", "--methods", "toldi", "--out", str(out)]) == 2
-  assert "--out" in _error(capsys)
-  assert out.read_text() == "mine"
-
-
-def test_evaluate_params_file_where_an_output_goes(tmp_path, capsys):
-  out = tmp_path / "out"
-  out.mkdir()
-  (out / "report.md").write_text("not parameters")
-  assert evaluate.main(["--datasets", "demo", "--methods", "toldi", "--out", str(out),
-                        "--params", f"x={out / 'report.md'}"]) == 2
-  assert "--params" in _error(capsys)
-
-
-# ----------------------------------------------------------------------------- train.py
-
-
-@pytest.mark.parametrize("name,text,fragment", [
-    ("noise.json", '{"noise_mr": 0.1}', "config.noise_mr"),
-    ("widths.json", '{"widths": 16}', "config.widths"),
-    ("list.json", "[1, 2]", "expected an object"),
-    ("lr.json", '{"learning_rate": true}', "config.learning_rate"),
-    ("radius.json", '{"radius_mr": true}', "config.radius_mr"),
-    ("decay.json", '{"lr_decay": true}', "config.lr_decay"),
-    ("crop.json", '{"crop_p": true}', "config.crop_p"),
-    ("name.json", '{"name": 3}', "config.name"),
-    ("syntax.json", '{"epochs": 2,', "syntax.json"),
-    ("nofn.py", "x = 1\n", "get_config"),
-    ("dict.py", "def get_config():\n  return {'epochs': 1}\n", "TrainConfig"),
-    ("raises.py", "import nosuchmodule\n", "raises.py"),
-])
-def test_train_bad_config_file(tmp_path, capsys, name, text, fragment):
-  path = tmp_path / name
-  path.write_text(text)
-  work = tmp_path / "run"
-  assert train.main(["--config", str(path), "--workdir", str(work), "--no-progress"]) == 2
-  err = _error(capsys)
-  assert fragment in err, err
-  assert not work.exists()
-
-
-def test_train_config_folder_and_workdir_file(tmp_path, capsys):
-  (tmp_path / "dir.json").mkdir()
-  assert train.main(["--config", str(tmp_path / "dir.json"), "--workdir",
-                     str(tmp_path / "run")]) == 2
-  assert "dir.json" in _error(capsys)
-  (tmp_path / "afile").write_text("mine")
-  assert train.main(["--config", "smoke", "--workdir", str(tmp_path / "afile")]) == 2
-  assert "--workdir" in _error(capsys)
-  assert (tmp_path / "afile").read_text() == "mine"
-
-
-def test_train_batch_larger_than_the_training_set(tmp_path, capsys):
-  """batch_size=2048 with 1,024 training keypoints trained on batches of 1,024 before."""
-  assert train.main(["--config", "smoke", "--workdir", str(tmp_path / "run"),
-                     "batch_size=2048"]) == 2
-  err = _error(capsys)
-  assert "config.batch_size" in err and "1024" in err
-  with pytest.raises(ValueError, match="config.batch_size"):
-    config_lib.TrainConfig(num_train_keypoints=100, batch_size=101)
-
-
-def test_train_resume_under_another_config_is_refused(tmp_path, capsys):
-  """A finished run resumed with other values ran with rc 0 and overwrote config.json."""
-  smoke = config_lib.load_config("smoke")
-  work = tmp_path / "run"
-  work.mkdir()
-  (work / "config.json").write_text(smoke.to_json())
-  (work / "metrics.jsonl").write_text('{"step": 48, "loss": 0.1}\n')
-  before = {p: p.read_bytes() for p in work.iterdir()}
-  assert train.main(["--config", "smoke", "--workdir", str(work), "--no-progress", "epochs=3",
-                     "batch_size=16", "learning_rate=0.1", "seed=5"]) == 2
-  err = _error(capsys)
-  for field in ("batch_size", "learning_rate", "seed"):
-    assert field in err, err
-  assert "--replace-config" in err
-  assert {p: p.read_bytes() for p in work.iterdir()} == before
-
-
-def test_train_replace_config_keeps_both(tmp_path):
-  smoke = config_lib.load_config("smoke")
-  other = config_lib.replace(smoke, learning_rate=0.1)
-  work = tmp_path / "run"
-  work.mkdir()
-  (work / "config.json").write_text(smoke.to_json())
-  (work / "metrics.jsonl").write_text('{"step": 8, "loss": 0.1}\n{"step": 12, "loss"')  # torn
-  assert train_lib.resume_config(work, smoke) is None  # the same config: resume
-  with pytest.raises(ValueError, match="learning_rate: saved 0.003 vs requested 0.1"):
-    train_lib.resume_config(work, other)
-  name = train_lib.resume_config(work, other, replace=True)
-  assert name == "config.1.json"
-  train_lib._Log(work, other, 8, other.total_steps, False, name).close()
-  assert config_lib.TrainConfig.from_dict(json.loads((work / "config.json").read_text())) == smoke
-  assert json.loads((work / "config.1.json").read_text())["learning_rate"] == 0.1
-  rows = [json.loads(line) for line in (work / "metrics.jsonl").read_text().splitlines()]
-  assert rows[0] == {"step": 8, "loss": 0.1} and "config.1.json" in rows[1]["note"]
-  assert len(rows) == 2  # the torn line is gone
-  assert train_lib.resume_config(work, other) is None  # now compared with config.1.json
-  with pytest.raises(ValueError, match="config.1.json"):
-    train_lib.resume_config(work, smoke)
-
-
-def test_train_resume_with_other_model_fields_is_incompatible(tmp_path):
-  smoke = config_lib.load_config("smoke")
-  work = tmp_path / "run"
-  (work / "checkpoints" / "8").mkdir(parents=True)
-  (work / "config.json").write_text(smoke.to_json())
-  with pytest.raises(ValueError, match="incompatible.*widths"):
-    train_lib.resume_config(work, config_lib.replace(smoke, widths=(8,)), replace=True)
-
-
-def _batch(z_count: int, count: int):
-  from lrf_jax.learning.batches import Batch
-  from lrf_jax.search.neighborhoods import Patches
-  n, k = 8, 4
-  p = Patches(np.zeros((n, k, 3), np.float32), np.ones((n, k), bool), np.zeros((n, k), np.int32),
-              np.full(n, count, np.int32), np.ones(n, np.float32), np.zeros((n, 3, 3), np.float32),
-              np.zeros((n, 3), np.float32), np.full(n, z_count, np.int32))
-  return Batch(p, p)
-
-
-def test_all_invalid_frames_blame_the_support_when_patches_are_too_small():
-  """radius_mr=1: every frame invalid was blamed on the learning rate ("diverged"); the patches
-  hold a median of 1 point within r/3, where the z axis needs 3."""
-  m = {"loss": 0.0, "grad_norm": 0.0, "valid_fraction": 0.0}
-  with pytest.raises(FloatingPointError, match="support is too small.*raise radius_mr") as e:
-    train_lib.check_finite(m, {}, 4, 0, _batch(z_count=1, count=4))
-  assert "learning rate" not in str(e.value)
-  with pytest.raises(FloatingPointError, match="lower the learning rate"):
-    train_lib.check_finite(m, {}, 4, 0, _batch(z_count=40, count=200))
 
 
 def test_frames_iss_keypoints(cloud_npy, tmp_path, monkeypatch):
@@ -545,13 +372,13 @@ def test_ctrl_c_is_exit_130_with_one_line_and_no_partial_file(program, cloud_npy
   output file (each program's work replaced by one that raises KeyboardInterrupt)."""
   from lrf_jax import registration
   from lrf_jax.evaluation import runner
-  from lrf_jax.registration import multiway
+  from lrf_jax.multiway import pipeline as multiway_pipeline
   out = tmp_path / "out"
   if program == "lrf-register":
     monkeypatch.setattr(registration, "register", _interrupt)
     rc = register_cli.main([str(cloud_npy), str(cloud_npy), "--out", str(out)])
   elif program == "multiway":
-    monkeypatch.setattr(multiway, "register_all", _interrupt)
+    monkeypatch.setattr(multiway_pipeline, "register_all", _interrupt)
     rc = register_cli.main([str(cloud_npy)] * 3 + ["--out-dir", str(out), "--quiet"])
   elif program == "lrf-frames":
     monkeypatch.setattr(frames_cli, "frames_outputs", _interrupt)
@@ -594,5 +421,5 @@ def test_frames_cloud_without_spacing_names_the_file(tmp_path, capsys):
   path = tmp_path / "dup.npy"
   np.save(path, np.ones((100, 3)))
   assert frames_cli.main([str(path), "--out", str(tmp_path / "f.npz")]) == 2
-  err = _error(capsys)
+  err = cli_error(capsys)
   assert f"{path}: the cloud has no spacing" in err and "radius" not in err, err

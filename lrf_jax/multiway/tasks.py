@@ -8,17 +8,17 @@ cluster) runs them anywhere, in any order, and the results are the same.
 
 With a state folder every finished pair leaves a record (`PairRecords`: one JSON file per pair,
 named by the hash of what its result depends on: both scans' points, faces and viewpoints, the
-options, the resolution, the seed, the weights and the lrf_jax version), written atomically by the driver as it arrives; a job
-run again reads the records and redoes only the pairs without one, and describes only the
-scans those pairs need. A pair whose task was lost (a node that died beyond the engine's
+options, the resolution, the seed and the weights; never the scans' positions in the run),
+written atomically by the driver as it arrives (`lrf_jax.records`); a job run again, with the
+same scans in any order, repeated or among new ones, reads the records and redoes only the
+pairs without one, and describes only the scans those pairs need. A record of another lrf_jax
+version is redone. A pair whose task was lost (a node that died beyond the engine's
 retries) leaves no record: the next run redoes it.
 """
 
 from __future__ import annotations
 
 import dataclasses
-import hashlib
-import json
 import os
 import sys
 from pathlib import Path
@@ -27,7 +27,7 @@ from collections.abc import Callable, Iterator, Sequence
 
 import numpy as np
 
-from lrf_jax.io import atomic
+from lrf_jax import records
 from lrf_jax.registration.options import RegisterOptions
 from lrf_jax.search import engine as search_engine
 
@@ -75,7 +75,7 @@ def error_record(i: int, j: int, reason: str, code: str = "error") -> dict[str, 
 
 
 def edge_record(i: int, j: int, reg: Any, error: str | None, src: np.ndarray, target: np.ndarray,
-                distance: float, seed: int) -> dict[str, Any]:
+                distance: float, seed: Sequence[int]) -> dict[str, Any]:
   """A pair's result as plain data (what `MultiwayEdge` holds, and its overlap points): from a
   registration `reg` (an object with `transform`, `success`, `reason`, `n_inliers`, `overlap`,
   `rmse`, optionally `estimated` and `reason_code`) or an `error` (no edge)."""
@@ -85,7 +85,7 @@ def edge_record(i: int, j: int, reg: Any, error: str | None, src: np.ndarray, ta
     return error_record(i, j, str(getattr(reg, "reason", "")),
                         str(getattr(reg, "reason_code", "no_hypothesis")))
   t = np.asarray(reg.transform, np.float64)
-  pts = overlap_points(src, target, t, distance, (seed, i, j))
+  pts = overlap_points(src, target, t, distance, seed)
   return dict(i=i, j=j, transform=t.tolist(), verdict="success" if reg.success else "not sure",
               reason=str(getattr(reg, "reason", "")), n_inliers=int(reg.n_inliers),
               overlap=float(reg.overlap), rmse=float(reg.rmse),
@@ -125,7 +125,8 @@ def pair_task(payload: dict[str, Any]) -> dict[str, Any]:
 
   Args:
     payload: {"i", "j": scan indices, "source", "target": `ScanFeatures`, "options":
-      `RegisterOptions`, "distance": the overlap distance (cloud units), "seed": int}.
+      `RegisterOptions`, "distance": the overlap distance (cloud units), "seed": the overlap
+      points' seed (`overlap_seed`)}.
   """
   from lrf_jax.registration.scan_features import register_scans
   a, b = payload["source"], payload["target"]
@@ -140,58 +141,52 @@ def pair_task(payload: dict[str, Any]) -> dict[str, Any]:
 
 def scan_hash(cloud: Any, viewpoint: Any) -> str:
   """sha256 of a scan's points, faces and viewpoint (what its features depend on)."""
-  h = hashlib.sha256()
-  for arr in (cloud.points, cloud.faces, viewpoint):
-    a = np.ascontiguousarray(np.zeros(0) if arr is None else np.asarray(arr))
-    h.update(f"{a.dtype.str}{a.shape}".encode())
-    h.update(a.tobytes())
-  return h.hexdigest()
+  return records.array_hash(cloud.points, cloud.faces, viewpoint)
 
 
-def _params_hash(params: Any) -> str:
-  if params is None:
-    return "shipped"
-  import jax
-  h = hashlib.sha256()
-  for leaf in jax.tree_util.tree_leaves(params):
-    h.update(np.ascontiguousarray(np.asarray(leaf)).tobytes())
-  return h.hexdigest()
+def overlap_seed(seed: int, source_hash: str, target_hash: str) -> tuple[int, int, int]:
+  """The seed of a pair's overlap points: the run's seed and the two scans' content (never
+  their positions in a run, so that a pair's record is the same in any run that has it)."""
+  return (int(seed), int(source_hash[:16], 16), int(target_hash[:16], 16))
 
 
 class PairRecords:
-  """The finished pairs of a job in `folder` (None: nothing kept): `get(i, j)` the record of a
-  pair, `put(i, j, record)` writes it (atomically)."""
+  """The finished pairs of a job in `folder` (None: nothing kept), found by what they are: the
+  two scans' content (`scan_hash`, source then target), the options, the resolution, the
+  overlap distance and the parameters, never the scans' positions in the run. `get(i, j)` the
+  record of this run's pair (i, j) (with i and j set to this run's positions), `put(i, j,
+  record)` writes it (atomically). A record of another lrf_jax version is redone."""
 
   def __init__(self, folder: str | os.PathLike | None, scan_hashes: Sequence[str],
                options: RegisterOptions, mr: float, distance: float, params: Any):
     self.folder = None if folder is None else Path(folder) / "pairs"
-    import lrf_jax
     fields = {f.name: getattr(options, f.name) for f in dataclasses.fields(options)}
-    self.common = json.dumps(dict(version=RECORD_VERSION, lrf_jax=lrf_jax.__version__,
-                                  options=fields, mr=float(mr).hex(),
-                                  distance=float(distance).hex(), params=_params_hash(params)),
-                             sort_keys=True, default=lambda v: np.asarray(v).tolist())
+    self.common = records.canonical(dict(format=RECORD_VERSION, options=fields,
+                                         mr=float(mr).hex(), distance=float(distance).hex(),
+                                         params=records.params_hash(params)))
     self.hashes = list(scan_hashes)
 
   def _path(self, i: int, j: int) -> Path:
     assert self.folder is not None
-    key = hashlib.sha256(f"{self.hashes[i]}|{self.hashes[j]}|{self.common}".encode())
-    return self.folder / f"{key.hexdigest()[:40]}.json"
+    key = records.content_key(self.hashes[i], self.hashes[j], self.common)
+    return self.folder / f"{key[:40]}.json"
 
   def get(self, i: int, j: int) -> dict[str, Any] | None:
-    """The record of pair (i, j), or None (none kept, or one this job cannot read)."""
+    """The record of pair (i, j), or None (none kept, one of another lrf_jax version, or one
+    this job cannot read)."""
     if self.folder is None:
       return None
-    try:
-      rec = json.loads(self._path(i, j).read_text())
-    except (OSError, ValueError):
+    rec = records.read_record(self._path(i, j))
+    if rec is None or "verdict" not in rec or not records.is_current(rec):
       return None
-    return rec if isinstance(rec, dict) and "verdict" in rec else None
+    return {**rec, "i": i, "j": j}
 
   def put(self, i: int, j: int, record: dict[str, Any]) -> None:
     if self.folder is not None:
       self.folder.mkdir(parents=True, exist_ok=True)
-      atomic.write_text(self._path(i, j), json.dumps({**record, "i": i, "j": j}))
+      stored = {k: v for k, v in record.items() if k not in ("i", "j")}
+      records.write_record(self._path(i, j), dict(stored, source=self.hashes[i],
+                                                  target=self.hashes[j]))
 
 
 def _bar(total: int, progress: bool) -> Any:
@@ -224,7 +219,8 @@ def run_pairs(clouds: Sequence[Any], names: Sequence[str], pairs: Sequence[tuple
     for k in todo:
       i, j = pairs[k]
       payloads.append(dict(i=i, j=j, source=features[i], target=features[j], options=options,
-                           distance=distance, seed=options.seed))
+                           distance=distance,
+                           seed=overlap_seed(options.seed, records.hashes[i], records.hashes[j])))
     for k, rec in _registered(engine, todo, payloads, features, pairs):
       out[k] = rec
       if rec.pop("lost", False) is False:

@@ -12,14 +12,14 @@ Pipeline (every length in mr, the median over the scans of each one's working re
 2. pairwise: each scan of a candidate pair is described once (`scan_features.describe_scan`:
    keypoints, LRFs, descriptors at the one mr of the set) and each candidate (i < j) registered
    from the two scans' features (`scan_features.register_scans`: `register`'s later stages and
-   verdict), as tasks on an engine (`multiway_tasks`: this process or a Ray cluster), each
+   verdict), as tasks on an engine (`lrf_jax.multiway.tasks`: this process or a Ray cluster), each
    finished pair recorded in `state_dir` when one is given. Its verdict decides how far an edge is trusted: `success` edges are trusted, "not sure"
    edges are weak (kept as candidates: on real scans many right poses are "not sure" at low
    overlap, and most wrong ones are too), and a pair that could not be registered at all gives
-   no edge. Every edge carries `multiway_tasks.EDGE_POINTS` points of scan i where the two scans overlap
+   no edge. Every edge carries `tasks.EDGE_POINTS` points of scan i where the two scans overlap
    (farthest-point sample of the source points within `icp_mr` mr of the target after the
    pairwise transform).
-3. pose graph (`lrf_jax.registration.pose_graph.solve`): trusted edges start it (the spanning tree that
+3. pose graph (`lrf_jax.multiway.pose_graph.solve`): trusted edges start it (the spanning tree that
    explains most edges, then `scipy.optimize.least_squares` with a Cauchy loss of scale
    `robust_mr` over SE(3), then every edge whose RMS point residual exceeds `reject_mr` is
    rejected and the rest re-solved); weak edges join only where the graph corroborates them:
@@ -51,186 +51,20 @@ from collections.abc import Callable, Sequence
 
 import numpy as np
 
-from lrf_jax.registration import multiway_tasks
-from lrf_jax.registration.options import DEFAULTS, resolve
-from lrf_jax.search import engine as search_engine
-from lrf_jax.registration import pose_graph
-from lrf_jax.registration.icp_host import TargetNormals
+from lrf_jax.checks import validate_viewpoint
 from lrf_jax.geometry.cloud import CheckedCloud, as_cloud
 from lrf_jax.geometry.resolution import registration_resolution
-from lrf_jax.checks import validate_viewpoint
-# re-exported: the outputs' names were this module's before they moved
-from lrf_jax.registration.multiway_outputs import (  # noqa: F401
-    EDGE_COLUMNS, FIXED_OUTPUTS, MANIFEST, MANIFEST_KIND, MAX_VOXELS_PER_AXIS, NAME_BYTES,
-    POSES_FILE, STATE, SUFFIXES, check_names, check_out_dir, check_voxel, edges_table, kitti_poses,
-    merged_cloud, output_paths, scan_names, write_merged_ply, write_outputs)
+from lrf_jax.multiway import pose_graph, tasks
+from lrf_jax.multiway.candidates import ALL_PAIRS_MAX, candidate_pairs
+from lrf_jax.multiway.joint_icp import refine_poses
+from lrf_jax.multiway.outputs import check_names, scan_names
+from lrf_jax.multiway.result import MultiwayEdge, MultiwayResult
+from lrf_jax.registration.options import DEFAULTS, resolve
 
-__all__ = ["MANIFEST", "POSES_FILE", "STATE", "MultiwayEdge", "MultiwayResult", "candidate_pairs",
-           "check_names", "check_out_dir", "edges_table", "kitti_poses", "load_scans",
-           "merged_cloud", "output_paths", "refine_poses", "register_all", "scan_names",
-           "shape_signature", "write_outputs"]
+__all__ = ["REJECT_MR", "check_counts", "load_scans", "median_mr", "register_all"]
 
-# Scans up to this many: every pair is a candidate.
-ALL_PAIRS_MAX = 12
 # An edge whose RMS point residual under the optimised poses exceeds this many mr is rejected.
 REJECT_MR = 5.0
-# Joint ICP: Gauss-Newton steps (residual evaluations) per re-pairing round.
-REFINE_STEPS = 3
-
-
-@dataclasses.dataclass(frozen=True)
-class MultiwayEdge:
-  """One candidate pair and what became of it.
-
-  Attributes:
-    i: the source scan (moved).
-    j: the target scan.
-    transform: (4, 4) float64, the pairwise estimate mapping scan i into scan j's frame (NaN
-      when the pair could not be registered).
-    verdict: "success", "not sure" (`Registration.success` False) or "error" (no estimate: the
-      registration raised a ValueError or built no hypothesis, `Registration.estimated`).
-    reason: the pairwise verdict's reason, or the error message.
-    reason_code: the pairwise verdict's `Registration.reason_code` ("claimed", "rival", ...;
-      "error" when the pair could not be registered; "" when `pairwise` gives none).
-    n_inliers: coarse inliers of the pairwise estimate.
-    overlap: its estimated overlap (fraction of scan i on scan j after ICP).
-    rmse: its ICP RMS distance, cloud units.
-    residual_mr: RMS disagreement of the edge with the final poses at its overlap points, in mr
-      (inf when its two scans are not both in the model).
-    accepted: whether the pose graph kept it.
-  """
-
-  i: int
-  j: int
-  transform: np.ndarray
-  verdict: str
-  reason: str
-  n_inliers: int
-  overlap: float
-  rmse: float
-  residual_mr: float
-  accepted: bool
-  reason_code: str = ""
-
-
-@dataclasses.dataclass(frozen=True)
-class MultiwayResult:
-  """What `register_all` returns.
-
-  Attributes:
-    names: (n,) scan names (file stems, or "scan<k>").
-    poses: (n, 4, 4) float64; pose k maps scan k into the reference scan's frame; NaN for the
-      scans left out.
-    in_model: (n,) bool, the scans in the model.
-    reference: index of the reference scan (the first scan of the model).
-    edges: every candidate pair, in the order registered.
-    mr: the mesh resolution used as the unit (cloud units).
-    seconds: wall time of the call.
-    timings: seconds per stage: "load", "pairwise", "graph", "refine".
-    confident: (n,) bool, the scans in the model linked to the reference by accepted "success"
-      edges alone; a scan in the model whose placement rests on a "not sure" edge is False
-      (`placed_not_sure`). None: every scan in the model counts as confident.
-    work: what the pairwise stage did: "scans_described" (each at most once),
-      "pairs_registered" (this call) and "pairs_resumed" (read from `state_dir`).
-  """
-
-  names: tuple[str, ...]
-  poses: np.ndarray
-  in_model: np.ndarray
-  reference: int
-  edges: tuple[MultiwayEdge, ...]
-  mr: float
-  seconds: float
-  timings: dict = dataclasses.field(default_factory=dict)
-  confident: np.ndarray | None = None
-  work: dict = dataclasses.field(default_factory=dict)
-
-  @property
-  def left_out(self) -> list[str]:
-    """Names of the scans not in the model."""
-    return [n for n, m in zip(self.names, self.in_model) if not m]
-
-  @property
-  def placed_not_sure(self) -> list[str]:
-    """Names of the scans in the model placed only through "not sure" edges (their link to the
-    reference rests on at least one): check them."""
-    if self.confident is None:
-      return []
-    return [n for n, m, c in zip(self.names, self.in_model, self.confident) if m and not c]
-
-
-def shape_signature(points: np.ndarray, *, max_distance: float, bins: int = 32,
-                    samples: int = 4000, seed: int = 0) -> np.ndarray:
-  """The D2 shape distribution of a cloud: a normalised histogram of the distances between
-  `samples` seeded random point pairs over [0, max_distance] (Osada et al., "Shape
-  distributions", TOG 2002). Invariant to rigid motion, cheap, and similar for scans that see
-  the same part of an object.
-
-  Args:
-    points: (n, 3) cloud.
-    max_distance: upper edge of the histogram (cloud units; the same for scans compared).
-    bins: histogram bins.
-    samples: point pairs drawn.
-    seed: seed of the pairs.
-
-  Returns:
-    (bins,) float64 summing to 1.
-  """
-  rng = np.random.default_rng(seed)
-  pts = np.asarray(points, np.float64)
-  a, b = rng.integers(len(pts), size=(2, samples))
-  d = np.linalg.norm(pts[a] - pts[b], axis=1)
-  hist, _ = np.histogram(np.minimum(d, max_distance), bins=bins, range=(0.0, max_distance))
-  return hist / max(hist.sum(), 1)
-
-
-def candidate_pairs(clouds: Sequence[np.ndarray], *, all_pairs_max: int = ALL_PAIRS_MAX,
-                    neighbors: int = 1, loop_candidates: int = 3, seed: int = 0
-                    ) -> list[tuple[int, int]]:
-  """The pairs (i, j), i < j, to register (see the module docstring, step 1).
-
-  Args:
-    clouds: n (m_k, 3) clouds in the given order.
-    all_pairs_max: up to this many scans, every pair.
-    neighbors: otherwise, each scan with this many next scans in the order.
-    loop_candidates: plus, per scan, this many scans of closest D2 signature.
-    seed: seed of the signatures' point pairs.
-
-  Returns:
-    Sorted unique pairs.
-  """
-  n = len(clouds)
-  if n <= all_pairs_max:
-    return [(i, j) for i in range(n) for j in range(i + 1, n)]
-  pairs = {(i, j) for i in range(n) for j in range(i + 1, min(i + 1 + neighbors, n))}
-  extent = max(float(np.linalg.norm(np.ptp(c, axis=0))) for c in clouds)
-  sig = np.stack([shape_signature(c, max_distance=extent, seed=seed) for c in clouds])
-  k = min(loop_candidates, n - 1)
-  if k > 0:
-    for i, j in _closest_signatures(sig, k):
-      pairs.add((min(i, j), max(i, j)))
-  return sorted(pairs)
-
-
-def _closest_signatures(sig: np.ndarray, k: int) -> list[tuple[int, int]]:
-  """(i, j) for each scan i and its k scans j != i of smallest L1 signature distance, ties to
-  the lower index: the n x n comparison's result from a k-d tree (O(n log n)). The k-th
-  distance is found first, then every scan within it (the ties) ranked exactly."""
-  from scipy.spatial import cKDTree
-  tree = cKDTree(sig)
-  dk, _ = tree.query(sig, k=k + 1, p=1)
-  out = []
-  for i in range(len(sig)):
-    near = np.asarray(tree.query_ball_point(sig[i], float(dk[i, -1]) * (1 + 1e-9) + 1e-12,
-                                            p=1), np.int64)
-    near = near[near != i]
-    d = np.abs(sig[near] - sig[i]).sum(axis=1)
-    out += [(i, int(j)) for j in near[np.lexsort((near, d))[:k]]]
-  return out
-
-
-def _apply(t: np.ndarray, p: np.ndarray) -> np.ndarray:
-  return p @ t[:3, :3].T + t[:3, 3]
 
 
 def load_scans(scans: Sequence[Any], names: Sequence[str]) -> list[CheckedCloud]:
@@ -276,20 +110,20 @@ def _pairwise(clouds, names, pairs, *, mr, seed, viewpoints, pairwise, icp_mr, p
               ) -> tuple[list[MultiwayEdge], list[np.ndarray], dict[str, int]]:
   """Stage "pairwise": one registration per candidate pair; edges, their overlap points and the
   work done (scans described, pairs registered, pairs read from the state folder)."""
+  hashes = [tasks.scan_hash(c, v) for c, v in zip(clouds, viewpoints)]
   if pairwise is None:
     opts = resolve(None, {k: v for k, v in register_kw.items() if k != "params"})
     opts = opts.with_overrides(mr=float(mr), seed=seed, icp_mr=icp_mr)
     params = register_kw.get("params")
-    records = multiway_tasks.PairRecords(
-        state_dir, [multiway_tasks.scan_hash(c, v) for c, v in zip(clouds, viewpoints)], opts,
-        mr, icp_mr * mr, params)
-    recs, work = multiway_tasks.run_pairs(clouds, names, pairs, options=opts, mr=mr,
-                                          viewpoints=viewpoints, distance=icp_mr * mr,
-                                          params=params, engine=engine, records=records,
-                                          progress=progress)
+    records = tasks.PairRecords(state_dir, hashes, opts, mr, icp_mr * mr, params)
+    recs, work = tasks.run_pairs(clouds, names, pairs, options=opts, mr=mr,
+                                 viewpoints=viewpoints, distance=icp_mr * mr, params=params,
+                                 engine=engine, records=records, progress=progress)
   else:
     recs = [_custom_pair(pairwise, clouds, i, j, mr=mr, seed=seed, viewpoints=viewpoints,
-                         icp_mr=icp_mr, register_kw=register_kw) for i, j in pairs]
+                         icp_mr=icp_mr, register_kw=register_kw,
+                         overlap_seed=tasks.overlap_seed(seed, hashes[i], hashes[j]))
+            for i, j in pairs]
     work = dict(scans_described=0, pairs_registered=len(pairs), pairs_resumed=0)
   edges = [MultiwayEdge(r["i"], r["j"], np.full((4, 4), np.nan) if r["transform"] is None
                         else np.asarray(r["transform"], np.float64), r["verdict"], r["reason"],
@@ -300,8 +134,8 @@ def _pairwise(clouds, names, pairs, *, mr, seed, viewpoints, pairwise, icp_mr, p
   return edges, points, work
 
 
-def _custom_pair(pairwise, clouds, i, j, *, mr, seed, viewpoints, icp_mr, register_kw
-                 ) -> dict[str, Any]:
+def _custom_pair(pairwise, clouds, i, j, *, mr, seed, viewpoints, icp_mr, register_kw,
+                 overlap_seed) -> dict[str, Any]:
   """A pair registered by a user's `pairwise` function, as an edge record."""
   reg, error = None, None
   try:
@@ -309,67 +143,8 @@ def _custom_pair(pairwise, clouds, i, j, *, mr, seed, viewpoints, icp_mr, regist
                    target_viewpoint=viewpoints[j], **register_kw)
   except ValueError as e:
     error = str(e)
-  return multiway_tasks.edge_record(i, j, reg, error, clouds[i].points, clouds[j].points,
-                                    icp_mr * mr, seed)
-
-
-def refine_poses(clouds: Sequence[np.ndarray], poses: np.ndarray,
-                 pairs: Sequence[tuple[int, int]], *, reference: int, mr: float,
-                 icp_mr: float = 3.0, robust_mr: float = 1.0, iterations: int = 10,
-                 samples: int = 1000, seed: int = 0) -> np.ndarray:
-  """Joint point-to-plane ICP of all scans' poses at once.
-
-  Each round, for every pair (i, j) in both directions: `samples` seeded points of scan i under
-  the current poses are paired with their nearest point of scan j within icp_mr mr; one
-  `scipy.optimize.least_squares` (Cauchy loss of scale robust_mr mr) moves every pose but the
-  reference's to reduce the point-to-plane distances ((X_i p - X_j q) · R_j n, unsigned PCA
-  normals of scan j). Stops when no pose moves by more than 0.01 mr at its scan's points.
-
-  Args:
-    clouds: n (m_k, 3) scans, each in its own frame.
-    poses: (n, 4, 4) start (each maps its scan into the common frame).
-    pairs: the overlapping pairs to pair points over (the scans not in any stay fixed).
-    reference: the scan whose pose stays fixed.
-    mr: mesh resolution (cloud units).
-    icp_mr: pairing distance in mr.
-    robust_mr: the loss scale in mr.
-    iterations: rounds (re-pairings) at most.
-    samples: points per scan and direction.
-    seed: seed of the samples.
-
-  Returns:
-    (n, 4, 4) refined poses.
-  """
-  poses = np.array(poses, np.float64)
-  if not pairs:
-    return poses
-  rng = np.random.default_rng(seed)
-  scans = sorted({k for p in pairs for k in p})
-  grids = {k: search_engine.knn_grid(clouds[k]) for k in scans}
-  normals = {k: TargetNormals(clouds[k], icp_mr * mr, grids[k]) for k in scans}  # where paired
-  subs = {k: clouds[k][np.sort(rng.choice(len(clouds[k]), min(samples, len(clouds[k])),
-                                          replace=False))] for k in scans}
-  free = [k for k in scans if k != reference]
-  for _ in range(int(iterations)):
-    blocks = []
-    for a, b in pairs:
-      for i, j in ((a, b), (b, a)):
-        moved = _apply(np.linalg.inv(poses[j]) @ poses[i], subs[i])
-        d, idx = search_engine.knn(grids[j], moved, 1, icp_mr * mr)
-        ok = np.isfinite(d[:, 0])
-        normals[j].require(idx[ok, 0])
-        ok[ok] = np.all(np.isfinite(normals[j].pca[idx[ok, 0]]), axis=1)
-        if ok.sum() >= 3:
-          blocks.append(pose_graph.PointPairs(i, j, subs[i][ok], clouds[j][idx[ok, 0]],
-                                              normals[j].pca[idx[ok, 0]]))
-    new = pose_graph.least_squares_poses(poses, blocks, free, scale=mr, robust=robust_mr,
-                                         max_nfev=REFINE_STEPS)
-    moved_by = max((np.abs(_apply(new[k], subs[k]) - _apply(poses[k], subs[k])).max()
-                    for k in free), default=0.0)
-    poses = new
-    if moved_by < 0.01 * mr:
-      break
-  return poses
+  return tasks.edge_record(i, j, reg, error, clouds[i].points, clouds[j].points, icp_mr * mr,
+                           overlap_seed)
 
 
 def _graph(n, edges, points, *, mr, reject_mr, robust_mr, seed):
@@ -441,7 +216,7 @@ def register_all(scans: Sequence[Any], *, names: Sequence[str] | None = None,
     engine: where the pairwise stage runs: None (this process) or an engine of
       `lrf_jax.batch` (`lrf_jax.batch.make_engine("ray", address)`): each scan of a pair to
       register is described once and every pair registered as a task
-      (`lrf_jax.registration.multiway_tasks`); the result does not depend on the engine.
+      (`lrf_jax.multiway.tasks`); the result does not depend on the engine.
     state_dir: a folder kept between runs (None: none): every registered pair leaves a record
       there, and a run with the same scans, options and resolution registers only the pairs
       without one (a killed job loses no finished pair; a finished one redoes nothing).
@@ -519,8 +294,8 @@ def register_all(scans: Sequence[Any], *, names: Sequence[str] | None = None,
   for e, a, p in zip(edges, accepted, points):
     res = float("inf")
     if in_model[e.i] and in_model[e.j] and len(p):
-      res = float(pose_graph.edge_errors(poses, [pose_graph.PoseEdge(e.i, e.j, e.transform, p)],
-                                         mr)[0])
+      edge = pose_graph.PoseEdge(e.i, e.j, e.transform, p)
+      res = float(pose_graph.edge_errors(poses, [edge], mr)[0])
     final.append(dataclasses.replace(e, accepted=bool(a), residual_mr=res))
   return MultiwayResult(names=tuple(names), poses=poses, in_model=in_model,
                         reference=reference, edges=tuple(final), mr=float(mr),

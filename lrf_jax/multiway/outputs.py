@@ -1,8 +1,6 @@
 """A multiway registration's outputs: the scans' names (each names a pose file), the merged
 cloud, edges.tsv, merged.ply, the poses (one file per scan and KITTI's poses.txt) and the manifest
-of an output folder, every file written atomically (`write_outputs`).
-
-`lrf_jax.registration.multiway` re-exports every public name of this module."""
+of an output folder, every file written atomically (`write_outputs`)."""
 
 from __future__ import annotations
 
@@ -14,7 +12,7 @@ from collections.abc import Sequence
 import numpy as np
 
 if TYPE_CHECKING:
-  from lrf_jax.registration.multiway import MultiwayResult
+  from lrf_jax.multiway.result import MultiwayResult
 
 __all__ = ["EDGE_COLUMNS", "MANIFEST", "POSES_FILE", "check_names", "check_out_dir",
            "check_voxel", "edges_table", "kitti_poses", "merged_cloud", "output_paths",
@@ -237,7 +235,7 @@ def write_merged_ply(path: str | os.PathLike, points: np.ndarray, scan: np.ndarr
   import plyfile
 
   from lrf_jax.io.atomic import atomic_path
-  from lrf_jax.registration.multiway_figures import scan_colours
+  from lrf_jax.multiway.figures import scan_colours
   colours = scan_colours(n_scans)[scan]
   vertex = np.empty(len(points), dtype=[("x", "f4"), ("y", "f4"), ("z", "f4"), ("red", "u1"),
                                         ("green", "u1"), ("blue", "u1"), ("scan", "i4")])
@@ -345,7 +343,7 @@ def write_outputs(result: MultiwayResult, clouds: Sequence[np.ndarray],
   left out;
   `merged.ply`: the merged cloud (`merged_cloud`, `voxel` in cloud units), coloured by scan;
   `edges.tsv`: `edges_table`; with `figures`, `merged.png` and `graph.png`
-  (`lrf_jax.registration.multiway_figures`); `manifest.json`: the list of these files.
+  (`lrf_jax.multiway.figures`); `manifest.json`: the list of these files.
 
   The folder ends up holding this run's files only: `out_dir` must be new, empty, or a folder
   an earlier run wrote (`check_out_dir`: it holds that run's manifest). The files the earlier
@@ -419,7 +417,7 @@ def write_outputs(result: MultiwayResult, clouds: Sequence[np.ndarray],
   written.append(write_merged_ply(paths["merged.ply"], points, scan, len(result.names)))
   written.append(write_text(paths["edges.tsv"], edges_table(result)))
   if figures:
-    from lrf_jax.registration import multiway_figures
+    from lrf_jax.multiway import figures as multiway_figures
     written.append(multiway_figures.merged_figure(points, scan, result, paths["merged.png"]))
     written.append(multiway_figures.graph_figure(result, clouds, paths["graph.png"]))
   manifest(new)

@@ -14,7 +14,7 @@ from lrf_jax.extras import pyplot
 from lrf_jax.io.atomic import save_figure
 
 if TYPE_CHECKING:
-  from lrf_jax.registration.multiway import MultiwayResult
+  from lrf_jax.multiway.result import MultiwayResult
 
 # Points drawn in the merged cloud's figure at most (a seeded sample).
 FIGURE_POINTS = 40000

@@ -7,13 +7,14 @@ import numpy as np
 import pytest
 
 import lrf_jax
-from lrf_jax import api, datasets
+from lrf_jax import datasets
+from lrf_jax.frames import compute
 from lrf_jax.defaults import DEFAULT_METHOD
 from lrf_jax.geometry import resolution
 from lrf_jax.geometry.cloud import as_cloud
 from lrf_jax.datasets.synthetic import make_demo_mesh
 from lrf_jax.geometry.sampling import thin_cloud, thinning_voxel_size, voxel_downsample
-from tests.test_raw_data import sweep
+from tests.test_resolution_raw_data import sweep
 
 # Thinning a clean dense cloud at 1.5 mr moves its frames this little (MeanCos against the
 # unthinned frames on the procedural demo cloud, 200 keypoints; measured 0.9986 median, 91 %
@@ -38,13 +39,13 @@ def demo():
 def test_voxel_size_zero_is_todays_computation(demo):
   pts, kp, mr = demo
   f0, v0 = lrf_jax.compute_frames(pts, kp, radius_mr=15, voxel_size=0, as_numpy=True)
-  today = api._frames_checked(DEFAULT_METHOD, as_cloud(pts), kp, 15 * mr)
+  today = compute._frames_checked(DEFAULT_METHOD, as_cloud(pts), kp, 15 * mr)
   assert np.array_equal(f0, np.asarray(today[0])) and np.array_equal(v0, np.asarray(today[1]))
   raw = sweep()  # an uneven cloud: 0 keeps every point there too
   kr = np.arange(0, len(raw), 97)
   r = 15 * resolution.working_resolution(raw).mr
   f0, v0 = lrf_jax.compute_frames(raw, kr, r, voxel_size=0, as_numpy=True)
-  today = api._frames_checked(DEFAULT_METHOD, as_cloud(raw), kr, r)
+  today = compute._frames_checked(DEFAULT_METHOD, as_cloud(raw), kr, r)
   assert np.array_equal(f0, np.asarray(today[0])) and np.array_equal(v0, np.asarray(today[1]))
 
 

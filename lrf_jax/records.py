@@ -125,9 +125,11 @@ class JobLock:
   made for it if the job left them empty. Use as a context manager.
   """
 
-  def __init__(self, path: str | os.PathLike, command: str, *, force: bool = False):
+  def __init__(self, path: str | os.PathLike, command: str, *, force: bool = False,
+               folder: str | os.PathLike | None = None):
     self.path = Path(path)
     self.force = force
+    self.folder = str(self.path.parent if folder is None else folder)  # named in messages
     import socket
     self.me = dict(host=socket.gethostname(), pid=os.getpid(), start=_process_start(os.getpid()),
                    command=command)
@@ -139,17 +141,31 @@ class JobLock:
     return rec if rec is not None and isinstance(rec.get("pid"), int) else None
 
   def _describe(self, h: dict[str, Any]) -> str:
-    return (f"{self.path.parent} is in use by another job (host {h.get('host')}, pid "
+    return (f"{self.folder} is in use by another job (host {h.get('host')}, pid "
             f"{h.get('pid')}, command: {h.get('command')})")
 
   def _create(self) -> bool:
+    """Create the lock whole or not at all: its content is written to a temporary file first,
+    then hard-linked to the lock's name (atomic, and refused when the name exists), so that no
+    reader ever sees a lock half written; where the file system has no hard links, an exclusive
+    create."""
+    tmp = self.path.with_name(f".{self.path.name}.{os.getpid()}.tmp")
+    tmp.write_text(json.dumps(self.me))
     try:
-      fd = os.open(self.path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o644)
+      os.link(tmp, self.path)
+      return True
     except FileExistsError:
       return False
-    with os.fdopen(fd, "w") as f:
-      f.write(json.dumps(self.me))
-    return True
+    except OSError:  # no hard links here
+      try:
+        fd = os.open(self.path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o644)
+      except FileExistsError:
+        return False
+      with os.fdopen(fd, "w") as f:
+        f.write(json.dumps(self.me))
+      return True
+    finally:
+      tmp.unlink(missing_ok=True)
 
   def acquire(self) -> JobLock:
     import socket
@@ -161,14 +177,17 @@ class JobLock:
       if self._create():
         self.held = True
         return self
+      if not self.path.is_file():
+        if not self.path.exists() and not self.path.is_symlink():
+          continue  # released between our two looks: try again
+        raise FolderInUse(f"{self.path}: expected this job folder's lock file, found "
+                          "something else; remove it if no job is running")
       h = self._holder()
-      if h is None:  # unreadable or half-written: its writer may be starting now
-        import time
-        time.sleep(0.2)
-        h = self._holder()
-        if h is None:
-          self.path.unlink(missing_ok=True)
-          continue
+      if h is None:  # not a lock of ours (written whole, never half): a damaged one
+        print(f"note: {self.path}: not a readable lock (damaged); taking it over",
+              file=sys.stderr)
+        self.path.unlink(missing_ok=True)
+        continue
       same_host = h.get("host") == socket.gethostname()
       if same_host and _alive(int(h["pid"]), h.get("start")):
         raise FolderInUse(self._describe(h))
@@ -178,7 +197,7 @@ class JobLock:
       print(f"note: {self._describe(h).replace('is in use by', 'was locked by')}, which is no "
             "longer running; taking its lock over", file=sys.stderr)
       self.path.unlink(missing_ok=True)
-    raise FolderInUse(f"{self.path.parent}: could not take the job lock {self.path}")
+    raise FolderInUse(f"{self.folder}: could not take the job lock {self.path}")
 
   def release(self) -> None:
     if self.held:

@@ -225,3 +225,31 @@ def private_imports_across_packages() -> list[str]:
 
 def test_no_private_name_is_imported_across_packages():
   assert private_imports_across_packages() == []
+
+
+MAX_MODULE_LINES = 600
+
+
+def test_no_module_over_600_lines():
+  long = {str(p.relative_to(PACKAGE.parent)): n for p in PACKAGE.rglob("*.py")
+          if (n := len(p.read_text().splitlines())) > MAX_MODULE_LINES}
+  assert long == {}
+
+
+def test_no_module_imports_the_package_itself():
+  """Inside the package, a module imports what it uses from its module, never the facade
+  `lrf_jax` (which would load every part lazily, back up the layers)."""
+  found = []
+  for path in PACKAGE.rglob("*.py"):
+    for node in ast.walk(ast.parse(path.read_text())):
+      if isinstance(node, ast.Import) and any(a.name == "lrf_jax" for a in node.names):
+        found.append(f"{path.relative_to(PACKAGE.parent)}:{node.lineno}")
+      elif (isinstance(node, ast.ImportFrom) and node.module == "lrf_jax" and node.level == 0
+            and any(a.name[:1].islower() and a.name not in _SUBPACKAGES() for a in node.names)):
+        found.append(f"{path.relative_to(PACKAGE.parent)}:{node.lineno}")
+  assert found == []
+
+
+def _SUBPACKAGES() -> set[str]:  # noqa: N802 -- a constant, computed
+  return {p.stem if p.suffix else p.name for p in PACKAGE.iterdir()
+          if (p.is_dir() and (p / "__init__.py").exists()) or p.suffix == ".py"}

@@ -459,3 +459,43 @@ def test_files_of_someone_else_in_the_out_folder_are_not_overwritten(tmp_path, f
   assert jobs.run_frames([s0], tmp_path / "scans_here", progress=False).exit_code == 0
   s0.write_bytes(s0.read_bytes())  # a job's own folder: resumed (and redone where changed)
   assert jobs.run_frames([s0, s1], tmp_path / "scans_here", progress=False).exit_code == 0
+
+
+def test_a_symlink_loop_as_a_scan_is_an_error_row_naming_it(tmp_path, scans):
+  loop = tmp_path / "loop.npy"
+  os.symlink(loop, loop)
+  tsv = write_pairs(tmp_path / "loop.tsv", [("l", str(loop), str(scans[3]))])
+  res = jobs.run_register(tsv, tmp_path / "reg", progress=False, **OPTS)
+  assert res.rows[0]["status"] == "error"
+  assert str(loop) in res.rows[0]["error"] and "loop" in res.rows[0]["error"]
+  frames = jobs.run_frames([loop], tmp_path / "frames", progress=False, keypoints=50)
+  assert frames.rows[0]["status"] == "error" and "symbolic link loop" in frames.rows[0]["error"]
+
+
+def test_a_lock_whose_pid_was_reused_is_taken_over(tmp_path, scans, sleeper, capsys):
+  """The holder's pid is alive but started at another time than the lock says: a new process
+  that reuses a dead job's pid (Linux: /proc's start time)."""
+  if records._process_start(sleeper.pid) is None:
+    pytest.skip("no /proc start times on this system")
+  out = tmp_path / "out"
+  _lock(out, pid=sleeper.pid).write_text(json.dumps(
+      {"host": socket.gethostname(), "pid": sleeper.pid, "start": "1", "command": "old"}))
+  assert jobs.run_register(_tsv(tmp_path, scans, ("p0",)), out, progress=False,
+                           **OPTS).ran == 1
+  assert "taking its lock over" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("content", ["", "{not json", "[1, 2]"])
+def test_a_damaged_lock_is_taken_over_with_a_note(tmp_path, scans, capsys, content):
+  out = tmp_path / "out"
+  _lock(out, pid=1).write_text(content)
+  assert jobs.run_register(_tsv(tmp_path, scans, ("p0",)), out, progress=False,
+                           **OPTS).exit_code == 0
+  assert "not a readable lock" in capsys.readouterr().err
+
+
+def test_something_else_at_the_locks_path_is_refused(tmp_path, scans):
+  out = tmp_path / "out"
+  (out / jobs.STATE / "lock").mkdir(parents=True)
+  with pytest.raises(records.FolderInUse, match="lock file"):
+    jobs.run_register(_tsv(tmp_path, scans, ("p0",)), out, progress=False, **OPTS)

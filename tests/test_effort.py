@@ -49,7 +49,7 @@ def test_not_sure_names_the_next_step_and_high_effort_only_an_init():
 def test_pooling_a_seed_with_itself_keeps_each_correspondence_once(demo):
   opts = RegisterOptions(mr=demo.mr, **KW)
   prepared = stages.prepare(demo.model_points, demo.scene_points, opts)
-  features = stages.describe(prepared, opts, None, stages.StageTimer())
+  features = stages.describe(prepared, opts.description, None, stages.StageTimer())
   matches = stages.match(features, opts)
   p, f, m = pool([(prepared, features, matches)] * 2)
   assert len(p.sides[0].keypoints) == 2 * len(prepared.sides[0].keypoints)
@@ -57,7 +57,7 @@ def test_pooling_a_seed_with_itself_keeps_each_correspondence_once(demo):
   np.testing.assert_array_equal(m.source, matches.source)
   np.testing.assert_array_equal(m.target, matches.target)
   assert m.own
-  other = stages.reseed(prepared, opts, prepared.seed + 1)
+  other = stages.reseed(prepared, opts.detection, prepared.seed + 1)
   assert not np.array_equal(other.sides[0].keypoints, prepared.sides[0].keypoints)
   assert other.sides[0].cloud is prepared.sides[0].cloud
 

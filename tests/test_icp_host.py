@@ -10,7 +10,7 @@ from scipy.spatial.transform import Rotation
 
 from lrf_jax import datasets
 from lrf_jax.search import engine
-from lrf_jax.registration import icp_host
+from lrf_jax.registration import icp_host, icp_normals
 from lrf_jax.registration import icp, pose_errors, to_transform
 
 
@@ -154,7 +154,7 @@ def test_one_step_matches_a_numpy_reference():
   init = _pose([0.2, 0.3, 1.0], 1.0, [0.01, 0.0, 0.0])
   want, h, g, pairs, plane_pairs = _reference_step(source, pts, nrm, init, 0.08)
   grid = engine.Grid(pts, 0.08)
-  sums = icp_host.plane_sums(grid, icp_host.unit_normals(nrm), source, init[:3, :3], init[:3, 3],
+  sums = icp_host.plane_sums(grid, icp_normals.unit_normals(nrm), source, init[:3, :3], init[:3, 3],
                              0.08, pts.mean(axis=0))
   assert (sums.pairs, sums.plane_pairs) == (pairs, plane_pairs) and plane_pairs < pairs
   np.testing.assert_allclose(sums.hessian, h, rtol=1e-10, atol=1e-10 * np.abs(h).max())
@@ -388,26 +388,26 @@ def test_pca_normals_at_a_subset_equal_the_rows_of_every_normal():
   pts, _ = _height_field(3000, 7)
   grid = engine.knn_grid(pts)
   at = np.random.default_rng(0).choice(len(pts), 400, replace=False)
-  every = icp_host.pca_normals(pts, 0.09, grid=grid)
-  assert np.array_equal(icp_host.pca_normals(pts, 0.09, grid=grid, at=at), every[at],
+  every = icp_normals.pca_normals(pts, 0.09, grid=grid)
+  assert np.array_equal(icp_normals.pca_normals(pts, 0.09, grid=grid, at=at), every[at],
                         equal_nan=True)
 
 
 def test_target_normals_are_the_estimated_ones_where_required_and_nan_elsewhere():
   pts, _ = _height_field(3000, 8)
   grid = engine.knn_grid(pts)
-  lazy = icp_host.TargetNormals(pts, 0.1, grid)
-  want = icp_host.unit_normals(icp_host.estimate_target_normals(pts, 0.1, grid))
+  lazy = icp_normals.TargetNormals(pts, 0.1, grid)
+  want = icp_normals.unit_normals(icp_normals.estimate_target_normals(pts, 0.1, grid))
   idx = np.array([5, -1, 17, 5, 2999, 400])
   assert lazy.require(idx) and not lazy.require(idx[::-1])  # computed once
   done = np.unique(idx[idx >= 0])
   assert np.array_equal(lazy.unit[done], want[done]) and np.isfinite(want[done]).all()
-  assert np.array_equal(lazy.pca[done], icp_host.estimate_target_normals(pts, 0.1, grid)[done])
+  assert np.array_equal(lazy.pca[done], icp_normals.estimate_target_normals(pts, 0.1, grid)[done])
   rest = np.setdiff1d(np.arange(len(pts)), done)
   assert np.isnan(lazy.unit[rest]).all() and lazy.done.sum() == len(done)
   # a spacing the caller measured, as working_resolution measures it: the same radius
   spacing = float(engine.knn(engine.knn_grid(pts, 2), pts, 2)[0][:, 1].mean())
-  assert icp_host.TargetNormals(pts, 0.1, grid, spacing=spacing).radius == lazy.radius
+  assert icp_normals.TargetNormals(pts, 0.1, grid, spacing=spacing).radius == lazy.radius
 
 
 @pytest.mark.parametrize("subset", [7, 1])
@@ -419,10 +419,10 @@ def test_icp_with_normals_computed_where_it_pairs_equals_icp_with_every_normal(s
   source = datasets.transform_points(_pose([0.3, 1.0, -0.2], 3.0, [0.02, -0.01, 0.01]),
                                      _corner(30000, 5, 0.002)[::subset])
   grid = engine.knn_grid(target)
-  every = icp_host.estimate_target_normals(target, 0.05, grid)
+  every = icp_normals.estimate_target_normals(target, 0.05, grid)
   want = icp(source, target, np.eye(4), max_distance=0.05, target_grid=grid,
              target_normals=every)
-  lazy = icp_host.TargetNormals(target, 0.05, grid)
+  lazy = icp_normals.TargetNormals(target, 0.05, grid)
   got = icp(source, target, np.eye(4), max_distance=0.05, target_grid=grid, target_normals=lazy)
   assert np.array_equal(got[0], want[0]) and got[1:] == want[1:]
   assert np.array_equal(icp(source, target, np.eye(4), max_distance=0.05, target_grid=grid)[0],
@@ -436,7 +436,7 @@ def test_a_target_normals_of_another_cloud_is_refused():
   for other in (pts[:200], pts + [0.0, 0.0, 0.01]):  # fewer points; as many, elsewhere
     with pytest.raises(ValueError, match="TargetNormals of another cloud"):
       icp(pts, other, np.eye(4), max_distance=0.1,
-          target_normals=icp_host.TargetNormals(pts, 0.1))
-  same = icp_host.TargetNormals(pts.copy(), 0.1)  # equal points in another array: accepted
+          target_normals=icp_normals.TargetNormals(pts, 0.1))
+  same = icp_normals.TargetNormals(pts.copy(), 0.1)  # equal points in another array: accepted
   assert np.isfinite(icp(pts, pts, np.eye(4), max_distance=0.1, target_normals=same)[0]).all()
 

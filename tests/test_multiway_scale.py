@@ -29,12 +29,12 @@ def test_register_scans_is_registers_later_stages_on_per_scan_keypoints():
   a, b = (scan_features.describe_scan(c, opts, mr=mr) for c in clouds)
   reg = scan_features.register_scans(a, b, opts)
   prepared = stages.prepare(clouds[0], clouds[1], opts)
-  sides = tuple(s._replace(keypoints=stages.draw_keypoints(s.points, mr, opts,
+  sides = tuple(s._replace(keypoints=stages.draw_keypoints(s.points, mr, opts.detection,
                                                            np.random.default_rng(3)))
                 for s in prepared.sides)
   prepared = prepared._replace(sides=sides, rng=np.random.default_rng(3))
   timer = stages.StageTimer()
-  features = stages.describe(prepared, opts, None, timer)
+  features = stages.describe(prepared, opts.description, None, timer)
   ref = pipeline.conclude(prepared, features, stages.match(features, opts), opts, timer)
   assert np.array_equal(reg.transform, ref.transform)
   assert (reg.success, reg.reason, reg.n_inliers) == (ref.success, ref.reason, ref.n_inliers)

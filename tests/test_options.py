@@ -102,14 +102,14 @@ def test_the_stages_one_by_one_give_registers_result(demo):
   timer = stages.StageTimer()
   prepared = stages.prepare(demo.model_points, demo.scene_points, opts)
   assert isinstance(prepared, stages.Prepared) and prepared.mr == demo.mr
-  features = stages.describe(prepared, opts, None, timer)
+  features = stages.describe(prepared, opts.description, None, timer)
   assert features.frames[0][0].shape == (400, 3, 3)
   matches = stages.match(features, opts)
   assert matches.own and len(matches.source) == len(reg.correspondences)
-  hyps = stages.hypothesize(prepared, features, matches, opts)
+  hyps = stages.hypothesize(prepared, features, matches, opts.hypotheses)
   assert hyps is not None and len(hyps.rotations) == len(hyps.counts)
-  verified = stages.verify(prepared, hyps, opts, matches.own)
-  refined = refine.refine(prepared, verified, opts, timer)
+  verified = stages.verify(prepared, hyps, opts.hypotheses, opts.icp.icp_mr, matches.own)
+  refined = refine.refine(prepared, verified, opts.icp, timer)
   np.testing.assert_array_equal(refined.transform, reg.transform)
   evidence = Evidence(n_inliers=int(verified.evidence_mask.sum()), chance_inliers=hyps.chance,
                       rival_inliers=verified.rival, fitness=refined.fitness, contrast=0.0,

@@ -137,6 +137,10 @@ RENAMED: dict[str, str] = {
     **{f"lrf_jax.cli.frames.{n}": f"lrf_jax.batch.scan_frames.{n}"
        for n in ("select_keypoints", "read_transform", "pair_keypoints")},
     "lrf_jax.geometry.cloud.CloudInput": "lrf_jax.geometry.cloud.CheckedCloud",
+    # moved in 0.9: ICP's target normals left the ICP module (no module over 600 lines)
+    **{f"lrf_jax.registration.icp_host.{n}": f"lrf_jax.registration.icp_normals.{n}"
+       for n in ("NORMAL_RADIUS_RATIO", "NORMAL_RADIUS_SPACING", "estimate_target_normals",
+                 "normal_radius")},
     # 0.9: each host fast path on every neighbor is data of its method's spec (a
     # `host_path.BallKernel`), no longer a wrapper function of the method's module
     **{f"lrf_jax.frames.{m}.{m}_frames_host": f"lrf_jax.frames.{m}.SPEC.host_frames"

@@ -281,7 +281,7 @@ def test_the_last_pass_keeps_the_pose_when_it_moves_the_points_too_far():
                            rng.uniform(-1, 1, (4000, 3)) * [0, 1, 1] + [1, 0, 0]])
   source = target - [0.02, 0.01, 0.015]  # the pass moves every point by 0.027 back
   pose = np.eye(4)
-  opts = RegisterOptions()
+  opts = RegisterOptions().icp
   moved = refine.raw_pass(source, target, pose, 0.05, opts, seed=0)
   np.testing.assert_allclose(moved[:3, 3], [0.02, 0.01, 0.015], atol=2e-3)
   kept = refine.raw_pass(source, target, pose, 0.02, opts, seed=0)  # 0.027 > 1 mr = 0.02
@@ -291,9 +291,8 @@ def test_the_last_pass_keeps_the_pose_when_it_moves_the_points_too_far():
 def test_the_options_help_quotes_the_cap_it_documents():
   """`RegisterOptions.mr`'s help (the command lines show it) names the cap as a fraction; the
   options module does not import the resolution module (numba) to format it, so this binds them."""
-  import dataclasses
-  from lrf_jax.registration.options import RegisterOptions
-  help_text = {f.name: f.metadata["help"] for f in dataclasses.fields(RegisterOptions)}["mr"]
+  from lrf_jax.registration.options import option_fields
+  help_text = {f.name: f.metadata["help"] for f in option_fields()}["mr"]
   assert f"1/{resolution.MAX_EXTENT_MR:g} of the cloud's extent" in help_text
 
 

@@ -155,8 +155,8 @@ class Engine(Protocol):
 
 
 def _version() -> str:
-  import lrf_jax
-  return lrf_jax.__version__
+  from lrf_jax.records import version
+  return version()
 
 
 class LocalEngine:
@@ -186,19 +186,18 @@ def _on_worker(fn: Callable[[Any], Any], payload: Any, driver_version: str
   """The Ray task: (value, refusal, node id, attempt, version). A worker whose lrf_jax differs
   from the driver's refuses the item instead of computing it."""
   import ray
-
-  import lrf_jax
   node = ray.get_runtime_context().get_node_id()
   core = getattr(ray._private.worker.global_worker, "core_worker", None)  # noqa: SLF001
   attempt = 1
   if core is not None and hasattr(core, "get_current_task_attempt_number"):
     attempt = int(core.get_current_task_attempt_number()) + 1
-  if lrf_jax.__version__ != driver_version:
-    return (None, f"the worker runs lrf_jax {lrf_jax.__version__}, the driver "
-                  f"{driver_version}: refused", node, attempt, lrf_jax.__version__)
+  version = _version()
+  if version != driver_version:
+    return (None, f"the worker runs lrf_jax {version}, the driver {driver_version}: refused",
+            node, attempt, version)
   if isinstance(payload, dict):  # the values `RayEngine.put` stored, fetched once each
     payload = {k: ray.get(v) if isinstance(v, ray.ObjectRef) else v for k, v in payload.items()}
-  return fn(payload), None, node, attempt, lrf_jax.__version__
+  return fn(payload), None, node, attempt, version
 
 
 def _set_env(values: dict[str, str | None]) -> None:

@@ -134,9 +134,9 @@ def check_frames_options(options: dict[str, Any]) -> None:
 
 
 def _request(scan: str, options: dict[str, Any]) -> Any:
-  """The `FramesRequest` of a scan and a frames job's options (values as lrf-frames' flags
+  """The `FrameOptions` of a scan and a frames job's options (values as lrf-frames' flags
   read them: a count of keypoints as text, numbers as numbers)."""
-  from lrf_jax.batch.scan_frames import FramesRequest
+  from lrf_jax.batch.scan_frames import FrameOptions
   kw = dict(options)
   if kw.get("keypoints") is not None:
     kw["keypoints"] = str(kw["keypoints"])
@@ -146,7 +146,7 @@ def _request(scan: str, options: dict[str, Any]) -> Any:
       kw[key] = kind(kw[key])
   if kw.get("viewpoint") is not None:
     kw["viewpoint"] = tuple(float(v) for v in kw["viewpoint"])
-  return FramesRequest(cloud=scan, **kw)
+  return FrameOptions(cloud=scan, **kw)
 
 
 def frames_of_scan(payload: dict[str, Any]) -> dict[str, Any]:

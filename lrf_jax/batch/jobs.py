@@ -258,7 +258,7 @@ class _Job:
     all_inputs = {p for _, ins in named_inputs for p in ins}
     for name, _ in named_inputs:
       target = self.out / (name + kind.suffix)
-      if str(target.resolve()) in all_inputs:
+      if tables.absolute(target) in all_inputs:
         raise ValueError(f"out: {target} would overwrite the input of the same path; pick "
                          "another output folder")
     tables.check_unique([name for name, _ in named_inputs])
@@ -272,7 +272,7 @@ class _Job:
                        f"{e.filename or self.out} is in the way (not a folder)") from None
     except OSError as e:  # a read-only or full disk: one error, no work
       raise atomic.WriteError(self.records, e) from e
-    self.lock = records.JobLock(self.state / "lock", _command(), force=force)
+    self.lock = records.JobLock(self.state / "lock", _command(), force=force, folder=self.out)
     try:
       self.lock.acquire()
     except OSError as e:
@@ -499,7 +499,7 @@ def run_register(pairs: str | os.PathLike | Sequence[tuple[str, ...]],
     criteria = scoring.parse_criteria(criteria)
   listed = tables.read_pair_rows(pairs) if isinstance(pairs, (str, os.PathLike)) else [
       tables.PairRow(check_name(p[0], "pairs: name"), *(
-          None if v is None else str(Path(v).expanduser().resolve()) for v in p[1:]))
+          None if v is None else tables.absolute(v) for v in p[1:]))
       for p in pairs]
   score = scoring.Scoring({r.name: r.gt for r in listed}, criteria)
   return _run(REGISTER, [(r.name, (r.source, r.target)) for r in listed], out, options,
@@ -517,7 +517,13 @@ def run_frames(scans: Sequence[str | os.PathLike], out: str | os.PathLike, *,
 
   Args:
     scans: the scan files.
-    out, engine, address, progress, retry_errors, keep_versions, force: as `run_register`.
+    out: as `run_register`.
+    engine: as `run_register`.
+    address: as `run_register`.
+    progress: as `run_register`.
+    retry_errors: as `run_register`.
+    keep_versions: as `run_register`.
+    force: as `run_register`.
     **options: lrf-frames' options as keywords (`items.FRAMES_OPTIONS`: keypoints, voxel_mr, voxel_size,
       method, radius_mr, viewpoint, descriptor, seed); those not given keep lrf-frames'
       defaults.
@@ -529,7 +535,7 @@ def run_frames(scans: Sequence[str | os.PathLike], out: str | os.PathLike, *,
     ValueError: an unknown or bad option, or a bad output folder (before any work).
   """
   items_mod.check_frames_options(options)
-  paths = [str(Path(s).expanduser().resolve()) for s in scans]
+  paths = [tables.absolute(s) for s in scans]
   names = [check_name(n, f"scan {p}") for n, p in zip(scan_names(paths), paths)]
   return _run(FRAMES, [(n, (p,)) for n, p in zip(names, paths)], out, options, engine=engine,
               address=address, progress=progress, retry_errors=retry_errors,

@@ -1,7 +1,7 @@
 """lrf-frames' computation as a library function: one scan's keypoints, their frames (and a
 descriptor), and with a second scan and the ground truth their repeatability. `lrf-frames` and
 the data-set layer's frames items (`lrf_jax.batch.items`) both call `frames_of_scan`; its options
-are a frozen `FramesRequest`, whose fields the command line's flags are named after.
+are a frozen `FrameOptions`, whose fields the command lines' flags are derived from.
 """
 
 from __future__ import annotations
@@ -13,6 +13,7 @@ from typing import Any
 import numpy as np
 
 from lrf_jax.defaults import DEFAULT_METHOD, RADIUS_MR
+from lrf_jax.registration.options import option_field
 
 # Smallest --voxel-mr: voxels of a tenth of the point spacing already hold one point each.
 MIN_VOXEL_MR = 0.1
@@ -22,8 +23,10 @@ _ASCII_DIGITS = frozenset("0123456789")
 
 
 @dataclasses.dataclass(frozen=True)
-class FramesRequest:
-  """What lrf-frames computes for one scan (each field is the flag of the same name).
+class FrameOptions:
+  """What lrf-frames computes for one scan: each field is the flag of the same name in kebab case
+  (`cloud` the positional argument), with its default and help; `lrf-frames` and `lrf-batch
+  frames` derive their flags from the fields (`lrf_jax.cli.options.add_option_flags`).
 
   Attributes:
     cloud: the scan's path (any file `lrf_jax.io.read_cloud` reads).
@@ -44,21 +47,39 @@ class FramesRequest:
       text file or .npy) and its sensor position: frames at the corresponding points too.
   """
 
-  cloud: str
-  keypoints: str | None = None
-  voxel_mr: float | None = None
-  voxel_size: float | None = None
-  method: str = DEFAULT_METHOD
-  radius_mr: float = RADIUS_MR
-  viewpoint: tuple[float, float, float] | None = None
-  descriptor: str | None = None
-  seed: int = 0
-  pair: str | None = None
-  gt: str | None = None
-  pair_viewpoint: tuple[float, float, float] | None = None
+  cloud: str = option_field("", "PLY, PCD, XYZ/TXT(.gz) or NPY file", flag=None)
+  keypoints: str | None = option_field(
+      None, "N seeded random points, 'all', or 'iss' (ISS keypoints); none given: "
+      f"{DEFAULT_KEYPOINTS}")
+  voxel_mr: float | None = option_field(
+      None, f"keypoints: the point nearest each voxel centre, voxels of S mr, S >= "
+      f"{MIN_VOXEL_MR:g} (instead of --keypoints; it picks keypoints and thins nothing: "
+      "--voxel-size thins the support)")
+  voxel_size: float | None = option_field(
+      None, "thin the support by voxel averaging, voxels of V (cloud units; 0: keep every "
+      "point); none given: an uneven cloud (a raw LiDAR sweep) is thinned to its working "
+      "resolution, clean clouds and meshes are kept, as lrf-register does", metavar="V")
+  method: str = option_field(DEFAULT_METHOD, "a key of lrf_jax.METHODS (print(lrf_jax.METHODS) "
+                             "lists them)")
+  radius_mr: float = option_field(RADIUS_MR,
+                                  "support radius in mesh resolutions (15: the paper's)")
+  viewpoint: tuple[float, float, float] | None = option_field(
+      None, "sensor position of a single-view scan (orients normals and z)",
+      metavar=("X", "Y", "Z"))
+  descriptor: str | None = option_field(
+      None, "also a descriptor on the frames (snapshots, shot, rops, toldi)")
+  seed: int = option_field(0, "seed of keypoints and subsamples")
+  pair: str | None = option_field(
+      None, "a second scan of the same object: frames at the corresponding points and their "
+      "MeanCos (needs --gt)", metavar="B")
+  gt: str | None = option_field(
+      None, "the 4x4 transform mapping CLOUD onto B (text as read_xf reads, or .npy)",
+      metavar="T")
+  pair_viewpoint: tuple[float, float, float] | None = option_field(
+      None, "sensor position of the scan B", metavar=("X", "Y", "Z"))
 
   @classmethod
-  def from_args(cls, args: Any) -> FramesRequest:
+  def from_args(cls, args: Any) -> FrameOptions:
     """The request of an argparse namespace (or any object) with these fields' names."""
     return cls(**{f.name: getattr(args, f.name) for f in dataclasses.fields(cls)
                   if hasattr(args, f.name)})
@@ -110,6 +131,10 @@ class FramesRequest:
       if value is not None and not Path(value).expanduser().is_file():
         return f"{name}: {value} is not a file"
     return None
+
+
+# The name of `FrameOptions` before 0.9, kept for this release.
+FramesRequest = FrameOptions
 
 
 def select_keypoints(points: np.ndarray, how: str, voxel: float | None, seed: int,
@@ -218,7 +243,7 @@ def support_cloud(cloud: Any, keypoints: np.ndarray, voxel: float) -> tuple[Any,
   return CheckedCloud(thin, name="thinned cloud"), inverse[keypoints]
 
 
-def scan_resolution(cloud: Any, request: FramesRequest) -> tuple[float, float]:
+def scan_resolution(cloud: Any, request: FrameOptions) -> tuple[float, float]:
   """(mr, voxel): the cloud's working resolution (`CheckedCloud.working_resolution`: the mean
   spacing of a clean cloud, the area-weighted one of an uneven cloud) and the voxel edge its
   support is thinned at (`thinning_voxel_size` of `request.voxel_size`; 0: none).
@@ -240,7 +265,7 @@ def scan_resolution(cloud: Any, request: FramesRequest) -> tuple[float, float]:
   return float(res.mr), float(voxel)
 
 
-def frames_of_scan(request: FramesRequest) -> tuple[dict, Any, Any]:
+def frames_of_scan(request: FrameOptions) -> tuple[dict, Any, Any]:
   """Read the inputs and compute what `request` asks for: (the .npz fields lrf-frames writes, the
   `CheckedCloud`, the pair's or None). The pair's support is thinned at the same voxel as the
   cloud's (one radius, one voxel on both sides).
@@ -248,7 +273,9 @@ def frames_of_scan(request: FramesRequest) -> tuple[dict, Any, Any]:
   Raises:
     ValueError: an unreadable input or a failed step, naming the file or the flag.
   """
-  import lrf_jax
+  from lrf_jax.frames import METHODS
+  from lrf_jax.frames.compute import compute_frames
+  from lrf_jax.frames.metrics import meancos
   from lrf_jax.geometry.cloud import as_cloud
   cloud = as_cloud(request.cloud, "cloud")
   mr, voxel_size = scan_resolution(cloud, request)
@@ -263,10 +290,10 @@ def frames_of_scan(request: FramesRequest) -> tuple[dict, Any, Any]:
   else:
     kp = select_keypoints(cloud.points, how, voxel, request.seed, mr)
   radius = request.radius_mr * mr
-  spec = lrf_jax.METHODS[request.method]
+  spec = METHODS[request.method]
   conf = spec.confidence is not None
   work, work_kp = support_cloud(cloud, kp, voxel_size)
-  frames, valid, *confidence = lrf_jax.compute_frames(
+  frames, valid, *confidence = compute_frames(
       work, work_kp, radius, request.method, seed=request.seed, viewpoint=request.viewpoint,
       progress=len(kp) > 20000, return_confidence=conf, voxel_size=0)
   out = dict(keypoints=kp, positions=cloud.points[kp], frames=np.asarray(frames),
@@ -281,12 +308,12 @@ def frames_of_scan(request: FramesRequest) -> tuple[dict, Any, Any]:
     out["descriptors"] = np.asarray(desc)
   if other is not None:
     work_b, work_kp_b = support_cloud(other, kp_b, voxel_size)
-    fb, vb, *conf_b = lrf_jax.compute_frames(
+    fb, vb, *conf_b = compute_frames(
         work_b, work_kp_b, radius, request.method, seed=request.seed,
         viewpoint=request.pair_viewpoint, progress=len(kp) > 20000, return_confidence=conf,
         voxel_size=0)
     if conf:
       out["pair_confidence"] = np.asarray(conf_b[0])
     out.update(pair_keypoints=kp_b, pair_frames=np.asarray(fb), pair_valid=np.asarray(vb),
-               gt=gt, meancos=np.asarray(lrf_jax.meancos(frames, fb, gt, valid, vb)))
+               gt=gt, meancos=np.asarray(meancos(frames, fb, gt, valid, vb)))
   return out, cloud, other

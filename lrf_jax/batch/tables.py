@@ -11,7 +11,7 @@ from pathlib import Path
 from typing import Any
 from collections.abc import Iterable, Sequence
 
-__all__ = ["PairRow", "check_name", "check_unique", "read_pair_rows", "read_pairs", "tsv"]
+__all__ = ["PairRow", "absolute", "check_name", "check_unique", "read_pair_rows", "read_pairs", "tsv"]
 
 _MAX_NAME_BYTES = 200  # leaves room for a suffix and the temporary file's decorations
 
@@ -140,10 +140,16 @@ def read_pair_rows(path: str | os.PathLike) -> list[PairRow]:
       raise ValueError(f"{where}: column name: {name!r} is also the name of line "
                        f"{seen[name.casefold()]} (ignoring case); names must be unique")
     seen[name.casefold()] = lineno
-    src, tgt = ((p.parent / Path(rec[c]).expanduser()).resolve() for c in ("source", "target"))
-    gt = str((p.parent / Path(rec["gt"]).expanduser()).resolve()) if rec.get("gt") else None
-    out.append(PairRow(name, str(src), str(tgt), gt))
+    src, tgt = (absolute(p.parent / Path(rec[c]).expanduser()) for c in ("source", "target"))
+    gt = absolute(p.parent / Path(rec["gt"]).expanduser()) if rec.get("gt") else None
+    out.append(PairRow(name, src, tgt, gt))
   return out
+
+
+def absolute(path: str | os.PathLike) -> str:
+  """`path` absolute with its links resolved as far as they resolve: a symlink loop or a missing
+  file stays as it is (the item that reads it says what is wrong), never an exception here."""
+  return os.path.realpath(os.path.expanduser(path))
 
 
 def check_unique(names: Sequence[str]) -> None:

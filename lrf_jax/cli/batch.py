@@ -24,6 +24,7 @@ from typing import Any
 from lrf_jax.cli.exits import EXIT_USAGE, refuse, write_failed
 from lrf_jax.cli.help import DefaultsHelpFormatter
 from lrf_jax.cli.interrupt import interruptible
+from lrf_jax.cli.options import add_frame_flags
 
 # lrf-register options a job cannot take
 _NOT_BATCH = ("out", "png", "checkpoint", "init", "best_guess")
@@ -58,18 +59,7 @@ def build_parser() -> argparse.ArgumentParser:
                       formatter_class=DefaultsHelpFormatter)
   fr.add_argument("scans", nargs="+", metavar="SCAN", help="cloud or mesh files")
   _common(fr)
-  fr.add_argument("--keypoints", default=argparse.SUPPRESS,
-                  help="as lrf-frames: N, 'all' or 'iss' (default 1000)")
-  fr.add_argument("--voxel-mr", type=float, default=argparse.SUPPRESS, help="as lrf-frames")
-  fr.add_argument("--voxel-size", type=float, default=argparse.SUPPRESS,
-                  help="as lrf-frames (none given: an uneven cloud is thinned, others kept)")
-  fr.add_argument("--method", default=argparse.SUPPRESS, help="as lrf-frames (lrf_net_plus)")
-  fr.add_argument("--radius-mr", type=float, default=argparse.SUPPRESS,
-                  help="as lrf-frames (15)")
-  fr.add_argument("--viewpoint", type=float, nargs=3, default=argparse.SUPPRESS,
-                  metavar=("X", "Y", "Z"), help="as lrf-frames (one for every scan)")
-  fr.add_argument("--descriptor", default=argparse.SUPPRESS, help="as lrf-frames")
-  fr.add_argument("--seed", type=int, default=argparse.SUPPRESS, help="as lrf-frames (0)")
+  add_frame_flags(fr, skip=("pair", "gt", "pair_viewpoint"), suppress_defaults=True)
   rg = sub.add_parser("register", help="registration of every pair of a PAIRS.tsv",
                       formatter_class=DefaultsHelpFormatter,
                       epilog="Any option of lrf-register but --out, --best-guess, --png, "
@@ -91,11 +81,8 @@ def build_parser() -> argparse.ArgumentParser:
 def _register_options(rest: list[str]) -> dict[str, Any]:
   """register's keywords from lrf-register options in `rest` (only those given)."""
   from lrf_jax.cli import register as register_cli
-  p = register_cli.build_parser()
+  p = register_cli.build_parser(suppress_defaults=True)
   p.prog = "lrf-batch register"
-  for action in p._actions:  # noqa: SLF001 -- argparse has no public way to suppress defaults
-    if action.dest not in ("help", "source", "target"):
-      action.default = argparse.SUPPRESS
   args = p.parse_args(["SOURCE", "TARGET", *rest])
   given = [d for d in _NOT_BATCH if hasattr(args, d)]
   if given:

@@ -51,11 +51,12 @@ def _frames(method: str) -> Callable[[], None]:
   def run() -> None:
     import numpy as np
 
-    import lrf_jax
     from lrf_jax import datasets
+    from lrf_jax.frames import METHODS
+    from lrf_jax.frames.compute import compute_frames
     points, faces = datasets.make_demo_mesh("blob", seed=0)
-    spec = lrf_jax.METHODS[method]
-    lrf_jax.compute_frames(points, np.arange(0, len(points), 10), radius_mr=RADIUS_MR,
+    spec = METHODS[method]
+    compute_frames(points, np.arange(0, len(points), 10), radius_mr=RADIUS_MR,
                            method=method, faces=faces if spec.needs_mesh else None)
   return run
 
@@ -64,13 +65,13 @@ def _descriptor(name: str) -> Callable[[], None]:
   def run() -> None:
     import numpy as np
 
-    import lrf_jax
     from lrf_jax import datasets
     from lrf_jax.descriptors import compute_descriptors
+    from lrf_jax.frames.compute import compute_frames, mesh_resolution
     points, faces = datasets.make_demo_mesh("blob", seed=0)
     kp = np.arange(0, len(points), 10)
-    radius = RADIUS_MR * lrf_jax.mesh_resolution(points, faces)
-    frames = lrf_jax.compute_frames(points, kp, radius)
+    radius = RADIUS_MR * mesh_resolution(points, faces)
+    frames = compute_frames(points, kp, radius)
     compute_descriptors(points, kp, radius, frames[0], frames[1], name, faces=faces)
   return run
 

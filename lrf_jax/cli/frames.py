@@ -36,15 +36,14 @@ from pathlib import Path
 
 import numpy as np
 
-from lrf_jax.batch.scan_frames import DEFAULT_KEYPOINTS, MIN_VOXEL_MR, FramesRequest
+from lrf_jax.batch.items import FRAMES_OPTIONS
+from lrf_jax.cli.options import add_frame_flags
 from lrf_jax.cli.exits import EXIT_OK, EXIT_USAGE, refuse, write_failed
 from lrf_jax.cli.interrupt import exit_with, interruptible
 from lrf_jax.cli.help import DefaultsHelpFormatter
 
 
 FIGURE_SUFFIXES = (".png", ".pdf", ".svg", ".jpg", ".jpeg")
-# The defaults of the flags: `FramesRequest`'s.
-_DEFAULTS = FramesRequest(cloud="")
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -60,36 +59,10 @@ def build_parser() -> argparse.ArgumentParser:
                        "guess, e.g. a flat patch without --viewpoint); descriptors with "
                        "--descriptor; with --pair also pair_keypoints, pair_frames, pair_valid, "
                        "pair_confidence, meancos, gt")
-  ap.add_argument("--keypoints", default=None,
-                  help="N seeded random points, 'all', or 'iss' (ISS keypoints); none given: "
-                       f"{DEFAULT_KEYPOINTS}")
-  ap.add_argument("--voxel-mr", type=float, default=None,
-                  help=f"keypoints: the point nearest each voxel centre, voxels of S mr, "
-                       f"S >= {MIN_VOXEL_MR:g} (instead of --keypoints; it picks keypoints and "
-                       "thins nothing: --voxel-size thins the support)")
-  ap.add_argument("--voxel-size", type=float, default=None, metavar="V",
-                  help="thin the support by voxel averaging, voxels of V (cloud units; 0: keep "
-                       "every point); none given: an uneven cloud (a raw LiDAR sweep) is thinned "
-                       "to its working resolution, clean clouds and meshes are kept, as "
-                       "lrf-register does")
-  ap.add_argument("--method", default=_DEFAULTS.method,
-                  help="a key of lrf_jax.METHODS (print(lrf_jax.METHODS) lists them)")
-  ap.add_argument("--radius-mr", type=float, default=_DEFAULTS.radius_mr,
-                  help="support radius in mesh resolutions (15: the paper's)")
-  ap.add_argument("--viewpoint", type=float, nargs=3, default=None, metavar=("X", "Y", "Z"),
-                  help="sensor position of a single-view scan (orients normals and z)")
-  ap.add_argument("--descriptor", default=None,
-                  help="also a descriptor on the frames (snapshots, shot, rops, toldi)")
-  ap.add_argument("--seed", type=int, default=_DEFAULTS.seed, help="seed of keypoints and subsamples")
+  add_frame_flags(ap, skip=("pair", "gt", "pair_viewpoint"))
   ap.add_argument("--png", default=None, help="also draw the frames on the cloud here (with "
                   "--pair: the repeatability figure)")
-  ap.add_argument("--pair", default=None, metavar="B",
-                  help="a second scan of the same object: frames at the corresponding points "
-                       "and their MeanCos (needs --gt)")
-  ap.add_argument("--gt", default=None, metavar="T",
-                  help="the 4x4 transform mapping CLOUD onto B (text as read_xf reads, or .npy)")
-  ap.add_argument("--pair-viewpoint", type=float, nargs=3, default=None,
-                  metavar=("X", "Y", "Z"), help="sensor position of the scan B")
+  add_frame_flags(ap, skip=tuple(FRAMES_OPTIONS))  # the second scan: --pair, --gt, ...
   return ap
 
 
@@ -126,8 +99,8 @@ def _check(args: argparse.Namespace) -> str | None:
 
 def check_options(args: argparse.Namespace) -> str | None:
   """What is wrong with the options of `args` other than the output paths (None: fine)."""
-  from lrf_jax.batch.scan_frames import FramesRequest
-  problem = FramesRequest.from_args(args).problem()
+  from lrf_jax.batch.scan_frames import FrameOptions
+  problem = FrameOptions.from_args(args).problem()
   if problem or args.png is None:
     return problem
   if Path(args.png).suffix.lower() not in FIGURE_SUFFIXES:
@@ -144,8 +117,8 @@ def check_options(args: argparse.Namespace) -> str | None:
 def frames_outputs(args: argparse.Namespace) -> tuple[dict, object, object]:
   """Read the inputs, compute what `args` asks for (`scan_frames.frames_of_scan`); (npz fields,
   cloud, pair cloud or None)."""
-  from lrf_jax.batch.scan_frames import FramesRequest, frames_of_scan
-  return frames_of_scan(FramesRequest.from_args(args))
+  from lrf_jax.batch.scan_frames import FrameOptions, frames_of_scan
+  return frames_of_scan(FrameOptions.from_args(args))
 
 
 def _figure(args: argparse.Namespace, out: dict, cloud, other) -> None:

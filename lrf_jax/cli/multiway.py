@@ -32,8 +32,14 @@ import numpy as np
 
 from lrf_jax.cli.exits import EXIT_USAGE, EXIT_WRITE_FAILED, refuse
 from lrf_jax.cli.interrupt import exit_with, interruptible
-from lrf_jax.cli.options import (add_register_flags, option_message, register_overrides,
+from lrf_jax.cli.options import (add_multiway_flags, option_message, register_overrides,
                                  register_problem)
+
+# The flags whose meaning is the job's, not one pair's: their help on this command line.
+_HELPS = {
+    "mr": "mesh resolution in the clouds' units (default: median over the scans)",
+    "icp_mr": "overlap and ICP pairing distance of the pairs and the joint ICP, in mr",
+    "seed": "seed of the pairwise registrations, the samples and the pose graph"}
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -48,21 +54,9 @@ def build_parser() -> argparse.ArgumentParser:
                        "D/edges.tsv, D/merged.png, D/graph.png")
   ap.add_argument("--voxel", type=float, default=None,
                   help="voxel size of merged.ply in mr (default: every point)")
-  defaults = _register_all_defaults()
-  ap.add_argument("--mr", type=float, default=None,
-                  help="mesh resolution in the clouds' units (default: median over the scans)")
-  ap.add_argument("--icp-mr", type=float, default=defaults["icp_mr"],
-                  help="overlap and ICP pairing distance of the pairs and the joint ICP, in mr")
-  ap.add_argument("--seed", type=int, default=defaults["seed"],
-                  help="seed of the pairwise registrations, the samples and the pose graph")
-  add_register_flags(ap, skip=("mr", "icp_mr", "seed", "source_viewpoint", "target_viewpoint"))
+  add_multiway_flags(ap, helps=_HELPS)
   ap.add_argument("--viewpoint", type=float, nargs=3, default=None, metavar=("X", "Y", "Z"),
                   help="sensor position of every scan, in each scan's own frame")
-  ap.add_argument("--reject-mr", type=float, default=defaults["reject_mr"],
-                  help="reject edges whose residual exceeds this many mr")
-  ap.add_argument("--all-pairs-max", type=int, default=defaults["all_pairs_max"],
-                  help="register every pair up to this many scans; beyond, neighbors in "
-                       "the given order plus loop-closure candidates")
   ap.add_argument("--engine", choices=("local", "ray"), default="local",
                   help="where the scans are described and the pairs registered: this process "
                        "(local) or a Ray cluster (ray); the result is the same")
@@ -72,28 +66,18 @@ def build_parser() -> argparse.ArgumentParser:
   ap.add_argument("--force", action="store_true",
                   help="take over --out-dir's lock of a job of another host that is gone (a "
                        "shared file system); a dead job of this host's is taken over without it")
-  ap.add_argument("--no-refine", action="store_true", help="skip the joint ICP")
   ap.add_argument("--no-figures", action="store_true", help="do not draw the PNG figures")
   ap.add_argument("--quiet", action="store_true", help="no progress bar")
   return ap
 
 
-def _register_all_defaults() -> dict[str, Any]:
-  """`register_all`'s defaults of the flags that set its own arguments."""
-  from lrf_jax.multiway.candidates import ALL_PAIRS_MAX
-  from lrf_jax.multiway.pipeline import REJECT_MR
-  from lrf_jax.registration.options import DEFAULTS
-  return dict(icp_mr=DEFAULTS.icp_mr, seed=DEFAULTS.seed, reject_mr=REJECT_MR,
-              all_pairs_max=ALL_PAIRS_MAX)
-
-
-def _pairwise_options(args: argparse.Namespace) -> dict[str, Any]:
-  """The keywords of every pairwise `register` the flags set (mr, icp_mr, seed and the
-  viewpoint are `register_all`'s own arguments)."""
+def multiway_overrides(args: argparse.Namespace) -> dict[str, Any]:
+  """The `register_all` keywords (`MultiwayOptions` fields) the flags in `args` set."""
+  from lrf_jax.multiway.options import FIELDS
   kw = register_overrides(args)
-  for name in ("mr", "icp_mr", "seed", "source_viewpoint", "target_viewpoint"):
-    kw.pop(name, None)
-  return kw
+  kw.update({name: getattr(args, name) for name in FIELDS if hasattr(args, name)
+             and name not in kw and name not in ("keypoints", "n_keypoints")})
+  return {k: v for k, v in kw.items() if k in FIELDS}
 
 
 def wanted(pairwise_parser: argparse.ArgumentParser, argv: list[str] | None) -> bool:
@@ -165,13 +149,13 @@ def _check(args: argparse.Namespace) -> str | None:
 
 
 def _check_register_options(args: argparse.Namespace) -> str | None:
-  """What is wrong with --all-pairs-max and the options passed to every pairwise registration
-  (the register flags, --viewpoint), before any work (None: fine)."""
-  from lrf_jax.multiway.pipeline import check_counts
+  """What is wrong with the graph's options and the options passed to every pairwise
+  registration (the register flags, --viewpoint), before any work (None: fine)."""
+  from lrf_jax.multiway.options import GRAPH_FIELDS, GraphOptions
   try:
-    check_counts(all_pairs_max=args.all_pairs_max)
+    GraphOptions(**{name: getattr(args, name) for name in GRAPH_FIELDS})
   except ValueError as e:
-    return option_message(str(e), {"all_pairs_max": "all_pairs_max"})
+    return option_message(str(e), {name: name for name in GRAPH_FIELDS})
   view = argparse.Namespace(**vars(args), source_viewpoint=args.viewpoint)
   return register_problem(view, {"source_viewpoint": "viewpoint"})
 
@@ -211,11 +195,9 @@ def _register(args: argparse.Namespace, clouds: list, names: list[str], mr: floa
     engine = make_engine("ray", args.address)
   state = None if args.out_dir is None else Path(args.out_dir).expanduser() / STATE
   try:
-    return register_all(clouds, names=names, mr=mr, seed=args.seed, refine=not args.no_refine,
-                        reject_mr=args.reject_mr, all_pairs_max=args.all_pairs_max,
-                        viewpoints=args.viewpoint, progress=not args.quiet,
-                        icp_mr=args.icp_mr, engine=engine, state_dir=state,
-                        **_pairwise_options(args))
+    return register_all(clouds, names=names, viewpoints=args.viewpoint,
+                        progress=not args.quiet, engine=engine, state_dir=state,
+                        **{**multiway_overrides(args), "mr": mr})
   finally:
     if engine is not None:
       engine.close()
@@ -243,11 +225,11 @@ def main(argv: list[str] | None = None) -> int:
 
   from lrf_jax.multiway.outputs import STATE
   lock = records.JobLock(Path(args.out_dir).expanduser() / STATE / "lock", _command(),
-                         force=args.force)
+                         force=args.force, folder=f"--out-dir {args.out_dir}")
   try:
     lock.acquire()
   except records.FolderInUse as e:
-    return refuse(str(e).replace(str(lock.path.parent), f"--out-dir {args.out_dir}", 1))
+    return refuse(str(e))
   try:
     return _run(args, figures, skipped)
   finally:

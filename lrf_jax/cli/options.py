@@ -53,38 +53,86 @@ def _flag_type(annotation: str) -> Any:
   return None
 
 
-def add_register_flags(ap: Any, *, skip: tuple[str, ...] = ()) -> None:
-  """Add to the argparse parser `ap` one flag per field of `RegisterOptions` (the field's name in
-  kebab case; its default and help from `lrf_jax.registration.options.DEFAULTS` and the field)
-  but the fields in `skip`; `keypoints` and `n_keypoints` share `--keypoints N|DETECTOR`."""
-  import argparse
-  import dataclasses
+def add_option_flags(ap: Any, fields: Any, defaults: dict[str, Any], *,
+                     skip: tuple[str, ...] = (), suppress_defaults: bool = False,
+                     helps: dict[str, str] | None = None) -> None:
+  """Add to the argparse parser `ap` one flag per field of an options class (`fields`: its
+  `dataclasses.Field`s, whose metadata holds the help, flag, choices and metavar; `defaults`:
+  {field: default}) but those in `skip`: the field's name in kebab case (or the metadata's
+  `flag`), its default and its help (`helps` replaces a field's help where a command line means
+  more by it). A boolean defaulting to False is a `--flag`; one defaulting to True is
+  `--flag/--no-flag`. `keypoints` and `n_keypoints` share `--keypoints N|DETECTOR`.
 
-  from lrf_jax.registration import options as opts
-  defaults = opts.DEFAULTS
-  for field in dataclasses.fields(opts.RegisterOptions):
+  With `suppress_defaults` a flag not given leaves no attribute in the parsed namespace (the
+  help still quotes the default), so that only the options a user gave are read back
+  (`register_overrides`): `lrf-batch` takes the defaults of the job that way.
+  """
+  import argparse
+
+  for field in fields:
     meta, name = field.metadata, field.name
-    if name == "keypoints" and name not in skip:
-      ap.add_argument("--keypoints", default=str(defaults.n_keypoints), metavar="N|DETECTOR",
+    if name == "keypoints" and "n_keypoints" in defaults and name not in skip:
+      count = defaults["n_keypoints"]
+      ap.add_argument("--keypoints", default=argparse.SUPPRESS if suppress_defaults else str(count),
+                      metavar="N|DETECTOR",
                       help="keypoints per cloud: a count of seeded random points, or a detector "
-                           "name: 'iss' (ISS keypoints, at most "
-                           f"{defaults.n_keypoints}) or 'random'")
-    if name in skip or name in _KEYPOINT_FIELDS or meta["flag"] is None:
+                           f"name: 'iss' (ISS keypoints, at most {count}) or 'random'")
+    shared = name in _KEYPOINT_FIELDS and "n_keypoints" in defaults
+    if name in skip or shared or meta["flag"] is None:
       continue
     flag = meta["flag"] or "--" + name.replace("_", "-")
-    default = getattr(defaults, name)
-    kw: dict[str, Any] = dict(dest=name, default=default, help=meta["help"])
+    default = defaults[name]
+    kw: dict[str, Any] = dict(dest=name, default=default,
+                              help=(helps or {}).get(name, meta["help"]))
     if isinstance(default, bool):
       kw["action"] = "store_true" if not default else argparse.BooleanOptionalAction
     elif name.endswith("viewpoint"):
       kw.update(type=float, nargs=3, metavar=meta["metavar"])
     else:
-      kw.update(type=_flag_type(str(field.type)), choices=meta["choices"])
-    ap.add_argument(flag, **{k: v for k, v in kw.items() if v is not None or k == "default"})
+      kw.update(type=_flag_type(str(field.type)), choices=meta["choices"],
+                metavar=meta["metavar"])
+    kw = {k: v for k, v in kw.items() if v is not None or k == "default"}
+    if suppress_defaults:
+      kw["default"] = argparse.SUPPRESS
+      if default is not None:
+        kw["help"] += f" (default: {default})"
+    ap.add_argument(flag, *meta.get("aliases", ()), **kw)
     for old, target in _OLD_FLAGS.items():
       if target == name:
         ap.add_argument(old, dest=name, type=kw.get("type"), choices=kw.get("choices"),
                         default=argparse.SUPPRESS, help=argparse.SUPPRESS)
+
+
+def add_register_flags(ap: Any, *, skip: tuple[str, ...] = (),
+                       suppress_defaults: bool = False) -> None:
+  """Add to the argparse parser `ap` one flag per field of `RegisterOptions` but those in `skip`
+  (`add_option_flags`; defaults from `lrf_jax.registration.options.DEFAULTS`, help from the
+  fields of its groups, `option_fields`)."""
+  from lrf_jax.registration import options as opts
+  add_option_flags(ap, opts.option_fields(), opts.DEFAULTS.as_dict(), skip=skip,
+                   suppress_defaults=suppress_defaults)
+
+
+def add_multiway_flags(ap: Any, *, helps: dict[str, str] | None = None) -> None:
+  """Add to the argparse parser `ap` one flag per field of `MultiwayOptions`
+  (`add_option_flags`; defaults from `lrf_jax.multiway.options.DEFAULTS`): the pair options and
+  the graph's."""
+  from lrf_jax.multiway import options as opts
+  add_option_flags(ap, opts.option_fields(), opts.DEFAULTS.as_dict(), helps=helps)
+
+
+def add_frame_flags(ap: Any, *, skip: tuple[str, ...] = (),
+                    suppress_defaults: bool = False) -> None:
+  """Add to the argparse parser `ap` one flag per field of
+  `lrf_jax.batch.scan_frames.FrameOptions` but those in `skip` (`add_option_flags`; `cloud`
+  has none: a command line takes it as its positional argument)."""
+  import dataclasses
+
+  from lrf_jax.batch.scan_frames import FrameOptions
+  defaults = FrameOptions()
+  add_option_flags(ap, dataclasses.fields(FrameOptions),
+                   {f.name: getattr(defaults, f.name) for f in dataclasses.fields(defaults)},
+                   skip=skip, suppress_defaults=suppress_defaults)
 
 
 def register_overrides(args: Any) -> dict[str, Any]:
@@ -123,3 +171,87 @@ def register_problem(args: Any, flags: dict[str, str] | None = None) -> str | No
     names = {**{f: f for f in FIELDS}, "n_keypoints": "keypoints", **(flags or {})}
     return option_message(str(e), names)
   return None
+
+
+def options_table(cls: type) -> str:
+  """The Markdown table of the options class `cls` (a dataclass whose fields hold their help in
+  `metadata`: `RegisterOptions`' groups, `GraphOptions`, `FrameOptions`), as the docs' stage
+  pages show it: one row per field, in the class's order, with its Python keyword, its flag (read
+  from the parser `add_option_flags` builds for the class: hidden old spellings left out, "-"
+  for none), its default and its help (and the flag's choices). `|` is escaped; a value holding
+  one is left out of backticks, since Markdown dialects disagree on a pipe in a code span.
+
+  `python -m lrf_jax.cli.options --docs docs/` rewrites every table of the pages in place: a
+  table sits between `<!-- options: lrf_jax.registration.options.MatchOptions -->` (its class)
+  and `<!-- /options -->`; `--check` writes nothing and exits 1 where one differs
+  (`tests/test_docs.py` checks the same).
+
+  Args:
+    cls: the options class.
+
+  Returns:
+    The table, one line per row, ending with a newline.
+  """
+  import argparse
+  import dataclasses
+
+  def cell(text: Any, code: bool = False) -> str:
+    text = " ".join(str(text).split())
+    if code and "|" not in text and "`" not in text:
+      return f"`{text}`"
+    return text.replace("\\", "\\\\").replace("|", "\\|").replace("<", "&lt;")
+
+  fields = dataclasses.fields(cls)
+  instance = cls()  # every field at its default
+  defaults = {f.name: getattr(instance, f.name) for f in fields}
+  ap = argparse.ArgumentParser(add_help=False)
+  add_option_flags(ap, fields, defaults)
+  flags: dict[str, list[str]] = {}
+  for action in ap._actions:
+    if action.help != argparse.SUPPRESS and action.option_strings:
+      values = " " + " ".join(action.metavar) if isinstance(action.metavar, tuple) else ""
+      flags.setdefault(action.dest, []).extend(f + values for f in action.option_strings)
+  if "n_keypoints" in defaults and "keypoints" in flags:  # one flag: --keypoints N|DETECTOR
+    flag = flags.pop("keypoints")[0]
+    flags["keypoints"], flags["n_keypoints"] = [f"{flag} DETECTOR"], [f"{flag} N"]
+  rows = ["| field | flag | default | help |", "|---|---|---|---|"]
+  for f in fields:
+    flag_cell = ", ".join(cell(n, code=True) for n in flags.get(f.name, [])) or "-"
+    text = cell(f.metadata.get("help", ""))
+    if f.metadata.get("choices"):
+      text += "; one of " + ", ".join(cell(c, code=True) for c in f.metadata["choices"])
+    rows.append(f"| {cell(f.name, code=True)} | {flag_cell} | "
+                f"{cell(repr(defaults[f.name]), code=True)} | {text} |")
+  return "\n".join(rows) + "\n"
+
+
+if __name__ == "__main__":  # python -m lrf_jax.cli.options --docs docs/ [--check]
+  import argparse
+  import importlib
+  import re
+  import sys
+  from pathlib import Path
+
+  _ap = argparse.ArgumentParser(prog="python -m lrf_jax.cli.options",
+                                description="Rewrite the options tables of the docs' pages "
+                                "(`options_table`) in place.")
+  _ap.add_argument("--docs", default="docs", metavar="DIR", help="the docs folder (default: docs)")
+  _ap.add_argument("--check", action="store_true",
+                   help="write nothing; exit 1 when a page's table differs from the generated one")
+  _args = _ap.parse_args()
+
+  def _table(m: re.Match) -> str:
+    module, _, name = m.group(1).rpartition(".")
+    cls = getattr(importlib.import_module(module), name)
+    return f"<!-- options: {m.group(1)} -->\n\n{options_table(cls)}\n<!-- /options -->"
+
+  _stale = []
+  for _page in sorted(Path(_args.docs).rglob("*.md")):
+    _text = _page.read_text()
+    _new = re.sub(r"<!-- options: ([\w.]+) -->\n.*?<!-- /options -->", _table, _text, flags=re.S)
+    if _new != _text:
+      _stale.append(_page)
+      if not _args.check:
+        _page.write_text(_new)
+      print(f"{'stale' if _args.check else 'rewritten'}: {_page}")
+  sys.exit(1 if _args.check and _stale else 0)

@@ -37,8 +37,12 @@ from lrf_jax.cli.options import (KEYPOINT_DETECTORS, add_register_flags, parse_k
                                  register_overrides, register_problem)
 
 
-def build_parser() -> argparse.ArgumentParser:
+def build_parser(*, suppress_defaults: bool = False) -> argparse.ArgumentParser:
+  """lrf-register's parser (two scans). With `suppress_defaults` an option not given leaves no
+  attribute in the parsed namespace (`add_register_flags`): `lrf-batch register` reads the
+  options a user gave that way, and names the ones it cannot take."""
   ap = argparse.ArgumentParser(prog="lrf-register",
+                               argument_default=argparse.SUPPRESS if suppress_defaults else None,
                                description="Rigid registration of two scans with learned LRFs "
                                            "(LRF-Net frames, TOLDI matching, a compatibility "
                                            "graph of correspondences and their LRF poses, "
@@ -49,23 +53,23 @@ def build_parser() -> argparse.ArgumentParser:
                                formatter_class=DefaultsHelpFormatter)
   ap.add_argument("source", help="the cloud to move (PLY, PCD, XYZ/TXT(.gz), NPY)")
   ap.add_argument("target", help="the cloud to align it to")
-  ap.add_argument("--out", default=None,
+  ap.add_argument("--out",
                   help="write the 4x4 source->target matrix here (only on success, exit 0, "
                        "unless --best-guess)")
   ap.add_argument("--best-guess", action="store_true",
                   help="write --out even when the verdict is 'not sure' (the exit code is "
                        "still 3)")
-  add_register_flags(ap)
+  add_register_flags(ap, suppress_defaults=suppress_defaults)
   # Deprecated spelling of `--keypoints iss` (kept working, hidden): with a count in
   # --keypoints, ISS keypoints at most that many.
-  ap.add_argument("--detector", choices=KEYPOINT_DETECTORS, default=None, help=argparse.SUPPRESS)
-  ap.add_argument("--checkpoint", default=None,
+  ap.add_argument("--detector", choices=KEYPOINT_DETECTORS, help=argparse.SUPPRESS)
+  ap.add_argument("--checkpoint",
                   help="a train.py workdir whose best LRF-Net parameters to use "
                        "(default: the shipped weights)")
-  ap.add_argument("--init", default=None, metavar="FILE",
+  ap.add_argument("--init", metavar="FILE",
                   help="initial source->target transform to refine: a 4x4 text file (.xf, "
                        ".txt) or a (4, 4) .npy")
-  ap.add_argument("--png", default=None, metavar="FILE",
+  ap.add_argument("--png", metavar="FILE",
                   help="also draw the correspondences here: inliers and outliers joining the "
                        "two clouds side by side")
   return ap

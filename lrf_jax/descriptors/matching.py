@@ -361,9 +361,10 @@ def match_descriptors(query: np.ndarray, reference: np.ndarray, query_valid=None
   Args:
     query: (m, D) descriptors.
     reference: (n, D) descriptors.
-    query_valid: (m,) bool (None: all valid); a row holding NaN or inf is invalid too.
-    reference_valid: (n,) bool (None: all valid); invalid references (and rows holding NaN or
-      inf) are never matched.
+    query_valid (np.ndarray | None): (m,) bool (None: all valid); a row holding NaN or inf is
+      invalid too.
+    reference_valid (np.ndarray | None): (n,) bool (None: all valid); invalid references (and
+      rows holding NaN or inf) are never matched.
     block: queries per jitted call of the dense search (memory: block x n floats).
     search: "auto" (default: the occupancy search for descriptors of its form, such as TOLDI's,
       else the dense one), "dense" or "occupancy" (the module docstring); all exact, they
@@ -471,10 +472,10 @@ def select_correspondences(query: np.ndarray, reference: np.ndarray, query_valid
   Args:
     query: (m, D) descriptors.
     reference: (r, D) descriptors.
-    query_valid: (m,) bool (None: all valid); invalid queries (and rows holding NaN or inf)
-      propose nothing.
-    reference_valid: (r,) bool (None: all valid); invalid references (and rows holding NaN or
-      inf) are never matched.
+    query_valid (np.ndarray | None): (m,) bool (None: all valid); invalid queries (and rows
+      holding NaN or inf) propose nothing.
+    reference_valid (np.ndarray | None): (r,) bool (None: all valid); invalid references (and
+      rows holding NaN or inf) are never matched.
     n: keep at most this many, the best (None: all).
     mutual: keep mutual nearest neighbors only.
     ratio: the ratio-test threshold in (0, 1] (None: no test).

@@ -153,9 +153,11 @@ def z_flip_rate(frames_a: Any, frames_b: Any, transform: np.ndarray, valid_a: An
   repeatable. NaN when no keypoint is valid on both sides.
 
   Args:
-    frames_a: (N, 3, 3) model frames (rows x, y, z). frames_b: (N, 3, 3) scene frames.
+    frames_a: (N, 3, 3) model frames (rows x, y, z).
+    frames_b: (N, 3, 3) scene frames.
     transform: (4, 4) ground truth model -> scene (or its (3, 3) rotation).
-    valid_a, valid_b: (N,) bool.
+    valid_a: (N,) bool, the model frames' validity.
+    valid_b: (N,) bool, the scene frames'.
   """
   rot = np.asarray(transform, np.float64)[:3, :3]
   cos_z = np.einsum("nc,nc->n", np.asarray(frames_a, np.float64)[:, 2],

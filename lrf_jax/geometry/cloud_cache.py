@@ -57,10 +57,10 @@ def cache_last(kind: str, key_arrays: tuple, fn):
   Args:
     kind: cache slot name.
     key_arrays: the arrays/values the result depends on.
-    fn: zero-argument function computing the result.
+    fn (Callable[[], Any]): zero-argument function computing the result.
 
   Returns:
-    `fn()`, or the stored result for identical inputs (arrays copied).
+    result (Any): `fn()`, or the stored result for identical inputs (arrays copied).
   """
   key = _digest(kind, *key_arrays)
   hit = _CACHE.get(kind)

@@ -94,11 +94,12 @@ def siamese_loss(params: Params, model: Patches, scene: Patches, *, reduction: s
     scene: `Patches` of the corresponding scene keypoints (N pairs).
     reduction: Chamfer reduction, see `chamfer`.
     x_mode: "sum" or "max" (see `lrf_net_frames`).
-    frames_fn: `(params, patches) -> (frames, valid)` replacing `lrf_net_frames` (ablation
-      variants); `x_mode` is then ignored. Given a view, it is called as
-      `(params, patches, view)`.
-    model_view, scene_view: optional (N, 3) direction each side's z must not point away from
-      where non-zero (`lrf_net.view_sign`; `Batch.model_view`, `TrainConfig.z_view`); None: none.
+    frames_fn (Callable | None): `(params, patches) -> (frames, valid)` replacing
+      `lrf_net_frames` (ablation variants); `x_mode` is then ignored. Given a view, it is
+      called as `(params, patches, view)`.
+    model_view: optional (N, 3) direction the model side's z must not point away from where
+      non-zero (`lrf_net.view_sign`; `Batch.model_view`, `TrainConfig.z_view`); None: none.
+    scene_view: the same for the scene side (`Batch.scene_view`).
 
   Returns:
     (loss, aux): the mean Chamfer distance over valid pairs (cloud units); aux holds

@@ -1,6 +1,7 @@
 """Many scans into one model: `register_all(scans) -> MultiwayResult`.
 
   pipeline.py    `register_all`: candidates, the pairwise stage, the pose graph, the joint ICP
+  options.py     `MultiwayOptions`: the pair options and the graph's, every default once
   candidates.py  which pairs are registered (all of a few scans; neighbours and D2 loop closures)
   tasks.py       the pairwise stage as tasks on an engine, each pair's record kept
   pose_graph.py  the robust pose graph over the pairs' edges

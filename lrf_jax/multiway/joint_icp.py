@@ -8,7 +8,7 @@ from collections.abc import Sequence
 import numpy as np
 
 from lrf_jax.multiway import pose_graph
-from lrf_jax.registration.icp_host import TargetNormals
+from lrf_jax.registration.icp_normals import TargetNormals
 from lrf_jax.search import engine as search_engine
 
 __all__ = ["REFINE_STEPS", "refine_poses"]

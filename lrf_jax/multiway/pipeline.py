@@ -55,16 +55,15 @@ from lrf_jax.checks import validate_viewpoint
 from lrf_jax.geometry.cloud import CheckedCloud, as_cloud
 from lrf_jax.geometry.resolution import registration_resolution
 from lrf_jax.multiway import pose_graph, tasks
-from lrf_jax.multiway.candidates import ALL_PAIRS_MAX, candidate_pairs
+from lrf_jax.multiway.candidates import candidate_pairs
 from lrf_jax.multiway.joint_icp import refine_poses
 from lrf_jax.multiway.outputs import check_names, scan_names
 from lrf_jax.multiway.result import MultiwayEdge, MultiwayResult
-from lrf_jax.registration.options import DEFAULTS, resolve
+from lrf_jax.multiway.options import REJECT_MR, MultiwayOptions, check_counts, resolve
+from lrf_jax.registration import options as register_options
 
-__all__ = ["REJECT_MR", "check_counts", "load_scans", "median_mr", "register_all"]
-
-# An edge whose RMS point residual under the optimised poses exceeds this many mr is rejected.
-REJECT_MR = 5.0
+__all__ = ["REJECT_MR", "MultiwayOptions", "check_counts", "load_scans", "median_mr",
+           "register_all"]
 
 
 def load_scans(scans: Sequence[Any], names: Sequence[str]) -> list[CheckedCloud]:
@@ -97,24 +96,15 @@ def _viewpoints(viewpoints: Any, n: int) -> list[Any]:
   return [validate_viewpoint(v, f"viewpoints[{k}]") for k, v in enumerate(viewpoints)]
 
 
-def check_counts(**counts: Any) -> None:
-  """Raise a ValueError naming the first of `counts` (name: value) that is not a non-negative
-  integer (`register_all`'s all_pairs_max, neighbors, loop_candidates, refine_iterations)."""
-  for name, val in counts.items():
-    if isinstance(val, (bool, np.bool_)) or not isinstance(val, (int, np.integer)) or val < 0:
-      raise ValueError(f"{name}: expected a non-negative integer, got {val!r}")
-
-
-def _pairwise(clouds, names, pairs, *, mr, seed, viewpoints, pairwise, icp_mr, progress,
+def _pairwise(clouds, names, pairs, *, mr, options, viewpoints, pairwise, progress, params,
               register_kw, engine, state_dir
               ) -> tuple[list[MultiwayEdge], list[np.ndarray], dict[str, int]]:
   """Stage "pairwise": one registration per candidate pair; edges, their overlap points and the
   work done (scans described, pairs registered, pairs read from the state folder)."""
   hashes = [tasks.scan_hash(c, v) for c, v in zip(clouds, viewpoints)]
+  seed, icp_mr = options.pairs.inputs.seed, options.pairs.icp.icp_mr
   if pairwise is None:
-    opts = resolve(None, {k: v for k, v in register_kw.items() if k != "params"})
-    opts = opts.with_overrides(mr=float(mr), seed=seed, icp_mr=icp_mr)
-    params = register_kw.get("params")
+    opts = options.pairs.with_overrides(mr=float(mr))
     records = tasks.PairRecords(state_dir, hashes, opts, mr, icp_mr * mr, params)
     recs, work = tasks.run_pairs(clouds, names, pairs, options=opts, mr=mr,
                                  viewpoints=viewpoints, distance=icp_mr * mr, params=params,
@@ -171,48 +161,30 @@ def _model(component: np.ndarray) -> int:
   return int(labels[np.argmax(counts)])  # np.unique sorts, argmax takes the first maximum
 
 
-def register_all(scans: Sequence[Any], *, names: Sequence[str] | None = None,
-                 mr: float | None = None, all_pairs_max: int = ALL_PAIRS_MAX,
-                 neighbors: int = 1, loop_candidates: int = 3, reject_mr: float = REJECT_MR,
-                 robust_mr: float = 1.0, refine: bool = True, refine_iterations: int = 10,
-                 icp_mr: float = DEFAULTS.icp_mr, viewpoints: Any = None,
-                 seed: int = DEFAULTS.seed, progress: bool = False,
-                 voxel_size: float | None = None,
-                 pairwise: Callable[..., Any] | None = None, engine: Any = None,
-                 state_dir: str | os.PathLike | None = None, **register_kw: Any
-                 ) -> MultiwayResult:
+def register_all(scans: Sequence[Any], options: MultiwayOptions | None = None, *,
+                 names: Sequence[str] | None = None, viewpoints: Any = None,
+                 progress: bool = False, pairwise: Callable[..., Any] | None = None,
+                 engine: Any = None, state_dir: str | os.PathLike | None = None,
+                 params: Any = None, **overrides: Any) -> MultiwayResult:
   """Register many scans of one object or scene into one frame (module docstring).
 
   Args:
     scans: n >= 2 scans: paths of any cloud/mesh `lrf_jax.io` reads, (m, 3) arrays, `Cloud`s or
       objects with `.points`, each in its own frame.
+    options: a `MultiwayOptions` (None: `lrf_jax.multiway.options.DEFAULTS`, every default
+      below).
     names: n distinct names for the result and the outputs, each usable as a file name
       (`check_names`; default `scan_names(scans)`).
-    mr: mesh resolution in the clouds' units (None: the median of the scans' working
-      resolutions as `register` measures them, `median_mr`).
-    all_pairs_max: up to this many scans every pair is registered (`candidate_pairs`).
-    neighbors: otherwise, pairs with this many next scans in the given order...
-    loop_candidates: ...plus this many loop-closure candidates per scan (D2 signature).
-    reject_mr: an edge whose RMS point residual under the optimised poses exceeds this (mr)
-      is rejected.
-    robust_mr: scale of the Cauchy loss of the pose graph and the joint ICP, in mr.
-    refine: run the joint ICP (`refine_poses`) after the pose graph.
-    refine_iterations: its rounds at most.
-    icp_mr: overlap and ICP pairing distance, in mr.
     viewpoints: None, one (3,) sensor position used for every scan (in each scan's own frame),
       or n of them (None entries allowed); passed to `register`.
-    seed: seed of the pairwise registrations, the samples and the pose graph's start.
     progress: show a tqdm progress bar over the pairs (stderr).
-    voxel_size: passed to every pairwise `register`: None thins a scan far denser than mr
-      as `register` chooses, 0 keeps every point, a positive edge (cloud units) thins every
-      scan by voxel averaging at it. The pose graph, the joint ICP and the outputs use the
-      scans' own points.
     pairwise: the pairwise registration (default: `register`'s stages on features described
       once per scan, `lrf_jax.registration.scan_features`): called as
       `pairwise(source_cloud, target_cloud, mr=, seed=, source_viewpoint=, target_viewpoint=,
-      **register_kw)`, returning an object with `transform`, `success`, `reason`,
-      `n_inliers`, `overlap`, `rmse` (and optionally `estimated`); a ValueError, or
-      `estimated` False, marks the pair "error" (no edge).
+      **kw)` where kw holds the pair options given as keywords or differing from the defaults
+      (and `voxel_size` where not None, `params` where given), returning an object with
+      `transform`, `success`, `reason`, `n_inliers`, `overlap`, `rmse` (and optionally
+      `estimated`); a ValueError, or `estimated` False, marks the pair "error" (no edge).
     engine: where the pairwise stage runs: None (this process) or an engine of
       `lrf_jax.batch` (`lrf_jax.batch.make_engine("ray", address)`): each scan of a pair to
       register is described once and every pair registered as a task
@@ -220,13 +192,36 @@ def register_all(scans: Sequence[Any], *, names: Sequence[str] | None = None,
     state_dir: a folder kept between runs (None: none): every registered pair leaves a record
       there, and a run with the same scans, options and resolution registers only the pairs
       without one (a killed job loses no finished pair; a finished one redoes nothing).
-    **register_kw: passed to `register` (e.g. `n_keypoints`, `radius_mr`, `method`, `params`).
+    params: learned LRF parameters of every pair (None: the method's shipped weights).
+    **overrides: fields of `MultiwayOptions` replacing those of `options`: every field of
+      `RegisterOptions` but the viewpoints (e.g. `n_keypoints`, `radius_mr`, `method`), passed
+      to every pairwise registration, and those of the Keyword Args below (the tables of
+      options in the docs' Pipeline stages pages).
+
+  Keyword Args:
+    mr (float | None): mesh resolution in the clouds' units (None: the median of the scans' working
+      resolutions as `register` measures them, `median_mr`).
+    all_pairs_max (int): up to this many scans every pair is registered (`candidate_pairs`).
+    neighbors (int): otherwise, pairs with this many next scans in the given order...
+    loop_candidates (int): ...plus this many loop-closure candidates per scan (D2 signature).
+    reject_mr (float): an edge whose RMS point residual under the optimised poses exceeds this (mr)
+      is rejected.
+    robust_mr (float): scale of the Cauchy loss of the pose graph and the joint ICP, in mr.
+    refine (bool): run the joint ICP (`refine_poses`) after the pose graph.
+    refine_iterations (int): its rounds at most.
+    icp_mr (float): overlap and ICP pairing distance, in mr.
+    seed (int): seed of the pairwise registrations, the samples and the pose graph's start.
+    voxel_size (float | None): passed to every pairwise `register`: None thins a scan far
+      denser than mr as `register` chooses, 0 keeps every point, a positive edge (cloud units)
+      thins every scan by voxel averaging at it. The pose graph, the joint ICP and the outputs
+      use the scans' own points.
 
   Returns:
     `MultiwayResult`: poses into the reference scan's frame, the edges with their verdicts,
     residuals and whether the graph accepted them, the scans left out.
 
   Raises:
+    TypeError: an override that is not an option of `register_all`.
     ValueError: fewer than 2 scans, an unreadable or malformed scan (the message names it),
       a custom `pairwise` with an engine or a state folder,
       `names` of the wrong length or a name `check_names` refuses, a non-positive mr or
@@ -244,21 +239,14 @@ def register_all(scans: Sequence[Any], *, names: Sequence[str] | None = None,
   names = scan_names(scans) if names is None else check_names(names, "names")
   if len(names) != len(scans):
     raise ValueError(f"names: expected {len(scans)} names, got {len(names)}")
-  for label, val in (("reject_mr", reject_mr), ("robust_mr", robust_mr), ("icp_mr", icp_mr)):
-    if not (isinstance(val, (int, float)) and np.isfinite(val) and val > 0):
-      raise ValueError(f"{label}: expected a positive number of mesh resolutions, got {val!r}")
-  check_counts(all_pairs_max=all_pairs_max, neighbors=neighbors,
-               loop_candidates=loop_candidates, refine_iterations=refine_iterations)
+  opts = resolve(options, overrides)  # every option checked before any pair is registered
+  graph, inputs = opts.graph, opts.pairs.inputs
+  mr, seed, icp_mr = inputs.mr, inputs.seed, opts.pairs.icp.icp_mr
   views = _viewpoints(viewpoints, len(scans))
-  if voxel_size is not None:  # None is `register`'s default: a custom `pairwise` never sees it
-    register_kw = {**register_kw, "voxel_size": voxel_size}
   if pairwise is not None and (engine is not None or state_dir is not None):
     raise ValueError("pairwise: a custom pairwise registration runs in this process and keeps "
                      "no records; pass engine=None and state_dir=None with it")
-  if pairwise is None:  # every option of `register`, before any pair is registered
-    from lrf_jax.registration.pipeline import check_register_options
-    check_register_options(mr=mr, seed=seed, icp_mr=icp_mr,
-                           **{k: v for k, v in register_kw.items() if k != "params"})
+  register_kw = _custom_keywords(opts, overrides, params)
   clouds = load_scans(scans, names)
   n = len(clouds)
   if mr is None:
@@ -266,16 +254,18 @@ def register_all(scans: Sequence[Any], *, names: Sequence[str] | None = None,
   elif not (np.isfinite(mr) and mr > 0):
     raise ValueError(f"mr: expected a positive mesh resolution, got {mr!r}")
   timings["load"] = time.perf_counter() - t0
-  pairs = candidate_pairs([c.points for c in clouds], all_pairs_max=all_pairs_max,
-                          neighbors=neighbors, loop_candidates=loop_candidates, seed=seed)
+  pairs = candidate_pairs([c.points for c in clouds], all_pairs_max=graph.all_pairs_max,
+                          neighbors=graph.neighbors, loop_candidates=graph.loop_candidates,
+                          seed=seed)
   t = time.perf_counter()
-  edges, points, work = _pairwise(clouds, names, pairs, mr=mr, seed=seed, viewpoints=views,
-                                  pairwise=pairwise, icp_mr=icp_mr, progress=progress,
+  edges, points, work = _pairwise(clouds, names, pairs, mr=mr, options=opts, viewpoints=views,
+                                  pairwise=pairwise, progress=progress, params=params,
                                   register_kw=register_kw, engine=engine, state_dir=state_dir)
   timings["pairwise"] = time.perf_counter() - t
   t = time.perf_counter()
-  poses, accepted, errors, component = _graph(n, edges, points, mr=mr, reject_mr=reject_mr,
-                                              robust_mr=robust_mr, seed=seed)
+  poses, accepted, errors, component = _graph(n, edges, points, mr=mr,
+                                              reject_mr=graph.reject_mr,
+                                              robust_mr=graph.robust_mr, seed=seed)
   reference = _model(component)
   in_model = component == reference
   sure = pose_graph.components(n, [(e.i, e.j) for e, a in zip(edges, accepted)
@@ -284,10 +274,10 @@ def register_all(scans: Sequence[Any], *, names: Sequence[str] | None = None,
   timings["graph"] = time.perf_counter() - t
   t = time.perf_counter()
   kept = [(e.i, e.j) for e, a in zip(edges, accepted) if a and in_model[e.i]]
-  if refine and kept:
+  if graph.refine and kept:
     poses = refine_poses([c.points for c in clouds], poses, kept, reference=reference, mr=mr,
-                         icp_mr=icp_mr, robust_mr=robust_mr, iterations=refine_iterations,
-                         seed=seed)
+                         icp_mr=icp_mr, robust_mr=graph.robust_mr,
+                         iterations=graph.refine_iterations, seed=seed)
   timings["refine"] = time.perf_counter() - t
   poses = np.where(in_model[:, None, None], poses, np.nan)
   final = []
@@ -301,6 +291,22 @@ def register_all(scans: Sequence[Any], *, names: Sequence[str] | None = None,
                         reference=reference, edges=tuple(final), mr=float(mr),
                         seconds=time.perf_counter() - t0, timings=timings,
                         confident=confident, work=work)
+
+
+def _custom_keywords(options: MultiwayOptions, overrides: dict[str, Any], params: Any
+                     ) -> dict[str, Any]:
+  """The keywords a custom `pairwise` receives besides mr, seed and the viewpoints: the pair
+  options given as `overrides` or differing from `register`'s defaults (`voxel_size` only where
+  not None, `register`'s own choice), and `params` where given."""
+  defaults = register_options.DEFAULTS.as_dict()
+  own = ("mr", "seed", "icp_mr", "voxel_size")
+  out = {k: v for k, v in options.pairs.as_dict().items()
+         if k not in own and (k in overrides or v != defaults[k])}
+  if options.pairs.inputs.voxel_size is not None:
+    out["voxel_size"] = options.pairs.inputs.voxel_size
+  if params is not None:
+    out["params"] = params
+  return out
 
 
 def median_mr(clouds: Sequence[CheckedCloud], names: Sequence[str]) -> float:

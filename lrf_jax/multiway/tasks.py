@@ -160,8 +160,7 @@ class PairRecords:
   def __init__(self, folder: str | os.PathLike | None, scan_hashes: Sequence[str],
                options: RegisterOptions, mr: float, distance: float, params: Any):
     self.folder = None if folder is None else Path(folder) / "pairs"
-    fields = {f.name: getattr(options, f.name) for f in dataclasses.fields(options)}
-    self.common = records.canonical(dict(format=RECORD_VERSION, options=fields,
+    self.common = records.canonical(dict(format=RECORD_VERSION, options=options.as_dict(),
                                          mr=float(mr).hex(), distance=float(distance).hex(),
                                          params=records.params_hash(params)))
     self.hashes = list(scan_hashes)
@@ -220,7 +219,7 @@ def run_pairs(clouds: Sequence[Any], names: Sequence[str], pairs: Sequence[tuple
       i, j = pairs[k]
       payloads.append(dict(i=i, j=j, source=features[i], target=features[j], options=options,
                            distance=distance,
-                           seed=overlap_seed(options.seed, records.hashes[i], records.hashes[j])))
+                           seed=overlap_seed(options.inputs.seed, records.hashes[i], records.hashes[j])))
     for k, rec in _registered(engine, todo, payloads, features, pairs):
       out[k] = rec
       if rec.pop("lost", False) is False:

@@ -30,7 +30,7 @@ EFFORT_KEYPOINTS = 2
 
 def high_effort_options(opts: RegisterOptions) -> RegisterOptions:
   """The options of each seed's prepare/describe/match: `EFFORT_KEYPOINTS` x the keypoints."""
-  return opts.with_overrides(n_keypoints=EFFORT_KEYPOINTS * int(opts.n_keypoints))
+  return opts.with_overrides(n_keypoints=EFFORT_KEYPOINTS * int(opts.detection.n_keypoints))
 
 
 def pooled_stages(source: Any, target: Any, opts: RegisterOptions, params: Any,
@@ -45,8 +45,8 @@ def pooled_stages(source: Any, target: Any, opts: RegisterOptions, params: Any,
   runs = []
   for k in range(EFFORT_SEEDS):
     with timer("prepare"):
-      prepared = base if k == 0 else stages.reseed(base, wide, base.seed + k)
-    features = stages.describe(prepared, wide, params, timer)
+      prepared = base if k == 0 else stages.reseed(base, wide.detection, base.seed + k)
+    features = stages.describe(prepared, wide.description, params, timer)
     with timer("matching"):
       matches = stages.match(features, wide)
     runs.append((prepared, features,

@@ -90,43 +90,49 @@ def register(source: Any, target: Any, options: RegisterOptions | None = None, *
     options: a `RegisterOptions` (None: `options.DEFAULTS`, every default below).
     params: learned LRF parameters (None: the method's shipped weights).
     init: optional (4, 4) initial source -> target transform: refine it by ICP only.
-    **overrides: fields of `RegisterOptions` replacing those of `options`:
-    mr: the working resolution in the clouds' units, the unit of every length below (None:
-      measured, `geometry.resolution.registration_resolution` and `pair_resolution`: the
-      source's mean point spacing or mean edge length; on a raw, uneven cloud such as a LiDAR
-      sweep the area-weighted median spacing; for a cloud sampled more finely than 1/300 of its
-      extent (a full-density fragment) that fraction; for a pair whose resolutions differ over
-      2-fold, or where one is uneven or capped, the coarser one).
-    radius_mr: support radius of the LRFs and descriptors, in mr (the paper: 15).
-    n_keypoints: keypoints per cloud (fewer when a cloud has fewer points).
-    n_correspondences: correspondences kept (and LRF hypotheses).
-    iterations: hypotheses of the 3-point estimator.
-    inlier_mr: inlier distance of the hypothesis score, in mr.
-    verify: hypotheses re-ranked by overlap (None: all of them; 0: none).
-    estimator: "graph" (compatibility graph, default), "lrf" (one correspondence per
+    **overrides: fields of `RegisterOptions` replacing those of `options` (Keyword Args
+      below; each stage's table of options in the docs' Pipeline stages pages).
+
+  Keyword Args:
+    mr (float | None): the working resolution in the clouds' units, the unit of every length
+      below (None: measured, `geometry.resolution.registration_resolution` and
+      `pair_resolution`: the source's mean point spacing or mean edge length; on a raw, uneven
+      cloud such as a LiDAR sweep the area-weighted median spacing; for a cloud sampled more
+      finely than 1/300 of its extent (a full-density fragment) that fraction; for a pair whose
+      resolutions differ over 2-fold, or where one is uneven or capped, the coarser one).
+    radius_mr (float): support radius of the LRFs and descriptors, in mr (the paper: 15).
+    n_keypoints (int): keypoints per cloud (fewer when a cloud has fewer points).
+    n_correspondences (int): correspondences kept (and LRF hypotheses).
+    iterations (int): hypotheses of the 3-point estimator.
+    inlier_mr (float): inlier distance of the hypothesis score, in mr.
+    verify (int | None): hypotheses re-ranked by overlap (None: all of them; 0: none).
+    estimator (str): "graph" (compatibility graph, default), "lrf" (one correspondence per
       hypothesis) or "3point" (classic).
-    icp_iterations: ICP iterations (0: no ICP, `transform` = the RANSAC estimate).
-    icp_mr: ICP pairing and overlap distance, in mr.
-    method: LRF method (a key of `lrf_jax.METHODS`; default "lrf_net_plus", the most repeatable
-      shipped one; "lrf_net" is the paper's LRF-Net; mesh methods need mesh inputs).
-    descriptor: a key of `lrf_jax.descriptors.DESCRIPTORS`.
-    seed: seed of keypoints, neighbor subsamples and sampling.
-    source_viewpoint, target_viewpoint: optional (3,) sensor positions of single-view scans, in
-      each cloud's own coordinates: estimated normals (and `method="lrf_net_plus"`'s z) are
-      oriented towards them (see `compute_frames`). Without them a scan's normals are oriented
-      by propagation, which cannot know which side of an open scan is out.
-    keypoints: "random" or "iss".
-    effort: "normal" (default) or "high" (above).
-    mutual: keep mutual nearest-neighbor matches only.
-    ratio: optional ratio-test threshold in (0, 1].
-    icp_mode: "point_to_plane" (default) or "point_to_point" (`icp`).
-    icp_fine: run the second ICP pass at the adaptive gate (False: one pass at icp_mr mr, the
-      behaviour before it).
-    voxel_size: thin the clouds by voxel averaging first (`voxel_downsample`), voxels of this
-      edge in cloud units; 0 keeps every point; None (default) thins a cloud at the working
-      resolution where its mean spacing is under half of it (a raw sweep's near field, a
-      full-density fragment against a coarser one) or where the extent set the resolution (a
-      full-density fragment), and keeps clean clouds as they are.
+    icp_iterations (int): ICP iterations (0: no ICP, `transform` = the RANSAC estimate).
+    icp_mr (float): ICP pairing and overlap distance, in mr.
+    method (str): LRF method (a key of `lrf_jax.METHODS`; default "lrf_net_plus", the most
+      repeatable shipped one; "lrf_net" is the paper's LRF-Net; mesh methods need mesh inputs).
+    descriptor (str): a key of `lrf_jax.descriptors.DESCRIPTORS`.
+    seed (int): seed of keypoints, neighbor subsamples and sampling.
+    source_viewpoint (tuple[float, float, float] | None): the (3,) sensor position of a
+      single-view source scan, in its own coordinates: its estimated normals (and
+      `method="lrf_net_plus"`'s z) are oriented towards it (see `compute_frames`). Without it a
+      scan's normals are oriented by propagation, which cannot know which side of an open scan
+      is out.
+    target_viewpoint (tuple[float, float, float] | None): the same for the target scan, in its
+      own coordinates.
+    keypoints (str): "random" or "iss".
+    effort (str): "normal" (default) or "high" (above).
+    mutual (bool): keep mutual nearest-neighbor matches only.
+    ratio (float | None): optional ratio-test threshold in (0, 1].
+    icp_mode (str): "point_to_plane" (default) or "point_to_point" (`icp`).
+    icp_fine (bool): run the second ICP pass at the adaptive gate (False: one pass at icp_mr mr,
+      the behaviour before it).
+    voxel_size (float | None): thin the clouds by voxel averaging first (`voxel_downsample`),
+      voxels of this edge in cloud units; 0 keeps every point; None (default) thins a cloud at
+      the working resolution where its mean spacing is under half of it (a raw sweep's near
+      field, a full-density fragment against a coarser one) or where the extent set the
+      resolution (a full-density fragment), and keeps clean clouds as they are.
 
   Returns:
     `Registration`; `transform` maps source points into the target's frame.
@@ -147,12 +153,12 @@ def register(source: Any, target: Any, options: RegisterOptions | None = None, *
   timer = stages.StageTimer()
   if init is not None:
     return register_from_init(source, target, init, opts, timer)
-  if opts.effort == "high":
+  if opts.verdict.effort == "high":
     prepared, features, matches = pooled_stages(source, target, opts, params, timer)
   else:
     with timer("prepare"):
       prepared = stages.prepare(source, target, opts)
-    features = stages.describe(prepared, opts, params, timer)
+    features = stages.describe(prepared, opts.description, params, timer)
     with timer("matching"):
       matches = stages.match(features, opts)
     matches = stages.default_evidence(prepared, matches, opts, params, timer)
@@ -164,13 +170,13 @@ def conclude(prepared: stages.Prepared, features: stages.Features, matches: stag
   """The stages after matching: hypotheses, verification, ICP and the verdict, and the
   `Registration` (the identity, not estimated, when no hypothesis could be built)."""
   with timer("hypotheses"), serial_blas():
-    hyps = stages.hypothesize(prepared, features, matches, opts)
+    hyps = stages.hypothesize(prepared, features, matches, opts.hypotheses)
   if hyps is None:  # no two correspondences agree: no pose to verify
     return _not_estimated(prepared, stages.input_indices(prepared, *_keypoints(prepared, matches)),
                           opts, timer)
   with timer("verification"), serial_blas():
-    verified = stages.verify(prepared, hyps, opts, matches.own)
-  refined = refine(prepared, verified, opts, timer)
+    verified = stages.verify(prepared, hyps, opts.hypotheses, opts.icp.icp_mr, matches.own)
+  refined = refine(prepared, verified, opts.icp, timer)
   return _result(prepared, matches, hyps, verified, refined, opts, timer)
 
 
@@ -188,8 +194,8 @@ def _result(prepared: stages.Prepared, matches: stages.Matches, hyps: stages.Hyp
   contrast = overlap_contrast(verified.fits)
   evidence = Evidence(n_inliers=int(np.sum(verified.evidence_mask)), chance_inliers=hyps.chance,
                       rival_inliers=verified.rival, fitness=refined.fitness, contrast=contrast,
-                      estimator=opts.estimator, degeneracy=refined.degeneracy,
-                      free_direction=refined.free_direction, effort=opts.effort)
+                      estimator=opts.hypotheses.estimator, degeneracy=refined.degeneracy,
+                      free_direction=refined.free_direction, effort=opts.verdict.effort)
   decision = decide(evidence)
   coarse, n = verified.coarse, len(matches.source)
   return Registration(transform=refined.transform, coarse_transform=coarse.transform,
@@ -212,15 +218,15 @@ def _not_estimated(prepared: stages.Prepared, correspondences: np.ndarray, opts:
   with timer("icp"):
     src_pts, dst_pts = prepared.sides[0].points, prepared.sides[1].points
     _, fitness, rmse = icp(icp_subset(src_pts, prepared.rng), dst_pts, np.eye(4),
-                           max_distance=opts.icp_mr * prepared.mr, iterations=0)
-  n, estimator = len(correspondences), opts.estimator
+                           max_distance=opts.icp.icp_mr * prepared.mr, iterations=0)
+  n, estimator = len(correspondences), opts.hypotheses.estimator
   if estimator != "graph":
     why = f"the {estimator} estimator built none from {n} correspondences"
   elif n < 2:
     why = f"the graph estimator needs two compatible correspondences, and there is {n}"
   else:
     why = (f"no two of the {n} correspondences are compatible within inlier_mr = "
-           f"{opts.inlier_mr:g} mr")
+           f"{opts.hypotheses.inlier_mr:g} mr")
   return Registration(transform=np.eye(4), coarse_transform=np.eye(4),
                       inliers=np.zeros(n, bool), n_inliers=0,
                       correspondences=np.asarray(correspondences, np.int64), fitness=fitness,

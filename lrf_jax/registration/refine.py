@@ -18,10 +18,10 @@ import numpy as np
 
 from lrf_jax.checks import validate_seed
 from lrf_jax.geometry.cloud import CheckedCloud, as_cloud
-from lrf_jax.registration import icp_host
+from lrf_jax.registration import icp_host, icp_normals
 from lrf_jax.io.validation import check_rigid
 from lrf_jax.registration.icp_host import icp
-from lrf_jax.registration.options import RegisterOptions
+from lrf_jax.registration.options import IcpOptions, RegisterOptions
 from lrf_jax.registration.result import Registration
 from lrf_jax.registration.rivals import overlap_constraints
 from lrf_jax.registration.stages import Prepared, StageTimer, Verified, working_clouds
@@ -40,7 +40,7 @@ ICP_FINE_MIN_MR = 1.0
 
 # The last pass on the input points of a cloud thinned by default (`raw_pass`): source points
 # drawn, the target normals' radius (at most RAW_NORMAL_MR mr and RAW_NORMAL_SPACINGS mean input
-# spacings, `icp_host.estimate_target_normals`), the gates (mr), and how far it may move a source
+# spacings, `icp_normals.estimate_target_normals`), the gates (mr), and how far it may move a source
 # point (mr) before its pose is refused (the verdict was reached on the thinned clouds' pose).
 # A raw sweep's mean spacing is its near field's: at 4 spacings its far points get no normal and
 # the yaw rests on the ground near the sensor (twice the rotation error on the dev sweeps).
@@ -86,17 +86,17 @@ def icp_passes(source: np.ndarray, target: np.ndarray, init: np.ndarray, distanc
   `distance` of the target at the first pass's pose (`overlap_points`): on a partial overlap
   all of them can pair, instead of the overlap's share of a uniform subset. `target_spacing`:
   the target's mean nearest-neighbor spacing where measured already (the target normals'
-  radius cap, `icp_host.normal_radius`)."""
+  radius cap, `icp_normals.normal_radius`)."""
   if not fine or iterations == 0:
     normals = None
     if mode == "point_to_plane":  # the grid point_to_plane_icp would build, built once
       grid = grid if grid is not None else engine.knn_grid(np.asarray(target, np.float64))
-      normals = icp_host.TargetNormals(target, distance, grid, spacing=target_spacing)
+      normals = icp_normals.TargetNormals(target, distance, grid, spacing=target_spacing)
     return icp(source, target, init, max_distance=distance, iterations=iterations,
                target_grid=grid, target_normals=normals, mode=mode)
   target = np.asarray(target, np.float64)
   grid = grid if grid is not None else engine.Grid(target, distance)
-  normals = (icp_host.TargetNormals(target, distance, grid, spacing=target_spacing)
+  normals = (icp_normals.TargetNormals(target, distance, grid, spacing=target_spacing)
              if mode == "point_to_plane" else None)
   kw: dict[str, Any] = dict(target_grid=grid, target_normals=normals, mode=mode)
   coarse, _, _ = icp(source, target, init, max_distance=distance, iterations=iterations, **kw)
@@ -182,14 +182,15 @@ def register_from_init(source: Any, target: Any, init: Any, opts: RegisterOption
                          f"{len(cloud.points)}")
     if dst.faces is not None:  # ICP reads the target's points only
       dst = CheckedCloud(dst.points, name="target")
-    mr, thinned, voxel = working_clouds(src, dst, opts.mr, opts.voxel_size)
+    mr, thinned, voxel = working_clouds(src, dst, opts.inputs.mr, opts.inputs.voxel_size)
     src_pts, dst_pts = thinned[0][0].points, thinned[1][0].points
-    rng = np.random.default_rng(validate_seed(opts.seed))
+    rng = np.random.default_rng(validate_seed(opts.inputs.seed))
   with timer("icp"):
-    distance = opts.icp_mr * mr
+    icp_opts = opts.icp
+    distance = icp_opts.icp_mr * mr
     final, fitness, rmse = icp_passes(icp_subset(src_pts, rng), dst_pts, init, distance,
-                                      opts.icp_fine, mr, int(opts.icp_iterations), None,
-                                      opts.icp_mode, pool=src_pts, rng=rng)
+                                      icp_opts.icp_fine, mr, int(icp_opts.icp_iterations), None,
+                                      icp_opts.icp_mode, pool=src_pts, rng=rng)
   return Registration(transform=final, coarse_transform=init, inliers=np.zeros(0, bool),
                       n_inliers=0, correspondences=np.zeros((0, 2), np.int64), fitness=fitness,
                       rmse=rmse, mr=float(mr), seconds=timer.total(),
@@ -220,7 +221,7 @@ class Refined(NamedTuple):
   icp_points: np.ndarray
 
 
-def refine(prepared: Prepared, verified: Verified, opts: RegisterOptions, timer: StageTimer
+def refine(prepared: Prepared, verified: Verified, icp_opts: IcpOptions, timer: StageTimer
            ) -> Refined:
   """Stages "icp" (`icp_passes` from the coarse pose on up to `ICP_POINTS` seeded source
   points) and the overlap's constraints (`overlap_constraints`, timed as "verification"); for a
@@ -232,27 +233,27 @@ def refine(prepared: Prepared, verified: Verified, opts: RegisterOptions, timer:
   with timer("icp"):
     icp_src = icp_subset(src_pts, prepared.rng)
     final, fitness, rmse = icp_passes(icp_src, dst_pts, verified.coarse.transform,
-                                      verified.overlap_distance, opts.icp_fine, prepared.mr,
-                                      int(opts.icp_iterations), verified.target_grid,
-                                      opts.icp_mode, pool=src_pts, rng=prepared.rng,
+                                      verified.overlap_distance, icp_opts.icp_fine, prepared.mr,
+                                      int(icp_opts.icp_iterations), verified.target_grid,
+                                      icp_opts.icp_mode, pool=src_pts, rng=prepared.rng,
                                       target_spacing=dst_spacing)
   with timer("verification"), serial_blas():
     degeneracy, free = overlap_constraints(icp_src, dst_pts, verified.target_grid, final,
                                            verified.overlap_distance)
-  if any(side.raw is not None for side in prepared.sides) and opts.icp_iterations > 0:
+  if any(side.raw is not None for side in prepared.sides) and icp_opts.icp_iterations > 0:
     with timer("icp"):
       src_in, dst_in = (side.points if side.raw is None else side.raw for side in prepared.sides)
-      final = raw_pass(src_in, dst_in, final, prepared.mr, opts, prepared.seed,
+      final = raw_pass(src_in, dst_in, final, prepared.mr, icp_opts, prepared.seed,
                        prepared.sides[1].input_spacing)
   return Refined(final, fitness, rmse, degeneracy, free, icp_src)
 
 
 def raw_pass(source: np.ndarray, target: np.ndarray, pose: np.ndarray, mr: float,
-             opts: RegisterOptions, seed: int, target_spacing: float | None = None
+             icp_opts: IcpOptions, seed: int, target_spacing: float | None = None
              ) -> np.ndarray:
-  """The last ICP pass of a pair thinned by default: `opts.icp_mode` ICP of up to
+  """The last ICP pass of a pair thinned by default: `icp_opts.icp_mode` ICP of up to
   `RAW_ICP_POINTS` input source points (drawn with `seed`) against the input target points
-  (`icp_host.estimate_target_normals` for a pairing distance of `RAW_NORMAL_MR` mr: a radius of
+  (`icp_normals.estimate_target_normals` for a pairing distance of `RAW_NORMAL_MR` mr: a radius of
   at most `RAW_NORMAL_SPACINGS` mean input spacings, so their cost grows with the points, not
   with their density), from
   `pose`, at the gates `RAW_GATES_MR` mr in turn. The thinned clouds' voxel centroids stand a
@@ -264,7 +265,7 @@ def raw_pass(source: np.ndarray, target: np.ndarray, pose: np.ndarray, mr: float
     source, target: (n, 3), (m, 3) the input clouds (a side not thinned: its working points).
     pose: (4, 4) the thinned clouds' ICP pose, source -> target.
     mr: the working resolution (cloud units).
-    opts: the options (`icp_mode`, `icp_iterations`).
+    icp_opts: the ICP options (`icp_mode`, `icp_iterations`).
     seed: seeds the draw.
     target_spacing: the target's mean nearest-neighbor spacing where measured already
       (`Side.input_spacing`); None measures it.
@@ -275,13 +276,14 @@ def raw_pass(source: np.ndarray, target: np.ndarray, pose: np.ndarray, mr: float
   src = icp_subset(np.asarray(source, np.float64), np.random.default_rng(seed), RAW_ICP_POINTS)
   dst = np.asarray(target, np.float64)
   grid = engine.knn_grid(dst)
-  plane = opts.icp_mode == "point_to_plane"
-  normals = (icp_host.TargetNormals(dst, RAW_NORMAL_MR * mr, grid, spacings=RAW_NORMAL_SPACINGS,
+  plane = icp_opts.icp_mode == "point_to_plane"
+  normals = (icp_normals.TargetNormals(dst, RAW_NORMAL_MR * mr, grid, spacings=RAW_NORMAL_SPACINGS,
                                     spacing=target_spacing) if plane else None)
   tr, fitness = pose, 0.0
   for gate in RAW_GATES_MR:
-    tr, fitness, _ = icp(src, dst, tr, max_distance=gate * mr, iterations=int(opts.icp_iterations),
-                         target_grid=grid, target_normals=normals, mode=opts.icp_mode)
+    tr, fitness, _ = icp(src, dst, tr, max_distance=gate * mr,
+                         iterations=int(icp_opts.icp_iterations), target_grid=grid,
+                         target_normals=normals, mode=icp_opts.icp_mode)
   if fitness * len(src) < icp_host.MIN_PAIRS or not np.all(np.isfinite(tr)):
     return pose
   shift = np.linalg.norm(src @ (tr[:3, :3] - pose[:3, :3]).T + (tr[:3, 3] - pose[:3, 3]), axis=1)

@@ -41,7 +41,7 @@ class Registration:
     overlap: the estimated overlap: the fraction of the ICP's source points within icp_mr mr of
       the target under `transform` (the same number as `fitness`).
     rival_inliers: the most inliers outside the winner's of a hypothesis distinct from the winner
-    (`_rival_inliers`).
+      (`_rival_inliers`).
     estimated: False when no pose hypothesis could be built from the correspondences (the graph
       estimator finds no two of them compatible, e.g. at a tiny `inlier_mr`): `transform` and
       `coarse_transform` are then the identity, not an estimate, `success` is False and

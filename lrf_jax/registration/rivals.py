@@ -14,7 +14,7 @@ from typing import NamedTuple
 
 import numpy as np
 
-from lrf_jax.registration import graph, host, icp_host
+from lrf_jax.registration import graph, host, icp_normals
 from lrf_jax.registration.estimators import _centred, _triples
 from lrf_jax.registration.evidence import CHANCE_SHUFFLES, RIVAL_DEG, constraint_spectrum
 from lrf_jax.search import engine
@@ -188,7 +188,7 @@ def rest_rival(rs, ts, ev: EvidenceSet, threshold, r, t, near, radius, rival, sr
 def overlap_constraints(source, target, grid, transform, distance) -> tuple[float, str]:
   """`constraint_spectrum` of the overlap under `transform`: the `source` points within
   `distance` of the target, with the target's PCA normals at their nearest points (radius
-  `icp_host.normal_radius` over those points' spacing, computed at those points only)."""
+  `icp_normals.normal_radius` over those points' spacing, computed at those points only)."""
   source = np.asarray(source, np.float64)
   source = source[::max(1, -(-len(source) // CONSTRAINT_POINTS))]  # an even, deterministic subset
   moved = source @ transform[:3, :3].T + transform[:3, 3]
@@ -199,7 +199,7 @@ def overlap_constraints(source, target, grid, transform, distance) -> tuple[floa
   near = np.asarray(target, np.float64)[np.unique(idx[ok, 0])]
   gaps = engine.knn(grid, near, 2)[0][:, 1]
   spacing = float(np.mean(gaps[np.isfinite(gaps)])) if np.isfinite(gaps).any() else 0.0
-  radius = icp_host.normal_radius(near, distance, grid, spacing=spacing)
+  radius = icp_normals.normal_radius(near, distance, grid, spacing=spacing)
   count, _, cov = engine.ball_stats(grid, near, radius)
   _, vec = np.linalg.eigh(cov)
   normals = np.where((count >= 3)[:, None], vec[:, :, 0], np.nan)

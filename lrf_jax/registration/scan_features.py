@@ -26,7 +26,8 @@ from lrf_jax.frames import METHODS
 from lrf_jax.geometry.cloud import as_cloud
 from lrf_jax.registration import stages
 from lrf_jax.registration.effort import EFFORT_SEEDS, high_effort_options, pool
-from lrf_jax.registration.options import RegisterOptions, resolve
+from lrf_jax.registration.options import (DescribeOptions, KeypointOptions, RegisterOptions,
+                                          resolve)
 from lrf_jax.registration.pipeline import conclude
 from lrf_jax.registration.result import Registration
 
@@ -67,15 +68,16 @@ class ScanFeatures(NamedTuple):
 
 
 def _describe_options(opts: RegisterOptions) -> tuple[Any, ...]:
-  return tuple(getattr(opts, f) for f in DESCRIBE_FIELDS)
+  flat = opts.as_dict()
+  return tuple(flat[f] for f in DESCRIBE_FIELDS)
 
 
-def _run(side: stages.Side, mr: float, radius: float, seed: int, opts: RegisterOptions,
+def _run(side: stages.Side, mr: float, radius: float, seed: int, description: DescribeOptions,
          params: Any) -> SideRun:
   """`stages.describe` of one side (a one-sided `Prepared`)."""
   prepared = stages.Prepared(cast(Any, (side,)), mr, radius, np.random.default_rng(seed), seed,
                              0.0)
-  features = stages.describe(prepared, opts, params, stages.StageTimer())
+  features = stages.describe(prepared, description, params, stages.StageTimer())
   return SideRun(side, features.frames[0], features.descriptors[0])
 
 
@@ -112,30 +114,32 @@ def describe_scan(scan: Any, options: RegisterOptions | None = None, *, mr: floa
   cloud = as_cloud(scan, name)
   if len(cloud.points) < 10:
     raise ValueError(f"{name}: expected a cloud of at least 10 points, got {len(cloud.points)}")
-  if METHODS[opts.method].needs_mesh and cloud.faces is None:
-    raise ValueError(f"{name}: method {opts.method!r} needs a triangle mesh")
+  description = opts.description
+  if METHODS[description.method].needs_mesh and cloud.faces is None:
+    raise ValueError(f"{name}: method {description.method!r} needs a triangle mesh")
   view = validate_viewpoint(viewpoint, "viewpoint")
-  seed = validate_seed(opts.seed)
+  seed = validate_seed(opts.inputs.seed)
   mr = float(mr)
-  working, index, voxel = stages.working_cloud(cloud, mr, opts.voxel_size, name=name)
-  radius = validate_radius(opts.radius_mr * mr)
-  wide = high_effort_options(opts) if opts.effort == "high" else opts
-  seeds = [seed + k for k in range(EFFORT_SEEDS if opts.effort == "high" else 1)]
-  base = stages.prepare_side(working, index, view, mr, radius, wide,
+  working, index, voxel = stages.working_cloud(cloud, mr, opts.inputs.voxel_size, name=name)
+  radius = validate_radius(description.radius_mr * mr)
+  high = opts.verdict.effort == "high"
+  detection = (high_effort_options(opts) if high else opts).detection
+  seeds = [seed + k for k in range(EFFORT_SEEDS if high else 1)]
+  base = stages.prepare_side(working, index, view, mr, radius, detection, description,
                              np.random.default_rng(seeds[0]))
   runs, evidence = [], []
   for s in seeds:
-    side = base if s == seeds[0] else _redraw(base, mr, wide, s)
-    runs.append(_run(side, mr, radius, s, wide, params))
-    if wide.keypoints != "random":  # the default detector's keypoints, for the verdict
-      plain = wide.with_overrides(keypoints="random")
-      evidence.append(_run(_redraw(base, mr, plain, s), mr, radius, s, plain, params))
+    side = base if s == seeds[0] else _redraw(base, mr, detection, s)
+    runs.append(_run(side, mr, radius, s, description, params))
+    if detection.keypoints != "random":  # the default detector's keypoints, for the verdict
+      plain = detection.with_overrides(keypoints="random")
+      evidence.append(_run(_redraw(base, mr, plain, s), mr, radius, s, description, params))
   return ScanFeatures(mr, voxel, tuple(runs), tuple(evidence), _describe_options(opts))
 
 
-def _redraw(side: stages.Side, mr: float, opts: RegisterOptions, seed: int) -> stages.Side:
+def _redraw(side: stages.Side, mr: float, detection: KeypointOptions, seed: int) -> stages.Side:
   """`side` with its keypoints drawn again from a generator of `seed` (`stages.reseed`)."""
-  kp = stages.draw_keypoints(side.points, mr, opts, np.random.default_rng(seed))
+  kp = stages.draw_keypoints(side.points, mr, detection, np.random.default_rng(seed))
   return side._replace(keypoints=np.asarray(kp, np.int64))
 
 
@@ -168,10 +172,10 @@ def register_scans(source: ScanFeatures, target: ScanFeatures,
     if not (a == b == own):
       raise ValueError(f"{field}: the features were described with {a!r} (source) and {b!r} "
                        f"(target), the options say {own!r}")
-  seed = validate_seed(opts.seed)
-  wide = high_effort_options(opts) if opts.effort == "high" else opts
+  seed = validate_seed(opts.inputs.seed)
+  wide = high_effort_options(opts) if opts.verdict.effort == "high" else opts
   timer = stages.StageTimer()
-  radius = validate_radius(opts.radius_mr * source.mr)
+  radius = validate_radius(opts.description.radius_mr * source.mr)
   voxel = target.voxel or source.voxel
   runs = []
   with timer("matching"):
@@ -180,11 +184,11 @@ def register_scans(source: ScanFeatures, target: ScanFeatures,
                                  np.random.default_rng(seed + k), seed + k, voxel)
       features = stages.Features((a.frames, b.frames), (a.descriptors, b.descriptors))
       matches = stages.match(features, wide)
-      if wide.keypoints != "random":
+      if wide.detection.keypoints != "random":
         ea, eb = source.evidence[k], target.evidence[k]
         sampled = prepared._replace(sides=(ea.side, eb.side))
         matches = stages.with_evidence(matches, sampled, stages.Features(
-            (ea.frames, eb.frames), (ea.descriptors, eb.descriptors)), wide)
+            (ea.frames, eb.frames), (ea.descriptors, eb.descriptors)), wide.matching)
       runs.append((prepared, features, matches))
   prepared, features, matches = runs[0] if len(runs) == 1 else pool(runs)
   return conclude(prepared, features, matches, opts, timer)

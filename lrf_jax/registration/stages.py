@@ -1,5 +1,6 @@
-"""The stages of `register`, each a function of the previous stages' typed results and the
-`RegisterOptions`:
+"""The stages of `register`, each a function of the previous stages' typed results and its group
+of `RegisterOptions` (`prepare`, `match` and `default_evidence`, which read several groups, take
+the whole options):
 
   prepare      read and check the clouds, the working resolution, thinning, keypoints, normals
   describe     the keypoints' LRFs and descriptors (`Features`)
@@ -31,7 +32,8 @@ from lrf_jax.geometry.resolution import Resolution, pair_resolution, registratio
 from lrf_jax.geometry.sampling import thin_cloud, thinning_voxel_size
 from lrf_jax.registration import host
 from lrf_jax.registration.estimators import _centred, _finish, _uncentre
-from lrf_jax.registration.options import RegisterOptions, check_voxel_size
+from lrf_jax.registration.options import (DescribeOptions, HypothesisOptions, KeypointOptions,
+                                          MatchOptions, RegisterOptions, check_voxel_size)
 from lrf_jax.registration.rivals import (REST_FACTOR, EvidenceSet, chance_inliers,
                                          evidence_set, overlap_scores, pose_hypotheses,
                                          rest_hypotheses, rest_rival, rival_inliers)
@@ -148,19 +150,21 @@ def prepare(source: Any, target: Any, opts: RegisterOptions) -> Prepared:
   for name, cloud in zip(("source", "target"), clouds):
     if len(cloud.points) < 10:
       raise ValueError(f"{name}: expected a cloud of at least 10 points, got {len(cloud.points)}")
-  seed = validate_seed(opts.seed)
-  spec = METHODS[opts.method]
+  inputs = opts.inputs
+  seed = validate_seed(inputs.seed)
+  spec = METHODS[opts.description.method]
   if spec.needs_mesh and any(c.faces is None for c in clouds):
-    raise ValueError(f"method {opts.method!r} needs triangle meshes on both sides")
+    raise ValueError(f"method {opts.description.method!r} needs triangle meshes on both sides")
   views = [validate_viewpoint(vp, name) for name, vp in
-           (("source_viewpoint", opts.source_viewpoint), ("target_viewpoint", opts.target_viewpoint))]
-  mr, thinned, voxel = working_clouds(clouds[0], clouds[1], opts.mr, opts.voxel_size)
-  radius = opts.radius_mr * mr
+           (("source_viewpoint", inputs.source_viewpoint),
+            ("target_viewpoint", inputs.target_viewpoint))]
+  mr, thinned, voxel = working_clouds(clouds[0], clouds[1], inputs.mr, inputs.voxel_size)
+  radius = opts.description.radius_mr * mr
   rng = np.random.default_rng(seed)
-  sides = [prepare_side(cloud, index, vp, mr, radius, opts, rng)._replace(
-      input_spacing=res.mean_spacing if c.faces is None else None)  # a mesh's is its edges'
-           for (cloud, index, res), vp, c in zip(thinned, views, clouds)]
-  if opts.voxel_size is None:  # thinned by default: refine's last pass pairs the input points
+  sides = [prepare_side(cloud, index, vp, mr, radius, opts.detection, opts.description, rng
+                        )._replace(input_spacing=res.mean_spacing if c.faces is None else None)
+           for (cloud, index, res), vp, c in zip(thinned, views, clouds)]  # a mesh: its edges'
+  if inputs.voxel_size is None:  # thinned by default: refine's last pass pairs the input points
     sides = [side if side.input_index is None else side._replace(raw=c.points)
              for side, c in zip(sides, clouds)]
   # checked last, where `compute_frames` checked it: the same ValueError after the same steps
@@ -169,40 +173,42 @@ def prepare(source: Any, target: Any, opts: RegisterOptions) -> Prepared:
 
 
 def prepare_side(cloud: CheckedCloud, index: np.ndarray | None, viewpoint: np.ndarray | None,
-                 mr: float, radius: float, opts: RegisterOptions, rng: np.random.Generator
-                 ) -> Side:
+                 mr: float, radius: float, detection: KeypointOptions,
+                 description: DescribeOptions, rng: np.random.Generator) -> Side:
   """One working cloud as the later stages take it: its keypoints (`draw_keypoints` from `rng`)
-  and, where `opts.method` or a SHOT descriptor needs them and a viewpoint is known, normals
-  towards `viewpoint` at `NORMAL_RADIUS_RATIO` x `radius` (normals a file carried are dropped:
-  they are estimated at the support radius, not read)."""
-  spec = METHODS[opts.method]
+  and, where `description.method` or a SHOT descriptor needs them and a viewpoint is known,
+  normals towards `viewpoint` at `NORMAL_RADIUS_RATIO` x `radius` (normals a file carried are
+  dropped: they are estimated at the support radius, not read)."""
+  spec = METHODS[description.method]
   pts = cloud.points
   if cloud.normals is not None:
     cloud = cloud.with_normals(None)
-  kp = draw_keypoints(pts, mr, opts, rng)
+  kp = draw_keypoints(pts, mr, detection, rng)
   normals = None
-  if viewpoint is not None and (spec.needs_normals or opts.descriptor == "shot"):
+  if viewpoint is not None and (spec.needs_normals or description.descriptor == "shot"):
     normals = estimate_normals(pts, NORMAL_RADIUS_RATIO * radius, cloud.faces, viewpoint)
     if not spec.uses_viewpoint:  # the frames read them too
       cloud = cloud.with_normals(normals)
   return Side(cloud, viewpoint, np.asarray(kp, np.int64), normals, index)
 
 
-def draw_keypoints(points: np.ndarray, mr: float, opts: RegisterOptions,
+def draw_keypoints(points: np.ndarray, mr: float, detection: KeypointOptions,
                    rng: np.random.Generator) -> np.ndarray:
-  """A cloud's keypoints (indices into `points`): ISS (`opts.keypoints="iss"`, at most
-  `opts.n_keypoints`) or `opts.n_keypoints` sorted seeded random points drawn from `rng`."""
-  if opts.keypoints == "iss":
-    return iss_keypoints(points, mr=mr, max_keypoints=int(opts.n_keypoints))
-  return np.sort(rng.choice(len(points), min(int(opts.n_keypoints), len(points)), replace=False))
+  """A cloud's keypoints (indices into `points`): ISS (`detection.keypoints="iss"`, at most
+  `detection.n_keypoints`) or `detection.n_keypoints` sorted seeded random points drawn from
+  `rng`."""
+  count = int(detection.n_keypoints)
+  if detection.keypoints == "iss":
+    return iss_keypoints(points, mr=mr, max_keypoints=count)
+  return np.sort(rng.choice(len(points), min(count, len(points)), replace=False))
 
 
-def reseed(prepared: Prepared, opts: RegisterOptions, seed: int) -> Prepared:
+def reseed(prepared: Prepared, detection: KeypointOptions, seed: int) -> Prepared:
   """`prepared` with each side's keypoints drawn again (`draw_keypoints`) from `seed`'s stream,
   and `seed` for the later stages' draws: the same working clouds, normals and resolution."""
   rng = np.random.default_rng(validate_seed(seed))
   sides = tuple(side._replace(keypoints=np.asarray(draw_keypoints(side.points, prepared.mr,
-                                                                  opts, rng), np.int64))
+                                                                  detection, rng), np.int64))
                 for side in prepared.sides)
   return prepared._replace(sides=cast("tuple[Side, Side]", sides), rng=rng, seed=int(seed))
 
@@ -263,31 +269,32 @@ def input_indices(prepared: Prepared, src: np.ndarray, dst: np.ndarray) -> np.nd
   return np.stack(cols, axis=1).astype(np.int64)
 
 
-def describe(prepared: Prepared, opts: RegisterOptions, params: Any, timer: StageTimer
+def describe(prepared: Prepared, description: DescribeOptions, params: Any, timer: StageTimer
              ) -> Features:
-  """Stages "frames" and "descriptors": each side's LRFs (`opts.method`) and descriptors
-  (`opts.descriptor`) at its keypoints, as numpy arrays (no JAX imported where host kernels
+  """Stages "frames" and "descriptors": each side's LRFs (`description.method`) and descriptors
+  (`description.descriptor`) at its keypoints, as numpy arrays (no JAX imported where host kernels
   compute them).
 
   A viewpoint-aware method (lrf_net_plus) given neither a viewpoint nor a mesh takes its z sign
   from each patch (`oriented_sign=False`) rather than from normals oriented over the whole
   cloud: that orientation costs about a second per cloud and, measured on the registration
   benchmark, does not register more pairs."""
-  spec = METHODS[opts.method]
+  method, descriptor = description.method, description.descriptor
+  spec = METHODS[method]
   frames, descs = [], []
   with timer("frames"):
     for side in prepared.sides:
       options: dict[str, Any] = (
           {"oriented_sign": False}
           if spec.uses_viewpoint and side.viewpoint is None and side.faces is None else {})
-      out = compute_frames(side.cloud, side.keypoints, prepared.radius, opts.method,
+      out = compute_frames(side.cloud, side.keypoints, prepared.radius, method,
                            params=params, seed=prepared.seed, viewpoint=side.viewpoint,
                            as_numpy=True, voxel_size=0, **options)  # working clouds already
       frames.append((np.asarray(out[0]), np.asarray(out[1])))
   with timer("descriptors"):
     for side, (f, v) in zip(prepared.sides, frames):
       d, ok = compute_descriptors(side.cloud, side.keypoints, prepared.radius, f, v,
-                                  opts.descriptor, faces=side.faces, seed=prepared.seed,
+                                  descriptor, faces=side.faces, seed=prepared.seed,
                                   normals=side.normals)
       descs.append((np.asarray(d), np.asarray(ok)))
   return Features(cast(Any, tuple(frames)), cast(Any, tuple(descs)))
@@ -311,20 +318,24 @@ def _select(features: Features, estimator: str, n_correspondences: int, radius_m
 
 
 def match(features: Features, opts: RegisterOptions) -> Matches:
-  """Stage "matching": the correspondences of `opts` (`_select`) and the default matching's,
-  which the verdict counts on whatever option chose the hypotheses' (none when there is none
-  with two valid frames)."""
-  qi, ri = _select(features, opts.estimator, int(opts.n_correspondences), opts.radius_mr,
-                   opts.mutual, opts.ratio)
-  own = (opts.estimator == "graph" and not opts.mutual and opts.ratio is None
-         and opts.keypoints == "random")
+  """Stage "matching": the correspondences of `opts.matching` for `opts.hypotheses.estimator`
+  (`_select`) and the default matching's, which the verdict counts on whatever option chose the
+  hypotheses' (none when there is none with two valid frames); the default's are the same
+  correspondences for the default estimator, matching and detector (`opts.detection`)."""
+  matching, estimator = opts.matching, opts.hypotheses.estimator
+  n = int(matching.n_correspondences)
+  qi, ri = _select(features, estimator, n, opts.description.radius_mr, matching.mutual,
+                   matching.ratio)
+  detector = opts.detection.keypoints
+  own = (estimator == "graph" and not matching.mutual and matching.ratio is None
+         and detector == "random")
   if own:
     return Matches(qi, ri, qi, ri, True)
-  if opts.keypoints != "random":  # the evidence is the default detector's: `default_evidence`
+  if detector != "random":  # the evidence is the default detector's: `default_evidence`
     empty = np.zeros(0, np.int64)
     return Matches(qi, ri, empty, empty, False)
   try:
-    eqi, eri = _select(features, "graph", int(opts.n_correspondences), 0.0)
+    eqi, eri = _select(features, "graph", n, 0.0)
   except ValueError:
     eqi, eri = np.zeros(0, np.int64), np.zeros(0, np.int64)
   return Matches(qi, ri, eqi, eri, False)
@@ -338,22 +349,22 @@ def default_evidence(prepared: Prepared, matches: Matches, opts: RegisterOptions
   two identical copies of an object sends every match to one copy, and its correspondences
   could never witness the other; independent random keypoints on each copy split them, as for
   the default, so no detector claims what the default's evidence would not."""
-  if opts.keypoints == "random":
+  if opts.detection.keypoints == "random":
     return matches
-  plain = opts.with_overrides(keypoints="random")
+  plain = opts.detection.with_overrides(keypoints="random")
   sampled = reseed(prepared, plain, prepared.seed)
-  features = describe(sampled, plain, params, timer)
+  features = describe(sampled, opts.description, params, timer)
   with timer("matching"):
-    return with_evidence(matches, sampled, features, opts)
+    return with_evidence(matches, sampled, features, opts.matching)
 
 
 def with_evidence(matches: Matches, sampled: Prepared, features: Features,
-                  opts: RegisterOptions) -> Matches:
+                  matching: MatchOptions) -> Matches:
   """`matches` with the evidence of the default matching between the seeded random keypoints
   of `sampled` (described in `features`): their world points and frames, and the indices of
   the correspondences among them (none when they give no match)."""
   try:
-    eqi, eri = _select(features, "graph", int(opts.n_correspondences), 0.0)
+    eqi, eri = _select(features, "graph", int(matching.n_correspondences), 0.0)
   except ValueError:
     eqi, eri = np.zeros(0, np.int64), np.zeros(0, np.int64)
   return matches._replace(evidence_source=eqi, evidence_target=eri, own=False,
@@ -368,15 +379,16 @@ def _keypoint_points(prepared: Prepared, features: Features, src: np.ndarray, ds
 
 
 def hypothesize(prepared: Prepared, features: Features, matches: Matches,
-                opts: RegisterOptions) -> Hypotheses | None:
-  """Stage "hypotheses": poses from the correspondences (`pose_hypotheses` of `opts.estimator`),
-  their inlier counts at inlier_mr mr, and the evidence set (the default matching's, with the
-  compatibility graph's hypotheses) with its chance level. None: no hypothesis could be built."""
-  threshold = float(opts.inlier_mr * prepared.mr)
-  iterations, radius, seed = int(opts.iterations), prepared.radius, prepared.seed
+                hypotheses: HypothesisOptions) -> Hypotheses | None:
+  """Stage "hypotheses": poses from the correspondences (`pose_hypotheses` of
+  `hypotheses.estimator`), their inlier counts at inlier_mr mr, and the evidence set (the
+  default matching's, with the compatibility graph's hypotheses) with its chance level. None: no
+  hypothesis could be built."""
+  threshold = float(hypotheses.inlier_mr * prepared.mr)
+  iterations, radius, seed = int(hypotheses.iterations), prepared.radius, prepared.seed
   p, q, f_p, f_q = _keypoint_points(prepared, features, matches.source, matches.target)
   src, dst, cs, cd = _centred(p, q)
-  rs, ts = pose_hypotheses(src, dst, f_p, f_q, opts.estimator, iterations, radius, seed,
+  rs, ts = pose_hypotheses(src, dst, f_p, f_q, hypotheses.estimator, iterations, radius, seed,
                            threshold)
   if len(rs) == 0:
     return None
@@ -393,19 +405,22 @@ def hypothesize(prepared: Prepared, features: Features, matches: Matches,
   return Hypotheses(src, dst, cs, cd, rs, ts, counts, ev, chance)
 
 
-def verify(prepared: Prepared, hyps: Hypotheses, opts: RegisterOptions, own: bool) -> Verified:
-  """Stage "verification": the winner (the most inliers for "graph"; the best overlap among the
-  `opts.verify` best-scoring hypotheses for "lrf" and "3point"), refitted by Kabsch on its
-  inliers, its inliers among the evidence correspondences and the best rival's (`_rivals`)."""
-  threshold = float(opts.inlier_mr * prepared.mr)
-  overlap_distance = opts.icp_mr * prepared.mr
+def verify(prepared: Prepared, hyps: Hypotheses, hypotheses: HypothesisOptions, icp_mr: float,
+           own: bool) -> Verified:
+  """Stage "verification": the winner (the most inliers for "graph"; the best overlap within
+  `icp_mr` mr among the `hypotheses.verify` best-scoring hypotheses for "lrf" and "3point"),
+  refitted by Kabsch on its inliers, its inliers among the evidence correspondences and the best
+  rival's (`_rivals`)."""
+  threshold = float(hypotheses.inlier_mr * prepared.mr)
+  overlap_distance = icp_mr * prepared.mr
   target_grid = engine.Grid(prepared.sides[1].points, overlap_distance)
   best, fits = _rerank(hyps, prepared.sides[0].points, target_grid, overlap_distance,
-                       0 if opts.estimator == "graph" else opts.verify, prepared.rng)
+                       0 if hypotheses.estimator == "graph" else hypotheses.verify, prepared.rng)
   r, t, mask = host.select_and_refine(hyps.rotations[best], hyps.translations[best], hyps.src,
                                       hyps.dst, threshold)
   coarse = _finish(*_uncentre(r, t, hyps.cs, hyps.cd), mask, best, hyps.counts[best])
-  ev_mask, rival = _rivals(prepared, hyps, (r, t, mask), own, threshold, int(opts.iterations),
+  ev_mask, rival = _rivals(prepared, hyps, (r, t, mask), own, threshold,
+                           int(hypotheses.iterations),
                            target_grid, overlap_distance)
   return Verified(coarse, fits, ev_mask, rival, target_grid, overlap_distance)
 

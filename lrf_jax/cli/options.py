@@ -227,10 +227,16 @@ def options_table(cls: type) -> str:
 
 if __name__ == "__main__":  # python -m lrf_jax.cli.options --docs docs/ [--check]
   import argparse
-  import importlib
   import re
   import sys
   from pathlib import Path
+
+  from lrf_jax.batch.scan_frames import FrameOptions
+  from lrf_jax.multiway.options import GraphOptions
+  from lrf_jax.registration.options import GROUPS
+
+  _classes = {f"{c.__module__}.{c.__name__}": c
+              for c in (*GROUPS.values(), GraphOptions, FrameOptions)}
 
   _ap = argparse.ArgumentParser(prog="python -m lrf_jax.cli.options",
                                 description="Rewrite the options tables of the docs' pages "
@@ -241,9 +247,10 @@ if __name__ == "__main__":  # python -m lrf_jax.cli.options --docs docs/ [--chec
   _args = _ap.parse_args()
 
   def _table(m: re.Match) -> str:
-    module, _, name = m.group(1).rpartition(".")
-    cls = getattr(importlib.import_module(module), name)
-    return f"<!-- options: {m.group(1)} -->\n\n{options_table(cls)}\n<!-- /options -->"
+    if m.group(1) not in _classes:
+      sys.exit(f"error: no options class {m.group(1)}; expected one of {sorted(_classes)}")
+    return (f"<!-- options: {m.group(1)} -->\n\n{options_table(_classes[m.group(1)])}\n"
+            "<!-- /options -->")
 
   _stale = []
   for _page in sorted(Path(_args.docs).rglob("*.md")):

@@ -195,8 +195,8 @@ def register_all(scans: Sequence[Any], options: MultiwayOptions | None = None, *
     params: learned LRF parameters of every pair (None: the method's shipped weights).
     **overrides: fields of `MultiwayOptions` replacing those of `options`: every field of
       `RegisterOptions` but the viewpoints (e.g. `n_keypoints`, `radius_mr`, `method`), passed
-      to every pairwise registration, and those of the Keyword Args below (the tables of
-      options in the docs' Pipeline stages pages).
+      to every pairwise registration, and those listed below (the tables of options are in
+      the docs' Pipeline stages pages).
 
   Keyword Args:
     mr (float | None): mesh resolution in the clouds' units (None: the median of the scans' working

@@ -90,8 +90,8 @@ def register(source: Any, target: Any, options: RegisterOptions | None = None, *
     options: a `RegisterOptions` (None: `options.DEFAULTS`, every default below).
     params: learned LRF parameters (None: the method's shipped weights).
     init: optional (4, 4) initial source -> target transform: refine it by ICP only.
-    **overrides: fields of `RegisterOptions` replacing those of `options` (Keyword Args
-      below; each stage's table of options in the docs' Pipeline stages pages).
+    **overrides: fields of `RegisterOptions` replacing those of `options` (listed below;
+      each stage's table of options is in the docs' Pipeline stages pages).
 
   Keyword Args:
     mr (float | None): the working resolution in the clouds' units, the unit of every length

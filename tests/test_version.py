@@ -17,7 +17,7 @@ import pytest
 import lrf_jax
 
 ROOT = Path(__file__).resolve().parents[1]
-VERSION = "0.8.0"
+VERSION = "0.9.0"
 
 
 def test_pyproject_holds_the_version():

@@ -89,34 +89,50 @@ def is_current(record: dict[str, Any], keep_other_versions: bool = False) -> boo
 
 # --- one job per folder -----------------------------------------------------------------------
 
+try:  # POSIX file locks, released by the system when their process ends
+  import fcntl as _fcntl
+except ImportError:  # Windows
+  _fcntl = None  # type: ignore[assignment]
+
 class FolderInUse(ValueError):
   """Another job holds the folder's lock (the message names its host, pid and command)."""
+
+
+def _proc_stat(pid: int) -> list[str] | None:
+  """The fields of /proc/<pid>/stat after the command's name (Linux), or None."""
+  try:
+    return Path(f"/proc/{pid}/stat").read_text().rpartition(")")[2].split()
+  except OSError:
+    return None
 
 
 def _process_start(pid: int) -> str | None:
   """A token of when process `pid` started (Linux: /proc's start time in clock ticks), or None
   where it cannot be read: tells a live holder from a new process that reuses its pid."""
-  try:
-    stat = Path(f"/proc/{pid}/stat").read_text()
-  except OSError:
-    return None
-  return stat.rpartition(")")[2].split()[19]
+  stat = _proc_stat(pid)
+  return None if stat is None else stat[19]
 
 
 def _alive(pid: int, start: str | None) -> bool:
+  """Whether the process `pid` that started at `start` still runs: not gone, not a zombie (a
+  killed job whose parent has not collected it yet), not a later process with its pid."""
   try:
     os.kill(pid, 0)
   except ProcessLookupError:
     return False
   except PermissionError:  # another user's process: it exists
     pass
-  now = _process_start(pid)
+  stat = _proc_stat(pid)
+  if stat is not None and stat[0] in ("Z", "X"):
+    return False
+  now = None if stat is None else stat[19]
   return start is None or now is None or now == start
 
 
 class JobLock:
   """The lock of a job's folder: the file `path` holds the holder's host, pid, process start and
-  command; created exclusively (O_EXCL), so two jobs never both hold it.
+  command. On POSIX the holder also holds an exclusive `lockf` on it, which the system releases
+  when the holder ends in any way; elsewhere the file is created exclusively (`_create`).
 
   `acquire()` takes it or raises `FolderInUse` naming the holder. A lock left by a dead process
   of this host (its pid gone, or reused by a process that started later) is taken over with a
@@ -135,6 +151,7 @@ class JobLock:
                    command=command)
     self.held = False
     self.made: list[Path] = []
+    self.fd: int | None = None
 
   def _holder(self) -> dict[str, Any] | None:
     rec = read_record(self.path)
@@ -168,48 +185,112 @@ class JobLock:
       tmp.unlink(missing_ok=True)
 
   def acquire(self) -> JobLock:
-    import socket
-    import sys
+    """Take the lock, or raise `FolderInUse` naming its holder (class docstring)."""
     missing = [d for d in (self.path.parent, *self.path.parent.parents) if not d.exists()]
     self.path.parent.mkdir(parents=True, exist_ok=True)
     self.made = missing  # removed again on release when the job left them empty
-    for _ in range(3):  # a lock removed or taken over between our reads: try again
-      if self._create():
+    for _ in range(3):  # a lock released and made anew between our steps: try again
+      if (self._take_os_lock() if _fcntl is not None else self._take_file_lock()):
         self.held = True
         return self
-      if not self.path.is_file():
-        if not self.path.exists() and not self.path.is_symlink():
-          continue  # released between our two looks: try again
-        raise FolderInUse(f"{self.path}: expected this job folder's lock file, found "
-                          "something else; remove it if no job is running")
-      h = self._holder()
-      if h is None:  # not a lock of ours (written whole, never half): a damaged one
-        print(f"note: {self.path}: not a readable lock (damaged); taking it over",
-              file=sys.stderr)
-        self.path.unlink(missing_ok=True)
-        continue
-      same_host = h.get("host") == socket.gethostname()
-      if same_host and _alive(int(h["pid"]), h.get("start")):
-        raise FolderInUse(self._describe(h))
-      if not same_host and not self.force:
-        raise FolderInUse(self._describe(h) + "; if that job is gone, run again with --force "
-                          "(the folder is on a file system shared with that host)")
-      print(f"note: {self._describe(h).replace('is in use by', 'was locked by')}, which is no "
-            "longer running; taking its lock over", file=sys.stderr)
-      self.path.unlink(missing_ok=True)
     raise FolderInUse(f"{self.folder}: could not take the job lock {self.path}")
 
+  def _judge(self, h: dict[str, Any] | None, text: str) -> None:
+    """Raise `FolderInUse` unless the lock's content `text` (holder `h`) may be taken over: no
+    holder, a damaged lock, or a holder of this host that no longer runs (of another host: only
+    with `force`); print the note of a takeover."""
+    import socket
+    import sys
+    if not text.strip():
+      return
+    if h is None:
+      print(f"note: {self.path}: not a readable lock (damaged); taking it over", file=sys.stderr)
+      return
+    same_host = h.get("host") == socket.gethostname()
+    if same_host and _alive(int(h["pid"]), h.get("start")):
+      raise FolderInUse(self._describe(h))
+    if not same_host and not self.force:
+      raise FolderInUse(self._describe(h) + "; if that job is gone, run again with --force "
+                        "(the folder is on a file system shared with that host)")
+    print(f"note: {self._describe(h).replace('is in use by', 'was locked by')}, which is no "
+          "longer running; taking its lock over", file=sys.stderr)
+
+  def _take_os_lock(self) -> bool:
+    """POSIX: an exclusive `lockf` on the lock file, which the system releases when the holder
+    ends in any way (SIGKILL too); the content names the holder for messages and for a holder
+    on a file system that does not carry locks. False: the file changed under us, try again."""
+    assert _fcntl is not None
+    try:
+      fd = os.open(self.path, os.O_RDWR | os.O_CREAT, 0o644)
+    except OSError:
+      if self.path.exists() and not self.path.is_file():
+        raise FolderInUse(f"{self.path}: expected this job folder's lock file, found "
+                          "something else; remove it if no job is running") from None
+      raise
+    try:
+      _fcntl.lockf(fd, _fcntl.LOCK_EX | _fcntl.LOCK_NB)
+    except OSError:
+      os.close(fd)
+      h = self._holder()
+      raise FolderInUse(self._describe(h) if h is not None
+                        else f"{self.folder} is in use by another job") from None
+    try:
+      if os.stat(self.path).st_ino != os.fstat(fd).st_ino:  # released and made anew meanwhile
+        os.close(fd)
+        return False
+    except FileNotFoundError:
+      os.close(fd)
+      return False
+    text = Path(self.path).read_text(errors="replace")
+    try:
+      self._judge(self._holder(), text)
+    except BaseException:
+      os.close(fd)
+      raise
+    data = json.dumps(self.me).encode()
+    os.ftruncate(fd, 0)
+    os.pwrite(fd, data, 0)
+    os.fsync(fd)
+    self.fd = fd
+    return True
+
+  def _take_file_lock(self) -> bool:
+    """Where `lockf` does not exist: the lock file created whole (`_create`) or judged by its
+    content and removed (`_judge`)."""
+    if self._create():
+      return True
+    if not self.path.is_file():
+      if not self.path.exists() and not self.path.is_symlink():
+        return False  # released between our two looks
+      raise FolderInUse(f"{self.path}: expected this job folder's lock file, found "
+                        "something else; remove it if no job is running")
+    self._judge(self._holder(), self.path.read_text(errors="replace"))
+    self.path.unlink(missing_ok=True)
+    return False
+
   def release(self) -> None:
-    if self.held:
+    """Remove the lock if this process holds it, then the folders `acquire` made and the job
+    left empty."""
+    if not self.held:
+      return
+    if self.fd is not None:
+      try:
+        if os.stat(self.path).st_ino == os.fstat(self.fd).st_ino:
+          self.path.unlink()  # before the lock goes: a waiting job then finds no file
+      except OSError:
+        pass
+      os.close(self.fd)
+      self.fd = None
+    else:
       h = self._holder()
       if h is not None and h.get("pid") == self.me["pid"] and h.get("host") == self.me["host"]:
         self.path.unlink(missing_ok=True)
-      self.held = False
-      for d in self.made:  # deepest first: folders the lock made and the job left empty
-        try:
-          d.rmdir()
-        except OSError:
-          break
+    self.held = False
+    for d in self.made:  # deepest first: folders the lock made and the job left empty
+      try:
+        d.rmdir()
+      except OSError:
+        break
 
   def __enter__(self) -> JobLock:
     return self.acquire()

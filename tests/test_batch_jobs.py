@@ -487,11 +487,33 @@ def test_a_lock_whose_pid_was_reused_is_taken_over(tmp_path, scans, sleeper, cap
 
 @pytest.mark.parametrize("content", ["", "{not json", "[1, 2]"])
 def test_a_damaged_lock_is_taken_over_with_a_note(tmp_path, scans, capsys, content):
+  """Nobody holds a lock file that names no holder (POSIX: nobody holds its file lock); an empty
+  one is taken silently, one with other content with a note."""
   out = tmp_path / "out"
   _lock(out, pid=1).write_text(content)
   assert jobs.run_register(_tsv(tmp_path, scans, ("p0",)), out, progress=False,
                            **OPTS).exit_code == 0
-  assert "not a readable lock" in capsys.readouterr().err
+  assert ("not a readable lock" in capsys.readouterr().err) is bool(content)
+
+
+def test_a_lock_held_by_a_live_process_is_refused_whatever_its_content(tmp_path, scans):
+  """POSIX: the holder's file lock decides, also when the file names nobody (a job that has
+  not written its name yet)."""
+  fcntl = pytest.importorskip("fcntl")
+  out = tmp_path / "out"
+  path = _lock(out, pid=1)
+  path.write_text("")
+  code = (f"import fcntl, os, time; fd = os.open({str(path)!r}, os.O_RDWR); "
+          "fcntl.lockf(fd, fcntl.LOCK_EX); print('held', flush=True); time.sleep(60)")
+  holder = subprocess.Popen([sys.executable, "-c", code], stdout=subprocess.PIPE, text=True)
+  try:
+    assert holder.stdout.readline().strip() == "held"
+    with pytest.raises(records.FolderInUse, match="in use by another job"):
+      jobs.run_register(_tsv(tmp_path, scans, ("p0",)), out, progress=False, **OPTS)
+  finally:
+    holder.kill()
+    holder.wait()
+  assert fcntl is not None
 
 
 def test_something_else_at_the_locks_path_is_refused(tmp_path, scans):
@@ -499,3 +521,23 @@ def test_something_else_at_the_locks_path_is_refused(tmp_path, scans):
   (out / jobs.STATE / "lock").mkdir(parents=True)
   with pytest.raises(records.FolderInUse, match="lock file"):
     jobs.run_register(_tsv(tmp_path, scans, ("p0",)), out, progress=False, **OPTS)
+
+
+def test_a_lock_of_a_zombie_is_taken_over(tmp_path, scans, capsys):
+  """A killed job its parent has not collected yet (a zombie) holds nothing."""
+  proc = subprocess.Popen([sys.executable, "-c", "pass"])
+  t0 = time.monotonic()
+  while records._proc_stat(proc.pid) is not None and records._proc_stat(proc.pid)[0] != "Z":
+    assert time.monotonic() - t0 < 30
+    time.sleep(0.05)
+  if records._proc_stat(proc.pid) is None:
+    proc.wait()
+    pytest.skip("no /proc on this system")
+  try:
+    out = tmp_path / "out"
+    _lock(out, pid=proc.pid, start=records._process_start(proc.pid))
+    assert jobs.run_register(_tsv(tmp_path, scans, ("p0",)), out, progress=False,
+                             **OPTS).ran == 1
+    assert "taking its lock over" in capsys.readouterr().err
+  finally:
+    proc.wait()

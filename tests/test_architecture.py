@@ -253,3 +253,15 @@ def test_no_module_imports_the_package_itself():
 def _SUBPACKAGES() -> set[str]:  # noqa: N802 -- a constant, computed
   return {p.stem if p.suffix else p.name for p in PACKAGE.iterdir()
           if (p.is_dir() and (p / "__init__.py").exists()) or p.suffix == ".py"}
+
+
+def test_the_layout_pages_import_table_is_the_package_graph():
+  """docs/layout.md's "Packages and their imports" lists `package_graph()` as it is."""
+  text = (PACKAGE.parent / "docs" / "layout.md").read_text()
+  block = text.split("## Packages and their imports", 1)[1].split("```text\n", 1)[1]
+  listed = {}
+  for line in block.split("```", 1)[0].splitlines():
+    name, _, targets = line.partition("->")
+    listed[f"lrf_jax.{name.strip()}"] = {f"lrf_jax.{t.strip()}" for t in targets.split(",")
+                                         if t.strip() not in ("", "-")}
+  assert listed == package_graph()

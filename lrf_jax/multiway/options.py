@@ -144,12 +144,7 @@ def resolve(options: MultiwayOptions | None, overrides: dict[str, Any]) -> Multi
     TypeError: `options` that is not a `MultiwayOptions`, or an unknown override.
     ValueError: a value `register_all` would refuse.
   """
-  if options is None:
-    options = DEFAULTS
-  elif not isinstance(options, MultiwayOptions):
-    raise TypeError(f"options: expected a MultiwayOptions or None, got "
-                    f"{type(options).__name__}")
-  return options.with_overrides(**overrides)
+  return register_options.resolve_as(MultiwayOptions, DEFAULTS, options, overrides)
 
 
 DEFAULTS = MultiwayOptions()

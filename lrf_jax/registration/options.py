@@ -347,10 +347,21 @@ def resolve(options: RegisterOptions | None, overrides: dict[str, Any]) -> Regis
     TypeError: `options` that is not a `RegisterOptions`, or an unknown override.
     ValueError: a value `register` would refuse.
   """
+  return resolve_as(RegisterOptions, DEFAULTS, options, overrides)
+
+
+def resolve_as(cls: type, defaults: Any, options: Any, overrides: dict[str, Any]) -> Any:
+  """`options` of class `cls` (None: `defaults`) with `overrides` replaced by its
+  `with_overrides` (checked): the one rule of `resolve` for every options class.
+
+  Raises:
+    TypeError: `options` that is neither None nor a `cls`, or an unknown override.
+    ValueError: a value the options' check refuses.
+  """
   if options is None:
-    options = DEFAULTS
-  elif not isinstance(options, RegisterOptions):
-    raise TypeError(f"options: expected a RegisterOptions or None, got {type(options).__name__}")
+    options = defaults
+  elif not isinstance(options, cls):
+    raise TypeError(f"options: expected a {cls.__name__} or None, got {type(options).__name__}")
   return options.with_overrides(**overrides)
 
 

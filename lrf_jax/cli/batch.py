@@ -30,6 +30,19 @@ from lrf_jax.cli.options import add_frame_flags
 _NOT_BATCH = ("out", "png", "checkpoint", "init", "best_guess")
 
 
+# The job's on/off flags and their help.
+_SWITCHES = (
+    ("--no-progress", "no progress bar"),
+    ("--retry-errors", "run again the items whose last run failed on their inputs (default: "
+                       "keep their error; a failure of the machine, status 'transient', is "
+                       "always run again)"),
+    ("--keep-versions", "keep the results of another lrf_jax version (default: redo them; "
+                        "results.tsv's version column names each row's)"),
+    ("--force", "take over the folder's lock of a job of another host that is gone (a shared "
+                "file system); a dead job of this host's is taken over without it"),
+)
+
+
 def _common(p: argparse.ArgumentParser) -> None:
   p.add_argument("--out", required=True, metavar="DIR", help="the output folder (created)")
   p.add_argument("--engine", choices=("local", "ray"), default="local",
@@ -37,17 +50,8 @@ def _common(p: argparse.ArgumentParser) -> None:
   p.add_argument("--address", default=None,
                  help="the Ray cluster (HOST:PORT) with --engine ray; default: RAY_ADDRESS if "
                       "set, else a new Ray instance of this machine on 127.0.0.1")
-  p.add_argument("--no-progress", action="store_true", help="no progress bar")
-  p.add_argument("--retry-errors", action="store_true",
-                 help="run again the items whose last run failed on their inputs (default: keep "
-                      "their error; a failure of the machine, status 'transient', is always "
-                      "run again)")
-  p.add_argument("--keep-versions", action="store_true",
-                 help="keep the results of another lrf_jax version (default: redo them; "
-                      "results.tsv's version column names each row's)")
-  p.add_argument("--force", action="store_true",
-                 help="take over the folder's lock of a job of another host that is gone (a "
-                      "shared file system); a dead job of this host's is taken over without it")
+  for flag, text in _SWITCHES:
+    p.add_argument(flag, action="store_true", help=text)
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -24,6 +24,7 @@ import time
 from pathlib import Path
 
 from lrf_jax import evaluation, extras
+from lrf_jax.checks import validate_seed
 from lrf_jax.batch.engines import ENGINES
 from lrf_jax.cli.interrupt import exit_with, interruptible
 from lrf_jax.cli.help import DefaultsHelpFormatter
@@ -173,8 +174,10 @@ def _check(args: argparse.Namespace) -> str | None:
     return f"--max-neighbors: expected a non-negative integer (0: no cap), got {args.max_neighbors}"
   if not (math.isfinite(args.radius_mr) and args.radius_mr > 0):
     return f"--radius-mr: expected a positive finite number of mr, got {args.radius_mr}"
-  if not 0 <= args.seed < 2**32:
-    return f"--seed: expected an integer in [0, 2**32), got {args.seed}"
+  try:
+    validate_seed(args.seed, "--seed")
+  except ValueError as e:
+    return str(e)
   if args.address and args.engine == "local":
     return (f"--address: {args.address} is for --engine ray; the local engine runs in this "
             "process")

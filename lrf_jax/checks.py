@@ -182,12 +182,24 @@ def validate_normals(normals: object, n_points: int, name: str = "normals") -> n
   return nrm
 
 
+# Seeds are integers in [0, MAX_SEED): JAX's keys take 32 bits (`jax.random.key(2**32 + 5)` is
+# `jax.random.key(5)`, and 2**64 overflows), so a larger seed would repeat a smaller one.
+MAX_SEED = 2**32
+
+
 def validate_seed(seed: object, name: str = "seed") -> int:
-  """Check that a seed is a non-negative integer (numpy's and jax's generators need one)."""
+  """Check that a seed is an integer in [0, `MAX_SEED`): the one rule of every seed, in the
+  library and on every command line (`name`: the option or flag named in the message)."""
   if (isinstance(seed, (bool, np.bool_)) or not isinstance(seed, (int, np.integer))
-      or seed < 0):
-    raise ValueError(f"{name}: expected a non-negative integer, got {seed!r}")
+      or not 0 <= seed < MAX_SEED):
+    raise ValueError(f"{name}: expected an integer in [0, 2**32), got {seed!r}")
   return int(seed)
+
+
+def derived_seed(seed: int, k: int) -> int:
+  """The k-th seed derived from a checked `seed` (effort's seeds: seed, seed + 1, ...), wrapped
+  into [0, `MAX_SEED`)."""
+  return (int(seed) + int(k)) % MAX_SEED
 
 
 def validate_viewpoint(viewpoint: object, name: str = "viewpoint") -> np.ndarray | None:

@@ -71,3 +71,23 @@ def test_uint64_keypoint_out_of_range_is_reported_exactly():
   from lrf_jax.checks import validate_keypoints
   with pytest.raises(ValueError, match="9223372036854775813"):
     validate_keypoints(np.array([2**63 + 5], np.uint64), 100)
+
+
+@pytest.mark.parametrize("seed, ok", [(0, True), (2**32 - 1, True), (np.uint32(7), True),
+                                      (-1, False), (2**32, False), (2**64, False),
+                                      (True, False), (1.0, False)])
+def test_one_seed_rule_for_the_library_and_every_command_line(seed, ok):
+  """Seeds are integers in [0, 2**32): JAX's keys take 32 bits, a larger seed would repeat a
+  smaller one (key(2**32 + 5) == key(5)) or overflow."""
+  from lrf_jax.checks import validate_seed
+  if ok:
+    assert validate_seed(seed) == int(seed)
+  else:
+    with pytest.raises(ValueError, match=r"--seed: expected an integer in \[0, 2\*\*32\)"):
+      validate_seed(seed, "--seed")
+
+
+def test_derived_seeds_stay_in_range():
+  from lrf_jax.checks import MAX_SEED, derived_seed, validate_seed
+  assert derived_seed(5, 1) == 6 and derived_seed(MAX_SEED - 1, 1) == 0
+  assert validate_seed(derived_seed(MAX_SEED - 1, 3)) == 2

@@ -12,6 +12,7 @@ from typing import Any
 
 import numpy as np
 
+from lrf_jax.checks import validate_seed
 from lrf_jax.defaults import DEFAULT_METHOD, RADIUS_MR
 from lrf_jax.registration.options import option_field
 
@@ -111,8 +112,10 @@ class FrameOptions:
     if self.voxel_mr is not None and self.voxel_mr < MIN_VOXEL_MR:
       return (f"--voxel-mr: {self.voxel_mr:g} mr is below {MIN_VOXEL_MR:g} mr (voxels that "
               "small hold one point each; use --keypoints all)")
-    if not 0 <= self.seed < 2**32:
-      return f"--seed: expected an integer in [0, 2**32), got {self.seed}"
+    try:
+      validate_seed(self.seed, "--seed")
+    except ValueError as e:
+      return str(e)
     for name in ("viewpoint", "pair_viewpoint"):
       vp = getattr(self, name)
       if vp is not None and not np.all(np.isfinite(np.asarray(vp, np.float64))):

@@ -30,6 +30,7 @@ from typing import Any
 
 import numpy as np
 
+from lrf_jax.checks import validate_seed
 from lrf_jax.cli.exits import EXIT_USAGE, EXIT_WRITE_FAILED, refuse
 from lrf_jax.cli.interrupt import exit_with, interruptible
 from lrf_jax.cli.options import (add_multiway_flags, option_message, register_overrides,
@@ -107,8 +108,10 @@ def _check(args: argparse.Namespace) -> str | None:
     return f"expected at least 2 scans, got {len(args.scans)}"
   if args.address and args.engine != "ray":
     return f"--address: {args.address!r} is for --engine ray; the local engine runs here"
-  if not 0 <= args.seed < 2**32:
-    return f"--seed: expected an integer in [0, 2**32), got {args.seed}"
+  try:
+    validate_seed(args.seed, "--seed")
+  except ValueError as e:
+    return str(e)
   for name in ("voxel", "mr", "reject_mr"):
     val = getattr(args, name)
     if val is not None and not (np.isfinite(val) and val > 0):

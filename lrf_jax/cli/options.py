@@ -157,10 +157,12 @@ def register_problem(args: Any, flags: dict[str, str] | None = None) -> str | No
   """What `RegisterOptions` refuses among the options present in `args`, named by the flag that
   sets it (`flags`: field -> flag where it is not the field's own, e.g. a shared --viewpoint);
   None: fine."""
+  from lrf_jax.checks import validate_seed
   from lrf_jax.registration.options import FIELDS, check_register_options
-  seed = getattr(args, "seed", 0)
-  if isinstance(seed, int) and not 0 <= seed < 2**32:
-    return f"--seed: expected an integer in [0, 2**32), got {seed}"
+  try:
+    validate_seed(getattr(args, "seed", 0), "--seed")
+  except ValueError as e:
+    return str(e)
   try:
     overrides = register_overrides(args)
   except ValueError as e:  # a bad --keypoints, named already

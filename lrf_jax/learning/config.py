@@ -9,6 +9,7 @@ import math
 from pathlib import Path
 from typing import Any
 
+from lrf_jax.checks import validate_seed
 from lrf_jax.defaults import RADIUS_MR
 
 
@@ -117,10 +118,10 @@ class TrainConfig:
       v = getattr(self, f)
       if isinstance(v, bool) or not isinstance(v, int) or v < 1:
         raise ValueError(f"config.{f}: expected a positive integer, got {v!r}")
-    for f in ("seed", "val_pairs"):
-      v = getattr(self, f)
-      if isinstance(v, bool) or not isinstance(v, int) or v < 0:
-        raise ValueError(f"config.{f}: expected a non-negative integer, got {v!r}")
+    validate_seed(self.seed, "config.seed")  # JAX's keys: a larger seed repeats a smaller one
+    v = self.val_pairs
+    if isinstance(v, bool) or not isinstance(v, int) or v < 0:
+      raise ValueError(f"config.val_pairs: expected a non-negative integer, got {v!r}")
     for f in ("radius_mr", "learning_rate"):
       v = getattr(self, f)
       if not _is_number(v) or not math.isfinite(v) or v <= 0:

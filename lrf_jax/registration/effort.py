@@ -18,6 +18,7 @@ from typing import Any, cast
 
 import numpy as np
 
+from lrf_jax.checks import derived_seed
 from lrf_jax.registration import stages
 from lrf_jax.registration.options import RegisterOptions
 
@@ -45,7 +46,8 @@ def pooled_stages(source: Any, target: Any, opts: RegisterOptions, params: Any,
   runs = []
   for k in range(EFFORT_SEEDS):
     with timer("prepare"):
-      prepared = base if k == 0 else stages.reseed(base, wide.detection, base.seed + k)
+      prepared = base if k == 0 else stages.reseed(base, wide.detection,
+                                                    derived_seed(base.seed, k))
     features = stages.describe(prepared, wide.description, params, timer)
     with timer("matching"):
       matches = stages.match(features, wide)

@@ -21,7 +21,7 @@ from typing import Any, NamedTuple, cast
 
 import numpy as np
 
-from lrf_jax.checks import validate_radius, validate_seed, validate_viewpoint
+from lrf_jax.checks import derived_seed, validate_radius, validate_seed, validate_viewpoint
 from lrf_jax.frames import METHODS
 from lrf_jax.geometry.cloud import as_cloud
 from lrf_jax.registration import stages
@@ -124,7 +124,7 @@ def describe_scan(scan: Any, options: RegisterOptions | None = None, *, mr: floa
   radius = validate_radius(description.radius_mr * mr)
   high = opts.verdict.effort == "high"
   detection = (high_effort_options(opts) if high else opts).detection
-  seeds = [seed + k for k in range(EFFORT_SEEDS if high else 1)]
+  seeds = [derived_seed(seed, k) for k in range(EFFORT_SEEDS if high else 1)]
   base = stages.prepare_side(working, index, view, mr, radius, detection, description,
                              np.random.default_rng(seeds[0]))
   runs, evidence = [], []

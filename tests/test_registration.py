@@ -96,7 +96,7 @@ def test_host_hypotheses_and_scores_agree_with_the_jitted_ones():
   import jax
   from lrf_jax.registration import host
   src, dst, f_src, f_dst, _, _ = _synthetic_correspondences(5, m=300)
-  s, d, _, _ = estimators._centred(src, dst)
+  s, d, _, _ = estimators.centred(src, dst)
   rs, ts = host.lrf_hypotheses(s, f_src, d, f_dst, 0.2)
   rj, tj = estimators._lrf_hypotheses(s, f_src.astype(np.float32), d,
                                         f_dst.astype(np.float32), 0.2)

@@ -215,7 +215,7 @@ def available(names: Iterable[str], root: str | None, table: dict, *,
   return ok, missing
 
 
-def _limit(pairs: list[Pair], opts: EvalOptions) -> list[Pair]:
+def limit_pairs(pairs: list[Pair], opts: EvalOptions) -> list[Pair]:
   return pairs if opts.max_pairs is None else pairs[:opts.max_pairs]
 
 
@@ -225,7 +225,7 @@ def iter_pairs(dataset_names: Iterable[str],
   `opts.max_pairs` per dataset (shared by the repeatability, description and pose runs)."""
   for ds in dataset_names:
     loader, setting = DATASETS[ds]
-    for pair in _limit(loader(opts.data_root, opts.seed), opts):
+    for pair in limit_pairs(loader(opts.data_root, opts.seed), opts):
       yield ds, setting, pair
 
 
@@ -280,10 +280,10 @@ def experiment_jobs(name: str, dataset_names: list[str], methods: list[MethodRun
     for ds, setting, pair in iter_pairs(dataset_names, opts):
       yield PairJob(name, ds, pair, setting, runs, opts)
     return
-  clean = sorted(cast("set[str]", {_clean_name(ds) for ds in dataset_names} - {None}))
+  clean = sorted(cast("set[str]", {clean_name(ds) for ds in dataset_names} - {None}))
   runs = tuple(ablation_runs() if name == "ablation" else methods)  # ablation: the paper's tables
   for ds in clean:
-    for pair in _limit(CLEAN[ds](opts.data_root, opts.seed), opts):
+    for pair in limit_pairs(CLEAN[ds](opts.data_root, opts.seed), opts):
       if name == "ablation":
         yield PairJob(name, ds, pair, {}, runs, opts)
         continue
@@ -335,12 +335,12 @@ def run_experiment(name: str, dataset_names: list[str], methods: list[MethodRun]
     yield from job_records(job, cache)
 
 
-def _clean_name(ds: str) -> str | None:
+def clean_name(ds: str) -> str | None:
   base = ds.split("@")[0].split("-")[0]
   return base if base in CLEAN else None
 
 
 def _tagged(records: list[dict], ds: str) -> list[dict]:
   for r in records:
-    r["dataset"] = ds if r["experiment"] in AS_NAMED else _clean_name(ds) or ds
+    r["dataset"] = ds if r["experiment"] in AS_NAMED else clean_name(ds) or ds
   return records

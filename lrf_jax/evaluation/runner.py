@@ -27,7 +27,7 @@ from lrf_jax.batch import engines
 from lrf_jax.evaluation import description, pose, report
 from lrf_jax.evaluation.experiments import (ABLATION_X, ABLATION_Z, AS_NAMED, CLEAN, DATASETS,
                                             DECIMATIONS, NOISE_LEVELS, RADII_MR, ROTATIONS_DEG,
-                                            EvalOptions, PairJob, _clean_name, _limit,
+                                            EvalOptions, PairJob, clean_name, limit_pairs,
                                             experiment_jobs, iter_pairs, job_records,
                                             plus_ablation_runs, points_only_runs)
 from lrf_jax.evaluation.repeatability import (EXACT_NETWORK, MethodRun, PatchCache,
@@ -155,8 +155,8 @@ def count_records(experiment: str, plan: EvalPlan) -> int:
   if experiment in AS_NAMED:
     return (len(_experiment_runs(experiment, plan))
             * sum(1 for _ in iter_pairs(plan.datasets, opts)))
-  clean = sorted(cast("set[str]", {_clean_name(ds) for ds in plan.datasets} - {None}))
-  pairs = sum(len(_limit(CLEAN[ds](opts.data_root, opts.seed), opts)) for ds in clean)
+  clean = sorted(cast("set[str]", {clean_name(ds) for ds in plan.datasets} - {None}))
+  pairs = sum(len(limit_pairs(CLEAN[ds](opts.data_root, opts.seed), opts)) for ds in clean)
   per_pair = (len(ABLATION_Z) * len(ABLATION_X) if experiment == "ablation"
               else SWEEPS[experiment] * len(plan.runs))
   return pairs * per_pair

@@ -118,19 +118,23 @@ def _check_correspondences(src: Any, dst: Any, threshold: float,
   return s, d
 
 
-def _finish(r, t, mask, best, count) -> RansacResult:
+def finish_result(r: Any, t: Any, mask: Any, best: Any, count: Any) -> RansacResult:
+  """A `RansacResult` from an estimator's best rotation (3, 3), translation (3,), inlier mask
+  (n,), best hypothesis index and inlier count."""
   mask = np.asarray(mask)
   return RansacResult(to_transform(np.asarray(r), np.asarray(t)), mask, int(mask.sum()),
                       int(best), int(count))
 
 
-def _centred(s: np.ndarray, d: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+def centred(s: np.ndarray, d: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
   """float32 coordinates about the source/target centroids (precision away from the origin)."""
   cs, cd = s.mean(axis=0), d.mean(axis=0)
   return ((s - cs).astype(np.float32), (d - cd).astype(np.float32), cs, cd)
 
 
-def _uncentre(r, t, cs, cd) -> tuple[np.ndarray, np.ndarray]:
+def uncentre(r: Any, t: Any, cs: np.ndarray, cd: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+  """The pose (r (3, 3), t (3,)) found on `centred` coordinates, in the original ones: the
+  translation moved back by the centroids `cs`, `cd` (float64)."""
   r = np.asarray(r, np.float64)
   return r, np.asarray(t, np.float64) + cd - r @ cs
 
@@ -175,14 +179,14 @@ def lrf_ransac(src_points: Any, dst_points: Any, src_frames: Any, dst_frames: An
     raise ValueError("correspondences: none has two valid frames; cannot form a hypothesis")
   if not (np.isfinite(scale) and scale > 0):
     raise ValueError(f"scale: expected a positive length, got {scale!r}")
-  src, dst, cs, cd = _centred(s, d)
+  src, dst, cs, cd = centred(s, d)
   pick = jax.random.choice(jax.random.key(seed), jnp.asarray(np.flatnonzero(v)),
                            (int(iterations),), replace=True)
   rs, ts = _lrf_hypotheses(src[pick], jnp.asarray(fs[pick], jnp.float32), dst[pick],
                            jnp.asarray(fd[pick], jnp.float32), float(scale))
   r, t, mask, best, count = _select_and_refine(rs, ts, src, dst, float(inlier_threshold), refine)
-  r, t = _uncentre(r, t, cs, cd)
-  return _finish(r, t, mask, best, count)
+  r, t = uncentre(r, t, cs, cd)
+  return finish_result(r, t, mask, best, count)
 
 
 @jit
@@ -220,15 +224,15 @@ def ransac_3point(src_points: Any, dst_points: Any, *, inlier_threshold: float,
   m = s.shape[0]
   if m < 3:
     raise ValueError(f"correspondences: 3-point RANSAC needs at least 3, got {m}")
-  src, dst, cs, cd = _centred(s, d)
-  samples = _triples(m, iterations, seed)
+  src, dst, cs, cd = centred(s, d)
+  samples = triples(m, iterations, seed)
   rs, ts = _kabsch_batch(src[samples], dst[samples])
   r, t, mask, best, count = _select_and_refine(rs, ts, src, dst, float(inlier_threshold), refine)
-  r, t = _uncentre(r, t, cs, cd)
-  return _finish(r, t, mask, best, count)
+  r, t = uncentre(r, t, cs, cd)
+  return finish_result(r, t, mask, best, count)
 
 
-def _triples(m: int, iterations: int, seed: int) -> jax.Array:
+def triples(m: int, iterations: int, seed: int) -> jax.Array:
   """(iterations, 3) seeded triples of distinct correspondence indices."""
   keys = jax.random.split(jax.random.key(seed), int(iterations))
   return jax.vmap(lambda k: jax.random.choice(k, m, (3,), replace=False))(keys)

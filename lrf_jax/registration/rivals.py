@@ -15,7 +15,7 @@ from typing import NamedTuple
 import numpy as np
 
 from lrf_jax.registration import graph, host, icp_normals
-from lrf_jax.registration.estimators import _centred, _triples
+from lrf_jax.registration.estimators import centred, triples
 from lrf_jax.registration.evidence import CHANCE_SHUFFLES, RIVAL_DEG, constraint_spectrum
 from lrf_jax.search import engine
 
@@ -90,7 +90,7 @@ def pose_hypotheses(src, dst, f_src, f_dst, estimator: str, iterations: int, rad
   sampler); "graph" one per seed of the compatibility graph (distances within `threshold`,
   LRF rotations within `GRAPH_ANGLE_DEG`), followed by the seeds' own LRF poses."""
   if estimator == "3point":
-    samples = np.asarray(_triples(len(src), iterations, seed))
+    samples = np.asarray(triples(len(src), iterations, seed))
     return host.kabsch_batch(src[samples], dst[samples])
   rs, ts = host.lrf_hypotheses(src, f_src, dst, f_dst, float(radius))
   if estimator == "lrf":
@@ -102,7 +102,7 @@ def pose_hypotheses(src, dst, f_src, f_dst, estimator: str, iterations: int, rad
 
 
 class EvidenceSet(NamedTuple):
-  """The correspondences the verdict counts on (centred float32, as `_centred` gives them) and
+  """The correspondences the verdict counts on (centred float32, as `centred` gives them) and
   the compatibility graph's hypotheses on them (centred coordinates)."""
 
   src: np.ndarray
@@ -125,7 +125,7 @@ def evidence_set(p, q, f_p, f_q, iterations, radius, seed, threshold
     e3 = np.zeros((0, 3, 3), np.float32)
     return EvidenceSet(z.astype(np.float32), z.astype(np.float32), np.zeros(3), np.zeros(3),
                        e3, e3, np.zeros((0, 3, 3)), z), 0
-  src, dst, cs, cd = _centred(p, q)
+  src, dst, cs, cd = centred(p, q)
   rs, ts = pose_hypotheses(src, dst, f_p, f_q, "graph", iterations, radius, seed, threshold)
   chance = chance_inliers(src, dst, f_p, f_q, "graph", iterations, radius, seed, threshold)
   return EvidenceSet(src, dst, cs, cd, f_p, f_q, np.asarray(rs, np.float64),

@@ -31,7 +31,7 @@ from lrf_jax.geometry.normals import NORMAL_RADIUS_RATIO, estimate_normals
 from lrf_jax.geometry.resolution import Resolution, pair_resolution, registration_resolution
 from lrf_jax.geometry.sampling import thin_cloud, thinning_voxel_size
 from lrf_jax.registration import host
-from lrf_jax.registration.estimators import _centred, _finish, _uncentre
+from lrf_jax.registration.estimators import centred, finish_result, uncentre
 from lrf_jax.registration.options import (DescribeOptions, HypothesisOptions, KeypointOptions,
                                           MatchOptions, RegisterOptions, check_voxel_size)
 from lrf_jax.registration.rivals import (REST_FACTOR, EvidenceSet, chance_inliers,
@@ -131,7 +131,7 @@ class Hypotheses(NamedTuple):
 
 class Verified(NamedTuple):
   """Stage "verify": the winner refitted on its inliers (`estimators.RansacResult`-like, from
-  `_finish`), the overlaps of the re-ranked hypotheses, the winner's evidence inliers and the
+  `finish_result`), the overlaps of the re-ranked hypotheses, the winner's evidence inliers and the
   best rival's, and the target grid at the overlap distance (reused by ICP)."""
 
   coarse: Any
@@ -387,7 +387,7 @@ def hypothesize(prepared: Prepared, features: Features, matches: Matches,
   threshold = float(hypotheses.inlier_mr * prepared.mr)
   iterations, radius, seed = int(hypotheses.iterations), prepared.radius, prepared.seed
   p, q, f_p, f_q = _keypoint_points(prepared, features, matches.source, matches.target)
-  src, dst, cs, cd = _centred(p, q)
+  src, dst, cs, cd = centred(p, q)
   rs, ts = pose_hypotheses(src, dst, f_p, f_q, hypotheses.estimator, iterations, radius, seed,
                            threshold)
   if len(rs) == 0:
@@ -418,7 +418,7 @@ def verify(prepared: Prepared, hyps: Hypotheses, hypotheses: HypothesisOptions, 
                        0 if hypotheses.estimator == "graph" else hypotheses.verify, prepared.rng)
   r, t, mask = host.select_and_refine(hyps.rotations[best], hyps.translations[best], hyps.src,
                                       hyps.dst, threshold)
-  coarse = _finish(*_uncentre(r, t, hyps.cs, hyps.cd), mask, best, hyps.counts[best])
+  coarse = finish_result(*uncentre(r, t, hyps.cs, hyps.cd), mask, best, hyps.counts[best])
   ev_mask, rival = _rivals(prepared, hyps, (r, t, mask), own, threshold,
                            int(hypotheses.iterations),
                            target_grid, overlap_distance)
@@ -453,7 +453,7 @@ def _rivals(prepared: Prepared, hyps: Hypotheses, winner: tuple, own: bool, thre
   r, t, mask = winner
   ev, rs, ts, cs, cd = hyps.evidence, hyps.rotations, hyps.translations, hyps.cs, hyps.cd
   radius, seed = prepared.radius, prepared.seed
-  r_w, t_w = _uncentre(r, t, cs, cd)
+  r_w, t_w = uncentre(r, t, cs, cd)
   t_e = t_w - ev.cd + r_w @ ev.cs
   ev_mask = mask if own else host.inlier_mask(r_w, t_e, ev.src, ev.dst, threshold)
   pool_r, pool_t = [ev.rs], [ev.ts]

@@ -145,8 +145,8 @@ def test_workers_end_when_the_command_is_interrupted_or_killed(tmp_path, how):
   assert _workers(str(tmp_path)), "no worker started"
   time.sleep(1.0)
   proc.send_signal(signal.SIGINT if how == "ctrl-c" else signal.SIGKILL)
-  proc.communicate(timeout=60)
-  assert proc.returncode == (130 if how == "ctrl-c" else -signal.SIGKILL)
+  _, err = proc.communicate(timeout=60)
+  assert proc.returncode == (130 if how == "ctrl-c" else -signal.SIGKILL), err
   deadline = time.monotonic() + 10
   while _workers(str(tmp_path)) and time.monotonic() < deadline:
     time.sleep(0.1)

@@ -98,6 +98,15 @@ class FolderInUse(ValueError):
   """Another job holds the folder's lock (the message names its host, pid and command)."""
 
 
+def _command_line() -> str:
+  """This process's command line (the program's name, then its arguments), for messages."""
+  import shlex
+  import sys
+  if not sys.argv or not sys.argv[0]:
+    return sys.executable
+  return shlex.join([Path(sys.argv[0]).name, *sys.argv[1:]])
+
+
 def _proc_stat(pid: int) -> list[str] | None:
   """The fields of /proc/<pid>/stat after the command's name (Linux), or None."""
   try:
@@ -141,14 +150,14 @@ class JobLock:
   made for it if the job left them empty. Use as a context manager.
   """
 
-  def __init__(self, path: str | os.PathLike, command: str, *, force: bool = False,
-               folder: str | os.PathLike | None = None):
+  def __init__(self, path: str | os.PathLike, command: str | None = None, *,
+               force: bool = False, folder: str | os.PathLike | None = None):
     self.path = Path(path)
     self.force = force
     self.folder = str(self.path.parent if folder is None else folder)  # named in messages
     import socket
     self.me = dict(host=socket.gethostname(), pid=os.getpid(), start=_process_start(os.getpid()),
-                   command=command)
+                   command=command if command is not None else _command_line())
     self.held = False
     self.made: list[Path] = []
     self.fd: int | None = None

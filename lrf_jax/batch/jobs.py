@@ -123,14 +123,6 @@ def _check_out(path: Path, given: Any) -> None:
                      ) from None
 
 
-def _command() -> str:
-  """This process's command line, for a job's lock (who holds the folder)."""
-  import shlex
-  import sys
-  return shlex.join([Path(sys.argv[0]).name, *sys.argv[1:]]) if sys.argv and sys.argv[0] \
-      else sys.executable
-
-
 # --- hashes and records -----------------------------------------------------------------------
 
 class _Hashes:
@@ -272,7 +264,7 @@ class _Job:
                        f"{e.filename or self.out} is in the way (not a folder)") from None
     except OSError as e:  # a read-only or full disk: one error, no work
       raise atomic.WriteError(self.records, e) from e
-    self.lock = records.JobLock(self.state / "lock", _command(), force=force, folder=self.out)
+    self.lock = records.JobLock(self.state / "lock", force=force, folder=self.out)
     try:
       self.lock.acquire()
     except OSError as e:

@@ -227,8 +227,8 @@ def main(argv: list[str] | None = None) -> int:
   from pathlib import Path
 
   from lrf_jax.multiway.outputs import STATE
-  lock = records.JobLock(Path(args.out_dir).expanduser() / STATE / "lock", _command(),
-                         force=args.force, folder=f"--out-dir {args.out_dir}")
+  lock = records.JobLock(Path(args.out_dir).expanduser() / STATE / "lock", force=args.force,
+                         folder=f"--out-dir {args.out_dir}")
   try:
     lock.acquire()
   except records.FolderInUse as e:
@@ -237,12 +237,6 @@ def main(argv: list[str] | None = None) -> int:
     return _run(args, figures, skipped)
   finally:
     lock.release()
-
-
-def _command() -> str:
-  """This process's command line, for the output folder's lock."""
-  import shlex
-  return shlex.join(["lrf-register", *sys.argv[1:]])
 
 
 def _run(args: argparse.Namespace, figures: bool, skipped: str | None) -> int:

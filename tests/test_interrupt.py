@@ -69,3 +69,50 @@ def test_a_ctrl_c_a_library_swallows_is_sent_again(monkeypatch, capsys):
   assert main() == interrupt.INTERRUPTED and swallowed == [True]
   assert capsys.readouterr().err.startswith("interrupted: test")
   assert signal.getsignal(signal.SIGINT) is before  # the program's handler is removed again
+
+
+_CTRL_C_IN_A_CALLBACK = """
+import ctypes, os, signal, sys
+from lrf_jax.cli.interrupt import interruptible
+
+@ctypes.CFUNCTYPE(None)
+def compiled_hook():  # as numba's object-code hook, called by LLVM from C
+  os.kill(os.getpid(), signal.SIGINT)  # Ctrl-C lands while the callback runs
+  for _ in range(10**6):
+    pass
+  RESULT.append("object code")  # never reached: the KeyboardInterrupt ends the callback
+
+RESULT = []
+
+@interruptible("stopped")
+def main():
+  ctypes.cast(compiled_hook, ctypes.CFUNCTYPE(None))()  # Python drops what the callback raised
+  if not RESULT:
+    raise RuntimeError("no compiled object yet")  # what numba then raises
+  return 0
+
+sys.exit(main())
+"""
+
+
+def test_an_error_after_a_ctrl_c_in_a_c_callback_is_the_ctrl_c():
+  """Seen in CI (lrf-register, Ctrl-C while numba compiled `_bin`): the KeyboardInterrupt raised
+  in LLVM's callback was dropped and numba failed with RuntimeError("no compiled object yet"):
+  exit 1 with a traceback instead of 130. Before: this program printed that traceback."""
+  proc = subprocess.run([sys.executable, "-c", _CTRL_C_IN_A_CALLBACK], capture_output=True,
+                        text=True, env=repo_env(), timeout=120)
+  assert proc.returncode == 130 and proc.stderr.strip() == "interrupted: stopped", proc.stderr
+
+
+def test_an_error_without_a_ctrl_c_is_raised(capsys):
+  """The converse: an exception with no Ctrl-C before it keeps its traceback."""
+  import pytest
+  from lrf_jax.cli import interrupt
+
+  @interrupt.interruptible("test")
+  def main() -> int:
+    raise RuntimeError("a real failure")
+
+  with pytest.raises(RuntimeError, match="a real failure"):
+    main()
+  assert "interrupted" not in capsys.readouterr().err

@@ -15,7 +15,7 @@ import threading
 from typing import Any, TypeVar
 from collections.abc import Callable
 
-from lrf_jax.io.atomic import caused_by_interrupt
+from lrf_jax.io.atomic import CTRL_C_RECEIVED, caused_by_interrupt
 
 # The exit code of a program stopped by Ctrl-C (SIGINT): 128 + 2, as a shell reports it.
 INTERRUPTED = 130
@@ -23,14 +23,25 @@ INTERRUPTED = 130
 _Main = TypeVar("_Main", bound=Callable[..., int])
 
 
+class _Program:
+  """Whether an `interruptible` program runs in this process (a nested one, a program calling
+  another's `main`, counts as the outer one). Its Ctrl-C handlers set `CTRL_C_RECEIVED`."""
+  running = False
+
+
 def interruptible(note: str) -> Callable[[_Main], _Main]:
   """Decorate a CLI's `main(argv)`: Ctrl-C (KeyboardInterrupt) anywhere in it prints one line,
-  `interrupted: <note>`, on stderr and returns `INTERRUPTED` (130) instead of a traceback. Every
-  output is written atomically (`lrf_jax.io.atomic`), so an interrupted program leaves no
-  partial file."""
+  `interrupted: <note>`, on stderr and returns `INTERRUPTED` (130) instead of a traceback. An
+  exception raised after a Ctrl-C counts as the Ctrl-C's consequence, whether or not it names
+  the KeyboardInterrupt (`caused_by_interrupt`). Every output is written atomically
+  (`lrf_jax.io.atomic`), so an interrupted program leaves no partial file."""
   def wrap(main: _Main) -> _Main:
     @functools.wraps(main)
     def run(*args: Any, **kwargs: Any) -> int:
+      outer = _Program.running
+      if not outer:
+        CTRL_C_RECEIVED.clear()
+      _Program.running = True
       redeliver_lost_interrupts()
       finished = threading.Event()
       previous = _watch_interrupts(finished)
@@ -43,6 +54,9 @@ def interruptible(note: str) -> Callable[[_Main], _Main]:
         pass
       finally:
         finished.set()
+        _Program.running = outer
+        if not outer:
+          CTRL_C_RECEIVED.clear()  # a later error in this process is not this Ctrl-C's
         if previous is not None:
           signal.signal(signal.SIGINT, previous)
       print(f"interrupted: {note}", file=sys.stderr, flush=True)
@@ -69,6 +83,7 @@ def _watch_interrupts(finished: threading.Event) -> Any:
       os.kill(os.getpid(), signal.SIGINT)
 
   def handler(signum: int, frame: Any) -> None:
+    CTRL_C_RECEIVED.set()
     timer = threading.Timer(REDELIVER_AFTER_S, resend)
     timer.daemon = True
     timer.start()
@@ -84,15 +99,21 @@ def redeliver_lost_interrupts() -> None:
   (JAX's `_xla_gc_callback`, a `__del__`) cannot propagate: Python prints "Exception ignored
   in ..." and goes on, and the Ctrl-C is lost (train.py went on training, seen in the suite).
   The hook installed here sends SIGINT again from a helper thread a moment later, when the main
-  thread is back in ordinary code; other unraisable exceptions keep Python's own report."""
+  thread is back in ordinary code, if an `interruptible` program is still running then; other
+  unraisable exceptions keep Python's own report."""
   if getattr(sys.unraisablehook, "_lrf_jax_redeliver", False):
     return
   previous = sys.unraisablehook
 
+  def resend() -> None:
+    if _Program.running:  # else the program has stopped: nothing is left to interrupt
+      os.kill(os.getpid(), signal.SIGINT)
+
   def hook(unraisable: Any) -> None:
     if isinstance(unraisable.exc_value, KeyboardInterrupt) and \
         threading.current_thread() is threading.main_thread():
-      timer = threading.Timer(0.05, os.kill, (os.getpid(), signal.SIGINT))
+      CTRL_C_RECEIVED.set()
+      timer = threading.Timer(0.05, resend)
       timer.daemon = True
       timer.start()
       return

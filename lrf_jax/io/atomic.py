@@ -35,6 +35,7 @@ import errno
 import os
 import stat
 import tempfile
+import threading
 from pathlib import Path
 from typing import IO, Any
 from collections.abc import Iterable, Iterator
@@ -380,10 +381,20 @@ def save_figure(fig, path: str | os.PathLike, **savefig_kw) -> Path:
   return Path(path)
 
 
+# Set by the Ctrl-C handlers of a running `lrf_jax.cli.interrupt.interruptible` program (cleared
+# when one starts): a Ctrl-C arrived, whether or not its KeyboardInterrupt reached the code.
+CTRL_C_RECEIVED = threading.Event()
+
+
 def caused_by_interrupt(error: BaseException) -> bool:
-  """Whether a KeyboardInterrupt is in `error`'s chain of causes: Ctrl-C inside a numba
-  dispatcher surfaces as a `SystemError` ("returned a result with an exception set") raised from
-  the KeyboardInterrupt."""
+  """Whether `error` is a Ctrl-C's consequence: a KeyboardInterrupt is in its chain of causes
+  (Ctrl-C inside a numba dispatcher surfaces as a `SystemError`, "returned a result with an
+  exception set", raised from the KeyboardInterrupt), or a command-line program received a
+  Ctrl-C before it (`CTRL_C_RECEIVED`: a KeyboardInterrupt raised inside a C callback is
+  dropped by Python, and the library then fails for want of the callback's result, as numba's
+  RuntimeError "no compiled object yet" after LLVM's object-code hook)."""
+  if CTRL_C_RECEIVED.is_set():
+    return True
   seen: set[int] = set()
   e: BaseException | None = error
   while e is not None and id(e) not in seen:

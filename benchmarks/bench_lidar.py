@@ -2,13 +2,17 @@
 at 2.5 cm and at a denser stand-in, against Open3D's tutorial pipeline in the same run.
 
     LRF_DATA=/path/to/data python benchmarks/bench_lidar.py [--out out/bench_lidar] [--seed 0]
+        [--no-kiss] [--viewpoints]
         [--sets sweeps subsampled cropped rooms dense mixed far]
         [--fused DIR --sets fused fused25 fusedmixed fusedratio]
 
 lrf_jax: `lrf_jax.register(source, target)` with its defaults: no resolution, no voxel size.
 Open3D 0.20: its global registration tutorial (`benchmarks/_open3d_pipeline.py`: voxel
 downsampling, FPFH, RANSAC, point-to-plane ICP at 0.4 voxel on the full clouds) at a 0.3 m voxel
-for the sweeps and 5 cm for the rooms, the voxels its users pick for such data.
+for the sweeps and 5 cm for the rooms, the voxels its users pick for such data. KISS-Matcher
+(`pip install kiss-matcher`; `benchmarks/_kiss_matcher_pipeline.py`: its estimate, then
+point-to-plane ICP, as its README pipes it) at the same voxels, where it is installed
+(`--no-kiss` skips it); its "valid" is its own verdict, counted as a claim.
 
 Sets (every pair both pipelines, after one warm-up call each):
 
@@ -57,6 +61,7 @@ from lrf_jax.io import read_cloud  # noqa: E402
 from lrf_jax.io.atomic import save_figure, write_text  # noqa: E402
 from lrf_jax.registration import register, rotation_error_deg  # noqa: E402
 
+from benchmarks._kiss_matcher_pipeline import have_kiss_matcher, kiss_registration  # noqa: E402
 from benchmarks._open3d_pipeline import global_registration, have_open3d  # noqa: E402
 
 SETS = ("sweeps", "subsampled", "cropped", "rooms", "dense", "mixed", "far", "fused", "fused25",
@@ -194,11 +199,15 @@ def errors(t: np.ndarray, gt: np.ndarray) -> tuple[float, float]:
           float(np.linalg.norm(t[:3, 3] - gt[:3, 3])))
 
 
-def run_set(pairs: list[dict], seed: int, o3d: bool) -> list[dict]:
+def run_set(pairs: list[dict], seed: int, o3d: bool, kiss: bool = False,
+            viewpoints: bool = False) -> list[dict]:
   rows = []
   for p in pairs:
+    views = {}
+    if viewpoints:  # every set's clouds are in their sensor's frame (a fragment: 1st camera)
+      views = dict(source_viewpoint=(0.0, 0.0, 0.0), target_viewpoint=(0.0, 0.0, 0.0))
     t0 = time.perf_counter()
-    reg = register(p["source"], p["target"], seed=seed)
+    reg = register(p["source"], p["target"], seed=seed, **views)
     secs = time.perf_counter() - t0
     re, te = errors(reg.transform, p["gt"])
     row = dict(name=p["name"], n=(len(p["source"]), len(p["target"])), re=re, te=te,
@@ -209,6 +218,10 @@ def run_set(pairs: list[dict], seed: int, o3d: bool) -> list[dict]:
       res = global_registration(p["source"], p["target"], voxel=voxel, seed=seed)
       row.update(o3d_re=errors(res["final"], p["gt"])[0], o3d_te=errors(res["final"], p["gt"])[1],
                  o3d_seconds=res["seconds"], o3d_transform=np.asarray(res["final"]).tolist())
+    if kiss:
+      km = kiss_registration(p["source"], p["target"], voxel=0.3 if p["lidar"] else 0.05)
+      km_re, km_te = errors(km["final"], p["gt"])
+      row.update(km_re=km_re, km_te=km_te, km_valid=km["valid"], km_seconds=km["seconds"])
     rows.append(row)
     print(f"  {p['name']}: RE {re:.3f} TE {te:.3f} {'claimed' if reg.success else 'not sure'} "
           f"{secs:.2f} s (mr {reg.mr:.3g}, voxel {reg.voxel_size:.3g})"
@@ -242,6 +255,11 @@ def summarize(name: str, rows: list[dict]) -> str:
              f"{med([r['o3d_re'] for r, o in zip(rows, ok3) if o]):.3f} / "
              f"{med([r['o3d_te'] for r, o in zip(rows, ok3) if o]):.3f} | "
              f"{med([r['o3d_seconds'] for r in rows]):.2f} | {ratio:.2f}")
+  if "km_re" in rows[0]:
+    okk = [right(r["km_re"], r["km_te"], lidar) for r in rows]
+    valid = [r["km_valid"] for r in rows]
+    line += (f" | {sum(okk)} / {sum(valid)} / {sum(v and not o for v, o in zip(valid, okk))} | "
+             f"{med([r['km_seconds'] for r in rows]):.2f}")
   return line + " |"
 
 
@@ -315,6 +333,11 @@ def main() -> int:
   ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
   ap.add_argument("--out", default="out/bench_lidar")
   ap.add_argument("--seed", type=int, default=0)
+  ap.add_argument("--viewpoints", action="store_true",
+                  help="give register each cloud's origin as its viewpoint (a sweep's sensor, "
+                       "a 3DMatch fragment's first camera)")
+  ap.add_argument("--no-kiss", action="store_true",
+                  help="skip KISS-Matcher (run where `pip install kiss-matcher` installed it)")
   ap.add_argument("--sets", nargs="+", default=list(DEFAULT_SETS), choices=SETS)
   ap.add_argument("--fused", help="a folder of depth frames and their trajectory "
                   "(benchmarks/_fused_fragments.py), for the fused sets")
@@ -328,6 +351,7 @@ def main() -> int:
     ap.error(f"--out {out}: inside the input folder --fused {args.fused}; write elsewhere")
   out.mkdir(parents=True, exist_ok=True)
   o3d = have_open3d()
+  kiss = have_kiss_matcher() and not args.no_kiss
   sets = {}
   for name in args.sets:
     if name.startswith("fused"):
@@ -343,14 +367,18 @@ def main() -> int:
   register(warm["source"], warm["target"])  # compile and load the kernels before timing
   if o3d:
     global_registration(warm["source"], warm["target"], voxel=0.3 if warm["lidar"] else 0.05)
+  if kiss:
+    kiss_registration(warm["source"], warm["target"], voxel=0.3 if warm["lidar"] else 0.05)
   results = {}
   for name, pairs in sets.items():
     print(f"{name}:", file=sys.stderr)
-    results[name] = run_set(pairs, args.seed, o3d)
+    results[name] = run_set(pairs, args.seed, o3d, kiss, args.viewpoints)
   head = ("| set | pairs | right (strict) | claimed | false claims | median RE deg / TE m | "
           "median s")
-  head += (" | Open3D right (strict) | Open3D median RE / TE | Open3D median s | time ratio |"
-           if o3d else " |")
+  head += (" | Open3D right (strict) | Open3D median RE / TE | Open3D median s | time ratio"
+           if o3d else "")
+  head += (" | KISS-Matcher + ICP right / valid / false valid | KISS-Matcher median s |"
+           if kiss else " |")
   lines = [f"# bench_lidar: raw data with register's defaults "
            f"({platform.processor() or platform.machine()}, {os.cpu_count()} cores)", "",
            head, "|" + "---|" * (head.count("|") - 1)]

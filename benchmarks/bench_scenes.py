@@ -2,7 +2,7 @@
 
     LRF_DATA=/path/to/data python benchmarks/bench_scenes.py [--split tune|test|all]
         [--kinds room,object] [--only NAME-SUBSTRING] [--limit N] [--lrf-kw '{"iterations": 500}']
-        [--skip-open3d] [--seed 0] [--json OUT.json]
+        [--skip-open3d] [--kiss] [--hints] [--inits] [--seed 0] [--json OUT.json]
 
 Runs every case of `benchmarks/scene_cases.py` (rooms from 3DMatch, objects from the bunny and
 UWA3M scans, each with known truth and an overlap of 10-30 % or > 30 %; split by scene/object
@@ -17,6 +17,16 @@ into "tune" and "test") through
   `OBJECT_VOXEL_MR` = 2.5 mr for objects, which puts Open3D's FPFH radius (5 voxels = 12.5 mr)
   close to lrf_jax's 15 mr support and keeps about 1/6 of the points (a few thousand per scan).
   Open3D has no verdict of its own, so its "claimed" column stays empty.
+
+* with `--kiss`, KISS-Matcher and an ICP after it (`benchmarks/_kiss_matcher_pipeline.py`) at
+  Open3D's voxel; its `valid` is counted as its claim.
+
+With `--inits`, every case is registered again from its truth as a benchmark prints it (the
+rotation to 3 decimals, `published`) and from the truth turned 30 deg (`turned`): the truth's
+init should be claimed wherever the default claims, a turned one never at a wrong pose.
+
+With `--hints`, every "not sure" of lrf_jax whose reason names a next step is run again with it,
+and the pairs each step then claims (right, wrong) are counted.
 
 Per case: RE (degrees), TE (metres for rooms, mr for objects; the error of where the source's
 centroid lands, see `_errors`), true success (rooms: RE < 15 deg
@@ -51,6 +61,7 @@ if str(REPO) not in sys.path:
 import lrf_jax  # noqa: E402
 from lrf_jax.registration import pose_errors  # noqa: E402
 
+from benchmarks._kiss_matcher_pipeline import have_kiss_matcher, kiss_registration  # noqa: E402
 from benchmarks._open3d_pipeline import global_registration, have_open3d  # noqa: E402
 from benchmarks.scene_cases import BINS, Case, make_cases, split_table  # noqa: E402
 
@@ -58,7 +69,7 @@ ROOM_VOXEL_M = 0.05
 OBJECT_VOXEL_MR = 2.5
 # True success: (RE limit in degrees, TE limit in the case's unit: metres / mr).
 SUCCESS = {"room": (15.0, 0.30), "object": (5.0, 10.0)}
-METHODS = ("lrf", "open3d")
+METHODS = ("lrf", "open3d", "kiss")
 
 
 def open3d_voxel(case: Case) -> float:
@@ -122,6 +133,89 @@ def run_open3d(case: Case, seed: int = 0) -> dict[str, Any]:
   return out
 
 
+def run_kiss(case: Case) -> dict[str, Any]:
+  """KISS-Matcher and ICP (`_kiss_matcher_pipeline`) at Open3D's voxel: errors, its `valid`
+  (counted as its claim) and time."""
+  voxel = open3d_voxel(case)
+  t0 = time.perf_counter()
+  try:
+    res = kiss_registration(case.source, case.target, voxel=voxel)
+  except Exception as e:  # noqa: BLE001
+    return _failed(e, time.perf_counter() - t0)
+  out = _errors(case, res["final"])
+  out.update({"claimed": res["valid"], "overlap": None, "reason": f"{res['inliers']} inliers",
+              "fitness": None, "seconds": res["seconds"], "voxel": voxel,
+              "transform": res["final"].tolist()})
+  return out
+
+
+def settled_by_hints(records: list[dict[str, Any]], cases: list[Case], lrf_kw: dict[str, Any],
+                     seed: int) -> dict[str, list[int]]:
+  """Every lrf "not sure" whose reason names a next step (`effort='normal' or 'high'`,
+  `effort='high'`), run again with that step: per step [pairs it was named for, claimed and
+  right, claimed and wrong]."""
+  steps = {"effort='normal'": {"effort": "normal"}, "effort='high'": {"effort": "high"}}
+  out: dict[str, list[int]] = {name: [0, 0, 0] for name in steps}
+  by_name = {c.name: c for c in cases}
+  for rec in records:
+    lrf = rec["lrf"]
+    if lrf.get("claimed") or "error" in lrf:
+      continue
+    for name, kw in steps.items():
+      if name in lrf.get("reason", ""):
+        again = run_lrf(by_name[rec["case"]], {**lrf_kw, **kw}, seed)
+        out[name][0] += 1
+        out[name][1] += int(bool(again["claimed"]) and again["true"])
+        out[name][2] += int(bool(again["claimed"]) and not again["true"])
+  return out
+
+
+def published(gt: np.ndarray) -> np.ndarray:
+  """`gt` as a benchmark prints it: the rotation block to 3 decimals (3DMatch's gt.log is
+  0.00046 off orthonormal; this is about 1e-3 off, which `register` projects)."""
+  out = np.array(gt, np.float64)
+  out[:3, :3] = np.round(out[:3, :3], 3)
+  return out
+
+
+def turned(case: Case, degrees: float) -> np.ndarray:
+  """`case.gt` turned by `degrees` about an axis through the target's centroid: a wrong
+  init."""
+  from scipy.spatial.transform import Rotation
+  axis = np.array([0.6, 0.0, 0.8])
+  turn = np.eye(4)
+  turn[:3, :3] = Rotation.from_rotvec(np.radians(degrees) * axis).as_matrix()
+  centre = np.asarray(case.target, np.float64).mean(axis=0)
+  turn[:3, 3] = centre - turn[:3, :3] @ centre
+  return turn @ case.gt
+
+
+def run_inits(records: list[dict[str, Any]], cases: list[Case], lrf_kw: dict[str, Any],
+              seed: int) -> dict[str, int]:
+  """`register(..., init=)` on every case with the published truth (`published`) and with the
+  truth turned 30 deg (`turned`): how many pairs the default claims the truth's init claims
+  too, and how many turned inits are claimed at a wrong pose."""
+  import warnings
+  by_name = {c.name: c for c in cases}
+  out = {"default_claimed": 0, "gt_claimed_of_those": 0, "gt_claimed": 0, "gt_right": 0,
+         "turned_claimed_wrong": 0, "turned_claimed_right": 0, "n": 0}
+  for rec in records:
+    case = by_name[rec["case"]]
+    out["n"] += 1
+    with warnings.catch_warnings():
+      warnings.simplefilter("ignore")  # the projection's note
+      gt = run_lrf(case, {**lrf_kw, "init": published(case.gt)}, seed)
+      bad = run_lrf(case, {**lrf_kw, "init": turned(case, 30.0)}, seed)
+    claimed = bool(rec["lrf"].get("claimed"))
+    out["default_claimed"] += int(claimed)
+    out["gt_claimed_of_those"] += int(claimed and bool(gt["claimed"]))
+    out["gt_claimed"] += int(bool(gt["claimed"]))
+    out["gt_right"] += int(gt["true"])
+    out["turned_claimed_wrong"] += int(bool(bad["claimed"]) and not bad["true"])
+    out["turned_claimed_right"] += int(bool(bad["claimed"]) and bad["true"])
+  return out
+
+
 def _progress(cases: list[Case], show: bool) -> Iterable[Case]:
   if not show:
     return cases
@@ -133,13 +227,15 @@ def _progress(cases: list[Case], show: bool) -> Iterable[Case]:
 
 
 def run_cases(cases: list[Case], lrf_kw: dict[str, Any] | None = None, open3d: bool = True, *,
-              seed: int = 0, progress: bool = True, warmup: bool = True) -> list[dict[str, Any]]:
+              seed: int = 0, progress: bool = True, warmup: bool = True, kiss: bool = False
+              ) -> list[dict[str, Any]]:
   """Registers every case with lrf_jax (and Open3D) and scores it against the truth.
 
   Args:
     cases: from `scene_cases.make_cases`.
     lrf_kw: keyword arguments of `lrf_jax.register` (default none); `seed` may be among them.
     open3d: also run Open3D's pipeline (skipped with a note when open3d is not installed).
+    kiss: also run KISS-Matcher with ICP (`run_kiss`; skipped when it is not installed).
     seed: the seed of both methods.
     progress: a tqdm bar when tqdm is installed, else one line per case (on stderr).
     warmup: one untimed lrf_jax call on the first case first (JAX compilation).
@@ -152,6 +248,7 @@ def run_cases(cases: list[Case], lrf_kw: dict[str, Any] | None = None, open3d: b
   """
   lrf_kw = dict(lrf_kw or {})
   open3d = open3d and have_open3d()
+  kiss = kiss and have_kiss_matcher()
   if warmup and cases:
     run_lrf(cases[0], lrf_kw, seed)
   bar = _progress(cases, progress)
@@ -164,6 +261,8 @@ def run_cases(cases: list[Case], lrf_kw: dict[str, Any] | None = None, open3d: b
     rec["lrf"] = run_lrf(case, lrf_kw, seed)
     if open3d:
       rec["open3d"] = run_open3d(case, seed)
+    if kiss:
+      rec["kiss"] = run_kiss(case)
     records.append(rec)
     line = (f"lrf {'ok' if rec['lrf']['true'] else 'x'}"
             + (f" o3d {'ok' if rec['open3d']['true'] else 'x'}" if open3d else ""))
@@ -241,11 +340,11 @@ def summarize(records: list[dict[str, Any]]) -> list[dict[str, Any]]:
       row[f"{m}_median_re"] = _median([x["re"] for x in ok])
       row[f"{m}_median_te"] = _median([x["te"] for x in ok])
       row[f"{m}_median_s"] = _median([x["seconds"] for x in res])
-      if m == "lrf":
-        row["lrf_claimed"] = sum(bool(x["claimed"]) for x in res)
-        row["lrf_false"] = sum(bool(x["claimed"]) and not x["true"] for x in res)
-        row["lrf_claimed_of_true"] = (sum(bool(x["claimed"]) for x in ok) / len(ok)
-                                      if ok else None)
+      if m in ("lrf", "kiss"):
+        row[f"{m}_claimed"] = sum(bool(x["claimed"]) for x in res)
+        row[f"{m}_false"] = sum(bool(x["claimed"]) and not x["true"] for x in res)
+        row[f"{m}_claimed_of_true"] = (sum(bool(x["claimed"]) for x in ok) / len(ok)
+                                       if ok else None)
     rows.append(row)
   return rows
 
@@ -259,6 +358,10 @@ def summary_table(rows: list[dict[str, Any]]) -> str:
   if o3d:
     head += " o3d true | o3d med RE / TE | o3d med s | o3d errors |"
     rule += "---:|---:|---:|---:|"
+  kiss = any("kiss_true" in r for r in rows)
+  if kiss:
+    head += " KISS true | KISS valid | KISS false valid | KISS med s |"
+    rule += "---:|---:|---:|---:|"
   lines = [head, rule]
   for r in rows:
     unit = {"room": " m", "object": " mr"}.get(r["kind"])
@@ -271,6 +374,9 @@ def summary_table(rows: list[dict[str, Any]]) -> str:
     if o3d:
       line += (f" {r['open3d_true']} | {te('open3d')} | {_f(r['open3d_median_s'], '.1f')} | "
                f"{r['open3d_errors']} |")
+    if kiss:
+      line += (f" {r['kiss_true']} | {r['kiss_claimed']} | {r['kiss_false']} | "
+               f"{_f(r['kiss_median_s'], '.1f')} |")
     lines.append(line)
   return "\n".join(lines)
 
@@ -327,6 +433,14 @@ def main(argv: list[str] | None = None) -> None:
   ap.add_argument("--limit", type=int, default=None, help="at most N cases")
   ap.add_argument("--lrf-kw", default="{}", help="JSON object of lrf_jax.register keywords")
   ap.add_argument("--skip-open3d", action="store_true")
+  ap.add_argument("--kiss", action="store_true",
+                  help="also run KISS-Matcher with ICP (pip install kiss-matcher)")
+  ap.add_argument("--inits", action="store_true",
+                  help="also register every case from its truth (as published) and from the "
+                       "truth turned 30 deg, and count the claims")
+  ap.add_argument("--hints", action="store_true",
+                  help="run every 'not sure' again with the step its reason names, and count "
+                       "what each step settles")
   ap.add_argument("--seed", type=int, default=0, help="seed of the cases and of both methods")
   ap.add_argument("--json", default=None, help="write every record here (JSON)")
   args = ap.parse_args(argv)
@@ -360,16 +474,30 @@ def main(argv: list[str] | None = None) -> None:
     notes.append("open3d is not installed (pip install -r benchmarks/requirements-bench.txt): "
                  "the Open3D baseline was skipped")
   t1 = time.perf_counter()
-  records = run_cases(cases, lrf_kw, open3d=not args.skip_open3d, seed=args.seed)
+  if args.kiss and not have_kiss_matcher():
+    notes.append("kiss_matcher is not installed (pip install kiss-matcher): skipped")
+  records = run_cases(cases, lrf_kw, open3d=not args.skip_open3d, seed=args.seed,
+                      kiss=args.kiss)
   rows = summarize(records)
   print("\n" + "\n".join(f"- {n}" for n in notes))
   print("\n## Per case (RE deg, TE m for rooms / mr for objects)\n\n" + case_table(records))
   print("\n## Summary (true success: rooms RE < 15 deg and TE < 0.3 m; objects RE < 5 deg and "
         "TE < 10 mr; medians over true successes)\n\n" + summary_table(rows))
   print(f"\n{len(records)} cases in {time.perf_counter() - t1:.0f} s.")
+  inits = None
+  if args.inits:
+    inits = run_inits(records, cases, lrf_kw, args.seed)
+    print("\n## Inits\n\n" + ", ".join(f"{k} {v}" for k, v in inits.items()))
+  hints = None
+  if args.hints:
+    hints = settled_by_hints(records, cases, lrf_kw, args.seed)
+    print("\n## The next steps 'not sure' names (pairs named for / then claimed right / "
+          "claimed wrong)\n\n" + "\n".join(f"- {k}: {v[0]} / {v[1]} / {v[2]}"
+                                          for k, v in hints.items()))
   if args.json:
     out = write_json(args.json, {"machine": machine, "args": vars(args), "lrf_kw": lrf_kw,
-                                 "notes": notes, "records": records, "summary": rows})
+                                 "notes": notes, "records": records, "summary": rows,
+                                 "hints": hints, "inits": inits})
     print(f"wrote {out}")
 
 

@@ -80,7 +80,7 @@ def main() -> None:
       lrf_jax.compute_frames(pts, kp[:min(m, 4096)], r, method, progress=False, **opts)
       times = []
       for _ in range(_repeats(m)):
-        normals_cache._CACHE.clear()  # estimated normals and areas count in the timing
+        normals_cache.CLOUD_CACHE.clear()  # estimated normals and areas count in the timing
         t0 = time.perf_counter()
         f, _ = lrf_jax.compute_frames(pts, kp, r, method, progress=False, **opts)
         f.block_until_ready()

@@ -64,7 +64,7 @@ def _recording(monkeypatch, module, name):
 @pytest.mark.parametrize("method", sorted(lrf_jax.METHODS))
 def test_every_method_traces_full_precision_products(method, blob, monkeypatch):
   pts, faces, kp, r = blob
-  calls = _recording(monkeypatch, patch_frames, "_jitted")
+  calls = _recording(monkeypatch, patch_frames, "jitted_method")
   kw = {"faces": faces} if lrf_jax.METHODS[method].needs_mesh else {}
   lrf_jax.compute_frames(pts, kp, r, method, kernel="jit", search="host", **kw)
   assert calls, method
@@ -75,7 +75,7 @@ def test_every_method_traces_full_precision_products(method, blob, monkeypatch):
 
 def test_descriptors_device_search_and_decorated_functions(blob, monkeypatch):
   pts, _, kp, r = blob
-  calls = _recording(monkeypatch, descriptors_mod, "_jitted")
+  calls = _recording(monkeypatch, descriptors_mod, "jitted_descriptor")
   searches = []
   real_search = device_search._search  # noqa: SLF001
 

@@ -267,32 +267,10 @@ def test_the_layout_pages_import_table_is_the_package_graph():
   assert listed == package_graph()
 
 
-# Private names still read by another module, each named: `caches.py` clears other modules'
-# caches by design; the search engine's helpers and kernels (some named in the compile manifest)
-# are shared by its sibling modules. A use not listed here fails; one listed and gone fails too.
-KNOWN_PRIVATE_USES = {
-    ("lrf_jax/caches.py", "lrf_jax.datasets.cache", "_load"),
-    ("lrf_jax/caches.py", "lrf_jax.descriptors", "_jitted"),
-    ("lrf_jax/caches.py", "lrf_jax.frames.patch_frames", "_TABLES"),
-    ("lrf_jax/caches.py", "lrf_jax.frames.patch_frames", "_jitted"),
-    ("lrf_jax/caches.py", "lrf_jax.frames.weights", "_default_params_cached"),
-    ("lrf_jax/caches.py", "lrf_jax.frames.weights", "_default_params_numpy"),
-    ("lrf_jax/caches.py", "lrf_jax.geometry.normals", "_CACHE"),
-    ("lrf_jax/geometry/normals.py", "lrf_jax.geometry.cloud_cache", "_CACHE"),
-    ("lrf_jax/search/ball_lists.py", "lrf_jax.search.balls", "_ball_counts"),
-    ("lrf_jax/search/ball_lists.py", "lrf_jax.search.balls", "_columns"),
-    ("lrf_jax/search/ball_lists.py", "lrf_jax.search.balls", "_keep"),
-    ("lrf_jax/search/ball_lists.py", "lrf_jax.search.grid", "_BLOCK"),
-    ("lrf_jax/search/ball_lists.py", "lrf_jax.search.grid", "_centers"),
-    ("lrf_jax/search/ball_lists.py", "lrf_jax.search.grid", "_reach"),
-    ("lrf_jax/search/balls.py", "lrf_jax.search.grid", "_PRUNE_MARGIN"),
-    ("lrf_jax/search/balls.py", "lrf_jax.search.grid", "_cell"),
-    ("lrf_jax/search/balls.py", "lrf_jax.search.grid", "_centers"),
-    ("lrf_jax/search/balls.py", "lrf_jax.search.grid", "_reach"),
-    ("lrf_jax/search/nearest.py", "lrf_jax.search.grid", "_PRUNE_MARGIN"),
-    ("lrf_jax/search/nearest.py", "lrf_jax.search.grid", "_cell"),
-    ("lrf_jax/search/nearest.py", "lrf_jax.search.grid", "_centers"),
-}
+# Private names read by another module: none since 0.9 (a name shared by sibling modules is
+# public within its package, e.g. `search.grid.cell_reach`, or lives where it is used). The set
+# stays empty: a new private use across modules fails the test.
+KNOWN_PRIVATE_USES: set[tuple[str, str, str]] = set()
 
 
 def private_uses() -> set[tuple[str, str, str]]:

@@ -48,7 +48,7 @@ def test_cache_last_copies_arrays_in_tuples():
   assert len(calls) == 1 and tag2 == tag == "tag"
   np.testing.assert_array_equal(a2, np.arange(3.0))
   np.testing.assert_array_equal(b2, np.ones(2))
-  normals._CACHE.pop("test_caches")
+  normals.CLOUD_CACHE.pop("test_caches")
 
 
 def test_mean_curvature_cache_hands_out_copies():

@@ -39,7 +39,9 @@ def _listing(folder: Path) -> list[str]:
     (["--keypoints", "-3"], "--keypoints"),
     (["--seed", "-1"], "--seed"),
     (["--seed", str(2**40)], "--seed"),
-    (["--voxel-mr", "1e-20"], "--voxel-mr"),       # 23 keypoints of 3,000 before
+    (["--keypoint-voxel-mr", "1e-20"], "--keypoint-voxel-mr"),  # 23 keypoints of 3,000 before
+    (["--keypoint-voxel-mr", "5", "--keypoints", "10"], "--keypoint-voxel-mr and --keypoints"),
+    (["--voxel-mr", "1e-20"], "--voxel-mr:"),      # its name before 0.9, named as typed
     (["--voxel-mr", "5", "--keypoints", "10"], "--voxel-mr and --keypoints"),
     (["--png", "PNG/x.xyz"], "--png"),             # failed after the npz was written before
     (["--png", "PNG/x"], "--png"),
@@ -85,6 +87,7 @@ def test_frames_out_in_a_read_only_folder(cloud_npy, tmp_path, capsys, monkeypat
 def test_frames_unreadable_input(cloud_npy, tmp_path, capsys, monkeypatch):
   bad = tmp_path / "locked.ply"
   bad.write_bytes(b"ply\n")
+  import lrf_jax.frames.compute  # noqa: F401 -- imported unpatched: it binds as_cloud on import
   from lrf_jax.geometry import cloud as inputs
 
   def denied(source, name):

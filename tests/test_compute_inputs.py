@@ -128,12 +128,14 @@ def test_clear_caches_empties_them(demo):
   pts, faces, mr = demo
   lrf_jax.compute_frames(pts, np.arange(0, len(pts), 97), 15 * mr, "flare")
   lrf_jax.compute_frames(pts, np.arange(0, len(pts), 97), 15 * mr, "lrf_net")
-  # the jitted path too (on a CPU both methods above run host kernels): fills patch_frames._jitted
+  # the jitted path too (on a CPU both methods above run host kernels): fills
+  # patch_frames.jitted_method
   lrf_jax.compute_frames(pts, np.arange(0, len(pts), 97), 15 * mr, "lrf_net", kernel="jit")
-  assert normals._CACHE and patch_frames._TABLES and patch_frames._jitted.cache_info().currsize
+  assert normals.CLOUD_CACHE and patch_frames.WEIGHT_TABLES
+  assert patch_frames.jitted_method.cache_info().currsize
   lrf_jax.clear_caches()
-  assert not normals._CACHE and not patch_frames._TABLES
-  assert patch_frames._jitted.cache_info().currsize == 0
+  assert not normals.CLOUD_CACHE and not patch_frames.WEIGHT_TABLES
+  assert patch_frames.jitted_method.cache_info().currsize == 0
 
 
 def test_kernel_and_search_are_checked_with_no_keypoints_too(demo):

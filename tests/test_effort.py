@@ -30,18 +30,51 @@ def test_effort_is_an_option_and_a_flag():
   ap = argparse.ArgumentParser()
   add_register_flags(ap)
   assert ap.parse_args(["--effort", "high"]).effort == "high"
+  assert ap.parse_args(["--effort", "fast"]).effort == "fast"
   assert ap.parse_args([]).effort == "normal"
 
 
-def test_not_sure_names_the_next_step_and_high_effort_only_an_init():
+@pytest.mark.parametrize("seed", [0, 1])
+def test_normal_effort_is_the_fast_pass_then_the_pooled_one_where_not_sure(demo, seed):
+  """effort="normal" returns the first pass where it claims, and `effort="high"`'s result, bit
+  for bit, where the first pass is not sure (here: few keypoints), with `escalated` and both
+  passes in `reason`; "fast" never escalates."""
+  kw = dict(mr=demo.mr, n_keypoints=80, seed=seed)
+  fast = register(demo.model_points, demo.scene_points, effort="fast", **kw)
+  normal = register(demo.model_points, demo.scene_points, **kw)
+  high = register(demo.model_points, demo.scene_points, effort="high", **kw)
+  assert not fast.success and not fast.escalated
+  assert "effort=" not in fast.reason or "effort='normal' or 'high'" in fast.reason
+  assert normal.escalated and not high.escalated
+  np.testing.assert_array_equal(normal.transform, high.transform)
+  np.testing.assert_array_equal(normal.correspondences, high.correspondences)
+  assert (normal.success, normal.reason_code, normal.evidence_inliers) == (
+      high.success, high.reason_code, high.evidence_inliers)
+  assert normal.reason.startswith(high.reason)
+  assert f"tried one pass ({fast.reason_code}), then {EFFORT_SEEDS} seeds" in normal.reason
+  assert "effort=" not in normal.reason  # the pooled pass was the next step; only an init is left
+  assert normal.seconds > high.seconds * 0.5  # both passes are counted
+  sure = register(demo.model_points, demo.scene_points, mr=demo.mr, seed=seed)
+  first = register(demo.model_points, demo.scene_points, mr=demo.mr, seed=seed, effort="fast")
+  assert sure.success and not sure.escalated  # claimed at the first pass: that pass's result
+  np.testing.assert_array_equal(sure.transform, first.transform)
+  assert sure.reason == first.reason
+
+
+def test_not_sure_names_only_a_next_step_that_may_settle_it():
+  """One pass names more effort; the pooled evidence names nothing (an init is judged on the
+  same evidence, so it is not a step); neither does a pair whose rival nearly ties."""
   base = dict(n_inliers=20, chance_inliers=5, rival_inliers=12, fitness=0.5, contrast=0.0,
               estimator="graph")
   normal = decide(Evidence(**base))
   assert normal.code == "rival" and "effort='high'" in normal.reason
+  fast = decide(Evidence(**base, effort="fast"))
+  assert "effort='normal' or 'high'" in fast.reason
   high = decide(Evidence(**base, effort="high"))
-  assert high.code == "rival" and "effort='high'" not in high.reason and "init" in high.reason
+  assert high.code == "rival" and "effort" not in high.reason and "init" not in high.reason
+  assert high.reason.endswith("(needs 39)")
   twins = decide(Evidence(**{**base, "rival_inliers": 19}))  # two copies: more finds both
-  assert twins.code == "rival" and "effort" not in twins.reason and "init" in twins.reason
+  assert twins.code == "rival" and "effort" not in twins.reason
   low = decide(Evidence(**{**base, "fitness": 0.01}))
   assert "effort" not in low.reason  # more keypoints do not make the clouds overlap
 

@@ -112,7 +112,7 @@ def test_cells_counted_whole_lie_inside_the_ball(offset):
   r = 0.1
   grid = engine.Grid(pts, r / 3)
   centers = pts[rng.choice(len(pts), 300, replace=False)]
-  reach = balls._reach(grid, r)
+  reach = balls.cell_reach(grid, r)
 
   @nb.njit
   def check(xyz, starts, origin, h, dims, centers, r, reach):
@@ -217,8 +217,8 @@ def test_balls_missed_by_the_rank_limit_are_collected_again():
   r, rz = 0.5, 0.5 / 3
   balls._patch_kernel(grid.xyz, grid.slot_index, grid.slot_rank, grid.starts, grid.origin,
                        grid.h, grid.dims, centers, engine.query_order(grid, centers), r, rz, k,
-                       1, balls._reach(grid, r), balls._reach(grid, rz), *balls._keep(r, None),
-                       False, *got.values())
+                       1, balls.cell_reach(grid, r), balls.cell_reach(grid, rz),
+                       *balls.kept_shells(r, None), False, *got.values())
   assert (want["count"] > 2 * k).mean() > 0.5  # balls the limit would have cut
   for name in got:
     np.testing.assert_array_equal(got[name], want[name])

@@ -66,12 +66,34 @@ def demo():
   return datasets.make_demo_pair(0, seed=0, noise_mr=0.1, partial=True)
 
 
-def test_a_real_pair_is_claimed_with_its_code_and_init_says_init_only(demo):
+def test_a_real_pair_is_claimed_with_its_code_and_so_is_its_pose_as_an_init(demo):
   reg = register(demo.model_points, demo.scene_points, mr=demo.mr, **KW)
   assert reg.success and reg.reason_code == "claimed"
   assert reg.evidence_inliers == reg.n_inliers  # the default: the evidence is its own matching
-  ref = register(demo.model_points, demo.scene_points, mr=demo.mr, init=reg.transform)
-  assert ref.success is False and ref.reason_code == "init_only"
+  ref = register(demo.model_points, demo.scene_points, mr=demo.mr, init=reg.transform, **KW)
+  assert ref.success and ref.reason_code == "claimed" and ref.reason.startswith("refined from init")
+  # the same evidence at (nearly) the same pose: the counts the verdict compared agree
+  assert ref.chance_inliers == reg.chance_inliers
+  assert abs(ref.evidence_inliers - reg.evidence_inliers) <= 0.1 * reg.evidence_inliers
+
+
+@pytest.mark.parametrize("degrees", [30.0, 90.0, 180.0])
+def test_a_wrong_init_is_never_claimed(demo, degrees):
+  """Before: an init was refined and never judged (`init_only`). Now it is judged on the
+  default's evidence: the truth turned about the target's centre is not claimed, whichever
+  pose ICP settles in, unless ICP brings it back to the truth."""
+  from lrf_jax.registration import pose_errors
+  turn = np.eye(4)
+  turn[:3, :3] = Rotation.from_rotvec(np.radians(degrees) * np.array([0.6, 0.0, 0.8])).as_matrix()
+  centre = demo.scene_points.mean(axis=0)
+  turn[:3, 3] = centre - turn[:3, :3] @ centre
+  init = turn @ demo.transform
+  ref = register(demo.model_points, demo.scene_points, mr=demo.mr, init=init, **KW)
+  err, _ = pose_errors(ref.transform, demo.transform, demo.mr)
+  np.testing.assert_allclose(ref.coarse_transform, init, atol=1e-12)
+  assert not ref.success or err < 2.0, (ref.reason, err)
+  if err > 10.0:  # ICP kept a wrong pose: the right one, among the graph's, is its rival
+    assert ref.reason_code in ("rival", "chance", "low_overlap", "degenerate"), ref.reason
 
 
 @pytest.mark.parametrize("options", [{"estimator": "lrf"}, {"estimator": "3point"},

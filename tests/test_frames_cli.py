@@ -40,7 +40,7 @@ def test_writes_frames_npz_and_png(demo_ply, tmp_path):
 
 def test_voxel_and_all_keypoints(demo_ply, tmp_path):
   path, pair = demo_ply
-  assert main([str(path), "--out", str(tmp_path / "v.npz"), "--voxel-mr", "10",
+  assert main([str(path), "--out", str(tmp_path / "v.npz"), "--keypoint-voxel-mr", "10",
                "--method", "toldi"]) == 0
   kv = np.load(tmp_path / "v.npz")["keypoints"]
   assert 10 < len(kv) < len(pair.model_points) and np.all(np.diff(kv) > 0)

@@ -260,7 +260,7 @@ def test_mesh_kernels_match_the_numpy_formulas(br_bunny):
   got_h = nm.cotangent_laplacian_curvature(pts, faces)
   np.testing.assert_allclose(got_h, h, rtol=1e-12, atol=1e-12 * np.abs(h).max())
   assert got_h[n - 1] == 0.0 and np.isnan(nm.vertex_normals(pts, faces)[n - 1]).all()
-  nm._CACHE.clear()
+  nm.CLOUD_CACHE.clear()
   g2, gn2, share2, share_n2, ok2, edge2 = gf.vertex_shares(pts, faces)
   scale = np.abs(g).max()
   np.testing.assert_allclose(g2, g, atol=1e-9 * scale)

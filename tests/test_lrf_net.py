@@ -347,11 +347,11 @@ def test_weight_table_is_cached_and_equals_the_parameters_path(bunny):
   np.testing.assert_array_equal(np.asarray(a[0]), np.asarray(b[0]))
   with pytest.raises(ValueError, match="WeightTable of shape"):
     _lrf_net_frames(table, p, lut=33)
-  patch_frames._TABLES.clear()
+  patch_frames.WEIGHT_TABLES.clear()
   f1, _ = _frames(pts, kp[:40], r, lut=65)
-  cached = patch_frames._TABLES[-1][-1]
+  cached = patch_frames.WEIGHT_TABLES[-1][-1]
   f2, _ = _frames(pts, kp[:40], r, lut=65)
-  assert len(patch_frames._TABLES) == 1 and patch_frames._TABLES[-1][-1] is cached
+  assert len(patch_frames.WEIGHT_TABLES) == 1 and patch_frames.WEIGHT_TABLES[-1][-1] is cached
   np.testing.assert_array_equal(f1, f2)
 
 
@@ -603,6 +603,6 @@ def test_weight_table_follows_the_parameters_content(host):
 def test_weight_table_under_jit_is_not_cached():
   from lrf_jax.frames import patch_frames
   from lrf_jax.frames.weights import default_params
-  before = len(patch_frames._TABLES)
+  before = len(patch_frames.WEIGHT_TABLES)
   values = jax.jit(lambda p: patch_frames.cached_weight_table(p, 9).values)(default_params("lrf_net"))
-  assert values.shape[:2] == (9, 9) and len(patch_frames._TABLES) == before
+  assert values.shape[:2] == (9, 9) and len(patch_frames.WEIGHT_TABLES) == before

@@ -417,9 +417,10 @@ def test_candidate_pairs_never_pair_a_scan_with_itself(all_pairs_max):
   assert pairs == [(0, 1), (0, 2), (1, 2)]
 
 
-def test_voxel_too_small_for_the_extent_is_refused(tmp_path, capsys, monkeypatch):
+@pytest.mark.parametrize("flag", ["--merge-voxel-mr", "--voxel"])  # --voxel: before 0.9
+def test_voxel_too_small_for_the_extent_is_refused(tmp_path, capsys, monkeypatch, flag):
   """`--voxel 1e-20`: the int64 voxel keys overflowed and merged.ply collapsed to a few points;
-  now one error: line naming --voxel before any registration, nothing written."""
+  now one error: line naming the flag as typed before any registration, nothing written."""
   from lrf_jax.cli.register import main
   clouds = [np.random.default_rng(k).normal(size=(30, 3)) for k in range(3)]
   res = _result(["a", "b", "c"], [True] * 3)
@@ -433,10 +434,10 @@ def test_voxel_too_small_for_the_extent_is_refused(tmp_path, capsys, monkeypatch
   scans = _npy_scans(tmp_path / "in", "a.npy", "b.npy", "c.npy")
   monkeypatch.setattr(multiway_pipeline, "register_all", lambda *a, **k: pytest.fail("registered"))
   out = tmp_path / "model"
-  assert main([*scans, "--out-dir", str(out), "--quiet", "--no-figures", "--voxel", "1e-20"]) == 2
+  assert main([*scans, "--out-dir", str(out), "--quiet", "--no-figures", flag, "1e-20"]) == 2
   err = capsys.readouterr().err
   errors = [line for line in err.splitlines() if line.startswith("error: ")]
-  assert len(errors) == 1 and errors[0].startswith("error: --voxel: 1e-20 mr = "), err
+  assert len(errors) == 1 and errors[0].startswith(f"error: {flag}: 1e-20 mr = "), err
   assert "too small" in err and "Traceback" not in err and not out.exists()
 
 

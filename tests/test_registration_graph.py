@@ -142,7 +142,7 @@ def test_register_default_graph_succeeds_with_a_reason_and_options_work():
       register(pair.model_points, pair.scene_points, **kw, **bad)
 
 
-def test_register_with_init_only_refines_and_does_not_claim_success():
+def test_register_with_init_refines_it_and_judges_it_on_the_default_evidence():
   from lrf_jax.registration import pose_errors, register
   pair = _demo()
   off = Rotation.from_rotvec([0.0, 0.0, np.radians(3.0)]).as_matrix()
@@ -152,7 +152,8 @@ def test_register_with_init_only_refines_and_does_not_claim_success():
   re0, _ = pose_errors(init, pair.transform, pair.mr)
   re, te = pose_errors(reg.transform, pair.transform, pair.mr)
   assert re < re0 / 3 and te < 1.0
-  assert reg.success is False and "init" in reg.reason and len(reg.correspondences) == 0
+  assert reg.reason.startswith("refined from init") and len(reg.correspondences) > 0
+  assert reg.success and reg.reason_code == "claimed"  # the refined pose is the truth's
   np.testing.assert_array_equal(reg.coarse_transform, init)
   bad = init.copy()
   bad[:3, :3] *= -1  # a reflection, not a rotation

@@ -44,8 +44,8 @@ def test_points_only_weights_load_and_are_documented():
 
 
 def test_default_params_first_called_inside_jit_do_not_leak_tracers():
-  from lrf_jax.frames.weights import _default_params_cached
-  _default_params_cached.cache_clear()
+  from lrf_jax.frames.weights import default_params_cached
+  default_params_cached.cache_clear()
   jax.jit(lambda x: x + jax.tree.leaves(lrf_jax.default_params("lrf_net_plus"))[0].sum())(1.0)
   for leaf in jax.tree.leaves(lrf_jax.default_params("lrf_net_plus")):
     assert not isinstance(leaf, jax.core.Tracer)

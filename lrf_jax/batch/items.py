@@ -19,7 +19,7 @@ __all__ = ["FRAMES_OPTIONS", "check_frames_options", "check_register_options", "
            "is_transient", "register_pair"]
 
 # `run_frames` keywords -> lrf-frames flags (the item is lrf-frames' own computation).
-FRAMES_OPTIONS = {"keypoints": "--keypoints", "voxel_mr": "--voxel-mr",
+FRAMES_OPTIONS = {"keypoints": "--keypoints", "voxel_mr": "--keypoint-voxel-mr",
                   "voxel_size": "--voxel-size", "method": "--method",
                   "radius_mr": "--radius-mr", "viewpoint": "--viewpoint",
                   "descriptor": "--descriptor", "seed": "--seed"}

@@ -16,24 +16,32 @@ from lrf_jax.checks import validate_seed
 from lrf_jax.defaults import DEFAULT_METHOD, RADIUS_MR
 from lrf_jax.registration.options import option_field
 
-# Smallest --voxel-mr: voxels of a tenth of the point spacing already hold one point each.
+# Smallest --keypoint-voxel-mr: voxels of a tenth of the spacing already hold one point each.
 MIN_VOXEL_MR = 0.1
 # Keypoints drawn when neither a count nor a rule is given.
 DEFAULT_KEYPOINTS = 1000
 _ASCII_DIGITS = frozenset("0123456789")
 
 
+def _renamed(field: Any, *old: str) -> Any:
+  """The `option_field` `field` whose flag keeps its names of before 0.9 (`old`) as aliases for
+  this release: the metadata's `aliases`, further names of the same flag
+  (`lrf_jax.cli.options.add_option_flags`)."""
+  return dataclasses.field(default=field.default, metadata={**field.metadata, "aliases": old})
+
+
 @dataclasses.dataclass(frozen=True)
 class FrameOptions:
   """What lrf-frames computes for one scan: each field is the flag of the same name in kebab case
-  (`cloud` the positional argument), with its default and help; `lrf-frames` and `lrf-batch
+  (`cloud` the positional argument; `voxel_mr` is `--keypoint-voxel-mr`, `--voxel-mr` before
+  0.9, still accepted: `frame_flag`), with its default and help; `lrf-frames` and `lrf-batch
   frames` derive their flags from the fields (`lrf_jax.cli.options.add_option_flags`).
 
   Attributes:
     cloud: the scan's path (any file `lrf_jax.io.read_cloud` reads).
     keypoints: a count of seeded random points, "all" or "iss" (None: `DEFAULT_KEYPOINTS`).
     voxel_mr: instead, one keypoint per voxel of this edge in mr (the point nearest its centre):
-      it picks keypoints, and thins nothing.
+      it picks keypoints, and thins nothing (`--keypoint-voxel-mr`).
     voxel_size: thin the support (every frame's neighbours) by voxel averaging, as
       `compute_frames(voxel_size=)` and `register` do: None chooses (an uneven cloud such as a
       raw LiDAR sweep is thinned to its working resolution, clean clouds and meshes are not), 0
@@ -52,10 +60,10 @@ class FrameOptions:
   keypoints: str | None = option_field(
       None, "N seeded random points, 'all', or 'iss' (ISS keypoints); none given: "
       f"{DEFAULT_KEYPOINTS}")
-  voxel_mr: float | None = option_field(
+  voxel_mr: float | None = _renamed(option_field(
       None, f"keypoints: the point nearest each voxel centre, voxels of S mr, S >= "
       f"{MIN_VOXEL_MR:g} (instead of --keypoints; it picks keypoints and thins nothing: "
-      "--voxel-size thins the support)")
+      "--voxel-size thins the support)", flag="--keypoint-voxel-mr", metavar="S"), "--voxel-mr")
   voxel_size: float | None = option_field(
       None, "thin the support by voxel averaging, voxels of V (cloud units; 0: keep every "
       "point); none given: an uneven cloud (a raw LiDAR sweep) is thinned to its working "
@@ -94,9 +102,10 @@ class FrameOptions:
       return f"--method: unknown method {self.method!r}; expected one of {sorted(METHODS)}"
     if self.descriptor is not None and self.descriptor not in DESCRIPTORS:
       return f"--descriptor: unknown {self.descriptor!r}; expected one of {sorted(DESCRIPTORS)}"
+    voxel_flag = frame_flag("voxel_mr")
     if self.voxel_mr is not None and self.keypoints is not None:
-      return ("--voxel-mr and --keypoints: give one of them (--voxel-mr picks one keypoint per "
-              "voxel, --keypoints a number, 'all' or 'iss')")
+      return (f"{voxel_flag} and --keypoints: give one of them ({voxel_flag} picks one keypoint "
+              "per voxel, --keypoints a number, 'all' or 'iss')")
     kp = self.keypoints
     if kp is not None and kp not in ("all", "iss") and (
         not kp or not set(kp) <= _ASCII_DIGITS or int(kp) < 1):
@@ -104,13 +113,13 @@ class FrameOptions:
     for name in ("radius_mr", "voxel_mr"):
       v = getattr(self, name)
       if v is not None and not (np.isfinite(v) and v > 0):
-        return f"--{name.replace('_', '-')}: expected a positive number, got {v!r}"
+        return f"{frame_flag(name)}: expected a positive number, got {v!r}"
     vs = self.voxel_size
     if vs is not None and not (np.isfinite(vs) and vs >= 0):
       return (f"--voxel-size: expected 0 (keep every point) or a positive voxel edge in cloud "
               f"units, got {vs!r}")
     if self.voxel_mr is not None and self.voxel_mr < MIN_VOXEL_MR:
-      return (f"--voxel-mr: {self.voxel_mr:g} mr is below {MIN_VOXEL_MR:g} mr (voxels that "
+      return (f"{voxel_flag}: {self.voxel_mr:g} mr is below {MIN_VOXEL_MR:g} mr (voxels that "
               "small hold one point each; use --keypoints all)")
     try:
       validate_seed(self.seed, "--seed")
@@ -140,6 +149,13 @@ class FrameOptions:
 FramesRequest = FrameOptions
 
 
+def frame_flag(name: str) -> str:
+  """The flag of lrf-frames (and lrf-batch frames) that sets the `FrameOptions` field `name`: its
+  metadata's `flag`, else the name in kebab case (`voxel_mr`: "--keypoint-voxel-mr")."""
+  field = {f.name: f for f in dataclasses.fields(FrameOptions)}[name]
+  return field.metadata["flag"] or "--" + name.replace("_", "-")
+
+
 def select_keypoints(points: np.ndarray, how: str, voxel: float | None, seed: int,
                      mr: float | None = None) -> np.ndarray:
   """Sorted keypoint indices: every point ('all'), ISS keypoints ('iss', at resolution `mr`),
@@ -154,8 +170,8 @@ def select_keypoints(points: np.ndarray, how: str, voxel: float | None, seed: in
     cells = np.floor((points - points.min(0)) / voxel)
     if not (np.isfinite(voxel) and voxel > 0 and np.all(np.isfinite(cells))
             and cells.max(initial=0) < 2**40):
-      raise ValueError(f"--voxel-mr: a voxel of {voxel:g} (cloud units) is too small for a "
-                       f"cloud of extent {np.ptp(points, axis=0).max():g}")
+      raise ValueError(f"{frame_flag('voxel_mr')}: a voxel of {voxel:g} (cloud units) is too "
+                       f"small for a cloud of extent {np.ptp(points, axis=0).max():g}")
     cells = cells.astype(np.int64)
     centre = (cells + 0.5) * voxel + points.min(0)
     d = np.linalg.norm(points - centre, axis=1)

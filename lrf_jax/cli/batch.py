@@ -24,7 +24,7 @@ from typing import Any
 from lrf_jax.cli.exits import EXIT_USAGE, refuse, write_failed
 from lrf_jax.cli.help import DefaultsHelpFormatter
 from lrf_jax.cli.interrupt import interruptible
-from lrf_jax.cli.options import add_frame_flags
+from lrf_jax.cli.options import add_frame_flags, as_typed
 
 # lrf-register options a job cannot take
 _NOT_BATCH = ("out", "png", "checkpoint", "init", "best_guess")
@@ -55,17 +55,17 @@ def _common(p: argparse.ArgumentParser) -> None:
 
 
 def build_parser() -> argparse.ArgumentParser:
-  ap = argparse.ArgumentParser(prog="lrf-batch", description="Frames of every scan, or "
+  ap = argparse.ArgumentParser(prog="lrf-batch", allow_abbrev=False, description="Frames of every scan, or "
                                "registrations of every listed pair, of a data set; resumable.",
                                formatter_class=DefaultsHelpFormatter)
   sub = ap.add_subparsers(dest="job", required=True)
   fr = sub.add_parser("frames", help="frames (and descriptors) of every scan, as lrf-frames",
-                      formatter_class=DefaultsHelpFormatter)
+                      formatter_class=DefaultsHelpFormatter, allow_abbrev=False)
   fr.add_argument("scans", nargs="+", metavar="SCAN", help="cloud or mesh files")
   _common(fr)
   add_frame_flags(fr, skip=("pair", "gt", "pair_viewpoint"), suppress_defaults=True)
   rg = sub.add_parser("register", help="registration of every pair of a PAIRS.tsv",
-                      formatter_class=DefaultsHelpFormatter,
+                      formatter_class=DefaultsHelpFormatter, allow_abbrev=False,
                       epilog="Any option of lrf-register but --out, --best-guess, --png, "
                              "--checkpoint and --init may follow (lrf-register --help lists them); options not "
                              "given keep register's defaults. PAIRS.tsv: tab-separated, a "
@@ -123,7 +123,7 @@ def main(argv: list[str] | None = None) -> int:
       compilation_cache.enable()
       result = jobs.run_frames(args.scans, args.out, **common, **options)
   except (ValueError, FileNotFoundError, ImportError) as e:
-    return refuse(str(e))
+    return refuse(as_typed(str(e), args))  # a flag named as typed: --voxel-mr, its old name
   except WriteError as e:  # a read-only or full disk: the finished items are kept
     return write_failed(e, "; the finished items are kept")
   except OSError as e:

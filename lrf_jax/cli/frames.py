@@ -1,10 +1,11 @@
 """`lrf-frames CLOUD --out F.npz`: local reference frames for the keypoints of one's own file.
 
 Reads any cloud or mesh `lrf_jax.io.read_cloud` reads (PLY, PCD, XYZ/TXT(.gz), NPY), picks
-keypoints (N seeded random points, all points, ISS keypoints, or with --voxel-mr one point per
-voxel of S mr; --voxel-mr and --keypoints exclude each other), computes their frames (and
-optionally a descriptor) on the support `--voxel-size` gives (the cloud thinned by voxel
-averaging: by default an uneven cloud such as a raw LiDAR sweep, to its working resolution mr;
+keypoints (N seeded random points, all points, ISS keypoints, or with --keypoint-voxel-mr S
+one point per voxel of S mr; it and --keypoints exclude each other; --voxel-mr is its name
+before 0.9, still accepted), computes their frames (and optionally a descriptor) on the
+support `--voxel-size` gives (the cloud thinned by voxel averaging, voxels in cloud units: by
+default an uneven cloud such as a raw LiDAR sweep, to its working resolution mr;
 `compute_frames(voxel_size=)`) and writes an .npz with `keypoints` (indices into the input
 cloud), `positions`, `frames` (m, 3, 3, rows x, y, z), `valid` (m,), `radius`, `mr` (the working
 resolution), `voxel_size` (the voxel the support was thinned at, 0: none), `method`, `weights`,
@@ -37,7 +38,7 @@ from pathlib import Path
 import numpy as np
 
 from lrf_jax.batch.items import FRAMES_OPTIONS
-from lrf_jax.cli.options import add_frame_flags
+from lrf_jax.cli.options import add_frame_flags, as_typed
 from lrf_jax.cli.exits import EXIT_OK, EXIT_USAGE, refuse, write_failed
 from lrf_jax.cli.interrupt import exit_with, interruptible
 from lrf_jax.cli.help import DefaultsHelpFormatter
@@ -47,7 +48,7 @@ FIGURE_SUFFIXES = (".png", ".pdf", ".svg", ".jpg", ".jpeg")
 
 
 def build_parser() -> argparse.ArgumentParser:
-  ap = argparse.ArgumentParser(prog="lrf-frames", description="Local reference frames of the "
+  ap = argparse.ArgumentParser(prog="lrf-frames", allow_abbrev=False, description="Local reference frames of the "
                                "keypoints of a cloud or mesh file, written to an .npz; with "
                                "--pair and --gt, also their repeatability on a second scan.",
                                formatter_class=DefaultsHelpFormatter)
@@ -145,7 +146,7 @@ def main(argv: list[str] | None = None) -> int:
   args = build_parser().parse_args(argv)
   problem = _check(args)
   if problem:
-    return refuse(problem)
+    return refuse(as_typed(problem, args))  # a flag named as typed: --voxel-mr, its old name
   from lrf_jax import compilation_cache
   compilation_cache.enable()
   from lrf_jax.cli import parallel_compile
@@ -160,7 +161,7 @@ def _frames_and_report(args: argparse.Namespace) -> int:
   try:
     out, cloud, other = frames_outputs(args)
   except (ValueError, FileNotFoundError) as e:
-    print(f"error: {e}", file=sys.stderr)
+    print(f"error: {as_typed(str(e), args)}", file=sys.stderr)
     return EXIT_USAGE
   except OSError as e:  # unreadable input (permissions, a folder, an I/O error)
     print(f"error: cloud: could not read {e.filename or args.cloud}: "

@@ -7,9 +7,10 @@ the reference scan's frame: the first scan's, unless the first scan is left out,
 first scan that is in the model), `poses.txt` (every scan's pose in KITTI's pose-file layout:
 line k holds scan k's 3x4 [R|t] in that frame, 12 numbers row-major, 12 `nan` for a scan left
 out: the trajectory of a sweep sequence), `merged.ply` (the merged cloud coloured by scan,
-`--voxel` mr voxels if given), `edges.tsv` (pair, verdict, inliers, overlap, residual, accepted or
-rejected, placement: whether a scan is placed only through "not sure" edges, also said on
-stderr; the table is also printed), the figures `merged.png` and `graph.png`, and `manifest.json`, the list
+thinned by voxels of S mr with `--merge-voxel-mr S`, named `--voxel` before 0.9 and still
+accepted), `edges.tsv` (pair, verdict, inliers, overlap, residual, accepted or rejected,
+placement: whether a scan is placed only through "not sure" edges, also said on stderr; the
+table is also printed), the figures `merged.png` and `graph.png`, and `manifest.json`, the list
 of these files. D must be new, empty or an earlier run's output folder (it holds that run's
 manifest): the files the earlier run listed are replaced or removed, so that D holds this run's
 files only (a folder of other files is refused). Without `--out-dir` the edge table and the
@@ -33,9 +34,11 @@ import numpy as np
 from lrf_jax.checks import validate_seed
 from lrf_jax.cli.exits import EXIT_USAGE, EXIT_WRITE_FAILED, refuse
 from lrf_jax.cli.interrupt import exit_with, interruptible
-from lrf_jax.cli.options import (add_multiway_flags, option_message, register_overrides,
-                                 register_problem)
+from lrf_jax.cli.options import (AliasedFlag, add_multiway_flags, alias_help, as_typed,
+                                 option_message, register_overrides, register_problem)
 
+# The old names of --merge-voxel-mr, still accepted in 0.9.
+MERGE_VOXEL_OLD = ("--voxel",)
 # The flags whose meaning is the job's, not one pair's: their help on this command line.
 _HELPS = {
     "mr": "mesh resolution in the clouds' units (default: median over the scans)",
@@ -45,7 +48,7 @@ _HELPS = {
 
 def build_parser() -> argparse.ArgumentParser:
   ap = argparse.ArgumentParser(
-      prog="lrf-register",
+      prog="lrf-register", allow_abbrev=False,
       description="Register several scans into one model: pairwise LRF registration over a "
                   "candidate graph, a robust pose graph (wrong edges rejected), joint ICP.")
   ap.add_argument("scans", nargs="+", help="the scans (PLY, PCD, XYZ/TXT(.gz), NPY), each in "
@@ -53,8 +56,11 @@ def build_parser() -> argparse.ArgumentParser:
   ap.add_argument("--out-dir", default=None, metavar="D",
                   help="write D/<stem>.txt, D/poses.txt (KITTI layout), D/merged.ply, "
                        "D/edges.tsv, D/merged.png, D/graph.png")
-  ap.add_argument("--voxel", type=float, default=None,
-                  help="voxel size of merged.ply in mr (default: every point)")
+  # Not an option of `register_all` (no options class holds it): merged.ply's voxel, in mr.
+  ap.add_argument("--merge-voxel-mr", *MERGE_VOXEL_OLD, dest="merge_voxel_mr", type=float,
+                  default=None, metavar="S", action=AliasedFlag,
+                  help=alias_help("thin merged.ply by voxels of S mr (default: every point)",
+                                  MERGE_VOXEL_OLD))
   add_multiway_flags(ap, helps=_HELPS)
   ap.add_argument("--viewpoint", type=float, nargs=3, default=None, metavar=("X", "Y", "Z"),
                   help="sensor position of every scan, in each scan's own frame")
@@ -112,7 +118,7 @@ def _check(args: argparse.Namespace) -> str | None:
     validate_seed(args.seed, "--seed")
   except ValueError as e:
     return str(e)
-  for name in ("voxel", "mr", "reject_mr"):
+  for name in ("merge_voxel_mr", "mr", "reject_mr"):
     val = getattr(args, name)
     if val is not None and not (np.isfinite(val) and val > 0):
       return f"--{name.replace('_', '-')}: expected a positive number, got {val}"
@@ -212,7 +218,7 @@ def main(argv: list[str] | None = None) -> int:
   args = build_parser().parse_args(argv)
   problem = _check(args)
   if problem:
-    return refuse(problem)
+    return refuse(as_typed(problem, args))  # a flag named as typed: --voxel, its old name
   from lrf_jax.extras import MissingExtraError, require
   figures, skipped = args.out_dir is not None and not args.no_figures, None
   if figures:
@@ -239,6 +245,13 @@ def main(argv: list[str] | None = None) -> int:
     lock.release()
 
 
+def _voxel_message(args: argparse.Namespace, message: str) -> str:
+  """A "voxel: ..." message of `write_outputs` or `check_voxel` (about the voxel in cloud
+  units) as the flag gave it, in mr, named as typed: "--merge-voxel-mr: 1e-20 mr = ..."."""
+  return as_typed(f"--merge-voxel-mr: {args.merge_voxel_mr:g} mr = "
+                  + message[len("voxel: "):], args)
+
+
 def _run(args: argparse.Namespace, figures: bool, skipped: str | None) -> int:
   """The registration and its outputs, once the arguments are checked (and with --out-dir, its
   lock held)."""
@@ -249,15 +262,15 @@ def _run(args: argparse.Namespace, figures: bool, skipped: str | None) -> int:
     names = scan_names(args.scans)
     clouds = load_scans(args.scans, names)
     mr = args.mr
-    if args.voxel is not None:  # a voxel too small whatever the poses: before the work
+    if args.merge_voxel_mr is not None:  # a voxel too small whatever the poses: before the work
       mr = median_mr(clouds, names) if mr is None else mr  # register_all's own
       try:
-        check_voxel([c.points for c in clouds], args.voxel * mr)
+        check_voxel([c.points for c in clouds], args.merge_voxel_mr * mr)
       except ValueError as e:
-        raise ValueError(f"--voxel: {args.voxel:g} mr = {str(e)[len('voxel: '):]}") from None
+        raise ValueError(_voxel_message(args, str(e))) from None
     res = _register(args, clouds, names, mr)
   except (ValueError, FileNotFoundError) as e:
-    print(f"error: {e}", file=sys.stderr)
+    print(f"error: {as_typed(str(e), args)}", file=sys.stderr)
     return 2
   except OSError as e:
     if e.filename is None or str(e.filename) not in map(str, args.scans):
@@ -273,13 +286,13 @@ def _run(args: argparse.Namespace, figures: bool, skipped: str | None) -> int:
                                         for row in res.poses[k]))
   else:
     try:
+      voxel = args.merge_voxel_mr
       write_outputs(res, [c.points for c in clouds], args.out_dir,
-                    voxel=None if args.voxel is None else args.voxel * res.mr,
-                    figures=figures)
+                    voxel=None if voxel is None else voxel * res.mr, figures=figures)
     except (WriteError, ValueError) as e:  # e.g. the folder changed during the run
       message = str(e).replace("out_dir: ", "--out-dir: ", 1)
       if message.startswith("voxel: "):
-        message = f"--voxel: {args.voxel:g} mr = " + message[len("voxel: "):]
+        message = _voxel_message(args, message)
       print(f"error: {message}", file=sys.stderr)
       write = isinstance(e, WriteError) and not isinstance(e, ValueError)
       return EXIT_WRITE_FAILED if write else EXIT_USAGE

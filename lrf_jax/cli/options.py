@@ -1,10 +1,16 @@
 """The options of `register` on every command line that registers (lrf-register's two-scan and
 multiway forms, lrf-batch register): the flags derived from `RegisterOptions` (its fields, in
 kebab case, with their defaults and help), read back as `register`'s keywords, and checked
-before any work with the flag named in the message."""
+before any work with the flag named in the message.
+
+A flag renamed keeps its old name as an alias for a release (one action, several option
+strings: the field metadata's `aliases`, or a hand-written flag's extra names); `AliasedFlag`
+records which name was typed, and `as_typed` spells a message's flag that way."""
 
 from __future__ import annotations
 
+import argparse
+import re
 from typing import Any
 
 KEYPOINT_DETECTORS = ("random", "iss")
@@ -39,6 +45,41 @@ def option_message(message: str, keywords: dict[str, str]) -> str:
   return message
 
 
+# The attribute of a parsed namespace that holds {flag: the name it was typed under} for the
+# flags with several names that were given (`AliasedFlag`).
+TYPED_FLAGS = "typed_flags"
+
+
+class AliasedFlag(argparse.Action):
+  """argparse's "store" for a flag with several names (the first its name, the others old names
+  kept as aliases): it also records in the namespace (`TYPED_FLAGS`) which name was typed, so
+  that a message can name the flag as the user wrote it (`as_typed`)."""
+
+  def __call__(self, parser: argparse.ArgumentParser, namespace: argparse.Namespace,
+               values: Any, option_string: str | None = None) -> None:
+    setattr(namespace, self.dest, values)
+    typed = dict(getattr(namespace, TYPED_FLAGS, None) or {})
+    typed[self.option_strings[0]] = option_string or self.option_strings[0]
+    setattr(namespace, TYPED_FLAGS, typed)
+
+
+def alias_help(text: str, aliases: tuple[str, ...] | list[str]) -> str:
+  """`text`, the help of a flag, followed by its old names (`aliases`), as every `--help` shows
+  them."""
+  if not aliases:
+    return text
+  return f"{text} (old name{'s' if len(aliases) > 1 else ''}: {', '.join(aliases)})"
+
+
+def as_typed(message: str, args: Any) -> str:
+  """`message` with each flag of several names that `args` (a parsed namespace) holds named as
+  it was typed: "--keypoint-voxel-mr: ..." reads "--voxel-mr: ..." after `--voxel-mr 0.01`."""
+  for flag, typed in (getattr(args, TYPED_FLAGS, None) or {}).items():
+    if typed != flag:
+      message = re.sub(r"(?<![\w-])" + re.escape(flag) + r"(?![\w-])", typed, message)
+  return message
+
+
 # Old spellings of flags still accepted (hidden): old flag -> field.
 _OLD_FLAGS = {"--correspondences": "n_correspondences", "--icp": "icp_mode"}
 # Fields set by one shared flag rather than their own: --keypoints N|DETECTOR.
@@ -61,14 +102,14 @@ def add_option_flags(ap: Any, fields: Any, defaults: dict[str, Any], *,
   {field: default}) but those in `skip`: the field's name in kebab case (or the metadata's
   `flag`), its default and its help (`helps` replaces a field's help where a command line means
   more by it). A boolean defaulting to False is a `--flag`; one defaulting to True is
-  `--flag/--no-flag`. `keypoints` and `n_keypoints` share `--keypoints N|DETECTOR`.
+  `--flag/--no-flag`. `keypoints` and `n_keypoints` share `--keypoints N|DETECTOR`. The
+  metadata's `aliases` (a renamed flag's old names) are further names of the same flag, shown
+  in its help, and recorded when typed (`AliasedFlag`, `as_typed`).
 
   With `suppress_defaults` a flag not given leaves no attribute in the parsed namespace (the
   help still quotes the default), so that only the options a user gave are read back
   (`register_overrides`): `lrf-batch` takes the defaults of the job that way.
   """
-  import argparse
-
   for field in fields:
     meta, name = field.metadata, field.name
     if name == "keypoints" and "n_keypoints" in defaults and name not in skip:
@@ -92,11 +133,16 @@ def add_option_flags(ap: Any, fields: Any, defaults: dict[str, Any], *,
       kw.update(type=_flag_type(str(field.type)), choices=meta["choices"],
                 metavar=meta["metavar"])
     kw = {k: v for k, v in kw.items() if v is not None or k == "default"}
+    aliases = tuple(meta.get("aliases", ()))
+    if aliases:
+      if isinstance(default, bool) or kw.get("nargs") is not None:
+        raise TypeError(f"{name}: aliases are for flags of one value, not {flag}'s")
+      kw.update(action=AliasedFlag, help=alias_help(kw["help"], aliases))
     if suppress_defaults:
       kw["default"] = argparse.SUPPRESS
       if default is not None:
         kw["help"] += f" (default: {default})"
-    ap.add_argument(flag, *meta.get("aliases", ()), **kw)
+    ap.add_argument(flag, *aliases, **kw)
     for old, target in _OLD_FLAGS.items():
       if target == name:
         ap.add_argument(old, dest=name, type=kw.get("type"), choices=kw.get("choices"),
@@ -194,7 +240,6 @@ def options_table(cls: type) -> str:
   Returns:
     The table, one line per row, ending with a newline.
   """
-  import argparse
   import dataclasses
 
   def cell(text: Any, code: bool = False) -> str:
@@ -218,7 +263,9 @@ def options_table(cls: type) -> str:
     flags["keypoints"], flags["n_keypoints"] = [f"{flag} DETECTOR"], [f"{flag} N"]
   rows = ["| field | flag | default | help |", "|---|---|---|---|"]
   for f in fields:
-    flag_cell = ", ".join(cell(n, code=True) for n in flags.get(f.name, [])) or "-"
+    old_names = f.metadata.get("aliases", ())
+    flag_cell = ", ".join(cell(n, code=True) + (" (old name)" if n in old_names else "")
+                          for n in flags.get(f.name, [])) or "-"
     text = cell(f.metadata.get("help", ""))
     if f.metadata.get("choices"):
       text += "; one of " + ", ".join(cell(c, code=True) for c in f.metadata["choices"])
@@ -228,8 +275,6 @@ def options_table(cls: type) -> str:
 
 
 if __name__ == "__main__":  # python -m lrf_jax.cli.options --docs docs/ [--check]
-  import argparse
-  import re
   import sys
   from pathlib import Path
 

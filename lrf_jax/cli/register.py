@@ -9,7 +9,7 @@ refused); on a "not sure" verdict (exit 3) it writes nothing unless `--best-gues
 it writes the transform and still exits 3), so a script that ignores exit codes never reads a
 wrong pose. `--init`
 gives an initial source->target transform (a 4x4 text file as `lrf_jax.io.read_xf` reads, or
-a (4, 4) .npy) that `register` then only refines. Inputs: any cloud or mesh
+a (4, 4) .npy) that `register` refines by ICP and judges on the same evidence as its own pose. Inputs: any cloud or mesh
 `lrf_jax.io.read_cloud` reads (PLY, PCD, XYZ/TXT(.gz), NPY). Every length is in mesh
 resolutions (the working resolution `register` measures, `--mr` to set it). Every bad argument
 or unreadable input is one `error:` line and exit code 2, an output that cannot be written (a
@@ -41,7 +41,7 @@ def build_parser(*, suppress_defaults: bool = False) -> argparse.ArgumentParser:
   """lrf-register's parser (two scans). With `suppress_defaults` an option not given leaves no
   attribute in the parsed namespace (`add_register_flags`): `lrf-batch register` reads the
   options a user gave that way, and names the ones it cannot take."""
-  ap = argparse.ArgumentParser(prog="lrf-register",
+  ap = argparse.ArgumentParser(prog="lrf-register", allow_abbrev=False,
                                argument_default=argparse.SUPPRESS if suppress_defaults else None,
                                description="Rigid registration of two scans with learned LRFs "
                                            "(LRF-Net frames, TOLDI matching, a compatibility "
@@ -67,8 +67,8 @@ def build_parser(*, suppress_defaults: bool = False) -> argparse.ArgumentParser:
                   help="a train.py workdir whose best LRF-Net parameters to use "
                        "(default: the shipped weights)")
   ap.add_argument("--init", metavar="FILE",
-                  help="initial source->target transform to refine: a 4x4 text file (.xf, "
-                       ".txt) or a (4, 4) .npy")
+                  help="initial source->target transform to refine (and judge on the same "
+                       "evidence): a 4x4 text file (.xf, .txt) or a (4, 4) .npy")
   ap.add_argument("--png", metavar="FILE",
                   help="also draw the correspondences here: inliers and outliers joining the "
                        "two clouds side by side")

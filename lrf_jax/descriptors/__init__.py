@@ -127,7 +127,11 @@ def _spec(descriptor: str) -> DescriptorSpec:
 
 
 @functools.lru_cache(maxsize=32)
-def _jitted(name: str, static_items: tuple) -> Any:
+def jitted_descriptor(name: str, static_items: tuple) -> Any:
+  """The jitted function of descriptor `name` (a key of `DESCRIPTORS`) with the static options
+  `static_items` (sorted (name, value) pairs), built once per option set (32 kept;
+  `caches.clear_caches` empties it): called as fn(patches, frames, valid, extra) ->
+  (descriptors (N, D) float32, valid (N,) bool)."""
   spec = DESCRIPTORS[name]
   return jit(lambda p, f, v, e: spec.fn(p, f, v, e, **dict(static_items)))
 
@@ -151,7 +155,7 @@ def descriptors_from_patches(patches: Patches, frames: Any, valid: Any, descript
   if spec.prepare is not None and extra is None:
     raise ValueError(f"descriptor {descriptor!r} needs `extra` from its prepare hook "
                      f"(DESCRIPTORS[{descriptor!r}].prepare), e.g. the neighbors' normals")
-  fn = _jitted(descriptor, tuple(sorted(options.items())))
+  fn = jitted_descriptor(descriptor, tuple(sorted(options.items())))
   return fn(jax.tree.map(jnp.asarray, patches), jnp.asarray(frames, jnp.float32),
             jnp.asarray(valid, bool), extra)
 

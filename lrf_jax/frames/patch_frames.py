@@ -1,6 +1,6 @@
 """A registered method's jitted frame function on prepared patches (`frames_from_patches`), its
-options, and the caches behind it: one jitted function per option set (`_jitted`) and the
-weight tables of the learned methods' `lut` option (`cached_weight_table`)."""
+options, and the caches behind it: one jitted function per option set (`jitted_method`) and
+the weight tables of the learned methods' `lut` option (`cached_weight_table`)."""
 
 from __future__ import annotations
 
@@ -18,7 +18,10 @@ from lrf_jax.search.neighborhoods import Patches
 
 
 @functools.lru_cache(maxsize=64)
-def _jitted(spec: MethodSpec, static_items: tuple) -> Any:
+def jitted_method(spec: MethodSpec, static_items: tuple) -> Any:
+  """The jitted frame function of method `spec` with the static options `static_items` (sorted
+  (name, value) pairs), built once per option set (64 kept; `caches.clear_caches` empties it):
+  called as fn(patches, extra, params) -> (frames (N, 3, 3), valid (N,))."""
   static = dict(static_items)
   if spec.needs_params:
     return jit(lambda patches, extra, params: spec.fn(patches, extra, params=params, **static))
@@ -54,7 +57,7 @@ def patch_frames_checked(spec: MethodSpec, patches: Patches, params: Any, extra:
     params = default_params(spec.weights)
   if spec.needs_params and int(options.get("lut", 0) or 0) > 1:
     params = cached_weight_table(params, int(options["lut"]))
-  fn = _jitted(spec, tuple(sorted(options.items())))
+  fn = jitted_method(spec, tuple(sorted(options.items())))
   n_dev = jax.local_device_count()
   if n_dev > 1 and patches.offsets.shape[0] % n_dev == 0:
     # Keypoints are independent: shard them over the local devices' "data" axis, replicate
@@ -67,7 +70,9 @@ def patch_frames_checked(spec: MethodSpec, patches: Patches, params: Any, extra:
   return fn(jax.device_put(patches), extra, params)
 
 
-_TABLES: list[tuple[bytes, int, bool, Any]] = []  # (params_key, size, host, table), newest last
+# `cached_weight_table`'s tables: (params_key, size, host, table), newest last, the 4 newest
+# kept; `caches.clear_caches` empties it.
+WEIGHT_TABLES: list[tuple[bytes, int, bool, Any]] = []
 
 
 @jit(static_argnums=1)
@@ -85,7 +90,7 @@ def cached_weight_table(params: Any, size: int, host: bool = False) -> Any:
   if isinstance(params, WeightTable):
     return params
   key = _params_key(params)
-  for k, n, h, table in _TABLES:
+  for k, n, h, table in WEIGHT_TABLES:
     if key is not None and k == key and n == size and h == host:
       return table
   table = weight_table_numpy(params, size) if host else _jit_weight_table(params, size)
@@ -93,8 +98,8 @@ def cached_weight_table(params: Any, size: int, host: bool = False) -> Any:
     assert isinstance(table.values, np.ndarray)  # weight_table_numpy's
     table.values.flags.writeable = False
   if key is not None:
-    _TABLES.append((key, size, host, table))
-    del _TABLES[:-4]
+    WEIGHT_TABLES.append((key, size, host, table))
+    del WEIGHT_TABLES[:-4]
   return table
 
 

@@ -134,7 +134,10 @@ def load_params_numpy(path: str | Path) -> Params:
 
 
 @functools.lru_cache(maxsize=8)
-def _default_params_numpy(name: str) -> Params:
+def default_params_numpy_cached(name: str) -> Params:
+  """The shipped weights `name` as read-only numpy arrays, read once per process (8 kept;
+  `caches.clear_caches` empties it). Shared by every caller: hand out new dicts around them
+  (`default_params_numpy`), never these. Raises as `default_params` does."""
   path = WEIGHTS_DIR / f"{name}.msgpack"
   if not path.exists():
     shipped = sorted(p.stem for p in WEIGHTS_DIR.glob("*.msgpack"))
@@ -163,8 +166,11 @@ def _fresh_containers(tree: Any) -> Any:
 
 
 @functools.lru_cache(maxsize=8)
-def _default_params_cached(name: str) -> Params:
-  params = _default_params_numpy(name)
+def default_params_cached(name: str) -> Params:
+  """The shipped weights `name` on the default device, put there once per process (8 kept;
+  `caches.clear_caches` empties it). Shared by every caller: hand out new dicts around them
+  (`default_params`), never these. Raises as `default_params` does."""
+  params = default_params_numpy_cached(name)
   # Concrete arrays even when the first call happens inside a jit trace: the cache would
   # otherwise keep (and later leak) that trace's tracers.
   with jax.ensure_compile_time_eval():
@@ -174,7 +180,7 @@ def _default_params_cached(name: str) -> Params:
 def default_params_numpy(name: str = "lrf_net") -> Params:
   """`default_params(name)` as numpy arrays, read once per process (no JAX: the host kernels'
   form; read-only arrays in new dicts). Raises as `default_params` does."""
-  return _fresh_containers(_default_params_numpy(name))
+  return _fresh_containers(default_params_numpy_cached(name))
 
 
 def default_params(name: str = "lrf_net") -> Params:
@@ -188,7 +194,7 @@ def default_params(name: str = "lrf_net") -> Params:
   Each call returns new dicts around the (immutable) cached arrays: replacing a leaf of the
   result changes no later call.
   """
-  return _fresh_containers(_default_params_cached(name))
+  return _fresh_containers(default_params_cached(name))
 
 
 def _unpack_array(code: int, data: bytes) -> Any:

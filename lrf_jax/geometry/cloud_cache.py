@@ -5,8 +5,8 @@ neighbors (`cloud_knn`).
 `compute_frames` calls a method's `prepare` hook once per chunk of keypoints: what the hook
 derives from the whole cloud (normals, their orientation, areas, curvature) is computed once.
 The cache hands out copies of its arrays: writing into a result never changes a later one.
-`lrf_jax.geometry.normals` re-exports `cache_last` (and `_CACHE`, which `caches.clear_caches`
-empties).
+`lrf_jax.geometry.normals` re-exports `cache_last` (and `CLOUD_CACHE`, which
+`caches.clear_caches` empties).
 """
 
 from __future__ import annotations
@@ -18,7 +18,9 @@ import numpy as np
 
 from lrf_jax.search import engine
 
-_CACHE: dict[str, Any] = {}
+# `cache_last`'s store: kind -> (digest of the kind and inputs, result), one entry per kind
+# (about 8 kinds); `caches.clear_caches` empties it.
+CLOUD_CACHE: dict[str, Any] = {}
 
 
 def _digest(*arrays: Any) -> str:
@@ -63,9 +65,9 @@ def cache_last(kind: str, key_arrays: tuple, fn):
     result (Any): `fn()`, or the stored result for identical inputs (arrays copied).
   """
   key = _digest(kind, *key_arrays)
-  hit = _CACHE.get(kind)
+  hit = CLOUD_CACHE.get(kind)
   if hit is None or hit[0] != key:
-    hit = _CACHE[kind] = (key, fn())
+    hit = CLOUD_CACHE[kind] = (key, fn())
   return _handed_out(hit[1])
 
 

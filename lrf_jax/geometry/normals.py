@@ -37,16 +37,16 @@ import numpy as np
 
 from lrf_jax.search import engine
 from lrf_jax.checks import validate_viewpoint
-from lrf_jax.geometry.cloud_cache import _CACHE, cache_last
+from lrf_jax.geometry.cloud_cache import CLOUD_CACHE, cache_last
 from lrf_jax.geometry.orientation import (PROPAGATION_K, VOTE_EPS, VOTE_SAMPLES, knn_components,
                                           orient_by_propagation, orient_by_reference,
                                           orient_by_vote)
 
 __all__ = [  # the orientation's and the cache's names stay importable from here
-    "_CACHE", "NORMAL_RADIUS_RATIO", "PROPAGATION_K", "VOTE_EPS", "VOTE_SAMPLES", "cache_last",
-    "cotangent_laplacian_curvature", "default_normals", "estimate_normals", "face_cross",
-    "knn_components", "mean_curvature", "orient_by_propagation", "orient_by_reference",
-    "orient_by_vote", "pca_normals", "vertex_normals", "voted_normals",
+    "CLOUD_CACHE", "NORMAL_RADIUS_RATIO", "PROPAGATION_K", "VOTE_EPS", "VOTE_SAMPLES",
+    "cache_last", "cotangent_laplacian_curvature", "default_normals", "estimate_normals",
+    "face_cross", "knn_components", "mean_curvature", "orient_by_propagation",
+    "orient_by_reference", "orient_by_vote", "pca_normals", "vertex_normals", "voted_normals",
 ]
 
 # Default normal radius as a fraction of the support radius r (3 mr at r = 15 mr).

@@ -1,5 +1,6 @@
 """`register(..., effort="high")`: more keypoints and several seeds, pooled into one set of
-correspondences before the one hypothesis stage and the one verdict.
+correspondences before the one hypothesis stage and the one verdict; the default
+`effort="normal"` runs it on a pair its first pass leaves "not sure" (`escalates`).
 
 The stages prepare, describe and match run for `EFFORT_SEEDS` seeds (the option's seed, seed + 1,
 ...) with `EFFORT_KEYPOINTS` times the keypoints, on the same working clouds (`stages.reseed`:
@@ -34,15 +35,41 @@ def high_effort_options(opts: RegisterOptions) -> RegisterOptions:
   return opts.with_overrides(n_keypoints=EFFORT_KEYPOINTS * int(opts.detection.n_keypoints))
 
 
+def one_pass(source: Any, target: Any, opts: RegisterOptions, params: Any,
+             timer: stages.StageTimer
+             ) -> tuple[stages.Prepared, stages.Features, stages.Matches]:
+  """prepare, describe and match once at `opts` (`effort="fast"`, and the first pass of
+  `"normal"`), with the default detector's evidence where the keypoints are not its own
+  (`stages.default_evidence`)."""
+  with timer("prepare"):
+    prepared = stages.prepare(source, target, opts)
+  features = stages.describe(prepared, opts.description, params, timer)
+  with timer("matching"):
+    matches = stages.match(features, opts)
+  return prepared, features, stages.default_evidence(prepared, matches, opts, params, timer)
+
+
+def escalates(code: str) -> bool:
+  """Whether `effort="normal"` runs the pooled stages after a first pass whose verdict has
+  `code` (an `evidence.REASON_CODES` key): every "not sure" (a claim is kept)."""
+  return code != "claimed"
+
+
 def pooled_stages(source: Any, target: Any, opts: RegisterOptions, params: Any,
-                  timer: stages.StageTimer
+                  timer: stages.StageTimer, first: stages.Prepared | None = None
                   ) -> tuple[stages.Prepared, stages.Features, stages.Matches]:
   """prepare, describe and match for `EFFORT_SEEDS` seeds (`high_effort_options`), pooled
   (`pool`). The pooled `Prepared` carries the first seed's generator and seed, which the later
-  stages draw from."""
+  stages draw from.
+
+  `first`: the `Prepared` of a first pass at `opts` (`effort="normal"`'s): its working clouds,
+  resolution and normals are reused and only the keypoints drawn again (`stages.reseed` with
+  the same seed draws what `stages.prepare` at the wider options draws), so the result equals
+  `effort="high"`'s, bit for bit."""
   wide = high_effort_options(opts)
   with timer("prepare"):
-    base = stages.prepare(source, target, wide)
+    base = (stages.prepare(source, target, wide) if first is None
+            else stages.reseed(first, wide.detection, first.seed))
   runs = []
   for k in range(EFFORT_SEEDS):
     with timer("prepare"):

@@ -50,7 +50,6 @@ REASON_CODES = {
     "chance": "not sure: chance alignment of the same correspondences reaches nearly as many",
     "rival": "not sure: a distinct pose explains nearly as many other correspondences",
     "no_hypothesis": "not sure: no two correspondences agree, so there was no hypothesis",
-    "init_only": "not verified: refined from `init` only",
 }
 
 
@@ -69,7 +68,10 @@ class Evidence(NamedTuple):
   estimator: the estimator that produced the winner.
   degeneracy: `constraint_spectrum`'s ratio of the overlap (1: fully constrained).
   free_direction: the least constrained motion, in words ("" when not computed).
-  effort: the `register` effort that gathered it (the next step `decide` suggests).
+  effort: what the evidence leaves to try (the next step `decide` names): "fast" one pass
+    (`effort="normal"` or `"high"` may follow), "normal" one pass of `register_scans` (`"high"`
+    may follow), "high" the pooled seeds, or a pass the pooled one follows (nothing).
+  from_init: the pose was refined from `register`'s `init`, not chosen among the hypotheses.
   """
 
   n_inliers: int
@@ -81,6 +83,7 @@ class Evidence(NamedTuple):
   degeneracy: float = 1.0
   free_direction: str = ""
   effort: str = "normal"
+  from_init: bool = False
 
 
 class Verdict(NamedTuple):
@@ -198,20 +201,24 @@ def decide(evidence: Evidence) -> Verdict:
                    "claimed")
   rival = e.rival_inliers >= e.chance_inliers
   which = "a distinct pose" if rival else "chance"
+  step = next_step(e)
   return Verdict(False, f"not sure: {e.n_inliers} consistent correspondences, {which} gives "
-                        f"{level} (needs {exact_number(need)}); {next_step(e)}",
+                        f"{level} (needs {exact_number(need)})" + (f"; {step}" if step else ""),
                  "rival" if rival else "chance")
 
 
 def next_step(evidence: Evidence) -> str:
-  """What may settle a "not sure" for lack of support (`decide`'s "chance" and "rival"): more
-  keypoints and pooled seeds (`effort="high"`) unless they were used or a distinct pose explains
+  """What may settle a "not sure" for lack of support (`decide`'s "chance" and "rival"), or ""
+  where nothing `register` can do would: more keypoints and pooled seeds (`effort="high"`, or
+  the default `"normal"` after `"fast"`) unless they were used or a distinct pose explains
   nearly as many correspondences as the winner (at least AMBIGUOUS_SHARE of them: two copies of
-  an object, which more correspondences find again), and an init."""
+  an object, which more correspondences find again). An init is not named: it is judged on the
+  same evidence (`register(..., init=T)`), so it settles nothing the evidence left open."""
   if (evidence.effort == "high"
       or evidence.rival_inliers >= AMBIGUOUS_SHARE * evidence.n_inliers):
-    return "an init may settle it"
-  return "effort='high' (more keypoints, pooled seeds) or an init may settle it"
+    return ""
+  more = "effort='normal' or 'high'" if evidence.effort == "fast" else "effort='high'"
+  return f"{more} (more keypoints, pooled seeds) may settle it"
 
 
 def verdict(evidence: Evidence) -> tuple[bool, str]:

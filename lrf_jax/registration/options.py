@@ -40,7 +40,7 @@ from lrf_jax.defaults import DEFAULT_METHOD, RADIUS_MR
 ESTIMATORS = ("graph", "lrf", "3point")
 KEYPOINTS = ("random", "iss")
 ICP_MODES = ("point_to_plane", "point_to_point")
-EFFORTS = ("normal", "high")
+EFFORTS = ("normal", "fast", "high")
 DEFAULT_DESCRIPTOR = "toldi"
 
 
@@ -171,9 +171,10 @@ class VerdictOptions(OptionGroup):
   """The effort spent before the verdict."""
 
   effort: str = option_field(
-      "normal", "high: more keypoints per cloud and several seeds, their correspondences "
-      "pooled before the same hypotheses and verdict (a few times slower; may settle a 'not "
-      "sure')", choices=EFFORTS)
+      "normal", "fast: one pass; high: more keypoints per cloud and several seeds, their "
+      "correspondences pooled before the same hypotheses and verdict (a few times slower); "
+      "normal: one pass, and high's pooled pass on a pair the first leaves not sure",
+      choices=EFFORTS)
 
 
 # The groups of `RegisterOptions`: attribute -> class, in the pipeline's order.

@@ -13,16 +13,19 @@ estimators without a JAX program to load in every fresh process.
 
 from __future__ import annotations
 
+import dataclasses
 from typing import Any
 
 import numpy as np
 
 from lrf_jax.registration import stages
-from lrf_jax.registration.effort import pooled_stages
+from lrf_jax.registration.effort import (EFFORT_KEYPOINTS, EFFORT_SEEDS, escalates, one_pass,
+                                         pooled_stages)
 from lrf_jax.registration.evidence import Evidence, decide, overlap_contrast
 from lrf_jax.registration.icp_host import icp
 from lrf_jax.registration.options import RegisterOptions, check_register_options, resolve
-from lrf_jax.registration.refine import icp_subset, refine, register_from_init
+from lrf_jax.registration.from_init import register_from_init
+from lrf_jax.registration.refine import icp_subset, refine
 from lrf_jax.registration.result import Registration
 from lrf_jax.registration.rivals import overlap_scores
 from lrf_jax.search.grid import serial_blas
@@ -72,13 +75,21 @@ def register(source: Any, target: Any, options: RegisterOptions | None = None, *
 
   `effort="high"` runs steps 1-2 for `effort.EFFORT_SEEDS` seeds (seed, seed + 1, ...) with
   `effort.EFFORT_KEYPOINTS` times the keypoints and pools their correspondences before steps 3-6,
-  which run once on the pooled set (`lrf_jax.registration.effort`): a few times slower, and it
-  claims some pairs the default leaves "not sure" (the chance level and the rivals are counted on
-  the same pooled correspondences: no multiple testing). A "not sure" of the default says when
-  it may settle it.
+  which run once on the pooled set (`lrf_jax.registration.effort`; the chance level and the
+  rivals are counted on the same pooled correspondences): a few times slower, and it claims
+  some pairs one pass leaves "not sure". `effort="fast"` is one pass of steps 1-6.
+  `effort="normal"` (default) is that pass, and where its verdict is "not sure", `"high"`'s
+  pooled pass on the same working clouds (`effort.escalates`), whose result it returns: the
+  same as `effort="high"`'s, bit for bit, with `escalated` True and `reason` saying what was
+  tried. So it claims a pair when one pass or the pooled evidence claims it, and costs one
+  pass on a pair the first pass claims.
 
-  With `init` (a (4, 4) rigid transform) steps 1-4 are skipped: ICP refines `init`, as Open3D's
-  `registration_icp` does, and `success` is False (nothing checks `init`; `reason` says so).
+  With `init` (a (4, 4) rigid transform) the pose is `init` refined by step 5 instead of steps
+  3-4's winner, and step 6 judges it on the same evidence (`from_init`: steps 1-2 and the
+  compatibility graph's hypotheses as rivals): it claims an init where the evidence would have
+  claimed the refined pose, and a wrong init is not claimed. A rotation block within
+  `refine.INIT_PROJECT` of orthonormal is projected to the nearest rotation (a warning gives the
+  figure).
 
   The same inputs and seed give the same transform.
 
@@ -89,7 +100,7 @@ def register(source: Any, target: Any, options: RegisterOptions | None = None, *
     target: the same for the target.
     options: a `RegisterOptions` (None: `options.DEFAULTS`, every default below).
     params: learned LRF parameters (None: the method's shipped weights).
-    init: optional (4, 4) initial source -> target transform: refine it by ICP only.
+    init: optional (4, 4) initial source -> target transform: refined by ICP and judged (above).
     **overrides: fields of `RegisterOptions` replacing those of `options` (listed below;
       each stage's table of options is in the docs' Pipeline stages pages).
 
@@ -122,7 +133,7 @@ def register(source: Any, target: Any, options: RegisterOptions | None = None, *
     target_viewpoint (tuple[float, float, float] | None): the same for the target scan, in its
       own coordinates.
     keypoints (str): "random" or "iss".
-    effort (str): "normal" (default) or "high" (above).
+    effort (str): "normal" (default), "fast" or "high" (above).
     mutual (bool): keep mutual nearest-neighbor matches only.
     ratio (float | None): optional ratio-test threshold in (0, 1].
     icp_mode (str): "point_to_plane" (default) or "point_to_point" (`icp`).
@@ -152,23 +163,34 @@ def register(source: Any, target: Any, options: RegisterOptions | None = None, *
   opts = resolve(options, overrides)
   timer = stages.StageTimer()
   if init is not None:
-    return register_from_init(source, target, init, opts, timer)
-  if opts.verdict.effort == "high":
-    prepared, features, matches = pooled_stages(source, target, opts, params, timer)
-  else:
-    with timer("prepare"):
-      prepared = stages.prepare(source, target, opts)
-    features = stages.describe(prepared, opts.description, params, timer)
-    with timer("matching"):
-      matches = stages.match(features, opts)
-    matches = stages.default_evidence(prepared, matches, opts, params, timer)
-  return conclude(prepared, features, matches, opts, timer)
+    return register_from_init(source, target, init, opts, params, timer)
+  effort = opts.verdict.effort
+  if effort == "high":
+    return conclude(*pooled_stages(source, target, opts, params, timer), opts, timer,
+                    pooled=True)
+  prepared, features, matches = one_pass(source, target, opts, params, timer)
+  # "normal"'s first pass names no next step: the pooled pass follows it itself
+  first = conclude(prepared, features, matches, opts, timer, pooled=effort == "normal")
+  if effort == "fast" or not escalates(first.reason_code):
+    return first
+  tried = (f"tried one pass ({first.reason_code}), then {EFFORT_SEEDS} seeds with "
+           f"{EFFORT_KEYPOINTS}x the keypoints pooled")
+  try:
+    pooled = conclude(*pooled_stages(source, target, opts, params, timer, first=prepared), opts,
+                      timer, pooled=True)
+  except ValueError as e:  # the inputs passed the first pass: the pooled matching found none
+    return dataclasses.replace(first, reason=f"{first.reason} ({tried}: {e})",
+                               seconds=timer.total(), timings=dict(timer.seconds), escalated=True)
+  return dataclasses.replace(pooled, reason=f"{pooled.reason} ({tried})", escalated=True)
 
 
 def conclude(prepared: stages.Prepared, features: stages.Features, matches: stages.Matches,
-             opts: RegisterOptions, timer: stages.StageTimer) -> Registration:
+             opts: RegisterOptions, timer: stages.StageTimer, *, pooled: bool = False
+             ) -> Registration:
   """The stages after matching: hypotheses, verification, ICP and the verdict, and the
-  `Registration` (the identity, not estimated, when no hypothesis could be built)."""
+  `Registration` (the identity, not estimated, when no hypothesis could be built). `pooled`:
+  the correspondences are `effort.pool`'s, or a pooled pass follows (the verdict names no
+  further effort as its next step)."""
   with timer("hypotheses"), serial_blas():
     hyps = stages.hypothesize(prepared, features, matches, opts.hypotheses)
   if hyps is None:  # no two correspondences agree: no pose to verify
@@ -177,7 +199,8 @@ def conclude(prepared: stages.Prepared, features: stages.Features, matches: stag
   with timer("verification"), serial_blas():
     verified = stages.verify(prepared, hyps, opts.hypotheses, opts.icp.icp_mr, matches.own)
   refined = refine(prepared, verified, opts.icp, timer)
-  return _result(prepared, matches, hyps, verified, refined, opts, timer)
+  return _result(prepared, matches, hyps, verified, refined, opts, timer,
+                 "high" if pooled else opts.verdict.effort)
 
 
 def _keypoints(prepared: stages.Prepared, matches: stages.Matches
@@ -189,13 +212,14 @@ def _keypoints(prepared: stages.Prepared, matches: stages.Matches
 
 def _result(prepared: stages.Prepared, matches: stages.Matches, hyps: stages.Hypotheses,
             verified: stages.Verified, refined: Any, opts: RegisterOptions,
-            timer: stages.StageTimer) -> Registration:
-  """The verdict (`evidence.decide`) on the stages' results, and the `Registration`."""
+            timer: stages.StageTimer, gathered: str) -> Registration:
+  """The verdict (`evidence.decide`) on the stages' results, and the `Registration`.
+  `gathered`: the effort whose evidence it is ("high": pooled; `Evidence.effort`)."""
   contrast = overlap_contrast(verified.fits)
   evidence = Evidence(n_inliers=int(np.sum(verified.evidence_mask)), chance_inliers=hyps.chance,
                       rival_inliers=verified.rival, fitness=refined.fitness, contrast=contrast,
                       estimator=opts.hypotheses.estimator, degeneracy=refined.degeneracy,
-                      free_direction=refined.free_direction, effort=opts.verdict.effort)
+                      free_direction=refined.free_direction, effort=gathered)
   decision = decide(evidence)
   coarse, n = verified.coarse, len(matches.source)
   return Registration(transform=refined.transform, coarse_transform=coarse.transform,

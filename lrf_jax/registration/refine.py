@@ -1,6 +1,6 @@
-"""Stage "icp" of `register`: point-to-plane ICP from the coarse pose, in two passes (the
-second at an adaptive gate on the overlap's points), and `register(..., init=T)`, which runs this
-stage alone.
+"""Stage "icp" of `register`: point-to-plane ICP from the coarse pose (or `register`'s `init`),
+in two passes (the second at an adaptive gate on the overlap's points), then a pass on the input
+points of a pair thinned by default.
 
 References:
   Besl & McKay, "A method for registration of 3-D shapes", TPAMI 1992 (ICP).
@@ -16,15 +16,12 @@ from typing import Any, NamedTuple
 
 import numpy as np
 
-from lrf_jax.checks import validate_seed
-from lrf_jax.geometry.cloud import CheckedCloud, as_cloud
 from lrf_jax.registration import icp_host, icp_normals
 from lrf_jax.io.validation import check_rigid
 from lrf_jax.registration.icp_host import icp
-from lrf_jax.registration.options import IcpOptions, RegisterOptions
-from lrf_jax.registration.result import Registration
+from lrf_jax.registration.options import IcpOptions
 from lrf_jax.registration.rivals import overlap_constraints
-from lrf_jax.registration.stages import Prepared, StageTimer, Verified, working_clouds
+from lrf_jax.registration.stages import Prepared, StageTimer, Verified
 from lrf_jax.search import engine
 from lrf_jax.search.grid import serial_blas
 
@@ -164,40 +161,6 @@ def fine_distance(source: np.ndarray, grid: engine.Grid, transform: np.ndarray,
     return float(distance)
   lo = min(ICP_FINE_MIN_MR * mr, distance)
   return float(np.clip(ICP_FINE_FACTOR * np.median(d), lo, distance))
-
-
-def register_from_init(source: Any, target: Any, init: Any, opts: RegisterOptions,
-                       timer: StageTimer) -> Registration:
-  """`register(..., init=T)`: ICP from T and nothing else (no keypoints, frames or matching).
-
-  The verdict is False with a reason that says so: ICP converges to the nearest local
-  optimum, and nothing here can exclude a wrong `init`.
-  """
-  with timer("prepare"):
-    init = check_init(init, "init")
-    src, dst = as_cloud(source, "source"), as_cloud(target, "target")
-    for name, cloud in (("source", src), ("target", dst)):
-      if len(cloud.points) < 10:
-        raise ValueError(f"{name}: expected a cloud of at least 10 points, got "
-                         f"{len(cloud.points)}")
-    if dst.faces is not None:  # ICP reads the target's points only
-      dst = CheckedCloud(dst.points, name="target")
-    mr, thinned, voxel = working_clouds(src, dst, opts.inputs.mr, opts.inputs.voxel_size)
-    src_pts, dst_pts = thinned[0][0].points, thinned[1][0].points
-    rng = np.random.default_rng(validate_seed(opts.inputs.seed))
-  with timer("icp"):
-    icp_opts = opts.icp
-    distance = icp_opts.icp_mr * mr
-    final, fitness, rmse = icp_passes(icp_subset(src_pts, rng), dst_pts, init, distance,
-                                      icp_opts.icp_fine, mr, int(icp_opts.icp_iterations), None,
-                                      icp_opts.icp_mode, pool=src_pts, rng=rng)
-  return Registration(transform=final, coarse_transform=init, inliers=np.zeros(0, bool),
-                      n_inliers=0, correspondences=np.zeros((0, 2), np.int64), fitness=fitness,
-                      rmse=rmse, mr=float(mr), seconds=timer.total(),
-                      timings=dict(timer.seconds), success=False,
-                      reason=("not verified: refined from init only (ICP keeps the nearest "
-                              f"optimum); {fitness:.0%} of the source lies on the target"),
-                      overlap=fitness, voxel_size=voxel, reason_code="init_only")
 
 
 def icp_subset(points: np.ndarray, rng: np.random.Generator, count: int = ICP_POINTS

@@ -51,13 +51,15 @@ class Registration:
       first input point).
     reason_code: what decided `success`, machine-readable (a key of
       `lrf_jax.registration.evidence.REASON_CODES`): "claimed" (the only code of a success),
-      "low_overlap", "degenerate", "chance", "rival", "no_hypothesis", "init_only".
+      "low_overlap", "degenerate", "chance", "rival", "no_hypothesis".
     evidence_inliers: the winner's inliers among the evidence correspondences (the default
       matching's, `_evidence_matches`), the count the verdict compares with `chance_inliers`
       and `rival_inliers`; `n_inliers` when no option changed the matching.
     degeneracy: how well the overlap pins the pose down (`evidence.constraint_spectrum`: the
       weakest direction of the point-to-plane constraints over the strongest; below
       `evidence.DEGENERATE_RATIO` the verdict is "degenerate").
+    escalated: True when `effort="normal"`'s first pass was "not sure" and this is the pooled
+      pass that followed (`effort="high"`'s result; `reason` names both).
   """
 
   transform: np.ndarray
@@ -82,6 +84,7 @@ class Registration:
   reason_code: str = ""
   evidence_inliers: int = 0
   degeneracy: float = 1.0
+  escalated: bool = False
 
   def summary(self, gt: Any = None) -> str:
     """A few lines a person reads: the verdict and its reason, the estimated overlap and RMSE

@@ -12,7 +12,9 @@ pair's), and each scan draws its keypoints from its own generator seeded with th
 for the k-th seed of `effort="high"`), so a scan's features depend on the scan, the options and
 the seed alone, never on the scan it is paired with (`register` draws the target's keypoints
 after the source's from one generator). The stages after matching draw from a generator seeded
-with the seed, as `register`'s draw from what is left of its own.
+with the seed, as `register`'s draw from what is left of its own. And `effort="normal"` is one
+pass per pair, as `"fast"` is (a scan is described once for all its pairs; `"high"` describes it
+with the pooled seeds for every pair).
 """
 
 from __future__ import annotations

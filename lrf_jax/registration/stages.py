@@ -425,6 +425,24 @@ def verify(prepared: Prepared, hyps: Hypotheses, hypotheses: HypothesisOptions, 
   return Verified(coarse, fits, ev_mask, rival, target_grid, overlap_distance)
 
 
+def judge_pose(prepared: Prepared, hyps: Hypotheses, transform: np.ndarray,
+               hypotheses: HypothesisOptions, icp_mr: float, own: bool
+               ) -> tuple[np.ndarray, np.ndarray, int]:
+  """The evidence of a pose found elsewhere (`register(..., init=T)` after ICP): its inliers
+  among the correspondences (`hyps.src`, `hyps.dst`) and among the evidence correspondences,
+  and its rivals (`_rivals`), exactly as `verify` counts them for its winner. Returns (inlier
+  mask, evidence inlier mask, rival inliers)."""
+  threshold = float(hypotheses.inlier_mr * prepared.mr)
+  overlap_distance = icp_mr * prepared.mr
+  target_grid = engine.Grid(prepared.sides[1].points, overlap_distance)
+  r = np.asarray(transform[:3, :3], np.float64)
+  t = np.asarray(transform[:3, 3], np.float64) - hyps.cd + r @ hyps.cs  # centred coordinates
+  mask = host.inlier_mask(r, t, hyps.src, hyps.dst, threshold)
+  ev_mask, rival = _rivals(prepared, hyps, (r, t, mask), own, threshold,
+                           int(hypotheses.iterations), target_grid, overlap_distance)
+  return mask, ev_mask, rival
+
+
 def _rerank(hyps: Hypotheses, src_pts: np.ndarray, target_grid: engine.Grid, distance: float,
             verify: int | None, rng: np.random.Generator) -> tuple[int, np.ndarray]:
   """The hypothesis of best overlap among the `verify` best-scoring ones (None: all; 0: the

@@ -3,9 +3,9 @@ any-within are in `ball_lists.py`).
 
 * A ball query of radius r visits the columns (x cell, y cell) within ceil(r / h) cells whose
   box comes within r of the centre, and in each column only the run of consecutive z cells the
-  ball's slice can reach (`_columns`); every point there is tested with cKDTree's rule: float64
-  squared distance, summed over x, y, z in that order, `<= r * r`. Cells whose box lies inside
-  the ball (with a margin) count whole without a test (`_column_runs`).
+  ball's slice can reach (`ball_columns`); every point there is tested with cKDTree's rule:
+  float64 squared distance, summed over x, y, z in that order, `<= r * r`. Cells whose box lies
+  inside the ball (with a margin) count whole without a test (`_column_runs`).
 * The patch kernel writes `Patches` directly: the ball's count, the float64 statistics of the
   inner ball (z_ratio * r: count, centroid, covariance about the centroid) and the K in-ball
   points of smallest rank, sorted by rank. Only the ranks below a limit that the K smallest lie
@@ -28,8 +28,8 @@ from typing import TYPE_CHECKING, cast
 import numba as nb
 import numpy as np
 
-from lrf_jax.search.grid import (_PRUNE_MARGIN, Grid, _cell, _centers, _reach,
-                                 query_order, run_blocks, task_jit)
+from lrf_jax.search.grid import (PRUNE_MARGIN, Grid, as_points, cell_reach, query_order,
+                                 run_blocks, task_jit, unclamped_cell)
 
 if TYPE_CHECKING:
   from typing import TypedDict
@@ -51,12 +51,16 @@ _SHELL_SLACK = 1e-5
 
 
 @nb.njit(inline="always")
-def _columns(cx, cy, cz, origin, h, dims, starts, r, reach, js, je):
+def ball_columns(cx, cy, cz, origin, h, dims, starts, r, reach, js, je):
   """Cell ranges [js, je) (consecutive cell ids) that may hold points within r of (cx, cy, cz).
 
   For each column (x cell, y cell) within `reach` cells whose box comes within r of the centre,
   the z cells that the ball's slice through that column can reach; the slots of cells js..je-1
   are starts[js]..starts[je]. Returns the number of ranges.
+
+  The grid's `origin` (3,), cell side `h`, `dims` (3,) and `starts` (cells + 1,) as a `Grid`
+  holds them; `reach` = `grid.cell_reach(grid, r)`; js, je: int64 scratch of at least
+  (2 reach + 1)^2 entries, the ranges written to their first entries.
   """
   return _column_runs(cx, cy, cz, origin, h, dims, starts, r, reach, js, je, False, js, je)
 
@@ -92,16 +96,16 @@ def _far(c, lo, h, e):
 
 @nb.njit(inline="always")
 def _column_runs(cx, cy, cz, origin, h, dims, starts, r, reach, js, je, inner, ji, jk):
-  """`_columns`; with `inner`, also the cells [ji, jk) of each range whose whole box lies inside
-  the ball, with a margin (relative 1e-9 of r, and of the coordinates' size) that keeps every
-  point binned to them within r by cKDTree's float64 rule (ji = jk: none)."""
-  rp = r * (1.0 + _PRUNE_MARGIN)
+  """`ball_columns`; with `inner`, also the cells [ji, jk) of each range whose whole box lies
+  inside the ball, with a margin (relative 1e-9 of r, and of the coordinates' size) that keeps
+  every point binned to them within r by cKDTree's float64 rule (ji = jk: none)."""
+  rp = r * (1.0 + PRUNE_MARGIN)
   rp2 = rp * rp
   e = 1e-9 * h + 1e-12 * (abs(cx) + abs(cy) + abs(cz) + abs(origin[0]) + abs(origin[1])
                           + abs(origin[2]))
   ri2 = (r * (1.0 - 1e-9)) ** 2
-  ix = _cell(cx, origin[0], h)
-  iy = _cell(cy, origin[1], h)
+  ix = unclamped_cell(cx, origin[0], h)
+  iy = unclamped_cell(cy, origin[1], h)
   a0, a1 = _span(ix, reach, dims[0])
   b0, b1 = _span(iy, reach, dims[1])
   n = 0
@@ -116,8 +120,8 @@ def _column_runs(cx, cy, cz, origin, h, dims, starts, r, reach, js, je, inner, j
       if rem < 0.0:
         continue
       t = np.sqrt(rem)
-      z0 = max(_cell(cz - t, origin[2], h), 0)
-      z1 = min(_cell(cz + t, origin[2], h), dims[2] - 1)
+      z0 = max(unclamped_cell(cz - t, origin[2], h), 0)
+      z1 = min(unclamped_cell(cz + t, origin[2], h), dims[2] - 1)
       if z0 > z1:
         continue
       base = (a * dims[1] + b) * dims[2]
@@ -174,9 +178,12 @@ def _count_ball(pts, starts, cx, cy, cz, r2, kin2, kout2, nr, js, je):
   return c, ck
 
 
-def _ball_counts(pts, starts, origin, h, dims, centers, order, r, reach, kin2, kout2):
+def full_and_kept_counts(pts, starts, origin, h, dims, centers, order, r, reach, kin2, kout2):
   """(points within r of each centre, those of them within sqrt(kin2) or beyond sqrt(kout2)),
-  centres visited in `order`, on the engine's threads (`_counts_block`, `grid.run_blocks`)."""
+  each (m,) int64, for the m `centers` (m, 3) on a grid's arrays (`pts` its `xyz`, `starts`,
+  `origin`, `h`, `dims`); centres visited in `order` (m,), `reach` = `grid.cell_reach(grid, r)`,
+  (kin2, kout2) from `kept_shells`; on the engine's threads (`_counts_block`,
+  `grid.run_blocks`). The counts of `ball_counts` and, with the lists, of `ball_lists`."""
   m = centers.shape[0]
   full = np.zeros(m, np.int64)
   out = np.zeros(m, np.int64)
@@ -187,15 +194,15 @@ def _ball_counts(pts, starts, origin, h, dims, centers, order, r, reach, kin2, k
   return full, out
 
 
-@task_jit  # a span of `_ball_counts`' centres (see `grid.task_jit`)
+@task_jit  # a span of `full_and_kept_counts`' centres (see `grid.task_jit`)
 def _counts_block(pts, starts, origin, h, dims, centers, order, r, reach, kin2, kout2, full, out,
                   lo, hi, js, je):
-  """Centres order[lo:hi] of `_ball_counts` (js, je: column scratch)."""
+  """Centres order[lo:hi] of `full_and_kept_counts` (js, je: column scratch)."""
   r2 = r * r
   for t in range(lo, hi):
     i = order[t]
     cx, cy, cz = centers[i, 0], centers[i, 1], centers[i, 2]
-    nr = _columns(cx, cy, cz, origin, h, dims, starts, r, reach, js, je)
+    nr = ball_columns(cx, cy, cz, origin, h, dims, starts, r, reach, js, je)
     full[i], out[i] = _count_ball(pts, starts, cx, cy, cz, r2, kin2, kout2, nr, js, je)
 
 
@@ -288,7 +295,7 @@ def _stats_span(pts, starts, origin, h, dims, centers, r, reach, count, mean, co
   off = np.empty((3, 256))
   for i in range(lo, hi):
     cx, cy, cz = centers[i, 0], centers[i, 1], centers[i, 2]
-    nr = _columns(cx, cy, cz, origin, h, dims, starts, r, reach, js, je)
+    nr = ball_columns(cx, cy, cz, origin, h, dims, starts, r, reach, js, je)
     off = _room(off, _scanned(starts, nr, js, je))
     count[i] = _stats_one(pts, starts, cx, cy, cz, r * r, nr, js, je, mean[i], cov[i], off)
 
@@ -409,7 +416,7 @@ def _patch_span(pts, slot_index, slot_rank, starts, origin, h, dims, centers, or
     i = order[t]
     cx, cy, cz = centers[i, 0], centers[i, 1], centers[i, 2]
     if not known:
-      nr = _columns(cx, cy, cz, origin, h, dims, starts, rz, reach_in, js, je)
+      nr = ball_columns(cx, cy, cz, origin, h, dims, starts, rz, reach_in, js, je)
       off = _room(off, _scanned(starts, nr, js, je))
       z_count[i] = _stats_one(pts, starts, cx, cy, cz, rz * rz, nr, js, je, z_mean[i],
                                      z_cov[i], off)
@@ -448,10 +455,12 @@ def _patch_span(pts, slot_index, slot_rank, starts, origin, h, dims, centers, or
       indices[i, s] = -1
 
 
-def _keep(radius: float, shells: tuple[float, float] | None) -> tuple[float, float]:
-  """(kin2, kout2) squared radii of the kept shells (everything when `shells` is None), widened
-  by `_SHELL_SLACK` so that a float32 test of the same thresholds downstream finds every point
-  it would find in a full patch."""
+def kept_shells(radius: float, shells: tuple[float, float] | None) -> tuple[float, float]:
+  """(kin2, kout2) squared radii (floats, cloud units squared) of the kept shells, a ball of
+  `radius` keeping its points within sqrt(kin2) or beyond sqrt(kout2) (everything when `shells`
+  is None; (a, b): within a * radius or beyond b * radius), widened by `_SHELL_SLACK` so that
+  a float32 test of the same thresholds downstream finds every point it would find in a full
+  patch."""
   r = float(radius)
   if shells is None:
     return r * r, r * r
@@ -464,10 +473,10 @@ def ball_counts(grid: Grid, centers: np.ndarray, radius: float,
   """Number of grid points within `radius` of each centre (cKDTree's rule), (m,) int64; with
   `shells=(a, b)`, only those within a * radius or beyond b * radius count."""
   r = float(radius)
-  kin2, kout2 = _keep(r, shells)
-  c = _centers(centers)
-  return _ball_counts(grid.xyz, grid.starts, grid.origin, grid.h, grid.dims, c,
-                      query_order(grid, c), r, _reach(grid, r), kin2, kout2)[1]
+  kin2, kout2 = kept_shells(r, shells)
+  c = as_points(centers)
+  return full_and_kept_counts(grid.xyz, grid.starts, grid.origin, grid.h, grid.dims, c,
+                              query_order(grid, c), r, cell_reach(grid, r), kin2, kout2)[1]
 
 
 def ball_stats(grid: Grid, centers: np.ndarray, radius: float
@@ -480,8 +489,8 @@ def ball_stats(grid: Grid, centers: np.ndarray, radius: float
     empty ball.
   """
   r = float(radius)
-  return _ball_stats(grid.xyz, grid.starts, grid.origin, grid.h, grid.dims, _centers(centers),
-                     r, _reach(grid, r))
+  return _ball_stats(grid.xyz, grid.starts, grid.origin, grid.h, grid.dims, as_points(centers),
+                     r, cell_reach(grid, r))
 
 
 def patches(grid: Grid, centers: np.ndarray, radius: float, k: int, inner_radius: float,
@@ -513,7 +522,7 @@ def patches(grid: Grid, centers: np.ndarray, radius: float, k: int, inner_radius
   n = grid.xyz.shape[1]
   if n >= 2**31:
     raise ValueError(f"points: the engine indexes at most 2**31 - 1 points, got {n}")
-  c = _centers(centers)
+  c = as_points(centers)
   m, k = c.shape[0], int(k)
   if into is None:
     # Uninitialised: the kernel writes every element, and the threads fault the pages in.
@@ -543,7 +552,7 @@ def patches(grid: Grid, centers: np.ndarray, radius: float, k: int, inner_radius
        (out["z_count"], out["z_mean"], out["z_cov"]))
   r, rz = float(radius), float(inner_radius)
   _patch_kernel(grid.xyz, grid.slot_index, grid.slot_rank, grid.starts, grid.origin, grid.h,
-                grid.dims, c, query_order(grid, c), r, rz, k, n, _reach(grid, r),
-                _reach(grid, rz), *_keep(r, shells), known, out["offsets"], out["mask"],
-                out["indices"], out["count"], *z)
+                grid.dims, c, query_order(grid, c), r, rz, k, n, cell_reach(grid, r),
+                cell_reach(grid, rz), *kept_shells(r, shells), known, out["offsets"],
+                out["mask"], out["indices"], out["count"], *z)
   return out

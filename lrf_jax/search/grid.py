@@ -38,9 +38,9 @@ compilation_cache.announce_compiles()  # one stderr line when a kernel is compil
 
 _ENV_THREADS = "LRF_JAX_NUM_THREADS"
 # Cells are enlarged by this factor over the requested side (a cell side is a speed setting:
-# ball queries prune columns with their own margin, `_PRUNE_MARGIN`).
+# ball queries prune columns with their own margin, `PRUNE_MARGIN`).
 _CELL_MARGIN = 1e-6
-_BLOCK = 32  # queries per block: `run_blocks` hands out spans of whole blocks
+BLOCK = 32  # queries per block: `run_blocks` hands out spans of whole blocks
 
 # A kernel's task (a span of queries, run by `run_blocks`), compiled on its own: cached once per
 # machine, releasing the GIL, and without numba's reference counting, so a task allocates
@@ -50,8 +50,9 @@ _BLOCK = 32  # queries per block: `run_blocks` hands out spans of whole blocks
 # nogil=True)`. numba's stubs omit `_nrt`.
 task_jit = nb.njit(cache=True, _nrt=False, nogil=True)  # type: ignore[call-overload]
 # Columns are pruned with a radius enlarged by this factor: a point's cell comes from a rounded
-# division, its column's box from a rounded product; the margin keeps every in-ball point.
-_PRUNE_MARGIN = 1e-5
+# division, its column's box from a rounded product; the margin keeps every in-ball point
+# (read by the ball and nearest-neighbor kernels of `balls.py` and `nearest.py`).
+PRUNE_MARGIN = 1e-5
 
 
 def num_threads() -> int:
@@ -76,7 +77,7 @@ def _spans(m: int, block: int, threads: int) -> list[tuple[int, int]]:
   return out
 
 
-def run_blocks(task: Callable[[int, int], object], m: int, block: int = _BLOCK) -> None:
+def run_blocks(task: Callable[[int, int], object], m: int, block: int = BLOCK) -> None:
   """Call `task(lo, hi)` over the query range [0, m) in spans of whole blocks (`block` queries:
   lo is a multiple of it) on the engine's threads (`num_threads`: the calling thread and
   helpers of a pool kept for the process); every query lies in exactly one call.
@@ -266,8 +267,10 @@ class Grid:
 
 
 @nb.njit(inline="always")
-def _cell(x, o, h):
-  """The (unclamped) cell index of coordinate x, bounded to +-2**40 so that it fits an int64."""
+def unclamped_cell(x, o, h):
+  """The cell index (int) of coordinate x on an axis whose cells start at o with side h (cloud
+  units), not clamped to the grid (it may be negative or past the last cell) but bounded to
+  +-2**40 so that it fits an int64."""
   return int(min(max(np.floor((x - o) / h), -1099511627776.0), 1099511627776.0))
 
 
@@ -280,12 +283,16 @@ def query_order(grid: Grid, centers: np.ndarray) -> np.ndarray:
                     kind="stable")
 
 
-def _reach(grid: Grid, radius: float) -> int:
+def cell_reach(grid: Grid, radius: float) -> int:
+  """The cells (int, >= 1) a ball of `radius` (cloud units) reaches each way from its centre's
+  cell on `grid`: ceil(radius / grid.h), the `reach` of the ball kernels."""
   return max(int(np.ceil(float(radius) / grid.h)), 1)
 
 
-def _centers(centers: np.ndarray) -> np.ndarray:
-  return writable_float64(centers).reshape(-1, 3)
+def as_points(points: np.ndarray) -> np.ndarray:
+  """Query points or centres (any array of 3 m numbers, e.g. (m, 3)) as the (m, 3) C-contiguous,
+  writable float64 array the kernels take (`writable_float64`)."""
+  return writable_float64(points).reshape(-1, 3)
 
 
 def writable_float64(a: np.ndarray) -> np.ndarray:

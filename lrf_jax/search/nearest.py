@@ -10,8 +10,8 @@ from __future__ import annotations
 import numba as nb
 import numpy as np
 
-from lrf_jax.search.grid import (_PRUNE_MARGIN, Grid, _cell, _centers, run_blocks,
-                                 task_jit)
+from lrf_jax.search.grid import (PRUNE_MARGIN, Grid, as_points, run_blocks, task_jit,
+                                 unclamped_cell)
 
 
 @nb.njit(inline="always")
@@ -64,13 +64,13 @@ def _gap(q, o, h, c, d):
 @nb.njit(inline="always")
 def _beyond(gap2, kth_d2, max_d2, slack):
   """Whether a cell whose box lies sqrt(gap2) from the query can hold no point within the k-th
-  distance found so far (or the bound): pruned with a margin (`slack` plus `_PRUNE_MARGIN` of
+  distance found so far (or the bound): pruned with a margin (`slack` plus `PRUNE_MARGIN` of
   the distance) that covers the rounding of the cell boundaries, so that no point as near as the
   k-th (a tie included) is skipped."""
   bound2 = min(kth_d2, max_d2)
   if not bound2 < np.inf:
     return False
-  reach = np.sqrt(bound2) * (1.0 + _PRUNE_MARGIN) + slack
+  reach = np.sqrt(bound2) * (1.0 + PRUNE_MARGIN) + slack
   return gap2 > reach * reach
 
 
@@ -82,12 +82,12 @@ def _knn_query(pts, slot_index, starts, origin, h, dims, qx, qy, qz, k, max_d2, 
   for t in range(k):
     bd[t] = np.inf
     bi[t] = n
-  ix = _cell(qx, origin[0], h)
-  iy = _cell(qy, origin[1], h)
-  iz = _cell(qz, origin[2], h)
+  ix = unclamped_cell(qx, origin[0], h)
+  iy = unclamped_cell(qy, origin[1], h)
+  iz = unclamped_cell(qz, origin[2], h)
   # Start at the first ring that reaches the grid (a query may lie far outside it).
   ring = max(_outside(ix, dims[0]), max(_outside(iy, dims[1]), _outside(iz, dims[2])))
-  slack = _PRUNE_MARGIN * h
+  slack = PRUNE_MARGIN * h
   while True:
     for a in range(max(ix - ring, 0), min(ix + ring, dims[0] - 1) + 1):
       gx = _gap(qx, origin[0], h, a, dims[0])
@@ -111,7 +111,7 @@ def _knn_query(pts, slot_index, starts, origin, h, dims, qx, qy, qz, k, max_d2, 
     g = min(g, qx - (origin[0] + (ix - ring) * h), origin[0] + (ix + ring + 1) * h - qx)
     g = min(g, qy - (origin[1] + (iy - ring) * h), origin[1] + (iy + ring + 1) * h - qy)
     g = min(g, qz - (origin[2] + (iz - ring) * h), origin[2] + (iz + ring + 1) * h - qz)
-    g = g * (1.0 - _PRUNE_MARGIN)
+    g = g * (1.0 - PRUNE_MARGIN)
     if g > 0.0 and (g * g >= bd[k - 1] or g * g >= max_d2):
       break
     if (ix - ring <= 0 and ix + ring >= dims[0] - 1 and iy - ring <= 0
@@ -154,7 +154,7 @@ def knn(grid: Grid, queries: np.ndarray, k: int, max_distance: float = np.inf
     (distances (m, k) float64 ascending, indices (m, k) int64 point indices); missing neighbors
     have distance inf and index n (cKDTree's convention). Equal distances: smaller index first.
   """
-  q = _centers(queries)
+  q = as_points(queries)
   m, k = q.shape[0], int(k)
   out_d = np.empty((m, k))
   out_i = np.empty((m, k), np.int64)

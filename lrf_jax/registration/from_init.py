@@ -1,0 +1,102 @@
+"""`register(..., init=T)`: ICP from a given pose, then the verdict on the default evidence.
+
+`T` is refined as `register` refines its winner (`refine.refine`: ICP, two passes, the input
+points' pass of a thinned pair) and judged on the evidence `register` gathers without an init:
+the default matching's correspondences (one pass; pooled seeds with `effort="high"`, and after
+a "not sure" with the default `"normal"`), the compatibility graph's hypotheses on them, their
+chance level and the rivals of the refined pose (`stages.judge_pose`), under the one rule of
+`evidence.decide`. So an init is claimed where that evidence singles out the refined pose, and a
+wrong init is not: the right pose, among the graph's hypotheses, is its rival, or the wrong
+pose's support stays at the chance level.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import Any
+
+import numpy as np
+
+from lrf_jax.registration import stages
+from lrf_jax.registration.effort import (EFFORT_KEYPOINTS, EFFORT_SEEDS, escalates, one_pass,
+                                         pooled_stages)
+from lrf_jax.registration.estimators import finish_result
+from lrf_jax.registration.evidence import Evidence, Verdict, decide
+from lrf_jax.registration.options import RegisterOptions
+from lrf_jax.registration.refine import Refined, check_init, refine
+from lrf_jax.registration.result import Registration
+from lrf_jax.search import engine
+from lrf_jax.search.grid import serial_blas
+
+
+def register_from_init(source: Any, target: Any, init: Any, opts: RegisterOptions, params: Any,
+                       timer: stages.StageTimer) -> Registration:
+  """`register(source, target, init=init, ...)` (module docstring): `init` checked
+  (`refine.check_init`: a rotation block within `refine.INIT_PROJECT` of orthonormal is
+  projected), the evidence gathered, ICP from `init`, the verdict on the refined pose.
+
+  Returns:
+    `Registration` whose `coarse_transform` is the (projected) init and `transform` the refined
+    pose; `success` as `register`'s verdict would judge that pose.
+
+  Raises:
+    ValueError: an init that is not a (4, 4) rigid transform (with the figure), and every error
+      of `register`.
+  """
+  pose = check_init(init, "init")
+  effort = opts.verdict.effort
+  if effort == "high":
+    passes = pooled_stages(source, target, opts, params, timer)
+  else:
+    passes = one_pass(source, target, opts, params, timer)
+  prepared = passes[0]
+  distance = opts.icp.icp_mr * prepared.mr
+  start = stages.Verified(finish_result(pose[:3, :3], pose[:3, 3], np.zeros(0, bool), 0, 0),
+                          np.zeros(0), np.zeros(0, bool), 0,
+                          engine.Grid(prepared.sides[1].points, distance), distance)
+  refined = refine(prepared, start, opts.icp, timer)
+  first = _judged(*passes, refined, pose, opts, timer, "high" if effort == "high" else effort)
+  if effort != "normal" or not escalates(first.reason_code):
+    return first
+  pooled = pooled_stages(source, target, opts, params, timer, first=prepared)
+  again = _judged(*pooled, refined, pose, opts, timer, "high")
+  tried = (f"tried one pass ({first.reason_code}), then {EFFORT_SEEDS} seeds with "
+           f"{EFFORT_KEYPOINTS}x the keypoints pooled")
+  return dataclasses.replace(again, reason=f"{again.reason} ({tried})", escalated=True)
+
+
+def _judged(prepared: stages.Prepared, features: stages.Features, matches: stages.Matches,
+            refined: Refined, pose: np.ndarray, opts: RegisterOptions, timer: stages.StageTimer,
+            gathered: str) -> Registration:
+  """The verdict on the refined pose from the evidence of one pass or the pooled seeds
+  (`gathered`: "fast"/"normal" one pass, "high" pooled), and the `Registration`."""
+  s, t = prepared.sides
+  correspondences = stages.input_indices(prepared, s.keypoints[matches.source],
+                                         t.keypoints[matches.target])
+  n = len(matches.source)
+  with timer("hypotheses"), serial_blas():
+    hyps = stages.hypothesize(prepared, features, matches, opts.hypotheses)
+  mask, chance, rival, ev_inliers = np.zeros(n, bool), 0, 0, 0
+  if hyps is None:
+    decision = Verdict(False, f"not sure: no two of the {n} correspondences agree, so nothing "
+                              "witnesses the pose refined from init", "no_hypothesis")
+  else:
+    with timer("verification"), serial_blas():
+      mask, ev_mask, rival = stages.judge_pose(prepared, hyps, refined.transform,
+                                               opts.hypotheses, opts.icp.icp_mr, matches.own)
+    chance, ev_inliers = hyps.chance, int(np.sum(ev_mask))
+    decision = decide(Evidence(n_inliers=ev_inliers, chance_inliers=chance, rival_inliers=rival,
+                               fitness=refined.fitness, contrast=0.0,
+                               estimator=opts.hypotheses.estimator,
+                               degeneracy=refined.degeneracy,
+                               free_direction=refined.free_direction, effort=gathered,
+                               from_init=True))
+  return Registration(transform=refined.transform, coarse_transform=pose, inliers=mask,
+                      n_inliers=int(mask.sum()), correspondences=correspondences,
+                      voxel_size=prepared.voxel_size, fitness=refined.fitness,
+                      rmse=refined.rmse, mr=float(prepared.mr), seconds=timer.total(),
+                      timings=dict(timer.seconds), success=decision.success,
+                      inlier_ratio=int(mask.sum()) / max(n, 1), chance_inliers=chance,
+                      reason=f"refined from init: {decision.reason}", overlap=refined.fitness,
+                      rival_inliers=rival, reason_code=decision.code,
+                      evidence_inliers=ev_inliers, degeneracy=refined.degeneracy)

@@ -39,13 +39,13 @@ def demo():
 def test_voxel_size_zero_is_todays_computation(demo):
   pts, kp, mr = demo
   f0, v0 = lrf_jax.compute_frames(pts, kp, radius_mr=15, voxel_size=0, as_numpy=True)
-  today = compute._frames_checked(DEFAULT_METHOD, as_cloud(pts), kp, 15 * mr)
+  today = compute.frames_checked(DEFAULT_METHOD, as_cloud(pts), kp, 15 * mr)
   assert np.array_equal(f0, np.asarray(today[0])) and np.array_equal(v0, np.asarray(today[1]))
   raw = sweep()  # an uneven cloud: 0 keeps every point there too
   kr = np.arange(0, len(raw), 97)
   r = 15 * resolution.working_resolution(raw).mr
   f0, v0 = lrf_jax.compute_frames(raw, kr, r, voxel_size=0, as_numpy=True)
-  today = compute._frames_checked(DEFAULT_METHOD, as_cloud(raw), kr, r)
+  today = compute.frames_checked(DEFAULT_METHOD, as_cloud(raw), kr, r)
   assert np.array_equal(f0, np.asarray(today[0])) and np.array_equal(v0, np.asarray(today[1]))
 
 

@@ -272,12 +272,12 @@ def compute_descriptors(
   validate_choice("kernel", kernel, ("auto", "host", "jit"))  # also with no keypoints
   if index is not None:
     validate_index(index, points)
-  return _descriptors_checked(descriptor, points, keypoints, radius, frames, valid, faces=faces,
+  return descriptors_checked(descriptor, points, keypoints, radius, frames, valid, faces=faces,
                               normals=normals, k=k, seed=seed, chunk_size=chunk_size,
                               index=index, kernel=kernel, options=options)
 
 
-def _descriptors_checked(descriptor: str, points: np.ndarray, keypoints: np.ndarray,
+def descriptors_checked(descriptor: str, points: np.ndarray, keypoints: np.ndarray,
                          radius: float, frames: np.ndarray, valid: np.ndarray, *,
                          faces: np.ndarray | None = None, normals: np.ndarray | None = None,
                          k: int | None = None, seed: int = 0, chunk_size: int = 256,

@@ -258,7 +258,7 @@ def compute_frames(
   if voxel_size is None and not measured:  # a length given: no resolution measured, none thinned
     voxel_size = 0.0
   cloud, keypoints, rows = _thinned(cloud, keypoints, voxel_size, spec)
-  out = _frames_checked(method, cloud, keypoints, radius, params=params, k=k, seed=seed,
+  out = frames_checked(method, cloud, keypoints, radius, params=params, k=k, seed=seed,
                         viewpoint=viewpoint, chunk_size=chunk_size, progress=progress,
                         search=search, kernel=kernel, return_confidence=return_confidence,
                         options=options)
@@ -269,7 +269,7 @@ def compute_frames(
                     for a in out))
 
 
-def _frames_checked(
+def frames_checked(
     method: str,
     cloud: CheckedCloud,
     keypoints: np.ndarray,

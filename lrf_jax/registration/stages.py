@@ -21,9 +21,9 @@ from typing import Any, NamedTuple, cast
 
 import numpy as np
 
-from lrf_jax.frames.compute import compute_frames
-from lrf_jax.checks import validate_radius, validate_seed, validate_viewpoint
-from lrf_jax.descriptors import compute_descriptors, select_correspondences
+from lrf_jax.frames.compute import frames_checked
+from lrf_jax.checks import validate_radius, validate_seed
+from lrf_jax.descriptors import descriptors_checked, select_correspondences
 from lrf_jax.frames import METHODS
 from lrf_jax.geometry.cloud import CheckedCloud, as_cloud
 from lrf_jax.geometry.keypoints import iss_keypoints
@@ -150,14 +150,13 @@ def prepare(source: Any, target: Any, opts: RegisterOptions) -> Prepared:
   for name, cloud in zip(("source", "target"), clouds):
     if len(cloud.points) < 10:
       raise ValueError(f"{name}: expected a cloud of at least 10 points, got {len(cloud.points)}")
-  inputs = opts.inputs
-  seed = validate_seed(inputs.seed)
+  inputs = opts.inputs  # checked when the options were built: the seed and viewpoints are
+  seed = int(inputs.seed)
   spec = METHODS[opts.description.method]
   if spec.needs_mesh and any(c.faces is None for c in clouds):
     raise ValueError(f"method {opts.description.method!r} needs triangle meshes on both sides")
-  views = [validate_viewpoint(vp, name) for name, vp in
-           (("source_viewpoint", inputs.source_viewpoint),
-            ("target_viewpoint", inputs.target_viewpoint))]
+  views = [None if vp is None else np.asarray(vp, np.float64)
+           for vp in (inputs.source_viewpoint, inputs.target_viewpoint)]
   mr, thinned, voxel = working_clouds(clouds[0], clouds[1], inputs.mr, inputs.voxel_size)
   radius = opts.description.radius_mr * mr
   rng = np.random.default_rng(seed)
@@ -167,7 +166,7 @@ def prepare(source: Any, target: Any, opts: RegisterOptions) -> Prepared:
   if inputs.voxel_size is None:  # thinned by default: refine's last pass pairs the input points
     sides = [side if side.input_index is None else side._replace(raw=c.points)
              for side, c in zip(sides, clouds)]
-  # checked last, where `compute_frames` checked it: the same ValueError after the same steps
+  # the support radius, checked once here (the frames and descriptors take it as checked)
   radius = validate_radius(radius)
   return Prepared(cast("tuple[Side, Side]", tuple(sides)), float(mr), radius, rng, seed, voxel)
 
@@ -287,15 +286,16 @@ def describe(prepared: Prepared, description: DescribeOptions, params: Any, time
       options: dict[str, Any] = (
           {"oriented_sign": False}
           if spec.uses_viewpoint and side.viewpoint is None and side.faces is None else {})
-      out = compute_frames(side.cloud, side.keypoints, prepared.radius, method,
-                           params=params, seed=prepared.seed, viewpoint=side.viewpoint,
-                           as_numpy=True, voxel_size=0, **options)  # working clouds already
+      # `prepare` checked the cloud, keypoints, radius, seed and viewpoint: the cores that
+      # `compute_frames` and `compute_descriptors` call after their checks, on the working clouds
+      out = frames_checked(method, side.cloud, side.keypoints, prepared.radius, params=params,
+                           seed=prepared.seed, viewpoint=side.viewpoint, options=options)
       frames.append((np.asarray(out[0]), np.asarray(out[1])))
   with timer("descriptors"):
     for side, (f, v) in zip(prepared.sides, frames):
-      d, ok = compute_descriptors(side.cloud, side.keypoints, prepared.radius, f, v,
-                                  descriptor, faces=side.faces, seed=prepared.seed,
-                                  normals=side.normals)
+      d, ok = descriptors_checked(descriptor, side.cloud.points, side.keypoints, prepared.radius,
+                                  f.astype(np.float32), v.astype(bool), faces=side.faces,
+                                  seed=prepared.seed, normals=side.normals)
       descs.append((np.asarray(d), np.asarray(ok)))
   return Features(cast(Any, tuple(frames)), cast(Any, tuple(descs)))
 

@@ -5,8 +5,13 @@
     python evaluate.py --checkpoint runs/default --methods lrf_net toldi shot --out out/
     python evaluate.py --experiments points_only         # frames from the points alone
     python evaluate.py --engine ray --address HOST:PORT  # the pairs spread over a Ray cluster
+    python evaluate.py --scans my_sweeps/ my_rooms/ --methods lrf_net toldi   # your own scans
+    python evaluate.py --scans my_sweeps/ --datasets bunny BR@0.3   # beside the paper's sets
 
 With no data (no --data, LRF_DATA unset, nothing under data/) it runs on the procedural demo set.
+--scans DIR ...: each folder of scans with its pose file (poses.txt, gt.log or a .conf; see
+docs/own_scans.md) is a data set of its own, named by the folder, in the same tables and
+figures; without --datasets only the scan sets run.
 Writes results.json, report.md and PNG figures to --out (each atomically) and prints the summary
 table. With --engine ray the pairs run as Ray tasks (the same records, in the same order; only
 this process writes files); a pair that the engine could not run is one `error:` line naming it
@@ -46,6 +51,9 @@ def build_parser() -> argparse.ArgumentParser:
   ap.add_argument("--datasets", nargs="+", default=None, choices=sorted(DATASETS),
                   help="default: every real dataset found, else demo (points_only: "
                        f"{' '.join(POINTS_ONLY_DATASETS)})")
+  ap.add_argument("--scans", nargs="+", default=[], metavar="DIR",
+                  help="scan-set folders (scans + poses.txt, gt.log or a .conf), each a data "
+                       "set named by its folder; without --datasets only these run")
   ap.add_argument("--experiments", nargs="+", default=["repeatability"],
                   choices=EXPERIMENTS + ("description", "pose"),
                   help="experiments to run; points_only: every cloud moved by a seeded random "
@@ -101,9 +109,9 @@ def main(argv=None) -> int:
 
   t0 = time.perf_counter()
   points_only = "points_only" in args.experiments
-  names = args.datasets or (
+  names = args.datasets or ([] if args.scans else (
       list(dict.fromkeys(([] if args.experiments == ["points_only"] else REAL)
-                         + list(POINTS_ONLY_DATASETS))) if points_only else REAL)
+                         + list(POINTS_ONLY_DATASETS))) if points_only else REAL))
   max_pairs = args.max_pairs or (POINTS_ONLY_PAIRS if points_only else None)
   ok, missing = evaluation.available(names, args.data, DATASETS)
   if missing:  # the whole message (where we looked, how to get the data) before any work
@@ -112,6 +120,13 @@ def main(argv=None) -> int:
     if args.datasets:
       print("error: data not found for the --datasets asked for (above)", file=sys.stderr)
       return 2
+  try:
+    scan_sets = _scan_sets(args.scans)
+  except (ValueError, OSError) as e:  # a folder without poses, a bad pose line: named
+    print(f"error: --scans: {e}", file=sys.stderr)
+    return 2
+  ok += list(scan_sets)
+  missing += [note for notes in scan_sets.values() for note in notes]
   if not ok:
     ok = ["demo"]
     missing.append("no real data found: ran on the procedural demo set (synthetic, labelled)")
@@ -123,7 +138,8 @@ def main(argv=None) -> int:
     return 2
   opts = evaluation.EvalOptions(data_root=args.data, n_keypoints=args.keypoints, seed=args.seed,
                                 radius_mr=args.radius_mr, max_pairs=max_pairs,
-                                max_neighbors=args.max_neighbors or None)
+                                max_neighbors=args.max_neighbors or None,
+                                scans=tuple(args.scans))
   plan = runner.EvalPlan(ok, args.experiments, runs, opts, notes=missing + notes,
                          cache_dir=args.cache_dir, meta={"args": vars(args)},
                          methods_named=args.methods is not None, engine=args.engine,
@@ -160,6 +176,20 @@ OUTPUT_FILES = ("results.json", "report.md", "partial_records.jsonl",
                 "results_description_pose.json")
 
 
+def _scan_sets(folders: list[str]) -> dict[str, list[str]]:
+  """{data set name: notes for the report} of the --scans folders, each read once here (a bad
+  folder stops the run before any work; the pairs stay in this process's scan cache)."""
+  from lrf_jax.datasets.scan_sets import MIN_OVERLAP, read_scan_set
+  from lrf_jax.evaluation.experiments import scan_set_names
+  out = {}
+  for name, folder in scan_set_names(folders).items():
+    s = read_scan_set(folder)
+    kept = f"{len(s.pairs)} of {len(s.candidates)} candidate pairs overlap >= {MIN_OVERLAP:.0%}"
+    out[name] = [f"{name}: scan set {folder} ({s.format} layout, {len(s.scans)} scans; {kept})"]
+    out[name] += [f"{name}: {note}" for note in s.notes]
+  return out
+
+
 def _check(args: argparse.Namespace) -> str | None:
   """What is wrong with the arguments, before any work (None: fine)."""
   from lrf_jax.io.atomic import path_problem, same_file
@@ -181,6 +211,9 @@ def _check(args: argparse.Namespace) -> str | None:
   if args.address and args.engine == "local":
     return (f"--address: {args.address} is for --engine ray; the local engine runs in this "
             "process")
+  for folder in args.scans:
+    if not Path(folder).expanduser().is_dir():
+      return f"--scans: {folder} is not a folder (expected scans and their pose file)"
   if args.cache_dir and args.engine != "local":
     return ("--cache-dir: the ray engine's workers keep neighbourhoods in memory (only this "
             "process writes files); drop --cache-dir or use --engine local")

@@ -3,10 +3,14 @@
     python train.py --config default --workdir runs/default            # the paper (needs LRF_DATA)
     python train.py --config smoke --workdir /tmp/smoke epochs=2       # CPU, about a minute
     python train.py --config default --workdir runs/x batch_size=256 noise_mr=0.1,0.3
+    python train.py --config default --workdir runs/mine scans=my_sweeps/       # your own scans
+    python train.py --config default --workdir runs/mix data=br+scans scans=a/,b/  # b/ validates
     python train.py --config default --workdir /shared/runs/x \
         --coordinator HOST0:1234 --num-processes N --process-id I     # on each of N hosts
 
-Overrides are `key=value` fields of `lrf_jax.learning.config.TrainConfig`. A run restarted with the same
+Overrides are `key=value` fields of `lrf_jax.learning.config.TrainConfig`; `scans=DIR[,DIR...]`
+(folders of scans with a poses.txt, gt.log or .conf: docs/own_scans.md) trains on their
+overlapping pairs, alone or with `data=br+scans` beside BR. A run restarted with the same
 --workdir resumes from its latest checkpoint, under the same config: another config is an
 error naming the fields that differ, unless --replace-config (config.json is kept, the new
 config is written as config.<n>.json and noted in metrics.jsonl). One run at a time holds a

@@ -48,6 +48,7 @@ _EXPORTS: dict[str, str] = {
     "register": "registration",
     "register_all": "multiway",
     "voxel_downsample": "geometry.sampling",
+    "view": "viz",
 }
 
 # subpackages and modules reachable as attributes after a bare `import lrf_jax`.
@@ -95,6 +96,8 @@ def _load(module: str) -> Any:
       import lrf_jax.multiway as m
     case "geometry.sampling":
       import lrf_jax.geometry.sampling as m
+    case "viz":
+      import lrf_jax.viz as m
     case "datasets":
       import lrf_jax.datasets as m
     case "descriptors":
@@ -157,3 +160,4 @@ if TYPE_CHECKING:  # for type checkers and IDEs; at run time these come from __g
   from lrf_jax.multiway import register_all  # noqa: F401
   from lrf_jax.registration import register  # noqa: F401
   from lrf_jax.geometry.sampling import voxel_downsample  # noqa: F401
+  from lrf_jax.viz import view  # noqa: F401

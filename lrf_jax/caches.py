@@ -7,6 +7,7 @@
 | `patch_frames.jitted_method`, `descriptors.jitted_descriptor` | jitted frame / descriptor functions per option set | 64 / 32 |
 | `weights.default_params_cached`, `weights.default_params_numpy_cached` | the shipped weights (on the device; numpy) | 8 / 8 |
 | `datasets.cache.load_mesh` (emptied by its `clear_cache`) | meshes and clouds read by the dataset loaders | 64 |
+| `datasets.cache.load_scan` (emptied by its `clear_cache`) | scans of scan sets at their working resolution (thinned sweeps); also on disk under $LRF_CACHE/scans | 64 |
 | `datasets.synthetic.icosphere` | the demo set's base spheres | 8 |
 
 Compiled code (numba's on-disk cache, JAX's jit caches and its optional persistent cache) is not

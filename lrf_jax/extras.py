@@ -25,12 +25,15 @@ EXTRAS = {
     "eval": ("matplotlib", "fast-simplification", "flax"),
     "plot": ("matplotlib",),
     "ray": ("ray",),
+    "viz": ("viser",),
+    "formats": ("laspy", "pye57"),
 }
 
 
 # The module each extra's package is imported as.
 _MODULES = {"flax": "flax", "optax": "optax", "orbax-checkpoint": "orbax.checkpoint",
-            "matplotlib": "matplotlib", "fast-simplification": "fast_simplification", "ray": "ray"}
+            "matplotlib": "matplotlib", "fast-simplification": "fast_simplification", "ray": "ray",
+            "viser": "viser", "laspy": "laspy", "pye57": "pye57"}
 
 
 class MissingExtraError(ImportError):

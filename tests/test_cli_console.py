@@ -53,6 +53,7 @@ def _cases(clouds: list[Path], tmp: Path) -> dict[str, list[list[str]]]:
                     ["register", str(tmp / "pairs.tsv"), "--out", str(tmp / "reg"),
                      "--no-progress", *few]],
       "lrf-compile": [["--list"]],
+      "lrf-view": [["--help"]],
   }
 
 

@@ -98,6 +98,7 @@ _REGISTRATION_MODULE_NAMES = {  # the pre-0.7 module `lrf_jax.registration`, out
                  "CHANCE_SHUFFLES", "RIVAL_DEG", "Evidence", "overlap_contrast", "verdict"),
 }
 RENAMED: dict[str, str] = {
+    "lrf_jax.io.cloud.read_kitti_bin": "lrf_jax.io.sweeps.read_kitti_bin",
     **{f"lrf_jax.geometry.{n}": f"lrf_jax.geometry.ops.{n}" for n in _OPS_HELPERS},
     "lrf_jax.geometry.Array": "jax.Array",  # 0.7 forwarded it to ops, which no longer had it
     **{f"lrf_jax.registration.{n}": f"lrf_jax.registration.{home}.{n}"

@@ -22,7 +22,7 @@ __all__ = ["FRAMES_OPTIONS", "check_frames_options", "check_register_options", "
 FRAMES_OPTIONS = {"keypoints": "--keypoints", "voxel_mr": "--keypoint-voxel-mr",
                   "voxel_size": "--voxel-size", "method": "--method",
                   "radius_mr": "--radius-mr", "viewpoint": "--viewpoint",
-                  "descriptor": "--descriptor", "seed": "--seed"}
+                  "descriptor": "--descriptor", "seed": "--seed", "bin_layout": "--bin-layout"}
 
 
 # OSErrors of the machine, not of an input file: a full, read-only or failing disk, a quota, no
@@ -63,11 +63,19 @@ def _error(e: BaseException, t0: float, inputs: Sequence[str] = ()) -> dict[str,
   return dict(status=status, error=text, seconds=time.perf_counter() - t0)
 
 
+# A registration job's option that is no keyword of `register`: how its items read `.bin`
+# sweeps (`lrf_jax.io.read_cloud`'s `bin_layout`, `--bin-layout`).
+READ_OPTIONS = ("bin_layout",)
+
+
 def check_register_options(options: dict[str, Any]) -> None:
-  """ValueError unless every key is a keyword of `lrf_jax.register` a job can take and every
-  value is plain data (numbers, strings, booleans, None, lists of them)."""
+  """ValueError unless every key is a keyword of `lrf_jax.register` a job can take, or
+  `READ_OPTIONS` (a valid `bin_layout`), and every value is plain data (numbers, strings,
+  booleans, None, lists of them)."""
+  from lrf_jax.io.sweeps import check_bin_layout
   from lrf_jax.registration.options import FIELDS
-  known = list(FIELDS)
+  known = [*FIELDS, *READ_OPTIONS]
+  check_bin_layout(options.get("bin_layout"))
   for key, value in options.items():
     if key not in known:
       raise ValueError(f"{key}: not an option of a registration job; expected one of "
@@ -87,7 +95,8 @@ def register_pair(payload: dict[str, Any]) -> dict[str, Any]:
   """`lrf_jax.register(source, target, **options)` of one pair.
 
   Args:
-    payload: {"source": path, "target": path, "options": register's keywords}.
+    payload: {"source": path, "target": path, "options": register's keywords, and optionally
+      `bin_layout`, how a `.bin` input is read (`lrf_jax.io.reader.cloud_source`)}.
 
   Returns:
     {"status": "done", "transform": 4 x 4 nested lists (float64, exact), "success": bool,
@@ -95,8 +104,12 @@ def register_pair(payload: dict[str, Any]) -> dict[str, Any]:
   """
   t0 = time.perf_counter()
   try:
+    from lrf_jax.io.reader import cloud_source
     from lrf_jax.registration import register
-    reg = register(payload["source"], payload["target"], **payload["options"])
+    options = dict(payload["options"])
+    layout = options.pop("bin_layout", None)
+    reg = register(cloud_source(payload["source"], layout),
+                   cloud_source(payload["target"], layout), **options)
   except Exception as e:  # noqa: BLE001 -- a bad pair is a row, the job goes on
     return _error(e, t0, (payload["source"], payload["target"]))
   return dict(status="done", transform=np.asarray(reg.transform, np.float64).tolist(),

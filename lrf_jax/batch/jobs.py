@@ -476,7 +476,8 @@ def run_register(pairs: str | os.PathLike | Sequence[tuple[str, ...]],
     criteria: when a pair with a ground truth is right (`scoring.Criteria` or "DEG,DIST", DIST
       in the clouds' units): results.tsv's `right` column and `JobResult.counts`. The errors
       (`rotation_error_deg`, `translation_error`) are written for every pair with a `gt`.
-    **options: keyword arguments of `register` (JSON-able values: no `params` or `init`).
+    **options: keyword arguments of `register` (JSON-able values: no `params` or `init`), and
+      `bin_layout` ("xyzi", "xyz"): how `.bin` inputs are read (`lrf_jax.io.read_cloud`).
 
   Returns:
     A `JobResult` (exit_code 0: every pair done; 3: some failed).
@@ -517,8 +518,8 @@ def run_frames(scans: Sequence[str | os.PathLike], out: str | os.PathLike, *,
     keep_versions: as `run_register`.
     force: as `run_register`.
     **options: lrf-frames' options as keywords (`items.FRAMES_OPTIONS`: keypoints, voxel_mr, voxel_size,
-      method, radius_mr, viewpoint, descriptor, seed); those not given keep lrf-frames'
-      defaults.
+      method, radius_mr, viewpoint, descriptor, seed, bin_layout); those not given keep
+      lrf-frames' defaults.
 
   Returns:
     A `JobResult`.

@@ -14,6 +14,7 @@ import numpy as np
 
 from lrf_jax.checks import validate_seed
 from lrf_jax.defaults import DEFAULT_METHOD, RADIUS_MR
+from lrf_jax.io.sweeps import BIN_LAYOUTS
 from lrf_jax.registration.options import option_field
 
 # Smallest --keypoint-voxel-mr: voxels of a tenth of the spacing already hold one point each.
@@ -21,6 +22,8 @@ MIN_VOXEL_MR = 0.1
 # Keypoints drawn when neither a count nor a rule is given.
 DEFAULT_KEYPOINTS = 1000
 _ASCII_DIGITS = frozenset("0123456789")
+# The files a scan may be (`lrf_jax.io.read_cloud`), as the command lines' help names them.
+INPUT_FORMATS = "PLY, PCD, XYZ/TXT(.gz), NPY, .bin sweep, LAS/LAZ or E57"
 
 
 def _renamed(field: Any, *old: str) -> Any:
@@ -54,9 +57,11 @@ class FrameOptions:
     seed: seed of keypoints and subsamples.
     pair, gt, pair_viewpoint: a second scan, the 4x4 transform mapping the cloud onto it (a
       text file or .npy) and its sensor position: frames at the corresponding points too.
+    bin_layout: the layout of `.bin` inputs ("xyzi", "xyz"; None: `read_cloud`'s default,
+      checked; `lrf_jax.io.sweeps`).
   """
 
-  cloud: str = option_field("", "PLY, PCD, XYZ/TXT(.gz) or NPY file", flag=None)
+  cloud: str = option_field("", INPUT_FORMATS + " file", flag=None)
   keypoints: str | None = option_field(
       None, "N seeded random points, 'all', or 'iss' (ISS keypoints); none given: "
       f"{DEFAULT_KEYPOINTS}")
@@ -86,6 +91,11 @@ class FrameOptions:
       metavar="T")
   pair_viewpoint: tuple[float, float, float] | None = option_field(
       None, "sensor position of the scan B", metavar=("X", "Y", "Z"))
+  bin_layout: str | None = option_field(
+      None, "the layout of the .bin sweeps among the inputs: xyzi (16 bytes a point: float32 "
+      "x, y, z, reflectance; KITTI's) or xyz (12 bytes a point: x, y, z); none given: xyzi, "
+      "and a file whose size fits both is refused when its values look like xyz",
+      choices=tuple(BIN_LAYOUTS))
 
   @classmethod
   def from_args(cls, args: Any) -> FrameOptions:
@@ -102,6 +112,9 @@ class FrameOptions:
       return f"--method: unknown method {self.method!r}; expected one of {sorted(METHODS)}"
     if self.descriptor is not None and self.descriptor not in DESCRIPTORS:
       return f"--descriptor: unknown {self.descriptor!r}; expected one of {sorted(DESCRIPTORS)}"
+    if self.bin_layout is not None and self.bin_layout not in BIN_LAYOUTS:
+      return (f"--bin-layout: expected one of {', '.join(BIN_LAYOUTS)}, got "
+              f"{self.bin_layout!r}")
     voxel_flag = frame_flag("voxel_mr")
     if self.voxel_mr is not None and self.keypoints is not None:
       return (f"{voxel_flag} and --keypoints: give one of them ({voxel_flag} picks one keypoint "
@@ -296,7 +309,8 @@ def frames_of_scan(request: FrameOptions) -> tuple[dict, Any, Any]:
   from lrf_jax.frames.compute import compute_frames
   from lrf_jax.frames.metrics import meancos
   from lrf_jax.geometry.cloud import as_cloud
-  cloud = as_cloud(request.cloud, "cloud")
+  from lrf_jax.io.reader import cloud_source
+  cloud = as_cloud(cloud_source(request.cloud, request.bin_layout), "cloud")
   mr, voxel_size = scan_resolution(cloud, request)
   voxel = None if request.voxel_mr is None else request.voxel_mr * mr
   how = request.keypoints or str(DEFAULT_KEYPOINTS)
@@ -304,7 +318,7 @@ def frames_of_scan(request: FrameOptions) -> tuple[dict, Any, Any]:
   if request.pair is not None:
     assert request.gt is not None  # `problem`: --pair and --gt go together
     gt = read_transform(request.gt, "--gt")
-    other = as_cloud(request.pair, "--pair")
+    other = as_cloud(cloud_source(request.pair, request.bin_layout), "--pair")
     kp, kp_b = pair_keypoints(cloud.points, other.points, gt, mr, how, voxel, request.seed)
   else:
     kp = select_keypoints(cloud.points, how, voxel, request.seed, mr)

@@ -95,7 +95,10 @@ def _register_options(rest: list[str]) -> dict[str, Any]:
   problem = register_cli.check_options(args)
   if problem:
     p.error(problem)
-  return register_cli.register_options(args)
+  options = register_cli.register_options(args)
+  if getattr(args, "bin_layout", None) is not None:  # how the items read .bin inputs
+    options["bin_layout"] = args.bin_layout
+  return options
 
 
 @interruptible("the finished items are kept; the same command resumes")

@@ -1,6 +1,7 @@
 """`lrf-frames CLOUD --out F.npz`: local reference frames for the keypoints of one's own file.
 
-Reads any cloud or mesh `lrf_jax.io.read_cloud` reads (PLY, PCD, XYZ/TXT(.gz), NPY), picks
+Reads any cloud or mesh `lrf_jax.io.read_cloud` reads (PLY, PCD, XYZ/TXT(.gz), NPY, .bin sweeps
+with `--bin-layout` for 12-byte ones; LAS/LAZ and E57 with the `formats` extra), picks
 keypoints (N seeded random points, all points, ISS keypoints, or with --keypoint-voxel-mr S
 one point per voxel of S mr; it and --keypoints exclude each other; --voxel-mr is its name
 before 0.9, still accepted), computes their frames (and optionally a descriptor) on the
@@ -38,6 +39,7 @@ from pathlib import Path
 import numpy as np
 
 from lrf_jax.batch.items import FRAMES_OPTIONS
+from lrf_jax.batch.scan_frames import INPUT_FORMATS
 from lrf_jax.cli.options import add_frame_flags, as_typed
 from lrf_jax.cli.exits import EXIT_OK, EXIT_USAGE, refuse, write_failed
 from lrf_jax.cli.interrupt import exit_with, interruptible
@@ -52,7 +54,7 @@ def build_parser() -> argparse.ArgumentParser:
                                "keypoints of a cloud or mesh file, written to an .npz; with "
                                "--pair and --gt, also their repeatability on a second scan.",
                                formatter_class=DefaultsHelpFormatter)
-  ap.add_argument("cloud", help="PLY, PCD, XYZ/TXT(.gz) or NPY file")
+  ap.add_argument("cloud", help=f"{INPUT_FORMATS} file")
   ap.add_argument("--out", required=True,
                   help="the .npz to write: keypoints, positions, frames (m, 3, 3; rows x, y, "
                        "z), valid, radius, mr, method, weights; confidence (m,) in [0, 1] for "

@@ -34,8 +34,8 @@ import numpy as np
 from lrf_jax.checks import validate_seed
 from lrf_jax.cli.exits import EXIT_USAGE, EXIT_WRITE_FAILED, refuse
 from lrf_jax.cli.interrupt import exit_with, interruptible
-from lrf_jax.cli.options import (AliasedFlag, add_multiway_flags, alias_help, as_typed,
-                                 option_message, register_overrides, register_problem)
+from lrf_jax.cli.options import (AliasedFlag, add_bin_layout_flag, add_multiway_flags, alias_help,
+                                 as_typed, option_message, register_overrides, register_problem)
 
 # The old names of --merge-voxel-mr, still accepted in 0.9.
 MERGE_VOXEL_OLD = ("--voxel",)
@@ -51,8 +51,9 @@ def build_parser() -> argparse.ArgumentParser:
       prog="lrf-register", allow_abbrev=False,
       description="Register several scans into one model: pairwise LRF registration over a "
                   "candidate graph, a robust pose graph (wrong edges rejected), joint ICP.")
-  ap.add_argument("scans", nargs="+", help="the scans (PLY, PCD, XYZ/TXT(.gz), NPY), each in "
-                                           "its own frame; the first one's frame is the model's")
+  ap.add_argument("scans", nargs="+", help="the scans (PLY, PCD, XYZ/TXT(.gz), NPY, .bin "
+                                           "sweeps, LAS/LAZ, E57), each in its own frame; the "
+                                           "first one's frame is the model's")
   ap.add_argument("--out-dir", default=None, metavar="D",
                   help="write D/<stem>.txt, D/poses.txt (KITTI layout), D/merged.ply, "
                        "D/edges.tsv, D/merged.png, D/graph.png")
@@ -62,6 +63,7 @@ def build_parser() -> argparse.ArgumentParser:
                   help=alias_help("thin merged.ply by voxels of S mr (default: every point)",
                                   MERGE_VOXEL_OLD))
   add_multiway_flags(ap, helps=_HELPS)
+  add_bin_layout_flag(ap)
   ap.add_argument("--viewpoint", type=float, nargs=3, default=None, metavar=("X", "Y", "Z"),
                   help="sensor position of every scan, in each scan's own frame")
   ap.add_argument("--engine", choices=("local", "ray"), default="local",
@@ -257,10 +259,11 @@ def _run(args: argparse.Namespace, figures: bool, skipped: str | None) -> int:
   lock held)."""
   from lrf_jax.io.atomic import WriteError
   from lrf_jax.multiway.outputs import check_voxel, scan_names, write_outputs
+  from lrf_jax.io.reader import cloud_source
   from lrf_jax.multiway.pipeline import load_scans, median_mr
   try:
     names = scan_names(args.scans)
-    clouds = load_scans(args.scans, names)
+    clouds = load_scans([cloud_source(s, args.bin_layout) for s in args.scans], names)
     mr = args.mr
     if args.merge_voxel_mr is not None:  # a voxel too small whatever the poses: before the work
       mr = median_mr(clouds, names) if mr is None else mr  # register_all's own

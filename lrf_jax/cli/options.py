@@ -181,6 +181,19 @@ def add_frame_flags(ap: Any, *, skip: tuple[str, ...] = (),
                    skip=skip, suppress_defaults=suppress_defaults)
 
 
+def add_bin_layout_flag(ap: Any) -> None:
+  """Add `--bin-layout xyzi|xyz` (how `.bin` inputs are read: `lrf_jax.io.read_cloud`'s
+  `bin_layout`) to the argparse parser `ap` of a command line that registers; its default is
+  the parser's (None; none with `argument_default=SUPPRESS`). `lrf-frames` and `lrf-batch
+  frames` take it from `FrameOptions`' field of the same name."""
+  import dataclasses
+
+  from lrf_jax.batch.scan_frames import FrameOptions
+  field = {f.name: f for f in dataclasses.fields(FrameOptions)}["bin_layout"]
+  ap.add_argument("--bin-layout", dest="bin_layout", choices=field.metadata["choices"],
+                  help=field.metadata["help"])
+
+
 def register_overrides(args: Any) -> dict[str, Any]:
   """The `register` keywords (`RegisterOptions` fields) the flags present in `args` set;
   `--keypoints` parsed (`parse_keypoints`).

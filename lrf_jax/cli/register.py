@@ -10,7 +10,8 @@ it writes the transform and still exits 3), so a script that ignores exit codes 
 wrong pose. `--init`
 gives an initial source->target transform (a 4x4 text file as `lrf_jax.io.read_xf` reads, or
 a (4, 4) .npy) that `register` refines by ICP and judges on the same evidence as its own pose. Inputs: any cloud or mesh
-`lrf_jax.io.read_cloud` reads (PLY, PCD, XYZ/TXT(.gz), NPY). Every length is in mesh
+`lrf_jax.io.read_cloud` reads (PLY, PCD, XYZ/TXT(.gz), NPY, .bin sweeps; LAS/LAZ and E57
+with the `formats` extra); `--bin-layout xyz` reads 12-byte .bin sweeps. Every length is in mesh
 resolutions (the working resolution `register` measures, `--mr` to set it). Every bad argument
 or unreadable input is one `error:` line and exit code 2, an output that cannot be written (a
 full disk, a read-only file system) one `error:` line and exit code 74
@@ -33,8 +34,9 @@ import numpy as np
 from lrf_jax.cli.exits import EXIT_NOT_SURE, EXIT_OK, EXIT_USAGE, refuse, write_failed
 from lrf_jax.cli.interrupt import exit_with, interruptible
 from lrf_jax.cli.help import DefaultsHelpFormatter
-from lrf_jax.cli.options import (KEYPOINT_DETECTORS, add_register_flags, parse_keypoints,
-                                 register_overrides, register_problem)
+from lrf_jax.batch.scan_frames import INPUT_FORMATS
+from lrf_jax.cli.options import (KEYPOINT_DETECTORS, add_bin_layout_flag, add_register_flags,
+                                 parse_keypoints, register_overrides, register_problem)
 
 
 def build_parser(*, suppress_defaults: bool = False) -> argparse.ArgumentParser:
@@ -51,7 +53,7 @@ def build_parser(*, suppress_defaults: bool = False) -> argparse.ArgumentParser:
                                            "(multiway; lrf-register a b c --out-dir D --help "
                                            "lists its options).",
                                formatter_class=DefaultsHelpFormatter)
-  ap.add_argument("source", help="the cloud to move (PLY, PCD, XYZ/TXT(.gz), NPY)")
+  ap.add_argument("source", help=f"the cloud to move ({INPUT_FORMATS})")
   ap.add_argument("target", help="the cloud to align it to")
   ap.add_argument("--out",
                   help="write the 4x4 source->target matrix here (only on success, exit 0, "
@@ -60,6 +62,7 @@ def build_parser(*, suppress_defaults: bool = False) -> argparse.ArgumentParser:
                   help="write --out even when the verdict is 'not sure' (the exit code is "
                        "still 3)")
   add_register_flags(ap, suppress_defaults=suppress_defaults)
+  add_bin_layout_flag(ap)
   # Deprecated spelling of `--keypoints iss` (kept working, hidden): with a count in
   # --keypoints, ISS keypoints at most that many.
   ap.add_argument("--detector", choices=KEYPOINT_DETECTORS, help=argparse.SUPPRESS)
@@ -217,8 +220,9 @@ def _register_and_report(args: argparse.Namespace) -> int:
         params, _ = restore_params(args.checkpoint, "best")
       except (ValueError, FileNotFoundError) as e:
         raise ValueError(f"--checkpoint: {e}") from None
-    reg = register(args.source, args.target, params=params, **register_options(args),
-                   **extra)
+    from lrf_jax.io.reader import cloud_source
+    source, target = (cloud_source(p, args.bin_layout) for p in (args.source, args.target))
+    reg = register(source, target, params=params, **register_options(args), **extra)
   except (ValueError, FileNotFoundError) as e:
     print(f"error: {e}", file=sys.stderr)
     return EXIT_USAGE
@@ -256,7 +260,9 @@ def correspondence_figure(args: argparse.Namespace, reg) -> Exception | None:
   from lrf_jax.cli import plot
   from lrf_jax.geometry.cloud import as_cloud
   from lrf_jax.io.atomic import WriteError
-  src, dst = as_cloud(args.source, "SOURCE").points, as_cloud(args.target, "TARGET").points
+  from lrf_jax.io.reader import cloud_source
+  src, dst = (as_cloud(cloud_source(p, args.bin_layout), name).points
+              for p, name in ((args.source, "SOURCE"), (args.target, "TARGET")))
   verdict = "success" if reg.success else "not sure"
   title = (f"{Path(args.source).name} -> {Path(args.target).name}: {verdict}, estimated "
            f"overlap {reg.overlap:.0%}, {reg.n_inliers} of {len(reg.correspondences)} "

@@ -31,6 +31,7 @@ import numpy as np
 
 from lrf_jax.datasets.bologna import (BR_MODELS, BR_SCENE_MODELS, FOLDER, br_model_path,
                                       load_br)
+from lrf_jax.datasets.cache import default_cache_dir
 from lrf_jax.datasets.pair import repeatability_keypoints, transform_points
 from lrf_jax.datasets.root import dataset_dir
 from lrf_jax.io import atomic
@@ -109,14 +110,6 @@ class TrainingSet:
     for start in range(0, self.num_batches(batch_size, drop_remainder) * batch_size,
                        batch_size):
       yield order[start:start + batch_size]
-
-
-def default_cache_dir() -> Path:
-  """$LRF_CACHE, else $XDG_CACHE_HOME/lrf_jax, else ~/.cache/lrf_jax."""
-  if os.environ.get("LRF_CACHE"):
-    return Path(os.environ["LRF_CACHE"]).expanduser()
-  base = os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache"
-  return Path(base).expanduser() / "lrf_jax"
 
 
 def build_training_set(root: str | os.PathLike | None = None, *, n_keypoints: int = 20000,

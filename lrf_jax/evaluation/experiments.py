@@ -2,7 +2,10 @@
 
 Each experiment yields records (see `repeatability.evaluate_pair`); `report.py` turns them into
 tables and figures. Datasets are looked up by name in `DATASETS`; a dataset whose files are
-absent is skipped with a message, never silently.
+absent is skipped with a message, never silently. The user's own scan sets
+(`lrf_jax.datasets.scan_sets`, `EvalOptions.scans`) are data sets of their own, named by their
+folders (`scan_set_names`): every experiment runs on them as on the others (their pairs, being
+noise-free real scans as far as we know, are also their "clean" versions for the sweeps).
 """
 
 from __future__ import annotations
@@ -15,6 +18,7 @@ from collections.abc import Callable, Iterable, Iterator
 from lrf_jax.defaults import RADIUS_MR
 from lrf_jax import datasets
 from lrf_jax.datasets import Pair
+from lrf_jax.datasets.scan_sets import folder_name
 from lrf_jax.evaluation.repeatability import (EXACT_NETWORK, MAX_NEIGHBORS, MethodRun,
                                               PatchCache, evaluate_pair)
 
@@ -142,6 +146,8 @@ class EvalOptions:
     radius_mr: support radius in mr (15).
     max_pairs: at most this many pairs per dataset and setting (None: all), for quick runs.
     max_neighbors: cap on all-neighbor patches (see `evaluate_pair`; None: no cap).
+    scans: scan-set folders (`datasets.read_scan_set`), each a data set named by its folder
+      (`scan_set_names`); a name in a list of data sets refers to one of them first.
   """
 
   data_root: str | None = None
@@ -150,6 +156,7 @@ class EvalOptions:
   radius_mr: float = RADIUS_MR
   max_pairs: int | None = None
   max_neighbors: int | None = MAX_NEIGHBORS
+  scans: tuple[str, ...] = ()
 
 
 def _br(root, noise=0.3, seed=0):
@@ -183,6 +190,53 @@ CLEAN = {
 FOLDERS = {"BR": "bologna_retrieval", "UWA3M": "uwa_3d_modeling_views",
            "UWAOR": "uwa_object_recognition", "bunny": "stanford_bunny_scans",
            "3DMatch": "threedmatch_scenes"}
+
+
+def scan_set_names(folders: Iterable[str]) -> dict[str, str]:
+  """{data set name: folder} of scan-set folders: each named by its folder's name.
+
+  Raises:
+    ValueError: two folders of the same name, or a name of a built-in data set (`DATASETS`,
+      the sweeps' `CLEAN` names), naming the folders.
+  """
+  names: dict[str, str] = {}
+  for folder in folders:
+    name = folder_name(folder)
+    base = name.split("@")[0].split("-")[0]
+    if name in DATASETS or base in CLEAN or base in DATASETS:
+      raise ValueError(f"--scans {folder}: its name {name!r} reads as the built-in data set "
+                       f"{base!r}; rename the folder (or link it under another name)")
+    if name in names:
+      raise ValueError(f"--scans: {names[name]} and {folder} are both named {name!r}; data sets "
+                       "are named by their folders: rename or link one")
+    names[name] = folder
+  return names
+
+
+def dataset_pairs(ds: str, opts: EvalOptions) -> tuple[list[Pair], dict[str, Any]]:
+  """(pairs, setting) of data set `ds`: a scan set of `opts.scans` (setting {}), else the
+  loader of `DATASETS` (all pairs; `limit_pairs` caps them)."""
+  folders = scan_set_names(opts.scans)
+  if ds in folders:
+    return datasets.load_scan_set(folders[ds]), {}
+  loader, setting = DATASETS[ds]
+  return loader(opts.data_root, opts.seed), setting
+
+
+def clean_datasets(dataset_names: Iterable[str], opts: EvalOptions) -> list[str]:
+  """The noise-free data sets the sweeps (noise, decimation, radius, rotation, ablation) run
+  on for `dataset_names`: `clean_name`'s, then the scan sets among them, each once."""
+  names = list(dataset_names)
+  scans = [ds for ds in names if ds in scan_set_names(opts.scans)]
+  clean = sorted(cast("set[str]", {clean_name(ds) for ds in names if ds not in scans} - {None}))
+  return clean + scans
+
+
+def clean_pairs(ds: str, opts: EvalOptions) -> list[Pair]:
+  """The pairs of a name of `clean_datasets` (at most `opts.max_pairs`)."""
+  if ds in scan_set_names(opts.scans):
+    return limit_pairs(dataset_pairs(ds, opts)[0], opts)
+  return limit_pairs(CLEAN[ds](opts.data_root, opts.seed), opts)
 
 
 def available(names: Iterable[str], root: str | None, table: dict, *,
@@ -221,11 +275,11 @@ def limit_pairs(pairs: list[Pair], opts: EvalOptions) -> list[Pair]:
 
 def iter_pairs(dataset_names: Iterable[str],
                opts: EvalOptions) -> Iterator[tuple[str, dict[str, Any], Pair]]:
-  """(dataset name, its setting, pair) for every pair of the named `DATASETS`, at most
-  `opts.max_pairs` per dataset (shared by the repeatability, description and pose runs)."""
+  """(dataset name, its setting, pair) for every pair of the named `DATASETS` and scan sets
+  (`dataset_pairs`), at most `opts.max_pairs` per dataset (shared by the repeatability, description and pose runs)."""
   for ds in dataset_names:
-    loader, setting = DATASETS[ds]
-    for pair in limit_pairs(loader(opts.data_root, opts.seed), opts):
+    pairs, setting = dataset_pairs(ds, opts)
+    for pair in limit_pairs(pairs, opts):
       yield ds, setting, pair
 
 
@@ -280,10 +334,9 @@ def experiment_jobs(name: str, dataset_names: list[str], methods: list[MethodRun
     for ds, setting, pair in iter_pairs(dataset_names, opts):
       yield PairJob(name, ds, pair, setting, runs, opts)
     return
-  clean = sorted(cast("set[str]", {clean_name(ds) for ds in dataset_names} - {None}))
   runs = tuple(ablation_runs() if name == "ablation" else methods)  # ablation: the paper's tables
-  for ds in clean:
-    for pair in limit_pairs(CLEAN[ds](opts.data_root, opts.seed), opts):
+  for ds in clean_datasets(dataset_names, opts):
+    for pair in clean_pairs(ds, opts):
       if name == "ablation":
         yield PairJob(name, ds, pair, {}, runs, opts)
         continue

@@ -18,16 +18,16 @@ import functools
 import json
 import time
 from pathlib import Path
-from typing import Any, cast
+from typing import Any
 from collections.abc import Callable, Iterator
 
 from tqdm.auto import tqdm
 
 from lrf_jax.batch import engines
 from lrf_jax.evaluation import description, pose, report
-from lrf_jax.evaluation.experiments import (ABLATION_X, ABLATION_Z, AS_NAMED, CLEAN, DATASETS,
-                                            DECIMATIONS, NOISE_LEVELS, RADII_MR, ROTATIONS_DEG,
-                                            EvalOptions, PairJob, clean_name, limit_pairs,
+from lrf_jax.evaluation.experiments import (ABLATION_X, ABLATION_Z, AS_NAMED, DECIMATIONS,
+                                            NOISE_LEVELS, RADII_MR, ROTATIONS_DEG, EvalOptions,
+                                            PairJob, clean_datasets, clean_pairs, dataset_pairs,
                                             experiment_jobs, iter_pairs, job_records,
                                             plus_ablation_runs, points_only_runs)
 from lrf_jax.evaluation.repeatability import (EXACT_NETWORK, MethodRun, PatchCache,
@@ -111,7 +111,8 @@ class EvalPlan:
   """What one evaluation runs.
 
   Attributes:
-    datasets: names of `DATASETS` whose data was found.
+    datasets: names of `DATASETS` whose data was found, and of the scan sets of
+      `options.scans` (`experiments.scan_set_names`).
     experiments: names of `EXPERIMENTS`, "description" or "pose".
     runs: the method columns (`method_runs`).
     options: the knobs shared by every experiment.
@@ -155,8 +156,7 @@ def count_records(experiment: str, plan: EvalPlan) -> int:
   if experiment in AS_NAMED:
     return (len(_experiment_runs(experiment, plan))
             * sum(1 for _ in iter_pairs(plan.datasets, opts)))
-  clean = sorted(cast("set[str]", {clean_name(ds) for ds in plan.datasets} - {None}))
-  pairs = sum(len(limit_pairs(CLEAN[ds](opts.data_root, opts.seed), opts)) for ds in clean)
+  pairs = sum(len(clean_pairs(ds, opts)) for ds in clean_datasets(plan.datasets, opts))
   per_pair = (len(ABLATION_Z) * len(ABLATION_X) if experiment == "ablation"
               else SWEEPS[experiment] * len(plan.runs))
   return pairs * per_pair
@@ -317,7 +317,7 @@ def _learned_figures(plan: EvalPlan, out: Path) -> None:
   """The paper's weight visualisation on the first dataset's first pair, and the weight maps."""
   lrf = next((r for r in plan.runs if r.method == "lrf_net"), None)
   if lrf is not None:
-    first = DATASETS[plan.datasets[0]][0](plan.options.data_root, plan.options.seed)[0]
+    first = dataset_pairs(plan.datasets[0], plan.options)[0][0]
     report.weights_figure(first, lrf.params, out, radius_mr=plan.options.radius_mr)
   if any(r.method in ("lrf_net", "lrf_net_plus") for r in plan.runs):
     report.weight_maps_figure(out)

@@ -5,7 +5,8 @@ What it accepts (`CheckedCloud(x)`):
 
 * an (n, 3) array-like of coordinates;
 * an `lrf_jax.io.Cloud` (its faces and normals are used);
-* a path to any file `lrf_jax.io.read_cloud` opens (PLY, PCD, XYZ/TXT(.gz), NPY);
+* a path to any file `lrf_jax.io.read_cloud` opens with its defaults (PLY, PCD, XYZ/TXT(.gz),
+  NPY, .bin sweeps; LAS/LAZ, E57 with the `formats` extra);
 * any object with a `.points` attribute convertible to (n, 3) (e.g. Open3D's `PointCloud`, whose
   `.normals` are used when it has them), or with `.vertices` and `.triangles` (e.g. Open3D's
   `TriangleMesh`). Open3D itself is never imported;

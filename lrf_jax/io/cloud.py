@@ -1,4 +1,4 @@
-"""`Cloud`, the common result of the readers, and `read_cloud`, which dispatches on the suffix."""
+"""`Cloud`, the common result of the readers, and `read_npy` (KITTI's `.bin` sweeps: `sweeps`)."""
 
 from __future__ import annotations
 
@@ -75,28 +75,3 @@ def read_npy(path: str | os.PathLike) -> Cloud:
   points = check_points(arr[:, :3], p, "x/y/z columns")
   normals = check_normals(arr[:, 3:], p, "normal columns") if arr.shape[1] == 6 else None
   return Cloud(points, None, normals, p)
-
-
-def read_kitti_bin(path: str | os.PathLike) -> Cloud:
-  """Reads a KITTI Velodyne sweep `.bin`: float32 records of (x, y, z, reflectance), 16 bytes a
-  point, in the sensor's frame (metres; the sensor at the origin). Reflectance is dropped.
-
-  Args:
-    path: the `.bin` file.
-
-  Returns:
-    A Cloud with float64 points (n, 3).
-
-  Raises:
-    FileNotFoundError: missing file.
-    ValueError: a size that is not a whole number of 16-byte points, empty, or non-finite
-      coordinates.
-  """
-  p = require_file(path)
-  size = p.stat().st_size
-  if size == 0 or size % 16:
-    raise bad_input(p, "size", "a whole number of 16-byte points (float32 x, y, z, reflectance)",
-                    f"{size} bytes")
-  arr = np.fromfile(p, dtype="<f4").reshape(-1, 4)
-  points = check_points(arr[:, :3].astype(np.float64), p, "x/y/z")
-  return Cloud(points, None, None, p)

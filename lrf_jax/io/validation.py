@@ -15,6 +15,7 @@ from pathlib import Path
 import numpy as np
 
 from lrf_jax.checks import MAX_COORDINATE, validate_cloud
+from lrf_jax.extras import MissingExtraError
 from lrf_jax.io.atomic import loop_problem
 
 # A pose's rotation block must satisfy |RᵀR - I| <= atol and |det R - 1| <= atol. The real
@@ -55,6 +56,35 @@ class SymlinkLoopError(OSError, ValueError):
 
   def __str__(self) -> str:
     return self.message
+
+
+# The extra that installs the optional readers (`pyproject.toml`), and what it holds.
+FORMATS_EXTRA = "formats"
+FORMATS_PACKAGES = "laspy[lazrs], pye57"
+
+
+class MissingReaderError(MissingExtraError, ValueError):
+  """A file this install cannot read: its reader's package (`FORMATS_EXTRA`) is not installed.
+
+  Both a `lrf_jax.extras.MissingExtraError` (an ImportError naming the extra) and a `ValueError`
+  (an input that cannot be read, as every reader raises, so that the command lines report it as
+  one `error:` line); e.g. "scan.laz: reading .laz needs laspy[lazrs], which is not installed:
+  pip install 'lrf_jax[formats]' (the 'formats' extra: laspy[lazrs], pye57)".
+  """
+
+
+def missing_reader(source: object, suffix: str, package: str,
+                   module: str | None = None) -> MissingReaderError:
+  """The error to raise (from the ImportError) when reading `source`, a `suffix` file, needs
+  `package` (as pip names it) and `module` is not installed.
+
+  Returns:
+    A `MissingReaderError` naming the file, the package and the extra's install command.
+  """
+  return MissingReaderError(
+      f"{source}: reading {suffix} needs {package}, which is not installed: pip install "
+      f"'lrf_jax[{FORMATS_EXTRA}]' (the '{FORMATS_EXTRA}' extra: {FORMATS_PACKAGES})",
+      name=module)
 
 
 def file_problem(path: str | os.PathLike) -> str | None:

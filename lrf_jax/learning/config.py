@@ -20,8 +20,20 @@ class TrainConfig:
   Attributes:
     name: preset name, recorded with checkpoints.
     seed: the one seed of the run (keypoints, subsamples, shuffling, initialisation).
-    data: "br" (noise-free BR: each model vs itself under each scene's ground truth) or "demo"
-      (the procedural set that ships as code; no download).
+    data: "br" (noise-free BR: each model vs itself under each scene's ground truth), "demo"
+      (the procedural set that ships as code; no download), "scans" (the overlapping pairs of
+      the scan sets in `scans`, `lrf_jax.datasets.scan_sets`) or "br+scans" (both: a share
+      `scan_share` of the training keypoints on the scans, the rest on BR). A config that gives
+      `scans` without naming `data` (a `scans=DIR` override, a JSON config) trains on the scans
+      alone: `replace` sets data to "scans".
+    scans: folders of the user's own scans, each with its pose file (poses.txt, gt.log or a
+      .conf; see `lrf_jax.datasets.scan_sets`); their overlapping pairs train. On the command
+      line `scans=DIR[,DIR...]` (no comma in a path).
+    val_scans: folders whose pairs validate instead of the bunny scans. Empty: with several
+      `scans` folders the last one validates (and does not train); with one, the folder is split
+      by scan (`lrf_jax.datasets.split_by_scan`: the pairs among its last 20 % of scans in name
+      order validate, those among the others train). `val_pairs=0` trains on every pair.
+    scan_share: with data "br+scans", the fraction of `num_train_keypoints` drawn on the scans.
     data_root: where the data lives (None: LRF_DATA, then data/ in the repo).
     num_train_keypoints: size of the fixed, seeded set of training keypoints; one epoch is one
       pass over it.
@@ -54,7 +66,8 @@ class TrainConfig:
       `batches.crop_patches`); 0 = none (the paper).
     crop_min: the cut plane's smallest distance from the keypoint, as a fraction of r (the
       distance is uniform in [crop_min, 1)).
-    val_pairs: number of Stanford bunny scan pairs used for validation (0 disables).
+    val_pairs: number of validation pairs (0 disables): Stanford bunny scan pairs, or with scans
+      the first pairs of the held-out scans.
     val_keypoints: keypoints per validation pair.
     log_every: steps between logged metrics.
     checkpoint_every: steps between checkpoints (the end of every epoch is always saved).
@@ -64,6 +77,9 @@ class TrainConfig:
   seed: int = 0
   data: str = "br"
   data_root: str | None = None
+  scans: tuple[str, ...] = ()
+  val_scans: tuple[str, ...] = ()
+  scan_share: float = 0.5
   num_train_keypoints: int = 20_000
   patch_k: int = 256
   radius_mr: float = RADIUS_MR
@@ -90,8 +106,9 @@ class TrainConfig:
   MODEL_FIELDS = ("widths", "z_mode", "z_sign", "z_view", "x_mode")
 
   def __post_init__(self):
-    if self.data not in ("br", "demo"):
-      raise ValueError(f"config.data: expected 'br' or 'demo', got {self.data!r}")
+    if self.data not in DATA_SOURCES:
+      raise ValueError(f"config.data: expected one of {', '.join(map(repr, DATA_SOURCES))}, got "
+                       f"{self.data!r}")
     if self.loss_reduction not in ("min", "max", "sum"):
       raise ValueError(f"config.loss_reduction: expected 'min', 'max' or 'sum', got "
                        f"{self.loss_reduction!r}")
@@ -139,7 +156,7 @@ class TrainConfig:
     if self.data_root is not None and not isinstance(self.data_root, str):
       raise ValueError(f"config.data_root: expected a path (string) or null, got "
                        f"{self.data_root!r}")
-    for f in ("noise_mr", "widths"):
+    for f in ("noise_mr", "widths", "scans", "val_scans"):
       if isinstance(getattr(self, f), list):
         object.__setattr__(self, f, tuple(getattr(self, f)))
       if not isinstance(getattr(self, f), tuple):
@@ -151,6 +168,28 @@ class TrainConfig:
                               for v in self.widths):
       raise ValueError(f"config.widths: expected positive integer layer widths, got "
                        f"{self.widths!r}")
+    self._check_scans()
+
+  def _check_scans(self) -> None:
+    """The scan-set fields agree with `data` (see the class docstring)."""
+    for f in ("scans", "val_scans"):
+      if any(not isinstance(v, str) or not v.strip() for v in getattr(self, f)):
+        raise ValueError(f"config.{f}: expected folder paths (strings), got {getattr(self, f)!r}")
+    uses = "scans" in self.data.split("+")
+    if uses and not self.scans:
+      raise ValueError(f"config.scans: data {self.data!r} trains on scan sets; expected at "
+                       "least one folder (scans=DIR[,DIR...])")
+    if not uses and (self.scans or self.val_scans):
+      field = "scans" if self.scans else "val_scans"
+      raise ValueError(f"config.{field}: given, but data {self.data!r} does not read scan sets; "
+                       "expected data 'scans' or 'br+scans' (or no scans)")
+    shared = sorted(set(self.scans) & set(self.val_scans))
+    if shared:
+      raise ValueError(f"config.val_scans: expected folders that do not train, found {shared} in "
+                       "scans too")
+    if not (_is_number(self.scan_share) and 0.0 < self.scan_share < 1.0):
+      raise ValueError(f"config.scan_share: expected a fraction in (0, 1), got "
+                       f"{self.scan_share!r}")
 
   @property
   def steps_per_epoch(self) -> int:
@@ -175,6 +214,10 @@ class TrainConfig:
       raise ValueError(f"config: expected an object of field: value pairs, got "
                        f"{type(d).__name__}")
     return replace(cls(), **d)
+
+
+# The values of `TrainConfig.data`.
+DATA_SOURCES = ("br", "demo", "scans", "br+scans")
 
 
 def with_new_defaults(saved: dict[str, Any]) -> dict[str, Any]:
@@ -208,6 +251,8 @@ def _coerce(field: dataclasses.Field, value: Any) -> Any:
       return int(value)
     if isinstance(default, float):
       return float(value)
+    if isinstance(default, tuple) and field.name in ("scans", "val_scans"):
+      return tuple(v.strip() for v in value.split(",") if v.strip())  # paths: no brackets
     if isinstance(default, tuple):
       items = [v for v in value.strip("()[]").split(",") if v.strip()]
       cast = float if field.name == "noise_mr" else int
@@ -223,6 +268,10 @@ def _coerce(field: dataclasses.Field, value: Any) -> Any:
 def replace(config: TrainConfig, **overrides: Any) -> TrainConfig:
   """`dataclasses.replace` with a clear error for unknown keys and string values parsed.
 
+  Overrides that give `scans` (non-empty) without `data` make a config whose data reads no scan
+  set train on the scans alone (data "scans"): `train.py --config default scans=DIR` trains on
+  DIR's pairs; `data=br+scans scans=DIR` mixes them with BR.
+
   Raises:
     ValueError: an override names no field of `TrainConfig` (the message lists the valid ones).
   """
@@ -230,7 +279,10 @@ def replace(config: TrainConfig, **overrides: Any) -> TrainConfig:
   unknown = sorted(set(overrides) - set(fields))
   if unknown:
     raise ValueError(f"config: unknown key(s) {unknown}; valid keys are {sorted(fields)}")
-  return dataclasses.replace(config, **{k: _coerce(fields[k], v) for k, v in overrides.items()})
+  values = {k: _coerce(fields[k], v) for k, v in overrides.items()}
+  if values.get("scans") and "data" not in values and "scans" not in config.data.split("+"):
+    values["data"] = "scans"
+  return dataclasses.replace(config, **values)
 
 
 def parse_overrides(tokens: list[str]) -> dict[str, str]:

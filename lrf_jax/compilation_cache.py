@@ -17,8 +17,12 @@ Two caches share one per-user root, `cache_root()` (`$XDG_CACHE_HOME/lrf_jax`, e
   otherwise recompile every jitted function it calls.
 
 `announce_compiles()` prints one line on stderr the first time a process actually compiles an
-lrf_jax kernel (a numba cache miss) or a JAX program (a persistent-cache miss, or a compile over
-a second when that cache is off), so that a first run's wait is not a silent one.
+lrf_jax kernel (a numba cache miss), waits for a compile worker compiling one it needs
+(`kernel_cache`'s claims), or compiles a JAX program (a persistent-cache miss, or a compile over
+a second when that cache is off), so that a first run's wait is not a silent one. Nothing else
+prints it: a warm cache prints nothing, even when `lrf_jax.cli.parallel_compile` starts its
+workers (it starts them whenever its marker of this code's sources is missing, which any edit
+of a source, or another program's first run, leaves missing while the kernels are cached).
 
 Nothing here imports numba or JAX at module level: `import lrf_jax` stays light.
 """
@@ -208,11 +212,6 @@ def _announce(stream: TextIO | None = None) -> None:
   print(NOTICE.format(where=cache_locations()), file=out, flush=True)
 
 
-def announce_now() -> None:
-  """Print the compile notice now (once per process): compile workers are starting."""
-  _announce()
-
-
 def _numba_listener() -> Any:
   from numba.core import event
 
@@ -246,8 +245,9 @@ def _on_jax_duration(event: str, duration: float, **kwargs: Any) -> None:
 def announce_compiles(stream: TextIO | None = None) -> None:
   """Say once per process, on stderr (or `stream`), when lrf_jax code is being compiled.
 
-  Hooks numba's compile event (fired on a cache miss only) when numba is imported, and JAX's
-  monitoring events when JAX is imported; idempotent, cheap, and it imports neither library.
+  Hooks numba's compile event (fired on a cache miss only) and `kernel_cache`'s wait for a
+  worker compiling a kernel when numba is imported, and JAX's monitoring events when JAX is
+  imported; idempotent, cheap, and it imports neither library.
   With numba it also installs lrf_jax's cache locator (`kernel_cache.install`): every
   module that defines a cached kernel calls this first.
   """
@@ -257,7 +257,7 @@ def announce_compiles(stream: TextIO | None = None) -> None:
     from numba.core import event
 
     from lrf_jax import kernel_cache
-    kernel_cache.install(numba_fallback_dirs)
+    kernel_cache.install(numba_fallback_dirs, on_wait=_announce)
     _state["numba"] = _numba_listener()
     event.register("numba:compile", _state["numba"])
   if not _state["jax"] and "jax" in sys.modules:

@@ -186,7 +186,8 @@ class PackageLocator(UserProvidedCacheLocator):
     return self
 
 
-def install(fallbacks: Callable[..., Sequence[Any]] | None = None) -> None:
+def install(fallbacks: Callable[..., Sequence[Any]] | None = None, *,
+            on_wait: Callable[[], None] | None = None) -> None:
   """Put `PackageLocator` first in numba's list of cache locators (idempotent). numba picks a
   function's locator when the function is decorated, so this runs before lrf_jax's kernels are
   defined. Also locks each save of an lrf_jax kernel and lets claims work (module docstring).
@@ -195,9 +196,14 @@ def install(fallbacks: Callable[..., Sequence[Any]] | None = None) -> None:
     fallbacks: where kernels go when the cache directory cannot take them: a function
       `(exclude, create=) -> folders` (`compilation_cache.numba_fallback_dirs`); None keeps
       the one installed before (none: such kernels compile in memory only).
+    on_wait: called when this process starts waiting for a kernel another process is
+      compiling (`compilation_cache`'s compile notice: the kernel is compiled, if not here);
+      None keeps the one installed before.
   """
   if fallbacks is not None:
     _FALLBACKS[:] = [fallbacks]
+  if on_wait is not None:
+    _ON_WAIT[:] = [on_wait]
   impl = getattr(caching, "CacheImpl", None) or getattr(caching, "_CacheImpl", None)
   classes = getattr(impl, "_locator_classes", None)
   if isinstance(classes, list) and PackageLocator not in classes:
@@ -212,6 +218,8 @@ def install(fallbacks: Callable[..., Sequence[Any]] | None = None) -> None:
 # waits); alive: pid -> whether that claimant is still compiling; held: claims this process holds.
 _SHARING: dict[str, Any] = {"claims": None, "worker": False, "alive": None, "held": set()}
 _WAIT_LIMIT_S = 600.0
+# What a wait for another process's compile calls first (`install`'s `on_wait`).
+_ON_WAIT: list[Callable[[], None]] = []
 
 
 def share(claims: str | None, *, worker: bool = False,
@@ -349,6 +357,9 @@ def _wait_for_claimant(index_path: str) -> bool:
   owner, alive = _owner(path), _SHARING["alive"]
   deadline = time.monotonic() + _WAIT_LIMIT_S
   _debug(f"waits for {owner}: {os.path.basename(index_path)}")
+  if not os.path.exists(path + ".done") and alive is not None and alive(owner):
+    for hook in _ON_WAIT:  # a kernel this process needs is being compiled: say so
+      hook()
   while not os.path.exists(path + ".done"):
     if alive is None or not alive(owner) or time.monotonic() > deadline:
       return False

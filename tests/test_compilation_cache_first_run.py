@@ -126,6 +126,53 @@ def test_eta_is_timed_after_the_first_record():
   bar.close()
 
 
+def test_multiway_progress_times_each_stage_after_its_first_item(monkeypatch):
+  """register_all's bars: one per stage (describing scans, registering pairs: a pair takes
+  longer than a scan), each timed from its first task's end (a first run compiles the stage's
+  kernels in it), and no bar for a stage with nothing to do."""
+  from tqdm import tqdm
+
+  from lrf_jax.multiway import tasks
+  from lrf_jax.registration.options import RegisterOptions
+  bars: list = []
+
+  def bar(total, progress, desc):
+    made = tqdm(total=total, desc=desc, file=io.StringIO(), mininterval=0,
+                disable=not progress or total == 0)
+    bars.append(made)
+    return made
+  seen: list = []
+
+  def task(slow, value):
+    def run(payload):
+      if bars[-1].n:  # the rate the bar shows once a task of this stage has finished
+        seen.append((bars[-1].desc, bars[-1].n, bars[-1].format_dict["elapsed"]))
+      time.sleep(slow if bars[-1].n == 0 else 0.01)  # the first: compiling
+      return value(payload)
+    return run
+  monkeypatch.setattr(tasks, "_bar", bar)
+  monkeypatch.setattr(tasks, "describe_task", task(0.4, lambda p: {"features": p["name"]}))
+  monkeypatch.setattr(tasks, "pair_task",
+                      task(0.4, lambda p: tasks.error_record(p["i"], p["j"], "fake", "fake")))
+  n = 5
+  pairs = [(i, j) for i in range(n) for j in range(i + 1, n)]
+  opts = RegisterOptions()
+  records = tasks.PairRecords(None, ["ab" * 32] * n, opts, 1.0, 1.0, None)
+  out, work = tasks.run_pairs([None] * n, [f"s{k}" for k in range(n)], pairs, options=opts,
+                              mr=1.0, viewpoints=[None] * n, distance=1.0, params=None,
+                              engine=None, records=records, progress=True)
+  assert len(out) == len(pairs) and work["pairs_registered"] == len(pairs)
+  assert [(b.desc, b.total, b.n) for b in bars] == [("describing scans", n, n),
+                                                    ("registering pairs", len(pairs), len(pairs))]
+  assert {d for d, _, _ in seen} == {"describing scans", "registering pairs"}
+  for desc, done, elapsed in seen:
+    assert elapsed < 0.4, (desc, done, elapsed)  # the first (slow) task is not in the clock
+  eta = bars[1].format_dict
+  rate = (eta["n"] - eta["initial"]) / eta["elapsed"]
+  assert eta["initial"] == 1 and rate > 1 / 0.1  # pairs after the first: ~0.01 s each
+  assert bars[0].format_dict["initial"] == 1
+
+
 @pytest.mark.slow
 def test_one_specialisation_per_kernel(tmp_path):
   """A register (from files and from arrays) and compute_frames compile each numba kernel for

@@ -174,23 +174,8 @@ def _check_register_options(args: argparse.Namespace) -> str | None:
 def _print_result(res, out) -> None:
   from lrf_jax.multiway.outputs import edges_table
   print(edges_table(res), end="", file=out)
-  print(f"# {int(res.in_model.sum())}/{len(res.names)} scans in the model (frame of "
-        f"{res.names[res.reference]}), {sum(e.accepted for e in res.edges)}/{len(res.edges)} "
-        f"edges accepted, mr {res.mr:.6g}, {res.seconds:.1f} s", file=sys.stderr)
-  work = res.work
-  if work:
-    print(f"# {work['pairs_registered']} pairs registered, {work['pairs_resumed']} read from "
-          f"earlier runs' records; {work['scans_described']} scans described",
-          file=sys.stderr)
-  if res.timings:
-    print("# seconds: " + ", ".join(f"{k} {v:.2f}" for k, v in res.timings.items()),
-          file=sys.stderr)
-  if res.placed_not_sure:
-    print(f"# placed only through \"not sure\" edges (check them; edges.tsv's placement): "
-          f"{', '.join(res.placed_not_sure)}", file=sys.stderr)
-  if res.left_out:
-    print(f"# left out (not merged, no pose written): {', '.join(res.left_out)}",
-          file=sys.stderr)
+  for line in res.summary().splitlines():
+    print(f"# {line}", file=sys.stderr)
 
 
 def _register(args: argparse.Namespace, clouds: list, names: list[str], mr: float | None):

@@ -129,8 +129,7 @@ def start(program: str) -> bool:
     _STATE.update(procs=[], claims=None, marker=None)
     shutil.rmtree(claims, ignore_errors=True)
     return False
-  from lrf_jax import compilation_cache, kernel_cache
-  compilation_cache.announce_now()
+  from lrf_jax import kernel_cache  # the notice comes when this process compiles or waits
   kernel_cache.share(claims, alive=_alive)
   return True
 

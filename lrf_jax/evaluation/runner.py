@@ -35,6 +35,7 @@ from lrf_jax.evaluation.repeatability import (EXACT_NETWORK, MethodRun, PatchCac
 from lrf_jax.frames import METHODS
 from lrf_jax.io import atomic
 from lrf_jax.frames.weights import load_params
+from lrf_jax.progress import restart_clock
 
 # Experiments that sweep one nuisance: the number of settings per clean pair.
 SWEEPS = {"noise": len(NOISE_LEVELS), "decimation": len(DECIMATIONS), "radius": len(RADII_MR),
@@ -212,15 +213,6 @@ class JobError(RuntimeError):
 
 def _clean(records: list[dict[str, Any]]) -> list[dict[str, Any]]:
   return [{k: v for k, v in r.items() if not k.startswith("_")} for r in records]
-
-
-def restart_clock(bar: Any) -> None:
-  """Time a tqdm bar's rate and ETA from now on, keeping its count: called after the first
-  record, whose time (a first run compiles the kernels) says nothing about the others'."""
-  n = bar.n
-  bar.reset()
-  bar.n = bar.last_print_n = bar.initial = n
-  bar.refresh()
 
 
 def evaluate(plan: EvalPlan, out: Path, *, progress: bool = True) -> str:

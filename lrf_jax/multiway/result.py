@@ -3,10 +3,14 @@
 from __future__ import annotations
 
 import dataclasses
+from collections import Counter
 
 import numpy as np
 
 __all__ = ["MultiwayEdge", "MultiwayResult"]
+
+# `MultiwayResult.summary` gives its reason for this many scans left out, names the others.
+SUMMARY_LEFT_OUT = 10
 
 
 @dataclasses.dataclass(frozen=True)
@@ -42,6 +46,18 @@ class MultiwayEdge:
   residual_mr: float
   accepted: bool
   reason_code: str = ""
+
+  @property
+  def outcome(self) -> str:
+    """What became of the pair: "accepted" (a "success" edge the graph kept),
+    "accepted_not_sure" (a "not sure" edge the graph backed and kept), "rejected" (a "success"
+    edge the graph rejected: it contradicts the other edges), "unused" (a "not sure" edge the
+    graph did not use) or "error" (no estimate)."""
+    if self.verdict == "error":
+      return "error"
+    if self.accepted:
+      return "accepted" if self.verdict == "success" else "accepted_not_sure"
+    return "rejected" if self.verdict == "success" else "unused"
 
 
 @dataclasses.dataclass(frozen=True)
@@ -88,3 +104,67 @@ class MultiwayResult:
     if self.confident is None:
       return []
     return [n for n, m, c in zip(self.names, self.in_model, self.confident) if m and not c]
+
+  def summary(self) -> str:
+    """A few lines a person reads: the scans placed (and those whose place rests on a "not
+    sure" edge), each scan left out and why, what became of the pairs (accepted, accepted
+    although "not sure", rejected, unused, errors), the residuals of the accepted edges under
+    the final poses when there are any, the work of the pairwise stage and the time.
+
+    Returns:
+      The text, lines joined by newlines (no trailing newline).
+    """
+    n, placed = len(self.names), int(np.sum(self.in_model))
+    lines = [f"{placed} of {n} scans placed, in the frame of {self.names[self.reference]} "
+             f"(mr = {self.mr:.6g})"]
+    if self.placed_not_sure:
+      lines.append(f"placed only through \"not sure\" edges (check them): "
+                   f"{', '.join(self.placed_not_sure)}")
+    left = [k for k in range(n) if not self.in_model[k]]
+    for k in left[:SUMMARY_LEFT_OUT]:
+      lines.append(f"left out: {self.names[k]}: {self._why_left_out(k)}")
+    if len(left) > SUMMARY_LEFT_OUT:
+      lines.append(f"left out: {len(left) - SUMMARY_LEFT_OUT} more "
+                   f"({', '.join(self.names[k] for k in left[SUMMARY_LEFT_OUT:])})")
+    count = Counter(e.outcome for e in self.edges)
+    lines.append(f"edges: {count['accepted'] + count['accepted_not_sure']} of "
+                 f"{len(self.edges)} pairs accepted ({count['accepted']} \"success\", "
+                 f"{count['accepted_not_sure']} \"not sure\" that the graph backs); rejected: "
+                 f"{count['rejected']} \"success\" (they contradict the others), "
+                 f"{count['unused']} \"not sure\" (unused); {count['error']} pairs could not "
+                 "be registered")
+    kept = [e for e in self.edges if e.accepted and np.isfinite(e.residual_mr)]
+    if kept:
+      worst = max(kept, key=lambda e: e.residual_mr)
+      lines.append(f"residuals of the accepted edges under the final poses: median "
+                   f"{np.median([e.residual_mr for e in kept]):.3g} mr, largest "
+                   f"{worst.residual_mr:.3g} mr ({self.names[worst.i]} - {self.names[worst.j]})")
+    if self.work:
+      lines.append(f"{self.work.get('pairs_registered', 0)} pairs registered, "
+                   f"{self.work.get('pairs_resumed', 0)} read from earlier runs' records; "
+                   f"{self.work.get('scans_described', 0)} scans described")
+    stages = ", ".join(f"{k} {v:.2f}" for k, v in self.timings.items() if v >= 0.005)
+    lines.append(f"time {self.seconds:.2f} s" + (f" ({stages})" if stages else ""))
+    return "\n".join(lines)
+
+  def _why_left_out(self, k: int) -> str:
+    """Why scan k is not in the model, from its edges."""
+    mine = [e for e in self.edges if k in (e.i, e.j)]
+    if not mine:
+      return "no pair with it was registered"
+    group = sorted({self.names[e.j if e.i == k else e.i] for e in mine if e.accepted})
+    if group:
+      return (f"its accepted edges join it only to scans left out too ({', '.join(group)}): "
+              "a group not linked to the model")
+    count = Counter(e.outcome for e in mine)
+    parts = [f"{count['rejected']} \"success\" edges rejected (they contradict the model)",
+             f"{count['unused']} \"not sure\" edges the graph did not back",
+             f"{count['error']} pairs could not be registered"]
+    return "no accepted edge: " + ", ".join(p for p in parts if not p.startswith("0 "))
+
+  def __repr__(self) -> str:
+    """One line: scans placed, edges accepted and time (the arrays are attributes; `summary()`
+    says more)."""
+    return (f"MultiwayResult({int(np.sum(self.in_model))}/{len(self.names)} scans placed, "
+            f"{sum(e.accepted for e in self.edges)}/{len(self.edges)} edges accepted, "
+            f"{self.seconds:.2f} s; .poses, .summary())")

@@ -30,6 +30,7 @@ import numpy as np
 from lrf_jax import records
 from lrf_jax.registration.options import RegisterOptions
 from lrf_jax.search import engine as search_engine
+from lrf_jax.progress import restart_clock
 
 __all__ = ["PairRecords", "describe_task", "edge_record", "error_record", "pair_task", "run_pairs",
            "scan_hash"]
@@ -188,9 +189,20 @@ class PairRecords:
                                                   target=self.hashes[j]))
 
 
-def _bar(total: int, progress: bool) -> Any:
+def _bar(total: int, progress: bool, desc: str) -> Any:
+  """A progress bar of one stage (its own total: a scan is described faster than a pair is
+  registered, and one rate for both would mislead); none for a stage with nothing to do."""
   from tqdm.auto import tqdm
-  return tqdm(total=total, desc="describing scans", unit="task", disable=not progress)
+  unit = "scan" if desc.startswith("describing") else "pair"
+  return tqdm(total=total, desc=desc, unit=unit, disable=not progress or total == 0)
+
+
+def tick(bar: Any, first: bool) -> None:
+  """One item of `bar` done; after the `first` that ran a task, its clock restarts
+  (`restart_clock`)."""
+  bar.update(1)
+  if first:
+    restart_clock(bar)
 
 
 def run_pairs(clouds: Sequence[Any], names: Sequence[str], pairs: Sequence[tuple[int, int]], *,
@@ -210,21 +222,24 @@ def run_pairs(clouds: Sequence[Any], names: Sequence[str], pairs: Sequence[tuple
       out[k] = rec
   todo = [k for k in range(len(pairs)) if k not in out]
   scans = sorted({s for k in todo for s in pairs[k]})
-  bar = _bar(len(scans) + len(todo), progress)
+  bar = _bar(len(scans), progress, "describing scans")
   try:
     features = _describe_all(clouds, names, scans, options, mr, viewpoints, params, engine, bar)
-    bar.set_description("registering pairs")
+    bar.close()
+    bar = _bar(len(todo), progress, "registering pairs")
     payloads = []
     for k in todo:
       i, j = pairs[k]
       payloads.append(dict(i=i, j=j, source=features[i], target=features[j], options=options,
                            distance=distance,
                            seed=overlap_seed(options.inputs.seed, records.hashes[i], records.hashes[j])))
-    for k, rec in _registered(engine, todo, payloads, features, pairs):
+    ran = 0
+    for k, rec, task in _registered(engine, todo, payloads, features, pairs):
       out[k] = rec
       if rec.pop("lost", False) is False:
         records.put(*pairs[k], rec)
-      bar.update(1)
+      ran += task
+      tick(bar, task and ran == 1)  # an error edge without a task is no pair's time
   except BaseException:
     bar.close()
     if progress:  # what is printed next starts a line of its own
@@ -248,19 +263,19 @@ def _describe_all(clouds, names, scans, options, mr, viewpoints, params, engine,
     if "features" in value and engine is not None:  # stored once, read by all its pairs
       value = {"features": engine.put(value["features"])}
     features[s] = value["features"] if "features" in value else value
-    bar.update(1)
+    tick(bar, len(features) == 1)
   return features
 
 
-def _registered(engine, todo, payloads, features, pairs) -> Iterator[tuple[int, dict]]:
-  """(pair position, record) as the pairs finish; a pair with a scan that could not be
-  described is an error edge without a task."""
+def _registered(engine, todo, payloads, features, pairs) -> Iterator[tuple[int, dict, bool]]:
+  """(pair position, record, whether a task ran for it) as the pairs finish; a pair with a scan
+  that could not be described is an error edge without a task (those come first)."""
   ready, runnable = [], []
   for k, payload in zip(todo, payloads):
     bad = next((features[s] for s in pairs[k] if isinstance(features[s], dict)), None)
     if bad is not None:
       i, j = pairs[k]
-      ready.append((k, error_record(i, j, bad["error"])))
+      ready.append((k, error_record(i, j, bad["error"]), False))
     else:
       runnable.append((k, payload))
   yield from ready
@@ -269,9 +284,9 @@ def _registered(engine, todo, payloads, features, pairs) -> Iterator[tuple[int, 
     if outcome.error is not None:  # lost with its node: no record, the next run redoes it
       i, j = pairs[k]
       yield k, {**error_record(i, j, f"the engine lost this pair: {outcome.error}"),
-                "lost": True}
+                "lost": True}, True
     else:
-      yield k, outcome.value
+      yield k, outcome.value, True
 
 
 @dataclasses.dataclass(frozen=True)

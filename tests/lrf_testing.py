@@ -623,3 +623,15 @@ def rejects(call: Callable[[], Any], name: str, *fragments: str, file: bool = Tr
     call()
   for f in fragments:
     assert f in str(info.value), (f, str(info.value))
+
+
+class FakeRegistration:
+  """What the command lines read of a `Registration`, for tests of the command lines (the
+  registration itself is not under test): a claimed identity."""
+  transform = np.eye(4)
+  n_inliers, correspondences, chance_inliers = 10, [0] * 20, 1.0
+  overlap_contrast, fitness, rmse, mr, seconds, success = 3.0, 0.9, 0.1, 1.0, 0.1, True
+  rival_inliers, overlap, reason = 1, 0.9, "a fake"
+
+  def summary(self, gt=None):
+    return "verdict: success: a fake"

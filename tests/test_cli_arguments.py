@@ -19,7 +19,7 @@ import pytest
 from lrf_jax.cli import frames as frames_cli
 from lrf_jax.cli import register as register_cli
 from lrf_jax.learning import train_lib
-from tests.lrf_testing import cli_error
+from tests.lrf_testing import FakeRegistration, cli_error
 
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
@@ -141,7 +141,7 @@ def test_register_keypoints_take_a_count_or_a_detector(cloud_npy, monkeypatch, c
   from lrf_jax import registration
   seen = []
   monkeypatch.setattr(registration, "register",
-                      lambda *a, **k: seen.append(k) or _FakeRegistration())
+                      lambda *a, **k: seen.append(k) or FakeRegistration())
   assert register_cli.main([str(cloud_npy), str(cloud_npy)] + extra) == 0
   got = {k: seen[-1][k] for k in ("n_keypoints", "keypoints") if k in seen[-1]}
   assert got == expected
@@ -295,21 +295,13 @@ def test_register_bad_init_names_the_file(cloud_npy, tmp_path, capsys, monkeypat
   assert "--init" in err and name in err, err
 
 
-class _FakeRegistration:
-  transform = np.eye(4)
-  n_inliers, correspondences, chance_inliers = 10, [0] * 20, 1.0
-  overlap_contrast, fitness, rmse, mr, seconds, success = 3.0, 0.9, 0.1, 1.0, 0.1, True
-  rival_inliers, overlap, reason = 1, 0.9, "a fake"
-
-  def summary(self, gt=None):
-    return "verdict: success: a fake"
 
 
 def test_register_passes_init_only_when_given(cloud_npy, tmp_path, monkeypatch, capsys):
   from lrf_jax import registration
   seen = []
   monkeypatch.setattr(registration, "register",
-                      lambda *a, **k: seen.append(k) or _FakeRegistration())
+                      lambda *a, **k: seen.append(k) or FakeRegistration())
   t = np.eye(4)
   t[:3, 3] = (1.0, 2.0, 3.0)
   np.savetxt(tmp_path / "init.txt", t)

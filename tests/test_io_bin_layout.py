@@ -11,7 +11,7 @@ import pytest
 from lrf_jax import io
 from lrf_jax.io.reader import cloud_source
 from lrf_jax.io.sweeps import MAX_SWEEP_RANGE
-from tests.lrf_testing import cli_error
+from tests.lrf_testing import FakeRegistration, cli_error
 
 
 def sweep(n: int, seed: int = 0) -> np.ndarray:
@@ -152,15 +152,6 @@ def test_the_real_kitti_sweeps_read_as_the_default(data_root, tmp_path):
 # ----------------------------------------------------------------------------- command lines
 
 
-class _FakeRegistration:
-  """What the command lines read of a `Registration` (the registration is not under test)."""
-  transform = np.eye(4)
-  n_inliers, correspondences, chance_inliers = 10, [0] * 20, 1.0
-  overlap_contrast, fitness, rmse, mr, seconds, success = 3.0, 0.9, 0.1, 1.0, 0.1, True
-  rival_inliers, overlap, reason = 1, 0.9, "a fake"
-
-  def summary(self, gt=None):
-    return "verdict: success: a fake"
 
 
 def _fake_register(seen: list):
@@ -168,7 +159,7 @@ def _fake_register(seen: list):
   def register(source, target, **kw):
     from lrf_jax.geometry.cloud import as_cloud
     seen.append((source, target, as_cloud(source, "source"), as_cloud(target, "target"), kw))
-    return _FakeRegistration()
+    return FakeRegistration()
   return register
 
 

@@ -61,7 +61,7 @@ def test_summary_counts_match_the_result(model):
   placed = _numbers(lines[0])
   assert placed[:2] == [model.in_model.sum(), len(model.names)] == [4, 8]
   assert "frame of a" in lines[0] and "mr = 0.5" in lines[0]
-  assert lines[1] == 'placed only through "not sure" edges (check them): d'
+  assert lines[1] == 'placed only through "not sure" edges (check them; edges.tsv\'s placement): d'
   assert model.placed_not_sure == ["d"]
   edge_line = next(line for line in lines if line.startswith("edges: "))
   outcomes = [e.outcome for e in model.edges]

@@ -27,6 +27,8 @@ from typing import NoReturn
 from lrf_jax.cli.exits import refuse
 from lrf_jax.cli.help import DefaultsHelpFormatter
 from lrf_jax.cli.interrupt import exit_with, interruptible
+from lrf_jax.viz.scenes import MAX_POINTS
+from lrf_jax.viz.server import DEFAULT_HOST
 
 __all__ = ["build_parser", "console", "main"]
 
@@ -46,12 +48,12 @@ def build_parser() -> argparse.ArgumentParser:
                        "it); the source is shown before and after it")
   ap.add_argument("--port", default=None, metavar="N",
                   help="the port to serve on (default: a free one, printed)")
-  ap.add_argument("--host", default="127.0.0.1",
+  ap.add_argument("--host", default=DEFAULT_HOST,
                   help="the address to listen on; another than 127.0.0.1 serves other machines "
                        "too, without a password")
   ap.add_argument("--no-browser", action="store_true",
                   help="do not open the page in the default browser")
-  ap.add_argument("--max-points", default="200000", metavar="N",
+  ap.add_argument("--max-points", default=str(MAX_POINTS), metavar="N",
                   help="show at most N points per cloud (a seeded sample)")
   ap.add_argument("--seed", type=int, default=0, help="seed of that sample")
   return ap

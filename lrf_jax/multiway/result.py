@@ -118,7 +118,7 @@ class MultiwayResult:
     lines = [f"{placed} of {n} scans placed, in the frame of {self.names[self.reference]} "
              f"(mr = {self.mr:.6g})"]
     if self.placed_not_sure:
-      lines.append(f"placed only through \"not sure\" edges (check them): "
+      lines.append(f"placed only through \"not sure\" edges (check them; edges.tsv's placement): "
                    f"{', '.join(self.placed_not_sure)}")
     left = [k for k in range(n) if not self.in_model[k]]
     for k in left[:SUMMARY_LEFT_OUT]:

@@ -293,8 +293,14 @@ def descriptors_checked(descriptor: str, points: np.ndarray, keypoints: np.ndarr
     keypoints: (m,) int64 indices into it (`validate_keypoints`).
     radius: support radius r (cloud units; `validate_radius`'s range).
     frames: (m, 3, 3) float32 frames, rows x, y, z; valid: (m,) bool (`validate_frames`).
+    faces: optional (f, 3) triangles, as `compute_descriptors` takes them.
+    normals: optional (n, 3) normals, as `compute_descriptors` takes them.
+    k: neighbors per patch (None: every neighbor within r).
+    seed: seed of the subsample when `k` is set.
     chunk_size: a positive integer.
-    faces, normals, k, seed, index, kernel, options: as `compute_descriptors` takes them.
+    index: optional prebuilt `SearchIndex(points, seed)`.
+    kernel: "jit", "host" or "auto" (`compute_descriptors`).
+    options: static descriptor options.
 
   Returns:
     As `compute_descriptors`.

@@ -298,8 +298,14 @@ def frames_checked(
     radius: support radius r (cloud units; `validate_radius`'s range).
     seed: a non-negative int.
     viewpoint: None or a finite (3,) float64 position (`validate_viewpoint`).
-    chunk_size, k, return_confidence, options: checked by `_check_call` for this method.
-    params, progress, search, kernel: as `compute_frames` takes them.
+    params: learned parameters, as `compute_frames` takes them.
+    k: the patch size (checked by `_check_call` for this method).
+    chunk_size: keypoints per call (checked by `_check_call`).
+    progress: as `compute_frames` takes it.
+    search: "auto", "host" or "device" (`compute_frames`).
+    kernel: "auto", "host" or "jit" (`compute_frames`).
+    return_confidence: also return the sign confidence (checked by `_check_call`).
+    options: the method's options (checked by `_check_call`).
 
   Returns:
     As `compute_frames`, as numpy arrays where a host kernel computed them (JAX arrays on the

@@ -212,21 +212,60 @@ def _announce(stream: TextIO | None = None) -> None:
   print(NOTICE.format(where=cache_locations()), file=out, flush=True)
 
 
+# numba compiles running in this process (any thread), and a Ctrl-C that arrived during one
+# (`defer_interrupt`): LLVM calls back into Python while it compiles, and a KeyboardInterrupt
+# raised in such a callback is dropped by Python and leaves numba without its object code (a
+# RuntimeError, or a crash later), so a Ctrl-C waits for the compile to end.
+_COMPILES: dict[str, Any] = {"depth": 0, "pending": False}
+_COMPILES_LOCK = threading.Lock()
+
+
+def numba_compiling() -> bool:
+  """Whether numba is compiling a function in this process now (from the "numba:compile"
+  events, once `announce_compiles` hooked them)."""
+  return _COMPILES["depth"] > 0
+
+
+def defer_interrupt() -> None:
+  """Send SIGINT again as soon as the numba compiles running now have ended (the Ctrl-C
+  handler of `lrf_jax.cli.interrupt` calls this instead of raising inside a compile)."""
+  with _COMPILES_LOCK:
+    _COMPILES["pending"] = True
+    if _COMPILES["depth"] > 0:
+      return
+    _COMPILES["pending"] = False
+  _resend_interrupt()
+
+
+def _resend_interrupt() -> None:
+  import signal
+  os.kill(os.getpid(), signal.SIGINT)
+
+
 def _numba_listener() -> Any:
   from numba.core import event
 
   class _CompileNotice(event.Listener):
     """Announces the first compile of an lrf_jax kernel (numba fires "numba:compile" only on
-    a cache miss)."""
+    a cache miss), and counts the compiles running (`numba_compiling`): a Ctrl-C deferred
+    during one is sent again when the last ends."""
 
     def on_start(self, ev: Any) -> None:
+      with _COMPILES_LOCK:
+        _COMPILES["depth"] += 1
       dispatcher = ev.data.get("dispatcher") if isinstance(ev.data, dict) else None
       module = getattr(getattr(dispatcher, "py_func", None), "__module__", "") or ""
       if module.startswith("lrf_jax"):
         _announce()
 
     def on_end(self, ev: Any) -> None:
-      pass
+      with _COMPILES_LOCK:
+        _COMPILES["depth"] = max(_COMPILES["depth"] - 1, 0)
+        resend = _COMPILES["pending"] and _COMPILES["depth"] == 0
+        if resend:
+          _COMPILES["pending"] = False
+      if resend:
+        _resend_interrupt()
 
   return _CompileNotice()
 

@@ -116,3 +116,37 @@ def test_an_error_without_a_ctrl_c_is_raised(capsys):
   with pytest.raises(RuntimeError, match="a real failure"):
     main()
   assert "interrupted" not in capsys.readouterr().err
+
+
+def test_a_ctrl_c_during_a_numba_compile_is_raised_when_the_compile_ends(capsys):
+  """Seen in CI: a Ctrl-C raised inside LLVM's callbacks left numba without its object code
+  (a RuntimeError, once a crash: exit -11). The handler now waits for the compile to end (the
+  "numba:compile" events count it), then the KeyboardInterrupt comes."""
+  import signal
+  import types
+  from lrf_jax import compilation_cache
+  from lrf_jax.cli import interrupt
+  listener = compilation_cache._numba_listener()
+  event = types.SimpleNamespace(data={})
+  steps = []
+
+  @interrupt.interruptible("test")
+  def main() -> int:
+    listener.on_start(event)  # a compile starts
+    try:
+      os.kill(os.getpid(), signal.SIGINT)
+      t0 = time.monotonic()
+      while time.monotonic() - t0 < 0.3:  # bytecodes run: the handler ran and did not raise
+        pass
+      steps.append("compiled")
+    finally:
+      listener.on_end(event)  # the compile ends: SIGINT is sent again
+    deadline = time.monotonic() + 5
+    while time.monotonic() < deadline:
+      time.sleep(0.01)
+    steps.append("went on")
+    return 0
+
+  assert main() == interrupt.INTERRUPTED
+  assert steps == ["compiled"] and not compilation_cache.numba_compiling()
+  assert capsys.readouterr().err.startswith("interrupted: test")

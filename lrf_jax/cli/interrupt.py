@@ -15,6 +15,7 @@ import threading
 from typing import Any, TypeVar
 from collections.abc import Callable
 
+from lrf_jax import compilation_cache
 from lrf_jax.io.atomic import CTRL_C_RECEIVED, caused_by_interrupt
 
 # The exit code of a program stopped by Ctrl-C (SIGINT): 128 + 2, as a shell reports it.
@@ -71,7 +72,8 @@ REDELIVER_AFTER_S = 10.0
 
 
 def _watch_interrupts(finished: threading.Event) -> Any:
-  """On the main thread, a SIGINT handler that raises KeyboardInterrupt as Python's does and
+  """On the main thread, a SIGINT handler that raises KeyboardInterrupt as Python's does (but
+  while numba compiles, when the compile ends: `compilation_cache.defer_interrupt`) and
   sends SIGINT again `REDELIVER_AFTER_S` seconds later unless `finished` is set by then (the
   program returned): a Ctrl-C is never lost, whatever swallowed the first KeyboardInterrupt.
   Returns the previous handler (None off the main thread, where nothing is installed)."""
@@ -84,6 +86,9 @@ def _watch_interrupts(finished: threading.Event) -> Any:
 
   def handler(signum: int, frame: Any) -> None:
     CTRL_C_RECEIVED.set()
+    if compilation_cache.numba_compiling():  # never inside LLVM's callbacks: after the compile
+      compilation_cache.defer_interrupt()
+      return
     timer = threading.Timer(REDELIVER_AFTER_S, resend)
     timer.daemon = True
     timer.start()

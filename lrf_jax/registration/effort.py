@@ -35,6 +35,13 @@ def high_effort_options(opts: RegisterOptions) -> RegisterOptions:
   return opts.with_overrides(n_keypoints=EFFORT_KEYPOINTS * int(opts.detection.n_keypoints))
 
 
+def tried(first_code: str) -> str:
+  """What `effort="normal"` tried when its first pass (verdict code `first_code`) was not sure,
+  in words, for `Registration.reason`."""
+  return (f"tried one pass ({first_code}), then {EFFORT_SEEDS} seeds with {EFFORT_KEYPOINTS}x "
+          "the keypoints pooled")
+
+
 def one_pass(source: Any, target: Any, opts: RegisterOptions, params: Any,
              timer: stages.StageTimer
              ) -> tuple[stages.Prepared, stages.Features, stages.Matches]:

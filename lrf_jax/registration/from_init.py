@@ -18,8 +18,7 @@ from typing import Any
 import numpy as np
 
 from lrf_jax.registration import stages
-from lrf_jax.registration.effort import (EFFORT_KEYPOINTS, EFFORT_SEEDS, escalates, one_pass,
-                                         pooled_stages)
+from lrf_jax.registration.effort import escalates, one_pass, pooled_stages, tried
 from lrf_jax.registration.estimators import finish_result
 from lrf_jax.registration.evidence import Evidence, Verdict, decide
 from lrf_jax.registration.options import RegisterOptions
@@ -60,9 +59,8 @@ def register_from_init(source: Any, target: Any, init: Any, opts: RegisterOption
     return first
   pooled = pooled_stages(source, target, opts, params, timer, first=prepared)
   again = _judged(*pooled, refined, pose, opts, timer, "high")
-  tried = (f"tried one pass ({first.reason_code}), then {EFFORT_SEEDS} seeds with "
-           f"{EFFORT_KEYPOINTS}x the keypoints pooled")
-  return dataclasses.replace(again, reason=f"{again.reason} ({tried})", escalated=True)
+  note = tried(first.reason_code)
+  return dataclasses.replace(again, reason=f"{again.reason} ({note})", escalated=True)
 
 
 def _judged(prepared: stages.Prepared, features: stages.Features, matches: stages.Matches,

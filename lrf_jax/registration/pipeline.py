@@ -19,8 +19,7 @@ from typing import Any
 import numpy as np
 
 from lrf_jax.registration import stages
-from lrf_jax.registration.effort import (EFFORT_KEYPOINTS, EFFORT_SEEDS, escalates, one_pass,
-                                         pooled_stages)
+from lrf_jax.registration.effort import escalates, one_pass, pooled_stages, tried
 from lrf_jax.registration.evidence import Evidence, decide, overlap_contrast
 from lrf_jax.registration.icp_host import icp
 from lrf_jax.registration.options import RegisterOptions, check_register_options, resolve
@@ -173,15 +172,14 @@ def register(source: Any, target: Any, options: RegisterOptions | None = None, *
   first = conclude(prepared, features, matches, opts, timer, pooled=effort == "normal")
   if effort == "fast" or not escalates(first.reason_code):
     return first
-  tried = (f"tried one pass ({first.reason_code}), then {EFFORT_SEEDS} seeds with "
-           f"{EFFORT_KEYPOINTS}x the keypoints pooled")
+  note = tried(first.reason_code)
   try:
     pooled = conclude(*pooled_stages(source, target, opts, params, timer, first=prepared), opts,
                       timer, pooled=True)
   except ValueError as e:  # the inputs passed the first pass: the pooled matching found none
-    return dataclasses.replace(first, reason=f"{first.reason} ({tried}: {e})",
+    return dataclasses.replace(first, reason=f"{first.reason} ({note}: {e})",
                                seconds=timer.total(), timings=dict(timer.seconds), escalated=True)
-  return dataclasses.replace(pooled, reason=f"{pooled.reason} ({tried})", escalated=True)
+  return dataclasses.replace(pooled, reason=f"{pooled.reason} ({note})", escalated=True)
 
 
 def conclude(prepared: stages.Prepared, features: stages.Features, matches: stages.Matches,

@@ -36,6 +36,7 @@ from lrf_jax.cli.help import DefaultsHelpFormatter
 from lrf_jax.evaluation import runner
 from lrf_jax.evaluation.experiments import (DATASETS, EXPERIMENTS, POINTS_ONLY_DATASETS,
                                             POINTS_ONLY_HANDCRAFTED, POINTS_ONLY_PAIRS)
+from lrf_jax.datasets.scan_sets import MIN_OVERLAP
 from lrf_jax.defaults import RADIUS_MR
 from lrf_jax.frames import METHODS
 
@@ -54,6 +55,9 @@ def build_parser() -> argparse.ArgumentParser:
   ap.add_argument("--scans", nargs="+", default=[], metavar="DIR",
                   help="scan-set folders (scans + poses.txt, gt.log or a .conf), each a data "
                        "set named by its folder; without --datasets only these run")
+  ap.add_argument("--min-overlap", type=float, default=MIN_OVERLAP, metavar="FRACTION",
+                  help=f"the overlap a --scans pair needs, as a fraction of the source's points "
+                       f"(default {MIN_OVERLAP}; 3DLoMatch-style pairs: 0.1)")
   ap.add_argument("--experiments", nargs="+", default=["repeatability"],
                   choices=EXPERIMENTS + ("description", "pose"),
                   help="experiments to run; points_only: every cloud moved by a seeded random "
@@ -69,6 +73,10 @@ def build_parser() -> argparse.ArgumentParser:
   ap.add_argument("--params", nargs="+", default=[], metavar="LABEL=PATH",
                   help="extra learned columns from parameter files: LABEL=PATH[@METHOD] (METHOD "
                        "defaults to lrf_net), e.g. mine=w.msgpack or p=w.msgpack@lrf_net_plus")
+  ap.add_argument("--weights", nargs="+", default=[], metavar="KIND|PATH",
+                  help="extra lrf_net_plus columns with these weights: rooms, streets, objects "
+                       "(the default column's) or a parameter file, read with the options the "
+                       "weights were trained under")
   ap.add_argument("--keypoints", type=int, default=1000, help="keypoints per pair (the paper's: 1000)")
   ap.add_argument("--max-pairs", type=int, default=None,
                   help=f"at most N pairs per dataset (default: all; {POINTS_ONLY_PAIRS} with "
@@ -121,7 +129,7 @@ def main(argv=None) -> int:
       print("error: data not found for the --datasets asked for (above)", file=sys.stderr)
       return 2
   try:
-    scan_sets = _scan_sets(args.scans)
+    scan_sets = _scan_sets(args.scans, args.min_overlap)
   except (ValueError, OSError) as e:  # a folder without poses, a bad pose line: named
     print(f"error: --scans: {e}", file=sys.stderr)
     return 2
@@ -132,14 +140,14 @@ def main(argv=None) -> int:
     missing.append("no real data found: ran on the procedural demo set (synthetic, labelled)")
   try:
     runs, notes = runner.method_runs(args.methods, checkpoint=args.checkpoint,
-                                     params=tuple(args.params))
+                                     params=tuple(args.params), weights=tuple(args.weights))
   except ValueError as e:
     print(f"error: {e}", file=sys.stderr)
     return 2
   opts = evaluation.EvalOptions(data_root=args.data, n_keypoints=args.keypoints, seed=args.seed,
                                 radius_mr=args.radius_mr, max_pairs=max_pairs,
                                 max_neighbors=args.max_neighbors or None,
-                                scans=tuple(args.scans))
+                                scans=tuple(args.scans), min_overlap=args.min_overlap)
   plan = runner.EvalPlan(ok, args.experiments, runs, opts, notes=missing + notes,
                          cache_dir=args.cache_dir, meta={"args": vars(args)},
                          methods_named=args.methods is not None, engine=args.engine,
@@ -176,15 +184,15 @@ OUTPUT_FILES = ("results.json", "report.md", "partial_records.jsonl",
                 "results_description_pose.json")
 
 
-def _scan_sets(folders: list[str]) -> dict[str, list[str]]:
+def _scan_sets(folders: list[str], min_overlap: float) -> dict[str, list[str]]:
   """{data set name: notes for the report} of the --scans folders, each read once here (a bad
   folder stops the run before any work; the pairs stay in this process's scan cache)."""
-  from lrf_jax.datasets.scan_sets import MIN_OVERLAP, read_scan_set
+  from lrf_jax.datasets.scan_sets import read_scan_set
   from lrf_jax.evaluation.experiments import scan_set_names
   out = {}
   for name, folder in scan_set_names(folders).items():
-    s = read_scan_set(folder)
-    kept = f"{len(s.pairs)} of {len(s.candidates)} candidate pairs overlap >= {MIN_OVERLAP:.0%}"
+    s = read_scan_set(folder, min_overlap=min_overlap)
+    kept = f"{len(s.pairs)} of {len(s.candidates)} candidate pairs overlap >= {min_overlap:.0%}"
     out[name] = [f"{name}: scan set {folder} ({s.format} layout, {len(s.scans)} scans; {kept})"]
     out[name] += [f"{name}: {note}" for note in s.notes]
   return out
@@ -196,6 +204,8 @@ def _check(args: argparse.Namespace) -> str | None:
   unknown = [m for m in (args.methods or []) if m not in METHODS]
   if unknown:
     return f"--methods: unknown method(s) {unknown}; expected any of {sorted(METHODS)}"
+  if not (0.0 < args.min_overlap <= 1.0):
+    return f"--min-overlap: expected a fraction in (0, 1], got {args.min_overlap}"
   if args.keypoints < 1:
     return f"--keypoints: expected a positive integer, got {args.keypoints}"
   if args.max_pairs is not None and args.max_pairs < 1:

@@ -2,7 +2,7 @@
 at 2.5 cm and at a denser stand-in, against Open3D's tutorial pipeline in the same run.
 
     LRF_DATA=/path/to/data python benchmarks/bench_lidar.py [--out out/bench_lidar] [--seed 0]
-        [--no-kiss] [--viewpoints]
+        [--no-kiss] [--viewpoints] [--lrf-kw '{"weights": "streets"}']
         [--sets sweeps subsampled cropped rooms dense mixed far]
         [--fused DIR --sets fused fused25 fusedmixed fusedratio]
 
@@ -200,12 +200,12 @@ def errors(t: np.ndarray, gt: np.ndarray) -> tuple[float, float]:
 
 
 def run_set(pairs: list[dict], seed: int, o3d: bool, kiss: bool = False,
-            viewpoints: bool = False) -> list[dict]:
+            viewpoints: bool = False, lrf_kw: dict | None = None) -> list[dict]:
   rows = []
   for p in pairs:
-    views = {}
+    views = dict(lrf_kw or {})
     if viewpoints:  # every set's clouds are in their sensor's frame (a fragment: 1st camera)
-      views = dict(source_viewpoint=(0.0, 0.0, 0.0), target_viewpoint=(0.0, 0.0, 0.0))
+      views.update(source_viewpoint=(0.0, 0.0, 0.0), target_viewpoint=(0.0, 0.0, 0.0))
     t0 = time.perf_counter()
     reg = register(p["source"], p["target"], seed=seed, **views)
     secs = time.perf_counter() - t0
@@ -336,6 +336,8 @@ def main() -> int:
   ap.add_argument("--viewpoints", action="store_true",
                   help="give register each cloud's origin as its viewpoint (a sweep's sensor, "
                        "a 3DMatch fragment's first camera)")
+  ap.add_argument("--lrf-kw", default="{}",
+                  help="JSON object of lrf_jax.register keywords, e.g. '{\"weights\": \"streets\"}'")
   ap.add_argument("--no-kiss", action="store_true",
                   help="skip KISS-Matcher (run where `pip install kiss-matcher` installed it)")
   ap.add_argument("--sets", nargs="+", default=list(DEFAULT_SETS), choices=SETS)
@@ -372,7 +374,8 @@ def main() -> int:
   results = {}
   for name, pairs in sets.items():
     print(f"{name}:", file=sys.stderr)
-    results[name] = run_set(pairs, args.seed, o3d, kiss, args.viewpoints)
+    results[name] = run_set(pairs, args.seed, o3d, kiss, args.viewpoints,
+                            json.loads(args.lrf_kw))
   head = ("| set | pairs | right (strict) | claimed | false claims | median RE deg / TE m | "
           "median s")
   head += (" | Open3D right (strict) | Open3D median RE / TE | Open3D median s | time ratio"

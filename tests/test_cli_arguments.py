@@ -119,7 +119,9 @@ def test_frames_unreadable_file_on_disk(cloud_npy, tmp_path, capsys, suffix):
     (["--method", "bogus"], "--method"), (["--radius-mr", "0"], "--radius-mr"),
     (["--ratio", "1.5"], "--ratio"), (["--source-viewpoint", "nan", "0", "0"],
                                       "--source-viewpoint"),
-    (["--init", "MISSING"], "--init")])
+    (["--init", "MISSING"], "--init"), (["--weights", "nowhere"], "weights: 'nowhere'"),
+    (["--method", "shot", "--weights", "rooms"], "weights: method 'shot' is hand-crafted"),
+    (["--weights", "rooms", "--checkpoint", "MISSING"], "--checkpoint and --weights")])
 def test_register_bad_argument_before_any_work(cloud_npy, tmp_path, capsys, monkeypatch, extra,
                                                fragment):
   from lrf_jax import registration
@@ -159,7 +161,7 @@ def test_register_help_names_multiway(capsys):
     (["--keypoints", "0"], "--keypoints"), (["--keypoints", "sift"], "--keypoints"),
     (["--method", "bogus"], "--method"), (["--radius-mr", "0"], "--radius-mr"),
     (["--viewpoint", "nan", "0", "0"], "--viewpoint"),
-    (["--all-pairs-max", "-1"], "--all-pairs-max")])
+    (["--all-pairs-max", "-1"], "--all-pairs-max"), (["--weights", "nowhere"], "weights")])
 def test_multiway_bad_option_before_any_work(cloud_npy, tmp_path, capsys, monkeypatch, extra,
                                              fragment):
   from lrf_jax.multiway import pipeline as multiway_pipeline
@@ -176,7 +178,8 @@ def test_multiway_bad_option_before_any_work(cloud_npy, tmp_path, capsys, monkey
     (dict(n_keypoints=0), "n_keypoints"), (dict(method="bogus"), "method"),
     (dict(radius_mr=0.0), "radius_mr"), (dict(viewpoints=(np.nan, 0, 0)), "viewpoints"),
     (dict(viewpoints=[None, (0, 0, 0), (np.inf, 0, 0)]), "viewpoints[2]"),
-    (dict(all_pairs_max=-1), "all_pairs_max"), (dict(keypoints="sift"), "keypoints")])
+    (dict(all_pairs_max=-1), "all_pairs_max"), (dict(keypoints="sift"), "keypoints"),
+    (dict(weights="nowhere"), "weights")])
 def test_register_all_checks_register_options_before_any_pair(bad, fragment):
   from lrf_jax import multiway
   clouds = [np.random.default_rng(k).random((50, 3)) for k in range(3)]

@@ -55,6 +55,30 @@ def test_evaluate_scans_alone_runs_only_the_scan_sets(ring, tmp_path, monkeypatc
   assert {r["dataset"] for r in records} == {"ring"}
 
 
+def test_evaluate_weights_columns_and_min_overlap(ring, tmp_path, monkeypatch, capsys):
+  """--weights adds an lrf_net_plus column per weights (named by the kind or the file's stem,
+  read with the options of its card); --min-overlap keeps the pairs the rule would drop."""
+  import shutil
+  from lrf_jax.frames.weights import WEIGHTS_DIR
+  monkeypatch.setenv("LRF_CACHE", str(tmp_path / "cache"))
+  w = tmp_path / "mine.msgpack"
+  shutil.copy(WEIGHTS_DIR / "lrf_net.msgpack", w)
+  w.with_suffix(".json").write_text('{"options": {"vote": false}}')
+  out = tmp_path / "out"
+  assert evaluate.main(["--scans", str(ring), "--methods", "toldi", "--keypoints", "30",
+                        "--max-pairs", "1", "--weights", "objects", str(w),
+                        "--out", str(out)]) == 0, capsys.readouterr().err
+  report = (out / "report.md").read_text()
+  assert "lrf_net_plus[objects]" in report and "lrf_net_plus[mine]" in report
+  assert "lrf_net_plus[mine]: mine.msgpack, read with {'vote': False}" in report
+  low = tmp_path / "low"
+  assert evaluate.main(["--scans", str(ring), "--methods", "toldi", "--keypoints", "30",
+                        "--min-overlap", "0.01", "--out", str(low)]) == 0
+  assert "of 10 candidate pairs overlap >= 1%" in (low / "report.md").read_text()
+  assert evaluate.main(["--scans", str(ring), "--min-overlap", "0", "--out", str(low)]) == 2
+  assert "--min-overlap: expected a fraction in (0, 1]" in capsys.readouterr().err
+
+
 @pytest.mark.parametrize("case", ["not_a_folder", "no_pose_file", "built_in_name", "same_name"])
 def test_evaluate_bad_scan_folder_is_one_error(tmp_path, capsys, case, ring):
   if case == "not_a_folder":

@@ -38,6 +38,23 @@ def test_writes_frames_npz_and_png(demo_ply, tmp_path):
   assert png.stat().st_size > 10_000
 
 
+def test_weights_flag_reads_a_parameter_file(demo_ply, tmp_path):
+  """--weights PATH: the frames of that file (as compute_frames(weights=PATH)), named in the
+  .npz's weights field; the default reads the method's own shipped file."""
+  import shutil
+  from lrf_jax.frames.weights import WEIGHTS_DIR
+  path, _ = demo_ply
+  w = tmp_path / "mine.msgpack"
+  shutil.copy(WEIGHTS_DIR / "lrf_net.msgpack", w)
+  assert main([str(path), "--out", str(tmp_path / "a.npz"), "--keypoints", "100"]) == 0
+  assert main([str(path), "--out", str(tmp_path / "b.npz"), "--keypoints", "100",
+               "--weights", str(w)]) == 0
+  a, b = np.load(tmp_path / "a.npz"), np.load(tmp_path / "b.npz")
+  assert str(b["weights"]) == str(w) and str(a["weights"]) == "lrf_net_plus"
+  np.testing.assert_array_equal(a["keypoints"], b["keypoints"])
+  assert np.abs(a["frames"] - b["frames"]).max() > 1e-3
+
+
 def test_voxel_and_all_keypoints(demo_ply, tmp_path):
   path, pair = demo_ply
   assert main([str(path), "--out", str(tmp_path / "v.npz"), "--keypoint-voxel-mr", "10",
@@ -52,7 +69,9 @@ def test_voxel_and_all_keypoints(demo_ply, tmp_path):
 @pytest.mark.parametrize("args,fragment", [
     (["--method", "nope"], "--method"), (["--keypoints", "ten"], "--keypoints"),
     (["--keypoints", "0"], "--keypoints"), (["--radius-mr", "-1"], "--radius-mr"),
-    (["--descriptor", "sift"], "--descriptor"), (["--png", "/nonexistent/dir/f.png"], "--png")])
+    (["--descriptor", "sift"], "--descriptor"), (["--png", "/nonexistent/dir/f.png"], "--png"),
+    (["--weights", "nowhere"], "--weights: 'nowhere' is not one of"),
+    (["--method", "toldi", "--weights", "rooms"], "--weights: method 'toldi' is hand-crafted")])
 def test_bad_arguments_exit_2_before_any_work(demo_ply, tmp_path, capsys, args, fragment):
   path, _ = demo_ply
   assert main([str(path), "--out", str(tmp_path / "f.npz")] + args) == 2

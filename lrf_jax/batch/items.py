@@ -20,7 +20,7 @@ __all__ = ["FRAMES_OPTIONS", "check_frames_options", "check_register_options", "
 
 # `run_frames` keywords -> lrf-frames flags (the item is lrf-frames' own computation).
 FRAMES_OPTIONS = {"keypoints": "--keypoints", "voxel_mr": "--keypoint-voxel-mr",
-                  "voxel_size": "--voxel-size", "method": "--method",
+                  "voxel_size": "--voxel-size", "method": "--method", "weights": "--weights",
                   "radius_mr": "--radius-mr", "viewpoint": "--viewpoint",
                   "descriptor": "--descriptor", "seed": "--seed", "bin_layout": "--bin-layout"}
 

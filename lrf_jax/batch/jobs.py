@@ -518,7 +518,7 @@ def run_frames(scans: Sequence[str | os.PathLike], out: str | os.PathLike, *,
     keep_versions: as `run_register`.
     force: as `run_register`.
     **options: lrf-frames' options as keywords (`items.FRAMES_OPTIONS`: keypoints, voxel_mr, voxel_size,
-      method, radius_mr, viewpoint, descriptor, seed, bin_layout); those not given keep
+      method, weights, radius_mr, viewpoint, descriptor, seed, bin_layout); those not given keep
       lrf-frames' defaults.
 
   Returns:

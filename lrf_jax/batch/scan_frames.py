@@ -51,6 +51,8 @@ class FrameOptions:
       keeps every point, a positive number is the voxel edge in cloud units. The keypoints stay
       the input cloud's points; each frame is its keypoint's voxel's (`compute_frames`).
     method: a key of `lrf_jax.METHODS`.
+    weights: a learned method's weights (`compute_frames`' `weights`: "objects", "rooms",
+      "streets" or a parameter file's path).
     radius_mr: the support radius in mr.
     viewpoint: the scan's sensor position (3 numbers) or None.
     descriptor: also this descriptor on the frames (a key of `DESCRIPTORS`) or None.
@@ -75,6 +77,10 @@ class FrameOptions:
       "resolution, clean clouds and meshes are kept, as lrf-register does", metavar="V")
   method: str = option_field(DEFAULT_METHOD, "a key of lrf_jax.METHODS (print(lrf_jax.METHODS) "
                              "lists them)")
+  weights: str = option_field(
+      "objects", "weights of a learned method: objects (the paper's training data), rooms "
+      "(RGB-D room fragments), streets (LiDAR sweeps), or a parameter file's path",
+      metavar="KIND|PATH")
   radius_mr: float = option_field(RADIUS_MR,
                                   "support radius in mesh resolutions (15: the paper's)")
   viewpoint: tuple[float, float, float] | None = option_field(
@@ -110,6 +116,15 @@ class FrameOptions:
     from lrf_jax.frames import METHODS
     if self.method not in METHODS:
       return f"--method: unknown method {self.method!r}; expected one of {sorted(METHODS)}"
+    if self.weights != "objects":
+      from lrf_jax.frames.weights import weights_file
+      if not METHODS[self.method].needs_params:
+        return (f"--weights: method {self.method!r} is hand-crafted and reads no weights; "
+                "expected objects (the default) or a learned --method")
+      try:
+        weights_file(METHODS[self.method].weights, self.weights)
+      except ValueError as e:
+        return f"--{e}"
     if self.descriptor is not None and self.descriptor not in DESCRIPTORS:
       return f"--descriptor: unknown {self.descriptor!r}; expected one of {sorted(DESCRIPTORS)}"
     if self.bin_layout is not None and self.bin_layout not in BIN_LAYOUTS:
@@ -297,6 +312,16 @@ def scan_resolution(cloud: Any, request: FrameOptions) -> tuple[float, float]:
   return float(res.mr), float(voxel)
 
 
+def weights_label(spec: Any, weights: str) -> str:
+  """The "weights" field of lrf-frames' .npz: the parameter file a learned method read (a
+  shipped file's stem, e.g. "lrf_net_plus_streets", or the path given), "" for a hand-crafted one."""
+  if not spec.needs_params:
+    return ""
+  from lrf_jax.frames.weights import WEIGHTS_DIR, weights_file
+  path = weights_file(spec.weights, weights)
+  return path.stem if path.resolve().parent == WEIGHTS_DIR else str(weights)
+
+
 def frames_of_scan(request: FrameOptions) -> tuple[dict, Any, Any]:
   """Read the inputs and compute what `request` asks for: (the .npz fields lrf-frames writes, the
   `CheckedCloud`, the pair's or None). The pair's support is thinned at the same voxel as the
@@ -325,13 +350,14 @@ def frames_of_scan(request: FrameOptions) -> tuple[dict, Any, Any]:
   radius = request.radius_mr * mr
   spec = METHODS[request.method]
   conf = spec.confidence is not None
+  learned_weights = request.weights if spec.needs_params else None
   work, work_kp = support_cloud(cloud, kp, voxel_size)
   frames, valid, *confidence = compute_frames(
       work, work_kp, radius, request.method, seed=request.seed, viewpoint=request.viewpoint,
-      progress=len(kp) > 20000, return_confidence=conf, voxel_size=0)
+      progress=len(kp) > 20000, return_confidence=conf, voxel_size=0, weights=learned_weights)
   out = dict(keypoints=kp, positions=cloud.points[kp], frames=np.asarray(frames),
              valid=np.asarray(valid), radius=radius, mr=mr, method=request.method,
-             weights=spec.weights if spec.needs_params else "", voxel_size=voxel_size)
+             weights=weights_label(spec, request.weights), voxel_size=voxel_size)
   if conf:
     out["confidence"] = np.asarray(confidence[0])
   if request.descriptor:
@@ -344,7 +370,7 @@ def frames_of_scan(request: FrameOptions) -> tuple[dict, Any, Any]:
     fb, vb, *conf_b = compute_frames(
         work_b, work_kp_b, radius, request.method, seed=request.seed,
         viewpoint=request.pair_viewpoint, progress=len(kp) > 20000, return_confidence=conf,
-        voxel_size=0)
+        voxel_size=0, weights=learned_weights)
     if conf:
       out["pair_confidence"] = np.asarray(conf_b[0])
     out.update(pair_keypoints=kp_b, pair_frames=np.asarray(fb), pair_valid=np.asarray(vb),

@@ -153,6 +153,9 @@ def _check_paths(args: argparse.Namespace) -> str | None:
       return problem
   if args.checkpoint:
     workdir = Path(args.checkpoint).expanduser()
+    if getattr(args, "weights", "objects") not in ("objects", None):
+      return ("--checkpoint and --weights: give one (both name the LRF's weights: a train.py "
+              "workdir's best checkpoint, or rooms, streets, objects or a parameter file)")
     if not workdir.is_dir():
       return (f"--checkpoint: {args.checkpoint} is not a folder; expected a train.py workdir "
               "(the one passed to train.py --workdir)")

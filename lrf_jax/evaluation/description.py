@@ -46,7 +46,7 @@ from lrf_jax.evaluation.repeatability import (EXACT_NETWORK, MethodRun, PatchCac
 from lrf_jax.frames import METHODS
 from lrf_jax.io import atomic
 from lrf_jax.geometry.normals import default_normals
-from lrf_jax.frames.normals_rule import prepare_extra
+from lrf_jax.frames.normals_rule import orients, prepare_extra
 
 RATIO_THRESHOLDS = np.round(np.linspace(0.0, 1.0, 101), 2)
 # What the paper states (its figure `fig_RPC` is missing from our copy).
@@ -150,7 +150,7 @@ def _frames(pts, faces, idx, radius, run: MethodRun, seed: int, cache: PatchCach
   spec = METHODS[run.method]
   patches = cache.get(pts, idx, radius, run.patch_k, seed, spec.z_ratio)
   extra = prepare_extra(spec, pts, idx, patches, faces=faces, radius=radius, viewpoint=viewpoint,
-                        normals=normals)
+                        normals=normals, oriented=orients(dict(run.options)))
   f, v = frames_from_patches(patches, run.method, params=run.params, extra=extra,
                              **dict(run.options))
   return np.asarray(f), np.asarray(v)

@@ -148,6 +148,7 @@ class EvalOptions:
     max_neighbors: cap on all-neighbor patches (see `evaluate_pair`; None: no cap).
     scans: scan-set folders (`datasets.read_scan_set`), each a data set named by its folder
       (`scan_set_names`); a name in a list of data sets refers to one of them first.
+    min_overlap: the overlap a scan-set pair needs (`datasets.read_scan_set`; 0.3).
   """
 
   data_root: str | None = None
@@ -157,6 +158,7 @@ class EvalOptions:
   max_pairs: int | None = None
   max_neighbors: int | None = MAX_NEIGHBORS
   scans: tuple[str, ...] = ()
+  min_overlap: float = 0.3
 
 
 def _br(root, noise=0.3, seed=0):
@@ -218,7 +220,7 @@ def dataset_pairs(ds: str, opts: EvalOptions) -> tuple[list[Pair], dict[str, Any
   loader of `DATASETS` (all pairs; `limit_pairs` caps them)."""
   folders = scan_set_names(opts.scans)
   if ds in folders:
-    return datasets.load_scan_set(folders[ds]), {}
+    return datasets.load_scan_set(folders[ds], min_overlap=opts.min_overlap), {}
   loader, setting = DATASETS[ds]
   return loader(opts.data_root, opts.seed), setting
 

@@ -34,7 +34,7 @@ from lrf_jax.io import atomic
 from lrf_jax.frames.metrics import meancos
 from lrf_jax.search.neighborhoods import Patches, SearchIndex, build_patches
 from lrf_jax.geometry.normals import NORMAL_RADIUS_RATIO, estimate_normals
-from lrf_jax.frames.normals_rule import method_normals, prepare_extra
+from lrf_jax.frames.normals_rule import method_normals, orients, prepare_extra
 
 if TYPE_CHECKING:
   from lrf_jax.search.neighborhoods import AnyArray
@@ -255,7 +255,7 @@ def evaluate_pair(pair: Pair, methods: Iterable[MethodRun], *, experiment: str,
         continue
       patches = cache.get(pts, idx, radius, run.patch_k, seed, spec.z_ratio, max_k=max_neighbors)
       extra = prepare_extra(spec, pts, idx, patches, faces=faces, radius=radius, viewpoint=vp,
-                            normals=normals)
+                            normals=normals, oriented=orients(dict(run.options)))
       sides.append(frames_from_patches(patches, run.method, params=run.params, extra=extra,
                                        **dict(run.options)))
       kernels.append("jit")

@@ -34,7 +34,9 @@ from lrf_jax.evaluation.repeatability import (EXACT_NETWORK, MethodRun, PatchCac
                                               paper_options)
 from lrf_jax.frames import METHODS
 from lrf_jax.io import atomic
-from lrf_jax.frames.weights import load_params
+from lrf_jax.defaults import DEFAULT_METHOD
+from lrf_jax.frames.weights import (WEIGHTS_KINDS, load_params, weights_file, weights_options,
+                                    weights_params)
 from lrf_jax.progress import restart_clock
 
 # Experiments that sweep one nuisance: the number of settings per clean pair.
@@ -50,7 +52,8 @@ def default_methods() -> list[str]:
 
 
 def method_runs(methods: list[str] | None = None, *, checkpoint: str | None = None,
-                params: tuple[str, ...] = ()) -> tuple[list[MethodRun], list[str]]:
+                params: tuple[str, ...] = (), weights: tuple[str, ...] = ()
+                ) -> tuple[list[MethodRun], list[str]]:
   """The columns of the evaluation and the notes that say where learned parameters came from.
 
   Args:
@@ -59,6 +62,9 @@ def method_runs(methods: list[str] | None = None, *, checkpoint: str | None = No
       its latest parameters add a column "lrf_net[final]".
     params: "LABEL=PATH[@METHOD]" items: extra learned columns from parameter files (METHOD
       defaults to lrf_net).
+    weights: weights `compute_frames(weights=)` names ("objects", "rooms", "streets" or a
+      parameter file's path): a column "lrf_net_plus[KIND]" each (a file's: its stem), with the
+      options the weights were trained under (`frames.weights.weights_options`).
 
   Returns:
     (runs, notes).
@@ -104,6 +110,17 @@ def method_runs(methods: list[str] | None = None, *, checkpoint: str | None = No
     except (FileNotFoundError, ValueError) as e:
       raise ValueError(f"--params {label}={path}: {e}") from None
     runs.append(MethodRun(label, method, params=loaded, options=paper_options(method)))
+  for w in weights:
+    spec = METHODS[DEFAULT_METHOD]
+    try:
+      path = weights_file(spec.weights, w)
+      loaded = weights_params(spec.weights, w)
+      options = weights_options(path)
+    except (FileNotFoundError, ValueError) as e:
+      raise ValueError(f"--{e}") from None
+    label = f"{DEFAULT_METHOD}[{w if w in WEIGHTS_KINDS else path.stem}]"
+    runs.append(MethodRun(label, DEFAULT_METHOD, params=loaded, options=tuple(options.items())))
+    notes.append(f"{label}: {path.name}" + (f", read with {options}" if options else ""))
   return runs, notes
 
 

@@ -15,11 +15,11 @@ from lrf_jax.search.chunks import map_chunks
 from lrf_jax.geometry.resolution import mesh_resolution as _mesh_resolution
 from lrf_jax.frames.spec import DEFAULT_METHOD, METHODS, MethodSpec, method_spec
 from lrf_jax.frames.host_path import host_frames_in_budget
-from lrf_jax.frames.normals_rule import method_normals, prepare_extra
+from lrf_jax.frames.normals_rule import method_normals, orients, prepare_extra
 from lrf_jax.frames.patch_frames import cached_weight_table, check_options, patch_frames_checked
 from lrf_jax.geometry.cloud import CheckedCloud, as_cloud
 from lrf_jax.geometry.sampling import thin_cloud, thinning_voxel_size
-from lrf_jax.frames.weights import default_params, default_params_numpy
+from lrf_jax.frames.weights import weights_file, weights_options, weights_params
 from lrf_jax.checks import (validate_choice, validate_keypoints, validate_radius, validate_seed,
                             validate_viewpoint, validate_voxel_size)
 from lrf_jax.search.neighborhoods import Patches, SearchIndex, build_patches, unit_scaled
@@ -133,6 +133,21 @@ def _check_call(spec: MethodSpec, faces: Any, chunk_size: Any, k: Any, options: 
                      f"that do: {sorted(n for n, s in METHODS.items() if s.confidence)}")
 
 
+def _weights_options(spec: Any, params: Any, weights: str | None) -> dict[str, Any]:
+  """The options the `weights` of a `compute_frames` call bring (`weights_options`); {} for
+  None. Raises a ValueError for weights given with `params` or to a hand-crafted method, or
+  that `weights_file` refuses."""
+  if weights is None:
+    return {}
+  if not spec.needs_params:
+    raise ValueError(f"weights: method {spec.name!r} is hand-crafted and reads no weights; "
+                     f"learned methods: {sorted(n for n, s in METHODS.items() if s.needs_params)}")
+  if params is not None:
+    raise ValueError("weights: given with params; expected one of the two (params are the "
+                     "weights themselves)")
+  return weights_options(weights_file(spec.weights, weights))
+
+
 def compute_frames(
     points: Any,
     keypoints: np.ndarray,
@@ -141,6 +156,7 @@ def compute_frames(
     *,
     radius_mr: float | None = None,
     params: Any = None,
+    weights: str | None = None,
     k: int | None | str = "default",
     seed: int = 0,
     faces: np.ndarray | None = None,
@@ -179,8 +195,14 @@ def compute_frames(
       `lrf_jax.mesh_resolution`'s (mean edge length of a
       mesh, mean nearest-neighbor distance of a cloud) on every mesh and clean cloud, the
       area-weighted spacing on an uneven one (a raw LiDAR sweep); the paper uses 15.
-    params: learned parameters for learned methods; None = the shipped default weights
-      (`lrf_jax.default_params()`).
+    params: learned parameters for learned methods; None = the weights `weights` names.
+    weights: which shipped weights a learned method reads when no `params` are given:
+      "objects" (None, the default: what the method was trained on, the paper's BR objects),
+      "rooms" (fine-tuned on RGB-D room fragments) or "streets" (fine-tuned on LiDAR sweeps;
+      both shipped for lrf_net_plus), or the path of a parameter file (`save_params`, a
+      `train.py` run's `best_params.msgpack`). A file's JSON beside it may name options it was
+      trained under ("streets": `vote=False`, the ball sign without a viewpoint); options given
+      here win.
     k: patch size K; "default" = the method's own (`METHODS[method].default_k`); None = every
       neighbor in the ball. A K above the cloud's size is capped at `patch_size_cap(n)` (the
       power of two >= n): a ball cannot hold more points, and padding never changes a frame.
@@ -245,6 +267,7 @@ def compute_frames(
     >>> frames, valid = compute_frames(points, np.arange(100), radius=0.02)
   """
   spec = method_spec(method)
+  options = _weights_options(spec, params, weights) | options
   cloud = as_cloud(points, "points", faces=faces, normals=normals)
   keypoints = validate_keypoints(keypoints, cloud.points.shape[0])
   measured = radius is None  # radius_mr: the working resolution is measured (and thins)
@@ -258,7 +281,8 @@ def compute_frames(
   if voxel_size is None and not measured:  # a length given: no resolution measured, none thinned
     voxel_size = 0.0
   cloud, keypoints, rows = _thinned(cloud, keypoints, voxel_size, spec)
-  out = frames_checked(method, cloud, keypoints, radius, params=params, k=k, seed=seed,
+  out = frames_checked(method, cloud, keypoints, radius, params=params, weights=weights or
+                       "objects", k=k, seed=seed,
                         viewpoint=viewpoint, chunk_size=chunk_size, progress=progress,
                         search=search, kernel=kernel, return_confidence=return_confidence,
                         options=options)
@@ -276,6 +300,7 @@ def frames_checked(
     radius: float,
     *,
     params: Any = None,
+    weights: str = "objects",
     k: int | None | str = "default",
     seed: int = 0,
     viewpoint: np.ndarray | None = None,
@@ -299,6 +324,8 @@ def frames_checked(
     seed: a non-negative int.
     viewpoint: None or a finite (3,) float64 position (`validate_viewpoint`).
     params: learned parameters, as `compute_frames` takes them.
+    weights: the weights read when `params` is None (`compute_frames`; checked by
+      `_weights_options`, whose options the caller merged into `options`).
     k: the patch size (checked by `_check_call` for this method).
     chunk_size: keypoints per call (checked by `_check_call`).
     progress: as `compute_frames` takes it.
@@ -328,8 +355,7 @@ def frames_checked(
   on_host = _use_host_kernel(spec, kernel, k, options, search) and not return_confidence
   host_patches = _use_host_patch_kernel(spec, kernel, options, search)
   if spec.needs_params and params is None:  # the host kernels read numpy (no JAX to import)
-    params = (default_params_numpy(spec.weights) if on_host or host_patches
-              else default_params(spec.weights))
+    params = weights_params(spec.weights, weights, host=on_host or host_patches)
   search_patches = _patch_search(points, spec, radius, k, seed, search, on_host or host_patches)
   _warn_on_ball_size(search_patches.index, points, keypoints, radius, unit)
   normals = method_normals(spec, points, radius, faces=faces, normals=normals,
@@ -353,7 +379,7 @@ def frames_checked(
     patches = search_patches(kp)
     extra = prepare_extra(spec, points, kp, patches, radius=radius, faces=faces,
                           normals=normals, viewpoint=viewpoint,
-                          oriented=bool(host_options.get("oriented_sign", True)))
+                          oriented=orients(host_options))
     if host_patches:
       assert spec.host_patch_frames is not None  # host_patches says it applies
       out = spec.host_patch_frames(patches, extra, params, host_options)

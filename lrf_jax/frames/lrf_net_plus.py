@@ -300,7 +300,9 @@ def _confidence(patches: Patches, extra: ViewExtra | None, frames, valid, option
 
 
 def _lrf_net_plus(patches: Patches, extra: ViewExtra | None, *, params, x_mode: str = "softmax",
-                  lut: int = 0, density: bool = True, oriented_sign: bool = True):
+                  lut: int = 0, density: bool = True, oriented_sign: bool = True,
+                  vote: bool = True):
+  del vote  # read by the prepare hook (`orients`): without it `extra.view` is zero
   return lrf_net_frames(params, patches, x_mode=x_mode, z_sign="ball", lut=lut,
                         view=None if extra is None or not oriented_sign else extra.view,
                         area=None if extra is None or not density else extra.area)

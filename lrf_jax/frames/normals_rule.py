@@ -65,6 +65,14 @@ def method_normals(spec: MethodSpec, points: np.ndarray, radius: float, *,
       points, NORMAL_RADIUS_RATIO * radius, faces, viewpoint)
 
 
+def orients(options: dict) -> bool:
+  """Whether a viewpoint-aware method's frames read an orientation from the points alone, for
+  these options (the method's defaults filled in or not): lrf_net_plus's `oriented_sign` and
+  `vote` (False: the convexity vote of `normals.voted_normals` is skipped and a cloud without
+  a viewpoint, normals or mesh takes the ball sign). `prepare_extra`'s `oriented`."""
+  return bool(options.get("oriented_sign", True)) and bool(options.get("vote", True))
+
+
 def prepare_extra(spec: MethodSpec, points: np.ndarray, keypoints: np.ndarray, patches: Any, *,
                   radius: float, faces: np.ndarray | None = None, normals: NormalsArg = None,
                   viewpoint: np.ndarray | None = None, oriented: bool = True) -> Any:
@@ -79,8 +87,9 @@ def prepare_extra(spec: MethodSpec, points: np.ndarray, keypoints: np.ndarray, p
     faces: optional (f, 3) triangles.
     normals: the caller's normals, a thunk returning them, or None (see `method_normals`).
     viewpoint: optional (3,) sensor position (viewpoint-aware methods read it themselves).
-    oriented: for viewpoint-aware methods, whether their frames will read an orientation at all
-      (the method's `oriented_sign` option); False spares orienting the normals of a bare cloud.
+    oriented: for viewpoint-aware methods, whether their frames read an orientation from the
+      points alone (`orients` of the method's options); False spares orienting the normals of a
+      bare cloud.
 
   Returns:
     An instance of `spec.extra`, or None.

@@ -38,6 +38,84 @@ Params = Any
 WEIGHTS_DIR = Path(__file__).resolve().parents[1] / "weights"  # lrf_jax/weights
 DEFAULT_WEIGHTS = WEIGHTS_DIR / "lrf_net.msgpack"
 
+# What `weights=` names: the kind of data a shipped file was trained on. "objects" is each learned
+# method's own file (`MethodSpec.weights`); "rooms" and "streets" are `<that file>_<kind>`,
+# shipped for lrf_net_plus only.
+WEIGHTS_KINDS = ("objects", "rooms", "streets")
+
+
+def weights_file(method_weights: str, weights: str | Path) -> Path:
+  """The parameter file `weights=` selects for a method whose own shipped file is
+  `method_weights` (`MethodSpec.weights`, e.g. "lrf_net_plus").
+
+  Args:
+    method_weights: the method's shipped file stem.
+    weights: "objects" (the method's own file: what the method reads when no weights are
+      given), "rooms" or "streets" (`<method_weights>_<kind>.msgpack`, trained on room fragments /
+      LiDAR sweeps), or the path of a parameter file (`save_params`' flax msgpack, such as a
+      `train.py` workdir's `best_params.msgpack`).
+
+  Returns:
+    The file's path (not read here: `load_params` checks its content).
+
+  Raises:
+    ValueError: `weights` is neither a kind nor an existing file, or a kind not shipped for
+      this method (the message lists the kinds that are).
+  """
+  if isinstance(weights, str) and weights in WEIGHTS_KINDS:
+    path = WEIGHTS_DIR / (f"{method_weights}.msgpack" if weights == "objects"
+                          else f"{method_weights}_{weights}.msgpack")
+    if not path.exists():
+      shipped = [k for k in WEIGHTS_KINDS if (WEIGHTS_DIR / (
+          f"{method_weights}.msgpack" if k == "objects"
+          else f"{method_weights}_{k}.msgpack")).exists()]
+      raise ValueError(f"weights: no {weights!r} weights are shipped for {method_weights} "
+                       f"(expected one of {shipped} or a parameter file's path)")
+    return path
+  if not isinstance(weights, (str, Path)) or not str(weights):
+    raise ValueError(f"weights: expected one of {list(WEIGHTS_KINDS)} or a parameter file's "
+                     f"path, got {weights!r}")
+  path = Path(weights)
+  if not path.is_file():
+    raise ValueError(f"weights: {str(weights)!r} is not one of {list(WEIGHTS_KINDS)} and no "
+                     "such parameter file exists")
+  return path
+
+
+def weights_params(method_weights: str, weights: str | Path = "objects", *,
+                   host: bool = False) -> Params:
+  """The parameters `weights=` selects (`weights_file`): a shipped file read once per process
+  (`default_params`), another file on every call (`load_params`); numpy arrays for the host
+  kernels (`host`), else arrays on JAX's default device. Raises as `weights_file` and
+  `load_params` do."""
+  path = weights_file(method_weights, weights)
+  if path.resolve().parent == WEIGHTS_DIR:
+    return default_params_numpy(path.stem) if host else default_params(path.stem)
+  return load_params_numpy(path) if host else load_params(path)
+
+
+def weights_options(path: str | Path) -> dict[str, Any]:
+  """The method options a parameter file was trained under and is read with: the "options"
+  object of the JSON file beside it (`<stem>.json`; `{}` when there is none or it holds none).
+  A shipped "streets" file, trained with z signed over each support, says `{"vote": false}`:
+  without a viewpoint its frames take the ball sign, not the convexity vote.
+
+  Raises:
+    ValueError: the JSON file exists but is not an object, or its "options" is not one.
+  """
+  import json  # pylint: disable=import-outside-toplevel
+  meta = Path(path).with_suffix(".json")
+  if not meta.is_file():
+    return {}
+  try:
+    d = json.loads(meta.read_text())
+  except ValueError as e:
+    raise ValueError(f"{meta}: expected JSON ({e})") from e
+  options = d.get("options", {}) if isinstance(d, dict) else None
+  if not isinstance(options, dict):
+    raise ValueError(f"{meta}: options: expected an object of method options, got {options!r}")
+  return dict(options)
+
 
 def apply_weights(params: Params, attrs: Any, xp: Any = jnp, dtype: Any = None) -> Any:
   """Weights (..., K) for attributes (..., K, A): the forward pass of `learning.networks.WeightNet`

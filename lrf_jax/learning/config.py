@@ -34,6 +34,13 @@ class TrainConfig:
       by scan (`lrf_jax.datasets.split_by_scan`: the pairs among its last 20 % of scans in name
       order validate, those among the others train). `val_pairs=0` trains on every pair.
     scan_share: with data "br+scans", the fraction of `num_train_keypoints` drawn on the scans.
+    scan_min_overlap: the overlap a scan pair needs to train or validate (fraction of the
+      source's points; `datasets.read_scan_set`'s `min_overlap`, 0.3 by default): lower it for
+      a set of low-overlap pairs (3DLoMatch's are 10-30 %).
+    scan_match_mr: how close (in mr) a scene point must lie to a model point under the ground
+      truth for the two to train as a corresponding pair (`datasets.training_correspondences`;
+      0.5, the repeatability protocol's rule). Scans voxelised on their own grids, such as
+      3DMatch's 2.5 cm fragments, have almost no points that close: 1.0 there.
     data_root: where the data lives (None: LRF_DATA, then data/ in the repo).
     num_train_keypoints: size of the fixed, seeded set of training keypoints; one epoch is one
       pass over it.
@@ -69,6 +76,10 @@ class TrainConfig:
     val_pairs: number of validation pairs (0 disables): Stanford bunny scan pairs, or with scans
       the first pairs of the held-out scans.
     val_keypoints: keypoints per validation pair.
+    init: where the parameters start: "" (default: initialised from `seed`), a shipped weights
+      kind ("objects", "rooms", "streets": lrf_net_plus's files for x_mode "softmax", else
+      lrf_net's; `frames.weights.weights_file`) or a parameter file's path (fine-tuning). The
+      file must hold this model's parameters (the same layers and widths).
     log_every: steps between logged metrics.
     checkpoint_every: steps between checkpoints (the end of every epoch is always saved).
   """
@@ -80,6 +91,8 @@ class TrainConfig:
   scans: tuple[str, ...] = ()
   val_scans: tuple[str, ...] = ()
   scan_share: float = 0.5
+  scan_min_overlap: float = 0.3
+  scan_match_mr: float = 0.5
   num_train_keypoints: int = 20_000
   patch_k: int = 256
   radius_mr: float = RADIUS_MR
@@ -98,6 +111,7 @@ class TrainConfig:
   crop_min: float = 0.3
   val_pairs: int = 9
   val_keypoints: int = 500
+  init: str = ""
   log_every: int = 10
   checkpoint_every: int = 200
 
@@ -139,7 +153,7 @@ class TrainConfig:
     v = self.val_pairs
     if isinstance(v, bool) or not isinstance(v, int) or v < 0:
       raise ValueError(f"config.val_pairs: expected a non-negative integer, got {v!r}")
-    for f in ("radius_mr", "learning_rate"):
+    for f in ("radius_mr", "learning_rate", "scan_match_mr"):
       v = getattr(self, f)
       if not _is_number(v) or not math.isfinite(v) or v <= 0:
         raise ValueError(f"config.{f}: expected a positive finite number, got {v!r}")
@@ -150,7 +164,7 @@ class TrainConfig:
                        f"{self.num_train_keypoints} training keypoints (num_train_keypoints; one "
                        "epoch is one pass over them): lower batch_size or raise "
                        "num_train_keypoints")
-    for f in ("name", "data", "loss_reduction", "z_mode", "z_sign", "z_view", "x_mode"):
+    for f in ("name", "data", "loss_reduction", "z_mode", "z_sign", "z_view", "x_mode", "init"):
       if not isinstance(getattr(self, f), str):
         raise ValueError(f"config.{f}: expected a string, got {getattr(self, f)!r}")
     if self.data_root is not None and not isinstance(self.data_root, str):
@@ -169,6 +183,15 @@ class TrainConfig:
       raise ValueError(f"config.widths: expected positive integer layer widths, got "
                        f"{self.widths!r}")
     self._check_scans()
+    if self.init and not is_paper_model_fields(self.z_mode, self.x_mode):
+      raise ValueError(f"config.init: starts LRF-Net's weight network; expected z_mode 'normal' "
+                       f"and x_mode 'sum', 'max' or 'softmax', got {self.z_mode!r} / "
+                       f"{self.x_mode!r} (or init '')")
+
+  @property
+  def init_weights_stem(self) -> str:
+    """The shipped file family a kind in `init` names: lrf_net_plus's for x_mode "softmax"."""
+    return "lrf_net_plus" if self.x_mode == "softmax" else "lrf_net"
 
   def _check_scans(self) -> None:
     """The scan-set fields agree with `data` (see the class docstring)."""
@@ -187,6 +210,9 @@ class TrainConfig:
     if shared:
       raise ValueError(f"config.val_scans: expected folders that do not train, found {shared} in "
                        "scans too")
+    if not (_is_number(self.scan_min_overlap) and 0.0 < self.scan_min_overlap <= 1.0):
+      raise ValueError(f"config.scan_min_overlap: expected a fraction in (0, 1], got "
+                       f"{self.scan_min_overlap!r}")
     if not (_is_number(self.scan_share) and 0.0 < self.scan_share < 1.0):
       raise ValueError(f"config.scan_share: expected a fraction in (0, 1), got "
                        f"{self.scan_share!r}")
@@ -214,6 +240,11 @@ class TrainConfig:
       raise ValueError(f"config: expected an object of field: value pairs, got "
                        f"{type(d).__name__}")
     return replace(cls(), **d)
+
+
+def is_paper_model_fields(z_mode: str, x_mode: str) -> bool:
+  """True when these fields give plain WeightNet parameters (`train_step.is_paper_model`)."""
+  return z_mode == "normal" and x_mode in ("sum", "max", "softmax")
 
 
 # The values of `TrainConfig.data`.

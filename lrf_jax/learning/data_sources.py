@@ -3,7 +3,7 @@ the user's own scan sets (`lrf_jax.datasets.scan_sets`), alone or mixed with BR.
 
 Scan pairs are not index-aligned: the training keypoints of a scan pair are model points with a
 ground-truth counterpart in the scene (`datasets.training_correspondences`: the nearest scene
-point under the ground truth, within 0.5 mr, each scene point once, the evaluation keypoints of
+point under the ground truth, within `scan_match_mr` (0.5 mr by default), each scene point once, the evaluation keypoints of
 seed 0 left out). `TrainingClouds` pairs point i of a model with point i of its scene, so each
 scan pair enters it with both clouds reordered: the k corresponding points first, in
 correspondence order, then every other point of each cloud (a reordering changes no
@@ -95,7 +95,7 @@ def scan_training_clouds(pairs: list[datasets.Pair], n_keypoints: int, config: T
   """
   models, scenes, counts, mr = [], [], [], []
   for pair in pairs:
-    mi, si = datasets.training_correspondences(pair)
+    mi, si = datasets.training_correspondences(pair, max_dist_mr=config.scan_match_mr)
     scale = 1.0 if unit_mr is None else unit_mr / pair.mr
     models.append(scale * _corresponding_first(pair.model_points, mi))
     scenes.append(scale * _corresponding_first(pair.scene_points, si))
@@ -106,8 +106,10 @@ def scan_training_clouds(pairs: list[datasets.Pair], n_keypoints: int, config: T
     raise ValueError(
         f"scans: {n_keypoints} training keypoints wanted on {len(pairs)} training pair(s) of "
         f"{', '.join(sorted({p.dataset for p in pairs}))}, which hold {available} points with "
-        "a ground-truth counterpart (within 0.5 mr); lower num_train_keypoints (or scan_share), "
-        "or add scans")
+        f"a ground-truth counterpart (within scan_match_mr = {config.scan_match_mr:g} mr); lower "
+        "num_train_keypoints (or scan_share), add scans, or raise scan_match_mr (scans "
+        "voxelised on their own grids, such as 3DMatch's fragments, have few points within "
+        "0.5 mr of each other: 1 mr takes about a quarter of them)")
   mr_arr = np.asarray(mr, np.float64)
   return TrainingClouds(models=models, scenes=scenes, radii=config.radius_mr * mr_arr,
                         mr=mr_arr, keypoints=sample_training_keypoints(counts, n_keypoints,
@@ -143,16 +145,17 @@ def scan_split(config: TrainConfig) -> tuple[list[datasets.Pair], list[datasets.
     ValueError: as `datasets.read_scan_set` and `datasets.split_by_scan`.
   """
   folders, held = list(config.scans), list(config.val_scans)
+  least = config.scan_min_overlap
   if config.val_pairs <= 0:
-    return _pairs_of(folders), []
+    return _pairs_of(folders, least), []
   if held or len(folders) > 1:
     train = folders if held else folders[:-1]
-    return _pairs_of(train), _pairs_of(held or folders[-1:])
-  return datasets.split_by_scan(datasets.read_scan_set(folders[0]))
+    return _pairs_of(train, least), _pairs_of(held or folders[-1:], least)
+  return datasets.split_by_scan(datasets.read_scan_set(folders[0], min_overlap=least))
 
 
-def _pairs_of(folders: list[str]) -> list[datasets.Pair]:
-  return [p for f in folders for p in datasets.read_scan_set(f).pairs]
+def _pairs_of(folders: list[str], min_overlap: float) -> list[datasets.Pair]:
+  return [p for f in folders for p in datasets.read_scan_set(f, min_overlap=min_overlap).pairs]
 
 
 def validation_label(config: TrainConfig) -> str:

@@ -11,6 +11,8 @@
 from __future__ import annotations
 
 import jax
+import jax.numpy as jnp
+import numpy as np
 
 from lrf_jax.extras import missing_extra
 
@@ -25,6 +27,7 @@ from lrf_jax.learning.batches import Batch
 from lrf_jax.learning.config import TrainConfig
 from lrf_jax.frames.ablation import variant_frames
 from lrf_jax.frames.lrf_net import lrf_net_frames
+from lrf_jax.frames.weights import load_params_numpy, weights_file
 from lrf_jax.learning.losses import siamese_loss
 from lrf_jax.learning.model import init_params, init_variant_params
 
@@ -74,15 +77,36 @@ def frames_fn(config: TrainConfig):
 
 
 def create_state(config: TrainConfig) -> TrainState:
-  """Step 0 of a run: initial parameters (seeded by `config.seed`), Adam and its schedule."""
+  """Step 0 of a run: initial parameters (seeded by `config.seed`, or read from `config.init`),
+  Adam and its schedule.
+
+  Raises:
+    ValueError: `config.init` names no parameter file, or one whose layers or shapes are not
+      this config's model's (the message names the first that differs).
+  """
   if is_paper_model(config):
     params = init_params(config.seed, widths=config.widths)
+    if config.init:
+      params = _initial_params(config, params)
   else:
     x_mode = "sum1" if config.x_mode == "sum" else config.x_mode
     params = init_variant_params(config.seed, config.z_mode, x_mode, config.widths)
   schedule = learning_rate_schedule(config)
   return TrainState.create(apply_fn=None, params=params, tx=make_optimizer(schedule),
                            lr_schedule=schedule)
+
+
+def _initial_params(config: TrainConfig, fresh):
+  """The parameters of `config.init`, checked against the tree `fresh` of this model."""
+  path = weights_file(config.init_weights_stem, config.init)
+  loaded = load_params_numpy(path)
+  want = jax.tree_util.tree_map(np.shape, fresh)
+  got = jax.tree_util.tree_map(np.shape, loaded)
+  same_tree = str(jax.tree_util.tree_structure(want)) == str(jax.tree_util.tree_structure(got))
+  if not same_tree or want != got:
+    raise ValueError(f"config.init: {path} holds parameters of another network (layer shapes "
+                     f"{got}); expected this config's (widths {list(config.widths)}): {want}")
+  return jax.tree_util.tree_map(lambda a, b: jnp.asarray(a, jnp.asarray(b).dtype), loaded, fresh)
 
 
 def make_train_step(config: TrainConfig):

@@ -4,7 +4,7 @@
 
   inputs       `InputOptions`      mr, voxel_size, source_viewpoint, target_viewpoint, seed
   detection    `KeypointOptions`   keypoints (the detector), n_keypoints
-  description  `DescribeOptions`   method, radius_mr, descriptor
+  description  `DescribeOptions`   method, radius_mr, descriptor, weights
   matching     `MatchOptions`      n_correspondences, mutual, ratio
   hypotheses   `HypothesisOptions` estimator, iterations, inlier_mr, verify
   icp          `IcpOptions`        icp_iterations, icp_mr, icp_mode, icp_fine
@@ -130,6 +130,10 @@ class DescribeOptions(OptionGroup):
       "repeatable; lrf_net is the paper's LRF-Net; mesh methods need mesh inputs)")
   descriptor: str = option_field(DEFAULT_DESCRIPTOR,
                             "descriptor, a key of lrf_jax.descriptors.DESCRIPTORS")
+  weights: str = option_field(
+      "objects", "weights of a learned LRF method: objects (the paper's training data), rooms "
+      "(RGB-D room fragments), streets (LiDAR sweeps), or a parameter file's path",
+      metavar="KIND|PATH")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -313,8 +317,8 @@ def _check_names(values: dict[str, Any]) -> None:
   estimator = values.get("estimator", ESTIMATORS[0])
   if estimator not in ESTIMATORS:
     raise ValueError(f"estimator: expected one of {ESTIMATORS}, got {estimator!r}")
-  if (values.get("method", DEFAULT_METHOD), values.get("descriptor", DEFAULT_DESCRIPTOR)) != (
-      DEFAULT_METHOD, DEFAULT_DESCRIPTOR):
+  if (values.get("method", DEFAULT_METHOD), values.get("descriptor", DEFAULT_DESCRIPTOR),
+      values.get("weights", "objects")) != (DEFAULT_METHOD, DEFAULT_DESCRIPTOR, "objects"):
     _check_registered(values)
   icp_mode = values.get("icp_mode", ICP_MODES[0])
   if icp_mode not in ICP_MODES:
@@ -335,6 +339,13 @@ def _check_registered(values: dict[str, Any]) -> None:
   if not isinstance(method, str) or method not in METHODS:
     raise ValueError(f"method: unknown LRF method {method!r}; expected one of "
                      f"{sorted(METHODS)}")
+  weights = values.get("weights", "objects")
+  if weights != "objects":
+    from lrf_jax.frames.weights import weights_file
+    if not METHODS[method].needs_params:
+      raise ValueError(f"weights: method {method!r} is hand-crafted and reads no weights; "
+                       f"expected 'objects' (the default) or a learned method")
+    weights_file(METHODS[method].weights, weights)  # a kind shipped for it, or a file
   descriptor = values.get("descriptor", DEFAULT_DESCRIPTOR)
   if not isinstance(descriptor, str) or descriptor not in DESCRIPTORS:
     raise ValueError(f"descriptor: unknown descriptor {descriptor!r}; expected one of "

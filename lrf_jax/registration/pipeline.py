@@ -98,7 +98,7 @@ def register(source: Any, target: Any, options: RegisterOptions | None = None, *
       `compute_frames` takes (`lrf_jax.inputs.as_cloud`).
     target: the same for the target.
     options: a `RegisterOptions` (None: `options.DEFAULTS`, every default below).
-    params: learned LRF parameters (None: the method's shipped weights).
+    params: learned LRF parameters (None: the shipped weights the `weights` option names).
     init: optional (4, 4) initial source -> target transform: refined by ICP and judged (above).
     **overrides: fields of `RegisterOptions` replacing those of `options` (listed below;
       each stage's table of options is in the docs' Pipeline stages pages).
@@ -123,6 +123,8 @@ def register(source: Any, target: Any, options: RegisterOptions | None = None, *
     method (str): LRF method (a key of `lrf_jax.METHODS`; default "lrf_net_plus", the most
       repeatable shipped one; "lrf_net" is the paper's LRF-Net; mesh methods need mesh inputs).
     descriptor (str): a key of `lrf_jax.descriptors.DESCRIPTORS`.
+    weights (str): the weights of a learned method when `params` is None: "objects" (default),
+      "rooms", "streets" or a parameter file's path (`compute_frames`' `weights`).
     seed (int): seed of keypoints, neighbor subsamples and sampling.
     source_viewpoint (tuple[float, float, float] | None): the (3,) sensor position of a
       single-view source scan, in its own coordinates: its estimated normals (and

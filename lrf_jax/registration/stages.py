@@ -22,6 +22,7 @@ from typing import Any, NamedTuple, cast
 import numpy as np
 
 from lrf_jax.frames.compute import frames_checked
+from lrf_jax.frames.weights import weights_file, weights_options
 from lrf_jax.checks import validate_radius, validate_seed
 from lrf_jax.descriptors import descriptors_checked, select_correspondences
 from lrf_jax.frames import METHODS
@@ -280,16 +281,18 @@ def describe(prepared: Prepared, description: DescribeOptions, params: Any, time
   benchmark, does not register more pairs."""
   method, descriptor = description.method, description.descriptor
   spec = METHODS[method]
+  trained_under = (weights_options(weights_file(spec.weights, description.weights))
+                   if spec.needs_params and params is None else {})
   frames, descs = [], []
   with timer("frames"):
     for side in prepared.sides:
-      options: dict[str, Any] = (
+      options: dict[str, Any] = trained_under | (
           {"oriented_sign": False}
           if spec.uses_viewpoint and side.viewpoint is None and side.faces is None else {})
       # `prepare` checked the cloud, keypoints, radius, seed and viewpoint: the cores that
       # `compute_frames` and `compute_descriptors` call after their checks, on the working clouds
       out = frames_checked(method, side.cloud, side.keypoints, prepared.radius, params=params,
-                           seed=prepared.seed, viewpoint=side.viewpoint, options=options)
+                           weights=description.weights, seed=prepared.seed, viewpoint=side.viewpoint, options=options)
       frames.append((np.asarray(out[0]), np.asarray(out[1])))
   with timer("descriptors"):
     for side, (f, v) in zip(prepared.sides, frames):

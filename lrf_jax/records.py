@@ -41,6 +41,19 @@ def canonical(value: Any) -> str:
   return json.dumps(value, sort_keys=True, default=lambda v: np.asarray(v).tolist())
 
 
+def weights_hash(weights: Any) -> str:
+  """What a record's key holds of the `weights` option: "" for a shipped kind ("objects",
+  "rooms", "streets": part of the version a record carries), the sha256 of a parameter file's
+  bytes for a path (a file retrained in place makes new records), "" where it cannot be read
+  (the run reports that)."""
+  if weights is None or weights in ("objects", "rooms", "streets"):
+    return ""
+  try:
+    return hashlib.sha256(Path(weights).read_bytes()).hexdigest()
+  except (OSError, TypeError):
+    return ""
+
+
 def content_key(*parts: str) -> str:
   """The sha256 (hex) of `parts` joined by "|": a record's key."""
   return hashlib.sha256("|".join(parts).encode()).hexdigest()

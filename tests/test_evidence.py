@@ -192,3 +192,34 @@ def test_the_needed_inliers_are_printed_in_full():
   assert reason.startswith("not sure: 1200002 consistent correspondences, chance gives 400000 "
                            "(needs 1200003); ")
   assert "(needs 21)" in decide(_evidence(n_inliers=9, chance_inliers=1, rival_inliers=6)).reason
+
+
+def test_an_init_is_kept_where_icp_slides_away_from_what_it_explains(demo, monkeypatch):
+  """ICP from an init that moves to a pose explaining fewer of the matched correspondences (a
+  slide along a floor and a wall) is undone: the init, measured unmoved, is the pose judged,
+  and `reason` says so; where ICP's pose explains at least as many, it is kept (the truth turned
+  by 3 deg comes back)."""
+  from lrf_jax.registration import from_init, pose_errors
+  from lrf_jax.registration.refine import refine as real_refine
+  truth = demo.transform
+
+  def sliding(prepared, start, icp_opts, timer):
+    out = real_refine(prepared, start, icp_opts, timer)
+    if icp_opts.icp_iterations == 0:
+      return out
+    slide = np.eye(4)
+    slide[:3, :3] = Rotation.from_rotvec(np.radians(12.0) * np.array([0.0, 0.0, 1.0])).as_matrix()
+    return out._replace(transform=slide @ out.transform)
+
+  monkeypatch.setattr(from_init, "refine", sliding)
+  ref = register(demo.model_points, demo.scene_points, mr=demo.mr, init=truth, **KW)
+  assert ref.reason.startswith("init kept as given: ICP from it explains "), ref.reason
+  np.testing.assert_allclose(ref.transform, truth, atol=1e-9)
+  monkeypatch.setattr(from_init, "refine", real_refine)
+  turn = np.eye(4)
+  turn[:3, :3] = Rotation.from_rotvec(np.radians(3.0) * np.array([0.6, 0.0, 0.8])).as_matrix()
+  centre = demo.model_points.mean(axis=0)
+  turn[:3, 3] = centre - turn[:3, :3] @ centre
+  back = register(demo.model_points, demo.scene_points, mr=demo.mr, init=truth @ turn, **KW)
+  assert back.reason.startswith("refined from init"), back.reason
+  assert pose_errors(back.transform, truth, demo.mr)[0] < 1.0

@@ -208,3 +208,18 @@ def test_streets_weights_lead_on_the_held_out_sweep_pair(data_root, tmp_path):
   got = {r["method"]: r["meancos"] for r in evaluate_pair(pair, runs, experiment="t")}
   assert got["streets"] > got["objects_ball"] + 0.05 > got["objects"] + 0.05, got
   assert got["streets"] > got["shot"], got
+
+
+def test_records_key_a_parameter_file_by_its_content(tmp_path):
+  """lrf-batch and multiway records: a weights file retrained in place is not read as the old
+  one's (its bytes are in the key); a shipped kind is keyed by its name (and the version)."""
+  from lrf_jax import records
+  from lrf_jax.batch import jobs
+  path = tmp_path / "w.msgpack"
+  shutil.copy(WEIGHTS_DIR / "lrf_net.msgpack", path)
+  first = jobs._key("register", ["a", "b"], {"weights": str(path)})
+  assert records.weights_hash(str(path)) and records.weights_hash("rooms") == ""
+  shutil.copy(WEIGHTS_DIR / "lrf_net_plus.msgpack", path)
+  assert jobs._key("register", ["a", "b"], {"weights": str(path)}) != first
+  assert (jobs._key("register", ["a", "b"], {"weights": "rooms"})
+          == records.content_key("register", "a", "b", records.canonical({"weights": "rooms"})))

@@ -184,6 +184,9 @@ def _size(path: str) -> int:
 
 
 def _key(kind: str, hashes: Iterable[str], options: dict[str, Any]) -> str:
+  weights = records.weights_hash(options.get("weights"))
+  if weights:  # a parameter file: its content, not only its path
+    options = {**options, "weights_sha256": weights}
   return records.content_key(kind, *hashes, records.canonical(options))
 
 

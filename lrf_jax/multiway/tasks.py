@@ -163,7 +163,9 @@ class PairRecords:
     self.folder = None if folder is None else Path(folder) / "pairs"
     self.common = records.canonical(dict(format=RECORD_VERSION, options=options.as_dict(),
                                          mr=float(mr).hex(), distance=float(distance).hex(),
-                                         params=records.params_hash(params)))
+                                         params=records.params_hash(params),
+                                         weights=records.weights_hash(
+                                             options.description.weights)))
     self.hashes = list(scan_hashes)
 
   def _path(self, i: int, j: int) -> Path:

@@ -54,7 +54,15 @@ def register_from_init(source: Any, target: Any, init: Any, opts: RegisterOption
                           np.zeros(0), np.zeros(0, bool), 0,
                           engine.Grid(prepared.sides[1].points, distance), distance)
   refined = refine(prepared, start, opts.icp, timer)
-  first = _judged(*passes, refined, pose, opts, timer, "high" if effort == "high" else effort)
+  with timer("hypotheses"), serial_blas():
+    hyps = stages.hypothesize(prepared, passes[1], passes[2], opts.hypotheses)
+  kept = "" if hyps is None else kept_init(prepared, passes[2], pose, refined.transform,
+                                           opts.hypotheses.inlier_mr, hyps.chance)
+  if kept:  # ICP slid away from what the init explains: the init itself, measured unmoved
+    refined = refine(prepared, start, dataclasses.replace(opts.icp, icp_iterations=0), timer)
+    refined = refined._replace(kept=kept)
+  first = _judged(*passes, refined, pose, opts, timer, "high" if effort == "high" else effort,
+                  hyps)
   if effort != "normal" or not escalates(first.reason_code):
     return first
   pooled = pooled_stages(source, target, opts, params, timer, first=prepared)
@@ -63,17 +71,50 @@ def register_from_init(source: Any, target: Any, init: Any, opts: RegisterOption
   return dataclasses.replace(again, reason=f"{again.reason} ({note})", escalated=True)
 
 
+def explained(prepared: stages.Prepared, matches: stages.Matches, pose: np.ndarray,
+              inlier_mr: float) -> int:
+  """How many of the matched keypoint pairs `pose` brings within `inlier_mr` mr of each other
+  (the hypotheses' inlier distance): the correspondences a pose explains."""
+  s, t = prepared.sides
+  a = s.points[s.keypoints[matches.source]] @ pose[:3, :3].T + pose[:3, 3]
+  b = t.points[t.keypoints[matches.target]]
+  return int(np.sum(np.linalg.norm(a - b, axis=1) <= inlier_mr * prepared.mr))
+
+
+def kept_init(prepared: stages.Prepared, matches: stages.Matches, init: np.ndarray,
+              refined: np.ndarray, inlier_mr: float, chance: int) -> str:
+  """"" where ICP's pose from an init explains at least as many correspondences as the init
+  (`explained`), or where the init explains no more than `chance` (the most a hypothesis
+  explains on shuffled correspondences: then they say nothing of it); else the note saying
+  that the init is kept as given.
+
+  An init is independent of the correspondences, so they can judge ICP's move: on an overlap
+  that constrains the pose in every direction ICP keeps or gains what the init explains; where
+  it does not (a floor and a wall: ICP slides along them, 14-15 deg from the truth on 3DMatch
+  crops), ICP's pose explains fewer of them, and the init stays. (The pipeline's own coarse pose
+  is fitted to those correspondences, so this test would favour it: it applies to inits only.)
+  """
+  before = explained(prepared, matches, init, inlier_mr)
+  after = explained(prepared, matches, refined, inlier_mr)
+  if after >= before or before <= chance:
+    return ""
+  return (f"init kept as given: ICP from it explains {after} of the correspondences, the init "
+          f"{before}")
+
+
 def _judged(prepared: stages.Prepared, features: stages.Features, matches: stages.Matches,
             refined: Refined, pose: np.ndarray, opts: RegisterOptions, timer: stages.StageTimer,
-            gathered: str) -> Registration:
+            gathered: str, hyps: Any = False) -> Registration:
   """The verdict on the refined pose from the evidence of one pass or the pooled seeds
-  (`gathered`: "fast"/"normal" one pass, "high" pooled), and the `Registration`."""
+  (`gathered`: "fast"/"normal" one pass, "high" pooled), and the `Registration`. `hyps`: this
+  evidence's `stages.hypothesize` where computed already (False: computed here)."""
   s, t = prepared.sides
   correspondences = stages.input_indices(prepared, s.keypoints[matches.source],
                                          t.keypoints[matches.target])
   n = len(matches.source)
-  with timer("hypotheses"), serial_blas():
-    hyps = stages.hypothesize(prepared, features, matches, opts.hypotheses)
+  if hyps is False:
+    with timer("hypotheses"), serial_blas():
+      hyps = stages.hypothesize(prepared, features, matches, opts.hypotheses)
   mask, chance, rival, ev_inliers = np.zeros(n, bool), 0, 0, 0
   if hyps is None:
     decision = Verdict(False, f"not sure: no two of the {n} correspondences agree, so nothing "
@@ -95,6 +136,7 @@ def _judged(prepared: stages.Prepared, features: stages.Features, matches: stage
                       rmse=refined.rmse, mr=float(prepared.mr), seconds=timer.total(),
                       timings=dict(timer.seconds), success=decision.success,
                       inlier_ratio=int(mask.sum()) / max(n, 1), chance_inliers=chance,
-                      reason=f"refined from init: {decision.reason}", overlap=refined.fitness,
+                      reason=f"{refined.kept or 'refined from init'}: {decision.reason}",
+                      overlap=refined.fitness,
                       rival_inliers=rival, reason_code=decision.code,
                       evidence_inliers=ev_inliers, degeneracy=refined.degeneracy)

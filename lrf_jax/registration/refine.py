@@ -182,6 +182,7 @@ class Refined(NamedTuple):
   degeneracy: float
   free_direction: Any
   icp_points: np.ndarray
+  kept: str = ""  # register(init=): the note of `from_init.kept_init` where the init was kept
 
 
 def refine(prepared: Prepared, verified: Verified, icp_opts: IcpOptions, timer: StageTimer

@@ -90,8 +90,8 @@ def kept_init(prepared: stages.Prepared, matches: stages.Matches, init: np.ndarr
 
   An init is independent of the correspondences, so they can judge ICP's move: on an overlap
   that constrains the pose in every direction ICP keeps or gains what the init explains; where
-  it does not (a floor and a wall: ICP slides along them, 14-15 deg from the truth on 3DMatch
-  crops), ICP's pose explains fewer of them, and the init stays. (The pipeline's own coarse pose
+  it does not (a floor and a wall, along which ICP slides), ICP's pose explains fewer of them,
+  and the init stays. (The pipeline's own coarse pose
   is fitted to those correspondences, so this test would favour it: it applies to inits only.)
   """
   before = explained(prepared, matches, init, inlier_mr)

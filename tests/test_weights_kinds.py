@@ -159,6 +159,9 @@ def test_register_reads_the_weights_option(tmp_path):
   with pytest.raises(ValueError, match=r"weights: 'nowhere' is not one of"):
     RegisterOptions(weights="nowhere")
   assert RegisterOptions(method="shot").weights == "objects"
+  with pytest.raises(ValueError, match=r"weights: 'rooms' given with params"):
+    lrf_jax.register(pair.model_points, pair.scene_points, params=load_params(path),
+                     weights="rooms", **kw)
 
 
 @pytest.mark.parametrize("kind", ["rooms", "streets"])

@@ -154,7 +154,7 @@ def register(source: Any, target: Any, options: RegisterOptions | None = None, *
     ValueError: a cloud that is not a non-empty (n, 3) array of finite floats, fewer than 10
       points, a non-positive count or distance, a seed that is not a non-negative integer, or
       an unknown estimator/method/descriptor/keypoints, an `init` that is not a (4, 4) rigid
-      transform, or a ratio outside (0, 1].
+      transform, a ratio outside (0, 1], or `weights` given with `params`.
     FileNotFoundError: a path that does not exist.
 
   Example:
@@ -162,6 +162,9 @@ def register(source: Any, target: Any, options: RegisterOptions | None = None, *
     >>> aligned = points_a @ reg.transform[:3, :3].T + reg.transform[:3, 3]
   """
   opts = resolve(options, overrides)
+  if params is not None and opts.description.weights != "objects":
+    raise ValueError(f"weights: {opts.description.weights!r} given with params; expected one of "
+                     "the two (params are the weights themselves)")
   timer = stages.StageTimer()
   if init is not None:
     return register_from_init(source, target, init, opts, params, timer)

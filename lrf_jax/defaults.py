@@ -7,3 +7,6 @@ DEFAULT_METHOD = "lrf_net_plus"
 # The support radius of the frames and descriptors, in mesh resolutions, where a caller gives
 # none (`register`, the command lines, the experiments): the paper's.
 RADIUS_MR = 15.0
+# What `weights=` names besides a parameter file's path: the kind of data a shipped file was
+# trained on ("objects": each learned method's own file; `lrf_jax.frames.weights.weights_file`).
+WEIGHTS_KINDS = ("objects", "rooms", "streets")

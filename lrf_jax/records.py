@@ -19,6 +19,7 @@ from typing import Any
 
 import numpy as np
 
+from lrf_jax.defaults import WEIGHTS_KINDS
 from lrf_jax.io import atomic
 
 __all__ = ["FolderInUse", "JobLock", "array_hash", "canonical", "content_key", "is_current",
@@ -46,7 +47,7 @@ def weights_hash(weights: Any) -> str:
   "rooms", "streets": part of the version a record carries), the sha256 of a parameter file's
   bytes for a path (a file retrained in place makes new records), "" where it cannot be read
   (the run reports that)."""
-  if weights is None or weights in ("objects", "rooms", "streets"):
+  if weights is None or weights in WEIGHTS_KINDS:
     return ""
   try:
     return hashlib.sha256(Path(weights).read_bytes()).hexdigest()

@@ -117,12 +117,9 @@ class FrameOptions:
     if self.method not in METHODS:
       return f"--method: unknown method {self.method!r}; expected one of {sorted(METHODS)}"
     if self.weights != "objects":
-      from lrf_jax.frames.weights import weights_file
-      if not METHODS[self.method].needs_params:
-        return (f"--weights: method {self.method!r} is hand-crafted and reads no weights; "
-                "expected objects (the default) or a learned --method")
+      from lrf_jax.frames.weights import learned_weights_file
       try:
-        weights_file(METHODS[self.method].weights, self.weights)
+        learned_weights_file(METHODS[self.method], self.weights)
       except ValueError as e:
         return f"--{e}"
     if self.descriptor is not None and self.descriptor not in DESCRIPTORS:
@@ -317,9 +314,9 @@ def weights_label(spec: Any, weights: str) -> str:
   shipped file's stem, e.g. "lrf_net_plus_streets", or the path given), "" for a hand-crafted one."""
   if not spec.needs_params:
     return ""
-  from lrf_jax.frames.weights import WEIGHTS_DIR, weights_file
+  from lrf_jax.frames.weights import is_shipped, weights_file
   path = weights_file(spec.weights, weights)
-  return path.stem if path.resolve().parent == WEIGHTS_DIR else str(weights)
+  return path.stem if is_shipped(path) else str(weights)
 
 
 def frames_of_scan(request: FrameOptions) -> tuple[dict, Any, Any]:

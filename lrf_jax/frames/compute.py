@@ -19,7 +19,7 @@ from lrf_jax.frames.normals_rule import method_normals, orients, prepare_extra
 from lrf_jax.frames.patch_frames import cached_weight_table, check_options, patch_frames_checked
 from lrf_jax.geometry.cloud import CheckedCloud, as_cloud
 from lrf_jax.geometry.sampling import thin_cloud, thinning_voxel_size
-from lrf_jax.frames.weights import weights_file, weights_options, weights_params
+from lrf_jax.frames.weights import learned_weights_file, weights_options, weights_params
 from lrf_jax.checks import (validate_choice, validate_keypoints, validate_radius, validate_seed,
                             validate_viewpoint, validate_voxel_size)
 from lrf_jax.search.neighborhoods import Patches, SearchIndex, build_patches, unit_scaled
@@ -139,13 +139,11 @@ def _weights_options(spec: Any, params: Any, weights: str | None) -> dict[str, A
   that `weights_file` refuses."""
   if weights is None:
     return {}
-  if not spec.needs_params:
-    raise ValueError(f"weights: method {spec.name!r} is hand-crafted and reads no weights; "
-                     f"learned methods: {sorted(n for n, s in METHODS.items() if s.needs_params)}")
+  path = learned_weights_file(spec, weights)
   if params is not None:
     raise ValueError("weights: given with params; expected one of the two (params are the "
                      "weights themselves)")
-  return weights_options(weights_file(spec.weights, weights))
+  return weights_options(path)
 
 
 def compute_frames(

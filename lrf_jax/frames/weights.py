@@ -31,6 +31,7 @@ from lrf_jax._jax import is_jax_numpy, jax, jnp
 import msgpack
 import numpy as np
 
+from lrf_jax.defaults import WEIGHTS_KINDS
 from lrf_jax.extras import missing_extra
 
 Params = Any
@@ -38,10 +39,33 @@ Params = Any
 WEIGHTS_DIR = Path(__file__).resolve().parents[1] / "weights"  # lrf_jax/weights
 DEFAULT_WEIGHTS = WEIGHTS_DIR / "lrf_net.msgpack"
 
-# What `weights=` names: the kind of data a shipped file was trained on. "objects" is each learned
-# method's own file (`MethodSpec.weights`); "rooms" and "streets" are `<that file>_<kind>`,
-# shipped for lrf_net_plus only.
-WEIGHTS_KINDS = ("objects", "rooms", "streets")
+
+
+def shipped_file(method_weights: str, kind: str) -> Path:
+  """Where the shipped weights of `kind` (a `WEIGHTS_KINDS` entry) live for a method whose own
+  file is `method_weights`: "objects" is that file, "rooms" and "streets" are
+  `<method_weights>_<kind>.msgpack` (shipped for lrf_net_plus only). It may not exist."""
+  return WEIGHTS_DIR / (f"{method_weights}.msgpack" if kind == "objects"
+                        else f"{method_weights}_{kind}.msgpack")
+
+
+def is_shipped(path: str | Path) -> bool:
+  """Whether `path` is one of the package's own parameter files (read once per process)."""
+  return Path(path).resolve().parent == WEIGHTS_DIR
+
+
+def learned_weights_file(spec: Any, weights: str | Path) -> Path:
+  """`weights_file` for the method `spec` (a `MethodSpec`), which must be a learned one.
+
+  Raises:
+    ValueError: a hand-crafted method (it reads no weights; the message lists the learned
+      ones), and as `weights_file`.
+  """
+  if not spec.needs_params:
+    from lrf_jax.frames.spec import METHODS  # pylint: disable=import-outside-toplevel
+    raise ValueError(f"weights: method {spec.name!r} is hand-crafted and reads no weights; "
+                     f"learned methods: {sorted(n for n, s in METHODS.items() if s.needs_params)}")
+  return weights_file(spec.weights, weights)
 
 
 def weights_file(method_weights: str, weights: str | Path) -> Path:
@@ -63,12 +87,9 @@ def weights_file(method_weights: str, weights: str | Path) -> Path:
       this method (the message lists the kinds that are).
   """
   if isinstance(weights, str) and weights in WEIGHTS_KINDS:
-    path = WEIGHTS_DIR / (f"{method_weights}.msgpack" if weights == "objects"
-                          else f"{method_weights}_{weights}.msgpack")
+    path = shipped_file(method_weights, weights)
     if not path.exists():
-      shipped = [k for k in WEIGHTS_KINDS if (WEIGHTS_DIR / (
-          f"{method_weights}.msgpack" if k == "objects"
-          else f"{method_weights}_{k}.msgpack")).exists()]
+      shipped = [k for k in WEIGHTS_KINDS if shipped_file(method_weights, k).exists()]
       raise ValueError(f"weights: no {weights!r} weights are shipped for {method_weights} "
                        f"(expected one of {shipped} or a parameter file's path)")
     return path
@@ -89,7 +110,7 @@ def weights_params(method_weights: str, weights: str | Path = "objects", *,
   kernels (`host`), else arrays on JAX's default device. Raises as `weights_file` and
   `load_params` do."""
   path = weights_file(method_weights, weights)
-  if path.resolve().parent == WEIGHTS_DIR:
+  if is_shipped(path):
     return default_params_numpy(path.stem) if host else default_params(path.stem)
   return load_params_numpy(path) if host else load_params(path)
 

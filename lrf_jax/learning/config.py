@@ -243,7 +243,8 @@ class TrainConfig:
 
 
 def is_paper_model_fields(z_mode: str, x_mode: str) -> bool:
-  """True when these fields give plain WeightNet parameters (`train_step.is_paper_model`)."""
+  """True when these fields give plain WeightNet parameters (`lrf_net_frames`; the rule of
+  `train_step.is_paper_model`)."""
   return z_mode == "normal" and x_mode in ("sum", "max", "softmax")
 
 

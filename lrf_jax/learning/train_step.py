@@ -24,7 +24,7 @@ except ImportError as e:  # the [train] extra
   raise missing_extra(e.name, "train", "training (lrf_jax.learning.train_step)") from e
 
 from lrf_jax.learning.batches import Batch
-from lrf_jax.learning.config import TrainConfig
+from lrf_jax.learning.config import TrainConfig, is_paper_model_fields
 from lrf_jax.frames.ablation import variant_frames
 from lrf_jax.frames.lrf_net import lrf_net_frames
 from lrf_jax.frames.weights import load_params_numpy, weights_file
@@ -55,7 +55,7 @@ def make_optimizer(schedule: optax.Schedule) -> optax.GradientTransformation:
 
 def is_paper_model(config: TrainConfig) -> bool:
   """True when the parameters are plain WeightNet parameters (`lrf_net_frames`)."""
-  return config.z_mode == "normal" and config.x_mode in ("sum", "max", "softmax")
+  return is_paper_model_fields(config.z_mode, config.x_mode)
 
 
 def frames_fn(config: TrainConfig):

@@ -341,11 +341,8 @@ def _check_registered(values: dict[str, Any]) -> None:
                      f"{sorted(METHODS)}")
   weights = values.get("weights", "objects")
   if weights != "objects":
-    from lrf_jax.frames.weights import weights_file
-    if not METHODS[method].needs_params:
-      raise ValueError(f"weights: method {method!r} is hand-crafted and reads no weights; "
-                       f"expected 'objects' (the default) or a learned method")
-    weights_file(METHODS[method].weights, weights)  # a kind shipped for it, or a file
+    from lrf_jax.frames.weights import learned_weights_file
+    learned_weights_file(METHODS[method], weights)  # a kind shipped for it, or a file
   descriptor = values.get("descriptor", DEFAULT_DESCRIPTOR)
   if not isinstance(descriptor, str) or descriptor not in DESCRIPTORS:
     raise ValueError(f"descriptor: unknown descriptor {descriptor!r}; expected one of "

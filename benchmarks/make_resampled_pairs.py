@@ -16,7 +16,8 @@ one `gt.log` record per (scan, copy). A copy is what another scan of the same su
 
 `--pairs-from DIR` also copies a scan set's real pairs (its scans and `gt.log` records) in,
 renumbered. Train with `scan_match_mr=1.0` (the copies' points lie within a voxel of the
-originals', not within 0.5 mr). Seeded: the same files on every run.
+originals', not within 0.5 mr). Seeded: the same files on every run. Every file goes to a
+temporary name and is renamed into place; an OUT_DIR that holds an input is refused.
 """
 
 from __future__ import annotations
@@ -70,6 +71,10 @@ def main(argv: list[str] | None = None) -> int:
   ap.add_argument("--seed", type=int, default=0)
   args = ap.parse_args(argv)
   out = Path(args.out)
+  inputs = [Path(s) for s in args.scans] + ([Path(args.pairs_from)] if args.pairs_from else [])
+  for p in inputs:  # its cloud_bin_<k>.ply and gt.log would overwrite them
+    if out.resolve() == p.resolve() or out.resolve() in p.resolve().parents:
+      ap.error(f"OUT_DIR {out}: holds the input {p}; write the scan set elsewhere")
   out.mkdir(parents=True, exist_ok=True)
   rng = np.random.default_rng(args.seed)
   records, k = [], 0

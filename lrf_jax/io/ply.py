@@ -24,6 +24,7 @@ from typing import Any
 import numpy as np
 import plyfile
 
+from lrf_jax.io.atomic import atomic_path
 from lrf_jax.io.cloud import Cloud
 from lrf_jax.io.validation import (bad_input, check_normals, check_points, require_file,
                                    unreadable)
@@ -167,7 +168,8 @@ def _parse_header(lines: list[str], p: Path) -> plyfile.PlyData:
 def write_ply(path: str | os.PathLike, points: np.ndarray, faces: np.ndarray | None = None,
               normals: np.ndarray | None = None, binary: bool = True, *,
               dtype: str = "float32", comments: tuple[str, ...] = ()) -> Path:
-  """Writes points (and optionally triangles and normals) as a PLY file.
+  """Writes points (and optionally triangles and normals) as a PLY file (to a temporary name
+  beside `path`, renamed into place: `lrf_jax.io.atomic.atomic_path`).
 
   Args:
     path: destination file (parent folders must exist).
@@ -208,8 +210,9 @@ def write_ply(path: str | os.PathLike, points: np.ndarray, faces: np.ndarray | N
                                                 len_types={"vertex_indices": "u1"},
                                                 val_types={"vertex_indices": "i4"}))
   out = Path(path)
-  plyfile.PlyData(elements, text=not binary, byte_order="<",
-                  comments=list(comments)).write(str(out))
+  with atomic_path(out) as tmp:  # a temporary name beside it, renamed into place
+    plyfile.PlyData(elements, text=not binary, byte_order="<",
+                    comments=list(comments)).write(str(tmp))
   return out
 
 

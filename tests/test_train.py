@@ -363,6 +363,20 @@ def test_checkpoint_with_flipped_bytes_is_set_aside_and_named(tmp_path, smoke, c
   assert max(float(np.abs(x).max()) for x in jax.tree.leaves(params)) < 1e3
 
 
+def test_checkpoint_whose_arrays_do_not_decode_is_set_aside_and_named(tmp_path, smoke):
+  """Corrupt bytes that break the array file's compression (not only its numbers) are the same
+  corrupt checkpoint: `restore_params` raises ChecksumError naming the step."""
+  cfg = config_lib.replace(smoke, epochs=2)
+  train_lib.train_and_evaluate(cfg, tmp_path, progress=False, stop_after_steps=12)
+  for path in (tmp_path / "checkpoints" / "12" / "state").rglob("*"):
+    if path.is_file() and path.stat().st_size > 4096 and path.parent.name == "d":
+      data = bytearray(path.read_bytes())
+      data[len(data) // 2:] = bytes(len(data) - len(data) // 2)  # the second half zeroed
+      path.write_bytes(bytes(data))
+  with pytest.raises(checkpoints.ChecksumError, match=r"checkpoints/12\b.*checksum"):
+    checkpoints.restore_params(tmp_path, "latest")
+
+
 def test_state_checksum_sees_one_changed_element(smoke):
   state = jax.tree.map(np.array, checkpoints._state_target(train_step.create_state(smoke)))
   before = checkpoints.state_checksum(state)

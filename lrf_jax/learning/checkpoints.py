@@ -94,12 +94,19 @@ def _restore_state(mngr: ocp.CheckpointManager, step: int, target: dict[str, Any
   """The state of checkpoint `step`, verified against its saved checksum (when it has one).
 
   Raises:
-    ChecksumError: the arrays read differ from those saved, or the checksum saved with them is
-      missing or unreadable (the message names the step).
+    ChecksumError: the arrays read differ from those saved, or do not decode at all (a corrupt
+      compressed chunk: tensorstore's ValueError) where a checksum was saved with them, or the
+      checksum is missing or unreadable (the message names the step).
   """
   expected = _saved_checksum(mngr, step)
-  restored = mngr.restore(step, args=ocp.args.Composite(
-      state=ocp.args.StandardRestore(target)))["state"]
+  try:
+    restored = mngr.restore(step, args=ocp.args.Composite(
+        state=ocp.args.StandardRestore(target)))["state"]
+  except ValueError as e:
+    if expected is None:
+      raise
+    raise ChecksumError(f"checkpoints/{step}: its arrays do not decode, so they cannot match the "
+                        f"checksum saved with them (a corrupt file: {str(e)[:120]})") from None
   if expected is not None and expected != state_checksum(restored):
     raise ChecksumError(f"checkpoints/{step}: its arrays differ from the checksum saved with "
                         "them (a corrupt file)")

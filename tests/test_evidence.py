@@ -12,7 +12,7 @@ from scipy.spatial.transform import Rotation
 from lrf_jax import datasets
 from lrf_jax.registration import register
 from lrf_jax.registration.evidence import (REASON_CODES, Evidence, constraint_spectrum, decide,
-                                           verdict)
+                                           poses_apart, verdict)
 
 KW = dict(n_keypoints=800, n_correspondences=200)
 
@@ -93,7 +93,59 @@ def test_a_wrong_init_is_never_claimed(demo, degrees):
   np.testing.assert_allclose(ref.coarse_transform, init, atol=1e-12)
   assert not ref.success or err < 2.0, (ref.reason, err)
   if err > 10.0:  # ICP kept a wrong pose: the right one, among the graph's, is its rival
-    assert ref.reason_code in ("rival", "chance", "low_overlap", "degenerate"), ref.reason
+    assert ref.reason_code in ("rival", "chance", "low_overlap", "degenerate", "moved"), ref.reason
+
+
+@pytest.mark.parametrize("degrees", [20.0, 45.0])
+def test_a_wrong_init_held_unmoved_is_never_claimed(demo, degrees):
+  """With icp_iterations=0 the init is the pose returned. The evidence refits it on its
+  inliers among the correspondences: a few true ones lie near the turn's axis, and the refit
+  lands on the truth with all of them. Those inliers are the truth's, not the init's: the
+  verdict is "moved" (before it claimed the wrong init with the truth's support)."""
+  from lrf_jax.registration import pose_errors
+  turn = np.eye(4)
+  turn[:3, :3] = Rotation.from_rotvec(np.radians(degrees) * np.array([0.6, 0.0, 0.8])).as_matrix()
+  centre = demo.scene_points.mean(axis=0)
+  turn[:3, 3] = centre - turn[:3, :3] @ centre
+  init = turn @ demo.transform
+  ref = register(demo.model_points, demo.scene_points, mr=demo.mr, init=init, icp_iterations=0,
+                 **KW)
+  np.testing.assert_allclose(ref.transform, init, atol=1e-12)
+  assert pose_errors(ref.transform, demo.transform, demo.mr)[0] > 10.0
+  assert not ref.success, ref.reason
+  # the truth held unmoved is still claimed
+  same = register(demo.model_points, demo.scene_points, mr=demo.mr, init=demo.transform,
+                  icp_iterations=0, **KW)
+  assert same.success and same.reason_code == "claimed", same.reason
+
+
+def test_poses_apart_measures_the_turn_and_the_shift_at_the_point():
+  rng = np.random.default_rng(3)
+  a = np.eye(4)
+  a[:3, :3] = Rotation.random(random_state=4).as_matrix()
+  a[:3, 3] = rng.normal(size=3)
+  point = rng.normal(size=3)
+  assert poses_apart(a, a, point) == pytest.approx((0.0, 0.0), abs=1e-6)
+  turn = np.eye(4)  # 25 deg about an axis through the image of `point`: it stays put
+  turn[:3, :3] = Rotation.from_rotvec(np.radians(25.0) * np.array([0.0, 0.6, 0.8])).as_matrix()
+  image = a[:3, :3] @ point + a[:3, 3]
+  turn[:3, 3] = image - turn[:3, :3] @ image
+  assert poses_apart(turn @ a, a, point) == pytest.approx((25.0, 0.0), abs=1e-6)
+  shift = np.eye(4)
+  shift[:3, 3] = [0.3, -0.4, 0.0]
+  assert poses_apart(shift @ a, a, point) == pytest.approx((0.0, 0.5), abs=1e-6)
+
+
+def test_a_pose_distinct_from_the_one_its_inliers_support_is_not_claimed():
+  """The rule of rivals, applied to the pose returned: more than RIVAL_DEG degrees or the
+  support radius from the pose whose inliers were counted is another pose."""
+  from lrf_jax.registration.evidence import RIVAL_DEG
+  assert decide(_evidence(moved_deg=RIVAL_DEG - 0.5, moved_distance=0.2,
+                          distinct_distance=0.3)).code == "claimed"
+  d = decide(_evidence(moved_deg=RIVAL_DEG + 0.5))
+  assert (d.success, d.code) == (False, "moved") and "support a pose 10.5 deg" in d.reason
+  d = decide(_evidence(moved_distance=0.4, distinct_distance=0.3))
+  assert (d.success, d.code) == (False, "moved") and "0.4 from the one returned" in d.reason
 
 
 @pytest.mark.parametrize("options", [{"estimator": "lrf"}, {"estimator": "3point"},
@@ -223,3 +275,32 @@ def test_an_init_is_kept_where_icp_slides_away_from_what_it_explains(demo, monke
   back = register(demo.model_points, demo.scene_points, mr=demo.mr, init=truth @ turn, **KW)
   assert back.reason.startswith("refined from init"), back.reason
   assert pose_errors(back.transform, truth, demo.mr)[0] < 1.0
+
+
+def test_an_init_is_kept_where_icp_moves_to_a_distinct_pose_that_explains_no_more():
+  """`kept_init` on correspondences that lie on one axis (a rotation about it moves none of
+  them): ICP's turn about that axis explains as many as the init; 15 deg is a distinct pose
+  (over RIVAL_DEG), so the init stays; 5 deg within the support radius is the same pose, and
+  ICP's pose stands; correspondences explaining no more than chance judge nothing."""
+  from types import SimpleNamespace
+  from lrf_jax.registration.from_init import kept_init
+  rng = np.random.default_rng(0)
+  axis = np.c_[np.zeros(12), np.zeros(12), np.linspace(-1.0, 1.0, 12)]
+  off = rng.uniform(-1.0, 1.0, size=(12, 3)) + np.array([2.0, 0.0, 0.0])
+  pts = np.concatenate([axis, off])
+  side = SimpleNamespace(points=pts, keypoints=np.arange(len(pts)))
+  prepared = SimpleNamespace(sides=(side, side), mr=0.01, radius=0.5)
+  # the axis points match themselves; the others match a shuffled partner (wrong matches)
+  matches = SimpleNamespace(source=np.arange(len(pts)),
+                            target=np.r_[np.arange(12), 12 + np.roll(np.arange(12), 1)])
+
+  def about_z(deg):
+    t = np.eye(4)
+    t[:3, :3] = Rotation.from_rotvec(np.radians(deg) * np.array([0.0, 0.0, 1.0])).as_matrix()
+    return t
+
+  note = kept_init(prepared, matches, np.eye(4), about_z(15.0), 1.0, chance=3)
+  assert note.startswith("init kept as given: ICP from it moved 15.0 deg"), note
+  assert "explains 12 of the correspondences, as many as the init" in note
+  assert kept_init(prepared, matches, np.eye(4), about_z(5.0), 1.0, chance=3) == ""
+  assert kept_init(prepared, matches, np.eye(4), about_z(15.0), 1.0, chance=12) == ""

@@ -49,6 +49,8 @@ REASON_CODES = {
                   "an axis of symmetry)",
     "chance": "not sure: chance alignment of the same correspondences reaches nearly as many",
     "rival": "not sure: a distinct pose explains nearly as many other correspondences",
+    "moved": "not sure: the pose returned is distinct from the pose the correspondences support "
+             "(ICP moved it away, or an init they do not support)",
     "no_hypothesis": "not sure: no two correspondences agree, so there was no hypothesis",
 }
 
@@ -72,6 +74,13 @@ class Evidence(NamedTuple):
     (`effort="normal"` or `"high"` may follow), "normal" one pass of `register_scans` (`"high"`
     may follow), "high" the pooled seeds, or a pass the pooled one follows (nothing).
   from_init: the pose was refined from `register`'s `init`, not chosen among the hypotheses.
+  moved_deg: the rotation angle (degrees) between the pose returned and the pose whose
+    inliers `n_inliers` counts (the winner refitted on its inliers; from an init, the returned
+    pose refitted so).
+  moved_distance: how far apart the two put the evidence correspondences' source centroid
+    (cloud units).
+  distinct_distance: the distance beyond which two poses are distinct (the support radius, as
+    for rivals; inf: not measured).
   """
 
   n_inliers: int
@@ -84,6 +93,9 @@ class Evidence(NamedTuple):
   free_direction: str = ""
   effort: str = "normal"
   from_init: bool = False
+  moved_deg: float = 0.0
+  moved_distance: float = 0.0
+  distinct_distance: float = float("inf")
 
 
 class Verdict(NamedTuple):
@@ -144,6 +156,22 @@ def constraint_spectrum(points: np.ndarray, normals: np.ndarray) -> tuple[float,
   return float(max(w[0], 0.0) / w[-1]), words
 
 
+def poses_apart(a: np.ndarray, b: np.ndarray, point: np.ndarray) -> tuple[float, float]:
+  """How far apart two poses are, as the rival test measures it: the angle of a's rotation
+  relative to b's (degrees) and the distance between where they put `point` (cloud units).
+
+  Args:
+    a, b: (4, 4) rigid transforms.
+    point: (3,) a point of the source (the evidence correspondences' centroid).
+  """
+  a = np.asarray(a, np.float64)
+  b = np.asarray(b, np.float64)
+  p = np.asarray(point, np.float64)
+  cos = (np.trace(a[:3, :3].T @ b[:3, :3]) - 1.0) / 2.0
+  deg = float(np.degrees(np.arccos(np.clip(cos, -1.0, 1.0))))
+  return deg, float(np.linalg.norm((a[:3, :3] - b[:3, :3]) @ p + a[:3, 3] - b[:3, 3]))
+
+
 def exact_number(value: float) -> str:
   """`value` in full: an integer-valued number without a decimal point or an exponent
   ("1200003"), any other its shortest exact form (`repr`)."""
@@ -177,7 +205,9 @@ def decide(evidence: Evidence) -> Verdict:
 
   In order: "low_overlap" (ICP pairs under VERDICT_GRAPH_FITNESS of the source),
   "degenerate" (the overlap leaves a motion free, `constraint_spectrum` under
-  DEGENERATE_RATIO), then "claimed" when the inliers reach VERDICT_GRAPH_FACTOR x the larger of
+  DEGENERATE_RATIO), "moved" (the pose returned and the pose the inliers were counted at are
+  distinct poses, as a rival is distinct: more than RIVAL_DEG degrees or the support radius
+  apart; the support is then another pose's), then "claimed" when the inliers reach VERDICT_GRAPH_FACTOR x the larger of
   chance and the best distinct pose + VERDICT_GRAPH_MARGIN, else "rival" or "chance" (whichever
   is larger; "rival" on a tie). The same rule for every estimator.
   """
@@ -193,6 +223,11 @@ def decide(evidence: Evidence) -> Verdict:
     return Verdict(False, f"not sure: the overlap leaves a motion free{free}; its weakest "
                           f"direction holds {shown} of the strongest's (needs {needed})",
                    "degenerate")
+  if e.moved_deg > RIVAL_DEG or e.moved_distance > e.distinct_distance:
+    return Verdict(False, f"not sure: the {e.n_inliers} consistent correspondences support a pose "
+                          f"{e.moved_deg:.1f} deg and {e.moved_distance:.3g} from the one returned "
+                          f"(distinct beyond {RIVAL_DEG:g} deg or {e.distinct_distance:.3g}), which "
+                          "they do not support", "moved")
   level = max(e.chance_inliers, e.rival_inliers)
   need = VERDICT_GRAPH_FACTOR * level + VERDICT_GRAPH_MARGIN
   if e.n_inliers >= need:

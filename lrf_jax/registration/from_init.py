@@ -20,7 +20,7 @@ import numpy as np
 from lrf_jax.registration import stages
 from lrf_jax.registration.effort import escalates, one_pass, pooled_stages, tried
 from lrf_jax.registration.estimators import finish_result
-from lrf_jax.registration.evidence import Evidence, Verdict, decide
+from lrf_jax.registration.evidence import RIVAL_DEG, Evidence, Verdict, decide, poses_apart
 from lrf_jax.registration.options import RegisterOptions
 from lrf_jax.registration.refine import Refined, check_init, refine
 from lrf_jax.registration.result import Registration
@@ -83,23 +83,30 @@ def explained(prepared: stages.Prepared, matches: stages.Matches, pose: np.ndarr
 
 def kept_init(prepared: stages.Prepared, matches: stages.Matches, init: np.ndarray,
               refined: np.ndarray, inlier_mr: float, chance: int) -> str:
-  """"" where ICP's pose from an init explains at least as many correspondences as the init
-  (`explained`), or where the init explains no more than `chance` (the most a hypothesis
-  explains on shuffled correspondences: then they say nothing of it); else the note saying
-  that the init is kept as given.
+  """The note saying that the init is kept as given, or "" where ICP's pose stands.
 
   An init is independent of the correspondences, so they can judge ICP's move: on an overlap
-  that constrains the pose in every direction ICP keeps or gains what the init explains; where
-  it does not (a floor and a wall, along which ICP slides), ICP's pose explains fewer of them,
-  and the init stays. (The pipeline's own coarse pose
-  is fitted to those correspondences, so this test would favour it: it applies to inits only.)
+  that constrains the pose in every direction ICP keeps or gains what the init explains
+  (`explained`); where it does not (a floor and a wall, along which ICP slides), ICP's pose
+  explains fewer of them, or moves to a distinct pose (as a rival is distinct: more than
+  `RIVAL_DEG` degrees or the support radius away, `evidence.poses_apart` at the source
+  centroid) that explains no more of them, and the init stays. Where the init explains no more
+  than `chance` (the most a hypothesis explains on shuffled correspondences) they say nothing of
+  it, and ICP's pose stands. (The pipeline's own coarse pose is fitted to those correspondences,
+  so this test would favour it: it applies to inits only.)
   """
   before = explained(prepared, matches, init, inlier_mr)
   after = explained(prepared, matches, refined, inlier_mr)
-  if after >= before or before <= chance:
+  if before <= chance or after > before:
     return ""
-  return (f"init kept as given: ICP from it explains {after} of the correspondences, the init "
-          f"{before}")
+  if after < before:
+    return (f"init kept as given: ICP from it explains {after} of the correspondences, the "
+            f"init {before}")
+  deg, distance = poses_apart(refined, init, prepared.sides[0].points.mean(axis=0))
+  if deg <= RIVAL_DEG and distance <= prepared.radius:
+    return ""
+  return (f"init kept as given: ICP from it moved {deg:.1f} deg and {distance:.3g} to a distinct "
+          f"pose that explains {after} of the correspondences, as many as the init")
 
 
 def _judged(prepared: stages.Prepared, features: stages.Features, matches: stages.Matches,
@@ -121,15 +128,19 @@ def _judged(prepared: stages.Prepared, features: stages.Features, matches: stage
                               "witnesses the pose refined from init", "no_hypothesis")
   else:
     with timer("verification"), serial_blas():
-      mask, ev_mask, rival = stages.judge_pose(prepared, hyps, refined.transform,
-                                               opts.hypotheses, opts.icp.icp_mr, matches.own)
+      mask, ev_mask, rival, refit = stages.judge_pose(prepared, hyps, refined.transform,
+                                                      opts.hypotheses, opts.icp.icp_mr,
+                                                      matches.own)
     chance, ev_inliers = hyps.chance, int(np.sum(ev_mask))
+    moved_deg, moved_distance = poses_apart(refined.transform, refit, hyps.evidence.cs)
     decision = decide(Evidence(n_inliers=ev_inliers, chance_inliers=chance, rival_inliers=rival,
                                fitness=refined.fitness, contrast=0.0,
                                estimator=opts.hypotheses.estimator,
                                degeneracy=refined.degeneracy,
                                free_direction=refined.free_direction, effort=gathered,
-                               from_init=True))
+                               from_init=True, moved_deg=moved_deg,
+                               moved_distance=moved_distance,
+                               distinct_distance=float(prepared.radius)))
   return Registration(transform=refined.transform, coarse_transform=pose, inliers=mask,
                       n_inliers=int(mask.sum()), correspondences=correspondences,
                       voxel_size=prepared.voxel_size, fitness=refined.fitness,

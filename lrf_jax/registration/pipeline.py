@@ -20,7 +20,7 @@ import numpy as np
 
 from lrf_jax.registration import stages
 from lrf_jax.registration.effort import escalates, one_pass, pooled_stages, tried
-from lrf_jax.registration.evidence import Evidence, decide, overlap_contrast
+from lrf_jax.registration.evidence import Evidence, decide, overlap_contrast, poses_apart
 from lrf_jax.registration.icp_host import icp
 from lrf_jax.registration.options import RegisterOptions, check_register_options, resolve
 from lrf_jax.registration.from_init import register_from_init
@@ -219,10 +219,14 @@ def _result(prepared: stages.Prepared, matches: stages.Matches, hyps: stages.Hyp
   """The verdict (`evidence.decide`) on the stages' results, and the `Registration`.
   `gathered`: the effort whose evidence it is ("high": pooled; `Evidence.effort`)."""
   contrast = overlap_contrast(verified.fits)
+  moved_deg, moved_distance = poses_apart(refined.transform, verified.coarse.transform,
+                                          hyps.evidence.cs)
   evidence = Evidence(n_inliers=int(np.sum(verified.evidence_mask)), chance_inliers=hyps.chance,
                       rival_inliers=verified.rival, fitness=refined.fitness, contrast=contrast,
                       estimator=opts.hypotheses.estimator, degeneracy=refined.degeneracy,
-                      free_direction=refined.free_direction, effort=gathered)
+                      free_direction=refined.free_direction, effort=gathered,
+                      moved_deg=moved_deg, moved_distance=moved_distance,
+                      distinct_distance=float(prepared.radius))
   decision = decide(evidence)
   coarse, n = verified.coarse, len(matches.source)
   return Registration(transform=refined.transform, coarse_transform=coarse.transform,

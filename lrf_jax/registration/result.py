@@ -51,7 +51,7 @@ class Registration:
       first input point).
     reason_code: what decided `success`, machine-readable (a key of
       `lrf_jax.registration.evidence.REASON_CODES`): "claimed" (the only code of a success),
-      "low_overlap", "degenerate", "chance", "rival", "no_hypothesis".
+      "low_overlap", "degenerate", "moved", "chance", "rival", "no_hypothesis".
     evidence_inliers: the winner's inliers among the evidence correspondences (the default
       matching's, `_evidence_matches`), the count the verdict compares with `chance_inliers`
       and `rival_inliers`; `n_inliers` when no option changed the matching.

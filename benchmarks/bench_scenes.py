@@ -23,9 +23,10 @@ into "tune" and "test") through
 
 With `--inits`, every case is registered again from its truth as a benchmark prints it (the
 rotation to 3 decimals, `published`), from the truth turned 3 deg and turned 30 deg
-(`turned`): the truth's init should be claimed wherever the default claims, the truth's and
-the 3 deg init should land within 5 deg and 3 % of the target's extent of the truth
-(`near_truth`), a turned one never be claimed at a wrong pose.
+(`turned`), and from the truth turned 20 deg held unmoved (`icp_iterations=0`): the truth's
+init should be claimed wherever the default claims, the truth's and the 3 deg init should land
+within 5 deg and 3 % of the target's extent of the truth (`near_truth`), a turned one never be
+claimed at a wrong pose.
 
 With `--hints`, every "not sure" of lrf_jax whose reason names a next step is run again with it,
 and the pairs each step then claims (right, wrong) are counted.
@@ -209,13 +210,15 @@ def near_truth(case: Case, transform: Any) -> bool:
 def run_inits(records: list[dict[str, Any]], cases: list[Case], lrf_kw: dict[str, Any],
               seed: int) -> dict[str, int]:
   """`register(..., init=)` on every case with the published truth (`published`), the truth
-  turned 3 deg and turned 30 deg (`turned`): how many pairs the default claims the truth's init
-  claims too, how many of the truth's and the 3 deg inits land near the truth (`near_truth`),
-  and how many turned inits are claimed at a wrong pose."""
+  turned 3 deg and turned 30 deg (`turned`), and the truth turned 20 deg held unmoved
+  (`icp_iterations=0`): how many pairs the default claims the truth's init claims too, how many
+  of the truth's and the 3 deg inits land near the truth (`near_truth`), and how many turned
+  inits are claimed at a wrong pose."""
   import warnings
   by_name = {c.name: c for c in cases}
   out = {"default_claimed": 0, "gt_claimed_of_those": 0, "gt_claimed": 0, "gt_right": 0,
          "gt_near": 0, "off3_near": 0, "off3_claimed_wrong": 0, "turned_claimed_wrong": 0,
+         "held20_claimed_wrong": 0,
          "turned_claimed_right": 0, "n": 0}
   for rec in records:
     case = by_name[rec["case"]]
@@ -225,6 +228,7 @@ def run_inits(records: list[dict[str, Any]], cases: list[Case], lrf_kw: dict[str
       gt = run_lrf(case, {**lrf_kw, "init": published(case.gt)}, seed)
       bad = run_lrf(case, {**lrf_kw, "init": turned(case, 30.0)}, seed)
       off3 = run_lrf(case, {**lrf_kw, "init": turned(case, 3.0)}, seed)
+      held = run_lrf(case, {**lrf_kw, "init": turned(case, 20.0), "icp_iterations": 0}, seed)
     claimed = bool(rec["lrf"].get("claimed"))
     out["default_claimed"] += int(claimed)
     out["gt_claimed_of_those"] += int(claimed and bool(gt["claimed"]))
@@ -234,6 +238,7 @@ def run_inits(records: list[dict[str, Any]], cases: list[Case], lrf_kw: dict[str
     out["off3_near"] += int(near_truth(case, off3.get("transform")))
     out["off3_claimed_wrong"] += int(bool(off3["claimed"]) and not off3["true"])
     out["turned_claimed_wrong"] += int(bool(bad["claimed"]) and not bad["true"])
+    out["held20_claimed_wrong"] += int(bool(held["claimed"]) and not held["true"])
     out["turned_claimed_right"] += int(bool(bad["claimed"]) and bad["true"])
   return out
 
@@ -459,7 +464,7 @@ def main(argv: list[str] | None = None) -> None:
                   help="also run KISS-Matcher with ICP (pip install kiss-matcher)")
   ap.add_argument("--inits", action="store_true",
                   help="also register every case from its truth (as published) and from the "
-                       "truth turned 30 deg, and count the claims")
+                       "truth turned 3, 30 and 20 deg (held unmoved), and count the claims")
   ap.add_argument("--hints", action="store_true",
                   help="run every 'not sure' again with the step its reason names, and count "
                        "what each step settles")

@@ -98,10 +98,9 @@ def test_a_wrong_init_is_never_claimed(demo, degrees):
 
 @pytest.mark.parametrize("degrees", [20.0, 45.0])
 def test_a_wrong_init_held_unmoved_is_never_claimed(demo, degrees):
-  """With icp_iterations=0 the init is the pose returned. The evidence refits it on its
-  inliers among the correspondences: a few true ones lie near the turn's axis, and the refit
-  lands on the truth with all of them. Those inliers are the truth's, not the init's: the
-  verdict is "moved" (before it claimed the wrong init with the truth's support)."""
+  """With icp_iterations=0 the init is the pose returned, and its support is counted at it. A
+  few true correspondences lie near the turn's axis: refitted on them (as it was), the pose
+  landed on the truth with all of its support, and the wrong init was claimed."""
   from lrf_jax.registration import pose_errors
   turn = np.eye(4)
   turn[:3, :3] = Rotation.from_rotvec(np.radians(degrees) * np.array([0.6, 0.0, 0.8])).as_matrix()

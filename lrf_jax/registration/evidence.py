@@ -49,8 +49,8 @@ REASON_CODES = {
                   "an axis of symmetry)",
     "chance": "not sure: chance alignment of the same correspondences reaches nearly as many",
     "rival": "not sure: a distinct pose explains nearly as many other correspondences",
-    "moved": "not sure: the pose returned is distinct from the pose the correspondences support "
-             "(ICP moved it away, or an init they do not support)",
+    "moved": "not sure: ICP moved the pose to a distinct one from the winner whose support was "
+             "counted",
     "no_hypothesis": "not sure: no two correspondences agree, so there was no hypothesis",
 }
 
@@ -75,8 +75,8 @@ class Evidence(NamedTuple):
     may follow), "high" the pooled seeds, or a pass the pooled one follows (nothing).
   from_init: the pose was refined from `register`'s `init`, not chosen among the hypotheses.
   moved_deg: the rotation angle (degrees) between the pose returned and the pose whose
-    inliers `n_inliers` counts (the winner refitted on its inliers; from an init, the returned
-    pose refitted so).
+    inliers `n_inliers` counts (the winner refitted on its inliers; 0 for an init, whose
+    inliers are counted at the pose returned).
   moved_distance: how far apart the two put the evidence correspondences' source centroid
     (cloud units).
   distinct_distance: the distance beyond which two poses are distinct (the support radius, as
@@ -225,9 +225,9 @@ def decide(evidence: Evidence) -> Verdict:
                    "degenerate")
   if e.moved_deg > RIVAL_DEG or e.moved_distance > e.distinct_distance:
     return Verdict(False, f"not sure: the {e.n_inliers} consistent correspondences support a pose "
-                          f"{e.moved_deg:.1f} deg and {e.moved_distance:.3g} from the one returned "
-                          f"(distinct beyond {RIVAL_DEG:g} deg or {e.distinct_distance:.3g}), which "
-                          "they do not support", "moved")
+                          f"{e.moved_deg:.1f} deg and {e.moved_distance:.3g} from the one returned, "
+                          f"a distinct pose (beyond {RIVAL_DEG:g} deg or "
+                          f"{e.distinct_distance:.3g})", "moved")
   level = max(e.chance_inliers, e.rival_inliers)
   need = VERDICT_GRAPH_FACTOR * level + VERDICT_GRAPH_MARGIN
   if e.n_inliers >= need:

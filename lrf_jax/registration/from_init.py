@@ -128,19 +128,15 @@ def _judged(prepared: stages.Prepared, features: stages.Features, matches: stage
                               "witnesses the pose refined from init", "no_hypothesis")
   else:
     with timer("verification"), serial_blas():
-      mask, ev_mask, rival, refit = stages.judge_pose(prepared, hyps, refined.transform,
-                                                      opts.hypotheses, opts.icp.icp_mr,
-                                                      matches.own)
+      mask, ev_mask, rival = stages.judge_pose(prepared, hyps, refined.transform,
+                                               opts.hypotheses, opts.icp.icp_mr, matches.own)
     chance, ev_inliers = hyps.chance, int(np.sum(ev_mask))
-    moved_deg, moved_distance = poses_apart(refined.transform, refit, hyps.evidence.cs)
     decision = decide(Evidence(n_inliers=ev_inliers, chance_inliers=chance, rival_inliers=rival,
                                fitness=refined.fitness, contrast=0.0,
                                estimator=opts.hypotheses.estimator,
                                degeneracy=refined.degeneracy,
                                free_direction=refined.free_direction, effort=gathered,
-                               from_init=True, moved_deg=moved_deg,
-                               moved_distance=moved_distance,
-                               distinct_distance=float(prepared.radius)))
+                               from_init=True))
   return Registration(transform=refined.transform, coarse_transform=pose, inliers=mask,
                       n_inliers=int(mask.sum()), correspondences=correspondences,
                       voxel_size=prepared.voxel_size, fitness=refined.fitness,

@@ -430,24 +430,23 @@ def verify(prepared: Prepared, hyps: Hypotheses, hypotheses: HypothesisOptions, 
 
 def judge_pose(prepared: Prepared, hyps: Hypotheses, transform: np.ndarray,
                hypotheses: HypothesisOptions, icp_mr: float, own: bool
-               ) -> tuple[np.ndarray, np.ndarray, int, np.ndarray]:
-  """The evidence of a pose found elsewhere (`register(..., init=T)` after ICP), counted as
-  `verify` counts it for its winner: the pose refitted by Kabsch on its inliers among the
-  correspondences (`hyps.src`, `hyps.dst`; `host.select_and_refine`, as the winner is), its
-  inliers there and among the evidence correspondences, and its rivals (`_rivals`). Returns
-  (inlier mask, evidence inlier mask, rival inliers, the refitted pose (4, 4) whose inliers
-  those are: the verdict checks that it is the pose given, `evidence.poses_apart`)."""
+               ) -> tuple[np.ndarray, np.ndarray, int]:
+  """The evidence of a pose found elsewhere (`register(..., init=T)` after ICP): its inliers
+  among the correspondences (`hyps.src`, `hyps.dst`) and among the evidence correspondences,
+  counted at the pose itself, and its rivals (`_rivals`). Not refitted on its inliers, as
+  `verify` refits its winner (a hypothesis of the correspondences): a pose turned away from
+  the truth has a few true correspondences near its turn's axis, and a refit on them lands on
+  the truth with all of its support, which would then be counted for the pose turned. Returns
+  (inlier mask, evidence inlier mask, rival inliers)."""
   threshold = float(hypotheses.inlier_mr * prepared.mr)
   overlap_distance = icp_mr * prepared.mr
   target_grid = engine.Grid(prepared.sides[1].points, overlap_distance)
-  r0 = np.asarray(transform[:3, :3], np.float64)
-  t0 = np.asarray(transform[:3, 3], np.float64) - hyps.cd + r0 @ hyps.cs  # centred coordinates
-  r, t, mask = host.select_and_refine(r0, t0, hyps.src, hyps.dst, threshold)
+  r = np.asarray(transform[:3, :3], np.float64)
+  t = np.asarray(transform[:3, 3], np.float64) - hyps.cd + r @ hyps.cs  # centred coordinates
+  mask = host.inlier_mask(r, t, hyps.src, hyps.dst, threshold)
   ev_mask, rival = _rivals(prepared, hyps, (r, t, mask), own, threshold,
                            int(hypotheses.iterations), target_grid, overlap_distance)
-  refit = np.eye(4)
-  refit[:3, :3], refit[:3, 3] = uncentre(r, t, hyps.cs, hyps.cd)
-  return mask, ev_mask, rival, refit
+  return mask, ev_mask, rival
 
 
 def _rerank(hyps: Hypotheses, src_pts: np.ndarray, target_grid: engine.Grid, distance: float,

@@ -2,7 +2,7 @@
 
     LRF_DATA=/path/to/data python benchmarks/bench_scenes.py [--split tune|test|all]
         [--kinds room,object] [--only NAME-SUBSTRING] [--limit N] [--lrf-kw '{"iterations": 500}']
-        [--skip-open3d] [--kiss] [--hints] [--inits] [--seed 0] [--json OUT.json]
+        [--skip-open3d] [--kiss] [--hints] [--inits] [--probe] [--seed 0] [--json OUT.json]
 
 Runs every case of `benchmarks/scene_cases.py` (rooms from 3DMatch, objects from the bunny and
 UWA3M scans, each with known truth and an overlap of 10-30 % or > 30 %; split by scene/object
@@ -27,6 +27,10 @@ rotation to 3 decimals, `published`), from the truth turned 3 deg and turned 30 
 init should be claimed wherever the default claims, the truth's and the 3 deg init should land
 within 5 deg and 3 % of the target's extent of the truth (`near_truth`), a turned one never be
 claimed at a wrong pose.
+
+With `--probe`, every case is registered again under each option of `PROBE_OPTIONS` (ICP's
+reach, iterations and mode, the inlier distance, the support radius, fewer keypoints or
+correspondences, another descriptor or frame), and the false claims are listed.
 
 With `--hints`, every "not sure" of lrf_jax whose reason names a next step is run again with it,
 and the pairs each step then claims (right, wrong) are counted.
@@ -240,6 +244,29 @@ def run_inits(records: list[dict[str, Any]], cases: list[Case], lrf_kw: dict[str
     out["turned_claimed_wrong"] += int(bool(bad["claimed"]) and not bad["true"])
     out["held20_claimed_wrong"] += int(bool(held["claimed"]) and not held["true"])
     out["turned_claimed_right"] += int(bool(bad["claimed"]) and bad["true"])
+  return out
+
+
+# `--probe`: options that move the pose (ICP's reach and iterations, its mode) or the evidence
+# (the inlier distance, the support radius, fewer keypoints or correspondences, another
+# descriptor or frame): the verdict must claim no wrong pose under any of them.
+PROBE_OPTIONS = ({"icp_mr": 10.0}, {"icp_iterations": 0}, {"icp_iterations": 300},
+                 {"inlier_mr": 2.5}, {"inlier_mr": 10.0}, {"icp_mode": "point_to_point"},
+                 {"icp_fine": False}, {"radius_mr": 25.0}, {"n_keypoints": 1000},
+                 {"n_correspondences": 300}, {"descriptor": "shot"}, {"method": "shot"})
+
+
+def run_probe(cases: list[Case], lrf_kw: dict[str, Any], seed: int) -> dict[str, Any]:
+  """Every case under every `PROBE_OPTIONS` entry: runs, claims, and the false claims (claimed
+  and not a true success) with the case and option of each."""
+  out: dict[str, Any] = {"runs": 0, "claimed": 0, "false": []}
+  for case in cases:
+    for kw in PROBE_OPTIONS:
+      rec = run_lrf(case, {**lrf_kw, **kw}, seed)
+      out["runs"] += 1
+      out["claimed"] += int(bool(rec["claimed"]))
+      if rec["claimed"] and not rec["true"]:
+        out["false"].append([case.name, kw, rec["re"], rec["te"]])
   return out
 
 
@@ -468,6 +495,8 @@ def main(argv: list[str] | None = None) -> None:
   ap.add_argument("--hints", action="store_true",
                   help="run every 'not sure' again with the step its reason names, and count "
                        "what each step settles")
+  ap.add_argument("--probe", action="store_true",
+                  help="also run every case under each of PROBE_OPTIONS and count false claims")
   ap.add_argument("--seed", type=int, default=0, help="seed of the cases and of both methods")
   ap.add_argument("--json", default=None, help="write every record here (JSON)")
   args = ap.parse_args(argv)
@@ -515,6 +544,14 @@ def main(argv: list[str] | None = None) -> None:
   if args.inits:
     inits = run_inits(records, cases, lrf_kw, args.seed)
     print("\n## Inits\n\n" + ", ".join(f"{k} {v}" for k, v in inits.items()))
+  probe = None
+  if args.probe:
+    named = {c.name: c for c in cases}
+    probe = run_probe([named[r["case"]] for r in records], lrf_kw, args.seed)
+    print(f"\n## Options probed\n\n{probe['runs']} runs ({len(PROBE_OPTIONS)} options), "
+          f"{probe['claimed']} claimed, {len(probe['false'])} false claims"
+          + "".join(f"\n- {name} {kw}: RE {re:.2f}, TE {te:.2f}"
+                    for name, kw, re, te in probe["false"]))
   hints = None
   if args.hints:
     hints = settled_by_hints(records, cases, lrf_kw, args.seed)
@@ -524,7 +561,7 @@ def main(argv: list[str] | None = None) -> None:
   if args.json:
     out = write_json(args.json, {"machine": machine, "args": vars(args), "lrf_kw": lrf_kw,
                                  "notes": notes, "records": records, "summary": rows,
-                                 "hints": hints, "inits": inits})
+                                 "hints": hints, "inits": inits, "probe": probe})
     print(f"wrote {out}")
 
 

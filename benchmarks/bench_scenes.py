@@ -2,7 +2,8 @@
 
     LRF_DATA=/path/to/data python benchmarks/bench_scenes.py [--split tune|test|all]
         [--kinds room,object] [--only NAME-SUBSTRING] [--limit N] [--lrf-kw '{"iterations": 500}']
-        [--skip-open3d] [--kiss] [--hints] [--inits] [--probe] [--seed 0] [--json OUT.json]
+        [--skip-open3d] [--kiss] [--hints] [--inits] [--probe] [--viewpoints] [--seed 0]
+        [--json OUT.json]
 
 Runs every case of `benchmarks/scene_cases.py` (rooms from 3DMatch, objects from the bunny and
 UWA3M scans, each with known truth and an overlap of 10-30 % or > 30 %; split by scene/object
@@ -31,6 +32,10 @@ claimed at a wrong pose.
 With `--probe`, every case is registered again under each option of `PROBE_OPTIONS` (ICP's
 reach, iterations and mode, the inlier distance, the support radius, fewer keypoints or
 correspondences, another descriptor or frame), and the false claims are listed.
+
+With `--viewpoints`, lrf_jax is given where each scan's sensor stood, where the case knows it
+(`viewpoint_kw`: a 3DMatch fragment's origin, its first camera; the bunny's and UWA3M's
+scanners), as a user who knows it would pass it: what repeatable frames do to the claims.
 
 With `--hints`, every "not sure" of lrf_jax whose reason names a next step is run again with it,
 and the pairs each step then claims (right, wrong) are counted.
@@ -105,9 +110,23 @@ def _failed(error: BaseException, seconds: float) -> dict[str, Any]:
           "seconds": seconds, "error": f"{type(error).__name__}: {error}"}
 
 
-def run_lrf(case: Case, lrf_kw: dict[str, Any], seed: int = 0) -> dict[str, Any]:
-  """One `lrf_jax.register` call on a case: errors, verdict, overlap, reason, time."""
-  kw = {"seed": seed, **lrf_kw}
+def viewpoint_kw(case: Case) -> dict[str, Any]:
+  """`register`'s source_viewpoint / target_viewpoint where the case knows where its scans'
+  sensors stood (a 3DMatch fragment's first camera, a scan's scanner; moved with the source),
+  else none."""
+  out = {}
+  for side in ("source", "target"):
+    v = case.meta.get(f"{side}_viewpoint")
+    if v is not None:
+      out[f"{side}_viewpoint"] = tuple(float(x) for x in v)
+  return out
+
+
+def run_lrf(case: Case, lrf_kw: dict[str, Any], seed: int = 0, *,
+            viewpoints: bool = False) -> dict[str, Any]:
+  """One `lrf_jax.register` call on a case: errors, verdict, overlap, reason, time
+  (`viewpoints`: with the case's sensor positions, `viewpoint_kw`)."""
+  kw = {"seed": seed, **(viewpoint_kw(case) if viewpoints else {}), **lrf_kw}
   t0 = time.perf_counter()
   try:
     reg = lrf_jax.register(case.source, case.target, **kw)
@@ -224,7 +243,7 @@ def run_inits(records: list[dict[str, Any]], cases: list[Case], lrf_kw: dict[str
          "gt_near": 0, "off3_near": 0, "off3_claimed_wrong": 0, "turned_claimed_wrong": 0,
          "held20_claimed_wrong": 0,
          "turned_claimed_right": 0, "n": 0}
-  for rec in records:
+  for rec in _progress(records, True, "inits (4 a case)"):
     case = by_name[rec["case"]]
     out["n"] += 1
     with warnings.catch_warnings():
@@ -257,32 +276,40 @@ PROBE_OPTIONS = ({"icp_mr": 10.0}, {"icp_iterations": 0}, {"icp_iterations": 300
 
 
 def run_probe(cases: list[Case], lrf_kw: dict[str, Any], seed: int) -> dict[str, Any]:
-  """Every case under every `PROBE_OPTIONS` entry: runs, claims, and the false claims (claimed
-  and not a true success) with the case and option of each."""
-  out: dict[str, Any] = {"runs": 0, "claimed": 0, "false": []}
-  for case in cases:
+  """Every case under every `PROBE_OPTIONS` entry: runs, claims, the false claims (claimed
+  and not a true success) with the case and option of each, and per option and split
+  ("per_option": {option: {split: [cases, right, claimed and right, claimed and wrong]}}):
+  what each lever does to the claims."""
+  out: dict[str, Any] = {"runs": 0, "claimed": 0, "false": [], "per_option": {}}
+  for case in _progress(cases, True, f"probe ({len(PROBE_OPTIONS)} options a case)"):
     for kw in PROBE_OPTIONS:
       rec = run_lrf(case, {**lrf_kw, **kw}, seed)
       out["runs"] += 1
       out["claimed"] += int(bool(rec["claimed"]))
       if rec["claimed"] and not rec["true"]:
         out["false"].append([case.name, kw, rec["re"], rec["te"]])
+      row = out["per_option"].setdefault(json.dumps(kw), {}).setdefault(case.split, [0] * 4)
+      row[0] += 1
+      row[1] += int(rec["true"])
+      row[2] += int(bool(rec["claimed"]) and rec["true"])
+      row[3] += int(bool(rec["claimed"]) and not rec["true"])
   return out
 
 
-def _progress(cases: list[Case], show: bool) -> Iterable[Case]:
+def _progress(cases: list[Case], show: bool, desc: str = "cases") -> Iterable[Case]:
+  """`cases` with a progress bar (rate and ETA, on stderr) where tqdm is installed."""
   if not show:
     return cases
   try:
     from tqdm import tqdm
   except ImportError:
     return cases
-  return tqdm(cases, desc="cases", unit="case", file=sys.stderr)
+  return tqdm(cases, desc=desc, unit="case", file=sys.stderr)
 
 
 def run_cases(cases: list[Case], lrf_kw: dict[str, Any] | None = None, open3d: bool = True, *,
-              seed: int = 0, progress: bool = True, warmup: bool = True, kiss: bool = False
-              ) -> list[dict[str, Any]]:
+              seed: int = 0, progress: bool = True, warmup: bool = True, kiss: bool = False,
+              viewpoints: bool = False) -> list[dict[str, Any]]:
   """Registers every case with lrf_jax (and Open3D) and scores it against the truth.
 
   Args:
@@ -293,6 +320,7 @@ def run_cases(cases: list[Case], lrf_kw: dict[str, Any] | None = None, open3d: b
     seed: the seed of both methods.
     progress: a tqdm bar when tqdm is installed, else one line per case (on stderr).
     warmup: one untimed lrf_jax call on the first case first (JAX compilation).
+    viewpoints: lrf_jax gets each case's sensor positions (`viewpoint_kw`).
 
   Returns:
     One record per case: the case's name, group, split, kind, origin, overlap, overlap bin,
@@ -304,7 +332,7 @@ def run_cases(cases: list[Case], lrf_kw: dict[str, Any] | None = None, open3d: b
   open3d = open3d and have_open3d()
   kiss = kiss and have_kiss_matcher()
   if warmup and cases:
-    run_lrf(cases[0], lrf_kw, seed)
+    run_lrf(cases[0], lrf_kw, seed, viewpoints=viewpoints)
   bar = _progress(cases, progress)
   records = []
   for k, case in enumerate(bar):
@@ -312,7 +340,7 @@ def run_cases(cases: list[Case], lrf_kw: dict[str, Any] | None = None, open3d: b
            "origin": case.origin, "overlap": case.overlap, "bin": case.overlap_bin,
            "unit": case.unit, "unit_name": case.unit_name,
            "n_source": len(case.source), "n_target": len(case.target)}
-    rec["lrf"] = run_lrf(case, lrf_kw, seed)
+    rec["lrf"] = run_lrf(case, lrf_kw, seed, viewpoints=viewpoints)
     if open3d:
       rec["open3d"] = run_open3d(case, seed)
     if kiss:
@@ -497,6 +525,9 @@ def main(argv: list[str] | None = None) -> None:
                        "what each step settles")
   ap.add_argument("--probe", action="store_true",
                   help="also run every case under each of PROBE_OPTIONS and count false claims")
+  ap.add_argument("--viewpoints", action="store_true",
+                  help="give lrf_jax each scan's sensor position where the case knows it (the "
+                       "first pass only; not --inits, --probe or --hints)")
   ap.add_argument("--seed", type=int, default=0, help="seed of the cases and of both methods")
   ap.add_argument("--json", default=None, help="write every record here (JSON)")
   args = ap.parse_args(argv)
@@ -523,7 +554,8 @@ def main(argv: list[str] | None = None) -> None:
         f"{time.perf_counter() - t0:.1f} s); split by group:\n\n{split_table(all_cases)}\n\n"
         f"Running {len(cases)} of them (split {args.split}"
         + (f", names containing {args.only!r}" if args.only else "")
-        + (f", first {args.limit}" if args.limit else "") + f"); lrf_jax.register kw {lrf_kw}.",
+        + (f", first {args.limit}" if args.limit else "") + f"); lrf_jax.register kw {lrf_kw}"
+        + (", with the scans' viewpoints." if args.viewpoints else "."),
         flush=True)
   notes = []
   if not args.skip_open3d and not have_open3d():
@@ -533,7 +565,7 @@ def main(argv: list[str] | None = None) -> None:
   if args.kiss and not have_kiss_matcher():
     notes.append("kiss_matcher is not installed (pip install kiss-matcher): skipped")
   records = run_cases(cases, lrf_kw, open3d=not args.skip_open3d, seed=args.seed,
-                      kiss=args.kiss)
+                      kiss=args.kiss, viewpoints=args.viewpoints)
   rows = summarize(records)
   print("\n" + "\n".join(f"- {n}" for n in notes))
   print("\n## Per case (RE deg, TE m for rooms / mr for objects)\n\n" + case_table(records))
@@ -551,7 +583,12 @@ def main(argv: list[str] | None = None) -> None:
     print(f"\n## Options probed\n\n{probe['runs']} runs ({len(PROBE_OPTIONS)} options), "
           f"{probe['claimed']} claimed, {len(probe['false'])} false claims"
           + "".join(f"\n- {name} {kw}: RE {re:.2f}, TE {te:.2f}"
-                    for name, kw, re, te in probe["false"]))
+                    for name, kw, re, te in probe["false"])
+          + "\n\n| option | split | cases | right | claimed right | claimed wrong |\n"
+            "|---|---|---:|---:|---:|---:|\n"
+          + "\n".join(f"| `{kw}` | {split} | {' | '.join(map(str, row))} |"
+                      for kw, by in probe["per_option"].items()
+                      for split, row in sorted(by.items())))
   hints = None
   if args.hints:
     hints = settled_by_hints(records, cases, lrf_kw, args.seed)

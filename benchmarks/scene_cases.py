@@ -284,17 +284,32 @@ def _split(group: str) -> str:
   raise ValueError(f"group: expected one of {TUNE_GROUPS + TEST_GROUPS}, found {group!r}")
 
 
-def _finish(name, group, kind, source, target, gt, origin, meta, rng) -> Case:
-  """Moves the source by a random rigid motion folded into gt; measures spacing and overlap."""
+def _finish(name, group, kind, source, target, gt, origin, meta, rng,
+            viewpoints=(None, None)) -> Case:
+  """Moves the source by a random rigid motion folded into gt; measures spacing and overlap.
+  `viewpoints` (the source's and the target's sensor positions in their own coordinates, None
+  where unknown) go into meta as "source_viewpoint" (moved with the source) and
+  "target_viewpoint"."""
   spacing = spacing_of(source)
   overlap = overlap_fraction(source, target, gt, spacing)
   motion = _random_motion(source, rng)
   moved = transform_points(motion, source)
+  vs, vt = viewpoints
+  meta = {**meta,
+          "source_viewpoint": None if vs is None else transform_points(
+              motion, np.asarray(vs, np.float64)[None])[0].tolist(),
+          "target_viewpoint": None if vt is None else np.asarray(vt, np.float64).tolist()}
   unit, unit_name = (1.0, "m") if kind == "room" else (spacing, "mr")
   return Case(name=name, group=group, split=_split(group), kind=kind, source=moved,
               target=np.array(target, np.float64), gt=np.asarray(gt, np.float64)
               @ np.linalg.inv(motion), overlap=overlap, unit=unit, unit_name=unit_name,
               spacing=spacing, origin=origin, meta={**meta, "motion": motion.tolist()})
+
+
+# A 3DMatch fragment is fused in the coordinates of its first camera: its origin is where that
+# camera stood (the loader gives no viewpoint, as a fused cloud has no single one; `--viewpoints`
+# of bench_scenes.py passes this one, as a user who knows it would).
+_FRAGMENT_ORIGINS = (np.zeros(3), np.zeros(3))
 
 
 def _room_cases(root, seed: int) -> list[Case]:
@@ -304,7 +319,8 @@ def _room_cases(root, seed: int) -> list[Case]:
     src, dst, gt = np.array(pair.model_points), np.array(pair.scene_points), pair.transform
     base = {"dataset": "3DMatch", "pair": pair.name, "benchmark": pair.meta["benchmark"]}
     name = f"{group}/pair"
-    cases.append(_finish(name, group, "room", src, dst, gt, "pair", base, _rng(seed, name)))
+    cases.append(_finish(name, group, "room", src, dst, gt, "pair", base, _rng(seed, name),
+                         _FRAGMENT_ORIGINS))
     spacing = spacing_of(src)
     for bin_name, count in _ROOM_PLAN["pair_crops"].items():
       for k in range(count):
@@ -312,7 +328,7 @@ def _room_cases(root, seed: int) -> list[Case]:
         rng = _rng(seed, name)
         ks, kt, meta = _crop_pair(src, dst, gt, spacing, bin_name, rng)
         cases.append(_finish(name, group, "room", src[ks], dst[kt], gt, "crop",
-                             {**base, **meta}, rng))
+                             {**base, **meta}, rng, _FRAGMENT_ORIGINS))
     for frag, points in ((pair.meta["files"][0], src), (pair.meta["files"][1], dst)):
       stem = Path(frag).stem
       frag_spacing = spacing_of(points)
@@ -322,7 +338,8 @@ def _room_cases(root, seed: int) -> list[Case]:
           rng = _rng(seed, name)
           a, b, meta = _fragment_pair(points, frag_spacing, bin_name, rng)
           cases.append(_finish(name, group, "room", a, b, np.eye(4), "fragment",
-                               {"dataset": "3DMatch", "fragment": frag, **meta}, rng))
+                               {"dataset": "3DMatch", "fragment": frag, **meta}, rng,
+                               _FRAGMENT_ORIGINS))
   return cases
 
 
@@ -352,12 +369,14 @@ def _object_cases(root, seed: int) -> list[Case]:
       src, dst = _limit(pair.model_points, rng), _limit(pair.scene_points, rng)
       base = {"dataset": pair.dataset, "pair": pair.name,
               "ground_truth": pair.meta.get("ground_truth", "exact")}
+      views = (pair.model_viewpoint, pair.scene_viewpoint)
       if bin_name is None:
-        cases.append(_finish(name, group, "object", src, dst, pair.transform, "pair", base, rng))
+        cases.append(_finish(name, group, "object", src, dst, pair.transform, "pair", base, rng,
+                             views))
         continue
       ks, kt, meta = _crop_pair(src, dst, pair.transform, spacing_of(src), bin_name, rng)
       cases.append(_finish(name, group, "object", src[ks], dst[kt], pair.transform, "crop",
-                           {**base, **meta}, rng))
+                           {**base, **meta}, rng, views))
   return cases
 
 

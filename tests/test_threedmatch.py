@@ -133,7 +133,8 @@ def test_gt_not_rigid(tmp_path, text, match):
 
 def test_scene_cases_fold_the_motion_into_gt_and_measure_overlap():
   """The benchmark's cases: the random motion is folded into gt, and a one-fragment pair's
-  overlap is in the bin it was drawn for (on a synthetic room-like cloud, no data needed)."""
+  overlap is in the bin it was drawn for, the source's sensor position moves with it (on a
+  synthetic room-like cloud, no data needed)."""
   sc = pytest.importorskip("benchmarks.scene_cases")
   rng = np.random.default_rng(0)
   xy = rng.uniform(0, 3, size=(12_000, 2))
@@ -145,9 +146,15 @@ def test_scene_cases_fold_the_motion_into_gt_and_measure_overlap():
     src, dst, _ = sc._fragment_pair(points, spacing, bin_name, np.random.default_rng(1))
     assert sc.overlap_bin(sc.overlap_fraction(src, dst, np.eye(4))) == bin_name
     assert not (cKDTree(dst).query(src)[0] == 0).any()  # noise: no point shared exactly
+    sensor = np.array([0.5, 0.5, 1.5])
     case = sc._finish("x", "hotel3", "room", src, dst, np.eye(4), "fragment", {},
-                      np.random.default_rng(2))
+                      np.random.default_rng(2), (sensor, sensor))
     check_rigid(case.gt, "case gt")
+    # the source's sensor moves with it; the target's stays
+    np.testing.assert_allclose(
+        transform_points(case.gt, np.array([case.meta["source_viewpoint"]])), [sensor],
+        atol=1e-9)
+    assert case.meta["target_viewpoint"] == sensor.tolist()
     assert case.split == "tune" and case.unit == 1.0
     np.testing.assert_allclose(transform_points(case.gt, case.source), src, atol=1e-9)
     assert np.linalg.norm(case.source.mean(0) - src.mean(0)) > 1.0  # it did move

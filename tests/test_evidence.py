@@ -96,11 +96,13 @@ def test_a_wrong_init_is_never_claimed(demo, degrees):
     assert ref.reason_code in ("rival", "chance", "low_overlap", "degenerate", "moved"), ref.reason
 
 
-@pytest.mark.parametrize("degrees", [20.0, 45.0])
+@pytest.mark.parametrize("degrees", [9.0, 20.0, 45.0])
 def test_a_wrong_init_held_unmoved_is_never_claimed(demo, degrees):
   """With icp_iterations=0 the init is the pose returned, and its support is counted at it. A
   few true correspondences lie near the turn's axis: refitted on them (as it was), the pose
-  landed on the truth with all of its support, and the wrong init was claimed."""
+  landed on the truth with all of its support, and the wrong init was claimed (at 9 deg the
+  refit is within RIVAL_DEG of the init, so "moved" does not catch it: only the count at the
+  pose itself does)."""
   from lrf_jax.registration import pose_errors
   turn = np.eye(4)
   turn[:3, :3] = Rotation.from_rotvec(np.radians(degrees) * np.array([0.6, 0.0, 0.8])).as_matrix()
@@ -110,7 +112,7 @@ def test_a_wrong_init_held_unmoved_is_never_claimed(demo, degrees):
   ref = register(demo.model_points, demo.scene_points, mr=demo.mr, init=init, icp_iterations=0,
                  **KW)
   np.testing.assert_allclose(ref.transform, init, atol=1e-12)
-  assert pose_errors(ref.transform, demo.transform, demo.mr)[0] > 10.0
+  assert pose_errors(ref.transform, demo.transform, demo.mr)[0] == pytest.approx(degrees)
   assert not ref.success, ref.reason
   # the truth held unmoved is still claimed
   same = register(demo.model_points, demo.scene_points, mr=demo.mr, init=demo.transform,
@@ -145,6 +147,34 @@ def test_a_pose_distinct_from_the_one_its_inliers_support_is_not_claimed():
   assert (d.success, d.code) == (False, "moved") and "support a pose 10.5 deg" in d.reason
   d = decide(_evidence(moved_distance=0.4, distinct_distance=0.3))
   assert (d.success, d.code) == (False, "moved") and "0.4 from the one returned" in d.reason
+  # its place in the order: after the overlap's tests, before the support's
+  moved = dict(moved_deg=RIVAL_DEG + 5.0)
+  assert decide(_evidence(fitness=0.04, **moved)).code == "low_overlap"
+  assert decide(_evidence(degeneracy=0.001, **moved)).code == "degenerate"
+  assert decide(_evidence(rival_inliers=20, **moved)).code == "moved"
+  assert decide(_evidence(chance_inliers=20, **moved)).code == "moved"
+
+
+@pytest.mark.parametrize("degrees, code", [(2.0, "claimed"), (20.0, "moved")])
+def test_the_pipeline_says_moved_where_icp_leaves_the_winner(demo, monkeypatch, degrees, code):
+  """`register` measures the pose it returns against the winner whose inliers it counted: ICP
+  (here made to turn its result about the source's centroid) moving 20 deg is another pose, 2
+  deg the same one."""
+  import lrf_jax.registration.pipeline as pipeline
+  real = pipeline.refine
+
+  def turned(prepared, verified, icp_opts, timer):
+    out = real(prepared, verified, icp_opts, timer)
+    turn = np.eye(4)
+    turn[:3, :3] = Rotation.from_rotvec(np.radians(degrees) * np.array([0.0, 0.6, 0.8])
+                                        ).as_matrix()
+    centre = demo.model_points.mean(axis=0)
+    turn[:3, 3] = centre - turn[:3, :3] @ centre
+    return out._replace(transform=out.transform @ turn)
+
+  monkeypatch.setattr(pipeline, "refine", turned)
+  reg = register(demo.model_points, demo.scene_points, mr=demo.mr, effort="fast", **KW)
+  assert reg.reason_code == code and reg.success is (code == "claimed"), reg.reason
 
 
 @pytest.mark.parametrize("options", [{"estimator": "lrf"}, {"estimator": "3point"},

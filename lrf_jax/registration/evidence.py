@@ -2,9 +2,10 @@
 
 One verdict for every estimator and option: the winner must be well supported (inliers far above
 what chance alignment and any distinct pose reach, counted on the same correspondences and with
-the same hypotheses whatever produced the winner), the aligned clouds must overlap, and the
-overlap must pin the pose down (no free direction); `decide` says which test decided, in words
-and as a `REASON_CODES` code.
+the same hypotheses whatever produced the winner), the aligned clouds must overlap, the
+overlap must pin the pose down (no free direction), and the pose returned must be the pose that
+support was counted at (not a distinct one); `decide` says which test decided, in words and as a
+`REASON_CODES` code.
 """
 
 from __future__ import annotations

@@ -65,7 +65,8 @@ def register(source: Any, target: Any, options: RegisterOptions | None = None, *
      success when the winner's inliers are at least `VERDICT_GRAPH_FACTOR` times (+
      `VERDICT_GRAPH_MARGIN`) both what chance alignment reaches on the correspondences
      shuffled and what the best distinct pose explains outside them, ICP pairs enough of the
-     source and the overlap leaves no motion free (`evidence.constraint_spectrum`). Whatever
+     source, the overlap leaves no motion free (`evidence.constraint_spectrum`) and ICP's pose
+     is not a distinct pose from the winner whose inliers were counted ("moved"). Whatever
      chose the hypotheses (estimator, ratio, mutual), the evidence is counted on the default
      matching's correspondences with the compatibility graph's hypotheses (plus the
      estimator's own and the graph's on the correspondences outside the winner's inliers, as

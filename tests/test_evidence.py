@@ -69,7 +69,10 @@ def demo():
 def test_a_real_pair_is_claimed_with_its_code_and_so_is_its_pose_as_an_init(demo):
   reg = register(demo.model_points, demo.scene_points, mr=demo.mr, **KW)
   assert reg.success and reg.reason_code == "claimed"
-  assert reg.evidence_inliers == reg.n_inliers  # the default: the evidence is its own matching
+  # n_correspondences=200: the evidence is the default matching's 1000 (here every match)
+  assert reg.evidence_inliers > reg.n_inliers
+  own = register(demo.model_points, demo.scene_points, mr=demo.mr, n_keypoints=800)
+  assert own.evidence_inliers == own.n_inliers  # the default: the evidence is its own matching
   ref = register(demo.model_points, demo.scene_points, mr=demo.mr, init=reg.transform, **KW)
   assert ref.success and ref.reason_code == "claimed" and ref.reason.startswith("refined from init")
   # the same evidence at (nearly) the same pose: the counts the verdict compared agree
@@ -175,6 +178,24 @@ def test_the_pipeline_says_moved_where_icp_leaves_the_winner(demo, monkeypatch, 
   monkeypatch.setattr(pipeline, "refine", turned)
   reg = register(demo.model_points, demo.scene_points, mr=demo.mr, effort="fast", **KW)
   assert reg.reason_code == code and reg.success is (code == "claimed"), reg.reason
+
+
+def test_fewer_correspondences_are_judged_on_the_default_count(demo):
+  """`n_correspondences` chooses the hypotheses' correspondences, not the evidence: the verdict
+  counts on the default matching's (`EVIDENCE_CORRESPONDENCES`), so a pose on a repeated
+  structure cannot outnumber a truth that few of 300 correspondences witness (a room crop was
+  claimed 42 deg off with 300)."""
+  from lrf_jax.registration import stages
+  from lrf_jax.registration.options import RegisterOptions
+  few = RegisterOptions(mr=demo.mr, n_keypoints=800, n_correspondences=60)
+  prepared = stages.prepare(demo.model_points, demo.scene_points, few)
+  features = stages.describe(prepared, few.description, None, stages.StageTimer())
+  m = stages.match(features, few)
+  assert len(m.source) == 60 and not m.own
+  default = stages.match(features, few.with_overrides(n_correspondences=1000))
+  assert default.own and stages.EVIDENCE_CORRESPONDENCES == 1000
+  np.testing.assert_array_equal(m.evidence_source, default.source)
+  np.testing.assert_array_equal(m.evidence_target, default.target)
 
 
 @pytest.mark.parametrize("options", [{"estimator": "lrf"}, {"estimator": "3point"},

@@ -97,7 +97,7 @@ def test_register_with_options_equals_register_with_keywords(demo):
 def test_the_stages_one_by_one_give_registers_result(demo):
   """The stages are the pipeline: run by hand, with their typed results, they give `register`'s
   transform and verdict bit for bit."""
-  opts = RegisterOptions(mr=demo.mr, n_keypoints=400, n_correspondences=200)
+  opts = RegisterOptions(mr=demo.mr, n_keypoints=400)  # the default count: its own evidence
   reg = pipeline.register(demo.model_points, demo.scene_points, opts)
   timer = stages.StageTimer()
   prepared = stages.prepare(demo.model_points, demo.scene_points, opts)

@@ -190,7 +190,7 @@ def register_scans(source: ScanFeatures, target: ScanFeatures,
         ea, eb = source.evidence[k], target.evidence[k]
         sampled = prepared._replace(sides=(ea.side, eb.side))
         matches = stages.with_evidence(matches, sampled, stages.Features(
-            (ea.frames, eb.frames), (ea.descriptors, eb.descriptors)), wide.matching)
+            (ea.frames, eb.frames), (ea.descriptors, eb.descriptors)))
       runs.append((prepared, features, matches))
   prepared, features, matches = runs[0] if len(runs) == 1 else pool(runs)
   return conclude(prepared, features, matches, opts, timer)

@@ -320,25 +320,32 @@ def _select(features: Features, estimator: str, n_correspondences: int, radius_m
   return qi, ri
 
 
+# The verdict's evidence: the default matching's correspondences, as many as by default
+# (`MatchOptions.n_correspondences`) whatever `n_correspondences` chose the hypotheses'.
+EVIDENCE_CORRESPONDENCES = MatchOptions().n_correspondences
+
+
 def match(features: Features, opts: RegisterOptions) -> Matches:
   """Stage "matching": the correspondences of `opts.matching` for `opts.hypotheses.estimator`
-  (`_select`) and the default matching's, which the verdict counts on whatever option chose the
-  hypotheses' (none when there is none with two valid frames); the default's are the same
-  correspondences for the default estimator, matching and detector (`opts.detection`)."""
+  (`_select`) and the default matching's (`EVIDENCE_CORRESPONDENCES` of them), which the
+  verdict counts on whatever option chose the hypotheses' (none when there is none with two
+  valid frames); the default's are the same correspondences for the default estimator,
+  matching, count and detector (`opts.detection`). Fewer correspondences would let a pose on a
+  repeated structure outnumber a truth that few of them witness."""
   matching, estimator = opts.matching, opts.hypotheses.estimator
   n = int(matching.n_correspondences)
   qi, ri = _select(features, estimator, n, opts.description.radius_mr, matching.mutual,
                    matching.ratio)
   detector = opts.detection.keypoints
   own = (estimator == "graph" and not matching.mutual and matching.ratio is None
-         and detector == "random")
+         and detector == "random" and n == EVIDENCE_CORRESPONDENCES)
   if own:
     return Matches(qi, ri, qi, ri, True)
   if detector != "random":  # the evidence is the default detector's: `default_evidence`
     empty = np.zeros(0, np.int64)
     return Matches(qi, ri, empty, empty, False)
   try:
-    eqi, eri = _select(features, "graph", n, 0.0)
+    eqi, eri = _select(features, "graph", EVIDENCE_CORRESPONDENCES, 0.0)
   except ValueError:
     eqi, eri = np.zeros(0, np.int64), np.zeros(0, np.int64)
   return Matches(qi, ri, eqi, eri, False)
@@ -358,16 +365,16 @@ def default_evidence(prepared: Prepared, matches: Matches, opts: RegisterOptions
   sampled = reseed(prepared, plain, prepared.seed)
   features = describe(sampled, opts.description, params, timer)
   with timer("matching"):
-    return with_evidence(matches, sampled, features, opts.matching)
+    return with_evidence(matches, sampled, features)
 
 
-def with_evidence(matches: Matches, sampled: Prepared, features: Features,
-                  matching: MatchOptions) -> Matches:
-  """`matches` with the evidence of the default matching between the seeded random keypoints
+def with_evidence(matches: Matches, sampled: Prepared, features: Features) -> Matches:
+  """`matches` with the evidence of the default matching (`EVIDENCE_CORRESPONDENCES`
+  correspondences) between the seeded random keypoints
   of `sampled` (described in `features`): their world points and frames, and the indices of
   the correspondences among them (none when they give no match)."""
   try:
-    eqi, eri = _select(features, "graph", int(matching.n_correspondences), 0.0)
+    eqi, eri = _select(features, "graph", EVIDENCE_CORRESPONDENCES, 0.0)
   except ValueError:
     eqi, eri = np.zeros(0, np.int64), np.zeros(0, np.int64)
   return matches._replace(evidence_source=eqi, evidence_target=eri, own=False,

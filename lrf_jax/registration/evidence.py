@@ -173,6 +173,13 @@ def poses_apart(a: np.ndarray, b: np.ndarray, point: np.ndarray) -> tuple[float,
   return deg, float(np.linalg.norm((a[:3, :3] - b[:3, :3]) @ p + a[:3, 3] - b[:3, 3]))
 
 
+def distinct(deg: float, distance: float, radius: float) -> bool:
+  """Whether two poses `poses_apart` measured `deg` degrees and `distance` apart are distinct,
+  as a rival is from the winner: more than RIVAL_DEG degrees or `radius` (the support radius,
+  cloud units) apart."""
+  return deg > RIVAL_DEG or distance > radius
+
+
 def exact_number(value: float) -> str:
   """`value` in full: an integer-valued number without a decimal point or an exponent
   ("1200003"), any other its shortest exact form (`repr`)."""
@@ -207,10 +214,10 @@ def decide(evidence: Evidence) -> Verdict:
   In order: "low_overlap" (ICP pairs under VERDICT_GRAPH_FITNESS of the source),
   "degenerate" (the overlap leaves a motion free, `constraint_spectrum` under
   DEGENERATE_RATIO), "moved" (the pose returned and the pose the inliers were counted at are
-  distinct poses, as a rival is distinct: more than RIVAL_DEG degrees or the support radius
-  apart; the support is then another pose's), then "claimed" when the inliers reach VERDICT_GRAPH_FACTOR x the larger of
-  chance and the best distinct pose + VERDICT_GRAPH_MARGIN, else "rival" or "chance" (whichever
-  is larger; "rival" on a tie). The same rule for every estimator.
+  `distinct`, as a rival is: the support is then another pose's), then "claimed" when the
+  inliers reach VERDICT_GRAPH_FACTOR x the larger of chance and the best distinct pose +
+  VERDICT_GRAPH_MARGIN, else "rival" or "chance" (whichever is larger; "rival" on a tie). The
+  same rule for every estimator.
   """
   e = evidence
   floor = VERDICT_GRAPH_FITNESS
@@ -224,7 +231,7 @@ def decide(evidence: Evidence) -> Verdict:
     return Verdict(False, f"not sure: the overlap leaves a motion free{free}; its weakest "
                           f"direction holds {shown} of the strongest's (needs {needed})",
                    "degenerate")
-  if e.moved_deg > RIVAL_DEG or e.moved_distance > e.distinct_distance:
+  if distinct(e.moved_deg, e.moved_distance, e.distinct_distance):
     return Verdict(False, f"not sure: the {e.n_inliers} consistent correspondences support a pose "
                           f"{e.moved_deg:.1f} deg and {e.moved_distance:.3g} from the one returned, "
                           f"a distinct pose (beyond {RIVAL_DEG:g} deg or "

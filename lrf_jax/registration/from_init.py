@@ -20,7 +20,7 @@ import numpy as np
 from lrf_jax.registration import stages
 from lrf_jax.registration.effort import escalates, one_pass, pooled_stages, tried
 from lrf_jax.registration.estimators import finish_result
-from lrf_jax.registration.evidence import RIVAL_DEG, Evidence, Verdict, decide, poses_apart
+from lrf_jax.registration.evidence import Evidence, Verdict, decide, distinct, poses_apart
 from lrf_jax.registration.options import RegisterOptions
 from lrf_jax.registration.refine import Refined, check_init, refine
 from lrf_jax.registration.result import Registration
@@ -88,9 +88,8 @@ def kept_init(prepared: stages.Prepared, matches: stages.Matches, init: np.ndarr
   An init is independent of the correspondences, so they can judge ICP's move: on an overlap
   that constrains the pose in every direction ICP keeps or gains what the init explains
   (`explained`); where it does not (a floor and a wall, along which ICP slides), ICP's pose
-  explains fewer of them, or moves to a distinct pose (as a rival is distinct: more than
-  `RIVAL_DEG` degrees or the support radius away, `evidence.poses_apart` at the source
-  centroid) that explains no more of them, and the init stays. Where the init explains no more
+  explains fewer of them, or moves to a pose `evidence.distinct` from the init (as a rival is;
+  `evidence.poses_apart` at the source centroid) that explains no more of them, and the init stays. Where the init explains no more
   than `chance` (the most a hypothesis explains on shuffled correspondences) they say nothing of
   it, and ICP's pose stands. (The pipeline's own coarse pose is fitted to those correspondences,
   so this test would favour it: it applies to inits only.)
@@ -103,7 +102,7 @@ def kept_init(prepared: stages.Prepared, matches: stages.Matches, init: np.ndarr
     return (f"init kept as given: ICP from it explains {after} of the correspondences, the "
             f"init {before}")
   deg, distance = poses_apart(refined, init, prepared.sides[0].points.mean(axis=0))
-  if deg <= RIVAL_DEG and distance <= prepared.radius:
+  if not distinct(deg, distance, prepared.radius):
     return ""
   return (f"init kept as given: ICP from it moved {deg:.1f} deg and {distance:.3g} to a distinct "
           f"pose that explains {after} of the correspondences, as many as the init")

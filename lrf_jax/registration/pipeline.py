@@ -68,9 +68,10 @@ def register(source: Any, target: Any, options: RegisterOptions | None = None, *
      source, the overlap leaves no motion free (`evidence.constraint_spectrum`) and ICP's pose
      is not a distinct pose from the winner whose inliers were counted ("moved"). Whatever
      chose the hypotheses (estimator, ratio, mutual, n_correspondences), the evidence is
-     counted on the default matching's correspondences (`stages.EVIDENCE_CORRESPONDENCES`) with the compatibility graph's hypotheses (plus the
-     estimator's own and the graph's on the correspondences outside the winner's inliers, as
-     rivals), so no option claims what the default's evidence would not.
+     counted on the default matching's correspondences (`stages.EVIDENCE_CORRESPONDENCES`)
+     with the compatibility graph's hypotheses (plus the estimator's own and the graph's on
+     the correspondences outside the winner's inliers, as rivals), so no option claims what
+     the default's evidence would not.
      `Registration.reason_code` says which test decided.
 
   `effort="high"` runs steps 1-2 for `effort.EFFORT_SEEDS` seeds (seed, seed + 1, ...) with

@@ -354,3 +354,68 @@ def test_an_init_is_kept_where_icp_moves_to_a_distinct_pose_that_explains_no_mor
   assert "explains 12 of the correspondences, as many as the init" in note
   assert kept_init(prepared, matches, np.eye(4), about_z(5.0), 1.0, chance=3) == ""
   assert kept_init(prepared, matches, np.eye(4), about_z(15.0), 1.0, chance=12) == ""
+
+
+def _turned(demo, degrees):
+  turn = np.eye(4)
+  turn[:3, :3] = Rotation.from_rotvec(np.radians(degrees) * np.array([0.6, 0.0, 0.8])).as_matrix()
+  centre = demo.scene_points.mean(axis=0)
+  turn[:3, 3] = centre - turn[:3, :3] @ centre
+  return turn @ demo.transform
+
+
+@pytest.mark.parametrize("degrees", [4.0, 25.0, 60.0])
+def test_verify_near_starts_from_the_best_hypothesis_not_distinct_from_the_pose(demo, degrees):
+  """`stages.verify_near` against a brute-force reference: over the graph's hypotheses (world
+  poses), those `evidence.distinct` from the anchor excluded, the one with the most inliers, or
+  the anchor itself where it explains more; its refit is `verify`'s refit of that start."""
+  from lrf_jax.registration import stages
+  from lrf_jax.registration.effort import one_pass
+  from lrf_jax.registration.estimators import uncentre
+  from lrf_jax.registration.evidence import distinct
+  from lrf_jax.registration.options import resolve
+  opts = resolve(None, dict(mr=demo.mr, **KW))
+  prepared, features, matches = one_pass(demo.model_points, demo.scene_points, opts, None,
+                                         stages.StageTimer())
+  hyps = stages.hypothesize(prepared, features, matches, opts.hypotheses)
+  anchor = _turned(demo, degrees)
+  got = stages.verify_near(prepared, hyps, anchor, opts.hypotheses, opts.icp.icp_mr, matches.own)
+  point = hyps.evidence.cs
+  best, count = -1, int(np.sum(np.linalg.norm(
+      (hyps.src + hyps.cs) @ anchor[:3, :3].T + anchor[:3, 3] - (hyps.dst + hyps.cd), axis=1)
+      <= opts.hypotheses.inlier_mr * prepared.mr))
+  for h in range(len(hyps.counts)):
+    r, t = uncentre(hyps.rotations[h], hyps.translations[h], hyps.cs, hyps.cd)
+    world = np.eye(4)
+    world[:3, :3], world[:3, 3] = r, t
+    if not distinct(*poses_apart(world, anchor, point), prepared.radius) and hyps.counts[h] > count:
+      best, count = h, int(hyps.counts[h])
+  assert got.coarse.best_hypothesis == best
+  if degrees == 4.0:  # the truth's hypotheses are near: the refit lands on the truth
+    assert best >= 0
+    from lrf_jax.registration import pose_errors
+    assert pose_errors(got.coarse.transform, demo.transform, demo.mr)[0] < 1.0
+  if best >= 0:  # the refit of that hypothesis is `verify`'s (the same arithmetic)
+    only = hyps._replace(rotations=hyps.rotations[best:best + 1],
+                         translations=hyps.translations[best:best + 1],
+                         counts=hyps.counts[best:best + 1])
+    ref = stages.verify(prepared, only, opts.hypotheses, opts.icp.icp_mr, matches.own)
+    np.testing.assert_allclose(got.coarse.transform, ref.coarse.transform, atol=1e-9)
+
+
+def test_an_init_icp_leaves_short_is_claimed_at_the_pose_the_hypotheses_near_it_give(demo):
+  """One ICP iteration from the truth turned 20 deg leaves the pose 10 deg off, and that pose is
+  "not sure" (the truth, among the graph's hypotheses, is its rival). Searched near it (the
+  hypotheses not distinct from it, refitted and refined as `register`'s winner), the truth is
+  found and claimed; held unmoved (`icp_iterations=0`) the init is judged as given only."""
+  from lrf_jax.registration import pose_errors
+  init = _turned(demo, 20.0)
+  kw = dict(mr=demo.mr, init=init, icp_fine=False, effort="fast", **KW)
+  ref = register(demo.model_points, demo.scene_points, icp_iterations=1, **kw)
+  assert ref.success and ref.reason_code == "claimed", ref.reason
+  assert ref.reason.startswith("refined from init and the hypotheses near it: "), ref.reason
+  assert pose_errors(ref.transform, demo.transform, demo.mr)[0] < 1.0
+  np.testing.assert_allclose(ref.coarse_transform, init, atol=1e-12)
+  held = register(demo.model_points, demo.scene_points, icp_iterations=0, **kw)
+  np.testing.assert_allclose(held.transform, init, atol=1e-12)
+  assert not held.success, held.reason

@@ -8,6 +8,14 @@ chance level and the rivals of the refined pose (`stages.judge_pose`), under the
 `evidence.decide`. So an init is claimed where that evidence singles out the refined pose, and a
 wrong init is not: the right pose, among the graph's hypotheses, is its rival, or the wrong
 pose's support stays at the chance level.
+
+Where the refined init is "not sure" (ICP stopped short of the evidence's pose, or the init is
+a few degrees off the pose the correspondences pin down), the search of steps 3-4 is run again
+limited to its neighbourhood (`stages.verify_near`: the best hypothesis not distinct from it,
+refitted, refined and judged as `register`'s own winner, "moved" test included), and that pose
+is returned where it is claimed. It is held to the rule every winner is held to (its support
+at least `VERDICT_GRAPH_FACTOR` times chance's and every distinct pose's, the pose `register`
+picks without an init among them), so a wrong init does not lend a wrong pose any support.
 """
 
 from __future__ import annotations
@@ -22,6 +30,7 @@ from lrf_jax.registration.effort import escalates, one_pass, pooled_stages, trie
 from lrf_jax.registration.estimators import finish_result
 from lrf_jax.registration.evidence import Evidence, Verdict, decide, distinct, poses_apart
 from lrf_jax.registration.options import RegisterOptions
+from lrf_jax.registration.outcome import judged
 from lrf_jax.registration.refine import Refined, check_init, refine
 from lrf_jax.registration.result import Registration
 from lrf_jax.search import engine
@@ -63,12 +72,46 @@ def register_from_init(source: Any, target: Any, init: Any, opts: RegisterOption
     refined = refined._replace(kept=kept)
   first = _judged(*passes, refined, pose, opts, timer, "high" if effort == "high" else effort,
                   hyps)
+  first = _or_near(first, *passes, hyps, pose, opts, timer,
+                   "high" if effort == "high" else effort)
   if effort != "normal" or not escalates(first.reason_code):
     return first
   pooled = pooled_stages(source, target, opts, params, timer, first=prepared)
   again = _judged(*pooled, refined, pose, opts, timer, "high")
+  again = _or_near(again, *pooled, False, pose, opts, timer, "high")
   note = tried(first.reason_code)
   return dataclasses.replace(again, reason=f"{again.reason} ({note})", escalated=True)
+
+
+def _or_near(judged_init: Registration, prepared: stages.Prepared, features: stages.Features,
+             matches: stages.Matches, hyps: Any, init: np.ndarray, opts: RegisterOptions,
+             timer: stages.StageTimer, gathered: str) -> Registration:
+  """`judged_init` (the refined init, judged at itself) where it is claimed; else, where that is
+  claimed, the pose `register` finds when its search is limited to the neighbourhood of the
+  refined init (`stages.verify_near`: the best hypothesis not distinct from it, or the pose
+  itself, refitted on its inliers; then ICP from the refit and the verdict with its "moved"
+  test, as for `register`'s own winner). `hyps`: this evidence's hypotheses (False: computed
+  here; None: there are none). `init` is reported as the coarse transform either way. With
+  `icp_iterations=0` (no refinement asked for) the init is judged as given, and only so."""
+  if judged_init.success or opts.icp.icp_iterations == 0:  # no refinement asked for: as given
+    return judged_init
+  if hyps is False:
+    with timer("hypotheses"), serial_blas():
+      hyps = stages.hypothesize(prepared, features, matches, opts.hypotheses)
+  if hyps is None:
+    return judged_init
+  with timer("verification"), serial_blas():
+    verified = stages.verify_near(prepared, hyps, judged_init.transform, opts.hypotheses,
+                                  opts.icp.icp_mr, matches.own)
+  if verified.coarse.n_inliers < 3:  # nothing to refit on
+    return judged_init
+  near = judged(prepared, matches, hyps, verified, refine(prepared, verified, opts.icp, timer),
+                opts, timer, gathered)
+  if not near.success:
+    return judged_init
+  return dataclasses.replace(near, coarse_transform=init,
+                             reason=f"refined from init and the hypotheses near it: "
+                                    f"{near.reason}")
 
 
 def explained(prepared: stages.Prepared, matches: stages.Matches, pose: np.ndarray,

@@ -20,10 +20,10 @@ import numpy as np
 
 from lrf_jax.registration import stages
 from lrf_jax.registration.effort import escalates, one_pass, pooled_stages, tried
-from lrf_jax.registration.evidence import Evidence, decide, overlap_contrast, poses_apart
 from lrf_jax.registration.icp_host import icp
 from lrf_jax.registration.options import RegisterOptions, check_register_options, resolve
 from lrf_jax.registration.from_init import register_from_init
+from lrf_jax.registration.outcome import judged, keypoint_indices
 from lrf_jax.registration.refine import icp_subset, refine
 from lrf_jax.registration.result import Registration
 from lrf_jax.registration.rivals import overlap_scores
@@ -88,7 +88,9 @@ def register(source: Any, target: Any, options: RegisterOptions | None = None, *
   With `init` (a (4, 4) rigid transform) the pose is `init` refined by step 5 instead of steps
   3-4's winner, and step 6 judges it on the same evidence (`from_init`: steps 1-2 and the
   compatibility graph's hypotheses as rivals): it claims an init where the evidence would have
-  claimed the refined pose, and a wrong init is not claimed. A rotation block within
+  claimed the refined pose, and a wrong init is not claimed; where the refined init is "not
+  sure", steps 3-6 run again on the hypotheses near it, and their pose is returned where it is
+  claimed (with `icp_iterations=0` the init is judged as given only). A rotation block within
   `refine.INIT_PROJECT` of orthonormal is projected to the nearest rotation (a warning gives the
   figure).
 
@@ -199,49 +201,13 @@ def conclude(prepared: stages.Prepared, features: stages.Features, matches: stag
   with timer("hypotheses"), serial_blas():
     hyps = stages.hypothesize(prepared, features, matches, opts.hypotheses)
   if hyps is None:  # no two correspondences agree: no pose to verify
-    return _not_estimated(prepared, stages.input_indices(prepared, *_keypoints(prepared, matches)),
+    return _not_estimated(prepared, stages.input_indices(prepared, *keypoint_indices(prepared, matches)),
                           opts, timer)
   with timer("verification"), serial_blas():
     verified = stages.verify(prepared, hyps, opts.hypotheses, opts.icp.icp_mr, matches.own)
   refined = refine(prepared, verified, opts.icp, timer)
-  return _result(prepared, matches, hyps, verified, refined, opts, timer,
-                 "high" if pooled else opts.verdict.effort)
-
-
-def _keypoints(prepared: stages.Prepared, matches: stages.Matches
-               ) -> tuple[np.ndarray, np.ndarray]:
-  """The correspondences' working-cloud point indices (source, target)."""
-  s, t = prepared.sides
-  return s.keypoints[matches.source], t.keypoints[matches.target]
-
-
-def _result(prepared: stages.Prepared, matches: stages.Matches, hyps: stages.Hypotheses,
-            verified: stages.Verified, refined: Any, opts: RegisterOptions,
-            timer: stages.StageTimer, gathered: str) -> Registration:
-  """The verdict (`evidence.decide`) on the stages' results, and the `Registration`.
-  `gathered`: the effort whose evidence it is ("high": pooled; `Evidence.effort`)."""
-  contrast = overlap_contrast(verified.fits)
-  moved_deg, moved_distance = poses_apart(refined.transform, verified.coarse.transform,
-                                          hyps.evidence.cs)
-  evidence = Evidence(n_inliers=int(np.sum(verified.evidence_mask)), chance_inliers=hyps.chance,
-                      rival_inliers=verified.rival, fitness=refined.fitness, contrast=contrast,
-                      estimator=opts.hypotheses.estimator, degeneracy=refined.degeneracy,
-                      free_direction=refined.free_direction, effort=gathered,
-                      moved_deg=moved_deg, moved_distance=moved_distance,
-                      distinct_distance=float(prepared.radius))
-  decision = decide(evidence)
-  coarse, n = verified.coarse, len(matches.source)
-  return Registration(transform=refined.transform, coarse_transform=coarse.transform,
-                      inliers=coarse.inliers, n_inliers=coarse.n_inliers,
-                      correspondences=stages.input_indices(prepared,
-                                                           *_keypoints(prepared, matches)),
-                      voxel_size=prepared.voxel_size, fitness=refined.fitness,
-                      rmse=refined.rmse, mr=float(prepared.mr), seconds=timer.total(),
-                      timings=dict(timer.seconds), success=decision.success,
-                      inlier_ratio=coarse.n_inliers / max(n, 1), chance_inliers=hyps.chance,
-                      overlap_contrast=contrast, reason=decision.reason, overlap=refined.fitness,
-                      rival_inliers=verified.rival, reason_code=decision.code,
-                      evidence_inliers=evidence.n_inliers, degeneracy=refined.degeneracy)
+  return judged(prepared, matches, hyps, verified, refined, opts, timer,
+                "high" if pooled else opts.verdict.effort)
 
 
 def _not_estimated(prepared: stages.Prepared, correspondences: np.ndarray, opts: RegisterOptions,

@@ -33,6 +33,7 @@ from lrf_jax.geometry.resolution import Resolution, pair_resolution, registratio
 from lrf_jax.geometry.sampling import thin_cloud, thinning_voxel_size
 from lrf_jax.registration import host
 from lrf_jax.registration.estimators import centred, finish_result, uncentre
+from lrf_jax.registration.evidence import RIVAL_DEG
 from lrf_jax.registration.options import (DescribeOptions, HypothesisOptions, KeypointOptions,
                                           MatchOptions, RegisterOptions, check_voxel_size)
 from lrf_jax.registration.rivals import (REST_FACTOR, EvidenceSet, chance_inliers,
@@ -421,17 +422,58 @@ def verify(prepared: Prepared, hyps: Hypotheses, hypotheses: HypothesisOptions, 
   `icp_mr` mr among the `hypotheses.verify` best-scoring hypotheses for "lrf" and "3point"),
   refitted by Kabsch on its inliers, its inliers among the evidence correspondences and the best
   rival's (`_rivals`)."""
-  threshold = float(hypotheses.inlier_mr * prepared.mr)
   overlap_distance = icp_mr * prepared.mr
   target_grid = engine.Grid(prepared.sides[1].points, overlap_distance)
   best, fits = _rerank(hyps, prepared.sides[0].points, target_grid, overlap_distance,
                        0 if hypotheses.estimator == "graph" else hypotheses.verify, prepared.rng)
-  r, t, mask = host.select_and_refine(hyps.rotations[best], hyps.translations[best], hyps.src,
-                                      hyps.dst, threshold)
-  coarse = finish_result(*uncentre(r, t, hyps.cs, hyps.cd), mask, best, hyps.counts[best])
+  return _refitted(prepared, hyps, (hyps.rotations[best], hyps.translations[best]), best,
+                   hyps.counts[best], fits, hypotheses, target_grid, overlap_distance, own)
+
+
+def verify_near(prepared: Prepared, hyps: Hypotheses, transform: np.ndarray,
+                hypotheses: HypothesisOptions, icp_mr: float, own: bool) -> Verified:
+  """`verify` among the poses near one found elsewhere (`register(..., init=T)`: `T` refined):
+  the hypothesis with the most inliers among those not `evidence.distinct` from `transform`
+  (measured as rivals are, at the evidence correspondences' source centroid), or `transform`
+  itself where it explains more of the correspondences, refitted by Kabsch on its inliers as
+  `verify` refits its winner, with that refit's evidence inliers and rivals. The pipeline then
+  refines and judges it as it does its winner (ICP from the refit; the "moved" test compares
+  ICP's pose with it): the pose `register` would have found had its search been limited to the
+  neighbourhood of `transform` (`Verified.coarse.best_hypothesis` is -1 where `transform` itself
+  won)."""
+  threshold = float(hypotheses.inlier_mr * prepared.mr)
+  overlap_distance = icp_mr * prepared.mr
+  target_grid = engine.Grid(prepared.sides[1].points, overlap_distance)
+  r = np.asarray(transform[:3, :3], np.float64)
+  t = np.asarray(transform[:3, 3], np.float64) - hyps.cd + r @ hyps.cs  # centred coordinates
+  best, start, count = -1, (r, t), int(np.sum(host.inlier_mask(r, t, hyps.src, hyps.dst,
+                                                                threshold)))
+  rs = np.asarray(hyps.rotations, np.float64)
+  if len(rs):
+    cos = (np.einsum("ij,hij->h", r, rs) - 1.0) / 2.0
+    deg = np.degrees(np.arccos(np.clip(cos, -1.0, 1.0)))
+    point = hyps.evidence.cs - hyps.cs  # where `poses_apart` measures, in centred coordinates
+    apart = np.linalg.norm(np.einsum("hij,j->hi", rs - r, point)
+                           + np.asarray(hyps.translations, np.float64) - t, axis=1)
+    near = ~((deg > RIVAL_DEG) | (apart > prepared.radius))  # not `evidence.distinct`
+    counts = np.where(near, np.asarray(hyps.counts), -1)
+    if counts.max() > count:
+      best = int(np.argmax(counts))
+      start, count = (rs[best], np.asarray(hyps.translations[best], np.float64)), int(counts[best])
+  return _refitted(prepared, hyps, start, best, count, np.zeros(0), hypotheses, target_grid,
+                   overlap_distance, own)
+
+
+def _refitted(prepared: Prepared, hyps: Hypotheses, pose: tuple, best: int, count: int,
+              fits: np.ndarray, hypotheses: HypothesisOptions, target_grid: engine.Grid,
+              overlap_distance: float, own: bool) -> Verified:
+  """A centred pose (r, t) refitted by Kabsch on its inliers (`host.select_and_refine`), its
+  evidence inliers and rivals (`_rivals`): `verify`'s and `verify_pose`'s `Verified`."""
+  threshold = float(hypotheses.inlier_mr * prepared.mr)
+  r, t, mask = host.select_and_refine(pose[0], pose[1], hyps.src, hyps.dst, threshold)
+  coarse = finish_result(*uncentre(r, t, hyps.cs, hyps.cd), mask, best, count)
   ev_mask, rival = _rivals(prepared, hyps, (r, t, mask), own, threshold,
-                           int(hypotheses.iterations),
-                           target_grid, overlap_distance)
+                           int(hypotheses.iterations), target_grid, overlap_distance)
   return Verified(coarse, fits, ev_mask, rival, target_grid, overlap_distance)
 
 

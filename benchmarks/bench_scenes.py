@@ -2,7 +2,8 @@
 
     LRF_DATA=/path/to/data python benchmarks/bench_scenes.py [--split tune|test|all]
         [--kinds room,object] [--only NAME-SUBSTRING] [--limit N] [--lrf-kw '{"iterations": 500}']
-        [--skip-open3d] [--kiss] [--hints] [--inits] [--probe] [--viewpoints] [--seed 0]
+        [--skip-open3d] [--kiss] [--hints] [--inits] [--turns] [--probe] [--viewpoints]
+        [--seed 0]
         [--json OUT.json]
 
 Runs every case of `benchmarks/scene_cases.py` (rooms from 3DMatch, objects from the bunny and
@@ -28,6 +29,10 @@ rotation to 3 decimals, `published`), from the truth turned 3 deg and turned 30 
 init should be claimed wherever the default claims, the truth's and the 3 deg init should land
 within 5 deg and 3 % of the target's extent of the truth (`near_truth`), a turned one never be
 claimed at a wrong pose.
+
+With `--turns`, every case is registered again from its truth turned 5, 10, 15, 30, 60 and 120
+deg about an axis drawn per case and angle (`run_turns`), ICP on: how many come back right and
+are claimed, and that none is claimed at a wrong pose.
 
 With `--probe`, every case is registered again under each option of `PROBE_OPTIONS` (ICP's
 reach, iterations and mode, the inlier distance, the support radius, fewer keypoints or
@@ -263,6 +268,40 @@ def run_inits(records: list[dict[str, Any]], cases: list[Case], lrf_kw: dict[str
     out["turned_claimed_wrong"] += int(bool(bad["claimed"]) and not bad["true"])
     out["held20_claimed_wrong"] += int(bool(held["claimed"]) and not held["true"])
     out["turned_claimed_right"] += int(bool(bad["claimed"]) and bad["true"])
+  return out
+
+
+# `--turns`: the truth turned about a seeded axis through the target's centroid, ICP on.
+TURN_DEGREES = (5.0, 10.0, 15.0, 30.0, 60.0, 120.0)
+
+
+def run_turns(cases: list[Case], lrf_kw: dict[str, Any], seed: int) -> dict[str, Any]:
+  """`register(..., init=)` on every case from the truth turned by each of `TURN_DEGREES` about
+  an axis drawn per case and angle (a generator seeded 1000 + the case's place in `cases`),
+  ICP on: per angle [runs, right, claimed right, claimed wrong], and the false claims."""
+  import warnings
+  from scipy.spatial.transform import Rotation
+  out: dict[str, Any] = {"per_degrees": {str(a): [0, 0, 0, 0] for a in TURN_DEGREES},
+                         "false": []}
+  for i, case in enumerate(_progress(cases, True, f"turns ({len(TURN_DEGREES)} a case)")):
+    rng = np.random.default_rng(1000 + i)
+    centre = np.asarray(case.target, np.float64).mean(axis=0)
+    for degrees in TURN_DEGREES:
+      axis = rng.normal(size=3)
+      turn = np.eye(4)
+      turn[:3, :3] = Rotation.from_rotvec(np.radians(degrees) * axis / np.linalg.norm(axis)
+                                          ).as_matrix()
+      turn[:3, 3] = centre - turn[:3, :3] @ centre
+      with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        rec = run_lrf(case, {**lrf_kw, "init": turn @ case.gt}, seed)
+      row = out["per_degrees"][str(degrees)]
+      row[0] += 1
+      row[1] += int(rec["true"])
+      row[2] += int(bool(rec["claimed"]) and rec["true"])
+      row[3] += int(bool(rec["claimed"]) and not rec["true"])
+      if rec["claimed"] and not rec["true"]:
+        out["false"].append([case.name, degrees, rec["re"], rec["te"]])
   return out
 
 
@@ -520,6 +559,9 @@ def main(argv: list[str] | None = None) -> None:
   ap.add_argument("--inits", action="store_true",
                   help="also register every case from its truth (as published) and from the "
                        "truth turned 3, 30 and 20 deg (held unmoved), and count the claims")
+  ap.add_argument("--turns", action="store_true",
+                  help="also register every case from its truth turned 5-120 deg about a "
+                       "seeded axis (ICP on) and count the claims per angle")
   ap.add_argument("--hints", action="store_true",
                   help="run every 'not sure' again with the step its reason names, and count "
                        "what each step settles")
@@ -576,6 +618,16 @@ def main(argv: list[str] | None = None) -> None:
   if args.inits:
     inits = run_inits(records, cases, lrf_kw, args.seed)
     print("\n## Inits\n\n" + ", ".join(f"{k} {v}" for k, v in inits.items()))
+  turns = None
+  if args.turns:
+    named = {c.name: c for c in cases}
+    turns = run_turns([named[r["case"]] for r in records], lrf_kw, args.seed)
+    print("\n## Inits turned (ICP on)\n\n| degrees | runs | right | claimed right | claimed "
+          "wrong |\n|---:|---:|---:|---:|---:|\n"
+          + "\n".join(f"| {d} | {' | '.join(map(str, row))} |"
+                      for d, row in turns["per_degrees"].items())
+          + "".join(f"\n- false claim: {name} turned {d:g} deg: RE {re:.2f}, TE {te:.2f}"
+                    for name, d, re, te in turns["false"]))
   probe = None
   if args.probe:
     named = {c.name: c for c in cases}
@@ -598,7 +650,8 @@ def main(argv: list[str] | None = None) -> None:
   if args.json:
     out = write_json(args.json, {"machine": machine, "args": vars(args), "lrf_kw": lrf_kw,
                                  "notes": notes, "records": records, "summary": rows,
-                                 "hints": hints, "inits": inits, "probe": probe})
+                                 "hints": hints, "inits": inits, "turns": turns,
+                                 "probe": probe})
     print(f"wrote {out}")
 
 

@@ -5,13 +5,18 @@ an object side by side, a plane against the same plane shifted within itself) an
 may register but not a period off (two LiDAR sweeps along a street whose facades repeat,
 `datasets.make_street_pair`); prints a Markdown table with the verdict's `reason_code`.
 
-    LRF_DATA=/path/to/data python benchmarks/bench_verdict.py [--options]
+    LRF_DATA=/path/to/data python benchmarks/bench_verdict.py [--options] [--inits] [--multiway]
 
 With `--options` the must-not pairs run again under every option that chooses the hypotheses
 differently (estimator "lrf" and "3point", ratio=0.9, mutual, ISS keypoints): the verdict is one
 for all, so none of them may claim success either. `--effort high` runs every row with
 `register(..., effort="high")` (more keypoints and seeds, pooled). The last lines count the
 claims of the must-register rows and the false claims of the must-not rows.
+
+With `--inits` the must-not pairs run again from two wrong inits (`register(..., init=T)`: the
+identity, and a seeded random rotation that puts the source's centroid on the target's), and
+the streets from those and from the truth shifted one facade period along the street: no init
+may be claimed where the pair must not register, nor at a wrong pose on a street.
 
 With `--multiway`, `register_all` on sets of scans that belong together with one or
 two foreign scans mixed in (10 bunny scans + UWA3M views in metres or a 3DMatch fragment scaled
@@ -42,8 +47,10 @@ print("| pair | options | expected | inliers | chance | rival | fitness | err_r 
 print("|---|---|---|---:|---:|---:|---:|---:|---|---|---|")
 
 
-def run(name, a, b, expect, gt=None, **kw):
-  opts = ", ".join(f"{k}={v}" for k, v in kw.items() if k != "mr") or "default"
+def run(name, a, b, expect, gt=None, init_label=None, **kw):
+  opts = ", ".join(f"{k}={v}" for k, v in kw.items() if k not in ("mr", "init")) or "default"
+  if init_label:
+    opts = f"{opts}, init {init_label}"
   TALLY[expect][1] += 1
   try:
     r = register(a, b, effort=EFFORT, **kw)
@@ -121,6 +128,33 @@ if "--options" in sys.argv[1:]:
       run(name, a, b, "failure", **kw, **options)
     for name, pair in streets():
       run(name, pair.model_points, pair.scene_points, "ambiguous", pair.transform, **options)
+
+
+
+def guesses(a, b, seed):
+  """(label, init) of `--inits`' wrong guesses for a pair: the identity, and a seeded random
+  rotation with the translation that puts the source's centroid on the target's."""
+  rot = Rotation.random(random_state=seed).as_matrix()
+  guess = np.eye(4)
+  guess[:3, :3] = rot
+  guess[:3, 3] = np.mean(b, axis=0) - rot @ np.mean(a, axis=0)
+  yield "identity", np.eye(4)
+  yield "random", guess
+
+
+if "--inits" in sys.argv[1:]:
+  for i, (name, a, b, kw) in enumerate(failures()):
+    for label, init in guesses(a, b, i):
+      run(name, a, b, "failure", **kw, init=init, init_label=label)
+  for i, (name, pair) in enumerate(streets()):
+    period = float(name.split("every ")[1].split(" m")[0])
+    off = pair.transform.copy()
+    off[0, 3] += period  # one period along the street (x): a wrong init the facades fit
+    run(name, pair.model_points, pair.scene_points, "ambiguous", pair.transform, init=off,
+        init_label="the truth a period off")
+    for label, init in guesses(pair.model_points, pair.scene_points, 100 + i):
+      run(name, pair.model_points, pair.scene_points, "ambiguous", pair.transform, init=init,
+          init_label=label)
 
 print(f"\neffort={EFFORT}: must register: {TALLY['success'][0]} of {TALLY['success'][1]} "
       f"claimed; must not: {TALLY['failure'][0]} of {TALLY['failure'][1]} claimed (false "

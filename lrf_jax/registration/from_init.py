@@ -70,35 +70,31 @@ def register_from_init(source: Any, target: Any, init: Any, opts: RegisterOption
   if kept:  # ICP slid away from what the init explains: the init itself, measured unmoved
     refined = refine(prepared, start, dataclasses.replace(opts.icp, icp_iterations=0), timer)
     refined = refined._replace(kept=kept)
-  first = _judged(*passes, refined, pose, opts, timer, "high" if effort == "high" else effort,
-                  hyps)
-  first = _or_near(first, *passes, hyps, pose, opts, timer,
-                   "high" if effort == "high" else effort)
+  gathered = "high" if effort == "high" else effort
+  first = _judged(prepared, passes[2], hyps, refined, pose, opts, timer, gathered)
+  first = _or_near(first, prepared, passes[2], hyps, pose, opts, timer, gathered)
   if effort != "normal" or not escalates(first.reason_code):
     return first
   pooled = pooled_stages(source, target, opts, params, timer, first=prepared)
-  again = _judged(*pooled, refined, pose, opts, timer, "high")
-  again = _or_near(again, *pooled, False, pose, opts, timer, "high")
+  with timer("hypotheses"), serial_blas():
+    pooled_hyps = stages.hypothesize(*pooled, opts.hypotheses)
+  again = _judged(pooled[0], pooled[2], pooled_hyps, refined, pose, opts, timer, "high")
+  again = _or_near(again, pooled[0], pooled[2], pooled_hyps, pose, opts, timer, "high")
   note = tried(first.reason_code)
   return dataclasses.replace(again, reason=f"{again.reason} ({note})", escalated=True)
 
 
-def _or_near(judged_init: Registration, prepared: stages.Prepared, features: stages.Features,
-             matches: stages.Matches, hyps: Any, init: np.ndarray, opts: RegisterOptions,
+def _or_near(judged_init: Registration, prepared: stages.Prepared, matches: stages.Matches,
+             hyps: Any, init: np.ndarray, opts: RegisterOptions,
              timer: stages.StageTimer, gathered: str) -> Registration:
   """`judged_init` (the refined init, judged at itself) where it is claimed; else, where that is
   claimed, the pose `register` finds when its search is limited to the neighbourhood of the
   refined init (`stages.verify_near`: the best hypothesis not distinct from it, or the pose
   itself, refitted on its inliers; then ICP from the refit and the verdict with its "moved"
-  test, as for `register`'s own winner). `hyps`: this evidence's hypotheses (False: computed
-  here; None: there are none). `init` is reported as the coarse transform either way. With
+  test, as for `register`'s own winner). `hyps`: this evidence's `stages.hypothesize` (None:
+  there are none). `init` is reported as the coarse transform either way. With
   `icp_iterations=0` (no refinement asked for) the init is judged as given, and only so."""
-  if judged_init.success or opts.icp.icp_iterations == 0:  # no refinement asked for: as given
-    return judged_init
-  if hyps is False:
-    with timer("hypotheses"), serial_blas():
-      hyps = stages.hypothesize(prepared, features, matches, opts.hypotheses)
-  if hyps is None:
+  if judged_init.success or opts.icp.icp_iterations == 0 or hyps is None:
     return judged_init
   with timer("verification"), serial_blas():
     verified = stages.verify_near(prepared, hyps, judged_init.transform, opts.hypotheses,
@@ -151,19 +147,16 @@ def kept_init(prepared: stages.Prepared, matches: stages.Matches, init: np.ndarr
           f"pose that explains {after} of the correspondences, as many as the init")
 
 
-def _judged(prepared: stages.Prepared, features: stages.Features, matches: stages.Matches,
-            refined: Refined, pose: np.ndarray, opts: RegisterOptions, timer: stages.StageTimer,
-            gathered: str, hyps: Any = False) -> Registration:
+def _judged(prepared: stages.Prepared, matches: stages.Matches, hyps: Any, refined: Refined,
+            pose: np.ndarray, opts: RegisterOptions, timer: stages.StageTimer,
+            gathered: str) -> Registration:
   """The verdict on the refined pose from the evidence of one pass or the pooled seeds
-  (`gathered`: "fast"/"normal" one pass, "high" pooled), and the `Registration`. `hyps`: this
-  evidence's `stages.hypothesize` where computed already (False: computed here)."""
+  (`gathered`: "fast"/"normal" one pass, "high" pooled; `hyps`: its `stages.hypothesize`, None
+  where there are none), and the `Registration`."""
   s, t = prepared.sides
   correspondences = stages.input_indices(prepared, s.keypoints[matches.source],
                                          t.keypoints[matches.target])
   n = len(matches.source)
-  if hyps is False:
-    with timer("hypotheses"), serial_blas():
-      hyps = stages.hypothesize(prepared, features, matches, opts.hypotheses)
   mask, chance, rival, ev_inliers = np.zeros(n, bool), 0, 0, 0
   if hyps is None:
     decision = Verdict(False, f"not sure: no two of the {n} correspondences agree, so nothing "

@@ -12,6 +12,7 @@ from lrf_jax import datasets
 from lrf_jax.batch import jobs, scoring
 from lrf_jax.cli import batch as batch_cli
 from lrf_jax.io import write_xf
+from lrf_jax.io.poses import format_matrix
 from tests.test_batch import OPTS, tsv_rows, write_pairs
 
 
@@ -109,3 +110,45 @@ def test_the_cli_prints_the_counts_as_the_rows_count_them(job, tmp_path, capsys)
   assert last == f"6 pairs: {right} right of 4 scored, {claimed} claimed, {false} false claims"
   assert batch_cli.main(["register", str(job), "--out", str(tmp_path / "o2"),
                          "--criteria", "5"]) == 2
+
+
+def test_an_init_column_registers_each_pair_from_its_init_and_keys_it_by_content(tmp_path):
+  """PAIRS.tsv's `init` column: the pair is `register(source, target, init=T, **options)` bit for
+  bit, results.tsv names the init, an init that is not a rigid transform is that row's error
+  (naming the column and the file), and a changed init file redoes its pair alone."""
+  from lrf_jax.registration import register
+  pair = datasets.make_demo_pair(0, seed=0, noise_mr=0.05, partial=True)
+  np.save(tmp_path / "scene.npy", pair.scene_points)
+  np.save(tmp_path / "model.npy", pair.model_points)
+  truth = np.linalg.inv(pair.transform)  # scene -> model
+  init = _t([0.0, 0.0, np.radians(8.0)], [0.0, 0.0, 0.0]) @ truth
+  write_xf(tmp_path / "init.txt", init)
+  bad = init.copy()
+  bad[:3, :3] *= 1.1
+  np.savetxt(tmp_path / "bad.txt", bad)
+  pairs = write_pairs(tmp_path / "pairs.tsv",
+                      [("from_init", "scene.npy", "model.npy", "init.txt"),
+                       ("plain", "scene.npy", "model.npy", ""),
+                       ("bad_init", "scene.npy", "model.npy", "bad.txt")],
+                      header=("name", "source", "target", "init"))
+  res = jobs.run_register(pairs, tmp_path / "out", progress=False, **OPTS)
+  rows = {r["name"]: r for r in tsv_rows(tmp_path / "out" / "results.tsv")}
+  assert res.ran == 3 and rows["from_init"]["status"] == rows["plain"]["status"] == "done"
+  assert rows["from_init"]["init"] == str((tmp_path / "init.txt").resolve())
+  assert rows["plain"]["init"] == ""
+  ref = register(pair.scene_points, pair.model_points, init=np.loadtxt(tmp_path / "init.txt"),
+                 **OPTS)
+  assert (tmp_path / "out" / "from_init.txt").read_text() == format_matrix(ref.transform) + "\n"
+  assert rows["from_init"]["success"] == str(bool(ref.success))
+  assert rows["from_init"]["reason"] == ref.reason
+  assert rows["bad_init"]["status"] == "error"
+  assert "init" in rows["bad_init"]["error"] and "bad.txt" in rows["bad_init"]["error"]
+  # the same job again redoes nothing; a changed init redoes its pair alone
+  again = jobs.run_register(pairs, tmp_path / "out", progress=False, **OPTS)
+  assert again.ran == 0
+  write_xf(tmp_path / "init.txt", truth)
+  third = jobs.run_register(pairs, tmp_path / "out", progress=False, **OPTS)
+  assert third.ran == 1
+  rows = {r["name"]: r for r in tsv_rows(tmp_path / "out" / "results.tsv")}
+  assert rows["from_init"]["reason"].startswith("refined from init")
+

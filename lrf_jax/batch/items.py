@@ -10,6 +10,7 @@ from __future__ import annotations
 import errno
 import os
 import time
+import warnings
 from typing import Any
 from collections.abc import Sequence
 
@@ -96,7 +97,9 @@ def register_pair(payload: dict[str, Any]) -> dict[str, Any]:
 
   Args:
     payload: {"source": path, "target": path, "options": register's keywords, and optionally
-      `bin_layout`, how a `.bin` input is read (`lrf_jax.io.reader.cloud_source`)}.
+      `bin_layout`, how a `.bin` input is read (`lrf_jax.io.reader.cloud_source`); "init": a
+      4 x 4 transform file (as `lrf-register --init` reads it; a rotation block within
+      `refine.INIT_PROJECT` of orthonormal projected) or None}.
 
   Returns:
     {"status": "done", "transform": 4 x 4 nested lists (float64, exact), "success": bool,
@@ -108,10 +111,17 @@ def register_pair(payload: dict[str, Any]) -> dict[str, Any]:
     from lrf_jax.registration import register
     options = dict(payload["options"])
     layout = options.pop("bin_layout", None)
+    if payload.get("init"):
+      from lrf_jax.batch.scan_frames import read_transform
+      from lrf_jax.registration.refine import INIT_PROJECT
+      with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # the projection's note: the row's reason says enough
+        options["init"] = read_transform(payload["init"], "init", project=INIT_PROJECT)
     reg = register(cloud_source(payload["source"], layout),
                    cloud_source(payload["target"], layout), **options)
   except Exception as e:  # noqa: BLE001 -- a bad pair is a row, the job goes on
-    return _error(e, t0, (payload["source"], payload["target"]))
+    return _error(e, t0, (payload["source"], payload["target"])
+                  + ((payload["init"],) if payload.get("init") else ()))
   return dict(status="done", transform=np.asarray(reg.transform, np.float64).tolist(),
               success=bool(reg.success), reason=str(reg.reason),
               seconds=time.perf_counter() - t0)

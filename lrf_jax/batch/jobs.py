@@ -58,7 +58,7 @@ STATE = ".lrf-batch"
 # `retry_errors`; "transient", a failure of the machine (a lost worker or node, a full disk, a
 # cache error), redone by the same command.
 STATUSES = ("done", "error", "transient")
-REGISTER_COLUMNS = ("name", "source", "target", "status", "success", "reason",
+REGISTER_COLUMNS = ("name", "source", "target", "init", "status", "success", "reason",
                     *scoring.SCORE_COLUMNS, "seconds", "node", "attempt", "version", "error")
 FRAMES_COLUMNS = ("name", "scan", "status", "keypoints", "valid", "seconds", "node", "attempt",
                   "version", "error")
@@ -203,6 +203,7 @@ class _Kind:
   payload: Callable[[Item, dict[str, Any]], dict[str, Any]]
   row: Callable[[Item, dict[str, Any]], dict[str, Any]]
   write: Callable[[Path, dict[str, Any]], None]
+  n_inputs: tuple[int, ...]  # how many input files an item may have
 
 
 def _write_transform(path: Path, value: dict[str, Any]) -> None:
@@ -225,6 +226,7 @@ def _common(item: Item, rec: dict[str, Any]) -> dict[str, Any]:
 def _register_row(item: Item, rec: dict[str, Any]) -> dict[str, Any]:
   done = rec["status"] == "done"
   return dict(_common(item, rec), source=item.inputs[0], target=item.inputs[1],
+              init=item.inputs[2] if len(item.inputs) > 2 else "",
               success=str(bool(rec.get("success"))) if done else "",
               reason=rec.get("reason", "") if done else "")
 
@@ -235,10 +237,11 @@ def _frames_row(item: Item, rec: dict[str, Any]) -> dict[str, Any]:
 
 
 REGISTER = _Kind("register", items_mod.register_pair, ".txt", REGISTER_COLUMNS,
-                 lambda it, o: dict(source=it.inputs[0], target=it.inputs[1], options=o),
-                 _register_row, _write_transform)
+                 lambda it, o: dict(source=it.inputs[0], target=it.inputs[1], options=o,
+                                    init=it.inputs[2] if len(it.inputs) > 2 else None),
+                 _register_row, _write_transform, (2, 3))
 FRAMES = _Kind("frames", items_mod.frames_of_scan, ".npz", FRAMES_COLUMNS,
-               lambda it, o: dict(scan=it.inputs[0], options=o), _frames_row, _write_npz)
+               lambda it, o: dict(scan=it.inputs[0], options=o), _frames_row, _write_npz, (1,))
 
 
 class _Job:
@@ -302,7 +305,7 @@ class _Job:
       if (path.stem in mine or rec is None or rec.get("kind") != self.kind.name
           or rec.get("status") not in STATUSES or rec.get("name") != path.stem
           or not isinstance(rec.get("inputs"), list)
-          or len(rec["inputs"]) != len(self.items[0].inputs if self.items else rec["inputs"])):
+          or len(rec["inputs"]) not in self.kind.n_inputs):
         continue
       if rec["status"] == "done" and not (self.out / (path.stem + self.kind.suffix)).is_file():
         continue
@@ -464,8 +467,11 @@ def run_register(pairs: str | os.PathLike | Sequence[tuple[str, ...]],
   own, so a transform and verdict equal that call's bit for bit.
 
   Args:
-    pairs: a PAIRS.tsv (`tables.read_pair_rows`: with an optional `gt` column) or [(name,
-      source, target)] or [(name, source, target, gt path or None)].
+    pairs: a PAIRS.tsv (`tables.read_pair_rows`: with optional `gt` and `init` columns) or
+      [(name, source, target)], [(name, source, target, gt path or None)] or [(name, source,
+      target, gt path or None, init path or None)]. A pair with an init is
+      `register(source, target, init=T, **options)`, its init file one of its inputs (a
+      changed init redoes the pair).
     out: the output folder (created).
     engine: "local" (this process) or "ray".
     address: the Ray cluster (`engines.resolve_address`); only with engine="ray".
@@ -498,7 +504,8 @@ def run_register(pairs: str | os.PathLike | Sequence[tuple[str, ...]],
           None if v is None else tables.absolute(v) for v in p[1:]))
       for p in pairs]
   score = scoring.Scoring({r.name: r.gt for r in listed}, criteria)
-  return _run(REGISTER, [(r.name, (r.source, r.target)) for r in listed], out, options,
+  return _run(REGISTER, [(r.name, (r.source, r.target) + ((r.init,) if r.init else ()))
+                         for r in listed], out, options,
               engine=engine, address=address, progress=progress, retry_errors=retry_errors,
               keep_versions=keep_versions, force=force, score=score)
 

@@ -90,12 +90,13 @@ def read_pairs(path: str | os.PathLike) -> list[tuple[str, str, str]]:
 
 @dataclasses.dataclass(frozen=True)
 class PairRow:
-  """One row of a PAIRS.tsv: its name, the source and target paths and the ground truth's path
-  (None: no `gt` column, or an empty cell), all absolute."""
+  """One row of a PAIRS.tsv: its name, the source and target paths, the ground truth's path and
+  the init's (None: no `gt` / `init` column, or an empty cell), all absolute."""
   name: str
   source: str
   target: str
   gt: str | None = None
+  init: str | None = None
 
 
 def read_pair_rows(path: str | os.PathLike) -> list[PairRow]:
@@ -104,7 +105,9 @@ def read_pair_rows(path: str | os.PathLike) -> list[PairRow]:
   folder), optionally `name` (default: the data row's number, 1-based, zero-padded to 4
   digits: 0001, ..., 9999, 10000; a name that does not change when pairs are appended) and
   optionally `gt` (a 4 x 4 source->target transform file, as `lrf-register --out` writes it,
-  relative to the TSV's folder; may be empty in a row). Other columns are ignored.
+  relative to the TSV's folder; may be empty in a row) and optionally `init` (the same kind of
+  file: the pair is registered from it, `register(..., init=T)`; may be empty in a row). Other
+  columns are ignored.
 
   Returns:
     The rows in the file's order.
@@ -141,8 +144,9 @@ def read_pair_rows(path: str | os.PathLike) -> list[PairRow]:
                        f"{seen[name.casefold()]} (ignoring case); names must be unique")
     seen[name.casefold()] = lineno
     src, tgt = (absolute(p.parent / Path(rec[c]).expanduser()) for c in ("source", "target"))
-    gt = absolute(p.parent / Path(rec["gt"]).expanduser()) if rec.get("gt") else None
-    out.append(PairRow(name, src, tgt, gt))
+    gt, init = (absolute(p.parent / Path(rec[c]).expanduser()) if rec.get(c) else None
+                for c in ("gt", "init"))
+    out.append(PairRow(name, src, tgt, gt, init))
   return out
 
 

@@ -4,7 +4,7 @@ frames or registrations, on this machine (`--engine local`) or a Ray cluster (`-
 `frames` writes `DIR/<scan>.npz` as `lrf-frames` writes it and takes lrf-frames' options;
 `register` writes `DIR/<name>.txt` (the 4 x 4 source->target, as `lrf-register --out` writes it,
 for every done pair whatever its verdict) and takes lrf-register's options except --out, --png,
---checkpoint and --init. Both write `DIR/results.tsv` after each item and skip, when run again,
+--checkpoint and --init (a pair's init is PAIRS.tsv's `init` column). Both write `DIR/results.tsv` after each item and skip, when run again,
 every item whose inputs (by content) and options are unchanged. One job at a time writes a
 folder: a second is refused before any work. Exit codes: 0 every item done, 3 some failed (their
 rows say why), 2 a bad command line or a job refused before any work, 74 an output that could not
@@ -70,8 +70,11 @@ def build_parser() -> argparse.ArgumentParser:
                              "--checkpoint and --init may follow (lrf-register --help lists them); options not "
                              "given keep register's defaults. PAIRS.tsv: tab-separated, a "
                              "header with the columns source and target (paths, relative to "
-                             "the TSV's folder), optionally name (default: the row number) and "
-                             "gt (a 4x4 source->target file as lrf-register --out writes it).")
+                             "the TSV's folder), optionally name (default: the row number), "
+                             "gt (a 4x4 source->target file as lrf-register --out writes it) "
+                             "and init (the same kind of file: the pair is registered from it, "
+                             "as lrf-register --init does; a changed init file redoes the "
+                             "pair).")
   rg.add_argument("pairs", metavar="PAIRS.tsv", help="the pairs to register")
   _common(rg)
   rg.add_argument("--criteria", default=None, metavar="DEG,DIST",

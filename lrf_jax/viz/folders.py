@@ -22,7 +22,7 @@ from lrf_jax.viz.scenes import (EDGE_KINDS, MAX_POINTS, ModelScene, PairScene, T
 
 __all__ = ["BatchPair", "folder_kind", "read_batch_folder", "read_model_folder"]
 
-# results.tsv's columns a register folder has (`lrf_jax.batch.jobs.REGISTER_COLUMNS`'s first).
+# results.tsv's columns a register folder has (some of `lrf_jax.batch.jobs.REGISTER_COLUMNS`).
 BATCH_COLUMNS = ("name", "source", "target", "status", "success", "reason")
 NEITHER = ("is neither a multiway output folder (no manifest.json of `lrf-register ... "
            "--out-dir`) nor an lrf-batch register folder (no results.tsv of `lrf-batch "

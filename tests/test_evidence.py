@@ -419,3 +419,22 @@ def test_an_init_icp_leaves_short_is_claimed_at_the_pose_the_hypotheses_near_it_
   held = register(demo.model_points, demo.scene_points, icp_iterations=0, **kw)
   np.testing.assert_allclose(held.transform, init, atol=1e-12)
   assert not held.success, held.reason
+
+
+@pytest.mark.parametrize("k", [1e-3, 1e3])
+def test_the_search_near_an_init_has_no_length_of_its_own(demo, k):
+  """The neighbourhood (10 deg, the support radius) is in mr: both clouds and the init's
+  translation scaled by k give the same verdict and the pose with its translation scaled."""
+  from lrf_jax.registration import rotation_error_deg
+  init = _turned(demo, 20.0)
+  kw = dict(icp_iterations=1, icp_fine=False, effort="fast", **KW)
+  base = register(demo.model_points, demo.scene_points, init=init, **kw)
+  scaled_init = init.copy()
+  scaled_init[:3, 3] *= k
+  scaled = register(k * demo.model_points, k * demo.scene_points, init=scaled_init, **kw)
+  assert base.reason.startswith("refined from init and the hypotheses near it")
+  assert scaled.success == base.success and scaled.reason_code == base.reason_code
+  assert scaled.reason.split(":")[0] == base.reason.split(":")[0]
+  assert rotation_error_deg(scaled.transform[:3, :3], base.transform[:3, :3]) < 1e-3
+  np.testing.assert_allclose(scaled.transform[:3, 3] / k, base.transform[:3, 3],
+                             atol=1e-4 * demo.mr)

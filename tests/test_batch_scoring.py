@@ -129,11 +129,12 @@ def test_an_init_column_registers_each_pair_from_its_init_and_keys_it_by_content
   pairs = write_pairs(tmp_path / "pairs.tsv",
                       [("from_init", "scene.npy", "model.npy", "init.txt"),
                        ("plain", "scene.npy", "model.npy", ""),
-                       ("bad_init", "scene.npy", "model.npy", "bad.txt")],
+                       ("bad_init", "scene.npy", "model.npy", "bad.txt"),
+                       ("no_init", "scene.npy", "model.npy", "nope.txt")],
                       header=("name", "source", "target", "init"))
   res = jobs.run_register(pairs, tmp_path / "out", progress=False, **OPTS)
   rows = {r["name"]: r for r in tsv_rows(tmp_path / "out" / "results.tsv")}
-  assert res.ran == 3 and rows["from_init"]["status"] == rows["plain"]["status"] == "done"
+  assert res.ran == 4 and rows["from_init"]["status"] == rows["plain"]["status"] == "done"
   assert rows["from_init"]["init"] == str((tmp_path / "init.txt").resolve())
   assert rows["plain"]["init"] == ""
   ref = register(pair.scene_points, pair.model_points, init=np.loadtxt(tmp_path / "init.txt"),
@@ -143,6 +144,8 @@ def test_an_init_column_registers_each_pair_from_its_init_and_keys_it_by_content
   assert rows["from_init"]["reason"] == ref.reason
   assert rows["bad_init"]["status"] == "error"
   assert "init" in rows["bad_init"]["error"] and "bad.txt" in rows["bad_init"]["error"]
+  assert rows["no_init"]["status"] == "error"  # the item's fault: not retried as transient
+  assert rows["no_init"]["error"].startswith("init: ") and "nope.txt" in rows["no_init"]["error"]
   # the same job again redoes nothing; a changed init redoes its pair alone
   again = jobs.run_register(pairs, tmp_path / "out", progress=False, **OPTS)
   assert again.ran == 0

@@ -114,9 +114,12 @@ def register_pair(payload: dict[str, Any]) -> dict[str, Any]:
     if payload.get("init"):
       from lrf_jax.batch.scan_frames import read_transform
       from lrf_jax.registration.refine import INIT_PROJECT
-      with warnings.catch_warnings():
-        warnings.simplefilter("ignore")  # the projection's note: the row's reason says enough
-        options["init"] = read_transform(payload["init"], "init", project=INIT_PROJECT)
+      try:
+        with warnings.catch_warnings():
+          warnings.simplefilter("ignore")  # the projection's note: the row's reason says enough
+          options["init"] = read_transform(payload["init"], "init", project=INIT_PROJECT)
+      except (FileNotFoundError, IsADirectoryError, NotADirectoryError) as e:
+        raise ValueError(f"init: {e}") from None  # the item's input, named by its column
     reg = register(cloud_source(payload["source"], layout),
                    cloud_source(payload["target"], layout), **options)
   except Exception as e:  # noqa: BLE001 -- a bad pair is a row, the job goes on

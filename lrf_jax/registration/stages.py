@@ -6,7 +6,8 @@ the whole options):
   describe     the keypoints' LRFs and descriptors (`Features`)
   match        correspondences, and the default matching's for the verdict (`Matches`)
   hypothesize  pose hypotheses and their inlier counts, the evidence and its chance level
-  verify       the winner (refitted on its inliers) and its rivals (`Verified`)
+  verify       the winner (refitted on its inliers) and its rivals (`Verified`); `verify_near`
+               the same among the hypotheses near a given pose (`register(..., init=T)`)
 
 then `refine.refine_pose` (ICP) and `evidence.decide` (the verdict): `pipeline.register`. A
 stage checks nothing its inputs' types already guarantee: `prepare` builds each side's
@@ -468,7 +469,7 @@ def _refitted(prepared: Prepared, hyps: Hypotheses, pose: tuple, best: int, coun
               fits: np.ndarray, hypotheses: HypothesisOptions, target_grid: engine.Grid,
               overlap_distance: float, own: bool) -> Verified:
   """A centred pose (r, t) refitted by Kabsch on its inliers (`host.select_and_refine`), its
-  evidence inliers and rivals (`_rivals`): `verify`'s and `verify_pose`'s `Verified`."""
+  evidence inliers and rivals (`_rivals`): `verify`'s and `verify_near`'s `Verified`."""
   threshold = float(hypotheses.inlier_mr * prepared.mr)
   r, t, mask = host.select_and_refine(pose[0], pose[1], hyps.src, hyps.dst, threshold)
   coarse = finish_result(*uncentre(r, t, hyps.cs, hyps.cd), mask, best, count)

@@ -13,7 +13,12 @@ Pipeline (every length in mr, the median over the scans of each one's working re
    keypoints, LRFs, descriptors at the one mr of the set) and each candidate (i < j) registered
    from the two scans' features (`scan_features.register_scans`: `register`'s later stages and
    verdict), as tasks on an engine (`lrf_jax.multiway.tasks`: this process or a Ray cluster), each
-   finished pair recorded in `state_dir` when one is given. Its verdict decides how far an edge is trusted: `success` edges are trusted, "not sure"
+   finished pair recorded in `state_dir` when one is given. With `effort="normal"` (the
+   default) the "not sure" pairs whose scans lie in different groups of `success` pairs are
+   then registered again as `effort="high"` registers them (`_escalated`: their scans
+   described once more with the pooled seeds), so a set the first pass joins pays nothing
+   more; `"fast"` is the first pass alone, `"high"` the pooled seeds for every pair. Its
+   verdict decides how far an edge is trusted: `success` edges are trusted, "not sure"
    edges are weak (kept as candidates: on real scans many right poses are "not sure" at low
    overlap, and most wrong ones are too), and a pair that could not be registered at all gives
    no edge. Every edge carries `tasks.EDGE_POINTS` points of scan i where the two scans overlap
@@ -61,6 +66,7 @@ from lrf_jax.multiway.outputs import check_names, scan_names
 from lrf_jax.multiway.result import MultiwayEdge, MultiwayResult
 from lrf_jax.multiway.options import REJECT_MR, MultiwayOptions, check_counts, resolve
 from lrf_jax.registration import options as register_options
+from lrf_jax.registration.effort import tried
 
 __all__ = ["REJECT_MR", "MultiwayOptions", "check_counts", "load_scans", "median_mr",
            "register_all"]
@@ -109,6 +115,10 @@ def _pairwise(clouds, names, pairs, *, mr, options, viewpoints, pairwise, progre
     recs, work = tasks.run_pairs(clouds, names, pairs, options=opts, mr=mr,
                                  viewpoints=viewpoints, distance=icp_mr * mr, params=params,
                                  engine=engine, records=records, progress=progress)
+    if opts.verdict.effort == "normal":
+      recs, work = _escalated(recs, work, clouds, names, pairs, opts=opts, mr=mr,
+                              viewpoints=viewpoints, hashes=hashes, params=params,
+                              engine=engine, state_dir=state_dir, progress=progress)
   else:
     recs = [_custom_pair(pairwise, clouds, i, j, mr=mr, seed=seed, viewpoints=viewpoints,
                          icp_mr=icp_mr, register_kw=register_kw,
@@ -122,6 +132,48 @@ def _pairwise(clouds, names, pairs, *, mr, options, viewpoints, pairwise, progre
                         False, r["reason_code"]) for r in recs]
   points = [np.asarray(r["points"], np.float64).reshape(-1, 3) for r in recs]
   return edges, points, work
+
+
+def _escalated(recs, work, clouds, names, pairs, *, opts, mr, viewpoints, hashes, params, engine,
+               state_dir, progress) -> tuple[list[dict[str, Any]], dict[str, int]]:
+  """`effort="normal"`'s second pass: the "not sure" pairs whose scans lie in different groups
+  of "success" pairs (`_groups`), registered again as `effort="high"` registers them (each of
+  their scans described once more with the pooled seeds); their records replace the first
+  pass's, `reason` saying what was tried. Pairs within a group, and sets the first pass already
+  joins, cost nothing more."""
+  group = _groups(len(clouds), [(r["i"], r["j"]) for r in recs if r["verdict"] == "success"])
+  todo = [k for k, r in enumerate(recs)
+          if r["verdict"] == "not sure" and group[r["i"]] != group[r["j"]]]
+  if not todo:
+    return recs, work
+  high = opts.with_overrides(effort="high")
+  icp_mr = high.icp.icp_mr
+  records = tasks.PairRecords(state_dir, hashes, high, mr, icp_mr * mr, params)
+  again, more = tasks.run_pairs(clouds, names, [pairs[k] for k in todo], options=high, mr=mr,
+                                viewpoints=viewpoints, distance=icp_mr * mr, params=params,
+                                engine=engine, records=records, progress=progress)
+  out = list(recs)
+  for k, rec in zip(todo, again):
+    if rec["verdict"] == "error":  # the pooled pass failed: the first pass's record stands
+      continue
+    out[k] = dict(rec, reason=f"{rec['reason']} ({tried(recs[k]['reason_code'])})")
+  return out, {key: work[key] + more[key] for key in work}
+
+
+def _groups(n: int, links: Sequence[tuple[int, int]]) -> list[int]:
+  """The connected component of each of `n` scans under `links` (union-find): a label per
+  scan, equal within a component."""
+  parent = list(range(n))
+
+  def root(a: int) -> int:
+    while parent[a] != a:
+      parent[a] = parent[parent[a]]
+      a = parent[a]
+    return a
+
+  for a, b in links:
+    parent[root(a)] = root(b)
+  return [root(a) for a in range(n)]
 
 
 def _custom_pair(pairwise, clouds, i, j, *, mr, seed, viewpoints, icp_mr, register_kw,

@@ -13,8 +13,9 @@ for the k-th seed of `effort="high"`), so a scan's features depend on the scan, 
 the seed alone, never on the scan it is paired with (`register` draws the target's keypoints
 after the source's from one generator). The stages after matching draw from a generator seeded
 with the seed, as `register`'s draw from what is left of its own. And `effort="normal"` is one
-pass per pair, as `"fast"` is (a scan is described once for all its pairs; `"high"` describes it
-with the pooled seeds for every pair).
+pass per pair here, as `"fast"` is (a scan is described once for all its pairs; `"high"`
+describes it with the pooled seeds for every pair); `register_all`'s default then registers
+again, with `"high"`, the "not sure" pairs that would join two groups of confident pairs.
 """
 
 from __future__ import annotations

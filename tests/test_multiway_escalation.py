@@ -1,0 +1,76 @@
+"""`register_all`'s default escalation: the "not sure" pairs that would join two groups of
+"success" pairs are registered again as `effort="high"` registers them; `effort="fast"` never
+escalates, pairs within a group are not redone."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from lrf_jax import io
+from lrf_jax.multiway import pipeline, register_all
+from lrf_jax.registration.options import RegisterOptions
+
+
+def test_groups_are_the_connected_components():
+  g = pipeline._groups(6, [(0, 1), (1, 2), (4, 5)])
+  assert g[0] == g[1] == g[2] and g[4] == g[5]
+  assert len({g[0], g[3], g[4]}) == 3
+
+
+def _rec(i, j, verdict, code="rival"):
+  return dict(i=i, j=j, verdict=verdict, reason=f"{verdict} {i}-{j}", reason_code=code)
+
+
+def test_only_not_sure_pairs_between_groups_are_registered_again(monkeypatch):
+  """Scans {0, 1} and {2, 3} joined by "success" pairs: of the "not sure" pairs, (0, 2) and
+  (1, 3) join the groups and run again with effort="high"; (0, 1)'s second record within its
+  group is not redone; an error of the second pass keeps the first record."""
+  calls = []
+
+  def fake_run_pairs(clouds, names, pairs, *, options, **kw):
+    calls.append((list(pairs), options.verdict.effort))
+    out = [_rec(i, j, "success" if (i, j) == (0, 2) else "error", "claimed")
+           for i, j in pairs]
+    return out, dict(scans_described=4, pairs_registered=len(pairs), pairs_resumed=0)
+
+  monkeypatch.setattr(pipeline.tasks, "run_pairs", fake_run_pairs)
+  monkeypatch.setattr(pipeline.tasks, "PairRecords", lambda *a, **k: None)
+  recs = [_rec(0, 1, "success", "claimed"), _rec(2, 3, "success", "claimed"),
+          _rec(0, 2, "not sure"), _rec(1, 3, "not sure", "chance"), _rec(0, 1, "not sure"),
+          _rec(1, 2, "error", "error")]
+  pairs = [(r["i"], r["j"]) for r in recs]
+  work = dict(scans_described=4, pairs_registered=6, pairs_resumed=0)
+  out, more = pipeline._escalated(recs, work, [None] * 4, list("abcd"), pairs,
+                                  opts=RegisterOptions(), mr=1.0, viewpoints=[None] * 4,
+                                  hashes=["h"] * 4, params=None, engine=None, state_dir=None,
+                                  progress=False)
+  assert calls == [([(0, 2), (1, 3)], "high")]
+  assert out[2]["verdict"] == "success" and out[2]["reason"].endswith(
+      "(tried one pass (rival), then 2 seeds with 2x the keypoints pooled)")
+  assert out[3] == recs[3]  # the pooled pass failed: the first record stands
+  assert out[:2] == recs[:2] and out[4:] == recs[4:]
+  assert more == dict(scans_described=8, pairs_registered=8, pairs_resumed=0)
+  # every pair within one group: nothing runs again
+  calls.clear()
+  same = [_rec(0, 1, "success", "claimed"), _rec(0, 1, "not sure")]
+  assert pipeline._escalated(same, work, [None] * 2, list("ab"), [(0, 1), (0, 1)],
+                             opts=RegisterOptions(), mr=1.0, viewpoints=[None] * 2,
+                             hashes=["h"] * 2, params=None, engine=None, state_dir=None,
+                             progress=False)[0] == same
+  assert calls == []
+
+
+def test_two_rooms_of_two_fragments_each_are_claimed_by_the_default(data_root):
+  """The four 3DMatch fragments: one pass per pair (`effort="fast"`) claims neither room's
+  pair; the default escalates the pairs between groups and claims both, and no pair across
+  the two rooms."""
+  folder = data_root / "threedmatch_scenes"
+  names = ["hotel3_8", "hotel3_15", "home_at_38", "home_at_41"]
+  scans = [io.read_cloud(folder / f"{n}.ply").points for n in names]
+  fast = register_all(scans, names=names, seed=1, refine=False, effort="fast")
+  res = register_all(scans, names=names, seed=1, refine=False)
+  by = {(e.i, e.j): e for e in res.edges}
+  assert {(e.i, e.j) for e in fast.edges if e.verdict == "success"} == set()
+  assert {k for k, e in by.items() if e.verdict == "success"} == {(0, 1), (2, 3)}
+  assert "tried one pass" in by[(0, 1)].reason
+  assert np.asarray(res.in_model).tolist() == [True, True, False, False]

@@ -1,6 +1,6 @@
-"""`register_all`'s default escalation: the "not sure" pairs that would join two groups of
-"success" pairs are registered again as `effort="high"` registers them; `effort="fast"` never
-escalates, pairs within a group are not redone."""
+"""`register_all`'s default escalation: the "not sure" pairs between two components of the
+first pose graph are registered again as `effort="high"` registers them and the graph solved
+again; `effort="fast"` never escalates, pairs within a component are not redone."""
 
 from __future__ import annotations
 
@@ -11,20 +11,14 @@ from lrf_jax.multiway import pipeline, register_all
 from lrf_jax.registration.options import RegisterOptions
 
 
-def test_groups_are_the_connected_components():
-  g = pipeline._groups(6, [(0, 1), (1, 2), (4, 5)])
-  assert g[0] == g[1] == g[2] and g[4] == g[5]
-  assert len({g[0], g[3], g[4]}) == 3
-
-
 def _rec(i, j, verdict, code="rival"):
   return dict(i=i, j=j, verdict=verdict, reason=f"{verdict} {i}-{j}", reason_code=code)
 
 
-def test_only_not_sure_pairs_between_groups_are_registered_again(monkeypatch):
-  """Scans {0, 1} and {2, 3} joined by "success" pairs: of the "not sure" pairs, (0, 2) and
-  (1, 3) join the groups and run again with effort="high"; (0, 1)'s second record within its
-  group is not redone; an error of the second pass keeps the first record."""
+def test_only_not_sure_pairs_between_components_are_registered_again(monkeypatch):
+  """Scans {0, 1} and {2, 3} two components of the first graph: of the "not sure" pairs, (0, 2)
+  and (1, 3) join them and run again with effort="high"; (0, 1)'s second record within its
+  component is not redone; an error of the second pass keeps the first record."""
   calls = []
 
   def fake_run_pairs(clouds, names, pairs, *, options, **kw):
@@ -38,9 +32,8 @@ def test_only_not_sure_pairs_between_groups_are_registered_again(monkeypatch):
   recs = [_rec(0, 1, "success", "claimed"), _rec(2, 3, "success", "claimed"),
           _rec(0, 2, "not sure"), _rec(1, 3, "not sure", "chance"), _rec(0, 1, "not sure"),
           _rec(1, 2, "error", "error")]
-  pairs = [(r["i"], r["j"]) for r in recs]
   work = dict(scans_described=4, pairs_registered=6, pairs_resumed=0)
-  out, more = pipeline._escalated(recs, work, [None] * 4, list("abcd"), pairs,
+  out, more = pipeline._escalated(recs, work, [0, 0, 2, 2], [None] * 4, list("abcd"),
                                   opts=RegisterOptions(), mr=1.0, viewpoints=[None] * 4,
                                   hashes=["h"] * 4, params=None, engine=None, state_dir=None,
                                   progress=False)
@@ -50,10 +43,10 @@ def test_only_not_sure_pairs_between_groups_are_registered_again(monkeypatch):
   assert out[3] == recs[3]  # the pooled pass failed: the first record stands
   assert out[:2] == recs[:2] and out[4:] == recs[4:]
   assert more == dict(scans_described=8, pairs_registered=8, pairs_resumed=0)
-  # every pair within one group: nothing runs again
+  # one component (the graph joined both scans, here through a weak edge): nothing runs again
   calls.clear()
-  same = [_rec(0, 1, "success", "claimed"), _rec(0, 1, "not sure")]
-  assert pipeline._escalated(same, work, [None] * 2, list("ab"), [(0, 1), (0, 1)],
+  same = [_rec(0, 1, "not sure"), _rec(0, 1, "not sure")]
+  assert pipeline._escalated(same, work, [0, 0], [None] * 2, list("ab"),
                              opts=RegisterOptions(), mr=1.0, viewpoints=[None] * 2,
                              hashes=["h"] * 2, params=None, engine=None, state_dir=None,
                              progress=False)[0] == same
@@ -62,7 +55,7 @@ def test_only_not_sure_pairs_between_groups_are_registered_again(monkeypatch):
 
 def test_two_rooms_of_two_fragments_each_are_claimed_by_the_default(data_root):
   """The four 3DMatch fragments: one pass per pair (`effort="fast"`) claims neither room's
-  pair; the default escalates the pairs between groups and claims both, and no pair across
+  pair; the default escalates the pairs between the first graph's components and claims both, and no pair across
   the two rooms."""
   folder = data_root / "threedmatch_scenes"
   names = ["hotel3_8", "hotel3_15", "home_at_38", "home_at_41"]

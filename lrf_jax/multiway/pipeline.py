@@ -103,53 +103,53 @@ def _viewpoints(viewpoints: Any, n: int) -> list[Any]:
 
 
 def _pairwise(clouds, names, pairs, *, mr, options, viewpoints, pairwise, progress, params,
-              register_kw, engine, state_dir
-              ) -> tuple[list[MultiwayEdge], list[np.ndarray], dict[str, int]]:
-  """Stage "pairwise": one registration per candidate pair; edges, their overlap points and the
-  work done (scans described, pairs registered, pairs read from the state folder)."""
-  hashes = [tasks.scan_hash(c, v) for c, v in zip(clouds, viewpoints)]
+              register_kw, engine, state_dir, hashes
+              ) -> tuple[list[dict[str, Any]], dict[str, int]]:
+  """Stage "pairwise": one registration per candidate pair; its edge records (`tasks.edge_record`)
+  and the work done (scans described, pairs registered, pairs read from the state folder)."""
   seed, icp_mr = options.pairs.inputs.seed, options.pairs.icp.icp_mr
   if pairwise is None:
     opts = options.pairs.with_overrides(mr=float(mr))
     records = tasks.PairRecords(state_dir, hashes, opts, mr, icp_mr * mr, params)
-    recs, work = tasks.run_pairs(clouds, names, pairs, options=opts, mr=mr,
-                                 viewpoints=viewpoints, distance=icp_mr * mr, params=params,
-                                 engine=engine, records=records, progress=progress)
-    if opts.verdict.effort == "normal":
-      recs, work = _escalated(recs, work, clouds, names, pairs, opts=opts, mr=mr,
-                              viewpoints=viewpoints, hashes=hashes, params=params,
-                              engine=engine, state_dir=state_dir, progress=progress)
-  else:
-    recs = [_custom_pair(pairwise, clouds, i, j, mr=mr, seed=seed, viewpoints=viewpoints,
-                         icp_mr=icp_mr, register_kw=register_kw,
-                         overlap_seed=tasks.overlap_seed(seed, hashes[i], hashes[j]))
-            for i, j in pairs]
-    work = dict(scans_described=0, pairs_registered=len(pairs), pairs_resumed=0)
+    return tasks.run_pairs(clouds, names, pairs, options=opts, mr=mr, viewpoints=viewpoints,
+                           distance=icp_mr * mr, params=params, engine=engine,
+                           records=records, progress=progress)
+  recs = [_custom_pair(pairwise, clouds, i, j, mr=mr, seed=seed, viewpoints=viewpoints,
+                       icp_mr=icp_mr, register_kw=register_kw,
+                       overlap_seed=tasks.overlap_seed(seed, hashes[i], hashes[j]))
+          for i, j in pairs]
+  return recs, dict(scans_described=0, pairs_registered=len(pairs), pairs_resumed=0)
+
+
+def _edges(recs: Sequence[dict[str, Any]]) -> tuple[list[MultiwayEdge], list[np.ndarray]]:
+  """The edges of edge records and their overlap points."""
   edges = [MultiwayEdge(r["i"], r["j"], np.full((4, 4), np.nan) if r["transform"] is None
                         else np.asarray(r["transform"], np.float64), r["verdict"], r["reason"],
                         int(r["n_inliers"]), float(r["overlap"]),
                         float("inf") if r["rmse"] is None else float(r["rmse"]), float("inf"),
                         False, r["reason_code"]) for r in recs]
   points = [np.asarray(r["points"], np.float64).reshape(-1, 3) for r in recs]
-  return edges, points, work
+  return edges, points
 
 
-def _escalated(recs, work, clouds, names, pairs, *, opts, mr, viewpoints, hashes, params, engine,
-               state_dir, progress) -> tuple[list[dict[str, Any]], dict[str, int]]:
-  """`effort="normal"`'s second pass: the "not sure" pairs whose scans lie in different groups
-  of "success" pairs (`_groups`), registered again as `effort="high"` registers them (each of
-  their scans described once more with the pooled seeds); their records replace the first
-  pass's, `reason` saying what was tried. Pairs within a group, and sets the first pass already
-  joins, cost nothing more."""
-  group = _groups(len(clouds), [(r["i"], r["j"]) for r in recs if r["verdict"] == "success"])
+def _escalated(recs, work, component, clouds, names, *, opts, mr, viewpoints, hashes, params,
+               engine, state_dir, progress) -> tuple[list[dict[str, Any]], dict[str, int]]:
+  """`effort="normal"`'s second pass: the "not sure" pairs whose scans lie in different
+  components of the first pose graph (`component`, a label per scan: the graph has joined
+  what its trusted and corroborated weak edges allow), registered again as `effort="high"`
+  registers them (each of their scans described once more with the pooled seeds); their
+  records replace the first pass's, `reason` saying what was tried (a pooled pass that fails
+  leaves the first record). A set the first graph joins costs nothing more; a scan it leaves
+  out costs its pairs."""
   todo = [k for k, r in enumerate(recs)
-          if r["verdict"] == "not sure" and group[r["i"]] != group[r["j"]]]
+          if r["verdict"] == "not sure" and component[r["i"]] != component[r["j"]]]
   if not todo:
     return recs, work
   high = opts.with_overrides(effort="high")
   icp_mr = high.icp.icp_mr
   records = tasks.PairRecords(state_dir, hashes, high, mr, icp_mr * mr, params)
-  again, more = tasks.run_pairs(clouds, names, [pairs[k] for k in todo], options=high, mr=mr,
+  again, more = tasks.run_pairs(clouds, names, [(recs[k]["i"], recs[k]["j"]) for k in todo],
+                                options=high, mr=mr,
                                 viewpoints=viewpoints, distance=icp_mr * mr, params=params,
                                 engine=engine, records=records, progress=progress)
   out = list(recs)
@@ -158,22 +158,6 @@ def _escalated(recs, work, clouds, names, pairs, *, opts, mr, viewpoints, hashes
       continue
     out[k] = dict(rec, reason=f"{rec['reason']} ({tried(recs[k]['reason_code'])})")
   return out, {key: work[key] + more[key] for key in work}
-
-
-def _groups(n: int, links: Sequence[tuple[int, int]]) -> list[int]:
-  """The connected component of each of `n` scans under `links` (union-find): a label per
-  scan, equal within a component."""
-  parent = list(range(n))
-
-  def root(a: int) -> int:
-    while parent[a] != a:
-      parent[a] = parent[parent[a]]
-      a = parent[a]
-    return a
-
-  for a, b in links:
-    parent[root(a)] = root(b)
-  return [root(a) for a in range(n)]
 
 
 def _custom_pair(pairwise, clouds, i, j, *, mr, seed, viewpoints, icp_mr, register_kw,
@@ -310,20 +294,36 @@ def register_all(scans: Sequence[Any], options: MultiwayOptions | None = None, *
                           neighbors=graph.neighbors, loop_candidates=graph.loop_candidates,
                           seed=seed)
   t = time.perf_counter()
-  edges, points, work = _pairwise(clouds, names, pairs, mr=mr, options=opts, viewpoints=views,
-                                  pairwise=pairwise, progress=progress, params=params,
-                                  register_kw=register_kw, engine=engine, state_dir=state_dir)
+  hashes = [tasks.scan_hash(c, v) for c, v in zip(clouds, views)]
+  recs, work = _pairwise(clouds, names, pairs, mr=mr, options=opts, viewpoints=views,
+                         pairwise=pairwise, progress=progress, params=params,
+                         register_kw=register_kw, engine=engine, state_dir=state_dir,
+                         hashes=hashes)
+  edges, points = _edges(recs)
   timings["pairwise"] = time.perf_counter() - t
   t = time.perf_counter()
-  poses, accepted, errors, component = _graph(n, edges, points, mr=mr,
-                                              reject_mr=graph.reject_mr,
-                                              robust_mr=graph.robust_mr, seed=seed)
+  graphed = dict(mr=mr, reject_mr=graph.reject_mr, robust_mr=graph.robust_mr, seed=seed)
+  poses, accepted, errors, component = _graph(n, edges, points, **graphed)
+  timings["graph"] = time.perf_counter() - t
+  if pairwise is None and opts.pairs.verdict.effort == "normal":
+    t = time.perf_counter()
+    again, work = _escalated(recs, work, component, clouds, names,
+                             opts=opts.pairs.with_overrides(mr=float(mr)), mr=mr,
+                             viewpoints=views, hashes=hashes, params=params, engine=engine,
+                             state_dir=state_dir, progress=progress)
+    timings["pairwise"] += time.perf_counter() - t
+    if again is not recs:
+      edges, points = _edges(again)
+      t = time.perf_counter()
+      poses, accepted, errors, component = _graph(n, edges, points, **graphed)
+      timings["graph"] += time.perf_counter() - t
+  t = time.perf_counter()
   reference = _model(component)
   in_model = component == reference
   sure = pose_graph.components(n, [(e.i, e.j) for e, a in zip(edges, accepted)
                                    if a and e.verdict == "success"])
   confident = in_model & (sure == sure[reference])
-  timings["graph"] = time.perf_counter() - t
+  timings["graph"] += time.perf_counter() - t
   t = time.perf_counter()
   kept = [(e.i, e.j) for e, a in zip(edges, accepted) if a and in_model[e.i]]
   if graph.refine and kept:

@@ -53,17 +53,47 @@ def test_only_not_sure_pairs_between_components_are_registered_again(monkeypatch
   assert calls == []
 
 
-def test_two_rooms_of_two_fragments_each_are_claimed_by_the_default(data_root):
-  """The four 3DMatch fragments: one pass per pair (`effort="fast"`) claims neither room's
-  pair; the default escalates the pairs between the first graph's components and claims both, and no pair across
-  the two rooms."""
+def test_fast_never_escalates_and_normal_redoes_the_pairs_between_components(monkeypatch):
+  """`register_all` itself: with every first-pass pair "not sure" and no edge the graph can
+  use, each scan is its own component, so the default registers every pair again with
+  effort="high" and "fast" registers each pair once."""
+  calls = []
+
+  def fake_run_pairs(clouds, names, pairs, *, options, **kw):
+    calls.append((list(pairs), options.verdict.effort))
+    out = [dict(_rec(i, j, "not sure"), transform=np.eye(4).tolist(), n_inliers=0, overlap=0.0,
+                rmse=None, points=[]) for i, j in pairs]
+    return out, dict(scans_described=3, pairs_registered=len(pairs), pairs_resumed=0)
+
+  monkeypatch.setattr(pipeline.tasks, "run_pairs", fake_run_pairs)
+  scans = [np.random.default_rng(k).normal(size=(200, 3)) for k in range(3)]
+  every = [(0, 1), (0, 2), (1, 2)]
+  fast = register_all(scans, seed=0, refine=False, effort="fast", mr=0.1)
+  assert calls == [(every, "fast")] and fast.work["pairs_registered"] == 3
+  calls.clear()
+  res = register_all(scans, seed=0, refine=False, mr=0.1)
+  assert calls == [(every, "normal"), (every, "high")] and res.work["pairs_registered"] == 6
+  assert all("tried one pass (rival)" in e.reason for e in res.edges)
+
+
+def test_two_rooms_of_two_fragments_each_are_claimed_by_the_default(data_root, tmp_path):
+  """The four 3DMatch fragments: the first pass (one per pair, `effort="fast"`) claims neither
+  room's pair; the default escalates the pairs between the first graph's components and claims
+  both, and no pair across the two rooms. Run again on its state folder, it registers nothing and
+  gives the same edges and poses."""
   folder = data_root / "threedmatch_scenes"
   names = ["hotel3_8", "hotel3_15", "home_at_38", "home_at_41"]
   scans = [io.read_cloud(folder / f"{n}.ply").points for n in names]
-  fast = register_all(scans, names=names, seed=1, refine=False, effort="fast")
-  res = register_all(scans, names=names, seed=1, refine=False)
+  res = register_all(scans, names=names, seed=1, refine=False, state_dir=tmp_path)
+  assert res.work["pairs_registered"] > 6  # the first pass's 6, then the escalated ones
   by = {(e.i, e.j): e for e in res.edges}
-  assert {(e.i, e.j) for e in fast.edges if e.verdict == "success"} == set()
   assert {k for k, e in by.items() if e.verdict == "success"} == {(0, 1), (2, 3)}
-  assert "tried one pass" in by[(0, 1)].reason
+  # both claims came from the escalation: the first pass left each pair "not sure"
+  assert all("tried one pass" in by[k].reason for k in ((0, 1), (2, 3)))
   assert np.asarray(res.in_model).tolist() == [True, True, False, False]
+  again = register_all(scans, names=names, seed=1, refine=False, state_dir=tmp_path)
+  assert again.work["pairs_registered"] == 0 and again.work["pairs_resumed"] == res.work[
+      "pairs_registered"]
+  assert [(e.i, e.j, e.verdict, e.reason) for e in again.edges] == [
+      (e.i, e.j, e.verdict, e.reason) for e in res.edges]
+  np.testing.assert_array_equal(again.poses, res.poses)

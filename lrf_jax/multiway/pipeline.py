@@ -13,12 +13,7 @@ Pipeline (every length in mr, the median over the scans of each one's working re
    keypoints, LRFs, descriptors at the one mr of the set) and each candidate (i < j) registered
    from the two scans' features (`scan_features.register_scans`: `register`'s later stages and
    verdict), as tasks on an engine (`lrf_jax.multiway.tasks`: this process or a Ray cluster), each
-   finished pair recorded in `state_dir` when one is given. With `effort="normal"` (the
-   default) the "not sure" pairs whose scans lie in different groups of `success` pairs are
-   then registered again as `effort="high"` registers them (`_escalated`: their scans
-   described once more with the pooled seeds), so a set the first pass joins pays nothing
-   more; `"fast"` is the first pass alone, `"high"` the pooled seeds for every pair. Its
-   verdict decides how far an edge is trusted: `success` edges are trusted, "not sure"
+   finished pair recorded in `state_dir` when one is given. Its verdict decides how far an edge is trusted: `success` edges are trusted, "not sure"
    edges are weak (kept as candidates: on real scans many right poses are "not sure" at low
    overlap, and most wrong ones are too), and a pair that could not be registered at all gives
    no edge. Every edge carries `tasks.EDGE_POINTS` points of scan i where the two scans overlap
@@ -35,6 +30,11 @@ Pipeline (every length in mr, the median over the scans of each one's working re
    cycles it closes and is rejected; a single weak edge, or weak edges that share a scan (two
    unverified edges confirming each other), never join a scan. A scan placed only through weak
    edges is flagged (`MultiwayResult.placed_not_sure`, edges.tsv's `placement`).
+   With `effort="normal"` (the default) the "not sure" pairs whose scans this graph leaves in
+   different components are then registered again as `effort="high"` registers them
+   (`_escalated`: their scans described once more with the pooled seeds) and the graph solved
+   again, so a set the first graph joins pays nothing more; `"fast"` is the first pass alone,
+   `"high"` the pooled seeds for every pair.
 4. the model is the largest connected component of accepted edges (ties: the one with the
    earliest scan); its earliest scan is the reference frame (the first scan unless the first
    scan is left out). Scans outside it are left out: they get no pose (NaN) and are listed in

@@ -15,7 +15,7 @@ after the source's from one generator). The stages after matching draw from a ge
 with the seed, as `register`'s draw from what is left of its own. And `effort="normal"` is one
 pass per pair here, as `"fast"` is (a scan is described once for all its pairs; `"high"`
 describes it with the pooled seeds for every pair); `register_all`'s default then registers
-again, with `"high"`, the "not sure" pairs that would join two groups of confident pairs.
+again, with `"high"`, the "not sure" pairs between the components of its first pose graph.
 """
 
 from __future__ import annotations

@@ -11,8 +11,9 @@ from scipy.spatial.transform import Rotation
 
 from lrf_jax import datasets
 from lrf_jax.registration import register
-from lrf_jax.registration.evidence import (REASON_CODES, Evidence, constraint_spectrum, decide,
-                                           poses_apart, verdict)
+from lrf_jax.registration.evidence import (RIVAL_DEG, REASON_CODES, Evidence, constraint_spectrum,
+                                           decide, distinct, distinct_from, poses_apart,
+                                           verdict)
 
 KW = dict(n_keypoints=800, n_correspondences=200)
 
@@ -138,6 +139,34 @@ def test_poses_apart_measures_the_turn_and_the_shift_at_the_point():
   shift = np.eye(4)
   shift[:3, 3] = [0.3, -0.4, 0.0]
   assert poses_apart(shift @ a, a, point) == pytest.approx((0.0, 0.5), abs=1e-6)
+
+
+@pytest.mark.parametrize("at_point", [False, True])
+def test_distinct_from_is_distinct_for_every_pose(at_point):
+  """The vectorised test against `distinct` of `poses_apart`, pose by pose, on poses drawn
+  around the two thresholds (turns of 0-20 deg, shifts of 0-2x the radius), away from exact
+  ties (within 1e-6 of a threshold)."""
+  rng = np.random.default_rng(11)
+  r = Rotation.random(random_state=5).as_matrix()
+  t = rng.normal(size=3)
+  point = rng.normal(size=3) if at_point else np.zeros(3)
+  radius = 0.7
+  axes = rng.normal(size=(400, 3))
+  axes /= np.linalg.norm(axes, axis=1, keepdims=True)
+  turns = Rotation.from_rotvec(axes * np.radians(rng.uniform(0, 20, 400))[:, None]).as_matrix()
+  rs = turns @ r
+  ts = t + rng.normal(size=(400, 3)) * rng.uniform(0, 2 * radius, (400, 1)) / np.sqrt(3)
+  got = distinct_from(rs, ts, r, t, radius, point if at_point else None)
+  want, away = [], []
+  for rh, th in zip(rs, ts):
+    a, b = np.eye(4), np.eye(4)
+    a[:3, :3], a[:3, 3], b[:3, :3], b[:3, 3] = rh, th, r, t
+    deg, dist = poses_apart(a, b, point)
+    want.append(distinct(deg, dist, radius))
+    away.append(abs(deg - RIVAL_DEG) > 1e-6 and abs(dist - radius) > 1e-6)
+  want, away = np.array(want), np.array(away)
+  assert 50 < want.sum() < 350  # both kinds drawn
+  np.testing.assert_array_equal(got[away], want[away])
 
 
 def test_a_pose_distinct_from_the_one_its_inliers_support_is_not_claimed():

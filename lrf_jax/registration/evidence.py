@@ -180,6 +180,31 @@ def distinct(deg: float, distance: float, radius: float) -> bool:
   return deg > RIVAL_DEG or distance > radius
 
 
+def distinct_from(rs: np.ndarray, ts: np.ndarray, r: np.ndarray, t: np.ndarray, radius: float,
+                  point: np.ndarray | None = None) -> np.ndarray:
+  """`distinct`, vectorised: whether each pose (rs[h], ts[h]) is distinct from (r, t), its
+  rotation more than RIVAL_DEG degrees from `r` or the two poses more than `radius` apart at
+  `point` (the same coordinates as the poses; None: the origin, the centroid of centred
+  coordinates).
+
+  Args:
+    rs, ts: (H, 3, 3) rotations and (H, 3) translations.
+    r, t: (3, 3) and (3,), the pose compared with.
+    radius: the support radius, in the poses' units.
+    point: (3,) where the translations are compared, or None.
+
+  Returns:
+    (H,) bool.
+  """
+  rs = np.asarray(rs, np.float64).reshape(-1, 3, 3)
+  r = np.asarray(r, np.float64)
+  cos = (np.einsum("hij,ij->h", rs, r) - 1.0) / 2.0
+  gap = np.asarray(ts, np.float64).reshape(-1, 3) - np.asarray(t, np.float64)
+  if point is not None:
+    gap = gap + np.einsum("hij,j->hi", rs - r, np.asarray(point, np.float64))
+  return (cos < np.cos(np.radians(RIVAL_DEG))) | (np.linalg.norm(gap, axis=1) > radius)
+
+
 def exact_number(value: float) -> str:
   """`value` in full: an integer-valued number without a decimal point or an exponent
   ("1200003"), any other its shortest exact form (`repr`)."""

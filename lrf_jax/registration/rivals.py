@@ -16,7 +16,8 @@ import numpy as np
 
 from lrf_jax.registration import graph, host, icp_normals
 from lrf_jax.registration.estimators import centred, triples
-from lrf_jax.registration.evidence import CHANCE_SHUFFLES, RIVAL_DEG, constraint_spectrum
+from lrf_jax.registration.evidence import (CHANCE_SHUFFLES, constraint_spectrum,
+                                          distinct_from)
 from lrf_jax.search import engine
 
 # The rivals of the correspondences outside the winner's (`rest_hypotheses`): those within
@@ -166,8 +167,7 @@ def rest_rival(rs, ts, ev: EvidenceSet, threshold, r, t, near, radius, rival, sr
   ts = np.asarray(ts, np.float64)
   if len(rs) == 0:
     return rival
-  cos = (np.einsum("hij,ij->h", rs, r) - 1.0) / 2.0
-  far = (cos < np.cos(np.radians(RIVAL_DEG))) | (np.linalg.norm(ts - t, axis=1) > radius)
+  far = distinct_from(rs, ts, r, t, radius)
   masks = host.inlier_masks(rs[far], ts[far], ev.src, ev.dst, threshold)
   counts = np.sum(masks & ~np.asarray(near, bool), axis=1)
   more = (counts > rival) & (counts >= REST_SHARE * n_winner)
@@ -216,9 +216,7 @@ def rival_inliers(rs, ts, src, dst, threshold, r, t, winner_mask, radius) -> int
   about their cluster) adds no evidence against it; one that explains other correspondences
   does."""
   rs = np.asarray(rs, np.float64)
-  cos = (np.einsum("hij,ij->h", rs, np.asarray(r, np.float64)) - 1.0) / 2.0
-  far = (cos < np.cos(np.radians(RIVAL_DEG))) | (
-      np.linalg.norm(np.asarray(ts, np.float64) - t, axis=1) > radius)
+  far = distinct_from(rs, ts, r, t, radius)
   if not far.any():
     return 0
   masks = host.inlier_masks(rs[far], np.asarray(ts, np.float64)[far], src, dst, threshold)

@@ -34,7 +34,7 @@ from lrf_jax.geometry.resolution import Resolution, pair_resolution, registratio
 from lrf_jax.geometry.sampling import thin_cloud, thinning_voxel_size
 from lrf_jax.registration import host
 from lrf_jax.registration.estimators import centred, finish_result, uncentre
-from lrf_jax.registration.evidence import RIVAL_DEG
+from lrf_jax.registration.evidence import distinct_from
 from lrf_jax.registration.options import (DescribeOptions, HypothesisOptions, KeypointOptions,
                                           MatchOptions, RegisterOptions, check_voxel_size)
 from lrf_jax.registration.rivals import (REST_FACTOR, EvidenceSet, chance_inliers,
@@ -451,12 +451,8 @@ def verify_near(prepared: Prepared, hyps: Hypotheses, transform: np.ndarray,
                                                                 threshold)))
   rs = np.asarray(hyps.rotations, np.float64)
   if len(rs):
-    cos = (np.einsum("ij,hij->h", r, rs) - 1.0) / 2.0
-    deg = np.degrees(np.arccos(np.clip(cos, -1.0, 1.0)))
     point = hyps.evidence.cs - hyps.cs  # where `poses_apart` measures, in centred coordinates
-    apart = np.linalg.norm(np.einsum("hij,j->hi", rs - r, point)
-                           + np.asarray(hyps.translations, np.float64) - t, axis=1)
-    near = ~((deg > RIVAL_DEG) | (apart > prepared.radius))  # not `evidence.distinct`
+    near = ~distinct_from(rs, hyps.translations, r, t, prepared.radius, point)
     counts = np.where(near, np.asarray(hyps.counts), -1)
     if counts.max() > count:
       best = int(np.argmax(counts))

@@ -17,8 +17,10 @@ def _rec(i, j, verdict, code="rival"):
 
 def test_only_not_sure_pairs_between_components_are_registered_again(monkeypatch):
   """Scans {0, 1} and {2, 3} two components of the first graph: of the "not sure" pairs, (0, 2)
-  and (1, 3) join them and run again with effort="high"; (0, 1)'s second record within its
-  component is not redone; an error of the second pass keeps the first record."""
+  and (1, 3) join them and run again with effort="high", and so does (0, 3), which found no
+  hypothesis; (0, 1)'s second record within its component is not redone, nor (1, 2), an error
+  (a scan that could not be read or described); an error of the second pass keeps the first
+  record."""
   calls = []
 
   def fake_run_pairs(clouds, names, pairs, *, options, **kw):
@@ -31,18 +33,19 @@ def test_only_not_sure_pairs_between_components_are_registered_again(monkeypatch
   monkeypatch.setattr(pipeline.tasks, "PairRecords", lambda *a, **k: None)
   recs = [_rec(0, 1, "success", "claimed"), _rec(2, 3, "success", "claimed"),
           _rec(0, 2, "not sure"), _rec(1, 3, "not sure", "chance"), _rec(0, 1, "not sure"),
-          _rec(1, 2, "error", "error")]
-  work = dict(scans_described=4, pairs_registered=6, pairs_resumed=0)
+          _rec(1, 2, "error", "error"), _rec(0, 3, "error", "no_hypothesis")]
+  work = dict(scans_described=4, pairs_registered=7, pairs_resumed=0)
   out, more = pipeline._escalated(recs, work, [0, 0, 2, 2], [None] * 4, list("abcd"),
                                   opts=RegisterOptions(), mr=1.0, viewpoints=[None] * 4,
                                   hashes=["h"] * 4, params=None, engine=None, state_dir=None,
                                   progress=False)
-  assert calls == [([(0, 2), (1, 3)], "high")]
+  assert calls == [([(0, 2), (1, 3), (0, 3)], "high")]
   assert out[2]["verdict"] == "success" and out[2]["reason"].endswith(
       "(tried one pass (rival), then 2 seeds with 2x the keypoints pooled)")
   assert out[3] == recs[3]  # the pooled pass failed: the first record stands
-  assert out[:2] == recs[:2] and out[4:] == recs[4:]
-  assert more == dict(scans_described=8, pairs_registered=8, pairs_resumed=0)
+  assert out[6] == recs[6]  # no hypothesis again
+  assert out[:2] == recs[:2] and out[4:6] == recs[4:6]
+  assert more == dict(scans_described=8, pairs_registered=10, pairs_resumed=0)
   # one component (the graph joined both scans, here through a weak edge): nothing runs again
   calls.clear()
   same = [_rec(0, 1, "not sure"), _rec(0, 1, "not sure")]

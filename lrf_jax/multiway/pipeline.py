@@ -9,7 +9,7 @@ Pipeline (every length in mr, the median over the scans of each one's working re
    loop-closure candidates, the `loop_candidates` scans whose D2 shape distribution (the
    histogram of distances between random point pairs, `shape_signature`, invariant to rigid
    motion) is closest to its own (L1 distance of the histograms).
-2. pairwise: each scan of a candidate pair is described once (`scan_features.describe_scan`:
+2. pairwise: each scan of a candidate pair is described once a pass (`scan_features.describe_scan`:
    keypoints, LRFs, descriptors at the one mr of the set) and each candidate (i < j) registered
    from the two scans' features (`scan_features.register_scans`: `register`'s later stages and
    verdict), as tasks on an engine (`lrf_jax.multiway.tasks`: this process or a Ray cluster), each
@@ -34,7 +34,8 @@ Pipeline (every length in mr, the median over the scans of each one's working re
    different components are then registered again as `effort="high"` registers them
    (`_escalated`: their scans described once more with the pooled seeds) and the graph solved
    again, so a set the first graph joins pays nothing more; `"fast"` is the first pass alone,
-   `"high"` the pooled seeds for every pair.
+   `"high"` the pooled seeds for every pair. A custom `pairwise` function runs once per pair
+   (no second pass).
 4. the model is the largest connected component of accepted edges (ties: the one with the
    earliest scan); its earliest scan is the reference frame (the first scan unless the first
    scan is left out). Scans outside it are left out: they get no pose (NaN) and are listed in
@@ -134,7 +135,8 @@ def _edges(recs: Sequence[dict[str, Any]]) -> tuple[list[MultiwayEdge], list[np.
 
 def _escalated(recs, work, component, clouds, names, *, opts, mr, viewpoints, hashes, params,
                engine, state_dir, progress) -> tuple[list[dict[str, Any]], dict[str, int]]:
-  """`effort="normal"`'s second pass: the "not sure" pairs whose scans lie in different
+  """`effort="normal"`'s second pass: the "not sure" pairs (and those with no hypothesis, which
+  `register` calls "not sure" and an edge record an error) whose scans lie in different
   components of the first pose graph (`component`, a label per scan: the graph has joined
   what its trusted and corroborated weak edges allow), registered again as `effort="high"`
   registers them (each of their scans described once more with the pooled seeds); their
@@ -142,7 +144,8 @@ def _escalated(recs, work, component, clouds, names, *, opts, mr, viewpoints, ha
   leaves the first record). A set the first graph joins costs nothing more; a scan it leaves
   out costs its pairs."""
   todo = [k for k, r in enumerate(recs)
-          if r["verdict"] == "not sure" and component[r["i"]] != component[r["j"]]]
+          if (r["verdict"] == "not sure" or r["reason_code"] == "no_hypothesis")
+          and component[r["i"]] != component[r["j"]]]
   if not todo:
     return recs, work
   high = opts.with_overrides(effort="high")
@@ -223,7 +226,8 @@ def register_all(scans: Sequence[Any], options: MultiwayOptions | None = None, *
       `estimated`); a ValueError, or `estimated` False, marks the pair "error" (no edge).
     engine: where the pairwise stage runs: None (this process) or an engine of
       `lrf_jax.batch` (`lrf_jax.batch.make_engine("ray", address)`): each scan of a pair to
-      register is described once and every pair registered as a task
+      register is described once a pass (the default's second pass describes the scans of
+      the pairs it registers again) and every pair registered as a task
       (`lrf_jax.multiway.tasks`); the result does not depend on the engine.
     state_dir: a folder kept between runs (None: none): every registered pair leaves a record
       there, and a run with the same scans, options and resolution registers only the pairs

@@ -77,8 +77,11 @@ class MultiwayResult:
     confident: (n,) bool, the scans in the model linked to the reference by accepted "success"
       edges alone; a scan in the model whose placement rests on a "not sure" edge is False
       (`placed_not_sure`). None: every scan in the model counts as confident.
-    work: what the pairwise stage did: "scans_described" (each at most once),
-      "pairs_registered" (this call) and "pairs_resumed" (read from `state_dir`).
+    work: what the pairwise stage did, its passes summed (the default's second pass,
+      `effort="high"` on the "not sure" pairs between the first graph's components, describes
+      each of their scans once more and registers those pairs again): "scans_described" (each
+      at most once a pass), "pairs_registered" (registrations this call) and "pairs_resumed"
+      (registrations read from `state_dir`).
   """
 
   names: tuple[str, ...]

@@ -110,16 +110,25 @@ def _pairwise(clouds, names, pairs, *, mr, options, viewpoints, pairwise, progre
   and the work done (scans described, pairs registered, pairs read from the state folder)."""
   seed, icp_mr = options.pairs.inputs.seed, options.pairs.icp.icp_mr
   if pairwise is None:
-    opts = options.pairs.with_overrides(mr=float(mr))
-    records = tasks.PairRecords(state_dir, hashes, opts, mr, icp_mr * mr, params)
-    return tasks.run_pairs(clouds, names, pairs, options=opts, mr=mr, viewpoints=viewpoints,
-                           distance=icp_mr * mr, params=params, engine=engine,
-                           records=records, progress=progress)
+    return _run_pairs(clouds, names, pairs, options.pairs.with_overrides(mr=float(mr)), mr=mr,
+                      viewpoints=viewpoints, hashes=hashes, params=params, engine=engine,
+                      state_dir=state_dir, progress=progress)
   recs = [_custom_pair(pairwise, clouds, i, j, mr=mr, seed=seed, viewpoints=viewpoints,
                        icp_mr=icp_mr, register_kw=register_kw,
                        overlap_seed=tasks.overlap_seed(seed, hashes[i], hashes[j]))
           for i, j in pairs]
   return recs, dict(scans_described=0, pairs_registered=len(pairs), pairs_resumed=0)
+
+
+def _run_pairs(clouds, names, pairs, opts, *, mr, viewpoints, hashes, params, engine, state_dir,
+               progress) -> tuple[list[dict[str, Any]], dict[str, int]]:
+  """`tasks.run_pairs` at the pair options `opts` (their `mr` the set's), its records kept in
+  `state_dir` under those options."""
+  distance = opts.icp.icp_mr * mr
+  records = tasks.PairRecords(state_dir, hashes, opts, mr, distance, params)
+  return tasks.run_pairs(clouds, names, pairs, options=opts, mr=mr, viewpoints=viewpoints,
+                         distance=distance, params=params, engine=engine, records=records,
+                         progress=progress)
 
 
 def _edges(recs: Sequence[dict[str, Any]]) -> tuple[list[MultiwayEdge], list[np.ndarray]]:
@@ -148,13 +157,10 @@ def _escalated(recs, work, component, clouds, names, *, opts, mr, viewpoints, ha
           and component[r["i"]] != component[r["j"]]]
   if not todo:
     return recs, work
-  high = opts.with_overrides(effort="high")
-  icp_mr = high.icp.icp_mr
-  records = tasks.PairRecords(state_dir, hashes, high, mr, icp_mr * mr, params)
-  again, more = tasks.run_pairs(clouds, names, [(recs[k]["i"], recs[k]["j"]) for k in todo],
-                                options=high, mr=mr,
-                                viewpoints=viewpoints, distance=icp_mr * mr, params=params,
-                                engine=engine, records=records, progress=progress)
+  again, more = _run_pairs(clouds, names, [(recs[k]["i"], recs[k]["j"]) for k in todo],
+                           opts.with_overrides(effort="high"), mr=mr, viewpoints=viewpoints,
+                           hashes=hashes, params=params, engine=engine, state_dir=state_dir,
+                           progress=progress)
   out = list(recs)
   for k, rec in zip(todo, again):
     if rec["verdict"] == "error":  # the pooled pass failed: the first pass's record stands

@@ -93,14 +93,17 @@ def test_median_mr_is_the_working_resolution_of_uneven_scans():
 
 def test_median_mr_of_full_density_scans_is_a_fraction_of_their_extent():
   """Scans sampled more finely than register works (`registration_resolution`): the job's mr
-  is the median of their extents / MAX_EXTENT_MR, as `register` would measure each."""
+  is the median of their capped resolutions, as `register` measures each."""
   from lrf_jax.geometry import resolution
   from lrf_jax.io.cloud import Cloud
   rng = np.random.default_rng(0)
   scans = [Cloud(rng.uniform(-1, 1, size=(n, 3)) * [s, s, 0.001], None, None)
            for n, s in ((150_000, 1.0), (150_000, 1.5), (120_000, 2.0))]
-  caps = [resolution.cloud_extent(c.points) / resolution.MAX_EXTENT_MR for c in scans]
-  assert all(resolution.working_resolution(c.points).mr < cap for c, cap in zip(scans, caps))
+  floors = [resolution.cloud_extent(c.points) / resolution.MAX_EXTENT_MR for c in scans]
+  assert all(resolution.working_resolution(c.points).mr < f for c, f in zip(scans, floors))
+  caps = [resolution.registration_resolution(c.points) for c in scans]
+  assert all(r.capped and r.mr >= f for r, f in zip(caps, floors))
+  caps = [r.mr for r in caps]
   assert multiway_pipeline.median_mr(scans, ["a", "b", "c"]) == pytest.approx(np.median(caps),
                                                                      rel=1e-12)
 

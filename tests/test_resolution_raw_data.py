@@ -176,16 +176,22 @@ def test_cloud_extent_moves_and_scales_with_the_cloud():
 
 
 def test_a_full_density_cloud_is_registered_at_a_fraction_of_its_extent():
-  """register's resolution (`registration_resolution`) is the extent / MAX_EXTENT_MR where the
-  cloud is sampled more finely; the working resolution of compute_frames stays its spacing;
-  a cloud sampled no more finely keeps the working resolution exactly; scale-free."""
+  """register's resolution (`registration_resolution`) is the extent / `capped_extent_ratio`
+  where the cloud is sampled more finely than extent / MAX_EXTENT_MR (its spacing measured on a
+  sample, within 1 % of the whole cloud's); the working resolution of compute_frames stays its
+  spacing; a cloud sampled no more finely keeps the working resolution exactly; scale-free."""
   dense, sparse = dense_room(120_000), dense_room(20_000)
   work, reg = resolution.working_resolution(dense), resolution.registration_resolution(dense)
   assert not work.capped and work.mr == resolution.mesh_resolution(dense)[0]
-  assert reg.capped and reg.mean_spacing == work.mr
-  assert reg.mr == pytest.approx(resolution.cloud_extent(dense) / resolution.MAX_EXTENT_MR,
-                                 rel=1e-12)
-  assert reg.mr > 1.2 * work.mr
+  assert reg.capped and reg.mean_spacing == pytest.approx(work.mr, rel=1e-2)
+  extent = resolution.cloud_extent(dense)
+  assert extent / work.mr > resolution.MAX_EXTENT_MR / resolution.SAMPLED_CAP_MARGIN  # sampled
+  assert reg.mr == pytest.approx(
+      extent / resolution.capped_extent_ratio(extent / reg.mean_spacing), rel=1e-12)
+  # about 410 times finer than its extent: worked about 410 / 300 times coarser than the cap
+  assert reg.mr == pytest.approx(extent / resolution.MAX_EXTENT_MR ** 2 * (extent / work.mr),
+                                 rel=1e-2)
+  assert reg.mr > 1.8 * work.mr
   assert resolution.registration_resolution(sparse) == resolution.working_resolution(sparse)
   from lrf_jax.frames.compute import _resolve_radius  # compute_frames' radius_mr: the spacing's, uncapped
   from lrf_jax.geometry.cloud import as_cloud
@@ -195,19 +201,69 @@ def test_a_full_density_cloud_is_registered_at_a_fraction_of_its_extent():
                                                                             rel=1e-9)
 
 
+def test_a_cloud_just_over_the_cap_is_measured_on_all_its_points():
+  """Between the cap and the sample's margin the whole cloud is measured (as below the cap):
+  its spacings are `working_resolution`'s exactly, and its working resolution is just coarser
+  than its spacing (the capped ratio is continuous at the cap)."""
+  cloud = dense_room(70_000, seed=3)  # extent / spacing about 311
+  work, reg = resolution.working_resolution(cloud), resolution.registration_resolution(cloud)
+  ratio = resolution.cloud_extent(cloud) / work.mr
+  assert resolution.MAX_EXTENT_MR < ratio < resolution.MAX_EXTENT_MR / resolution.SAMPLED_CAP_MARGIN
+  assert reg.capped and reg.mean_spacing == work.mean_spacing
+  assert reg.area_spacing == work.area_spacing
+  assert reg.mr == pytest.approx(work.mr * (ratio / resolution.MAX_EXTENT_MR) ** 2, rel=1e-12)
+
+
+def test_sampled_spacings_are_nearest_neighbor_distances():
+  """`sampled_spacings`: every point's distance to its nearest other point in a small cloud; in
+  a large one, SPACING_SAMPLE distinct points' (seeded: the same on every call), each against
+  the whole cloud (a brute-force reference)."""
+  from scipy.spatial import cKDTree
+  small = dense_room(2000, seed=5)
+  d = resolution.sampled_spacings(small)
+  np.testing.assert_allclose(d, cKDTree(small).query(small, 2)[0][:, 1], rtol=0, atol=1e-12)
+  big = dense_room(30_000, seed=6)
+  d = resolution.sampled_spacings(big)
+  assert d.shape == (resolution.SPACING_SAMPLE,)
+  np.testing.assert_array_equal(d, resolution.sampled_spacings(big))
+  every = cKDTree(big).query(big, 2)[0][:, 1]
+  rows = np.sort(np.random.default_rng(0).choice(len(big), resolution.SPACING_SAMPLE,
+                                                 replace=False))
+  np.testing.assert_allclose(d, every[rows], rtol=0, atol=1e-12)
+  assert d.mean() == pytest.approx(every.mean(), rel=2e-2)
+
+
+@pytest.mark.parametrize("ratio", [300.0, 300.5, 350.0, 450.0, 600.0, 601.0, 1000.0, 1e6])
+def test_capped_extent_ratio_is_continuous_at_the_cap_and_floored(ratio):
+  """A cloud k <= 2 times finer than the cap is worked k times coarser than it; from twice the
+  cap on, at CAPPED_MIN_RATIO; never finer than the cap."""
+  cap, low = resolution.MAX_EXTENT_MR, resolution.CAPPED_MIN_RATIO
+  got = resolution.capped_extent_ratio(ratio)
+  assert low <= got <= cap
+  assert got == pytest.approx(max(cap / (ratio / cap), low), rel=1e-12)
+  assert resolution.capped_extent_ratio(ratio * (1 + 1e-9)) <= got  # non-increasing
+  assert resolution.capped_extent_ratio(cap * (1 + 1e-9)) == pytest.approx(cap, rel=1e-8)
+
+
 def test_a_full_density_pair_is_thinned_and_registered_right():
   from scipy.spatial.transform import Rotation
+  from lrf_jax.registration import stages
+  from lrf_jax.registration.options import RegisterOptions
   target, source = dense_room(120_000, seed=0), dense_room(120_000, seed=1)
   gt = np.eye(4)
   gt[:3, :3] = Rotation.from_euler("xyz", [10, -20, 35], degrees=True).as_matrix()
   gt[:3, 3] = [0.5, -1.0, 0.3]
   source = (source - gt[:3, 3]) @ gt[:3, :3]  # gt maps it back onto the target
   reg = register(source, target)
-  cap = max(resolution.cloud_extent(c) for c in (source, target)) / resolution.MAX_EXTENT_MR
-  assert reg.mr == pytest.approx(cap, rel=1e-12)  # the coarser side's fraction of its extent
+  caps = [resolution.registration_resolution(c) for c in (source, target)]
+  assert all(r.capped for r in caps)
+  assert reg.mr == max(r.mr for r in caps)  # the coarser side's
   assert reg.voxel_size > reg.mr  # thinned: voxel centroids about mr apart
   assert rotation_error_deg(reg.transform[:3, :3], gt[:3, :3]) < 1.0
   assert np.linalg.norm(reg.transform[:3, 3] - gt[:3, 3]) < 0.02
+  # thinned because oversampled: the voxel centroids are the working points, no last pass
+  prepared = stages.prepare(source, target, RegisterOptions())
+  assert all(side.input_index is not None and side.raw is None for side in prepared.sides)
   spacing = resolution.mesh_resolution(source)[0]  # a given mr at the spacing: every point kept
   given = register(source, target, mr=spacing, n_keypoints=100, icp_iterations=0)
   assert given.voxel_size == 0.0 and given.mr == spacing
@@ -222,6 +278,18 @@ def test_voxel_groups_matches_unique_rows():
   big = cells * (2**39)  # past one integer key: the row-wise fallback
   inverse2, first2 = voxel_groups(big)
   assert np.array_equal(inverse2, inverse) and np.array_equal(first2, first)
+
+
+@pytest.mark.parametrize("scale", [1, 2**15, 2**39])
+def test_voxel_groups_every_key_path_matches_unique_rows(scale):
+  """One sort of key * n + index (spans times points under 2**62), a stable argsort of the
+  key (spans under 2**62) and unique rows (beyond): the same groups, each first point the
+  smallest index of its cell."""
+  rng = np.random.default_rng(1)
+  cells = rng.integers(0, 7, size=(5000, 3)) * scale
+  inverse, first = voxel_groups(cells)
+  _, f, inv = np.unique(cells, axis=0, return_index=True, return_inverse=True)
+  assert np.array_equal(inverse, inv.ravel()) and np.array_equal(first, f)
 
 
 def test_voxel_downsample_index_is_each_voxels_first_point():

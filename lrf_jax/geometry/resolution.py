@@ -97,6 +97,20 @@ UNITS_RATIO = 100.0
 # 183-212, UWA3M views 176-286 (chef 271-286), raw KITTI sweeps 77-100 at their area-weighted
 # spacing; full-density TSDF fragments (6 mm voxels) 465-612, a UWAOR full scene 646.
 MAX_EXTENT_MR = 300.0
+# A cloud capped by MAX_EXTENT_MR is oversampled (a fusion's output, a mesh's vertices sampled
+# for rendering): its extra points add time, not evidence. One `ratio` times finer than the cap
+# is registered at extent / `capped_extent_ratio(ratio)`: MAX_EXTENT_MR**2 / ratio, so a cloud k
+# times finer than the cap works k times coarser than it, down to extent / CAPPED_MIN_RATIO.
+# Continuous at the cap (a cloud just over it keeps about its own spacing); the floor, half the
+# cap, lies below the 3DMatch fragments' 162-183 and above the fused fragments at 2.5 cm (103).
+CAPPED_MIN_RATIO = 150.0
+# registration_resolution measures a cloud's spacing on SPACING_SAMPLE seeded query points
+# first; where that sample's working resolution (clearly even or uneven: area spacing under, or
+# over, UNEVEN_RATIO mean spacings by this margin) is under SAMPLED_CAP_MARGIN times the cap's
+# spacing, the cloud is capped whatever the rest would add (the sample mean's standard error is
+# well under 1 % of it), and its spacing is the sample's. Every other cloud is measured on all its points.
+SPACING_SAMPLE = 8192
+SAMPLED_CAP_MARGIN = 0.8
 # A capped cloud is thinned to its working resolution where its mean spacing is under this
 # fraction of it; closer to it, thinning would remove few points and its voxel (scaled so that
 # the centroids come out mr apart) would overshoot, leaving a denser cloud sparser than mr.
@@ -174,7 +188,12 @@ def working_resolution(points: np.ndarray, faces: np.ndarray | None = None, *,
   pts = np.asarray(points, dtype=np.float64)
   if pts.ndim != 2 or pts.shape[1] != 3 or len(pts) < 2:
     mesh_resolution(pts)  # its ValueError
-  d, _ = engine.knn(engine.knn_grid(pts, 2), pts, 2)  # as mesh_resolution: the same mean
+  return _cloud_resolution(pts, engine.knn_grid(pts, 2), name)
+
+
+def _cloud_resolution(pts: np.ndarray, grid: engine.Grid, name: str) -> Resolution:
+  """`working_resolution` of a checked cloud, given a `engine.knn_grid` of it."""
+  d, _ = engine.knn(grid, pts, 2)  # as mesh_resolution: the same mean
   mean = float(d[:, 1].mean())
   if mean == 0.0:
     mesh_resolution(pts, name=name)  # its ValueError: the cloud has no spacing
@@ -196,16 +215,25 @@ def cloud_extent(points: np.ndarray) -> float:
     The extent, >= 0.
   """
   pts = np.asarray(points, np.float64)
-  return 2.0 * float(np.sqrt(np.mean(np.sum((pts - pts.mean(axis=0)) ** 2, axis=1))))
+  square = 0.0
+  for j in range(pts.shape[1]):  # per column: numpy's axis-0 reductions of an (n, 3) array are slow
+    d = pts[:, j] - pts[:, j].mean()
+    square += float(np.dot(d, d))
+  return 2.0 * float(np.sqrt(square / len(pts)))
 
 
 def registration_resolution(points: np.ndarray, faces: np.ndarray | None = None, *,
                             name: str = "points") -> Resolution:
   """`working_resolution`, but for a cloud (a mesh keeps its mean edge length) never finer than
-  `cloud_extent` / `MAX_EXTENT_MR`: a full-density fragment (6 mm TSDF voxels across a room)
-  is registered as if sampled at that spacing, its support radius (15 mr) covering at least
-  5 % of its extent, as on the clean scans and fragments the defaults were measured on; every
-  cloud sampled no more finely keeps `working_resolution`'s figure.
+  `cloud_extent` / `MAX_EXTENT_MR`: a cloud sampled `ratio` = extent / its working resolution
+  more finely than that (a full-density fragment: 6 mm TSDF voxels across a room) is registered
+  at extent / `capped_extent_ratio(ratio)`, its support radius (15 mr) covering 5-10 % of its
+  extent, as on the clean scans and fragments the defaults were measured on; every cloud
+  sampled no more finely keeps `working_resolution`'s figure.
+
+  A cloud whose spacing on `SPACING_SAMPLE` seeded query points (each point's nearest other
+  point among all of them) is under `SAMPLED_CAP_MARGIN` times the cap's is capped without
+  measuring the rest: its `mean_spacing` and `area_spacing` are the sample's.
 
   Returns:
     A `Resolution`; `capped` (definition "extent_fraction") where the extent set it.
@@ -213,13 +241,60 @@ def registration_resolution(points: np.ndarray, faces: np.ndarray | None = None,
   Raises:
     ValueError: as `working_resolution`.
   """
-  res = working_resolution(points, faces, name=name)
   if faces is not None:
-    return res
-  floor = cloud_extent(points) / MAX_EXTENT_MR
+    return working_resolution(points, faces, name=name)
+  pts = np.asarray(points, dtype=np.float64)
+  if pts.ndim != 2 or pts.shape[1] != 3 or len(pts) < 2:
+    mesh_resolution(pts)  # its ValueError
+  extent = cloud_extent(pts)
+  floor = extent / MAX_EXTENT_MR
+  grid = engine.knn_grid(pts, 8)  # cheaper to build than knn_grid(pts, 2); the same distances
+  if len(pts) > SPACING_SAMPLE:
+    d = sampled_spacings(pts, grid)
+    mean, area = float(d.mean()), area_median(d)
+    # the sample's working resolution, where it is clearly even or clearly uneven
+    work = (mean if area < SAMPLED_CAP_MARGIN * UNEVEN_RATIO * mean else
+            area if SAMPLED_CAP_MARGIN * area > UNEVEN_RATIO * mean else 0.0)
+    if 0 < work < SAMPLED_CAP_MARGIN * floor:
+      return Resolution(extent / capped_extent_ratio(extent / work), mean, area,
+                        "extent_fraction")
+  res = _cloud_resolution(pts, grid, name)
   if res.mr < floor:
-    return Resolution(floor, res.mean_spacing, res.area_spacing, "extent_fraction")
+    return Resolution(extent / capped_extent_ratio(extent / res.mr), res.mean_spacing,
+                      res.area_spacing, "extent_fraction")
   return res
+
+
+def sampled_spacings(points: np.ndarray, grid: engine.Grid | None = None) -> np.ndarray:
+  """The nearest-neighbor distances (cloud units) of `SPACING_SAMPLE` points drawn with seed 0
+  (all of them in a cloud no larger), each to its nearest other point of the whole cloud.
+
+  Args:
+    points: (n, 3) float64 cloud, n >= 2.
+    grid: an `engine.knn_grid` of it where built already.
+
+  Returns:
+    (min(n, SPACING_SAMPLE),) float64 distances.
+  """
+  grid = grid if grid is not None else engine.knn_grid(points, 2)
+  rows = (np.sort(np.random.default_rng(0).choice(len(points), SPACING_SAMPLE, replace=False))
+          if len(points) > SPACING_SAMPLE else slice(None))
+  return engine.knn(grid, points[rows], 2)[0][:, 1]
+
+
+def capped_extent_ratio(ratio: float) -> float:
+  """The extent / working resolution `registration_resolution` registers a cloud at whose
+  extent / own working resolution is `ratio` > `MAX_EXTENT_MR`: MAX_EXTENT_MR**2 / ratio, at
+  least `CAPPED_MIN_RATIO` (non-monotone in the spacing: an oversampled cloud's extra points add
+  time, not evidence; continuous at the cap).
+
+  Args:
+    ratio: the cloud's extent over its working resolution (> 0).
+
+  Returns:
+    The ratio its working resolution is taken at, in [CAPPED_MIN_RATIO, MAX_EXTENT_MR].
+  """
+  return float(min(MAX_EXTENT_MR, max(MAX_EXTENT_MR * MAX_EXTENT_MR / ratio, CAPPED_MIN_RATIO)))
 
 
 def pair_resolution(source: Resolution, target: Resolution, names=("source", "target")) -> float:

@@ -60,7 +60,9 @@ def register(source: Any, target: Any, options: RegisterOptions | None = None, *
      (`fine_distance`: 1.5 x the median residual, 1 mr to icp_mr mr) on up to `ICP_POINTS`
      source points drawn among those within icp_mr mr of the target (`overlap_points`); a
      pair thinned by default (`voxel_size=None`) then gets one ICP pass on its input points
-     (`refine.raw_pass`; a pose that moves a point by over `RAW_MAX_SHIFT_MR` mr is refused);
+     (`refine.raw_pass`; a pose that moves a point by over `RAW_MAX_SHIFT_MR` mr is refused),
+     save a side thinned for being oversampled (`Resolution.capped`): its voxel centroids
+     are its working points;
   6. the verdict (`evidence.decide`), one rule for every estimator and option: it claims
      success when the winner's inliers are at least `VERDICT_GRAPH_FACTOR` times (+
      `VERDICT_GRAPH_MARGIN`) both what chance alignment reaches on the correspondences
@@ -112,7 +114,8 @@ def register(source: Any, target: Any, options: RegisterOptions | None = None, *
       below (None: measured, `geometry.resolution.registration_resolution` and
       `pair_resolution`: the source's mean point spacing or mean edge length; on a raw, uneven
       cloud such as a LiDAR sweep the area-weighted median spacing; for a cloud sampled more
-      finely than 1/300 of its extent (a full-density fragment) that fraction; for a pair whose
+      finely than 1/300 of its extent (a full-density fragment) a coarser fraction of it,
+      `resolution.capped_extent_ratio`; for a pair whose
       resolutions differ over 2-fold, or where one is uneven or capped, the coarser one).
     radius_mr (float): support radius of the LRFs and descriptors, in mr (the paper: 15).
     n_keypoints (int): keypoints per cloud (fewer when a cloud has fewer points).

@@ -35,7 +35,8 @@ ICP_POINTS = 5000
 ICP_FINE_FACTOR = 1.5
 ICP_FINE_MIN_MR = 1.0
 
-# The last pass on the input points of a cloud thinned by default (`raw_pass`): source points
+# The last pass on the input points of a cloud thinned by default (`raw_pass`; not of an
+# oversampled one, `stages.prepare`): source points
 # drawn, the target normals' radius (at most RAW_NORMAL_MR mr and RAW_NORMAL_SPACINGS mean input
 # spacings, `icp_normals.estimate_target_normals`), the gates (mr), and how far it may move a source
 # point (mr) before its pose is refused (the verdict was reached on the thinned clouds' pose).
@@ -189,8 +190,9 @@ def refine(prepared: Prepared, verified: Verified, icp_opts: IcpOptions, timer: 
            ) -> Refined:
   """Stages "icp" (`icp_passes` from the coarse pose on up to `ICP_POINTS` seeded source
   points) and the overlap's constraints (`overlap_constraints`, timed as "verification"); for a
-  pair thinned by default, then `raw_pass` on the input points (its pose is the transform; the
-  fitness, rmse and constraints, which the verdict reads, stay those of the thinned clouds)."""
+  pair thinned by default, then `raw_pass` on the input points of each side `prepare` kept them
+  for (`Side.raw`: not an oversampled side) (its pose is the transform; the fitness, rmse and
+  constraints, which the verdict reads, stay those of the thinned clouds)."""
   src_pts, dst_pts = prepared.sides[0].points, prepared.sides[1].points
   target = prepared.sides[1]  # the input's spacing is the working cloud's where not thinned
   dst_spacing = target.input_spacing if target.input_index is None else None

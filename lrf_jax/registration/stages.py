@@ -16,6 +16,7 @@ stage checks nothing its inputs' types already guarantee: `prepare` builds each 
 
 from __future__ import annotations
 
+
 import contextlib
 import time
 from typing import Any, NamedTuple, cast
@@ -70,7 +71,8 @@ class Side(NamedTuple):
   keypoints: np.ndarray          # (k,) sorted int64 indices into cloud.points
   normals: np.ndarray | None     # estimated towards the viewpoint when a method or SHOT needs them
   input_index: np.ndarray | None  # each working point's input point (thinned clouds), or None
-  raw: np.ndarray | None = None  # the input points of a cloud thinned by default (refine's last pass)
+  raw: np.ndarray | None = None  # the input points of a cloud thinned by default, not oversampled
+  # (refine's last pass)
   input_spacing: float | None = None  # the input points' mean nearest-neighbor spacing, if measured
 
   @property
@@ -167,8 +169,10 @@ def prepare(source: Any, target: Any, opts: RegisterOptions) -> Prepared:
                         )._replace(input_spacing=res.mean_spacing if c.faces is None else None)
            for (cloud, index, res), vp, c in zip(thinned, views, clouds)]  # a mesh: its edges'
   if inputs.voxel_size is None:  # thinned by default: refine's last pass pairs the input points
-    sides = [side if side.input_index is None else side._replace(raw=c.points)
-             for side, c in zip(sides, clouds)]
+    sides = [side if side.input_index is None or res.capped else side._replace(raw=c.points)
+             for side, c, (_, _, res) in zip(sides, clouds, thinned)]  # an oversampled cloud's
+    # voxel centroids average many points of its surface: pairing its input points moved the
+    # fused fragments' poses further from the truth, not nearer
   # the support radius, checked once here (the frames and descriptors take it as checked)
   radius = validate_radius(radius)
   return Prepared(cast("tuple[Side, Side]", tuple(sides)), float(mr), radius, rng, seed, voxel)

@@ -391,3 +391,59 @@ def test_cloud_without_spacing_says_so_not_radius(points, fragment):
   assert fragment in str(e.value) and "radius" not in str(e.value)
   with pytest.raises(ValueError, match=r"^points: the cloud has no spacing"):
     lrf_jax.mesh_resolution(points)
+
+
+def test_a_capped_target_is_paired_as_thinned_by_the_last_pass(monkeypatch):
+  """An uneven source (a dense patch in a room: thinned, its input points kept for the last pass)
+  against an oversampled target (thinned, no input points kept): the last pass pairs the
+  source's input points with the target's working points, and gives it no input spacing (the
+  target's input spacing is not its centroids')."""
+  from types import SimpleNamespace
+  from lrf_jax.registration import refine, stages
+  from lrf_jax.registration.options import RegisterOptions
+  from lrf_jax.search import engine
+  rng = np.random.default_rng(7)
+  patch = rng.uniform([1.0, 1.0, 0.0], [1.3, 1.3, 0.0], size=(150_000, 3))
+  source = np.concatenate([dense_room(20_000, seed=2), patch])
+  target = dense_room(120_000, seed=0)
+  res = [resolution.registration_resolution(c) for c in (source, target)]
+  assert res[0].uneven and res[1].capped
+  opts = RegisterOptions()
+  prepared = stages.prepare(source, target, opts)
+  src, dst = prepared.sides
+  assert src.input_index is not None and src.raw is not None  # thinned, input points kept
+  assert dst.input_index is not None and dst.raw is None  # thinned, oversampled
+  seen = {}
+
+  def fake(source_in, target_in, pose, mr, icp_opts, seed, target_spacing=None):
+    seen.update(source=source_in, target=target_in, spacing=target_spacing)
+    return pose
+  monkeypatch.setattr(refine, "raw_pass", fake)
+  distance = 3 * prepared.mr
+  verified = stages.Verified(SimpleNamespace(transform=np.eye(4)), np.zeros(0), np.zeros(0, bool),
+                             0, engine.Grid(dst.points, distance), distance)
+  refine.refine(prepared, verified, opts.icp, stages.StageTimer())
+  assert seen["source"] is src.raw and seen["target"] is dst.points
+  assert seen["spacing"] is None
+
+
+def test_a_large_cloud_of_duplicates_is_refused_as_before():
+  """Every point duplicated (more points than the spacing sample): the sample's spacing is 0,
+  so the whole cloud is measured, and refused with `mesh_resolution`'s message."""
+  pts = np.repeat(dense_room(6000, seed=4), 2, axis=0)
+  assert len(pts) > resolution.SPACING_SAMPLE
+  with pytest.raises(ValueError, match=r"source: the cloud has no spacing .*every point is duplicated"):
+    resolution.registration_resolution(pts, name="source")
+
+
+def test_the_sampled_and_the_whole_measure_agree_on_capping():
+  """On clouds clearly on either side of the cap (a full-density room, a raw-like uneven cloud,
+  a clean one), the sampled decision is the whole cloud's (`working_resolution` against the
+  cap)."""
+  rng = np.random.default_rng(8)
+  patch = rng.uniform([1.0, 1.0, 0.0], [1.3, 1.3, 0.0], size=(150_000, 3))
+  for cloud in (dense_room(120_000, seed=5), dense_room(20_000, seed=5),
+                np.concatenate([dense_room(20_000, seed=2), patch])):
+    work = resolution.working_resolution(cloud)
+    exact = work.mr < resolution.cloud_extent(cloud) / resolution.MAX_EXTENT_MR
+    assert resolution.registration_resolution(cloud).capped == exact

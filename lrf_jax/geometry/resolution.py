@@ -92,7 +92,8 @@ PAIR_RATIO = 2.0
 # Clouds whose working resolutions differ by more than this are not in the same units.
 UNITS_RATIO = 100.0
 # register's finest resolution relative to a cloud's extent (`cloud_extent`): a cloud sampled
-# more finely than extent / MAX_EXTENT_MR is registered at that resolution (and thinned to it).
+# more finely than extent / MAX_EXTENT_MR is registered coarser (`capped_extent_ratio`, below)
+# and thinned to it.
 # extent / mean spacing, measured: 3DMatch fragments at 2.5 cm 162-183, Stanford bunny scans
 # 183-212, UWA3M views 176-286 (chef 271-286), raw KITTI sweeps 77-100 at their area-weighted
 # spacing; full-density TSDF fragments (6 mm voxels) 465-612, a UWAOR full scene 646.
@@ -107,8 +108,10 @@ CAPPED_MIN_RATIO = 150.0
 # registration_resolution measures a cloud's spacing on SPACING_SAMPLE seeded query points
 # first; where that sample's working resolution (clearly even or uneven: area spacing under, or
 # over, UNEVEN_RATIO mean spacings by this margin) is under SAMPLED_CAP_MARGIN times the cap's
-# spacing, the cloud is capped whatever the rest would add (the sample mean's standard error is
-# well under 1 % of it), and its spacing is the sample's. Every other cloud is measured on all its points.
+# spacing, the cloud is capped on the sample's word (the sample mean's standard error is well
+# under 1 % of it; a few far points the sample misses, which could have made the whole cloud's
+# area-weighted spacing uneven, are not looked for), and its spacings are the sample's. Every
+# other cloud is measured on all its points.
 SPACING_SAMPLE = 8192
 SAMPLED_CAP_MARGIN = 0.8
 # A capped cloud is thinned to its working resolution where its mean spacing is under this
@@ -123,9 +126,10 @@ class Resolution:
 
   Attributes:
     mr: the working resolution (cloud units): `mean_spacing`, for an uneven cloud
-      `area_spacing`, for a cloud `registration_resolution` capped its extent / `MAX_EXTENT_MR`.
+      `area_spacing`, for a cloud `registration_resolution` capped its extent /
+      `capped_extent_ratio` of its extent / own working resolution.
     mean_spacing: `mesh_resolution`'s value: the mean edge length of a mesh, the mean
-      nearest-neighbor distance of a cloud.
+      nearest-neighbor distance of a cloud (of a capped one, possibly `sampled_spacings`').
     area_spacing: the area-weighted median nearest-neighbor distance (each point weighted by
       the area it stands for, its spacing squared): the spacing at which half the surface is
       sampled; `mean_spacing` for a mesh.
@@ -215,6 +219,8 @@ def cloud_extent(points: np.ndarray) -> float:
     The extent, >= 0.
   """
   pts = np.asarray(points, np.float64)
+  if len(pts) == 0:
+    return float("nan")
   square = 0.0
   for j in range(pts.shape[1]):  # per column: numpy's axis-0 reductions of an (n, 3) array are slow
     d = pts[:, j] - pts[:, j].mean()
@@ -231,9 +237,10 @@ def registration_resolution(points: np.ndarray, faces: np.ndarray | None = None,
   extent, as on the clean scans and fragments the defaults were measured on; every cloud
   sampled no more finely keeps `working_resolution`'s figure.
 
-  A cloud whose spacing on `SPACING_SAMPLE` seeded query points (each point's nearest other
-  point among all of them) is under `SAMPLED_CAP_MARGIN` times the cap's is capped without
-  measuring the rest: its `mean_spacing` and `area_spacing` are the sample's.
+  A cloud whose working resolution on `SPACING_SAMPLE` seeded query points
+  (`sampled_spacings`: each one's nearest other point among all of them; clearly even or
+  clearly uneven) is under `SAMPLED_CAP_MARGIN` times the cap's is capped on the sample's word,
+  without measuring the rest: its `mean_spacing` and `area_spacing` are the sample's.
 
   Returns:
     A `Resolution`; `capped` (definition "extent_fraction") where the extent set it.

@@ -209,8 +209,11 @@ def refine(prepared: Prepared, verified: Verified, icp_opts: IcpOptions, timer: 
   if any(side.raw is not None for side in prepared.sides) and icp_opts.icp_iterations > 0:
     with timer("icp"):
       src_in, dst_in = (side.points if side.raw is None else side.raw for side in prepared.sides)
-      final = raw_pass(src_in, dst_in, final, prepared.mr, icp_opts, prepared.seed,
-                       prepared.sides[1].input_spacing)
+      # the input's spacing where the target's points are its input points (not a thinned
+      # oversampled target's centroids)
+      dst_spacing = (target.input_spacing if target.raw is not None or target.input_index is None
+                     else None)
+      final = raw_pass(src_in, dst_in, final, prepared.mr, icp_opts, prepared.seed, dst_spacing)
   return Refined(final, fitness, rmse, degeneracy, free, icp_src)
 
 

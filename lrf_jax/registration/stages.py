@@ -16,7 +16,6 @@ stage checks nothing its inputs' types already guarantee: `prepare` builds each 
 
 from __future__ import annotations
 
-
 import contextlib
 import time
 from typing import Any, NamedTuple, cast
@@ -71,8 +70,7 @@ class Side(NamedTuple):
   keypoints: np.ndarray          # (k,) sorted int64 indices into cloud.points
   normals: np.ndarray | None     # estimated towards the viewpoint when a method or SHOT needs them
   input_index: np.ndarray | None  # each working point's input point (thinned clouds), or None
-  raw: np.ndarray | None = None  # the input points of a cloud thinned by default, not oversampled
-  # (refine's last pass)
+  raw: np.ndarray | None = None  # input points for refine's last pass (thinned, not capped)
   input_spacing: float | None = None  # the input points' mean nearest-neighbor spacing, if measured
 
   @property

@@ -5,6 +5,7 @@ at 2.5 cm and at a denser stand-in, against Open3D's tutorial pipeline in the sa
         [--no-kiss] [--viewpoints] [--lrf-kw '{"weights": "streets"}']
         [--sets sweeps subsampled cropped rooms dense mixed far]
         [--fused DIR --sets fused fused25 fusedmixed fusedratio]
+        [--fused-frames 40] [--fused-voxel 0.006]
 
 lrf_jax: `lrf_jax.register(source, target)` with its defaults: no resolution, no voxel size.
 Open3D 0.20: its global registration tutorial (`benchmarks/_open3d_pipeline.py`: voxel
@@ -31,7 +32,9 @@ Sets (every pair both pipelines, after one warm-up call each):
 * fused, fused25, fusedmixed, fusedratio (with `--fused DIR`, not by default): full-density
   TSDF fragments fused from the depth frames under DIR (`benchmarks/_fused_fragments.py`:
   Open3D's livingroom1_clean_micro test data makes 5 fragments of 242k-300k points, 3-4 mm
-  spacing), every pair (i, j), i < j: at full density, both voxelized at 2.5 cm, the
+  spacing; `--fused-frames` and `--fused-voxel` fuse other fragments, e.g. 30 frames at 4 or
+  10 mm TSDF voxels: 7 fragments, extent / spacing 680-960 or 260-370), every pair (i, j),
+  i < j: at full density, both voxelized at 2.5 cm, the
   full-density source against the 2.5 cm target, and both voxelized at extent / 136
   (`RATIO_VOXEL`: the ratio of extent to spacing of 3DMatch's 2.5 cm fragments).
 
@@ -343,7 +346,15 @@ def main() -> int:
   ap.add_argument("--sets", nargs="+", default=list(DEFAULT_SETS), choices=SETS)
   ap.add_argument("--fused", help="a folder of depth frames and their trajectory "
                   "(benchmarks/_fused_fragments.py), for the fused sets")
+  ap.add_argument("--fused-frames", type=int, default=40,
+                  help="depth frames fused per fragment (benchmarks/_fused_fragments.py)")
+  ap.add_argument("--fused-voxel", type=float, default=0.006,
+                  help="the fusion's TSDF voxel (m)")
   args = ap.parse_args()
+  if args.fused_frames < 2 or not args.fused_voxel > 0:
+    ap.error("--fused-frames: at least 2; --fused-voxel: a positive length (m)")
+  import benchmarks._fused_fragments as fusion  # its settings key its cache
+  fusion.FRAMES, fusion.VOXEL = args.fused_frames, args.fused_voxel
   if any(name.startswith("fused") for name in args.sets) and not args.fused:
     ap.error("--sets fused, fused25, fusedmixed, fusedratio need --fused DIR")
   data = Path(os.environ.get("LRF_DATA", REPO.parent / "shared" / "data"))

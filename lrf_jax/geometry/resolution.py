@@ -263,13 +263,14 @@ def registration_resolution(points: np.ndarray, faces: np.ndarray | None = None,
     work = (mean if area < SAMPLED_CAP_MARGIN * UNEVEN_RATIO * mean else
             area if SAMPLED_CAP_MARGIN * area > UNEVEN_RATIO * mean else 0.0)
     if 0 < work < SAMPLED_CAP_MARGIN * floor:
-      return Resolution(extent / capped_extent_ratio(extent / work), mean, area,
-                        "extent_fraction")
+      return _capped(extent, work, mean, area)
   res = _cloud_resolution(pts, grid, name)
-  if res.mr < floor:
-    return Resolution(extent / capped_extent_ratio(extent / res.mr), res.mean_spacing,
-                      res.area_spacing, "extent_fraction")
-  return res
+  return _capped(extent, res.mr, res.mean_spacing, res.area_spacing) if res.mr < floor else res
+
+
+def _capped(extent: float, work: float, mean: float, area: float) -> Resolution:
+  """The capped `Resolution` of a cloud of `extent` whose own working resolution is `work`."""
+  return Resolution(extent / capped_extent_ratio(extent / work), mean, area, "extent_fraction")
 
 
 def sampled_spacings(points: np.ndarray, grid: engine.Grid | None = None) -> np.ndarray:

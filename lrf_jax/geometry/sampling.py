@@ -144,10 +144,11 @@ def voxel_groups(cells: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     cell), int64.
   """
   span = _column_extremes(cells, np.max) + 1 if len(cells) else np.ones(3, np.int64)
-  if float(span[0]) * float(span[1]) * float(span[2]) < 2.0**62:  # one exact integer key
+  volume = float(span[0]) * float(span[1]) * float(span[2])
+  if volume < 2.0**62:  # one exact integer key
     key = (cells[:, 0] * span[1] + cells[:, 1]) * span[2] + cells[:, 2]
     n = len(key)
-    if float(span[0]) * float(span[1]) * float(span[2]) * max(n, 1) < 2.0**62:
+    if volume * max(n, 1) < 2.0**62:
       # the stable order by key, as the sorted values of key * n + index (one int64 sort of
       # values: several times faster than a stable argsort)
       both = np.sort(key * n + np.arange(n, dtype=np.int64))

@@ -34,7 +34,8 @@ Pipeline (every length in mr, the median over the scans of each one's working re
    different components are then registered again as `effort="high"` registers them
    (`_escalated`: their scans described once more with the pooled seeds) and the graph solved
    again, so a set the first graph joins pays nothing more; `"fast"` is the first pass alone,
-   `"high"` the pooled seeds for every pair. A custom `pairwise` function runs once per pair
+   `"high"` the pooled seeds for every pair (never `register`'s pass at twice the working
+   resolution: the set's resolution is given). A custom `pairwise` function runs once per pair
    (no second pass).
 4. the model is the largest connected component of accepted edges (ties: the one with the
    earliest scan); its earliest scan is the reference frame (the first scan unless the first

@@ -1,6 +1,8 @@
 """`register(..., effort="high")`: more keypoints and several seeds, pooled into one set of
 correspondences before the one hypothesis stage and the one verdict; the default
-`effort="normal"` runs it on a pair its first pass leaves "not sure" (`escalates`).
+`effort="normal"` runs it on a pair its first pass leaves "not sure" (`escalates`). Both end,
+where the pooled pass is not sure too and the working resolution was measured, with one pass
+at twice that resolution (`coarser_pass`).
 
 The stages prepare, describe and match run for `EFFORT_SEEDS` seeds (the option's seed, seed + 1,
 ...) with `EFFORT_KEYPOINTS` times the keypoints, on the same working clouds (`stages.reseed`:
@@ -15,6 +17,8 @@ keep the one that claims", so no multiple testing.
 
 from __future__ import annotations
 
+import dataclasses
+from collections.abc import Callable
 from typing import Any, cast
 
 import numpy as np
@@ -22,12 +26,19 @@ import numpy as np
 from lrf_jax.checks import derived_seed
 from lrf_jax.registration import stages
 from lrf_jax.registration.options import RegisterOptions
+from lrf_jax.registration.result import Registration
 
 # Seeds pooled and the factor on `n_keypoints` with effort="high", chosen on bench_scenes.py's
 # tune split (35 cases; claimed right / wrong): default 20 / 0; 3 seeds x 2 keypoints 22 / 0
 # (median 15.3 s a case); 2 seeds x 2 keypoints 22 / 0, the same claims in less time (11.5 s).
 EFFORT_SEEDS = 2
 EFFORT_KEYPOINTS = 2
+# The last step of "normal" and "high" on a pair still not sure after the pooled pass: one pass
+# at COARSER_MR times the working resolution (descriptors, frames and every length in mr twice as
+# wide). Chosen on the full-density fused fragments (three pairs flipped or not sure at their own
+# resolution, all claimed right at 1.5x and at 2x; 2x with twice the winning support) and
+# checked on every benchmark's negatives; see `coarser_pass`.
+COARSER_MR = 2.0
 
 
 def high_effort_options(opts: RegisterOptions) -> RegisterOptions:
@@ -40,6 +51,62 @@ def tried(first_code: str) -> str:
   in words, for `Registration.reason`."""
   return (f"tried one pass ({first_code}), then {EFFORT_SEEDS} seeds with {EFFORT_KEYPOINTS}x "
           "the keypoints pooled")
+
+
+def tried_pooled() -> str:
+  """What `effort="high"` tried before `coarser_pass`, in words, for `Registration.reason`."""
+  return f"tried {EFFORT_SEEDS} seeds with {EFFORT_KEYPOINTS}x the keypoints pooled"
+
+
+def coarser_runs(result_code: str, opts: RegisterOptions) -> bool:
+  """Whether `coarser_pass` follows a pooled pass whose verdict has `result_code`: it was not
+  sure, and the working resolution was measured (an `mr` given is the user's scale, kept)."""
+  return escalates(result_code) and opts.inputs.mr is None
+
+
+def coarser_options(opts: RegisterOptions, mr: float) -> RegisterOptions:
+  """`opts` at `COARSER_MR` x the working resolution `mr` (cloud units): the same counts and
+  multiples of mr, every length twice as long."""
+  return opts.with_overrides(mr=COARSER_MR * float(mr))
+
+
+def coarser_tried(code: str) -> str:
+  """`coarser_pass`'s step in words, with its verdict's `code`, for `Registration.reason`."""
+  return f"then one pass at {COARSER_MR:g}x the working resolution ({code})"
+
+
+def coarser_pass(pooled: Registration, note: str, run: Callable[[], Registration],
+                 timer: stages.StageTimer) -> Registration:
+  """The last step of `effort="normal"` and `"high"` where the pooled pass is not sure and
+  `coarser_runs`: `run()`, one pass at `coarser_options` (with or without an init), judged by
+  the same verdict on its own evidence; its result where it is claimed, else `pooled`'s.
+
+  A support of the default radius can be too small to tell a room's planes apart when the
+  working resolution is fine against the room (a full-density fragment at about 1/300 of its
+  extent): one pass at twice the scale finds the pose the finer passes leave not sure.
+
+  Args:
+    pooled: the pooled pass's result ("not sure").
+    note: the steps before, in words ("tried one pass (rival), then 2 seeds ... pooled").
+    run: the coarser pass; a ValueError (no correspondences at that scale) keeps `pooled`.
+    timer: the call's timer (`seconds` and `timings` count every pass).
+
+  Returns:
+    `Registration`; `reason` names the pooled pass's verdict and the coarser one's.
+  """
+  try:
+    second = run()
+  except ValueError as e:
+    return dataclasses.replace(pooled, reason=f"{pooled.reason} ({note}, "
+                               f"{coarser_tried('error')}: {e})", seconds=timer.total(),
+                               timings=dict(timer.seconds))
+  if second.success:
+    return dataclasses.replace(second, reason=f"{second.reason} ({note} "
+                               f"({pooled.reason_code}), {coarser_tried(second.reason_code)})",
+                               seconds=timer.total(), timings=dict(timer.seconds))
+  return dataclasses.replace(pooled, reason=f"{pooled.reason} ({note}, "
+                             f"{coarser_tried(second.reason_code)})", seconds=timer.total(),
+                             timings=dict(timer.seconds))
 
 
 def one_pass(source: Any, target: Any, opts: RegisterOptions, params: Any,

@@ -277,16 +277,18 @@ def decide(evidence: Evidence) -> Verdict:
 
 def next_step(evidence: Evidence) -> str:
   """What may settle a "not sure" for lack of support (`decide`'s "chance" and "rival"), or ""
-  where nothing `register` can do would: more keypoints and pooled seeds (`effort="high"`, or
-  the default `"normal"` after `"fast"`) unless they were used or a distinct pose explains
-  nearly as many correspondences as the winner (at least AMBIGUOUS_SHARE of them: two copies of
-  an object, which more correspondences find again). An init is not named: it is judged on the
+  where nothing `register` can do would: more keypoints and pooled seeds, then a pass at twice
+  the working resolution (`effort="high"`, or the default `"normal"` after `"fast"`) unless
+  they were used or a distinct pose explains nearly as many correspondences as the winner (at
+  least AMBIGUOUS_SHARE of them: two copies of an object, which more correspondences find
+  again). An init is not named: it is judged on the
   same evidence (`register(..., init=T)`), so it settles nothing the evidence left open."""
   if (evidence.effort == "high"
       or evidence.rival_inliers >= AMBIGUOUS_SHARE * evidence.n_inliers):
     return ""
   more = "effort='normal' or 'high'" if evidence.effort == "fast" else "effort='high'"
-  return f"{more} (more keypoints, pooled seeds) may settle it"
+  return (f"{more} (more keypoints, pooled seeds, then a coarser pass where mr is measured) "
+          "may settle it")
 
 
 def verdict(evidence: Evidence) -> tuple[bool, str]:

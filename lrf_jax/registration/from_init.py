@@ -13,7 +13,9 @@ Where the refined init is "not sure" (ICP stopped short of the evidence's pose, 
 a few degrees off the pose the correspondences pin down), the search of steps 3-4 is run again
 limited to its neighbourhood (`stages.verify_near`: the best hypothesis not distinct from it,
 refitted, refined and judged as `register`'s own winner, "moved" test included), and that pose
-is returned where it is claimed. It is held to the rule every winner is held to (its support
+is returned where it is claimed. Where the pooled evidence leaves it not sure, the same runs
+once more at twice the working resolution (`effort.coarser_pass`), as `register` does without
+an init. It is held to the rule every winner is held to (its support
 at least `VERDICT_GRAPH_FACTOR` times chance's and every distinct pose's, the pose `register`
 picks without an init among them), so a wrong init does not lend a wrong pose any support.
 """
@@ -21,12 +23,14 @@ picks without an init among them), so a wrong init does not lend a wrong pose an
 from __future__ import annotations
 
 import dataclasses
+from collections.abc import Callable
 from typing import Any
 
 import numpy as np
 
 from lrf_jax.registration import stages
-from lrf_jax.registration.effort import escalates, one_pass, pooled_stages, tried
+from lrf_jax.registration.effort import (coarser_options, coarser_pass, coarser_runs, escalates,
+                                         one_pass, pooled_stages, tried, tried_pooled)
 from lrf_jax.registration.estimators import finish_result
 from lrf_jax.registration.evidence import Evidence, Verdict, decide, distinct, poses_apart
 from lrf_jax.registration.options import RegisterOptions
@@ -38,10 +42,12 @@ from lrf_jax.search.grid import serial_blas
 
 
 def register_from_init(source: Any, target: Any, init: Any, opts: RegisterOptions, params: Any,
-                       timer: stages.StageTimer) -> Registration:
+                       timer: stages.StageTimer, *, last: bool = False) -> Registration:
   """`register(source, target, init=init, ...)` (module docstring): `init` checked
   (`refine.check_init`: a rotation block within `refine.INIT_PROJECT` of orthonormal is
   projected), the evidence gathered, ICP from `init`, the verdict on the refined pose.
+  `last`: this is `effort.coarser_pass`'s pass (one pass, judged as a last step: its verdict
+  names no further one).
 
   Returns:
     `Registration` whose `coarse_transform` is the (projected) init and `transform` the refined
@@ -70,9 +76,14 @@ def register_from_init(source: Any, target: Any, init: Any, opts: RegisterOption
   if kept:  # ICP slid away from what the init explains: the init itself, measured unmoved
     refined = refine(prepared, start, dataclasses.replace(opts.icp, icp_iterations=0), timer)
     refined = refined._replace(kept=kept)
-  gathered = "high" if effort == "high" else effort
+  gathered = "high" if effort == "high" or last else effort
   first = _judged(prepared, passes[2], hyps, refined, pose, opts, timer, gathered)
   first = _or_near(first, prepared, passes[2], hyps, pose, opts, timer, gathered)
+  if effort == "high":
+    if not coarser_runs(first.reason_code, opts):
+      return first
+    return coarser_pass(first, tried_pooled(), _coarser_run(source, target, pose, first, opts,
+                                                            params, timer), timer)
   if effort != "normal" or not escalates(first.reason_code):
     return first
   pooled = pooled_stages(source, target, opts, params, timer, first=prepared)
@@ -81,7 +92,21 @@ def register_from_init(source: Any, target: Any, init: Any, opts: RegisterOption
   again = _judged(pooled[0], pooled[2], pooled_hyps, refined, pose, opts, timer, "high")
   again = _or_near(again, pooled[0], pooled[2], pooled_hyps, pose, opts, timer, "high")
   note = tried(first.reason_code)
-  return dataclasses.replace(again, reason=f"{again.reason} ({note})", escalated=True)
+  if not coarser_runs(again.reason_code, opts):
+    return dataclasses.replace(again, reason=f"{again.reason} ({note})", escalated=True)
+  return dataclasses.replace(coarser_pass(again, note, _coarser_run(source, target, pose, again,
+                                                                    opts, params, timer), timer),
+                             escalated=True)
+
+
+def _coarser_run(source: Any, target: Any, pose: np.ndarray, pooled: Registration,
+                 opts: RegisterOptions, params: Any, timer: stages.StageTimer
+                 ) -> Callable[[], Registration]:
+  """`effort.coarser_pass`'s pass with an init: `register_from_init`'s one pass (ICP from
+  `pose`, the verdict, the search near it) at `effort.COARSER_MR` x `pooled`'s working
+  resolution."""
+  wide = coarser_options(opts, pooled.mr).with_overrides(effort="fast")
+  return lambda: register_from_init(source, target, pose, wide, params, timer, last=True)
 
 
 def _or_near(judged_init: Registration, prepared: stages.Prepared, matches: stages.Matches,

@@ -176,9 +176,11 @@ class VerdictOptions(OptionGroup):
 
   effort: str = option_field(
       "normal", "fast: one pass; high: more keypoints per cloud and several seeds, their "
-      "correspondences pooled before the same hypotheses and verdict (a few times slower); "
-      "normal: one pass, and high's pooled pass on a pair the first leaves not sure (many "
-      "scans: on the not sure pairs between the first pose graph's components)",
+      "correspondences pooled before the same hypotheses and verdict (a few times slower), "
+      "then, where still not sure and no mr was given, one pass at twice the working "
+      "resolution; normal: one pass, and high's passes on a pair the first leaves not sure "
+      "(many scans: high's pooled pass on the not sure pairs between the first pose graph's "
+      "components)",
       choices=EFFORTS)
 
 

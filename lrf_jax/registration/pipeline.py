@@ -14,12 +14,14 @@ estimators without a JAX program to load in every fresh process.
 from __future__ import annotations
 
 import dataclasses
+from collections.abc import Callable
 from typing import Any
 
 import numpy as np
 
 from lrf_jax.registration import stages
-from lrf_jax.registration.effort import escalates, one_pass, pooled_stages, tried
+from lrf_jax.registration.effort import (coarser_options, coarser_pass, coarser_runs, escalates,
+                                         one_pass, pooled_stages, tried, tried_pooled)
 from lrf_jax.registration.icp_host import icp
 from lrf_jax.registration.options import RegisterOptions, check_register_options, resolve
 from lrf_jax.registration.from_init import register_from_init
@@ -84,8 +86,11 @@ def register(source: Any, target: Any, options: RegisterOptions | None = None, *
   `effort="normal"` (default) is that pass, and where its verdict is "not sure", `"high"`'s
   pooled pass on the same working clouds (`effort.escalates`), whose result it returns: the
   same as `effort="high"`'s, bit for bit, with `escalated` True and `reason` saying what was
-  tried. So it claims a pair when one pass or the pooled evidence claims it, and costs one
-  pass on a pair the first pass claims.
+  tried. Where the pooled pass is not sure too and `mr` was measured (not given),
+  `effort.coarser_pass` runs one pass of steps 1-6 at `effort.COARSER_MR` x the working
+  resolution and returns its pose where it is claimed (`"high"` ends with the same step; so
+  does an init's judgement). So it claims a pair when one pass, the pooled evidence or the
+  coarser pass claims it, and costs one pass on a pair the first pass claims.
 
   With `init` (a (4, 4) rigid transform) the pose is `init` refined by step 5 instead of steps
   3-4's winner, and step 6 judges it on the same evidence (`from_init`: steps 1-2 and the
@@ -177,8 +182,12 @@ def register(source: Any, target: Any, options: RegisterOptions | None = None, *
     return register_from_init(source, target, init, opts, params, timer)
   effort = opts.verdict.effort
   if effort == "high":
-    return conclude(*pooled_stages(source, target, opts, params, timer), opts, timer,
-                    pooled=True)
+    pooled = conclude(*pooled_stages(source, target, opts, params, timer), opts, timer,
+                      pooled=True)
+    if not coarser_runs(pooled.reason_code, opts):
+      return pooled
+    return coarser_pass(pooled, tried_pooled(), _coarser_run(source, target, pooled, opts, params,
+                                                             timer), timer)
   prepared, features, matches = one_pass(source, target, opts, params, timer)
   # "normal"'s first pass names no next step: the pooled pass follows it itself
   first = conclude(prepared, features, matches, opts, timer, pooled=effort == "normal")
@@ -191,7 +200,20 @@ def register(source: Any, target: Any, options: RegisterOptions | None = None, *
   except ValueError as e:  # the inputs passed the first pass: the pooled matching found none
     return dataclasses.replace(first, reason=f"{first.reason} ({note}: {e})",
                                seconds=timer.total(), timings=dict(timer.seconds), escalated=True)
-  return dataclasses.replace(pooled, reason=f"{pooled.reason} ({note})", escalated=True)
+  if not coarser_runs(pooled.reason_code, opts):
+    return dataclasses.replace(pooled, reason=f"{pooled.reason} ({note})", escalated=True)
+  return dataclasses.replace(coarser_pass(pooled, note, _coarser_run(source, target, pooled, opts,
+                                                                   params, timer), timer),
+                             escalated=True)
+
+
+def _coarser_run(source: Any, target: Any, pooled: Registration, opts: RegisterOptions,
+                 params: Any, timer: stages.StageTimer) -> Callable[[], Registration]:
+  """`effort.coarser_pass`'s pass: steps 1-6 once at `effort.COARSER_MR` x `pooled`'s working
+  resolution, judged as a last step (naming no further one)."""
+  wide = coarser_options(opts, pooled.mr)
+  return lambda: conclude(*one_pass(source, target, wide, params, timer), wide, timer,
+                          pooled=True)
 
 
 def conclude(prepared: stages.Prepared, features: stages.Features, matches: stages.Matches,

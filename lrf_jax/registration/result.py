@@ -23,7 +23,8 @@ class Registration:
     fitness: fraction of the (ICP's) source points within icp_mr mr of the target after
       `transform`.
     rmse: RMS distance of those points (cloud units).
-    mr: the mesh resolution used as the unit (cloud units).
+    mr: the mesh resolution used as the unit (cloud units): `effort.COARSER_MR` x the measured
+      one where the pass at twice the working resolution is returned (`effort.coarser_pass`).
     seconds: wall time of the whole call.
     timings: wall seconds per stage of `register`, keyed "prepare", "frames", "descriptors",
       "matching", "hypotheses", "verification", "icp".
@@ -59,7 +60,8 @@ class Registration:
       weakest direction of the point-to-plane constraints over the strongest; below
       `evidence.DEGENERATE_RATIO` the verdict is "degenerate").
     escalated: True when `effort="normal"`'s first pass was "not sure" and this is the pooled
-      pass that followed (`effort="high"`'s result; `reason` names both).
+      pass that followed, or the pass at twice the working resolution after it
+      (`effort="high"`'s result; `reason` names every pass).
   """
 
   transform: np.ndarray

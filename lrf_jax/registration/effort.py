@@ -75,10 +75,10 @@ def coarser_tried(code: str) -> str:
   return f"then one pass at {COARSER_MR:g}x the working resolution ({code})"
 
 
-def coarser_pass(pooled: Registration, note: str, run: Callable[[], Registration],
-                 timer: stages.StageTimer) -> Registration:
-  """The last step of `effort="normal"` and `"high"` where the pooled pass is not sure and
-  `coarser_runs`: `run()`, one pass at `coarser_options` (with or without an init), judged by
+def coarser_pass(pooled: Registration, note: str | None, run: Callable[[], Registration],
+                 opts: RegisterOptions, timer: stages.StageTimer) -> Registration:
+  """The last step of `effort="normal"` and `"high"`: where the pooled pass is not sure and
+  `coarser_runs`, `run()`, one pass at `coarser_options` (with or without an init), judged by
   the same verdict on its own evidence; its result where it is claimed, else `pooled`'s.
 
   A support of the default radius can be too small to tell a room's planes apart when the
@@ -86,14 +86,23 @@ def coarser_pass(pooled: Registration, note: str, run: Callable[[], Registration
   extent): one pass at twice the scale finds the pose the finer passes leave not sure.
 
   Args:
-    pooled: the pooled pass's result ("not sure").
-    note: the steps before, in words ("tried one pass (rival), then 2 seeds ... pooled").
-    run: the coarser pass; a ValueError (no correspondences at that scale) keeps `pooled`.
+    pooled: the pooled pass's result.
+    note: the steps before, in words ("tried one pass (rival), then 2 seeds ... pooled"); None
+      for `effort="high"`'s pooled pass alone (`tried_pooled`, named only where the coarser
+      pass runs).
+    run: the coarser pass, called only where it runs; a ValueError (no correspondences at that
+      scale) keeps `pooled`.
+    opts: the call's options (`coarser_runs`).
     timer: the call's timer (`seconds` and `timings` count every pass).
 
   Returns:
-    `Registration`; `reason` names the pooled pass's verdict and the coarser one's.
+    `Registration`: `pooled` (with `note` in its reason) where the pass does not run; else
+    `reason` names the pooled pass's verdict and the coarser one's.
   """
+  if not coarser_runs(pooled.reason_code, opts):
+    return pooled if note is None else dataclasses.replace(pooled,
+                                                           reason=f"{pooled.reason} ({note})")
+  note = tried_pooled() if note is None else note
   try:
     second = run()
   except ValueError as e:

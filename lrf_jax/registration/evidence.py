@@ -281,8 +281,8 @@ def next_step(evidence: Evidence) -> str:
   the working resolution (`effort="high"`, or the default `"normal"` after `"fast"`) unless
   they were used or a distinct pose explains nearly as many correspondences as the winner (at
   least AMBIGUOUS_SHARE of them: two copies of an object, which more correspondences find
-  again). An init is not named: it is judged on the
-  same evidence (`register(..., init=T)`), so it settles nothing the evidence left open."""
+  again). An init is not named: it is judged on the same evidence (`register(..., init=T)`),
+  so it settles nothing the evidence left open."""
   if (evidence.effort == "high"
       or evidence.rival_inliers >= AMBIGUOUS_SHARE * evidence.n_inliers):
     return ""

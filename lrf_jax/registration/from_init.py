@@ -29,8 +29,8 @@ from typing import Any
 import numpy as np
 
 from lrf_jax.registration import stages
-from lrf_jax.registration.effort import (coarser_options, coarser_pass, coarser_runs, escalates,
-                                         one_pass, pooled_stages, tried, tried_pooled)
+from lrf_jax.registration.effort import (coarser_options, coarser_pass, escalates, one_pass,
+                                         pooled_stages, tried)
 from lrf_jax.registration.estimators import finish_result
 from lrf_jax.registration.evidence import Evidence, Verdict, decide, distinct, poses_apart
 from lrf_jax.registration.options import RegisterOptions
@@ -80,10 +80,8 @@ def register_from_init(source: Any, target: Any, init: Any, opts: RegisterOption
   first = _judged(prepared, passes[2], hyps, refined, pose, opts, timer, gathered)
   first = _or_near(first, prepared, passes[2], hyps, pose, opts, timer, gathered)
   if effort == "high":
-    if not coarser_runs(first.reason_code, opts):
-      return first
-    return coarser_pass(first, tried_pooled(), _coarser_run(source, target, pose, first, opts,
-                                                            params, timer), timer)
+    return coarser_pass(first, None, _coarser_run(source, target, pose, first, opts, params,
+                                                  timer), opts, timer)
   if effort != "normal" or not escalates(first.reason_code):
     return first
   pooled = pooled_stages(source, target, opts, params, timer, first=prepared)
@@ -92,11 +90,9 @@ def register_from_init(source: Any, target: Any, init: Any, opts: RegisterOption
   again = _judged(pooled[0], pooled[2], pooled_hyps, refined, pose, opts, timer, "high")
   again = _or_near(again, pooled[0], pooled[2], pooled_hyps, pose, opts, timer, "high")
   note = tried(first.reason_code)
-  if not coarser_runs(again.reason_code, opts):
-    return dataclasses.replace(again, reason=f"{again.reason} ({note})", escalated=True)
   return dataclasses.replace(coarser_pass(again, note, _coarser_run(source, target, pose, again,
-                                                                    opts, params, timer), timer),
-                             escalated=True)
+                                                                    opts, params, timer),
+                                          opts, timer), escalated=True)
 
 
 def _coarser_run(source: Any, target: Any, pose: np.ndarray, pooled: Registration,
@@ -105,8 +101,10 @@ def _coarser_run(source: Any, target: Any, pose: np.ndarray, pooled: Registratio
   """`effort.coarser_pass`'s pass with an init: `register_from_init`'s one pass (ICP from
   `pose`, the verdict, the search near it) at `effort.COARSER_MR` x `pooled`'s working
   resolution."""
-  wide = coarser_options(opts, pooled.mr).with_overrides(effort="fast")
-  return lambda: register_from_init(source, target, pose, wide, params, timer, last=True)
+  def run() -> Registration:
+    wide = coarser_options(opts, pooled.mr).with_overrides(effort="fast")
+    return register_from_init(source, target, pose, wide, params, timer, last=True)
+  return run
 
 
 def _or_near(judged_init: Registration, prepared: stages.Prepared, matches: stages.Matches,

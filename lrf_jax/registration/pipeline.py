@@ -20,8 +20,8 @@ from typing import Any
 import numpy as np
 
 from lrf_jax.registration import stages
-from lrf_jax.registration.effort import (coarser_options, coarser_pass, coarser_runs, escalates,
-                                         one_pass, pooled_stages, tried, tried_pooled)
+from lrf_jax.registration.effort import (coarser_options, coarser_pass, escalates, one_pass,
+                                         pooled_stages, tried)
 from lrf_jax.registration.icp_host import icp
 from lrf_jax.registration.options import RegisterOptions, check_register_options, resolve
 from lrf_jax.registration.from_init import register_from_init
@@ -184,10 +184,8 @@ def register(source: Any, target: Any, options: RegisterOptions | None = None, *
   if effort == "high":
     pooled = conclude(*pooled_stages(source, target, opts, params, timer), opts, timer,
                       pooled=True)
-    if not coarser_runs(pooled.reason_code, opts):
-      return pooled
-    return coarser_pass(pooled, tried_pooled(), _coarser_run(source, target, pooled, opts, params,
-                                                             timer), timer)
+    return coarser_pass(pooled, None, _coarser_run(source, target, pooled, opts, params, timer),
+                        opts, timer)
   prepared, features, matches = one_pass(source, target, opts, params, timer)
   # "normal"'s first pass names no next step: the pooled pass follows it itself
   first = conclude(prepared, features, matches, opts, timer, pooled=effort == "normal")
@@ -200,10 +198,8 @@ def register(source: Any, target: Any, options: RegisterOptions | None = None, *
   except ValueError as e:  # the inputs passed the first pass: the pooled matching found none
     return dataclasses.replace(first, reason=f"{first.reason} ({note}: {e})",
                                seconds=timer.total(), timings=dict(timer.seconds), escalated=True)
-  if not coarser_runs(pooled.reason_code, opts):
-    return dataclasses.replace(pooled, reason=f"{pooled.reason} ({note})", escalated=True)
   return dataclasses.replace(coarser_pass(pooled, note, _coarser_run(source, target, pooled, opts,
-                                                                   params, timer), timer),
+                                                                   params, timer), opts, timer),
                              escalated=True)
 
 
@@ -211,9 +207,10 @@ def _coarser_run(source: Any, target: Any, pooled: Registration, opts: RegisterO
                  params: Any, timer: stages.StageTimer) -> Callable[[], Registration]:
   """`effort.coarser_pass`'s pass: steps 1-6 once at `effort.COARSER_MR` x `pooled`'s working
   resolution, judged as a last step (naming no further one)."""
-  wide = coarser_options(opts, pooled.mr)
-  return lambda: conclude(*one_pass(source, target, wide, params, timer), wide, timer,
-                          pooled=True)
+  def run() -> Registration:
+    wide = coarser_options(opts, pooled.mr)
+    return conclude(*one_pass(source, target, wide, params, timer), wide, timer, pooled=True)
+  return run
 
 
 def conclude(prepared: stages.Prepared, features: stages.Features, matches: stages.Matches,

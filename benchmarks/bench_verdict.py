@@ -5,11 +5,13 @@ an object side by side, a plane against the same plane shifted within itself) an
 may register but not a period off (two LiDAR sweeps along a street whose facades repeat,
 `datasets.make_street_pair`); prints a Markdown table with the verdict's `reason_code`.
 
-    LRF_DATA=/path/to/data python benchmarks/bench_verdict.py [--options] [--inits] [--multiway]
+    LRF_DATA=/path/to/data python benchmarks/bench_verdict.py [--options [--only JSON]] [--inits]
+        [--multiway]
 
 With `--options` the must-not pairs run again under every option that chooses the hypotheses
-differently (estimator "lrf" and "3point", ratio=0.9, mutual, ISS keypoints): the verdict is one
-for all, so none of them may claim success either. `--effort high` runs every row with
+differently (estimator "lrf" and "3point", ratio=0.9, mutual, ISS keypoints, the room and street
+weights): the verdict is one for all, so none of them may claim success either; `--only JSON`
+runs one option instead of all (`--options --only '{"weights": "rooms"}'`). `--effort high` runs every row with
 `register(..., effort="high")` (more keypoints and seeds, pooled). The last lines count the
 claims of the must-register rows and the false claims of the must-not rows.
 
@@ -25,6 +27,7 @@ to a room's size), seeds 0-2: a table of the foreign scans placed (must be none)
 scans placed and those placed only through "not sure" edges. Slow: 12 scans are 66 pairs.
 """
 
+import json
 import sys
 from pathlib import Path
 
@@ -41,7 +44,9 @@ EFFORT = sys.argv[sys.argv.index("--effort") + 1] if "--effort" in sys.argv else
 # truth): [claimed at a wrong pose, rows]
 TALLY = {"success": [0, 0], "failure": [0, 0], "ambiguous": [0, 0]}
 OPTIONS = ({"estimator": "lrf"}, {"estimator": "3point"}, {"ratio": 0.9}, {"mutual": True},
-           {"keypoints": "iss"})
+           {"keypoints": "iss"}, {"weights": "rooms"}, {"weights": "streets"})
+if "--only" in sys.argv:  # one option of OPTIONS (or any), as JSON: --only '{"weights": "rooms"}'
+  OPTIONS = (json.loads(sys.argv[sys.argv.index("--only") + 1]),)
 print("| pair | options | expected | inliers | chance | rival | fitness | err_r deg | success | "
       "code | reason |")
 print("|---|---|---|---:|---:|---:|---:|---:|---|---|---|")

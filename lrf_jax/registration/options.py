@@ -132,7 +132,9 @@ class DescribeOptions(OptionGroup):
                             "descriptor, a key of lrf_jax.descriptors.DESCRIPTORS")
   weights: str = option_field(
       "objects", "weights of a learned LRF method: objects (the paper's training data), rooms "
-      "(RGB-D room fragments), streets (LiDAR sweeps), or a parameter file's path",
+      "(RGB-D room fragments), streets (LiDAR sweeps), or a parameter file's path; weights "
+      "other than objects choose the pose, the verdict counts on the objects weights' "
+      "description",
       metavar="KIND|PATH")
 
 

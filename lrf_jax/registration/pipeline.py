@@ -71,8 +71,9 @@ def register(source: Any, target: Any, options: RegisterOptions | None = None, *
      shuffled and what the best distinct pose explains outside them, ICP pairs enough of the
      source, the overlap leaves no motion free (`evidence.constraint_spectrum`) and ICP's pose
      is not a distinct pose from the winner whose inliers were counted ("moved"). Whatever
-     chose the hypotheses (estimator, ratio, mutual, n_correspondences), the evidence is
-     counted on the default matching's correspondences (`stages.EVIDENCE_CORRESPONDENCES`)
+     chose the hypotheses (estimator, ratio, mutual, n_correspondences, the detector, learned
+     weights other than the object weights), the evidence is counted on the default
+     matching's correspondences (`stages.EVIDENCE_CORRESPONDENCES`; `stages.default_evidence`)
      with the compatibility graph's hypotheses (plus the estimator's own and the graph's on
      the correspondences outside the winner's inliers, as rivals), so no option claims what
      the default's evidence would not.

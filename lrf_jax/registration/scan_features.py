@@ -38,8 +38,8 @@ __all__ = ["DESCRIBE_FIELDS", "ScanFeatures", "SideRun", "describe_scan", "regis
 
 # The options a scan's features depend on: two scans' features can be paired only when these
 # (and the resolution) are the same.
-DESCRIBE_FIELDS = ("method", "descriptor", "radius_mr", "n_keypoints", "keypoints", "effort",
-                   "seed", "voxel_size")
+DESCRIBE_FIELDS = ("method", "descriptor", "weights", "radius_mr", "n_keypoints", "keypoints",
+                   "effort", "seed", "voxel_size")
 
 
 class SideRun(NamedTuple):
@@ -58,8 +58,10 @@ class ScanFeatures(NamedTuple):
     mr: the working resolution the features were computed at (cloud units).
     voxel: the scan's thinning voxel edge (0: not thinned).
     runs: one `SideRun` per seed (one; `EFFORT_SEEDS` with `effort="high"`).
-    evidence: with keypoints other than random ones, the default detector's (seeded random
-      keypoints) per seed, which the verdict counts on (`stages.default_evidence`); else ().
+    evidence: with keypoints other than random ones, or learned weights other than the object
+      weights, the default detector's (seeded random keypoints) per seed, described with the
+      object weights (`stages.evidence_description`), which the verdict counts on
+      (`stages.default_evidence`); else ().
     options: the values of `DESCRIBE_FIELDS` the features were computed with.
   """
 
@@ -130,13 +132,16 @@ def describe_scan(scan: Any, options: RegisterOptions | None = None, *, mr: floa
   seeds = [derived_seed(seed, k) for k in range(EFFORT_SEEDS if high else 1)]
   base = stages.prepare_side(working, index, view, mr, radius, detection, description,
                              np.random.default_rng(seeds[0]))
+  described = stages.evidence_description(description, params)
   runs, evidence = [], []
   for s in seeds:
     side = base if s == seeds[0] else _redraw(base, mr, detection, s)
     runs.append(_run(side, mr, radius, s, description, params))
-    if detection.keypoints != "random":  # the default detector's keypoints, for the verdict
+    if detection.keypoints != "random" or described is not None:  # the verdict's evidence
       plain = detection.with_overrides(keypoints="random")
-      evidence.append(_run(_redraw(base, mr, plain, s), mr, radius, s, description, params))
+      evidence.append(_run(_redraw(base, mr, plain, s), mr, radius, s,
+                           description if described is None else described,
+                           params if described is None else None))
   return ScanFeatures(mr, voxel, tuple(runs), tuple(evidence), _describe_options(opts))
 
 
@@ -175,6 +180,10 @@ def register_scans(source: ScanFeatures, target: ScanFeatures,
     if not (a == b == own):
       raise ValueError(f"{field}: the features were described with {a!r} (source) and {b!r} "
                        f"(target), the options say {own!r}")
+  if len(source.evidence) != len(target.evidence):
+    raise ValueError(f"params: the source was described with {len(source.evidence)} evidence "
+                     f"runs, the target with {len(target.evidence)}; describe both with the same "
+                     "params")
   seed = validate_seed(opts.inputs.seed)
   wide = high_effort_options(opts) if opts.verdict.effort == "high" else opts
   timer = stages.StageTimer()
@@ -187,7 +196,7 @@ def register_scans(source: ScanFeatures, target: ScanFeatures,
                                  np.random.default_rng(seed + k), seed + k, voxel)
       features = stages.Features((a.frames, b.frames), (a.descriptors, b.descriptors))
       matches = stages.match(features, wide)
-      if wide.detection.keypoints != "random":
+      if source.evidence:  # the default detector's or the object weights' (`describe_scan`)
         ea, eb = source.evidence[k], target.evidence[k]
         sampled = prepared._replace(sides=(ea.side, eb.side))
         matches = stages.with_evidence(matches, sampled, stages.Features(

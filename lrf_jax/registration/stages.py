@@ -355,19 +355,38 @@ def match(features: Features, opts: RegisterOptions) -> Matches:
   return Matches(qi, ri, eqi, eri, False)
 
 
+def evidence_description(description: DescribeOptions, params: Any) -> DescribeOptions | None:
+  """The description the verdict's evidence is counted on where it is not the run's own, else
+  None: a learned method with weights other than its shipped object weights (`weights` another
+  kind or a file, or `params` given) is described for the evidence with the object weights, the
+  rest of `description` kept. Weights fitted to the scans being registered (a user's own scans,
+  the room weights on the scene they were tuned on) can make the descriptors agree on a wrong
+  pose, the chance level and the rivals counted on the same descriptors included; the shipped
+  object weights never saw those scans."""
+  if not METHODS[description.method].needs_params:
+    return None
+  if params is None and description.weights == "objects":
+    return None
+  return description.with_overrides(weights="objects")
+
+
 def default_evidence(prepared: Prepared, matches: Matches, opts: RegisterOptions, params: Any,
                      timer: StageTimer) -> Matches:
-  """`matches` with the default detector's evidence, for options whose keypoints are not
-  seeded random points (ISS): the keypoints `prepare` draws by default with the same seed
-  (`reseed`), described and matched as by default. A detector that picks the same points on
-  two identical copies of an object sends every match to one copy, and its correspondences
-  could never witness the other; independent random keypoints on each copy split them, as for
-  the default, so no detector claims what the default's evidence would not."""
-  if opts.detection.keypoints == "random":
+  """`matches` with the default detector's and the object weights' evidence, for options whose
+  keypoints are not seeded random points (ISS) or whose learned weights are not the shipped
+  object weights (`evidence_description`): the keypoints `prepare` draws by default with the
+  same seed (`reseed`), described with the object weights where those are not the run's, and
+  matched as by default. A detector that picks the same points on two identical copies of an
+  object sends every match to one copy, and its correspondences could never witness the other;
+  independent random keypoints on each copy split them, as for the default, so no detector
+  claims what the default's evidence would not; no weights either."""
+  described = evidence_description(opts.description, params)
+  if opts.detection.keypoints == "random" and described is None:
     return matches
   plain = opts.detection.with_overrides(keypoints="random")
   sampled = reseed(prepared, plain, prepared.seed)
-  features = describe(sampled, opts.description, params, timer)
+  features = (describe(sampled, opts.description, params, timer) if described is None
+              else describe(sampled, described, None, timer))
   with timer("matching"):
     return with_evidence(matches, sampled, features)
 

@@ -1,17 +1,20 @@
 """Registration verdict: `lrf_jax.register(...).success` on pairs that must register (the 9
 consecutive Stanford bunny scans, BR scenes at 0.3 mr) and pairs that must not (two Gaussian blobs,
 a mirrored scan, two different BR models, two disjoint halves of one scan, two identical copies of
-an object side by side, a plane against the same plane shifted within itself) and pairs that
+an object side by side, a plane against the same plane shifted within itself, fragments of two
+different 3DMatch rooms both ways, a room against a raw KITTI sweep, a KITTI sweep against a
+synthetic street sweep) and pairs that
 may register but not a period off (two LiDAR sweeps along a street whose facades repeat,
 `datasets.make_street_pair`); prints a Markdown table with the verdict's `reason_code`.
 
     LRF_DATA=/path/to/data python benchmarks/bench_verdict.py [--options [--only JSON]] [--inits]
-        [--multiway]
+        [--multiway] [--failures-only] [--effort fast|normal|high]
 
 With `--options` the must-not pairs run again under every option that chooses the hypotheses
 differently (estimator "lrf" and "3point", ratio=0.9, mutual, ISS keypoints, the room and street
 weights): the verdict is one for all, so none of them may claim success either; `--only JSON`
-runs one option instead of all (`--options --only '{"weights": "rooms"}'`). `--effort high` runs every row with
+runs one option instead of all (`--options --only '{"weights": "rooms"}'`); `--failures-only`
+runs the must-not rows alone (and under the options). `--effort high` runs every row with
 `register(..., effort="high")` (more keypoints and seeds, pooled). The last lines count the
 claims of the must-register rows and the false claims of the must-not rows.
 
@@ -37,6 +40,7 @@ import numpy as np  # noqa: E402
 from scipy.spatial.transform import Rotation  # noqa: E402
 
 from lrf_jax import datasets  # noqa: E402
+from lrf_jax.io import read_cloud  # noqa: E402
 from lrf_jax.registration import register, rotation_error_deg  # noqa: E402
 
 EFFORT = sys.argv[sys.argv.index("--effort") + 1] if "--effort" in sys.argv else "normal"
@@ -71,10 +75,11 @@ def run(name, a, b, expect, gt=None, init_label=None, **kw):
         f"{r.reason} |", flush=True)
 
 
+FAILURES_ONLY = "--failures-only" in sys.argv  # the must-not rows alone (and their options)
 pairs = datasets.load_bunny_pairs(None)
-for p in pairs:
+for p in pairs if not FAILURES_ONLY else ():
   run("bunny " + p.name, p.model_points, p.scene_points, "success", p.transform)
-for p in datasets.load_br(None, 0.3)[:6]:
+for p in datasets.load_br(None, 0.3)[:6] if not FAILURES_ONLY else ():
   run("BR " + p.name, p.model_points, p.scene_points, "success", p.transform)
 
 
@@ -110,6 +115,17 @@ def failures():
   plane_a = np.c_[g.uniform(-20, 20, size=(20000, 2)), 0.02 * g.normal(size=20000)]
   plane_b = np.c_[g.uniform(-20, 20, size=(20000, 2)) + [8, 0], 0.02 * g.normal(size=20000)]
   yield "plane -> plane shifted within itself", plane_a, plane_b, {}
+  # unrelated scenes: two rooms of different 3DMatch scenes (both ways), a room against a raw
+  # LiDAR sweep, and a raw KITTI sweep against a synthetic street sweep (this data holds one
+  # KITTI sequence only)
+  rooms = {p.name: p for p in datasets.load_threedmatch_scenes(None)}
+  hotel, home = rooms["hotel3_8_15"].model_points, rooms["home_at_38_41"].model_points
+  yield "3DMatch hotel3 -> home_at fragment", hotel, home, {}
+  yield "3DMatch home_at -> hotel3 fragment", home, hotel, {}
+  sweep = read_cloud(datasets.find_data_root(None) / "lidar_kitti00" / "000000.bin").points
+  yield "3DMatch hotel3 fragment -> KITTI sweep", hotel, sweep, {}
+  yield "KITTI sweep -> synthetic street sweep", sweep, \
+      datasets.make_street_pair(4.0, 4.0, seed=0).scene_points, {}
 
 
 def streets():
@@ -125,13 +141,13 @@ def streets():
 
 for name, a, b, kw in failures():
   run(name, a, b, "failure", **kw)
-for name, pair in streets():
+for name, pair in streets() if not FAILURES_ONLY else ():
   run(name, pair.model_points, pair.scene_points, "ambiguous", pair.transform)
 if "--options" in sys.argv[1:]:
   for options in OPTIONS:
     for name, a, b, kw in failures():
       run(name, a, b, "failure", **kw, **options)
-    for name, pair in streets():
+    for name, pair in streets() if not FAILURES_ONLY else ():
       run(name, pair.model_points, pair.scene_points, "ambiguous", pair.transform, **options)
 
 

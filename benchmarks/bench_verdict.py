@@ -167,7 +167,7 @@ if "--inits" in sys.argv[1:]:
   for i, (name, a, b, kw) in enumerate(failures()):
     for label, init in guesses(a, b, i):
       run(name, a, b, "failure", **kw, init=init, init_label=label)
-  for i, (name, pair) in enumerate(streets()):
+  for i, (name, pair) in enumerate(streets() if not FAILURES_ONLY else ()):
     period = float(name.split("every ")[1].split(" m")[0])
     off = pair.transform.copy()
     off[0, 3] += period  # one period along the street (x): a wrong init the facades fit

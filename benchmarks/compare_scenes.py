@@ -53,6 +53,12 @@ def load(path: str | Path, method: str = "lrf") -> dict[str, dict[str, Any]]:
   return out
 
 
+def case_seed(path: str | Path) -> Any:
+  """The `--seed` a `bench_scenes.py --json` file's cases were built with (None if unrecorded):
+  runs of different seeds have the same case names and different cases."""
+  return (json.loads(Path(path).read_text()).get("args") or {}).get("seed")
+
+
 def counts(run: dict[str, dict[str, Any]], split: str, low: bool = False) -> dict[str, int]:
   """Right, claimed and false claims (claimed, not right) of `run`'s cases of `split` (only
   the 10-30 % bin with `low`), and their number."""
@@ -128,6 +134,10 @@ def main(argv: list[str] | None = None) -> None:
     runs = [load(p, args.method) for p in args.runs]
   except (OSError, ValueError, KeyError) as e:
     sys.exit(f"error: {e}")
+  seeds = [case_seed(p) for p in args.runs]
+  if len(set(map(str, seeds))) > 1:
+    sys.exit(f"error: the runs' cases were built with different seeds ({seeds}); compare runs "
+             "of the same seed")
   for path, run in zip(args.runs[1:], runs[1:]):
     if set(run) != set(runs[0]):
       sys.exit(f"error: {path}: its cases are not those of {args.runs[0]} "

@@ -122,8 +122,8 @@ def one_pass(source: Any, target: Any, opts: RegisterOptions, params: Any,
              timer: stages.StageTimer
              ) -> tuple[stages.Prepared, stages.Features, stages.Matches]:
   """prepare, describe and match once at `opts` (`effort="fast"`, and the first pass of
-  `"normal"`), with the default detector's evidence where the keypoints are not its own
-  (`stages.default_evidence`)."""
+  `"normal"`), with the default detector's evidence, described with the object weights, where
+  the keypoints or the learned weights are not the default's (`stages.default_evidence`)."""
   with timer("prepare"):
     prepared = stages.prepare(source, target, opts)
   features = stages.describe(prepared, opts.description, params, timer)

@@ -133,7 +133,7 @@ class DescribeOptions(OptionGroup):
   weights: str = option_field(
       "objects", "weights of a learned LRF method: objects (the paper's training data), rooms "
       "(RGB-D room fragments), streets (LiDAR sweeps), or a parameter file's path; weights "
-      "other than objects choose the pose, the verdict counts on the objects weights' "
+      "other than objects choose the pose, the verdict counts on the object weights' "
       "description",
       metavar="KIND|PATH")
 

@@ -104,8 +104,9 @@ class Features(NamedTuple):
 class Matches(NamedTuple):
   """Stage "match": correspondences as keypoint positions (source, target), best ratio first;
   the default matching's (`evidence_*`), which the verdict counts on; and whether they are the
-  same (`own`: the default detector, estimator and matching chose them). With ISS keypoints the
-  evidence is the default detector's (`default_evidence`): `evidence_points` holds its world
+  same (`own`: the default detector, estimator and matching chose them). With ISS keypoints, or
+  learned weights other than the object weights, the evidence is the default detector's keypoints
+  described with the object weights (`default_evidence`): `evidence_points` holds its world
   points and frames (p, q, f_p, f_q), and `evidence_*` index those keypoints, not these."""
 
   source: np.ndarray
